@@ -1,0 +1,248 @@
+"""A fitted calibration: a frozen value, kept apart from the estimator that made it (imucal).
+
+``calibration.json`` follows CONVENTIONS.md, format ``magalign.calibration/1``.
+
+Model (CONVENTIONS): ``y_mag(t) = D @ R_body_mag.T @ C_enu_body(t - tau).T @ B_enu + o + e``;
+restoring inverts it: ``b_enu = C_enu_body(t - tau) @ R_body_mag @ inv(D) @ (y_mag - o)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import InputError
+from .geometry import quat_rotate, quat_to_rotvec, matrix_to_quat
+
+FORMAT = "magalign.calibration/1"
+
+
+def _arr(x: Any, shape: tuple[int, ...] | None = None) -> np.ndarray | None:
+    if x is None:
+        return None
+    a = np.array(x, dtype=float)
+    if shape is not None:
+        a = a.reshape(shape)
+    a.flags.writeable = False
+    return a
+
+
+def _list(x: np.ndarray | None) -> Any:
+    return None if x is None else np.asarray(x, dtype=float).tolist()
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A fitted misalignment calibration.
+
+    Attributes
+    ----------
+    R_body_mag : ndarray, shape (3, 3)
+        Rotation mapping mag-frame vectors into the body frame (Li 2020, Eq. 1).
+    sigma_rotvec_deg : ndarray, shape (3,)
+        1-sigma of the rotation error about body x, y, z (deg); ``inf`` along unobservable axes.
+    unobservable_axes_body : tuple of ndarray (3,)
+        Unit vectors (body frame) about which the data do not determine the rotation.
+    B_enu_nT : ndarray, shape (3,)
+        Background field in ENU used or estimated.
+    estimator : str
+    residual_rms_nT : float
+    n_samples : int
+    D : ndarray (3, 3) or None
+        Symmetric positive-definite scale / soft-iron matrix.
+    offset_nT : ndarray (3,) or None
+        Offset ``o`` in the mag frame.
+    time_offset_s : float or None
+        ``tau``; positive when the magnetometer stamps are late.
+    sigma_D, sigma_offset_nT, sigma_time_offset_s, sigma_B_enu_nT
+        1-sigma twins.
+    R_nominal_body_mag : ndarray (3, 3) or None
+        Nominal mounting given in the configuration; the result is then also reported as the
+        small rotation from it.
+    effects : dict
+        Further model terms (CONVENTIONS effect names -> params), e.g. ``eddy_current``.
+    warnings : tuple of str
+        Observability and data-quality warnings in words.
+    """
+
+    R_body_mag: np.ndarray
+    sigma_rotvec_deg: np.ndarray
+    B_enu_nT: np.ndarray
+    estimator: str
+    residual_rms_nT: float
+    n_samples: int
+    unobservable_axes_body: tuple[np.ndarray, ...] = ()
+    D: np.ndarray | None = None
+    offset_nT: np.ndarray | None = None
+    time_offset_s: float | None = None
+    sigma_D: np.ndarray | None = None
+    sigma_offset_nT: np.ndarray | None = None
+    sigma_time_offset_s: float | None = None
+    sigma_B_enu_nT: np.ndarray | None = None
+    R_nominal_body_mag: np.ndarray | None = None
+    effects: dict = field(default_factory=dict)
+    warnings: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
+        set_("R_body_mag", _arr(self.R_body_mag, (3, 3)))
+        set_("sigma_rotvec_deg", _arr(self.sigma_rotvec_deg, (3,)))
+        set_("B_enu_nT", _arr(self.B_enu_nT, (3,)))
+        set_("D", _arr(self.D, (3, 3)))
+        set_("offset_nT", _arr(self.offset_nT, (3,)))
+        set_("sigma_D", _arr(self.sigma_D, (3, 3)))
+        set_("sigma_offset_nT", _arr(self.sigma_offset_nT, (3,)))
+        set_("sigma_B_enu_nT", _arr(self.sigma_B_enu_nT, (3,)))
+        set_("R_nominal_body_mag", _arr(self.R_nominal_body_mag, (3, 3)))
+        set_("unobservable_axes_body", tuple(_arr(a, (3,)) for a in self.unobservable_axes_body))
+        set_("warnings", tuple(self.warnings))
+        if self.time_offset_s is not None:
+            set_("time_offset_s", float(self.time_offset_s))
+
+    # ------------------------------------------------------------------ derived values
+    @property
+    def rotvec_body_mag_deg(self) -> np.ndarray:
+        """Rotation vector of ``R_body_mag`` in degrees."""
+        return np.degrees(quat_to_rotvec(matrix_to_quat(self.R_body_mag)))
+
+    @property
+    def rotvec_from_nominal_deg(self) -> np.ndarray | None:
+        """Rotation vector (deg) of ``R_body_mag @ R_nominal.T``, or None without a nominal."""
+        if self.R_nominal_body_mag is None:
+            return None
+        dR = self.R_body_mag @ self.R_nominal_body_mag.T
+        return np.degrees(quat_to_rotvec(matrix_to_quat(dR)))
+
+    # ------------------------------------------------------------------ model
+    def calibrated_mag(self, mag_nT: np.ndarray) -> np.ndarray:
+        """Remove offset and ``D``: ``inv(D) @ (y - o)``, mag frame, shape (N, 3)."""
+        y = np.asarray(mag_nT, dtype=float)
+        if self.offset_nT is not None:
+            y = y - self.offset_nT
+        if self.D is not None:
+            y = np.linalg.solve(self.D, y.T).T
+        return y
+
+    def apply(self, mag_nT: np.ndarray, q_enu_body: np.ndarray) -> np.ndarray:
+        """Restore magnetometer samples to ENU (CONVENTIONS, inverse model).
+
+        Parameters
+        ----------
+        mag_nT : ndarray, shape (N, 3)
+            Raw magnetometer, mag frame.
+        q_enu_body : ndarray, shape (N, 4)
+            Attitude at ``t - tau`` (the caller interpolates with ``time_offset_s``).
+
+        Returns
+        -------
+        ndarray, shape (N, 3)
+            ``C_enu_body @ R_body_mag @ inv(D) @ (y - o)``, ENU, nT.
+        """
+        m = self.calibrated_mag(mag_nT)
+        return quat_rotate(q_enu_body, m @ self.R_body_mag.T)
+
+    def predict(self, q_enu_body: np.ndarray, B_enu_nT: np.ndarray | None = None) -> np.ndarray:
+        """Forward model: the magnetometer reading predicted from the attitude, shape (N, 3)."""
+        from .geometry import quat_conj
+
+        B = self.B_enu_nT if B_enu_nT is None else np.asarray(B_enu_nT, dtype=float)
+        b_body = quat_rotate(quat_conj(q_enu_body), np.broadcast_to(B, (len(q_enu_body), 3)))
+        y = b_body @ self.R_body_mag  # R.T @ b for each row
+        if self.D is not None:
+            y = y @ self.D.T
+        if self.offset_nT is not None:
+            y = y + self.offset_nT
+        return y
+
+    # ------------------------------------------------------------------ serialisation
+    def to_dict(self) -> dict[str, Any]:
+        """The calibration.json object (CONVENTIONS)."""
+        return {
+            "format": FORMAT,
+            "R_body_mag": _list(self.R_body_mag),
+            "rotvec_body_mag_deg": _list(self.rotvec_body_mag_deg),
+            "sigma_rotvec_deg": [
+                None if not np.isfinite(s) else float(s) for s in self.sigma_rotvec_deg
+            ],
+            "unobservable_axes_body": [_list(a) for a in self.unobservable_axes_body],
+            "D": _list(self.D),
+            "sigma_D": _list(self.sigma_D),
+            "offset_nT": _list(self.offset_nT),
+            "sigma_offset_nT": _list(self.sigma_offset_nT),
+            "time_offset_s": self.time_offset_s,
+            "sigma_time_offset_s": self.sigma_time_offset_s,
+            "B_enu_nT": _list(self.B_enu_nT),
+            "sigma_B_enu_nT": _list(self.sigma_B_enu_nT),
+            "estimator": self.estimator,
+            "residual_rms_nT": float(self.residual_rms_nT),
+            "n_samples": int(self.n_samples),
+            "R_nominal_body_mag": _list(self.R_nominal_body_mag),
+            "rotvec_from_nominal_deg": _list(self.rotvec_from_nominal_deg),
+            "effects": self.effects,
+            "warnings": list(self.warnings),
+        }
+
+    def to_json(self, indent: int = 2) -> str:
+        """Serialise to the calibration.json text."""
+        return json.dumps(self.to_dict(), indent=indent, allow_nan=False)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], path: str | None = None) -> Calibration:
+        """Build from a calibration.json object; checks the format version."""
+        if d.get("format") != FORMAT:
+            raise InputError(
+                f"not a {FORMAT} calibration (format is {d.get('format')!r})",
+                path=path,
+                hint="pass a calibration.json written by magalign",
+            )
+        try:
+            sig = [np.inf if s is None else s for s in d["sigma_rotvec_deg"]]
+            return cls(
+                R_body_mag=d["R_body_mag"],
+                sigma_rotvec_deg=sig,
+                B_enu_nT=d["B_enu_nT"],
+                estimator=d["estimator"],
+                residual_rms_nT=d["residual_rms_nT"],
+                n_samples=d["n_samples"],
+                unobservable_axes_body=tuple(d.get("unobservable_axes_body") or ()),
+                D=d.get("D"),
+                offset_nT=d.get("offset_nT"),
+                time_offset_s=d.get("time_offset_s"),
+                sigma_D=d.get("sigma_D"),
+                sigma_offset_nT=d.get("sigma_offset_nT"),
+                sigma_time_offset_s=d.get("sigma_time_offset_s"),
+                sigma_B_enu_nT=d.get("sigma_B_enu_nT"),
+                R_nominal_body_mag=d.get("R_nominal_body_mag"),
+                effects=d.get("effects") or {},
+                warnings=tuple(d.get("warnings") or ()),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"calibration file is incomplete or malformed: {exc}", path=path) from exc
+
+    @classmethod
+    def from_json(cls, text: str, path: str | None = None) -> Calibration:
+        """Parse calibration.json text."""
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise InputError(f"calibration is not valid JSON: {exc}", path=path) from exc
+        return cls.from_dict(d, path=path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> Calibration:
+        """Read a calibration.json file."""
+        p = Path(path)
+        try:
+            text = p.read_text()
+        except OSError as exc:
+            raise InputError(f"cannot read calibration: {exc.strerror}", path=p) from exc
+        return cls.from_json(text, path=str(p))
+
+    def replace(self, **changes: Any) -> Calibration:
+        """A new calibration with ``changes``."""
+        return dataclasses.replace(self, **changes)
