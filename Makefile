@@ -3,7 +3,7 @@ PY      ?= python3
 VENV    := .venv
 BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
-CAMPAIGN ?= schemas/campaigns/demo.toml
+CAMPAIGN ?= pipeline/demo/campaign.toml
 OUT     ?= out/demo
 JOBS    ?= 2
 
