@@ -33,7 +33,19 @@ def _arr(x: Any, shape: tuple[int, ...] | None = None) -> np.ndarray | None:
 
 
 def _list(x: np.ndarray | None) -> Any:
-    return None if x is None else np.asarray(x, dtype=float).tolist()
+    if x is None:
+        return None
+    a = np.asarray(x, dtype=float)
+    if np.all(np.isfinite(a)):
+        return a.tolist()
+    # JSON has no inf: an unobservable (infinite-sigma) entry is written as null.
+    return _nulls(a)
+
+
+def _nulls(a: np.ndarray) -> Any:
+    if a.ndim == 0:
+        return float(a) if np.isfinite(a) else None
+    return [_nulls(v) for v in a]
 
 
 @dataclass(frozen=True)
@@ -175,7 +187,9 @@ class Calibration:
             "offset_nT": _list(self.offset_nT),
             "sigma_offset_nT": _list(self.sigma_offset_nT),
             "time_offset_s": self.time_offset_s,
-            "sigma_time_offset_s": self.sigma_time_offset_s,
+            "sigma_time_offset_s": None
+            if self.sigma_time_offset_s is None or not np.isfinite(self.sigma_time_offset_s)
+            else float(self.sigma_time_offset_s),
             "B_enu_nT": _list(self.B_enu_nT),
             "sigma_B_enu_nT": _list(self.sigma_B_enu_nT),
             "estimator": self.estimator,

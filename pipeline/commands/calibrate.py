@@ -1,0 +1,134 @@
+"""``magalign calibrate REC.mcap --out DIR``: estimate the misalignment, write calibration.json.
+
+Options (CONVENTIONS): ``--estimator ml|li2020|ellipsoid|dpi``, ``--reference-field E,N,U``,
+``--igrf LAT,LON,ALT_M,DATE``, ``--estimate offset,soft_iron,time_offset``, ``--mag TOPIC``,
+``--attitude TOPIC``, ``--robust huber|cauchy``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.atomic import atomic_path
+from pipeline.errors import UsageError
+
+
+def _floats(text: str, n: int, what: str) -> list[float]:
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        vals = [float(p) for p in parts]
+    except ValueError as exc:
+        raise UsageError(f"{what} must be {n} comma-separated numbers, got {text!r}") from exc
+    if len(vals) != n or not all(np.isfinite(vals)):
+        raise UsageError(f"{what} must be {n} comma-separated finite numbers, got {text!r}")
+    return vals
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register the subcommand."""
+    p = sub.add_parser("calibrate", help="estimate the magnetometer misalignment")
+    p.add_argument("recording", help="MCAP recording")
+    p.add_argument("--out", required=True, help="output folder (gets calibration.json)")
+    p.add_argument(
+        "--estimator",
+        default="ml",
+        choices=["ml", "li2020", "ellipsoid", "dpi"],
+        help="estimation method (default ml)",
+    )
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--reference-field", metavar="E,N,U", help="known background field, nT, ENU")
+    g.add_argument("--igrf", metavar="LAT,LON,ALT_M,DATE", help="reference field from the IGRF")
+    p.add_argument(
+        "--estimate",
+        default="",
+        metavar="TERMS",
+        help="comma-separated extra terms: offset, soft_iron, time_offset",
+    )
+    p.add_argument(
+        "--robust",
+        default="none",
+        choices=["none", "huber", "cauchy"],
+        help="robust loss against outliers (default none)",
+    )
+    p.add_argument("--mag", metavar="TOPIC", help="magnetometer topic")
+    p.add_argument("--attitude", metavar="TOPIC", help="attitude topic")
+    p.set_defaults(func=run)
+
+
+def reference_from_args(args: argparse.Namespace) -> np.ndarray | None:
+    """Return the reference field (ENU, nT) asked for on the command line, or None."""
+    if getattr(args, "reference_field", None):
+        return np.array(_floats(args.reference_field, 3, "--reference-field"))
+    if getattr(args, "igrf", None):
+        parts = args.igrf.split(",")
+        if len(parts) != 4:
+            raise UsageError(f"--igrf must be LAT,LON,ALT_M,DATE, got {args.igrf!r}")
+        lat, lon, alt = _floats(",".join(parts[:3]), 3, "--igrf LAT,LON,ALT_M")
+        from pipeline.igrf import igrf_enu_nT
+
+        return np.asarray(igrf_enu_nT(lat, lon, alt, parts[3].strip()), float)
+    return None
+
+
+def run(args: argparse.Namespace) -> int:
+    """Read, resample, estimate, write DIR/calibration.json and print a summary."""
+    from pipeline.mcap_read import read_recording
+    from pipeline.recording import Context
+    from stages.estimate import EstimatorKind, RobustLoss, Term, fit_calibration
+    from stages.resample import Resample
+
+    try:
+        terms = frozenset(Term(t.strip()) for t in args.estimate.split(",") if t.strip())
+    except ValueError as exc:
+        raise UsageError(
+            f"--estimate takes offset, soft_iron, time_offset; got {args.estimate!r}"
+        ) from exc
+    ref = reference_from_args(args)
+    rec = read_recording(args.recording, mag_topic=args.mag, attitude_topic=args.attitude)
+    ctx = Resample().run(Context(source=str(args.recording), recording=rec))
+    cal = fit_calibration(
+        rec,
+        ctx.aligned,
+        estimator=EstimatorKind(args.estimator),
+        terms=terms,
+        reference_field_enu_nT=ref,
+        robust=RobustLoss(args.robust),
+    )
+    out = Path(args.out) / "calibration.json"
+    with atomic_path(out, inputs=(args.recording,)) as tmp:
+        tmp.write_text(cal.to_json() + "\n")
+    print(summary(cal))
+    print(f"wrote {out}")
+    return 0
+
+
+def summary(cal) -> str:
+    """Format a few lines: rotation vector with sigmas, residual RMS, terms, warnings."""
+    rv = cal.rotvec_body_mag_deg
+    sg = cal.sigma_rotvec_deg
+    lines = [
+        f"estimator {cal.estimator}, {cal.n_samples} samples, residual RMS "
+        f"{cal.residual_rms_nT:.3f} nT",
+        "rotation vector body<-mag [deg]: "
+        + ", ".join(
+            f"{v:+.4f} +- {s:.4f}" if np.isfinite(s) else f"{v:+.4f} +- inf"
+            for v, s in zip(rv, sg, strict=True)
+        ),
+        "B_enu [nT]: " + ", ".join(f"{b:.1f}" for b in cal.B_enu_nT),
+    ]
+    if cal.rotvec_from_nominal_deg is not None:
+        lines.append(
+            "from nominal [deg]: " + ", ".join(f"{v:+.4f}" for v in cal.rotvec_from_nominal_deg)
+        )
+    if cal.offset_nT is not None:
+        lines.append("offset [nT]: " + ", ".join(f"{v:.2f}" for v in cal.offset_nT))
+    if cal.time_offset_s is not None:
+        lines.append(
+            f"time offset: {cal.time_offset_s * 1e3:.3f} ms +- "
+            f"{(cal.sigma_time_offset_s or 0) * 1e3:.3f} ms"
+        )
+    lines += [f"warning: {w}" for w in cal.warnings]
+    return "\n".join(lines)

@@ -1,0 +1,186 @@
+"""Estimate stage: the misalignment ``R_body_mag`` and, on request, ``o``, ``D`` and ``tau``.
+
+:func:`fit_calibration` is the library entry point; :class:`Estimate` wraps it as a stage
+(requires ``recording`` and ``aligned``, provides ``calibration``). The estimators live in
+:mod:`stages.estimators`, one module each, behind the ``Estimator`` protocol.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from pipeline.calibration import Calibration
+from pipeline.errors import EstimationError
+from pipeline.recording import AlignedSeries, Context, Recording
+
+from .estimators.base import (
+    Estimator,
+    EstimatorKind,
+    NoiseModel,
+    Problem,
+    RobustLoss,
+    Term,
+)
+
+__all__ = [
+    "Estimate",
+    "EstimatorKind",
+    "NoiseModel",
+    "RobustLoss",
+    "Term",
+    "fit_calibration",
+    "make_estimator",
+]
+
+
+def make_estimator(kind: EstimatorKind) -> Estimator:
+    """Return the estimator object for ``kind``."""
+    kind = EstimatorKind(kind)
+    if kind is EstimatorKind.ML:
+        from .estimators.ml import MLEstimator
+
+        return MLEstimator()
+    if kind is EstimatorKind.LI2020:
+        from .estimators.li2020 import Li2020Estimator
+
+        return Li2020Estimator()
+    if kind is EstimatorKind.ELLIPSOID:
+        from .estimators.ellipsoid import EllipsoidEstimator
+
+        return EllipsoidEstimator()
+    from .estimators.dpi import DpiEstimator
+
+    return DpiEstimator()
+
+
+def _terms(terms: Iterable[Term | str]) -> frozenset[Term]:
+    return frozenset(Term(t) for t in terms)
+
+
+def _robust(robust: bool | RobustLoss | str) -> RobustLoss:
+    if isinstance(robust, bool):
+        return RobustLoss.HUBER if robust else RobustLoss.NONE
+    return RobustLoss(robust)
+
+
+def fit_calibration(
+    recording: Recording | None,
+    aligned: AlignedSeries,
+    *,
+    estimator: EstimatorKind = EstimatorKind.ML,
+    terms: Iterable[Term | str] = frozenset(),
+    reference_field_enu_nT: Sequence[float] | np.ndarray | None = None,
+    R_nominal_body_mag: np.ndarray | None = None,
+    robust: bool | RobustLoss = False,
+    windows_ns: Sequence[tuple[int, int]] | None = None,
+    noise: NoiseModel | None = None,
+) -> Calibration:
+    """Estimate the calibration of one recording.
+
+    Parameters
+    ----------
+    recording : Recording or None
+        Its raw attitude series is used to re-interpolate at ``t - tau`` when the time offset
+        is estimated; ``None`` uses the aligned samples themselves.
+    aligned : AlignedSeries
+        Magnetometer samples (nT, frame mag) with the attitude at ``t - aligned.time_offset_s``.
+    estimator : EstimatorKind
+        Which method (default maximum likelihood).
+    terms : iterable of Term
+        Extra terms: ``OFFSET`` (``o``), ``SOFT_IRON`` (``D``), ``TIME_OFFSET`` (``tau``).
+    reference_field_enu_nT : array_like (3,), optional
+        Known background field (ENU, nT); fixes ``B`` and makes the rotation about a single
+        rotation axis observable.
+    R_nominal_body_mag : ndarray (3, 3), optional
+        Nominal mounting; the result is also reported as the small rotation from it.
+    robust : bool or RobustLoss
+        ``True`` is Huber; IRLS on the whitened per-sample residuals.
+    windows_ns : sequence of (start, end), optional
+        Use only samples inside these half-open windows.
+    noise : NoiseModel, optional
+        Sensor figures for the weighting; ``None`` means unknown isotropic noise (the
+        covariance is then scaled by the residual variance).
+
+    Returns
+    -------
+    Calibration
+
+    Raises
+    ------
+    EstimationError
+        Too few samples, NaN data, or an estimator that cannot work on this motion
+        (:class:`~pipeline.errors.NotObservableError`).
+
+    """
+    al = aligned
+    if windows_ns:
+        keep = np.zeros(len(al), bool)
+        for a, b in windows_ns:
+            keep |= (al.t_ns >= int(a)) & (al.t_ns < int(b))
+        al = al.select(keep)
+    ref = None
+    if reference_field_enu_nT is not None:
+        ref = np.asarray(reference_field_enu_nT, float).reshape(3)
+        if not np.all(np.isfinite(ref)) or np.linalg.norm(ref) <= 0:
+            raise EstimationError(f"reference field {ref.tolist()} is not a usable vector")
+    R_nom = None if R_nominal_body_mag is None else np.asarray(R_nominal_body_mag, float)
+    if R_nom is not None:
+        R_nom = R_nom.reshape(3, 3)
+        if not np.allclose(R_nom @ R_nom.T, np.eye(3), atol=1e-6) or np.linalg.det(R_nom) < 0:
+            raise EstimationError("the nominal mounting R_nominal_body_mag is not a rotation")
+    problem = Problem(
+        t_ns=al.t_ns,
+        mag_nT=al.mag_nT,
+        q_enu_body=al.q_enu_body,
+        time_offset0_s=float(al.time_offset_s),
+        attitude=None if recording is None else recording.attitude,
+        terms=_terms(terms),
+        reference_field_enu_nT=ref,
+        R_nominal_body_mag=R_nom,
+        robust=_robust(robust),
+        noise=noise,
+    )
+    return make_estimator(estimator).fit(problem)
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """Stage: fit the calibration (see :func:`fit_calibration` for the parameters)."""
+
+    estimator: EstimatorKind = EstimatorKind.ML
+    terms: frozenset = frozenset()
+    reference_field_enu_nT: tuple[float, float, float] | None = None
+    R_nominal_body_mag: tuple | None = None
+    robust: RobustLoss = RobustLoss.NONE
+    noise: NoiseModel | None = None
+    use_segments: bool = False
+
+    requires: ClassVar[frozenset[str]] = frozenset({"recording", "aligned"})
+    provides: ClassVar[frozenset[str]] = frozenset({"calibration"})
+
+    def run(self, ctx: Context) -> Context:
+        """Return ``ctx`` with ``calibration`` set.
+
+        With ``use_segments`` and segments in the context, only samples inside them are used.
+        """
+        windows = None
+        if self.use_segments and ctx.segments:
+            windows = [(s.start_ns, s.end_ns) for s in ctx.segments]
+        cal = fit_calibration(
+            ctx.recording,
+            ctx.aligned,
+            estimator=self.estimator,
+            terms=self.terms,
+            reference_field_enu_nT=self.reference_field_enu_nT,
+            R_nominal_body_mag=None
+            if self.R_nominal_body_mag is None
+            else np.asarray(self.R_nominal_body_mag, float),
+            robust=self.robust,
+            windows_ns=windows,
+            noise=self.noise,
+        )
+        return ctx.replace(calibration=cal)

@@ -1,0 +1,429 @@
+"""What every estimator shares: options, the problem it solves, and the uncertainty analysis.
+
+The measurement model is the one of CONVENTIONS::
+
+    y_mag(t) = D @ R_body_mag.T @ C_enu_body(t - tau).T @ B_enu + o + noise
+
+An estimator is anything with ``fit(problem) -> Calibration`` (:class:`Estimator`). The enums
+live here (and are re-exported by :mod:`stages.estimate`) so that the estimator modules and the
+stage module do not import each other.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.calibration import Calibration
+from pipeline.errors import EstimationError
+from pipeline.geometry import quat_slerp, quat_to_matrix, skew
+from pipeline.recording import AttitudeSeries
+
+F64 = NDArray[np.float64]
+
+#: An eigen-direction of the information matrix keeps less than this fraction of its
+#: information once the other parameters are marginalised out (generalised eigenvalue of the
+#: marginal against the unmarginalised block, 0..1, scale-free): its 1-sigma is then more than
+#: 1000x what it would be if the others were known, and it is reported as unobservable. Attitude
+#: noise of 0.015 deg on a single-axis sweep leaves ratios near 1e-7, real wobble of >= 0.1 deg
+#: gives >= 1e-5.
+RELATIVE_INFO_THRESHOLD = 1e-6
+
+
+class EstimatorKind(enum.Enum):
+    """Which estimator :func:`stages.estimate.fit_calibration` uses."""
+
+    ML = "ml"
+    LI2020 = "li2020"
+    ELLIPSOID = "ellipsoid"
+    DPI = "dpi"
+
+
+class Term(enum.Enum):
+    """Optional model terms estimated beside the rotation (CONVENTIONS names)."""
+
+    OFFSET = "offset"
+    SOFT_IRON = "soft_iron"
+    TIME_OFFSET = "time_offset"
+
+
+class RobustLoss(enum.Enum):
+    """Loss on the whitened per-sample residual norm (IRLS weights)."""
+
+    NONE = "none"
+    HUBER = "huber"
+    CAUCHY = "cauchy"
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Sensor noise figures (1-sigma) used to weight the residuals.
+
+    Attributes
+    ----------
+    sigma_mag_nT : float
+        White noise of each magnetometer component, nT.
+    sigma_heading_rad : float
+        Attitude error about the ENU up axis, rad.
+    sigma_pitch_rad, sigma_roll_rad : float
+        Attitude errors about the Li 2020 pitch (x) and roll (y) axes, rad.
+
+    """
+
+    sigma_mag_nT: float = 0.1
+    sigma_heading_rad: float = 0.0
+    sigma_pitch_rad: float = 0.0
+    sigma_roll_rad: float = 0.0
+
+    @classmethod
+    def li2020(cls) -> NoiseModel:
+        """Return the paper's sensor figures: 0.1 nT; heading 0.06 deg, pitch and roll 0.015 deg."""
+        return cls(0.1, np.radians(0.06), np.radians(0.015), np.radians(0.015))
+
+    def attitude_cov_body(self, C_enu_body: F64) -> F64:
+        """Covariance of the small attitude error expressed in the body frame, (N, 3, 3), rad^2.
+
+        With ``E = Ey(roll) Ex(pitch) Ez(heading) = C_body_enu`` (Li 2020, Eq. 7), a heading
+        error rotates about ENU up (``E @ e_z`` in body), a pitch error about ``Ey(roll) @ e_x``
+        and a roll error about body ``e_y``; the three are taken as independent.
+        """
+        C_body_enu = np.swapaxes(C_enu_body, -1, -2)
+        up_b = C_body_enu[:, :, 2]
+        # Ey(roll) e_x in body; roll from E[0,2] = -sin(r) cos(p), E[2,2] = cos(r) cos(p)
+        roll = np.arctan2(-C_body_enu[:, 0, 2], C_body_enu[:, 2, 2])
+        pitch_b = np.stack([np.cos(roll), np.zeros_like(roll), np.sin(roll)], -1)
+        roll_b = np.broadcast_to(np.array([0.0, 1.0, 0.0]), up_b.shape)
+        out = self.sigma_heading_rad**2 * up_b[:, :, None] * up_b[:, None, :]
+        out = out + self.sigma_pitch_rad**2 * pitch_b[:, :, None] * pitch_b[:, None, :]
+        return out + self.sigma_roll_rad**2 * roll_b[:, :, None] * roll_b[:, None, :]
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One estimation problem: aligned samples plus everything the caller asked for.
+
+    Attributes
+    ----------
+    t_ns : ndarray int64 (N,)
+        Magnetometer stamps.
+    mag_nT : ndarray (N, 3)
+        Magnetometer, frame mag.
+    q_enu_body : ndarray (N, 4)
+        Attitude at ``t - time_offset0_s``.
+    time_offset0_s : float
+        The ``tau`` the attitude was interpolated with.
+    attitude : AttitudeSeries or None
+        The raw attitude series (to re-interpolate at ``t - tau`` when ``tau`` is estimated).
+    terms : frozenset of Term
+    reference_field_enu_nT : ndarray (3,) or None
+        A known background field; with it ``B`` is fixed.
+    R_nominal_body_mag : ndarray (3, 3) or None
+    robust : RobustLoss
+    noise : NoiseModel or None
+        ``None``: isotropic unknown noise, the covariance is scaled by the residual variance.
+
+    """
+
+    t_ns: NDArray[np.int64]
+    mag_nT: F64
+    q_enu_body: F64
+    time_offset0_s: float = 0.0
+    attitude: AttitudeSeries | None = None
+    terms: frozenset = frozenset()
+    reference_field_enu_nT: F64 | None = None
+    R_nominal_body_mag: F64 | None = None
+    robust: RobustLoss = RobustLoss.NONE
+    noise: NoiseModel | None = None
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if len(self.t_ns) < 10:
+            raise EstimationError(
+                f"only {len(self.t_ns)} magnetometer samples with an attitude",
+                hint="a calibration needs a recording with motion and at least a few seconds "
+                "of overlapping magnetometer and attitude data",
+            )
+        if not np.all(np.isfinite(self.mag_nT)) or not np.all(np.isfinite(self.q_enu_body)):
+            raise EstimationError("magnetometer or attitude samples contain NaN or inf")
+
+    @property
+    def n(self) -> int:
+        """Number of samples."""
+        return int(len(self.t_ns))
+
+    @property
+    def C_enu_body(self) -> F64:
+        """Attitude matrices, (N, 3, 3)."""
+        return quat_to_matrix(self.q_enu_body)
+
+
+@runtime_checkable
+class Estimator(Protocol):
+    """The plug-in point: anything that turns a :class:`Problem` into a :class:`Calibration`."""
+
+    def fit(self, problem: Problem) -> Calibration:
+        """Estimate the calibration."""
+        ...
+
+
+# ------------------------------------------------------------------------------- helpers
+def interpolate_q(attitude: AttitudeSeries, t_ns: NDArray[np.int64], offset_s: float) -> F64:
+    """SLERP of ``attitude`` at ``t - offset_s`` (clamped at the ends), shape (N, 4).
+
+    Used while iterating on ``tau``; the READER's ``stages.resample.interpolate_attitude`` does
+    the same with gap checks for the initial alignment.
+    """
+    ta = attitude.t_ns
+    t = t_ns.astype(np.float64) - offset_s * 1e9
+    rel = t - float(ta[0])
+    tar = (ta - ta[0]).astype(np.float64)
+    j = np.clip(np.searchsorted(tar, rel, side="right") - 1, 0, len(ta) - 2)
+    dt = tar[j + 1] - tar[j]
+    s = np.clip((rel - tar[j]) / np.where(dt > 0, dt, 1.0), 0.0, 1.0)
+    q = attitude.q_enu_body
+    return quat_slerp(q[j], q[j + 1], s)
+
+
+def wahba(a: F64, b: F64, w: F64 | None = None) -> F64:
+    """Rotation ``R`` minimising ``sum w_i |b_i - R a_i|^2`` (Kabsch / SVD), shape (3, 3)."""
+    w = np.ones(len(a)) if w is None else w
+    H = (b * w[:, None]).T @ a
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(U @ Vt)) or 1.0
+    return U @ np.diag([1.0, 1.0, d]) @ Vt
+
+
+def cube_rotations() -> F64:
+    """Return the 24 proper rotations that permute and flip axes, (24, 3, 3)."""
+    import itertools
+
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            M = np.zeros((3, 3))
+            for r, c in enumerate(perm):
+                M[r, c] = signs[r]
+            if np.linalg.det(M) > 0:
+                out.append(M)
+    return np.array(out)
+
+
+def init_rotation(
+    mag_nT: F64,
+    C_enu_body: F64,
+    B_ref: F64 | None,
+    candidates: F64 | None = None,
+    iterations: int = 8,
+) -> tuple[F64, F64]:
+    """Closed-form start for ``R_body_mag`` and ``B_enu`` that converges from any mounting.
+
+    With a reference field: Wahba between ``y_i`` and ``C_i.T @ B_ref`` (one SVD). Without:
+    for each candidate start (the 24 axis permutations and, when given, the nominal mounting)
+    ``B = mean(C R y)``; the candidate with the smallest spread of the restored field wins, then
+    a few alternations ``R = Wahba(y, C.T B)``, ``B = mean(C R y)``. The mean of ``C y`` from
+    identity is a poor guess under a large misalignment; the candidate search avoids that.
+
+    Returns
+    -------
+    R_body_mag : ndarray (3, 3)
+    B_enu_nT : ndarray (3,)
+
+    """
+    y = mag_nT
+    if B_ref is not None:
+        b_body = np.einsum("nji,j->ni", C_enu_body, B_ref)
+        return wahba(y, b_body), np.asarray(B_ref, float)
+    cands = cube_rotations() if candidates is None else candidates
+    best = None
+    for R in cands:
+        e = np.einsum("nij,nj->ni", C_enu_body, y @ R.T)
+        B = e.mean(0)
+        cost = float(np.mean(np.sum((e - B) ** 2, 1)))
+        if best is None or cost < best[0]:
+            best = (cost, R, B)
+    _, R, B = best
+    for _ in range(iterations):
+        b_body = np.einsum("nji,j->ni", C_enu_body, B)
+        R = wahba(y, b_body)
+        B = np.einsum("nij,nj->ni", C_enu_body, y @ R.T).mean(0)
+    return R, B
+
+
+def irls_weights(r_norm: F64, loss: RobustLoss, scale: float | None = None) -> F64:
+    """IRLS weights for the per-sample whitened residual norms.
+
+    Huber (k = 1.345) and Cauchy (k = 2.385) on ``r / s`` where ``s`` is the given scale or a
+    robust one (1.4826 x median absolute norm, per component, i.e. divided by sqrt(3)).
+    """
+    if loss is RobustLoss.NONE:
+        return np.ones_like(r_norm)
+    s = scale if scale is not None else 1.4826 * float(np.median(r_norm)) / np.sqrt(3.0) * 1.2
+    s = max(s, 1e-12)
+    u = r_norm / s
+    if loss is RobustLoss.HUBER:
+        k = 1.345 * np.sqrt(3.0)
+        return np.where(u <= k, 1.0, k / np.maximum(u, 1e-300))
+    k = 2.385 * np.sqrt(3.0)
+    return 1.0 / (1.0 + (u / k) ** 2)
+
+
+@dataclass(frozen=True)
+class Analysis:
+    """Covariance and observability of a least-squares fit.
+
+    Attributes
+    ----------
+    cov : ndarray (P, P)
+        Parameter covariance (pseudo-inverse; zero along unobservable directions).
+    null_dirs : ndarray (P, K)
+        Unobservable directions of the full parameter vector (scaled back to parameters).
+    block_null : dict of str -> ndarray (nb, k)
+        Per block, the unobservable directions in that block's coordinates.
+    block_ratio : dict of str -> ndarray (nb,)
+        Per block, the generalised eigenvalues (fraction of information kept), ascending.
+
+    """
+
+    cov: F64
+    null_dirs: F64
+    block_null: dict
+    block_ratio: dict
+
+
+def solve_truncated(H: F64, g: F64, threshold: float = RELATIVE_INFO_THRESHOLD) -> F64:
+    """``pinv(H) @ g`` with Jacobi scaling and eigenvalues below ``threshold`` x max dropped.
+
+    Steps then never move along directions the data cannot determine: those parameters stay
+    at their initial (prior) value instead of drifting on noise.
+    """
+    d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+    Hs = H / d[:, None] / d[None, :]
+    w, V = np.linalg.eigh(Hs)
+    keep = w > threshold * max(w[-1], 1e-300)
+    inv = (V[:, keep] / w[keep]) @ V[:, keep].T
+    return (inv @ (g / d)) / d
+
+
+def analyse(
+    H: F64, blocks: dict[str, slice], threshold: float = RELATIVE_INFO_THRESHOLD
+) -> Analysis:
+    """Covariance (``H`` is the whitened information ``J.T J``) and observability per block.
+
+    For each block ``b`` the marginal information ``M_b = H_bb - H_bo H_oo^+ H_ob`` is compared
+    with ``H_bb`` through the generalised eigenproblem ``M_b v = lambda H_bb v``: lambda is the
+    fraction of a direction's information that survives not knowing the other parameters.
+    """
+    import scipy.linalg as sla
+
+    P = H.shape[0]
+    d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+    Hs = H / d[:, None] / d[None, :]
+    w, V = np.linalg.eigh(Hs)
+    keep = w > threshold * max(w[-1], 1e-300)
+    cov = ((V[:, keep] / w[keep]) @ V[:, keep].T) / d[:, None] / d[None, :]
+    null = V[:, ~keep] / d[:, None]
+    block_null: dict = {}
+    block_ratio: dict = {}
+    idx = np.arange(P)
+    for name, sl in blocks.items():
+        b = idx[sl]
+        if b.size == 0:
+            continue
+        o = np.setdiff1d(idx, b)
+        Hbb = H[np.ix_(b, b)]
+        if o.size:
+            Hoo = H[np.ix_(o, o)]
+            Hob = H[np.ix_(o, b)]
+            Ho_inv = solve_many_truncated(Hoo, Hob, threshold)
+            M = Hbb - Hob.T @ Ho_inv
+        else:
+            M = Hbb
+        M = 0.5 * (M + M.T)
+        hd = np.diag(Hbb)
+        zero_info = hd <= 1e-20 * max(float(np.max(np.diag(H))), 1e-300)
+        nb = len(b)
+        lam_all = np.zeros(nb)
+        nul_list = [np.eye(nb)[:, i] for i in np.flatnonzero(zero_info)]
+        live = np.flatnonzero(~zero_info)
+        if live.size:
+            db = np.sqrt(hd[live])
+            Bn = Hbb[np.ix_(live, live)] / db[:, None] / db[None, :]
+            Mn = M[np.ix_(live, live)] / db[:, None] / db[None, :]
+            lam, vec = sla.eigh(Mn, Bn + 1e-12 * np.eye(live.size))
+            vec = vec / db[:, None]
+            vec = vec / np.linalg.norm(vec, axis=0, keepdims=True)
+            lam_all[live] = lam
+            for j in np.flatnonzero(lam < threshold):
+                full = np.zeros(nb)
+                full[live] = vec[:, j]
+                nul_list.append(full)
+        block_ratio[name] = np.sort(lam_all)
+        # Directions with no information at all (H v = 0 inside the block) make the
+        # generalised problem 0 = lambda * 0; take them from the null space of the full H.
+        Vs = V[:, ~keep]
+        for j in range(Vs.shape[1]):
+            part = Vs[b, j]
+            if np.linalg.norm(part) > 0.1:
+                nul_list.append(part / d[b])
+        nul = np.zeros((nb, 0))
+        if nul_list:
+            A = np.stack([v / np.linalg.norm(v) for v in nul_list], 1)
+            U, sv, _ = np.linalg.svd(A, full_matrices=False)
+            nul = U[:, sv > 1e-6 * sv[0]]
+        block_null[name] = nul
+    return Analysis(cov, null, block_null, block_ratio)
+
+
+def solve_many_truncated(H: F64, G: F64, threshold: float) -> F64:
+    """``pinv(H) @ G`` (columns of G) with the truncation of :func:`solve_truncated`."""
+    d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+    Hs = H / d[:, None] / d[None, :]
+    w, V = np.linalg.eigh(Hs)
+    keep = w > threshold * max(w[-1], 1e-300)
+    inv = (V[:, keep] / w[keep]) @ V[:, keep].T
+    return (inv @ (G / d[:, None])) / d[:, None]
+
+
+def sigma_with_null(cov_block: F64, null: F64, tol: float = 1e-3) -> F64:
+    """1-sigma per coordinate; ``inf`` where an unobservable direction has a component."""
+    s = np.sqrt(np.maximum(np.diag(cov_block), 0.0))
+    if null.size:
+        touched = np.any(np.abs(null) > tol, axis=1)
+        s = np.where(touched, np.inf, s)
+    return s
+
+
+def canonical_axis(v: F64) -> F64:
+    """Return a unit axis with a deterministic sign (largest component positive)."""
+    v = np.asarray(v, float)
+    v = v / np.linalg.norm(v)
+    return v if v[np.argmax(np.abs(v))] > 0 else -v
+
+
+def rotation_words(axes: list[F64], has_reference: bool) -> str:
+    """Word the warning for unobservable rotation axes, saying what would fix it."""
+    ax = "; ".join("[" + ", ".join(f"{c:+.3f}" for c in a) + "]" for a in axes)
+    if len(axes) >= 3:
+        return (
+            "the rotation is not determined by these data (no usable motion): record rotations "
+            "about at least two different axes"
+        )
+    fix = (
+        "rotate about a second, different axis"
+        if has_reference
+        else "rotate about a second, different axis or give a reference field "
+        "(--reference-field or --igrf)"
+    )
+    return (
+        f"the rotation about body axis {ax} is not observable from this motion (it was kept at "
+        f"its initial value and its sigma is reported as infinite): {fix}"
+    )
+
+
+def skew_rows(b: F64) -> F64:
+    """``[b_i]x`` for each row, (N, 3, 3)."""
+    return skew(b)

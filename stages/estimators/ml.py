@@ -1,0 +1,456 @@
+"""Joint maximum likelihood of the misalignment, the field and the optional terms (default).
+
+Model (CONVENTIONS)::
+
+    y_i = D @ R.T @ b_i + o,    b_i = C_enu_body(t_i - tau).T @ B_enu,    R = R_body_mag
+
+Gauss-Newton on SO(3) with the left perturbation ``R = exp(phi^) @ R_bar`` (phi in the body
+frame). Then ``R.T = R_bar.T @ exp(-phi^) ~ R_bar.T (I - phi^)`` and
+``-D R_bar.T [phi]x b = D R_bar.T [b]x phi``, so
+
+    dy/dphi = D @ R_bar.T @ [b]x                     (3 x 3)
+    dy/dB   = D @ R_bar.T @ C.T                      (3 x 3)
+    dy/do   = I
+    dy/dd_k = E_k @ R_bar.T @ b                      (symmetric basis E_k of D)
+    dy/dtau = -D @ R_bar.T @ db/dt                   (b at t - tau)
+
+(The note "Misalignment Error Computation" writes ``-D (R_bar m)^`` for its own convention
+where the rotation acts on the magnetometer vector; with CONVENTIONS' ``y = D R.T C.T B`` the
+expression above is the one that the numerical checks in the tests confirm.)
+
+Each sample is weighted by the inverse of its covariance
+``sigma_m^2 I + D R.T [b]x Sigma_att [b]x.T R D.T``: an attitude error ``delta`` (body frame)
+changes the predicted body field by ``b x delta``; at 50,000 nT, 0.015 deg of pitch is
+13 nT, far above the magnetometer's 0.1 nT, so the attitude dominates the weighting.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.calibration import Calibration
+from pipeline.errors import EstimationError
+from pipeline.geometry import quat_to_matrix, skew, so3_exp
+from pipeline.recording import AttitudeSeries
+
+from .base import (
+    F64,
+    RELATIVE_INFO_THRESHOLD,
+    Problem,
+    RobustLoss,
+    Term,
+    analyse,
+    canonical_axis,
+    init_rotation,
+    irls_weights,
+    rotation_words,
+    sigma_with_null,
+    solve_truncated,
+)
+from .ellipsoid import fit_ellipsoid
+
+# Symmetric basis of D: three diagonal then three off-diagonal elements.
+_SYM6 = np.zeros((6, 3, 3))
+for _k, (_i, _j) in enumerate([(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]):
+    _SYM6[_k, _i, _j] = _SYM6[_k, _j, _i] = 1.0
+# Trace-free basis: without a reference field the scale of D trades exactly against |B|, so D
+# is kept at trace 3 (mean gain 1) and |B| carries the scale.
+_SYM5 = np.concatenate(
+    [
+        np.array([np.diag([1.0, -1.0, 0.0]), np.diag([0.0, 1.0, -1.0])]) / np.sqrt(2.0),
+        _SYM6[3:],
+    ]
+)
+_TAU_STEP_S = 1e-3  # finite-difference step for db/dt (attitude is smooth on this scale)
+
+
+@dataclass
+class State:
+    """Parameters of the model; ``R`` is updated on the manifold, the rest additively."""
+
+    R: F64
+    B: F64
+    o: F64
+    D: F64
+    tau: float
+
+
+class Model:
+    """Prediction, Jacobian and weights of the ML problem for a given state.
+
+    Parameters
+    ----------
+    problem : Problem
+    estimate_B : bool
+        False when a reference field fixes ``B``.
+
+    """
+
+    def __init__(self, problem: Problem, estimate_B: bool = True):
+        self.p = problem
+        self.estimate_B = estimate_B
+        self.with_o = Term.OFFSET in problem.terms
+        self.with_D = Term.SOFT_IRON in problem.terms
+        self.with_tau = Term.TIME_OFFSET in problem.terms
+        self.basis = _SYM5 if (self.with_D and estimate_B) else _SYM6
+        att = problem.attitude
+        if att is None:
+            # The aligned samples are the attitude at t - tau0: a series on those stamps.
+            att = AttitudeSeries(
+                problem.t_ns - np.int64(round(problem.time_offset0_s * 1e9)), problem.q_enu_body
+            )
+        self.attitude = att
+        self.blocks: dict[str, slice] = {}
+        n = 0
+        for name, size, on in (
+            ("rot", 3, True),
+            ("B", 3, estimate_B),
+            ("offset", 3, self.with_o),
+            ("D", len(self.basis), self.with_D),
+            ("tau", 1, self.with_tau),
+        ):
+            if on:
+                self.blocks[name] = slice(n, n + size)
+                n += size
+        self.n_params = n
+        self._C_cache: tuple[float, F64] | None = None
+
+    # ------------------------------------------------------------------ attitude
+    def C(self, tau: float) -> F64:
+        """Attitude matrices at ``t - tau``, (N, 3, 3)."""
+        if not self.with_tau:
+            return self.p.C_enu_body
+        if self._C_cache is not None and self._C_cache[0] == tau:
+            return self._C_cache[1]
+        from .base import interpolate_q
+
+        C = quat_to_matrix(interpolate_q(self.attitude, self.p.t_ns, tau))
+        self._C_cache = (tau, C)
+        return C
+
+    def b_body(self, s: State, tau: float | None = None) -> F64:
+        """Predicted body field ``C.T @ B``, (N, 3)."""
+        C = self.C(s.tau if tau is None else tau)
+        return np.einsum("nji,j->ni", C, s.B)
+
+    def predict(self, s: State) -> F64:
+        """Predicted magnetometer readings, (N, 3)."""
+        m = self.b_body(s) @ s.R  # rows R.T @ b
+        return m @ s.D.T + s.o
+
+    def jacobian(self, s: State) -> F64:
+        """dy/dparams, (N, 3, P), in the order of ``blocks``."""
+        C = self.C(s.tau)
+        b = np.einsum("nji,j->ni", C, s.B)
+        DRt = s.D @ s.R.T
+        N = len(b)
+        J = np.zeros((N, 3, self.n_params))
+        J[:, :, self.blocks["rot"]] = DRt @ skew(b)  # D R_bar.T [b]x
+        if "B" in self.blocks:
+            J[:, :, self.blocks["B"]] = DRt @ np.swapaxes(C, 1, 2)
+        if "offset" in self.blocks:
+            J[:, :, self.blocks["offset"]] = np.eye(3)
+        if "D" in self.blocks:
+            m = b @ s.R
+            J[:, :, self.blocks["D"]] = np.einsum("kij,nj->nik", self.basis, m)
+        if "tau" in self.blocks:
+            h = _TAU_STEP_S
+            bp = self.b_body(s, s.tau + h)
+            bm = self.b_body(s, s.tau - h)
+            # y depends on b(t - tau): dy/dtau = D R.T (b(t-(tau+h)) - b(t-(tau-h))) / 2h
+            J[:, :, self.blocks["tau"].start] = (bp - bm) @ DRt.T / (2 * h)
+        return J
+
+    def weights(self, s: State) -> F64:
+        """Inverse per-sample covariances ``W_i``, (N, 3, 3); identity without a noise model."""
+        nm = self.p.noise
+        N = self.p.n
+        if nm is None:
+            return np.broadcast_to(np.eye(3), (N, 3, 3))
+        C = self.C(s.tau)
+        b = np.einsum("nji,j->ni", C, s.B)
+        A = s.D @ s.R.T @ skew(b)  # maps body attitude error to y
+        S_att = nm.attitude_cov_body(C)
+        Sig = A @ S_att @ np.swapaxes(A, 1, 2) + nm.sigma_mag_nT**2 * np.eye(3)
+        return np.linalg.inv(Sig)
+
+    def step(self, s: State, delta: F64) -> State:
+        """Apply a parameter increment."""
+        R = so3_exp(delta[self.blocks["rot"]]) @ s.R
+        B = s.B + delta[self.blocks["B"]] if "B" in self.blocks else s.B
+        o = s.o + delta[self.blocks["offset"]] if "offset" in self.blocks else s.o
+        D = s.D
+        if "D" in self.blocks:
+            D = D + np.einsum("k,kij->ij", delta[self.blocks["D"]], self.basis)
+        tau = s.tau + float(delta[self.blocks["tau"]][0]) if "tau" in self.blocks else s.tau
+        return State(R, B, o, D, tau)
+
+
+def _normal(J: F64, W: F64, r: F64, w: F64) -> tuple[F64, F64]:
+    WJ = np.einsum("nij,njk->nik", W, J) * w[:, None, None]
+    H = np.einsum("nip,niq->pq", J, WJ)
+    g = np.einsum("nip,ni->p", WJ, r)
+    return H, g
+
+
+def _cost(r: F64, W: F64, w: F64) -> tuple[float, F64]:
+    q = np.einsum("ni,nij,nj->n", r, W, r)
+    return float(np.sum(w * q)), np.sqrt(np.maximum(q, 0.0))
+
+
+def gauss_newton(model: Model, s: State, max_iter: int = 60) -> tuple[State, F64, F64]:
+    """Gauss-Newton (with step halving) to convergence, inside an IRLS loop when robust.
+
+    Returns the final state, the robust weights and the per-sample inverse covariances.
+    """
+    w = np.ones(model.p.n)
+    s, W, r = _gn_fixed_weights(model, s, w, max_iter)
+    if model.p.robust is RobustLoss.NONE:
+        return s, w, W
+    scale = 1.0 if model.p.noise is not None else None
+    for _ in range(20):
+        _, rn = _cost(r, W, np.ones(model.p.n))
+        w_new = irls_weights(rn, model.p.robust, scale)
+        if np.max(np.abs(w_new - w)) < 1e-6:
+            break
+        w = w_new
+        s, W, r = _gn_fixed_weights(model, s, w, max_iter)
+    return s, w, W
+
+
+def _gn_fixed_weights(model: Model, s: State, w: F64, max_iter: int) -> tuple[State, F64, F64]:
+    y = model.p.mag_nT
+    W = model.weights(s)
+    r = y - model.predict(s)
+    cost, _ = _cost(r, W, w)
+    for it in range(max_iter):
+        J = model.jacobian(s)
+        H, g = _normal(J, W, r, w)
+        delta = solve_truncated(H, g)
+        lam = 1.0
+        improved = False
+        for _ in range(20):
+            s_new = model.step(s, lam * delta)
+            W_new = model.weights(s_new)
+            r_new = y - model.predict(s_new)
+            c_new, _ = _cost(r_new, W_new, w)
+            if c_new <= cost * (1 + 1e-12) + 1e-300:
+                improved = True
+                break
+            lam *= 0.5
+        if not improved:
+            break
+        rel = (cost - c_new) / max(cost, 1e-300)
+        s, W, r, cost = s_new, W_new, r_new, c_new
+        if np.max(np.abs(lam * delta[model.blocks["rot"]])) < 1e-13 or (rel < 1e-14 and it > 2):
+            break
+    return s, W, r
+
+
+@dataclass(frozen=True)
+class MLEstimator:
+    """Joint maximum likelihood (see the module docstring).
+
+    Attributes
+    ----------
+    max_iter : int
+        Gauss-Newton iterations.
+
+    """
+
+    max_iter: int = 60
+    name: str = "ml"
+
+    def initial_state(self, p: Problem) -> State:
+        """Closed-form start: ellipsoid (when D is wanted and the data cover 3D), then Wahba."""
+        y = p.mag_nT
+        C = p.C_enu_body
+        D = np.eye(3)
+        o = np.zeros(3)
+        if Term.SOFT_IRON in p.terms or Term.OFFSET in p.terms:
+            try:
+                o_e, D_e = fit_ellipsoid(y)
+                if Term.OFFSET in p.terms:
+                    o = o_e
+                if Term.SOFT_IRON in p.terms:
+                    D = D_e * 3.0 / np.trace(D_e)
+            except EstimationError:
+                pass  # single-axis data: start from o = 0, D = I; GN finds what is observable
+        yc = np.linalg.solve(D, (y - o).T).T
+        B_ref = p.reference_field_enu_nT
+        cands = None
+        if p.R_nominal_body_mag is not None:
+            from .base import cube_rotations
+
+            cands = np.concatenate([cube_rotations(), p.R_nominal_body_mag[None]])
+        R, B = init_rotation(yc, C, B_ref, cands)
+        if B_ref is not None and Term.SOFT_IRON in p.terms:
+            # D was normalised to trace 3; a known |B| restores the scale (D ~ D_tilde R_hat)
+            scale = np.median(np.linalg.norm(yc, axis=1)) / np.linalg.norm(B_ref)
+            D = D * scale
+        return State(R, np.asarray(B, float), o, D, float(p.time_offset0_s))
+
+    def fit(self, p: Problem) -> Calibration:
+        """Estimate; see :class:`Calibration` for the fields."""
+        if Term.TIME_OFFSET in p.terms:
+            p = _inside_attitude_span(p)
+        model = Model(p, estimate_B=p.reference_field_enu_nT is None)
+        s0 = self.initial_state(p)
+        if model.with_tau:
+            # Fit without tau first: the rotation must be close before tau's Jacobian is useful.
+            m0 = Model(
+                Problem(**{**p.__dict__, "terms": p.terms - {Term.TIME_OFFSET}}),
+                estimate_B=model.estimate_B,
+            )
+            s0, _, _ = gauss_newton(m0, s0, self.max_iter)
+        s, w, W = gauss_newton(model, s0, self.max_iter)
+        return self.finish(p, model, s, w, W)
+
+    def finish(self, p: Problem, model: Model, s: State, w: F64, W: F64) -> Calibration:
+        """Covariance, observability and the Calibration value."""
+        r = p.mag_nT - model.predict(s)
+        J = model.jacobian(s)
+        H, _ = _normal(J, W, r, w)
+        dof = max(3 * p.n - model.n_params, 1)
+        chi2, _ = _cost(r, W, w)
+        # Unknown noise: scale by the residual variance. Known noise: the model's own.
+        s2 = chi2 / dof if p.noise is None else 1.0
+        an = analyse(H, model.blocks)
+        cov = an.cov * s2
+        blocks = model.blocks
+        warnings: list[str] = []
+
+        def block_cov(name: str) -> F64:
+            sl = blocks[name]
+            return cov[sl, sl]
+
+        rot_null = an.block_null.get("rot", np.zeros((3, 0)))
+        sig_rot = sigma_with_null(block_cov("rot"), rot_null)
+        axes = [canonical_axis(v) for v in rot_null.T]
+        if axes:
+            warnings.append(rotation_words(axes, p.reference_field_enu_nT is not None))
+        sig_B = None
+        if "B" in blocks:
+            sig_B = sigma_with_null(block_cov("B"), an.block_null.get("B", np.zeros((3, 0))))
+        o = sig_o = None
+        if "offset" in blocks:
+            o = s.o
+            nul = an.block_null.get("offset", np.zeros((3, 0)))
+            sig_o = sigma_with_null(block_cov("offset"), nul)
+            for v in nul.T:
+                a = canonical_axis(v)
+                warnings.append(
+                    "the offset along mag axis ["
+                    + ", ".join(f"{c:+.3f}" for c in a)
+                    + "] is not observable (kept at its initial value): rotate about a "
+                    "second axis so that this direction sees the field change"
+                )
+        D = sig_D = None
+        if "D" in blocks:
+            D = s.D
+            sl = blocks["D"]
+            cd = cov[sl, sl]
+            basis = model.basis
+            # Var(D_ij) = e_ij^T cov e_ij with e_ij the basis coefficients of element ij.
+            coef = basis.reshape(len(basis), 9).T  # (9, k)
+            var = np.einsum("ek,kl,el->e", coef, cd, coef)
+            sig_D = np.sqrt(np.maximum(var, 0.0)).reshape(3, 3)
+            nul = an.block_null.get("D", np.zeros((len(basis), 0)))
+            if nul.size:
+                touched = np.abs(coef @ nul) > 1e-3
+                sig_D = np.where(touched.any(axis=1).reshape(3, 3), np.inf, sig_D)
+                warnings.append(
+                    "part of the soft-iron matrix D is not observable from this motion (kept at "
+                    "its initial value): rotate about two or three different axes"
+                )
+            if model.estimate_B:
+                warnings.append(
+                    "without a reference field the overall scale of D cannot be told from |B|: "
+                    "D is normalised to trace 3"
+                )
+        tau = sig_tau = None
+        if "tau" in blocks:
+            tau = s.tau
+            sig_tau = float(np.sqrt(max(block_cov("tau")[0, 0], 0.0)))
+            if an.block_null.get("tau", np.zeros((1, 0))).size:
+                sig_tau = float("inf")
+                warnings.append(
+                    "the time offset is not observable (kept at its initial value): it trades "
+                    "against the rotation about the turning axis when the rate is constant; "
+                    "vary the rotation rate or rotate about a second axis"
+                )
+        res = r
+        rms = float(np.sqrt(np.mean(res**2)))
+        if p.robust is not RobustLoss.NONE:
+            n_down = int(np.sum(w < 0.5))
+            if n_down:
+                warnings.append(
+                    f"{n_down} samples were down-weighted as outliers by the robust loss"
+                )
+        return Calibration(
+            R_body_mag=s.R,
+            sigma_rotvec_deg=np.degrees(sig_rot),
+            B_enu_nT=s.B,
+            estimator=self.name,
+            residual_rms_nT=rms,
+            n_samples=p.n,
+            unobservable_axes_body=tuple(axes),
+            D=D,
+            offset_nT=o,
+            time_offset_s=tau,
+            sigma_D=sig_D,
+            sigma_offset_nT=sig_o,
+            sigma_time_offset_s=sig_tau,
+            sigma_B_enu_nT=sig_B,
+            R_nominal_body_mag=p.R_nominal_body_mag,
+            warnings=tuple(warnings),
+        )
+
+
+#: With a time offset, samples closer than this to either end of the attitude series are left
+#: out: there the attitude at ``t - tau`` would be extrapolated (clamped), which both biases the
+#: fit and breaks the exact tau / rotation degeneracy the observability analysis must see.
+TAU_EDGE_MARGIN_S = 0.25
+
+
+def _inside_attitude_span(p: Problem) -> Problem:
+    att = p.attitude
+    if att is None:
+        t_att = p.t_ns - np.int64(round(p.time_offset0_s * 1e9))
+    else:
+        t_att = att.t_ns
+    margin = np.int64((TAU_EDGE_MARGIN_S + abs(p.time_offset0_s)) * 1e9)
+    keep = (p.t_ns >= t_att[0] + margin) & (p.t_ns <= t_att[-1] - margin)
+    if att is None:
+        # The aligned samples are the attitude series itself: keep it whole for interpolation.
+        from pipeline.recording import AttitudeSeries
+
+        att = AttitudeSeries(t_att, p.q_enu_body)
+    return Problem(
+        **{
+            **p.__dict__,
+            "t_ns": p.t_ns[keep],
+            "mag_nT": p.mag_nT[keep],
+            "q_enu_body": p.q_enu_body[keep],
+            "attitude": att,
+        }
+    )
+
+
+def fisher_rotation_crb_deg(p: Problem, R: F64, B: F64) -> F64:
+    """Cramer-Rao bound (1-sigma, deg) of the rotation about body x, y, z at the truth.
+
+    The Fisher information of the whitened model at ``(R, B)`` with ``B`` estimated (or fixed
+    when ``p`` has a reference field), marginalised over ``B``. Needs ``p.noise``.
+    """
+    if p.noise is None:
+        raise EstimationError("the Cramer-Rao bound needs a noise model")
+    model = Model(p, estimate_B=p.reference_field_enu_nT is None)
+    s = State(np.asarray(R, float), np.asarray(B, float), np.zeros(3), np.eye(3), 0.0)
+    J = model.jacobian(s)
+    W = model.weights(s)
+    H, _ = _normal(J, W, np.zeros((p.n, 3)), np.ones(p.n))
+    cov = np.linalg.pinv(H, rcond=RELATIVE_INFO_THRESHOLD * 1e-6)
+    return np.degrees(np.sqrt(np.diag(cov)[:3]))
