@@ -55,6 +55,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _format_warning(message: Warning | str, category: type[Warning], filename: str,
+                    lineno: int, line: str | None = None) -> str:
+    """One line per warning, ``warning: <what was lost>`` (source location only with --debug)."""
+    return f"warning: {message}"
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``magalign`` console script; returns the exit status."""
     argv = sys.argv[1:] if argv is None else argv
@@ -67,6 +73,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     logging.captureWarnings(True)
     warnings.simplefilter("default")
+    saved_format = warnings.formatwarning
+    if not debug:
+        warnings.formatwarning = _format_warning
     try:
         status = int(args.func(args) or 0)
     except MagalignError as exc:
@@ -79,6 +88,8 @@ def main(argv: list[str] | None = None) -> int:
         status = 130
     except BrokenPipeError:
         status = 0
+    finally:
+        warnings.formatwarning = saved_format
     sys.stdout.flush()
     return status
 

@@ -154,3 +154,7 @@ class CampaignPartialFailure(MagalignError):
         self.failures = failures
         lines = "; ".join(f"{name}: {why}" for name, why in failures)
         super().__init__(f"{len(failures)} recording(s) failed: {lines}")
+
+
+class RecoveredDataWarning(UserWarning):
+    """A damaged recording was read as far as it is intact; the message says what was lost."""

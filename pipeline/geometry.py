@@ -157,7 +157,8 @@ def quat_slerp(q0: ArrayLike, q1: ArrayLike, s: ArrayLike) -> F64:
     d = np.sum(q0 * q1, axis=-1, keepdims=True)
     q1 = np.where(d < 0, -q1, q1)
     d = np.abs(d)
-    near = d > 0.9995
+    # Exact SLERP down to tiny steps; plain lerp only where sin(omega) would underflow.
+    near = d > 1.0 - 1e-13
     omega = np.arccos(np.clip(d, -1.0, 1.0))
     so = np.sin(omega)
     so = np.where(near, 1.0, so)
