@@ -57,6 +57,10 @@ def atomic_path(dest: str | Path, inputs: tuple[str | Path, ...] = ()) -> Iterat
         yield tmp_p
         with open(tmp_p, "rb+") as fh:
             os.fsync(fh.fileno())
+        # mkstemp creates 0600; results are shared files, so apply the usual umask instead.
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp_p, 0o666 & ~umask)
         os.replace(tmp_p, dest)
     except BaseException:
         with contextlib.suppress(OSError):

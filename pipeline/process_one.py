@@ -1,0 +1,268 @@
+"""The whole pipeline on one recording: ``process_recording(path, out_dir, options=...)``.
+
+Stages (architecture.md)::
+
+    Ingest -> [TurntableAttitude] -> Resample -> SegmentMotion -> Estimate | LoadCalibration
+           -> [Diagnose] -> Restore -> Metrics -> WriteResults -> WriteCorrectedMcap
+           -> [WriteRerun] -> [Report]
+
+Writes ``out_dir/<stem>/`` with ``calibration.json``, ``diagnosis.json`` (when diagnosed),
+``metrics.json``, ``metrics.parquet``, ``<stem>.corrected.mcap``, ``<stem>.rrd`` and
+``report.html`` (plus the report's PNG figures), and returns one summary row (a dict of
+plain JSON values) for the campaign summary.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+
+from .atomic import safe_join, write_text_atomic
+from .calibration import Calibration
+from .recording import Context
+from .stage import Pipeline
+
+
+@dataclass(frozen=True)
+class ProcessOptions:
+    """What to do with one recording.
+
+    Attributes
+    ----------
+    estimator : stages.estimate.EstimatorKind or None
+        Estimator; ``None`` means the default of :class:`stages.estimate.Estimate` (ML).
+    terms : frozenset of stages.estimate.Term
+        Terms estimated beside the rotation (offset, soft_iron, time_offset).
+    reference_field_enu_nT : tuple of 3 float, optional
+        Known background field (ENU, nT); estimated when ``None``.
+    calibration_path : str, optional
+        Use this calibration.json instead of estimating (survey lines restored with the
+        calibration run's result).
+    mag_topic, attitude_topic, turntable_topic : str, optional
+        Channels to use when a recording has more than one candidate.
+    diagnose : bool
+        Run DIAGNOSE's stage (when it is installed and no calibration file is given).
+    write_rerun : bool
+        Write ``<stem>.rrd``.
+    write_report : bool
+        Write ``report.html`` and its PNG figures.
+    max_gap_s : float
+        Longest attitude gap (s) bridged by interpolation.
+
+    """
+
+    estimator: Any = None
+    terms: frozenset = frozenset()
+    reference_field_enu_nT: tuple[float, float, float] | None = None
+    calibration_path: str | None = None
+    mag_topic: str | None = None
+    attitude_topic: str | None = None
+    turntable_topic: str | None = None
+    diagnose: bool = True
+    write_rerun: bool = True
+    write_report: bool = True
+    max_gap_s: float | None = None
+
+
+@dataclass(frozen=True)
+class LoadCalibration:
+    """Stage: take the calibration from a calibration.json file instead of estimating it."""
+
+    path: str
+
+    requires: ClassVar[frozenset[str]] = frozenset()
+    provides: ClassVar[frozenset[str]] = frozenset({"calibration"})
+
+    def run(self, ctx: Context) -> Context:
+        """Load ``path``."""
+        return ctx.replace(calibration=Calibration.load(self.path))
+
+
+@dataclass(frozen=True)
+class WriteResults:
+    """Stage: write calibration.json (and diagnosis.json when diagnosed) into ``out_dir``."""
+
+    out_dir: str
+
+    requires: ClassVar[frozenset[str]] = frozenset({"calibration"})
+    provides: ClassVar[frozenset[str]] = frozenset({"outputs"})
+
+    def run(self, ctx: Context) -> Context:
+        """Write the JSON results atomically."""
+        out = Path(self.out_dir)
+        outputs = ctx.outputs
+        p = write_text_atomic(out / "calibration.json", ctx.calibration.to_json())
+        outputs += (("calibration.json", str(p)),)
+        if ctx.diagnosis is not None:
+            d = ctx.diagnosis.to_dict() if hasattr(ctx.diagnosis, "to_dict") else ctx.diagnosis
+            p = write_text_atomic(out / "diagnosis.json", json.dumps(d, indent=2))
+            outputs += (("diagnosis.json", str(p)),)
+        return ctx.replace(outputs=outputs)
+
+
+def _optional(module: str, name: str) -> Any:
+    """Return a stage class from another engineer's module, or None while it is not installed."""
+    try:
+        mod = importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        if exc.name == module:
+            return None
+        raise
+    return getattr(mod, name, None)
+
+
+def build_stages(ctx: Context, out_dir: Path, options: ProcessOptions) -> list:
+    """Return the stages after ingest, chosen from what the recording holds and the options."""
+    from stages.metrics import Metrics
+    from stages.resample import Resample
+    from stages.restore import Restore
+    from stages.write_mcap import WriteCorrectedMcap
+
+    rec = ctx.recording
+    stages: list = []
+    if rec.attitude is None and rec.turntable is not None:
+        from stages.turntable import TurntableAttitude
+
+        stages.append(TurntableAttitude())
+    stages.append(Resample(max_gap_s=options.max_gap_s))
+    seg_cls = _optional("stages.segment", "SegmentMotion")
+    if seg_cls is not None:
+        stages.append(seg_cls())
+    if options.calibration_path is not None:
+        stages.append(LoadCalibration(str(options.calibration_path)))
+    else:
+        from stages.estimate import Estimate
+
+        kw: dict[str, Any] = {"terms": frozenset(options.terms)}
+        if options.estimator is not None:
+            kw["estimator"] = options.estimator
+        if options.reference_field_enu_nT is not None:
+            kw["reference_field_enu_nT"] = tuple(float(x) for x in options.reference_field_enu_nT)
+        stages.append(Estimate(**kw))
+    if options.diagnose and options.calibration_path is None:
+        diag_cls = _optional("stages.diagnose", "Diagnose")
+        if diag_cls is not None:
+            # Diagnose replaces the calibration by its final model (more effects), so the
+            # field is restored and measured after it, with that model.
+            dkw: dict[str, Any] = {}
+            if options.reference_field_enu_nT is not None:
+                dkw["reference_field_enu_nT"] = tuple(
+                    float(x) for x in options.reference_field_enu_nT
+                )
+            stages.append(diag_cls(**dkw))
+    stages.append(Restore(max_gap_s=options.max_gap_s))
+    stages.append(Metrics(out_dir=str(out_dir), max_gap_s=options.max_gap_s))
+    stages.append(WriteResults(str(out_dir)))
+    stages.append(WriteCorrectedMcap(str(out_dir), max_gap_s=options.max_gap_s))
+    if options.write_rerun:
+        from stages.write_rerun import WriteRerun
+
+        stages.append(WriteRerun(str(out_dir), max_gap_s=options.max_gap_s))
+    if options.write_report:
+        from stages.report import Report
+
+        stages.append(Report(str(out_dir), max_gap_s=options.max_gap_s))
+    return stages
+
+
+def _finite_list(a: Any) -> list | None:
+    if a is None:
+        return None
+    return [None if not np.isfinite(x) else float(x) for x in np.asarray(a, dtype=float).ravel()]
+
+
+def summary_row(ctx: Context, stem: str, out_dir: Path) -> dict[str, Any]:
+    """One summary row of a processed recording (plain JSON values)."""
+    cal = ctx.calibration
+    m = ctx.metrics
+    findings: list[str] = []
+    if ctx.diagnosis is not None:
+        d = ctx.diagnosis.to_dict() if hasattr(ctx.diagnosis, "to_dict") else ctx.diagnosis
+        findings = [f.get("effect") for f in d.get("findings", [])]
+    ratios = m.ratio_pct() if m is not None else {}
+    row: dict[str, Any] = {
+        "stem": stem,
+        "status": "ok",
+        "path": str(ctx.recording.path),
+        "duration_s": float(ctx.recording.duration_s),
+        "n_samples": int(len(ctx.recording.mag)),
+        "estimator": cal.estimator,
+        "rotvec_body_mag_deg": _finite_list(cal.rotvec_body_mag_deg),
+        "sigma_rotvec_deg": _finite_list(cal.sigma_rotvec_deg),
+        "residual_rms_nT": float(cal.residual_rms_nT),
+        "offset_nT": _finite_list(cal.offset_nT),
+        "time_offset_s": cal.time_offset_s,
+        "warnings": list(cal.warnings),
+        "findings": findings,
+        "out_dir": str(out_dir),
+        "paths": {k: v for k, v in ctx.outputs},
+    }
+    for c in ("x", "y", "z"):
+        r = ratios.get(c)
+        row[f"ratio_pct_{c}"] = None if r is None or not np.isfinite(r) else float(r)
+    return row
+
+
+def process_recording(
+    path: str | Path, out_dir: str | Path, *, options: ProcessOptions | None = None
+) -> dict[str, Any]:
+    """Run the whole pipeline on one recording.
+
+    Parameters
+    ----------
+    path : path
+        The MCAP recording (never modified).
+    out_dir : path
+        Results go to ``out_dir/<stem>/``.
+    options : ProcessOptions, optional
+        What to do; defaults throughout when omitted.
+
+    Returns
+    -------
+    dict
+        One summary row: ``stem``, ``status``, ``rotvec_body_mag_deg``, ``sigma_rotvec_deg``,
+        ``residual_rms_nT``, ``ratio_pct_x/y/z`` (fluctuation range, whole recording),
+        ``findings`` (effect names), ``paths`` (output name -> path), ``timings_s`` (stage
+        name -> wall seconds) and more.
+
+    Raises
+    ------
+    MagalignError
+        Bad input, estimation failure, unwritable output.
+
+    """
+    from stages.ingest import Ingest
+
+    options = options or ProcessOptions()
+    path = Path(path)
+    stem = path.stem
+    rec_dir = safe_join(out_dir, stem)
+    rec_dir.mkdir(parents=True, exist_ok=True)
+    ctx = Context(source=str(path), options=options)
+    ingest = Ingest(
+        mag_topic=options.mag_topic,
+        attitude_topic=options.attitude_topic,
+        turntable_topic=options.turntable_topic,
+    )
+    timings: dict[str, float] = {}
+    clock = {"name": None, "t": time.perf_counter()}
+
+    def tick(name: str | None, *_: int) -> None:
+        now = time.perf_counter()
+        if clock["name"] is not None:
+            timings[clock["name"]] = timings.get(clock["name"], 0.0) + now - clock["t"]
+        clock["name"], clock["t"] = name, now
+
+    ctx = Pipeline([ingest]).run(ctx, progress=tick)
+    rest = Pipeline(build_stages(ctx, rec_dir, options), initial=ctx.provided() | {"source"})
+    ctx = rest.run(ctx, progress=tick)
+    tick(None)
+    row = summary_row(ctx, stem, rec_dir)
+    row["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
+    return row

@@ -1,0 +1,361 @@
+"""The paper's quality metrics of the restored field (Li et al. 2020, Table 4).
+
+For each ENU component x (east), y (north), z (up), calibrated and uncalibrated:
+
+- ``fluctuation_range_nT``: max - min;
+- ``absolute_deviation_nT``: mean absolute deviation from the mean;
+- ``std_nT``: standard deviation (population, ddof=0);
+- ``ratio_pct``: calibrated / uncalibrated x 100, one per statistic.
+
+*Calibrated* is the restored series (``ctx.restored``, every term of the calibration
+removed). *Uncalibrated* is the raw magnetometer rotated by the attitude only,
+``C_enu_body(t) @ y_mag`` (no R, no offset, no D, no time offset). Both are taken over the
+same samples: those with a usable attitude for both. A perfectly calibrated sensor in a
+constant field gives a constant restored vector, so every calibrated statistic tends to the
+noise level.
+
+Scopes: the whole recording (``"all"``) and each segment (``"segment_<i>"``) when
+``ctx.segments`` is set.
+
+For turntable recordings (a single-axis attitude source, Tang et al. 2016) the heading error
+statistics of Tang's Table 2 are added: the heading of the horizontal restored field minus
+that of the reference field ``calibration.B_enu_nT``, in degrees, calibrated and uncalibrated
+(``max_abs_deg``, ``mean_deg``, ``std_deg``, ``rms_deg``, ``peak_to_peak_deg``).
+
+Files (``Metrics(out_dir=...)``):
+
+``metrics.json`` (format ``magalign.metrics/1``)::
+
+    {"format", "n_samples", "n_without_attitude", "n_used",
+     "scopes": [{"scope", "kind", "start_s", "end_s", "n_samples",
+                 "components": {"x": {"calibrated": {stat: v}, "uncalibrated": {stat: v},
+                                      "ratio_pct": {stat: v}}, "y": ..., "z": ...}}],
+     "heading_error": null | {"calibrated": {...}, "uncalibrated": {...}}}
+
+``metrics.parquet``: one row per scope x component x calibrated/uncalibrated, columns
+``scope`` (str), ``kind`` (str, segment kind or "all"), ``start_s``, ``end_s`` (float,
+seconds from the first magnetometer sample), ``n_samples`` (int64), ``component`` (str x/y/z),
+``calibrated`` (bool), ``fluctuation_range_nT``, ``absolute_deviation_nT``, ``std_nT``
+(float64), ``ratio_pct`` (float64: calibrated / uncalibrated x 100 of the fluctuation range,
+the paper's headline ratio; the same value on both rows of a pair),
+``ratio_absolute_deviation_pct``, ``ratio_std_pct`` (float64, likewise).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+
+from pipeline.atomic import atomic_path, write_text_atomic
+from pipeline.errors import InputError
+from pipeline.geometry import quat_rotate
+from pipeline.recording import Context, Recording, Segment, VectorSeries
+
+FORMAT = "magalign.metrics/1"
+COMPONENTS = ("x", "y", "z")
+STATS = ("fluctuation_range_nT", "absolute_deviation_nT", "std_nT")
+
+
+def component_stats(v: np.ndarray) -> dict[str, float]:
+    """Li 2020 Table 4 statistics of one component series (nT); NaN when empty."""
+    v = np.asarray(v, dtype=float)
+    if v.size == 0:
+        return dict.fromkeys(STATS, float("nan"))
+    mean = float(np.mean(v))
+    return {
+        "fluctuation_range_nT": float(np.max(v) - np.min(v)),
+        "absolute_deviation_nT": float(np.mean(np.abs(v - mean))),
+        "std_nT": float(np.std(v)),
+    }
+
+
+def _ratio(a: float, b: float) -> float:
+    return float(100.0 * a / b) if b > 0 and np.isfinite(a) and np.isfinite(b) else float("nan")
+
+
+def scope_components(cal_enu: np.ndarray, raw_enu: np.ndarray) -> dict[str, dict]:
+    """Per-component calibrated / uncalibrated statistics and their ratios."""
+    out: dict[str, dict] = {}
+    for k, c in enumerate(COMPONENTS):
+        sc = component_stats(cal_enu[:, k])
+        su = component_stats(raw_enu[:, k])
+        out[c] = {
+            "calibrated": sc,
+            "uncalibrated": su,
+            "ratio_pct": {s: _ratio(sc[s], su[s]) for s in STATS},
+        }
+    return out
+
+
+def heading_error_stats(enu_nT: np.ndarray, B_enu_nT: np.ndarray) -> dict[str, float]:
+    """Tang 2016 Table 2 style heading error statistics (deg) of a restored series.
+
+    The heading of a horizontal field vector is ``atan2(east, north)``; the error is the
+    restored heading minus the reference heading, wrapped to (-180, 180].
+    """
+    ref = np.degrees(np.arctan2(B_enu_nT[0], B_enu_nT[1]))
+    h = np.degrees(np.arctan2(enu_nT[:, 0], enu_nT[:, 1]))
+    err = (h - ref + 180.0) % 360.0 - 180.0
+    if err.size == 0:
+        return dict.fromkeys(
+            ("max_abs_deg", "mean_deg", "std_deg", "rms_deg", "peak_to_peak_deg"), float("nan")
+        )
+    return {
+        "max_abs_deg": float(np.max(np.abs(err))),
+        "mean_deg": float(np.mean(err)),
+        "std_deg": float(np.std(err)),
+        "rms_deg": float(np.sqrt(np.mean(err**2))),
+        "peak_to_peak_deg": float(np.ptp(err)),
+    }
+
+
+@dataclass(frozen=True)
+class ScopeMetrics:
+    """Metrics over one scope (the whole recording or one segment).
+
+    Attributes
+    ----------
+    scope : str
+        ``"all"`` or ``"segment_<i>"``.
+    kind : str
+        ``"all"`` or the segment kind.
+    start_s, end_s : float
+        Window, seconds from the first magnetometer sample.
+    n_samples : int
+    components : dict
+        ``{"x": {"calibrated": {...}, "uncalibrated": {...}, "ratio_pct": {...}}, ...}``.
+
+    """
+
+    scope: str
+    kind: str
+    start_s: float
+    end_s: float
+    n_samples: int
+    components: dict
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON object of this scope."""
+        return {
+            "scope": self.scope,
+            "kind": self.kind,
+            "start_s": self.start_s,
+            "end_s": self.end_s,
+            "n_samples": self.n_samples,
+            "components": self.components,
+        }
+
+
+def _nan_to_none(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _nan_to_none(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_nan_to_none(v) for v in x]
+    if isinstance(x, float) and not np.isfinite(x):
+        return None
+    return x
+
+
+@dataclass(frozen=True)
+class MetricsResult:
+    """Frozen result of the metrics stage (module docstring for the layout)."""
+
+    n_samples: int
+    n_without_attitude: int
+    n_used: int
+    scopes: tuple[ScopeMetrics, ...]
+    heading_error: dict | None = None
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def whole(self) -> ScopeMetrics:
+        """The ``"all"`` scope."""
+        return self.scopes[0]
+
+    def ratio_pct(self, stat: str = "fluctuation_range_nT") -> dict[str, float]:
+        """Whole-recording ratio (percent) of ``stat`` per component."""
+        return {c: self.whole.components[c]["ratio_pct"][stat] for c in COMPONENTS}
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the metrics.json object; non-finite numbers become null."""
+        return _nan_to_none(
+            {
+                "format": FORMAT,
+                "n_samples": self.n_samples,
+                "n_without_attitude": self.n_without_attitude,
+                "n_used": self.n_used,
+                "scopes": [s.to_dict() for s in self.scopes],
+                "heading_error": self.heading_error,
+            }
+        )
+
+    def to_table(self):  # -> pyarrow.Table
+        """metrics.parquet as a pyarrow Table (module docstring for the columns)."""
+        import pyarrow as pa
+
+        cols: dict[str, list] = {
+            k: []
+            for k in (
+                "scope", "kind", "start_s", "end_s", "n_samples", "component", "calibrated",
+                *STATS, "ratio_pct", "ratio_absolute_deviation_pct", "ratio_std_pct",
+            )
+        }
+        for s in self.scopes:
+            for c in COMPONENTS:
+                comp = s.components[c]
+                for calibrated in (True, False):
+                    st = comp["calibrated" if calibrated else "uncalibrated"]
+                    cols["scope"].append(s.scope)
+                    cols["kind"].append(s.kind)
+                    cols["start_s"].append(s.start_s)
+                    cols["end_s"].append(s.end_s)
+                    cols["n_samples"].append(s.n_samples)
+                    cols["component"].append(c)
+                    cols["calibrated"].append(calibrated)
+                    for k in STATS:
+                        cols[k].append(st[k])
+                    cols["ratio_pct"].append(comp["ratio_pct"]["fluctuation_range_nT"])
+                    cols["ratio_absolute_deviation_pct"].append(
+                        comp["ratio_pct"]["absolute_deviation_nT"]
+                    )
+                    cols["ratio_std_pct"].append(comp["ratio_pct"]["std_nT"])
+        schema = pa.schema(
+            [
+                ("scope", pa.string()), ("kind", pa.string()), ("start_s", pa.float64()),
+                ("end_s", pa.float64()), ("n_samples", pa.int64()), ("component", pa.string()),
+                ("calibrated", pa.bool_()),
+                *[(k, pa.float64()) for k in STATS],
+                ("ratio_pct", pa.float64()), ("ratio_absolute_deviation_pct", pa.float64()),
+                ("ratio_std_pct", pa.float64()),
+            ]
+        )
+        return pa.table(cols, schema=schema)
+
+    def write(self, out_dir: str | Path, inputs: tuple[str, ...] = ()) -> tuple[Path, Path]:
+        """Write metrics.json and metrics.parquet atomically into ``out_dir``."""
+        import pyarrow.parquet as pq
+
+        out = Path(out_dir)
+        j = write_text_atomic(out / "metrics.json", json.dumps(self.to_dict(), indent=2))
+        pq_path = out / "metrics.parquet"
+        with atomic_path(pq_path, inputs) as tmp:
+            pq.write_table(self.to_table(), tmp)
+        return j, pq_path
+
+
+def compute_metrics(
+    recording: Recording,
+    restored: VectorSeries,
+    segments: tuple[Segment, ...] | None = None,
+    B_enu_nT: np.ndarray | None = None,
+    *,
+    max_gap_s: float | None = None,
+) -> MetricsResult:
+    """Compute the Table 4 metrics (and Tang's heading errors for turntable data).
+
+    Parameters
+    ----------
+    recording : Recording
+        With ``attitude`` filled.
+    restored : VectorSeries
+        Frame ENU, a subset of the magnetometer stamps (what :class:`stages.restore.Restore`
+        provides).
+    segments : tuple of Segment, optional
+        Windows for the per-segment scopes.
+    B_enu_nT : ndarray (3,), optional
+        Reference field for the heading errors.
+    max_gap_s : float
+        Attitude gap bridged when rotating the raw magnetometer.
+
+    Returns
+    -------
+    MetricsResult
+
+    """
+    from stages.restore import attitude_at_mag
+
+    t_all = recording.mag.t_ns
+    n = len(t_all)
+    idx = np.searchsorted(t_all, restored.t_ns, side="left")
+    idx = np.clip(idx, 0, max(n - 1, 0))
+    if len(restored) and not np.array_equal(t_all[idx], restored.t_ns):
+        raise InputError(
+            "restored stamps are not magnetometer stamps of this recording", path=recording.path
+        )
+    q0, valid0 = attitude_at_mag(recording, 0.0, max_gap_s)
+    keep = valid0[idx]
+    idx = idx[keep]
+    cal_enu = np.asarray(restored.values)[keep]
+    # Uncalibrated: attitude only, C_enu_body(t) @ y_mag (Li 2020, Table 4 "before").
+    raw_enu = quat_rotate(q0[idx], recording.mag.values[idx])
+    t = t_all[idx]
+    t0 = int(t_all[0]) if n else 0
+    end_all = float((t_all[-1] - t0) * 1e-9) if n else 0.0
+    scopes = [ScopeMetrics("all", "all", 0.0, end_all, len(t), scope_components(cal_enu, raw_enu))]
+    for i, seg in enumerate(segments or ()):
+        m = seg.contains(t)
+        scopes.append(
+            ScopeMetrics(
+                f"segment_{i}",
+                str(getattr(seg.kind, "value", seg.kind)),
+                float((seg.start_ns - t0) * 1e-9),
+                float((seg.end_ns - t0) * 1e-9),
+                int(np.count_nonzero(m)),
+                scope_components(cal_enu[m], raw_enu[m]),
+            )
+        )
+    heading = None
+    if recording.turntable is not None and B_enu_nT is not None:
+        B = np.asarray(B_enu_nT, dtype=float)
+        heading = {
+            "calibrated": heading_error_stats(cal_enu, B),
+            "uncalibrated": heading_error_stats(raw_enu, B),
+        }
+    return MetricsResult(
+        n_samples=n,
+        n_without_attitude=n - len(restored),
+        n_used=len(t),
+        scopes=tuple(scopes),
+        heading_error=heading,
+    )
+
+
+@dataclass(frozen=True)
+class Metrics:
+    """Stage: Li 2020 Table 4 metrics of the restored field (module docstring).
+
+    Parameters
+    ----------
+    out_dir : str, optional
+        When given, metrics.json and metrics.parquet are written there (atomically) and listed
+        in ``ctx.outputs``.
+    max_gap_s : float
+        Attitude gap bridged when rotating the raw magnetometer.
+
+    """
+
+    out_dir: str | None = None
+    max_gap_s: float | None = None
+
+    requires: ClassVar[frozenset[str]] = frozenset({"recording", "restored"})
+    provides: ClassVar[frozenset[str]] = frozenset({"metrics"})
+
+    def run(self, ctx: Context) -> Context:
+        """Compute (and write) the metrics."""
+        cal = ctx.calibration
+        res = compute_metrics(
+            ctx.recording,
+            ctx.restored,
+            ctx.segments,
+            None if cal is None else cal.B_enu_nT,
+            max_gap_s=self.max_gap_s,
+        )
+        outputs = ctx.outputs
+        if self.out_dir is not None:
+            j, p = res.write(self.out_dir, (ctx.recording.path,))
+            outputs = outputs + (("metrics.json", str(j)), ("metrics.parquet", str(p)))
+        return ctx.replace(metrics=res, outputs=outputs)

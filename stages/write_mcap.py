@@ -1,0 +1,133 @@
+"""Write ``<stem>.corrected.mcap``: the input unchanged plus the calibrated channels.
+
+Contents of the output file:
+
+- every channel of the input, schemas, metadata, log/publish times, sequence numbers and
+  payload bytes copied unchanged (READER's :func:`pipeline.mcap_read.read_raw_channels`);
+- ``<mag topic>/calibrated``: ``inv(D) @ (y - o - e)``, mag frame (offset, ``D`` and the
+  additive effects of the calibration removed), frame_id = the input's magnetometer frame_id;
+- ``<mag topic>/enu``: the restored field (:mod:`stages.restore`), frame_id ``"enu"``;
+- ``<mag topic>/residual``: measured minus predicted by the fitted forward model, mag frame;
+
+one message per input magnetometer sample on each of the three, stamped (header stamp and
+log time) with the magnetometer sample's stamp. Samples without a usable attitude have no
+ENU value and no residual: their ``/enu`` and ``/residual`` messages carry NaN in all three
+components (IEEE NaN in CDR; ``NaN`` in JSON, which Python's ``json`` reads back), so the
+three channels stay one-to-one with the input magnetometer.
+
+Encoding follows the input's family: ROS 2 in -> ``sensor_msgs/msg/MagneticField`` in tesla
+(CDR); JSON in -> ``magalign.Magnetometer`` in nT.
+
+The calibration is stored twice: as an MCAP metadata record named ``magalign.calibration``
+with one key ``"json"`` holding the calibration.json text, and as an attachment
+``calibration.json`` (media type ``application/json``).
+
+The file is written to a temporary name and renamed when complete (WRITER's
+:class:`pipeline.mcap_write.McapColumnWriter`); writing over an input is refused.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar
+
+from pipeline.errors import OutputError
+from pipeline.recording import Context, EncodingFamily, Recording
+
+METADATA_NAME = "magalign.calibration"
+ATTACHMENT_NAME = "calibration.json"
+SUFFIXES = ("calibrated", "enu", "residual")
+
+
+def corrected_path(out_dir: str | Path, recording_path: str | Path) -> Path:
+    """``out_dir / <stem>.corrected.mcap``."""
+    return Path(out_dir) / f"{Path(recording_path).stem}.corrected.mcap"
+
+
+def write_corrected_mcap(
+    recording: Recording, calibration: Any, dest: str | Path, *, max_gap_s: float | None = None
+) -> Path:
+    """Write the corrected MCAP of ``recording`` (module docstring for the contents).
+
+    Parameters
+    ----------
+    recording : Recording
+        With ``attitude`` filled.
+    calibration : Calibration
+        The fitted model.
+    dest : path
+        Output file; must not be the input.
+    max_gap_s : float
+        Attitude gap bridged by interpolation when restoring.
+
+    Returns
+    -------
+    Path
+        ``dest``.
+
+    """
+    from pipeline.mcap_read import read_raw_channels
+    from pipeline.mcap_write import McapColumnWriter, copy_channels
+    from pipeline.messages import encode, schema_for
+    from stages.restore import restore_samples
+
+    dest = Path(dest)
+    src = Path(recording.path)
+    if src.exists() and dest.resolve() == src.resolve():
+        raise OutputError("refusing to write over an input file", path=dest)
+    rs = restore_samples(recording, calibration, max_gap_s=max_gap_s)
+    raw = read_raw_channels(recording.path)
+    ros2 = recording.encoding == EncodingFamily.ROS2
+    msg_type = "sensor_msgs/msg/MagneticField" if ros2 else "magalign.Magnetometer"
+    profile = "ros2" if ros2 else ""
+    cal_text = calibration.to_json()
+    with McapColumnWriter(dest, profile=profile, inputs=(str(src),)) as w:
+        copy_channels(w, raw)  # every input channel, byte for byte
+        s_name, s_enc, s_data, m_enc = schema_for(msg_type)
+        sid = w.add_schema(s_name, s_enc, bytes(s_data))  # the writer de-duplicates schemas
+        mag_frame = recording.mag_frame_id or "mag"
+        series = (
+            ("calibrated", rs.calibrated_mag_nT, mag_frame),
+            ("enu", rs.enu_nT, "enu"),
+            ("residual", rs.residual_nT, mag_frame),
+        )
+        topic_base = recording.mag_topic.rstrip("/")
+        for suffix, values_nT, frame_id in series:
+            if ros2:
+                fields = {"mag_T": values_nT * 1e-9}  # REP-145: tesla on the wire
+            else:
+                fields = {"mag_nT": values_nT}
+            data, offsets = encode(msg_type, rs.t_ns, fields, frame_id=frame_id)
+            cid = w.add_channel(f"{topic_base}/{suffix}", m_enc, sid, {"magalign": "1"})
+            w.add_messages(cid, rs.t_ns, data, offsets)
+        w.add_metadata(METADATA_NAME, {"json": cal_text})
+        log0 = int(rs.t_ns[0]) if len(rs.t_ns) else 0
+        w.add_attachment(ATTACHMENT_NAME, "application/json", cal_text.encode("utf-8"), log0)
+    return dest
+
+
+@dataclass(frozen=True)
+class WriteCorrectedMcap:
+    """Stage: write ``<out_dir>/<stem>.corrected.mcap`` (module docstring).
+
+    Parameters
+    ----------
+    out_dir : str
+        Output folder.
+    max_gap_s : float
+        Attitude gap bridged by interpolation when restoring.
+
+    """
+
+    out_dir: str
+    max_gap_s: float | None = None
+
+    requires: ClassVar[frozenset[str]] = frozenset({"recording", "calibration"})
+    provides: ClassVar[frozenset[str]] = frozenset({"outputs"})
+
+    def run(self, ctx: Context) -> Context:
+        """Write the file and list it in ``ctx.outputs``."""
+        dest = corrected_path(self.out_dir, ctx.recording.path)
+        write_corrected_mcap(ctx.recording, ctx.calibration, dest, max_gap_s=self.max_gap_s)
+        return ctx.replace(outputs=ctx.outputs + (("corrected_mcap", str(dest)),))
