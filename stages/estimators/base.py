@@ -70,7 +70,7 @@ class NoiseModel:
     sigma_heading_rad : float
         Attitude error about the ENU up axis, rad.
     sigma_pitch_rad, sigma_roll_rad : float
-        Attitude errors about the Li 2020 pitch (x) and roll (y) axes, rad.
+        Attitude errors about body x (pitch) and body y (roll), rad.
 
     """
 
@@ -87,19 +87,18 @@ class NoiseModel:
     def attitude_cov_body(self, C_enu_body: F64) -> F64:
         """Covariance of the small attitude error expressed in the body frame, (N, 3, 3), rad^2.
 
-        With ``E = Ey(roll) Ex(pitch) Ez(heading) = C_body_enu`` (Li 2020, Eq. 7), a heading
-        error rotates about ENU up (``E @ e_z`` in body), a pitch error about ``Ey(roll) @ e_x``
-        and a roll error about body ``e_y``; the three are taken as independent.
+        The error model of the generator (``pipeline.simulate``, and
+        :func:`stages.estimators.synthetic.draw`): the reported attitude is
+        ``C_meas = exp([dh e_up]x) @ C_enu_body @ exp([(dp, dr, 0)]x)``, i.e. a heading error
+        ``dh`` about ENU up (``C.T @ e_up`` in body) and pitch and roll errors ``dp``, ``dr``
+        about body x and body y (Li 2020: pitch about x, roll about y), all independent. Then
+        ``C_meas = C_enu_body @ exp([delta]x)`` with the body-frame error
+        ``delta = dh C.T e_up + dp e_x + dr e_y``, whose covariance this returns.
         """
-        C_body_enu = np.swapaxes(C_enu_body, -1, -2)
-        up_b = C_body_enu[:, :, 2]
-        # Ey(roll) e_x in body; roll from E[0,2] = -sin(r) cos(p), E[2,2] = cos(r) cos(p)
-        roll = np.arctan2(-C_body_enu[:, 0, 2], C_body_enu[:, 2, 2])
-        pitch_b = np.stack([np.cos(roll), np.zeros_like(roll), np.sin(roll)], -1)
-        roll_b = np.broadcast_to(np.array([0.0, 1.0, 0.0]), up_b.shape)
+        up_b = C_enu_body[:, 2, :]  # row 2 of C_enu_body = C.T @ e_up
         out = self.sigma_heading_rad**2 * up_b[:, :, None] * up_b[:, None, :]
-        out = out + self.sigma_pitch_rad**2 * pitch_b[:, :, None] * pitch_b[:, None, :]
-        return out + self.sigma_roll_rad**2 * roll_b[:, :, None] * roll_b[:, None, :]
+        out = out + np.diag([self.sigma_pitch_rad**2, self.sigma_roll_rad**2, 0.0])
+        return out
 
 
 @dataclass(frozen=True)
@@ -238,14 +237,15 @@ def init_rotation(
         b_body = np.einsum("nji,j->ni", C_enu_body, B_ref)
         return wahba(y, b_body), np.asarray(B_ref, float)
     cands = cube_rotations() if candidates is None else candidates
-    best = None
-    for R in cands:
-        e = np.einsum("nij,nj->ni", C_enu_body, y @ R.T)
-        B = e.mean(0)
-        cost = float(np.mean(np.sum((e - B) ** 2, 1)))
-        if best is None or cost < best[0]:
-            best = (cost, R, B)
-    _, R, B = best
+    # All candidates at once: restored fields e (K, N, 3), their spread about the mean.
+    n = len(y)
+    # e_k[n, i] = sum_jl C[n, i, j] y[n, l] R_k[j, l]: one matrix product over (j, l).
+    T = (C_enu_body[:, :, :, None] * y[:, None, None, :]).reshape(n * 3, 9)
+    e = (T @ cands.reshape(len(cands), 9).T).reshape(n, 3, len(cands)).transpose(2, 0, 1)
+    Bk = e.mean(1)
+    cost = np.mean(np.sum((e - Bk[:, None, :]) ** 2, 2), 1)
+    best = int(np.argmin(cost))
+    R, B = cands[best], Bk[best]
     for _ in range(iterations):
         b_body = np.einsum("nji,j->ni", C_enu_body, B)
         R = wahba(y, b_body)

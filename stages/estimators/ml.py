@@ -116,12 +116,13 @@ class Model:
                 n += size
         self.n_params = n
         self._C_cache: tuple[float, F64] | None = None
+        self._C0 = problem.C_enu_body  # computed once: the property converts every call
 
     # ------------------------------------------------------------------ attitude
     def C(self, tau: float) -> F64:
         """Attitude matrices at ``t - tau``, (N, 3, 3)."""
         if not self.with_tau:
-            return self.p.C_enu_body
+            return self._C0
         if self._C_cache is not None and self._C_cache[0] == tau:
             return self._C_cache[1]
         from .base import interpolate_q
@@ -173,8 +174,9 @@ class Model:
         b = np.einsum("nji,j->ni", C, s.B)
         A = s.D @ s.R.T @ skew(b)  # maps body attitude error to y
         S_att = nm.attitude_cov_body(C)
-        Sig = A @ S_att @ np.swapaxes(A, 1, 2) + nm.sigma_mag_nT**2 * np.eye(3)
-        return np.linalg.inv(Sig)
+        Sig = np.matmul(np.matmul(A, S_att), np.swapaxes(A, 1, 2))
+        Sig = Sig + nm.sigma_mag_nT**2 * np.eye(3)
+        return inv_sym3(Sig)
 
     def step(self, s: State, delta: F64) -> State:
         """Apply a parameter increment."""
@@ -186,6 +188,26 @@ class Model:
             D = D + np.einsum("k,kij->ij", delta[self.blocks["D"]], self.basis)
         tau = s.tau + float(delta[self.blocks["tau"]][0]) if "tau" in self.blocks else s.tau
         return State(R, B, o, D, tau)
+
+
+def inv_sym3(S: F64) -> F64:
+    """Inverses of symmetric positive-definite 3x3 matrices (N, 3, 3) by the adjugate.
+
+    Closed form, vectorised: ~10x faster than the batched LAPACK call on N small matrices.
+    """
+    a, b, c = S[:, 0, 0], S[:, 0, 1], S[:, 0, 2]
+    d, e, f = S[:, 1, 1], S[:, 1, 2], S[:, 2, 2]
+    A = d * f - e * e
+    B = c * e - b * f
+    Cc = b * e - c * d
+    Dd = a * f - c * c
+    Ee = b * c - a * e
+    F = a * d - b * b
+    det = a * A + b * B + c * Cc
+    out = np.stack(
+        [np.stack([A, B, Cc], -1), np.stack([B, Dd, Ee], -1), np.stack([Cc, Ee, F], -1)], -2
+    )
+    return out / det[:, None, None]
 
 
 def _normal(J: F64, W: F64, r: F64, w: F64) -> tuple[F64, F64]:
@@ -439,18 +461,70 @@ def _inside_attitude_span(p: Problem) -> Problem:
     )
 
 
-def fisher_rotation_crb_deg(p: Problem, R: F64, B: F64) -> F64:
-    """Cramer-Rao bound (1-sigma, deg) of the rotation about body x, y, z at the truth.
+def fisher_information(
+    p: Problem,
+    R: F64,
+    B: F64,
+    *,
+    D: F64 | None = None,
+    offset_nT: F64 | None = None,
+    time_offset_s: float = 0.0,
+) -> tuple[F64, dict[str, slice]]:
+    """Fisher information of all the model's parameters at the truth, and its blocks.
 
-    The Fisher information of the whitened model at ``(R, B)`` with ``B`` estimated (or fixed
-    when ``p`` has a reference field), marginalised over ``B``. Needs ``p.noise``.
+    ``p`` must hold the true attitude (``q_enu_body`` noise-free) and the generator's noise
+    model (``p.noise``). The data model is Gaussian with the per-sample covariance
+    ``sigma_m^2 I + D R.T [b]x Sigma_att [b]x.T R D.T`` (attitude noise linearised, as the
+    generator adds it: :meth:`NoiseModel.attitude_cov_body`), so the information is
+    ``sum_i J_i.T Sigma_i^-1 J_i`` with the Jacobian of :class:`Model`. (The covariance also
+    depends on ``R``; that dependence carries no information in the exact model, where the
+    attitude error moves the reading along the sphere ``|y| = |B|``, and is left out.)
+
+    Returns
+    -------
+    H : ndarray (P, P)
+        In the parameter order of ``blocks`` (rotation in rad, body frame, first).
+    blocks : dict of str -> slice
+
     """
     if p.noise is None:
-        raise EstimationError("the Cramer-Rao bound needs a noise model")
+        raise EstimationError("the Fisher information needs a noise model")
     model = Model(p, estimate_B=p.reference_field_enu_nT is None)
-    s = State(np.asarray(R, float), np.asarray(B, float), np.zeros(3), np.eye(3), 0.0)
+    s = State(
+        np.asarray(R, float),
+        np.asarray(B, float),
+        np.zeros(3) if offset_nT is None else np.asarray(offset_nT, float),
+        np.eye(3) if D is None else np.asarray(D, float),
+        float(time_offset_s),
+    )
     J = model.jacobian(s)
     W = model.weights(s)
     H, _ = _normal(J, W, np.zeros((p.n, 3)), np.ones(p.n))
-    cov = np.linalg.pinv(H, rcond=RELATIVE_INFO_THRESHOLD * 1e-6)
-    return np.degrees(np.sqrt(np.diag(cov)[:3]))
+    return H, model.blocks
+
+
+def fisher_rotation_crb_deg(p: Problem, R: F64, B: F64, **truth: object) -> F64:
+    """Cramer-Rao bound (1-sigma, deg) of the rotation about body x, y, z at the truth.
+
+    The rotation block of the inverse Fisher information (:func:`fisher_information`), i.e.
+    the information marginalised over every nuisance parameter of the problem (``B`` unless
+    ``p`` has a reference field, and the offset, ``D`` and ``tau`` when ``p.terms`` asks for
+    them; their true values as keywords ``D``, ``offset_nT``, ``time_offset_s``):
+    ``M = H_rr - H_ro H_oo^-1 H_or``, bound ``sqrt(diag(M^-1))``. ``inf`` about an axis the
+    data cannot determine.
+    """
+    H, blocks = fisher_information(p, R, B, **truth)  # type: ignore[arg-type]
+    # Jacobi scaling: rad^-2 and nT^-2 entries differ by ~1e9.
+    d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+    Hs = H / d[:, None] / d[None, :]
+    r = blocks["rot"]
+    o = np.r_[r.stop : H.shape[0]]
+    M = Hs[r, r]
+    if o.size:
+        M = M - Hs[r][:, o] @ np.linalg.solve(Hs[np.ix_(o, o)], Hs[o][:, r])
+    w, V = np.linalg.eigh(0.5 * (M + M.T))
+    keep = w > RELATIVE_INFO_THRESHOLD * max(w[-1], 1e-300)
+    cov = (V[:, keep] / w[keep]) @ V[:, keep].T
+    crb = np.sqrt(np.maximum(np.diag(cov), 0.0)) / d[r]
+    touched = np.any(np.abs(V[:, ~keep]) > 1e-3, axis=1)
+    return np.degrees(np.where(touched, np.inf, crb))

@@ -11,7 +11,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.geometry import li2020_euler_to_quat, quat_conj, quat_mul, quat_rotate, rotvec_to_quat
+from pipeline.geometry import (
+    li2020_euler_to_quat,
+    quat_conj,
+    quat_mul,
+    quat_normalize,
+    quat_rotate,
+    rotvec_to_quat,
+)
 from pipeline.recording import AlignedSeries, AttitudeSeries
 
 from .base import F64, NoiseModel
@@ -72,8 +79,8 @@ def draw(
     """Draw one synthetic data set of the CONVENTIONS model.
 
     The magnetometer sample stamped ``t`` senses the field at ``t - tau``; the attitude series
-    is stamped at the true times, with attitude noise added (heading about ENU up, pitch and
-    roll about their Li 2020 axes) as an INS would report it.
+    is stamped at the true times, with attitude noise added as ``pipeline.simulate`` adds it
+    (heading error about ENU up, pitch and roll errors about body x and body y).
     """
     rng = np.random.default_rng(0) if rng is None else rng
     R = np.eye(3) if R_body_mag is None else np.asarray(R_body_mag, float)
@@ -97,10 +104,15 @@ def draw(
     if noise is not None:
         y = y + noise.sigma_mag_nT * rng.standard_normal((n, 3))
         if noise.sigma_heading_rad or noise.sigma_pitch_rad or noise.sigma_roll_rad:
-            hn = h + noise.sigma_heading_rad * rng.standard_normal(n)
-            pn = p + noise.sigma_pitch_rad * rng.standard_normal(n)
-            rn = r + noise.sigma_roll_rad * rng.standard_normal(n)
-            q_meas = li2020_euler_to_quat(hn, pn, rn)
+            # As pipeline.simulate applies it (and NoiseModel.attitude_cov_body models it):
+            # heading error about ENU up, pitch and roll errors about body x and body y.
+            dh = noise.sigma_heading_rad * rng.standard_normal(n)
+            dp = noise.sigma_pitch_rad * rng.standard_normal(n)
+            dr = noise.sigma_roll_rad * rng.standard_normal(n)
+            zero = np.zeros(n)
+            q_up = rotvec_to_quat(np.stack([zero, zero, dh], -1))
+            q_pr = rotvec_to_quat(np.stack([dp, dr, zero], -1))
+            q_meas = quat_normalize(quat_mul(quat_mul(q_up, q_true), q_pr))
     att = AttitudeSeries(t_ns, q_meas)
     al = AlignedSeries(t_ns, y, q_meas, 0.0, np.arange(n))
     return Synthetic(al, att, q_true, R, B, Dm, o, float(time_offset_s))
