@@ -8,12 +8,14 @@ Options (CONVENTIONS): ``--estimator ml|li2020|ellipsoid|dpi``, ``--reference-fi
 from __future__ import annotations
 
 import argparse
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.atomic import atomic_path
-from pipeline.errors import UsageError
+from pipeline.errors import NotObservableError, RecoveredDataWarning, UsageError
+from pipeline.recording import Recording
 
 
 def _floats(text: str, n: int, what: str) -> list[float]:
@@ -73,9 +75,30 @@ def reference_from_args(args: argparse.Namespace) -> np.ndarray | None:
     return None
 
 
+def read_recording_warning(path: str, **kw) -> Recording:
+    """``read_recording``, with every problem it handled also issued as a warning.
+
+    Damage found while scanning the file is warned by the reader itself; what it repaired in
+    the data (dropped NaN or duplicated samples, sorted stamps, gaps) is only listed in
+    ``Recording.problems``, and the user must still hear what was lost.
+    """
+    from pipeline.mcap_read import read_recording
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rec = read_recording(path, **kw)
+    said = {str(w.message) for w in caught}
+    for w in caught:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    for p in rec.problems:
+        if p.message not in said:
+            msg = p.message if p.message.startswith(str(path)) else f"{path}: {p.message}"
+            warnings.warn(msg, RecoveredDataWarning, stacklevel=2)
+    return rec
+
+
 def run(args: argparse.Namespace) -> int:
     """Read, resample, estimate, write DIR/calibration.json and print a summary."""
-    from pipeline.mcap_read import read_recording
     from pipeline.recording import Context
     from stages.estimate import EstimatorKind, RobustLoss, Term, fit_calibration
     from stages.resample import Resample
@@ -87,7 +110,8 @@ def run(args: argparse.Namespace) -> int:
             f"--estimate takes offset, soft_iron, time_offset; got {args.estimate!r}"
         ) from exc
     ref = reference_from_args(args)
-    rec = read_recording(args.recording, mag_topic=args.mag, attitude_topic=args.attitude)
+    rec = read_recording_warning(args.recording, mag_topic=args.mag,
+                                 attitude_topic=args.attitude)
     ctx = Resample().run(Context(source=str(args.recording), recording=rec))
     cal = fit_calibration(
         rec,
@@ -97,6 +121,12 @@ def run(args: argparse.Namespace) -> int:
         reference_field_enu_nT=ref,
         robust=RobustLoss(args.robust),
     )
+    if len(cal.unobservable_axes_body) >= 3:
+        # A calibration.json whose rotation is arbitrary must not be written: a later run
+        # (or a survey line restored with it) would take it for a result.
+        raise NotObservableError(
+            "the platform did not rotate: nothing about the misalignment is observable",
+            path=args.recording, hint="record rotations about at least two different axes")
     out = Path(args.out) / "calibration.json"
     with atomic_path(out, inputs=(args.recording,)) as tmp:
         tmp.write_text(cal.to_json() + "\n")

@@ -1,0 +1,153 @@
+"""Kill ``magalign`` with SIGKILL at random moments; nothing partial may pass for finished.
+
+Issue 9, "Nothing lost": every output is written to a temporary name and renamed when
+complete, so after a run killed at any point each file under a final name is complete
+(``calibration.json`` parses and is a whole calibration, a corrected ``.mcap`` opens with
+mcap's own reader and passes its CRC checks, ...); the only other files allowed are
+leftover temporaries named ``.*.tmp``. A rerun then completes. Each test loops 20 times
+with seeded kill moments, so a failure is reproducible.
+
+The program is started in its own session and the whole process group is killed (as a
+crash or power loss would), so worker processes of ``process`` die with it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import corpus
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from mcap.reader import make_reader
+
+from pipeline.calibration import Calibration
+
+N_ITERATIONS = 20
+SEED = 9_2026
+TEMP_NAME = re.compile(r"\..+\.tmp")
+
+
+def _start(argv: list[str], cwd: Path) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "pipeline.cli", *argv], cwd=cwd,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+
+
+def run_to_end(argv: list[str], cwd: Path) -> tuple[int, str, float]:
+    """Run the program to its end: exit status, stderr, wall time (s)."""
+    t0 = time.monotonic()
+    p = _start(argv, cwd)
+    _, err = p.communicate(timeout=600)
+    return p.returncode, err, time.monotonic() - t0
+
+
+def run_and_kill(argv: list[str], cwd: Path, after_s: float) -> bool:
+    """Start the program, SIGKILL its process group after ``after_s``; True if it was killed."""
+    p = _start(argv, cwd)
+    try:
+        p.communicate(timeout=after_s)
+        return False
+    except subprocess.TimeoutExpired:
+        os.killpg(p.pid, signal.SIGKILL)
+        p.communicate()
+        return True
+
+
+def _check_mcap(path: Path) -> None:
+    with open(path, "rb") as fh:
+        reader = make_reader(fh, validate_crcs=True)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None, path
+        n = sum(1 for _ in reader.iter_messages())
+    assert n == summary.statistics.message_count > 0, path
+
+
+def check_no_partial_output(out: Path) -> dict[str, int]:
+    """Every file under ``out`` is complete or a ``.*.tmp`` temporary; counts by kind."""
+    seen = {"tmp": 0, "final": 0}
+    for f in sorted(out.rglob("*")):
+        if not f.is_file():
+            continue
+        name = f.name
+        if TEMP_NAME.fullmatch(name):
+            seen["tmp"] += 1
+            continue
+        seen["final"] += 1
+        if name == "calibration.json":
+            cal = Calibration.from_json(f.read_text(), path=str(f))
+            assert cal.R_body_mag.shape == (3, 3) and cal.n_samples > 0, f
+        elif name.endswith(".json"):
+            json.loads(f.read_text())
+        elif name.endswith(".mcap"):
+            _check_mcap(f)
+        elif name.endswith(".parquet"):
+            pq.read_table(f)
+        elif name.endswith(".html"):
+            assert f.read_text().rstrip().endswith("</html>"), f
+        elif name.endswith(".png"):
+            assert f.read_bytes()[-8:-4] == b"IEND", f
+        elif name.endswith(".rrd"):
+            assert f.read_bytes()[:4] == b"RRF2", f
+        else:
+            raise AssertionError(f"unexpected file {f}")
+    return seen
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> Path:
+    return corpus.valid(tmp_path_factory.mktemp("kill"))
+
+
+def _loop(tmp_path: Path, recording: Path, argv_for, finished) -> None:
+    rng = np.random.default_rng(SEED)
+    status, err, wall = run_to_end(argv_for(tmp_path / "reference"), tmp_path)
+    assert status == 0, err
+    killed = 0
+    for i in range(N_ITERATIONS):
+        out = tmp_path / f"run{i:02d}"
+        # Kill anywhere from start-up to a little after a normal run's end.
+        if run_and_kill(argv_for(out), tmp_path, float(rng.uniform(0.0, 1.1 * wall))):
+            killed += 1
+        if out.exists():
+            check_no_partial_output(out)
+        status, err, _ = run_to_end(argv_for(out), tmp_path)
+        assert status == 0, f"iteration {i}: rerun failed: {err}"
+        seen = check_no_partial_output(out)
+        assert seen["final"] > 0
+        finished(out)
+    assert killed >= N_ITERATIONS // 2, f"only {killed} runs were killed before their end"
+
+
+def test_kill_and_rerun_calibrate(tmp_path, recording):
+    def argv_for(out: Path) -> list[str]:
+        return ["calibrate", str(recording), "--out", str(out)]
+
+    def finished(out: Path) -> None:
+        assert (out / "calibration.json").is_file()
+
+    _loop(tmp_path, recording, argv_for, finished)
+
+
+@pytest.mark.slow
+def test_kill_and_rerun_process(tmp_path, recording):
+    stem = recording.stem
+
+    def argv_for(out: Path) -> list[str]:
+        return ["process", str(recording), "--out", str(out), "--no-progress"]
+
+    def finished(out: Path) -> None:
+        folder = out / stem
+        for name in ("calibration.json", "metrics.json", f"{stem}.corrected.mcap",
+                     ".magalign-done.json", "report.html"):
+            assert (folder / name).is_file(), name
+        assert (out / "summary.parquet").is_file()
+
+    _loop(tmp_path, recording, argv_for, finished)
