@@ -126,10 +126,15 @@ def build_stages(ctx: Context, out_dir: Path, options: ProcessOptions) -> list:
 
     rec = ctx.recording
     stages: list = []
+    tilt_note = None
     if rec.attitude is None and rec.turntable is not None:
-        from stages.turntable import TurntableAttitude
+        from stages.turntable import plan_turntable
 
-        stages.append(TurntableAttitude())
+        # fits the axis tilt when a reference field makes it identifiable (Tang 2016)
+        tt_stage, tilt_note = plan_turntable(
+            rec, reference_field_enu_nT=options.reference_field_enu_nT
+        )
+        stages.append(tt_stage)
     stages.append(Resample(max_gap_s=options.max_gap_s))
     seg_cls = _optional("stages.segment", "SegmentMotion")
     if seg_cls is not None:
@@ -156,6 +161,8 @@ def build_stages(ctx: Context, out_dir: Path, options: ProcessOptions) -> list:
                     float(x) for x in options.reference_field_enu_nT
                 )
             stages.append(diag_cls(**dkw))
+    if tilt_note is not None and options.calibration_path is None:
+        stages.append(tilt_note)  # axis_tilt (or why not) into calibration effects/warnings
     stages.append(Restore(max_gap_s=options.max_gap_s))
     stages.append(Metrics(out_dir=str(out_dir), max_gap_s=options.max_gap_s))
     stages.append(WriteResults(str(out_dir)))

@@ -30,11 +30,19 @@ from numpy.typing import ArrayLike, NDArray
 from .atomic import atomic_path
 from .geometry import quat_conj, quat_mul, quat_rotate, so3_exp
 from .recording import AngleSeries, ChannelInfo, Recording, Role, VectorSeries
-from .tang import exact_eta, fit_alpha_from_eta, minor_spin_bound, tang_eta
+from .tang import (
+    HEADING_STATS_KEYS,
+    exact_eta,
+    fit_alpha_from_eta,
+    minor_spin_bound,
+    tang_eta,
+)
 
 F64 = NDArray[np.float64]
 
 FORMAT = "magalign.tang2016/1"
+# Tang 2016, Table 2: mean, variance, maximum, minimum (pipeline.tang.heading_error_stats)
+TABLE2_KEYS = HEADING_STATS_KEYS[:4]
 
 
 @dataclass(frozen=True)
@@ -225,6 +233,16 @@ def reproduce(out_dir: str | Path) -> int:
             "fits": fits,
         },
         "paper_table2": {"azimuth_variance_before_deg2": 0.1379, "after_deg2": 0.0492},
+        # ours beside it: Tang's Table 2 statistics (pipeline.tang.heading_error_stats)
+        "table2": {
+            name: {
+                "before": {k: f["heading_before"][k] for k in TABLE2_KEYS},
+                "after": None
+                if f["heading_after"] is None
+                else {k: f["heading_after"][k] for k in TABLE2_KEYS},
+            }
+            for name, f in fits.items()
+        },
     }
     with atomic_path(out / "tang2016.json") as tmp:
         tmp.write_text(json.dumps(doc, indent=2, allow_nan=False))

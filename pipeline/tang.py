@@ -307,6 +307,56 @@ def fit_alpha_from_eta(
     return float(sol.x[0]), float(np.sqrt(s2 / info)) if s2 > 0 else 0.0
 
 
+HEADING_STATS_KEYS = (
+    "mean_deg",
+    "var_deg2",
+    "max_deg",
+    "min_deg",
+    "std_deg",
+    "rms_deg",
+    "max_abs_deg",
+    "peak_to_peak_deg",
+)
+
+
+def heading_error_stats(eta_rad: ArrayLike) -> dict[str, float]:
+    """Tang 2016, Table 2: statistics of a heading (azimuth) error series, in degrees.
+
+    Table 2 gives the mean, variance, maximum and minimum of the heading error before and after
+    compensation; the standard deviation, RMS, largest magnitude and peak-to-peak are added
+    for the metrics files.
+
+    Parameters
+    ----------
+    eta_rad : array_like, shape (N,)
+        Heading errors, rad (already wrapped to (-pi, pi]; non-finite values are left out).
+
+    Returns
+    -------
+    dict
+        ``mean_deg``, ``var_deg2``, ``max_deg``, ``min_deg``, ``std_deg``, ``rms_deg``,
+        ``max_abs_deg``, ``peak_to_peak_deg`` (NaN for an empty series) and ``n`` (int).
+
+    """
+    e = np.degrees(np.asarray(eta_rad, dtype=float).ravel())
+    e = e[np.isfinite(e)]
+    if e.size == 0:
+        out: dict[str, float] = dict.fromkeys(HEADING_STATS_KEYS, float("nan"))
+        out["n"] = 0
+        return out
+    return {
+        "mean_deg": float(np.mean(e)),
+        "var_deg2": float(np.var(e)),
+        "max_deg": float(np.max(e)),
+        "min_deg": float(np.min(e)),
+        "std_deg": float(np.std(e)),
+        "rms_deg": float(np.sqrt(np.mean(e**2))),
+        "max_abs_deg": float(np.max(np.abs(e))),
+        "peak_to_peak_deg": float(np.ptp(e)),
+        "n": int(e.size),
+    }
+
+
 # ----------------------------------------------------------------------------- octonions
 
 
@@ -561,6 +611,8 @@ __all__ = [
     "MinorSpinBound",
     "minor_spin_bound",
     "fit_alpha_from_eta",
+    "HEADING_STATS_KEYS",
+    "heading_error_stats",
     "octonion",
     "octonion_mul",
     "octonion_conj",

@@ -95,22 +95,20 @@ def heading_error_stats(enu_nT: np.ndarray, B_enu_nT: np.ndarray) -> dict[str, f
     """Tang 2016 Table 2 style heading error statistics (deg) of a restored series.
 
     The heading of a horizontal field vector is ``atan2(east, north)``; the error is the
-    restored heading minus the reference heading, wrapped to (-180, 180].
+    restored heading minus the reference heading, wrapped to (-180, 180]. The statistics are
+    those of :func:`pipeline.tang.heading_error_stats`, of which this file keeps
+    ``max_abs_deg``, ``mean_deg``, ``std_deg``, ``rms_deg`` and ``peak_to_peak_deg``.
     """
-    ref = np.degrees(np.arctan2(B_enu_nT[0], B_enu_nT[1]))
-    h = np.degrees(np.arctan2(enu_nT[:, 0], enu_nT[:, 1]))
-    err = (h - ref + 180.0) % 360.0 - 180.0
-    if err.size == 0:
-        return dict.fromkeys(
-            ("max_abs_deg", "mean_deg", "std_deg", "rms_deg", "peak_to_peak_deg"), float("nan")
-        )
-    return {
-        "max_abs_deg": float(np.max(np.abs(err))),
-        "mean_deg": float(np.mean(err)),
-        "std_deg": float(np.std(err)),
-        "rms_deg": float(np.sqrt(np.mean(err**2))),
-        "peak_to_peak_deg": float(np.ptp(err)),
-    }
+    from pipeline.tang import heading_error_stats as tang_stats
+    from pipeline.tang import wrap_angle
+
+    ref = np.arctan2(B_enu_nT[0], B_enu_nT[1])
+    h = np.arctan2(enu_nT[:, 0], enu_nT[:, 1])
+    stats = tang_stats(wrap_angle(h - ref))
+    return {k: stats[k] for k in _HEADING_KEYS}
+
+
+_HEADING_KEYS = ("max_abs_deg", "mean_deg", "std_deg", "rms_deg", "peak_to_peak_deg")
 
 
 @dataclass(frozen=True)

@@ -1,26 +1,35 @@
-"""Segment stage: which stretches of a recording are rotations, static, manoeuvres, lines, turns.
+"""Segment stage: which stretches of a recording are static, lines, turns, rotations, manoeuvres.
 
 Everything is decided from the angular rate computed from the attitude (``log(q_k^-1 q_k+1)``
 per interval, smoothed over ``smooth_s`` by a time-weighted moving average), vectorised over
-samples; Python loops run only over segments.
+samples; Python loops run only over runs and segments. One set of defaults serves lab
+recordings (turntables, hand-held manoeuvres) and surveys (lines and turns) alike:
 
-1. Intervals whose smoothed rate is below ``static_rate_deg_s`` are *still*: ``STATIC`` in a
-   lab recording, ``LINE`` (near-constant heading) in a survey (``MotionContext.SURVEY``): the
-   attitude alone cannot tell a parked vehicle from one driving straight.
-   In a survey only the heading rate (about ENU up) counts, so pitch/roll wobble on a line
-   does not end it.
-2. Moving intervals whose rate direction agrees (within ``axis_tol_deg``) with the direction
-   ``axis_window_s / 2`` before and after are on a *stable axis*; a run of them is split where
-   the direction strays from the run's starting axis, and each piece that turns at least
-   ``min_twist_deg`` about its fitted axis is a ``ROTATION`` (in a survey at least a full
-   loop, 360 deg: a 180 deg turn between lines is a ``TURN``).
-3. The remaining moving stretches (axis changing, or too little twist) are ``MANOEUVRE``, or
-   ``TURN`` in a survey when the fitted axis is within ``turn_vertical_tol_deg`` of ENU up and
-   the heading changes by at least ``turn_min_deg``.
+1. **Noise floor.** The white attitude noise is estimated from the data (robust spread of the
+   second differences of the per-sample rotation increments, :func:`attitude_noise_floor`);
+   averaged over ``smooth_s`` it gives the rate noise floor. Thresholds are
+   ``max(fixed minimum, noise_factor * floor)``, so a noisy INS does not look like motion.
+2. **Quiet or moving.** An interval is *quiet* when its smoothed rate is below the still
+   threshold, or when the heading rate (about ENU up) is below the heading threshold and the
+   whole rate stays under ``line_wobble_rate_deg_s`` (pitch/roll wobble on a straight line).
+   Runs shorter than ``min_segment_s`` are absorbed by their neighbours, shortest first
+   (hysteresis: the attitude wobble of a survey line no longer splits it into 1 s pieces).
+3. **Quiet runs**: ``STATIC`` when their RMS rate is below the still threshold (below the
+   noise), ``LINE`` when at least ``min_line_s`` long with a tilt wobble (RMS swing off the
+   ENU vertical) under ``line_max_tilt_deg`` and a heading change under ``turn_min_deg``;
+   otherwise slow motion that joins the neighbouring manoeuvre.
+4. **Moving runs**: a run that as a whole turns by ``turn_min_deg`` ..  ``turn_max_deg`` about
+   an axis within ``turn_vertical_tol_deg`` of ENU up, with a swing under
+   ``turn_max_swing_deg``, is one ``TURN``. Otherwise intervals whose rate direction agrees
+   (within ``axis_tol_deg``) with the direction ``axis_window_s / 2`` before and after are on a
+   *stable axis*; such a stretch is split where the axis strays from its starting direction,
+   and each piece that turns at least ``min_twist_deg`` about its fitted axis is a
+   ``ROTATION``. The rest is ``MANOEUVRE`` (or ``TURN`` by the rule above).
+5. Pieces shorter than ``min_segment_s`` are absorbed by the longer adjacent piece (its kind
+   wins); a short piece between gaps is dropped, so no segment is shorter than the minimum
+   and segments need not cover the whole recording (gaps break them).
 
-Runs shorter than ``min_still_s`` / ``min_moving_s`` are absorbed by their neighbours first, and
-segments shorter than ``min_segment_s`` are dropped (the segments need not cover the whole
-recording). Each segment carries the descriptors of :func:`pipeline.tang.fit_rotation`.
+Each segment carries the descriptors of :func:`pipeline.tang.fit_rotation`.
 """
 
 from __future__ import annotations
@@ -34,18 +43,36 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.errors import DataQualityError
+from pipeline.geometry import quat_conj, quat_mul
 from pipeline.recording import AlignedSeries, Context, Segment, SegmentKind
-from pipeline.tang import angular_rate, fit_rotation
+from pipeline.tang import (
+    RotationFit,
+    TwistSide,
+    angular_rate,
+    fit_rotation,
+    rotation_angle,
+    swing_twist,
+)
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
-_GAP, _STILL, _STABLE, _UNSTABLE = 0, 1, 2, 3
+# interval labels: gap, quiet (still or steady line), moving; and within a moving run
+_GAP, _QUIET, _MOVING = 0, 1, 2
+_STABLE, _UNSTABLE = 3, 4
 
 
 class MotionContext(enum.Enum):
-    """What kind of recording it is: decides the names of still and turning stretches."""
+    """What kind of recording it is.
 
+    ``AUTO`` (default) tells lines, turns, rotations, static stretches and manoeuvres apart
+    from the motion alone. ``LAB`` never reports lines or turns (a steady stretch is part of a
+    manoeuvre, a turn about the vertical a rotation or manoeuvre). ``SURVEY`` also names still
+    stretches ``LINE`` (the attitude alone cannot tell a parked vehicle from one driving
+    straight).
+    """
+
+    AUTO = "auto"
     LAB = "lab"
     SURVEY = "survey"
 
@@ -60,17 +87,53 @@ def _runs(labels: NDArray) -> tuple[I64, I64]:
     return starts, ends
 
 
-def _absorb_short(labels: NDArray, dur_s: F64, which: int, into: int, min_s: float) -> NDArray:
-    """Relabel runs of ``which`` shorter than ``min_s`` (seconds) as ``into``."""
-    if min_s <= 0:
-        return labels
-    out = labels.copy()
-    s, e = _runs(labels)
+def absorb_short_runs(labels: NDArray, dur_s: F64, min_s: float, fixed: int = _GAP) -> NDArray:
+    """Relabel runs shorter than ``min_s`` (seconds) with the label of their longer neighbour.
+
+    Shortest first: each pass relabels the runs that are shorter than ``min_s`` and than both
+    neighbours (so two neighbours never swap), then equal neighbours fuse and the next pass
+    sees the longer runs. Runs labelled ``fixed`` (gaps) never change and never spread; a short
+    run with only ``fixed`` neighbours becomes ``fixed`` (dropped).
+
+    Parameters
+    ----------
+    labels : ndarray of int, shape (M,)
+        One label per interval.
+    dur_s : ndarray, shape (M,)
+        Duration of each interval, s.
+    min_s : float
+        Shortest run kept.
+    fixed : int
+        Label that neither absorbs nor is absorbed.
+
+    Returns
+    -------
+    ndarray of int, shape (M,)
+
+    """
+    out = np.asarray(labels).copy()
+    if min_s <= 0 or out.size == 0:
+        return out
     c = np.concatenate([[0.0], np.cumsum(dur_s)])
-    for a, b in zip(s, e, strict=True):
-        if labels[a] == which and c[b] - c[a] < min_s:
-            out[a:b] = into
-    return out
+    while True:
+        s, e = _runs(out)
+        lab = out[s]
+        dur = c[e] - c[s]
+        movable = lab != fixed
+        eff = np.where(movable, dur, np.inf)  # a gap never counts as the shorter neighbour
+        left = np.concatenate([[np.inf], eff[:-1]])
+        right = np.concatenate([eff[1:], [np.inf]])
+        flip = movable & (dur < min_s) & (dur < left) & (dur <= right)
+        if not np.any(flip):
+            return out
+        lab_l = np.concatenate([[fixed], lab[:-1]])
+        lab_r = np.concatenate([lab[1:], [fixed]])
+        dur_l = np.where(lab_l != fixed, np.concatenate([[-1.0], dur[:-1]]), -1.0)
+        dur_r = np.where(lab_r != fixed, np.concatenate([dur[1:], [-1.0]]), -1.0)
+        new = np.where(dur_l >= dur_r, lab_l, lab_r)
+        new = np.where((dur_l < 0) & (dur_r < 0), fixed, new)
+        lab = np.where(flip, new, lab)
+        out = np.repeat(lab, e - s)
 
 
 def smooth_rate(t_mid_s: F64, w: F64, dt_s: F64, half_s: float) -> F64:
@@ -89,16 +152,59 @@ def smooth_rate(t_mid_s: F64, w: F64, dt_s: F64, half_s: float) -> F64:
     return (cw[hi] - cw[lo]) / np.where(d > 0, d, np.inf)[:, None]
 
 
+def attitude_noise_floor(w_body: F64, w_enu: F64, dt_s: F64) -> tuple[float, float]:
+    """White attitude noise per sample (rad): largest body axis, and heading (ENU up).
+
+    With ``n_k`` white attitude noise of standard deviation ``s`` per axis, the rotation
+    increments ``d_k = w_k dt_k`` carry ``n_k+1 - n_k`` and their second differences
+    ``n_k+2 - 2 n_k+1 + n_k`` have variance ``6 s^2``; smooth motion adds only
+    ``(dw/dt) dt^2``. The spread is taken as 1.4826 MAD (robust to fast manoeuvres).
+
+    Parameters
+    ----------
+    w_body, w_enu : ndarray, shape (M, 3)
+        Rates per interval, rad/s (zero across gaps).
+    dt_s : ndarray, shape (M,)
+        Interval durations, s (zero across gaps).
+
+    Returns
+    -------
+    sigma_body_rad, sigma_heading_rad : float
+
+    """
+    ok = dt_s > 0
+    pair = ok[1:] & ok[:-1]
+    if np.count_nonzero(pair) < 10:
+        return 0.0, 0.0
+    db = np.diff(w_body * dt_s[:, None], axis=0)[pair]
+    dz = np.diff(w_enu[:, 2] * dt_s)[pair]
+
+    def spread(x: F64) -> F64:
+        return 1.4826 * np.median(np.abs(x - np.median(x, axis=0)), axis=0) / np.sqrt(6.0)
+
+    return float(np.max(spread(db))), float(spread(dz))
+
+
 @dataclass(frozen=True)
 class SegmentMotion:
-    """Find rotation segments, still stretches, manoeuvres, lines and turns.
+    """Find static stretches, lines, turns, rotation segments and manoeuvres.
 
     Parameters
     ----------
     min_twist_deg : float
         Smallest net rotation about a stable axis for a ``ROTATION`` segment.
     static_rate_deg_s : float
-        Smoothed rotation rate below which the platform is still.
+        Smallest still threshold on the smoothed rate (the noise floor may raise it).
+    heading_rate_deg_s : float
+        Smallest threshold on the heading rate (about ENU up) of a steady line.
+    noise_factor : float
+        Thresholds are at least this many times the estimated rate noise floor.
+    line_wobble_rate_deg_s : float
+        Largest smoothed rate of a steady (line) interval: pitch/roll wobble.
+    line_max_tilt_deg : float
+        Largest RMS tilt swing (off the ENU vertical) of a ``LINE``.
+    min_line_s : float
+        Shortest ``LINE``; shorter steady stretches join the neighbouring manoeuvre.
     axis_tol_deg : float
         Largest change of the rotation axis within a rotation segment.
     smooth_s : float
@@ -107,28 +213,37 @@ class SegmentMotion:
         Span over which the axis must stay put to count as stable.
     max_gap_s : float
         Attitude intervals longer than this break segments (occlusions, dropouts).
-    min_still_s, min_moving_s, min_segment_s : float
-        Shortest still run, moving run and reported segment (seconds).
+    min_segment_s : float
+        Shortest segment (seconds): shorter runs are absorbed by their neighbours.
     context : MotionContext
-        ``LAB``: still stretches are ``STATIC``; ``SURVEY``: they are ``LINE`` and heading
-        changes about the vertical are ``TURN``.
-    turn_min_deg, turn_vertical_tol_deg : float
-        Smallest heading change of a ``TURN`` and largest angle of its axis from ENU up.
+        ``AUTO`` (default), ``LAB`` or ``SURVEY`` (see :class:`MotionContext`).
+    turn_min_deg, turn_max_deg : float
+        Heading change of a ``TURN`` (a larger one about the vertical is a rotation).
+    turn_vertical_tol_deg : float
+        Largest angle of a turn's axis from ENU up.
+    turn_max_swing_deg : float
+        Largest RMS swing of a turn (a tumbling manoeuvre with a net vertical rotation is no
+        turn).
 
     """
 
     min_twist_deg: float = 180.0
-    static_rate_deg_s: float = 2.0
+    static_rate_deg_s: float = 0.6
+    heading_rate_deg_s: float = 0.5
+    noise_factor: float = 5.0
+    line_wobble_rate_deg_s: float = 5.0
+    line_max_tilt_deg: float = 10.0
+    min_line_s: float = 10.0
     axis_tol_deg: float = 20.0
-    smooth_s: float = 0.25
+    smooth_s: float = 0.5
     axis_window_s: float = 1.0
     max_gap_s: float = 0.25
-    min_still_s: float = 0.5
-    min_moving_s: float = 0.5
-    min_segment_s: float = 0.5
-    context: MotionContext = MotionContext.LAB
+    min_segment_s: float = 3.0
+    context: MotionContext = MotionContext.AUTO
     turn_min_deg: float = 20.0
+    turn_max_deg: float = 300.0
     turn_vertical_tol_deg: float = 30.0
+    turn_max_swing_deg: float = 30.0
 
     requires: ClassVar[frozenset[str]] = frozenset({"aligned"})
     provides: ClassVar[frozenset[str]] = frozenset({"segments"})
@@ -158,73 +273,45 @@ class SegmentMotion:
         wbs = smooth_rate(t_mid, wb, dt_ok, 0.5 * self.smooth_s)
         wes = smooth_rate(t_mid, we, dt_ok, 0.5 * self.smooth_s)
         rate = np.linalg.norm(wbs, axis=1)
-        if self.context is MotionContext.SURVEY:
-            # survey: a line is near-constant heading; pitch/roll wobble does not end it
-            moving = np.abs(wes[:, 2]) >= np.radians(self.static_rate_deg_s)
-        else:
-            moving = rate >= np.radians(self.static_rate_deg_s)
+        head = np.abs(wes[:, 2])
 
-        u = wbs / np.where(rate > 0, rate, 1.0)[:, None]
-        h = 0.5 * self.axis_window_s
-        i_prev = np.searchsorted(t_mid, t_mid - h, side="left")
-        i_next = np.clip(np.searchsorted(t_mid, t_mid + h, side="right") - 1, 0, len(t_mid) - 1)
-        c = np.cos(np.radians(self.axis_tol_deg))
-        ok_prev = (np.sum(u * u[i_prev], axis=1) > c) | ~moving[i_prev]
-        ok_next = (np.sum(u * u[i_next], axis=1) > c) | ~moving[i_next]
-        labels = np.where(moving, np.where(ok_prev & ok_next, _STABLE, _UNSTABLE), _STILL)
-        labels = _absorb_short(labels, dt_ok, _STILL, _UNSTABLE, self.min_still_s)
-        moving_lab = np.where(labels == _STILL, _STILL, 9)
-        short_moving = _absorb_short(moving_lab, dt_ok, 9, _STILL, self.min_moving_s)
-        labels = np.where(short_moving == _STILL, _STILL, labels)
-        labels = np.where(gap, _GAP, labels)
+        # noise floor of a rate averaged over the smoothing window: (n_end - n_start) / W
+        sig_b, sig_h = attitude_noise_floor(wb, we, dt_ok)
+        win = max(self.smooth_s, float(np.median(dt_ok[~gap])) if np.any(~gap) else 1.0)
+        # (3 axes for the magnitude, sqrt(2) from the two window ends)
+        still_thr = max(
+            np.radians(self.static_rate_deg_s), self.noise_factor * np.sqrt(6.0) * sig_b / win
+        )
+        head_thr = max(
+            np.radians(self.heading_rate_deg_s), self.noise_factor * np.sqrt(2.0) * sig_h / win
+        )
+        steady = (head < head_thr) & (rate < np.radians(self.line_wobble_rate_deg_s))
+        quiet = (rate < still_thr) | (steady & (self.context is not MotionContext.LAB))
+        labels = np.where(gap, _GAP, np.where(quiet, _QUIET, _MOVING))
+        labels = absorb_short_runs(labels, dt_ok, self.min_segment_s)
 
         # pieces: (start interval, end interval exclusive, kind or None for "other moving")
         pieces: list[tuple[int, int, SegmentKind | None]] = []
         starts, ends = _runs(labels)
         for a, b in zip(starts, ends, strict=True):
-            lab = labels[a]
-            if lab == _GAP:
+            a, b = int(a), int(b)
+            if labels[a] == _GAP:
                 continue
-            if lab == _STILL:
-                survey = self.context is MotionContext.SURVEY
-                pieces.append((int(a), int(b), SegmentKind.LINE if survey else SegmentKind.STATIC))
-            elif lab == _UNSTABLE:
-                pieces.append((int(a), int(b), None))
+            if labels[a] == _QUIET:
+                pieces.append((a, b, self._quiet_kind(q, rate, we, dt_ok, a, b, still_thr)))
             else:
-                for a2, b2 in self._split_axis(u, int(a), int(b), t_mid):
-                    ax = self._axis(wbs, dt_ok, a2, b2)
-                    twist = abs(float(np.sum((wbs[a2:b2] @ ax) * dt_ok[a2:b2])))
-                    need = self.min_twist_deg
-                    if self.context is MotionContext.SURVEY:
-                        need = max(need, 360.0)  # a survey turn is a rotation only if it loops
-                    kind = SegmentKind.ROTATION if np.degrees(twist) >= need else None
-                    pieces.append((a2, b2, kind))
-
-        # merge neighbouring "other moving" pieces (no gap between them)
-        merged: list[list] = []
-        for a, b, k in pieces:
-            if merged and k is None and merged[-1][2] is None and merged[-1][1] == a:
-                merged[-1][1] = b
-            else:
-                merged.append([a, b, k])
+                pieces.extend(self._moving_pieces(t, q, wbs, wes, dt_ok, rate, t_mid, a, b))
+        pieces = self._absorb_pieces(pieces, dt_ok)
 
         mag = np.asarray(aligned.mag_nT, dtype=float)
         out: list[Segment] = []
-        for a, b, k in merged:
-            dur = float(np.sum(dt_ok[a:b]))
-            if dur < self.min_segment_s:
-                continue
+        for a, b, k in pieces:
             s0, s1 = a, b + 1  # samples a..b (interval b-1 ends at sample b)
             fit = fit_rotation(
                 t[s0:s1], q[s0:s1], field_dirs_body=mag[s0:s1], w_body=wbs[a:b], w_enu=wes[a:b]
             )
             if k is None:
-                k = SegmentKind.MANOEUVRE
-                if self.context is MotionContext.SURVEY:
-                    cos_tol = np.cos(np.radians(self.turn_vertical_tol_deg))
-                    vertical = abs(fit.axis_enu[2]) >= cos_tol
-                    if vertical and fit.twist_deg >= self.turn_min_deg:
-                        k = SegmentKind.TURN
+                k = SegmentKind.TURN if self._is_turn(fit) else SegmentKind.MANOEUVRE
             # half-open: sample b starts the next piece; the last piece keeps the last sample
             end_ns = int(t[b]) if b < t.shape[0] - 1 else int(t[-1]) + 1
             still = k in (SegmentKind.STATIC, SegmentKind.LINE)
@@ -243,6 +330,126 @@ class SegmentMotion:
                 )
             )
         return tuple(out)
+
+    # ------------------------------------------------------------------ pieces
+    def _is_turn(self, fit: RotationFit) -> bool:
+        """Tell whether a fitted stretch is a heading change about the vertical (a turn).
+
+        Below a full rotation (``turn_max_deg``) and without tumbling (swing).
+        """
+        if self.context is MotionContext.LAB:
+            return False
+        vertical = abs(float(fit.axis_enu[2])) >= np.cos(np.radians(self.turn_vertical_tol_deg))
+        return bool(
+            vertical
+            and self.turn_min_deg <= fit.twist_deg < self.turn_max_deg
+            and fit.swing_rms_deg <= self.turn_max_swing_deg
+        )
+
+    def _quiet_kind(
+        self, q: F64, rate: F64, we: F64, dt: F64, a: int, b: int, still_thr: float
+    ) -> SegmentKind | None:
+        """Classify a quiet run: STATIC (below the noise), LINE (long, level) or None (slow)."""
+        T = float(np.sum(dt[a:b]))
+        if T <= 0:
+            return None
+        rms = np.sqrt(float(np.sum(rate[a:b] ** 2 * dt[a:b])) / T)
+        if rms < still_thr:
+            return SegmentKind.LINE if self.context is MotionContext.SURVEY else SegmentKind.STATIC
+        if self.context is MotionContext.LAB or T < self.min_line_s:
+            return None
+        heading_change = abs(float(np.degrees(np.sum(we[a:b, 2] * dt[a:b]))))
+        # tilt wobble: swing off ENU up of the rotation since the start (evenly thinned)
+        qq = q[a : b + 1 : max(1, (b - a) // 5000)]
+        sw, _ = swing_twist(quat_mul(qq, quat_conj(qq[:1])), [0.0, 0.0, 1.0], TwistSide.LEFT)
+        tilt_rms = float(np.degrees(np.sqrt(np.mean(rotation_angle(sw) ** 2))))
+        if heading_change < self.turn_min_deg and tilt_rms <= self.line_max_tilt_deg:
+            return SegmentKind.LINE
+        return None
+
+    def _moving_pieces(
+        self,
+        t: I64,
+        q: F64,
+        wbs: F64,
+        wes: F64,
+        dt: F64,
+        rate: F64,
+        t_mid: F64,
+        a: int,
+        b: int,
+    ) -> list[tuple[int, int, SegmentKind | None]]:
+        """Split a moving run into rotations about stable axes and other motion."""
+        fit = fit_rotation(t[a : b + 1], q[a : b + 1], w_body=wbs[a:b], w_enu=wes[a:b])
+        if self._is_turn(fit):
+            return [(a, b, SegmentKind.TURN)]
+        u = wbs[a:b] / np.where(rate[a:b] > 0, rate[a:b], 1.0)[:, None]
+        tm = t_mid[a:b]
+        h = 0.5 * self.axis_window_s
+        i_prev = np.searchsorted(tm, tm - h, side="left")
+        i_next = np.clip(np.searchsorted(tm, tm + h, side="right") - 1, 0, len(tm) - 1)
+        c = np.cos(np.radians(self.axis_tol_deg))
+        ok = (np.sum(u * u[i_prev], axis=1) > c) & (np.sum(u * u[i_next], axis=1) > c)
+        lab = np.where(ok, _STABLE, _UNSTABLE)
+        # short flickers of either label do not make or break a rotation
+        lab = absorb_short_runs(lab, dt[a:b], min(self.axis_window_s, self.min_segment_s))
+        out: list[tuple[int, int, SegmentKind | None]] = []
+        s, e = _runs(lab)
+        for a1, b1 in zip(s + a, e + a, strict=True):
+            a1, b1 = int(a1), int(b1)
+            if lab[a1 - a] == _UNSTABLE:
+                out.append((a1, b1, None))
+                continue
+            for a2, b2 in self._split_axis(u, a1 - a, b1 - a, tm):
+                a2, b2 = a2 + a, b2 + a
+                ax = self._axis(wbs, dt, a2, b2)
+                twist = np.degrees(abs(float(np.sum((wbs[a2:b2] @ ax) * dt[a2:b2]))))
+                out.append((a2, b2, SegmentKind.ROTATION if twist >= self.min_twist_deg else None))
+        return out
+
+    def _absorb_pieces(
+        self, pieces: list[tuple[int, int, SegmentKind | None]], dt: F64
+    ) -> list[tuple[int, int, SegmentKind | None]]:
+        """Fuse neighbouring "other" pieces, then absorb short pieces into the longer neighbour.
+
+        Neighbours must touch (no gap between); a rotation absorbing a short piece stays a
+        rotation (its axis is refitted over the longer window), two rotations never fuse.
+        """
+        c = np.concatenate([[0.0], np.cumsum(dt)])
+        ps = [list(p) for p in pieces]
+
+        def fuse(ps: list[list]) -> list[list]:
+            out: list[list] = []
+            for p in ps:
+                if (
+                    out
+                    and out[-1][1] == p[0]
+                    and out[-1][2] is p[2]
+                    and p[2] is not SegmentKind.ROTATION
+                ):
+                    out[-1][1] = p[1]
+                else:
+                    out.append(p)
+            return out
+
+        ps = fuse(ps)
+        while True:
+            dur = [c[p[1]] - c[p[0]] for p in ps]
+            short = [i for i, d in enumerate(dur) if d < self.min_segment_s]
+            if not short:
+                break
+            i = min(short, key=lambda j: dur[j])
+            left = i - 1 if i > 0 and ps[i - 1][1] == ps[i][0] else None
+            right = i + 1 if i + 1 < len(ps) and ps[i + 1][0] == ps[i][1] else None
+            if left is None and right is None:
+                del ps[i]  # isolated between gaps: too short to describe
+                continue
+            j = left if right is None or (left is not None and dur[left] >= dur[right]) else right
+            lo, hi = min(ps[i][0], ps[j][0]), max(ps[i][1], ps[j][1])
+            ps[j] = [lo, hi, ps[j][2]]
+            del ps[i]
+            ps = fuse(ps)
+        return [(int(a), int(b), k) for a, b, k in ps]
 
     @staticmethod
     def _axis(w: F64, dt: F64, a: int, b: int) -> F64:

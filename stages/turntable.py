@@ -55,7 +55,13 @@ from pipeline.recording import (
     Recording,
     Role,
 )
-from pipeline.tang import axis_angle_quat, min_rotation_quat, twist_angle, wrap_angle
+from pipeline.tang import (
+    axis_angle_quat,
+    heading_error_stats,
+    min_rotation_quat,
+    twist_angle,
+    wrap_angle,
+)
 
 F64 = NDArray[np.float64]
 
@@ -182,22 +188,31 @@ class HeadingStats:
     max_deg: float
     min_deg: float
     n: int
+    extra: tuple[tuple[str, float], ...] = ()
 
     def to_dict(self) -> dict[str, float]:
-        """JSON-ready dict."""
+        """JSON-ready dict (the keys of :func:`pipeline.tang.heading_error_stats`)."""
         return {
             "mean_deg": self.mean_deg,
             "var_deg2": self.var_deg2,
             "max_deg": self.max_deg,
             "min_deg": self.min_deg,
+            **dict(self.extra),
             "n": self.n,
         }
 
 
 def heading_stats(eta_rad: ArrayLike) -> HeadingStats:
-    """Mean, variance, maximum and minimum of a heading error (rad in, degrees out)."""
-    e = np.degrees(np.asarray(eta_rad, dtype=float))
-    return HeadingStats(float(e.mean()), float(e.var()), float(e.max()), float(e.min()), e.size)
+    """Mean, variance, maximum and minimum of a heading error (rad in, degrees out).
+
+    A typed view of :func:`pipeline.tang.heading_error_stats` (Tang 2016, Table 2).
+    """
+    d = heading_error_stats(eta_rad)
+    main = ("mean_deg", "var_deg2", "max_deg", "min_deg", "n")
+    extra = tuple((k, v) for k, v in d.items() if k not in main)
+    return HeadingStats(
+        d["mean_deg"], d["var_deg2"], d["max_deg"], d["min_deg"], int(d["n"]), extra
+    )
 
 
 def heading_error(
@@ -535,3 +550,114 @@ def fit_axis_tilt(
         heading_after=after,
         notes=tuple(notes),
     )
+
+
+# ----------------------------------------------------------------------------- processing
+
+
+@dataclass(frozen=True)
+class AxisTiltNote:
+    """Stage: record the turntable axis tilt, or why it is not identifiable, in the calibration.
+
+    Runs after the estimate (and diagnose), which build the calibration from an attitude that
+    :class:`TurntableAttitude` has already compensated; the tilt is bookkeeping here
+    (``Calibration.effects["axis_tilt"]``, CONVENTIONS params), restore does not apply it again.
+
+    Parameters
+    ----------
+    params : tuple of (str, float)
+        ``(("tilt_deg", t), ("azimuth_deg", az))``; empty when the tilt was not fitted.
+    warnings : tuple of str
+        Added to ``Calibration.warnings``.
+
+    """
+
+    params: tuple[tuple[str, float], ...] = ()
+    warnings: tuple[str, ...] = ()
+
+    requires: ClassVar[frozenset[str]] = frozenset({"calibration"})
+    provides: ClassVar[frozenset[str]] = frozenset({"calibration"})
+
+    def run(self, ctx: Context) -> Context:
+        """Return ``ctx`` with ``axis_tilt`` in the calibration's effects and warnings."""
+        cal = ctx.calibration
+        effects = dict(cal.effects or {})
+        warnings = tuple(cal.warnings)
+        if self.params:
+            found = effects.get("axis_tilt")
+            if isinstance(found, dict) and found:
+                warnings += (
+                    "axis_tilt: the attitude was compensated for the fitted tilt "
+                    f"{dict(self.params)}; a further tilt {found} was found on the compensated "
+                    "attitude (not composed)",
+                )
+            effects["axis_tilt"] = dict(self.params)
+        return ctx.replace(
+            calibration=cal.replace(effects=effects, warnings=warnings + self.warnings)
+        )
+
+
+def plan_turntable(
+    recording: Recording,
+    *,
+    reference_field_enu_nT: ArrayLike | None = None,
+    nominal_axis_body: tuple[float, float, float] = (0.0, 0.0, 1.0),
+    nominal_axis_enu: tuple[float, float, float] = (0.0, 0.0, 1.0),
+) -> tuple[TurntableAttitude, AxisTiltNote]:
+    """Stages for a recording whose attitude is a turntable angle: attitude and axis tilt.
+
+    With a reference field the tilt is fitted (:func:`fit_axis_tilt`, jointly with the
+    misalignment) and the attitude built from the angle is compensated for it (Tang 2016);
+    without one the tilt is not identifiable (a tilted axis is absorbed exactly by ``B_enu``
+    and ``R_body_mag``) and the returned note says so.
+
+    Parameters
+    ----------
+    recording : Recording
+        With a turntable angle channel.
+    reference_field_enu_nT : array_like (3,), optional
+        Known background field, ENU, nT.
+    nominal_axis_body, nominal_axis_enu : 3-tuple
+        Nominal turntable axis in the body frame and in ENU.
+
+    Returns
+    -------
+    attitude_stage : TurntableAttitude
+        Compensated when the tilt was fitted.
+    note_stage : AxisTiltNote
+        To run after the estimate: writes ``axis_tilt`` and warnings into the calibration.
+
+    """
+    if reference_field_enu_nT is None:
+        why = (
+            "axis_tilt not identifiable: no reference field given, and a tilt of the turntable "
+            "axis is absorbed exactly by the estimated B_enu and R_body_mag; give a reference "
+            "field (--reference-field or --igrf) to fit it (Tang 2016)"
+        )
+        return TurntableAttitude(nominal_axis_body, nominal_axis_enu), AxisTiltNote(
+            warnings=(why,)
+        )
+    res = fit_axis_tilt(
+        recording,
+        nominal_axis_body=nominal_axis_body,
+        nominal_axis_enu=nominal_axis_enu,
+        reference_field_enu_nT=reference_field_enu_nT,
+    )
+    params = (("tilt_deg", res.tilt_deg), ("azimuth_deg", res.azimuth_deg))
+    warnings = []
+    if res.unobservable_lean_dirs:
+        lean = np.asarray(res.observable_lean_dirs[0]) if res.observable_lean_dirs else None
+        part = "" if lean is None else (
+            f"; only the lean along (east, north) = ({lean[0]:+.2f}, {lean[1]:+.2f}) is "
+            f"determined ({float(lean @ res.lean_enu_deg):+.3f} deg, "
+            f"sigma {res.sigma_observable_deg[0]:.1e} deg)"
+        )
+        warnings.append(
+            "axis_tilt partly identifiable: with the mounting R_body_mag estimated, the lean of "
+            "the turntable axis across the horizontal field trades off with R_body_mag and is "
+            f"held at zero{part}"
+        )
+    stage = TurntableAttitude(
+        nominal_axis_body, nominal_axis_enu, tilt_deg=res.tilt_deg, azimuth_deg=res.azimuth_deg
+    )
+    return stage, AxisTiltNote(params=params, warnings=tuple(warnings))

@@ -272,3 +272,23 @@ def test_relative_rotation_helper_consistency():
     tw = twist_angle(rel, [0, 0, 1])
     np.testing.assert_allclose(tw, np.radians([0, 25, 40]) - exact_eta(np.radians([0, 25, 40]),
                                                                        np.radians(7.0)))
+
+
+def test_heading_error_stats_table2_known_answer():
+    from pipeline.tang import heading_error_stats
+    from stages.metrics import heading_error_stats as metrics_stats
+
+    eta = np.radians([1.0, -2.0, 4.0, 1.0])
+    d = heading_error_stats(eta)
+    assert d["mean_deg"] == pytest.approx(1.0)
+    assert d["var_deg2"] == pytest.approx((0 + 9 + 9 + 0) / 4)
+    assert (d["max_deg"], d["min_deg"], d["n"]) == (pytest.approx(4.0), pytest.approx(-2.0), 4)
+    assert d["max_abs_deg"] == pytest.approx(4.0) and d["peak_to_peak_deg"] == pytest.approx(6.0)
+    assert np.isnan(heading_error_stats([])["mean_deg"])
+    # metrics' heading statistics are these, from the restored field headings
+    B = np.array([0.0, 1.0, -1.0])
+    h = np.radians([10.0, -5.0])
+    enu = np.stack([np.sin(h), np.cos(h), -np.ones(2)], -1)
+    m = metrics_stats(enu, B)
+    assert set(m) == {"max_abs_deg", "mean_deg", "std_deg", "rms_deg", "peak_to_peak_deg"}
+    assert m["mean_deg"] == pytest.approx(2.5) and m["max_abs_deg"] == pytest.approx(10.0)
