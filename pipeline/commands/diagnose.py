@@ -1,0 +1,79 @@
+"""``magalign diagnose REC.mcap --out DIR``: find, name, model and verify what the model leaves out.
+
+Writes ``DIR/diagnosis.json`` and ``DIR/calibration.json`` (the final model, CONVENTIONS) and
+prints the findings table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from ..atomic import write_text_atomic
+from ..errors import UsageError
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register the subcommand."""
+    p = sub.add_parser("diagnose", help="find and model the physics the calibration left out")
+    p.add_argument("recording", help="MCAP recording")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--mag", default=None, help="magnetometer topic")
+    p.add_argument("--attitude", default=None, help="attitude topic")
+    p.add_argument("--reference-field", default=None, metavar="E,N,U",
+                   help="known background field, ENU nT (not estimated then)")
+    p.set_defaults(func=run)
+
+
+def _field(text: str | None) -> tuple[float, float, float] | None:
+    if text is None:
+        return None
+    try:
+        v = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        v = ()
+    if len(v) != 3:
+        raise UsageError(f"--reference-field needs E,N,U in nT, got {text!r}")
+    return v  # type: ignore[return-value]
+
+
+def diagnose_file(path: str | Path, *, mag_topic: str | None = None,
+                  attitude_topic: str | None = None,
+                  reference_field_enu_nT: tuple[float, float, float] | None = None):
+    """Read, align, calibrate and diagnose one recording; returns the final Context."""
+    from stages.diagnose import Diagnose
+    from stages.resample import Resample
+
+    from ..errors import MagalignError
+    from ..mcap_read import read_recording
+    from ..recording import Context
+
+    rec = read_recording(path, mag_topic=mag_topic, attitude_topic=attitude_topic)
+    ctx = Context(source=str(path), recording=rec)
+    if rec.attitude is None and rec.turntable is not None:
+        from stages.turntable import TurntableAttitude
+
+        ctx = TurntableAttitude().run(ctx)
+    ctx = Resample().run(ctx)
+    try:
+        from stages.estimate import fit_calibration
+
+        cal = fit_calibration(ctx.recording, ctx.aligned)
+    except (ImportError, MagalignError):
+        cal = None  # the diagnosis starts from its own Wahba solution then
+    ctx = ctx.replace(calibration=cal)
+    return Diagnose(reference_field_enu_nT=reference_field_enu_nT).run(ctx)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Diagnose and write the outputs; returns the exit status."""
+    ctx = diagnose_file(args.recording, mag_topic=args.mag, attitude_topic=args.attitude,
+                        reference_field_enu_nT=_field(args.reference_field))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out / "diagnosis.json",
+                      json.dumps(ctx.diagnosis.to_dict(), indent=2, allow_nan=False))
+    write_text_atomic(out / "calibration.json", ctx.calibration.to_json())
+    print(ctx.diagnosis.table())
+    return 0

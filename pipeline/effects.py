@@ -1,0 +1,968 @@
+"""The effect library: every physical effect ``diagnose`` can add to the forward model.
+
+Forward model (CONVENTIONS, "Measurement model"), one magnetometer sample stamped ``t``::
+
+    b(t)   = C_enu_body(t - tau).T @ T.T @ (B_enu + F(t))      body frame, nT
+    m(t)   = R_body_mag.T @ b(t)                               mag frame, nT
+    y0(t)  = D @ m(t)
+    y(t)   = y0(t) + o + o_step * 1[t in windows] + E_s @ dy0/dt
+
+with ``F(t)`` the ENU field terms (``field_drift``, ``disturbance``), ``T`` the turntable-axis
+tilt (``axis_tilt``), ``D = I + S`` (``soft_iron``, ``S`` symmetric and traceless because the
+isotropic scale of ``D`` is the field magnitude when ``B_enu`` is estimated), ``o``
+(``hard_iron``), ``o_step`` (``hard_iron_step``), ``E_s`` (``eddy_current``). ``dy0/dt`` is the
+rate of change of the undisturbed reading caused by the rotation of the platform (the field
+the airframe sees changing), so that a time offset is exactly the isotropic special case
+``E_s = -tau I`` to first order.
+
+The baseline model is ``R_body_mag`` and ``B_enu`` only. Every other term is an
+:class:`Effect`; each has its parameters, its contribution to the predicted reading, its
+analytic Jacobian (checked numerically in ``tests/test_effects.py``), a physical explanation
+and an identifiability condition computed from the data.
+
+Parameter vector layout: ``[dR (3), B (3), term_1 (k_1), term_2 (k_2), ...]``. ``dR`` and the
+tilt of ``axis_tilt`` are left perturbations on SO(3) (``R <- exp([dR]x) R``), so the Jacobian
+columns are evaluated at zero perturbation and the state stores the rotation matrices.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .geometry import quat_slerp, quat_to_matrix, skew, so3_exp
+
+F64 = NDArray[np.float64]
+
+
+class EffectKind(str, enum.Enum):
+    """CONVENTIONS effect names."""
+
+    HARD_IRON = "hard_iron"
+    SOFT_IRON = "soft_iron"
+    TIME_OFFSET = "time_offset"
+    EDDY_CURRENT = "eddy_current"
+    FIELD_DRIFT = "field_drift"
+    DISTURBANCE = "disturbance"
+    HARD_IRON_STEP = "hard_iron_step"
+    AXIS_TILT = "axis_tilt"
+
+
+LOCAL_KINDS = frozenset({EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP})
+
+# Symmetric traceless basis of the soft-iron deviation S (5 matrices): the trace of D is the
+# field magnitude's job when B_enu is free (D = s I and B/s predict the same readings).
+_SOFT_BASIS = np.zeros((5, 3, 3))
+_SOFT_BASIS[0] = np.diag([1.0, -1.0, 0.0])
+_SOFT_BASIS[1] = np.diag([1.0, 1.0, -2.0]) / np.sqrt(3.0)
+for _k, (_i, _j) in enumerate([(0, 1), (0, 2), (1, 2)]):
+    _SOFT_BASIS[2 + _k, _i, _j] = _SOFT_BASIS[2 + _k, _j, _i] = 1.0
+
+
+# ----------------------------------------------------------------------------- data
+
+
+@dataclass(frozen=True)
+class AttitudeTrack:
+    """Attitude samples that can be evaluated at any time by SLERP.
+
+    Attributes
+    ----------
+    t_s : ndarray (M,)
+        Stamps in seconds from the first magnetometer sample, increasing.
+    q_enu_body : ndarray (M, 4)
+        Scalar-last unit quaternions.
+
+    """
+
+    t_s: F64
+    q_enu_body: F64
+
+    def at(self, t_s: F64) -> F64:
+        """Quaternions ``q_enu_body`` at ``t_s`` (held constant outside the span), (N, 4).
+
+        Cubic (Catmull-Rom) interpolation of the sign-aligned quaternion components,
+        renormalised; SLERP where a neighbour is missing or across a gap. Linear (SLERP)
+        interpolation errs by ``s (1 - s) dt^2 / 2`` times the angular acceleration, which
+        for swinging motion is proportional to the swing itself: at 50 Hz that alone shows
+        up as nT-level offsets and scale errors, i.e. as spurious hard or soft iron.
+        """
+        t = np.clip(np.asarray(t_s, dtype=float), self.t_s[0], self.t_s[-1])
+        m = len(self.t_s)
+        i = np.clip(np.searchsorted(self.t_s, t, side="right") - 1, 0, m - 2)
+        t0, t1 = self.t_s[i], self.t_s[i + 1]
+        s = np.where(t1 > t0, (t - t0) / np.where(t1 > t0, t1 - t0, 1.0), 0.0)
+        q1 = self.q_enu_body[i]
+        lin = quat_slerp(q1, self.q_enu_body[i + 1], s)
+        if m < 4:
+            return lin
+        im, i2 = np.maximum(i - 1, 0), np.minimum(i + 2, m - 1)
+        q0, q2, q3 = self.q_enu_body[im], self.q_enu_body[i + 1], self.q_enu_body[i2]
+        # same hemisphere as q1
+        q0 = np.where(np.sum(q0 * q1, -1, keepdims=True) < 0, -q0, q0)
+        q2 = np.where(np.sum(q2 * q1, -1, keepdims=True) < 0, -q2, q2)
+        q3 = np.where(np.sum(q3 * q1, -1, keepdims=True) < 0, -q3, q3)
+        ss = s[:, None]
+        cub = 0.5 * (2 * q1 + (q2 - q0) * ss + (2 * q0 - 5 * q1 + 4 * q2 - q3) * ss**2
+                     + (-q0 + 3 * q1 - 3 * q2 + q3) * ss**3)
+        cub /= np.linalg.norm(cub, axis=-1, keepdims=True)
+        dt = t1 - t0
+        ok = (im == i - 1) & (i2 == i + 2)
+        ok &= np.abs(self.t_s[im] - t0 + dt) < 0.25 * dt
+        ok &= np.abs(self.t_s[i2] - t1 - dt) < 0.25 * dt
+        return np.where(ok[:, None], cub, lin)
+
+    def smoothed(self, taps: int = 7) -> AttitudeTrack:
+        """Return the track low-passed by a symmetric binomial kernel (no delay).
+
+        White attitude noise makes the noise of a SLERP-interpolated attitude depend on
+        where between two samples it is read (half the variance mid-way): a fitted time
+        offset would then drift towards the mid-points and eddy terms would fit the noise
+        of neighbouring samples. Smoothing over a few samples makes the noise nearly
+        uniform; the motion (a few Hz at most) is untouched at these rates.
+        """
+        if taps < 3 or len(self.t_s) < 2 * taps:
+            return self
+        k = np.array([1.0])
+        for _ in range(taps - 1):
+            k = np.convolve(k, [0.5, 0.5])
+        q = np.array(self.q_enu_body, dtype=float)
+        # same hemisphere as the previous sample so that averaging is meaningful
+        flip = np.cumprod(np.where(np.sum(q[1:] * q[:-1], axis=1) < 0, -1.0, 1.0))
+        q[1:] *= flip[:, None]
+        pad = taps // 2
+        qp = np.concatenate([np.repeat(q[:1], pad, 0), q, np.repeat(q[-1:], pad, 0)])
+        qs = np.stack([np.convolve(qp[:, i], k, mode="valid") for i in range(4)], axis=-1)
+        qs /= np.linalg.norm(qs, axis=1, keepdims=True)
+        return AttitudeTrack(self.t_s, qs)
+
+    def denoised(self) -> AttitudeTrack:
+        """Return the track smoothed as much as its own noise warrants (see ``smoothed``).
+
+        The white-noise level is estimated from the second difference of the samples; the
+        motion's distortion by a binomial kernel of variance ``s^2`` is about
+        ``s^2 / 2 * |angular acceleration|``. The widest kernel whose distortion stays below a
+        fiftieth of the noise it removes is used (none for a clean or slowly sampled track):
+        a distorted swing is a bias that looks like hard or soft iron, noise only averages.
+        """
+        if len(self.t_s) < 30:
+            return self
+        dt = self.step_s
+        q = np.array(self.q_enu_body, dtype=float)
+        sgn = np.where(np.sum(q[1:] * q[:-1], axis=1) < 0, -1.0, 1.0)
+        q[1:] *= np.cumprod(sgn)[:, None]
+        d2 = q[2:] - 2.0 * q[1:-1] + q[:-2]
+        # rotation angle ~ 2 |dq|; white noise: var(d2) = 6 var(q); a robust RMS
+        noise_rad = 2.0 * 1.4826 * float(np.median(np.abs(d2))) / np.sqrt(6.0) * np.sqrt(3.0)
+        wide = self.smoothed(11).q_enu_body
+        k = max(1, int(round(0.1 / dt)))  # acceleration from a 0.1 s baseline: motion only
+        acc = 2.0 * np.linalg.norm(wide[2 * k:] - 2 * wide[k:-k] + wide[: -2 * k], axis=1)
+        acc_rad_s2 = float(np.sqrt(np.mean(acc**2))) / (k * dt) ** 2 if len(acc) else 0.0
+        best = 1
+        for taps in (3, 5, 7, 9, 11):
+            var_s2 = (taps - 1) / 4.0 * dt * dt
+            if 0.5 * var_s2 * acc_rad_s2 < 0.02 * noise_rad:
+                best = taps
+        return self.smoothed(best) if best > 1 else self
+
+    @property
+    def step_s(self) -> float:
+        """Median sample spacing, s."""
+        return float(np.median(np.diff(self.t_s))) if len(self.t_s) > 1 else 0.01
+
+
+@dataclass(frozen=True)
+class FitData:
+    """What the model is fitted to.
+
+    Attributes
+    ----------
+    t_s : ndarray (N,)
+        Magnetometer stamps, seconds from the first magnetometer sample of the recording.
+    y_nT : ndarray (N, 3)
+        Magnetometer readings, mag frame, nT.
+    track : AttitudeTrack
+        Attitude ``q_enu_body`` on the same time axis (sensing time = stamp - tau).
+    B_known_enu_nT : ndarray (3,) or None
+        A reference field; when given, ``B_enu`` is held at it (not estimated).
+    turntable_axis_body : ndarray (3,) or None
+        Nominal rotation axis of a single-axis attitude source (turntable), body frame.
+
+    """
+
+    t_s: F64
+    y_nT: F64
+    track: AttitudeTrack
+    B_known_enu_nT: F64 | None = None
+    turntable_axis_body: F64 | None = None
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
+
+    def subset(self, mask: np.ndarray) -> FitData:
+        """Return the samples where ``mask`` is true (same attitude track)."""
+        return replace(self, t_s=self.t_s[mask], y_nT=self.y_nT[mask])
+
+    @property
+    def duration_s(self) -> float:
+        """Span of the samples, s."""
+        return float(self.t_s[-1] - self.t_s[0]) if len(self) > 1 else 0.0
+
+
+# ----------------------------------------------------------------------------- terms
+
+
+@dataclass(frozen=True)
+class Term:
+    """One effect as a model term.
+
+    Attributes
+    ----------
+    kind : EffectKind
+    windows_s : tuple of (start, end)
+        Half-open windows, s from the first magnetometer sample (local effects only).
+    knot_step_s : float
+        Spacing of the linear B-spline (hat) knots of a ``disturbance`` field.
+
+    """
+
+    kind: EffectKind
+    windows_s: tuple[tuple[float, float], ...] = ()
+    knot_step_s: float = 1.0
+
+    def knots(self) -> list[F64]:
+        """Knot times of each disturbance window (hat functions, both ends included)."""
+        out = []
+        for a, b in self.windows_s:
+            n = max(2, int(np.ceil((b - a) / self.knot_step_s)) + 1)
+            out.append(np.linspace(a, b, n))
+        return out
+
+    def n_params(self) -> int:
+        """Return the number of parameters of the term."""
+        k = self.kind
+        if k in (EffectKind.HARD_IRON, EffectKind.HARD_IRON_STEP):
+            return 3
+        if k is EffectKind.SOFT_IRON:
+            return 5
+        if k is EffectKind.TIME_OFFSET:
+            return 1
+        if k is EffectKind.EDDY_CURRENT:
+            return 9
+        if k is EffectKind.FIELD_DRIFT:
+            return 3 * DRIFT_DEGREE
+        if k is EffectKind.AXIS_TILT:
+            return 2
+        if k is EffectKind.DISTURBANCE:
+            return 3 * sum(len(kn) for kn in self.knots())
+        raise ValueError(k)
+
+    def indicator(self, t_s: F64) -> F64:
+        """1 inside any window, else 0, shape (N,)."""
+        ind = np.zeros(np.shape(t_s))
+        for a, b in self.windows_s:
+            ind[(t_s >= a) & (t_s < b)] = 1.0
+        return ind
+
+
+DRIFT_DEGREE = 4
+
+
+def drift_basis(t_s: F64, t0_s: float, t1_s: float) -> F64:
+    """Legendre P1..P4 of the time scaled to [-1, 1] over the recording, shape (N, 4).
+
+    A slow field variation (diurnal, drift, up to about one period over the recording) is
+    smooth: a few Legendre polynomials per ENU axis carry it; the constant is ``B_enu``.
+    """
+    x = (2.0 * (np.asarray(t_s) - t0_s) / max(t1_s - t0_s, 1e-9)) - 1.0
+    return np.polynomial.legendre.legvander(x, DRIFT_DEGREE)[:, 1:]
+
+
+def hat_basis(t_s: F64, knots: F64) -> F64:
+    """Linear B-splines (hat functions) on ``knots``, zero outside [knots[0], knots[-1]), (N, K)."""
+    t = np.asarray(t_s, dtype=float)[:, None]
+    k = np.asarray(knots, dtype=float)
+    h = np.diff(k)
+    left = np.concatenate([[np.inf], h])  # width to the previous knot
+    right = np.concatenate([h, [np.inf]])
+    d = t - k[None, :]
+    phi = np.where(d < 0, 1.0 + d / left, 1.0 - d / right)
+    phi = np.clip(phi, 0.0, 1.0)
+    inside = (t >= k[0]) & (t < k[-1])
+    return phi * inside
+
+
+# ----------------------------------------------------------------------------- state
+
+
+@dataclass(frozen=True)
+class ModelState:
+    """Current values of every model parameter.
+
+    Attributes
+    ----------
+    R_body_mag : ndarray (3, 3)
+    B_enu_nT : ndarray (3,)
+    terms : tuple of Term
+    values : tuple of ndarray
+        One parameter vector per term (axis_tilt stores its rotation in ``T_enu``).
+    T_enu : ndarray (3, 3)
+        Tilt of the turntable axis (identity without ``axis_tilt``).
+
+    """
+
+    R_body_mag: F64
+    B_enu_nT: F64
+    terms: tuple[Term, ...] = ()
+    values: tuple[F64, ...] = ()
+    T_enu: F64 = field(default_factory=lambda: np.eye(3))
+
+    def n_params(self) -> int:
+        """Length of the parameter (perturbation) vector."""
+        return 6 + sum(t.n_params() for t in self.terms)
+
+    def with_term(self, term: Term) -> ModelState:
+        """Return the state with ``term`` appended at zero (no effect)."""
+        zero = np.zeros(term.n_params())
+        return replace(self, terms=self.terms + (term,), values=self.values + (zero,))
+
+    def value(self, kind: EffectKind) -> F64 | None:
+        """Parameter vector of the first term of ``kind``, or None."""
+        for t, v in zip(self.terms, self.values, strict=True):
+            if t.kind is kind:
+                return v
+        return None
+
+    def offsets(self) -> list[int]:
+        """Start index of each term's block in the parameter vector."""
+        out, i = [], 6
+        for t in self.terms:
+            out.append(i)
+            i += t.n_params()
+        return out
+
+    def D(self) -> F64:
+        """Soft-iron matrix ``I + S`` (identity without ``soft_iron``)."""
+        s = self.value(EffectKind.SOFT_IRON)
+        return np.eye(3) if s is None else np.eye(3) + np.tensordot(s, _SOFT_BASIS, axes=1)
+
+    def tau_s(self) -> float:
+        """Time offset, s (0 without ``time_offset``)."""
+        v = self.value(EffectKind.TIME_OFFSET)
+        return 0.0 if v is None else float(v[0])
+
+    def update(self, dx: F64, fixed_B: bool = False) -> ModelState:
+        """Apply a perturbation ``dx`` (left perturbation for rotations)."""
+        R = so3_exp(dx[0:3]) @ self.R_body_mag
+        B = self.B_enu_nT if fixed_B else self.B_enu_nT + dx[3:6]
+        vals, T = [], self.T_enu
+        for t, v, i in zip(self.terms, self.values, self.offsets(), strict=True):
+            # for axis_tilt the values are bookkeeping only; the rotation lives in T_enu
+            vals.append(v + dx[i : i + t.n_params()])
+        for t, i in zip(self.terms, self.offsets(), strict=True):
+            if t.kind is EffectKind.AXIS_TILT:
+                P = _tilt_basis(self)
+                T = so3_exp(P @ dx[i : i + 2]) @ T
+        return replace(self, R_body_mag=R, B_enu_nT=B, values=tuple(vals), T_enu=T)
+
+
+def _tilt_basis(state: ModelState, axis_enu: F64 | None = None) -> F64:
+    """Two unit vectors (3, 2) perpendicular to the nominal turntable axis in ENU (up)."""
+    n = np.array([0.0, 0.0, 1.0]) if axis_enu is None else axis_enu / np.linalg.norm(axis_enu)
+    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(n, a)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    return np.stack([e1, e2], axis=-1)
+
+
+# ----------------------------------------------------------------------------- model
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """Prediction and Jacobian of the model at a state.
+
+    Attributes
+    ----------
+    y_nT : ndarray (N, 3)
+        Predicted reading, mag frame.
+    J : ndarray (N, 3, P) or None
+        d y / d (perturbation vector).
+    ydot0_nT_s : ndarray (N, 3)
+        Rotation-induced rate of change of the undisturbed reading ``D R.T db/dt``.
+    G : ndarray (N, 3, 3)
+        d y / d B_enu (per sample).
+
+    """
+
+    y_nT: F64
+    J: F64 | None
+    ydot0_nT_s: F64
+    G: F64
+
+
+_CT_CACHE: dict[tuple, tuple[Any, F64]] = {}
+
+
+def _CT(track: AttitudeTrack, t_s: F64, key: tuple | None = None, owners: Any = None) -> F64:
+    """``C_enu_body(t).T`` (N, 3, 3); cached per (track, stamps, shift) during a fit.
+
+    The cache keeps a reference to the objects whose ids form the key (``owners``), so an id
+    cannot be reused by another array while its entry lives.
+    """
+    if key is not None:
+        hit = _CT_CACHE.get(key)
+        if hit is not None and all(a is b for a, b in zip(hit[0], owners, strict=True)):
+            return hit[1]
+    out = np.ascontiguousarray(np.swapaxes(quat_to_matrix(track.at(t_s)), -1, -2))
+    if key is not None:
+        if len(_CT_CACHE) > 48:
+            _CT_CACHE.clear()  # bounded: the cache only spans the iterations of one fit
+        _CT_CACHE[key] = (owners, out)
+    return out
+
+
+def _mv(M: F64, v: F64) -> F64:
+    """Per-sample matrix-vector product (N,3,3) x (N,3) -> (N,3)."""
+    return np.matmul(M, v[:, :, None])[:, :, 0]
+
+
+def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluation:
+    """Predicted magnetometer reading and its Jacobian (vectorised over samples).
+
+    Parameters
+    ----------
+    state : ModelState
+        Parameter values and terms.
+    data : FitData
+        Stamps, readings and attitude track.
+    jacobian : bool
+        Also return the Jacobian with respect to the perturbation vector.
+
+    Returns
+    -------
+    Evaluation
+
+    """
+    t = data.t_s
+    n = t.shape[0]
+    tau = state.tau_s()
+    # 3 samples: the rate regressor then shares no attitude sample with the reading's own
+    # interpolation, so it cannot fit attitude noise
+    h = max(3.0 * data.track.step_s, 1e-3)
+    s = t - tau  # sensing time (CONVENTIONS: tau > 0 means stamps are late)
+    base = (id(data.track), id(t), n, tau, h)
+    own = (data.track, t)
+    Ct = _CT(data.track, s, base + (0,), own)
+    Cp = _CT(data.track, s + h, base + (1,), own)
+    Cm = _CT(data.track, s - h, base + (-1,), own)
+    Cdot = (Cp - Cm) / (2.0 * h)  # d/dt C.T, central difference of the SLERP track
+    Cddot = (Cp - 2.0 * Ct + Cm) / (h * h)
+
+    # --- ENU field at each sample: B + drift + disturbances
+    Bt = np.broadcast_to(state.B_enu_nT, (n, 3)).copy()
+    for term, v in zip(state.terms, state.values, strict=True):
+        if term.kind is EffectKind.FIELD_DRIFT:
+            P = drift_basis(t, 0.0, _span(data))
+            Bt += P @ v.reshape(-1, 3)
+        elif term.kind is EffectKind.DISTURBANCE:
+            Phi = np.concatenate([hat_basis(t, k) for k in term.knots()], axis=1)
+            Bt += Phi @ v.reshape(-1, 3)
+    TT = state.T_enu.T
+    Bp = Bt @ TT.T  # T.T @ B_t per row
+
+    b = _mv(Ct, Bp)
+    bdot = _mv(Cdot, Bp)
+    R = state.R_body_mag
+    D = state.D()
+    m = b @ R  # R.T @ b per row
+    mdot = bdot @ R
+    y0 = m @ D.T
+    ydot0 = mdot @ D.T
+
+    E = np.zeros((3, 3))
+    y = y0.copy()
+    for term, v in zip(state.terms, state.values, strict=True):
+        if term.kind is EffectKind.HARD_IRON:
+            y += v
+        elif term.kind is EffectKind.HARD_IRON_STEP:
+            y += term.indicator(t)[:, None] * v
+        elif term.kind is EffectKind.EDDY_CURRENT:
+            E = v.reshape(3, 3)
+    y += ydot0 @ E.T
+
+    DRt = D @ R.T
+    Gp = np.matmul(DRt, Ct) + np.matmul(E @ DRt, Cdot)
+    G = Gp @ TT
+    if not jacobian:
+        return Evaluation(y, None, ydot0, G)
+
+    J = np.zeros((n, 3, state.n_params()))
+    # R: left perturbation, R.T <- R.T exp(-[d]x): dm/dd = R.T [b]x
+    J[:, :, 0:3] = np.matmul(DRt, skew(b)) + np.matmul(E @ DRt, skew(bdot))
+    if data.B_known_enu_nT is None:
+        J[:, :, 3:6] = G
+    bddot = _mv(Cddot, Bp)
+    for term, i in zip(state.terms, state.offsets(), strict=True):
+        k = term.kind
+        if k is EffectKind.HARD_IRON:
+            J[:, :, i : i + 3] = np.eye(3)
+        elif k is EffectKind.HARD_IRON_STEP:
+            J[:, :, i : i + 3] = term.indicator(t)[:, None, None] * np.eye(3)
+        elif k is EffectKind.SOFT_IRON:
+            # dy/ds_k = S_k m + E S_k mdot
+            J[:, :, i : i + 5] = np.einsum("kij,nj->nik", _SOFT_BASIS, m) + np.einsum(
+                "kij,nj->nik", np.matmul(E, _SOFT_BASIS), mdot
+            )
+        elif k is EffectKind.TIME_OFFSET:
+            # b(t - tau): db/dtau = -bdot, dbdot/dtau = -bddot
+            J[:, :, i] = -(bdot @ DRt.T) - (bddot @ DRt.T) @ E.T
+        elif k is EffectKind.EDDY_CURRENT:
+            # y_i += E_ij ydot0_j (row-major E)
+            for r_ in range(3):
+                J[:, r_, i + 3 * r_ : i + 3 * r_ + 3] = ydot0
+        elif k is EffectKind.FIELD_DRIFT:
+            P = drift_basis(t, 0.0, _span(data))
+            kk = 3 * P.shape[1]
+            J[:, :, i : i + kk] = (P[:, :, None, None] * G[:, None, :, :]).transpose(
+                0, 2, 1, 3
+            ).reshape(n, 3, kk)
+        elif k is EffectKind.DISTURBANCE:
+            Phi = np.concatenate([hat_basis(t, kn) for kn in term.knots()], axis=1)
+            K = Phi.shape[1]
+            J[:, :, i : i + 3 * K] = (Phi[:, :, None, None] * G[:, None, :, :]).transpose(
+                0, 2, 1, 3
+            ).reshape(n, 3, 3 * K)
+        elif k is EffectKind.AXIS_TILT:
+            # T.T <- T.T exp(-[d]x): d(T.T B)/dd = T.T [B]x, d = basis @ (2 params)
+            Pb = _tilt_basis(state)
+            J[:, :, i : i + 2] = np.matmul(np.matmul(Gp, TT), skew(Bt)) @ Pb
+    return Evaluation(y, J, ydot0, G)
+
+
+def _span(data: FitData) -> float:
+    """Time span used to scale the drift basis (fixed per recording, not per subset)."""
+    return float(data.track.t_s[-1]) if data.track.t_s[-1] > 0 else 1.0
+
+
+# ----------------------------------------------------------------------------- parameters
+
+
+def term_params(term: Term, value: F64, state: ModelState, data: FitData) -> dict[str, Any]:
+    """CONVENTIONS ``params`` of a fitted term (arrays as lists)."""
+    k = term.kind
+    if k is EffectKind.HARD_IRON:
+        return {"offset_nT": value.tolist()}
+    if k is EffectKind.SOFT_IRON:
+        return {"D": state.D().tolist()}
+    if k is EffectKind.TIME_OFFSET:
+        return {"time_offset_s": float(value[0])}
+    if k is EffectKind.EDDY_CURRENT:
+        return {"E_s": value.reshape(3, 3).tolist()}
+    if k is EffectKind.FIELD_DRIFT:
+        tt = np.linspace(0.0, _span(data), 512)
+        f = drift_basis(tt, 0.0, _span(data)) @ value.reshape(-1, 3)
+        return {"peak_to_peak_nT": (f.max(axis=0) - f.min(axis=0)).tolist()}
+    if k is EffectKind.DISTURBANCE:
+        tt = np.concatenate([np.linspace(a, b, 200, endpoint=False) for a, b in term.windows_s])
+        Phi = np.concatenate([hat_basis(tt, kn) for kn in term.knots()], axis=1)
+        f = Phi @ value.reshape(-1, 3)
+        return {
+            "windows_s": [[float(a), float(b)] for a, b in term.windows_s],
+            "peak_nT": float(np.max(np.linalg.norm(f, axis=1))),
+        }
+    if k is EffectKind.HARD_IRON_STEP:
+        return {"windows_s": [[float(a), float(b)] for a, b in term.windows_s],
+                "offset_nT": value.tolist()}
+    if k is EffectKind.AXIS_TILT:
+        axis_true = state.T_enu @ np.array([0.0, 0.0, 1.0])
+        tilt = float(np.degrees(np.arccos(np.clip(axis_true[2], -1.0, 1.0))))
+        az = float(np.degrees(np.arctan2(axis_true[0], axis_true[1])) % 360.0)
+        return {"tilt_deg": tilt, "azimuth_deg": az}
+    raise ValueError(k)
+
+
+def term_sigma(term: Term, cov: F64, state: ModelState, data: FitData) -> dict[str, Any]:
+    """1-sigma of the CONVENTIONS params from the term's block of the covariance."""
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    k = term.kind
+    if k in (EffectKind.HARD_IRON, EffectKind.HARD_IRON_STEP):
+        return {"offset_nT": sd.tolist()}
+    if k is EffectKind.SOFT_IRON:
+        # Var(D_ij) = sum_kl B_k,ij B_l,ij cov_kl
+        var = np.einsum("kij,kl,lij->ij", _SOFT_BASIS, cov, _SOFT_BASIS)
+        return {"D": np.sqrt(np.clip(var, 0, None)).tolist()}
+    if k is EffectKind.TIME_OFFSET:
+        return {"time_offset_s": float(sd[0])}
+    if k is EffectKind.EDDY_CURRENT:
+        return {"E_s": sd.reshape(3, 3).tolist()}
+    if k is EffectKind.FIELD_DRIFT:
+        # first-order sigma of the range: max - min of the fitted curve differs by the
+        # coefficients' errors times the basis swing (2 for each Legendre polynomial)
+        s = sd.reshape(-1, 3)
+        return {"peak_to_peak_nT": (2.0 * np.sqrt(np.sum(s**2, axis=0))).tolist()}
+    if k is EffectKind.DISTURBANCE:
+        return {"peak_nT": float(np.sqrt(np.max(np.sum(sd.reshape(-1, 3) ** 2, axis=1))))}
+    if k is EffectKind.AXIS_TILT:
+        return {"tilt_deg": float(np.degrees(np.max(sd)))}
+    raise ValueError(k)
+
+
+# ----------------------------------------------------------------------------- effect texts
+
+
+@dataclass(frozen=True)
+class EffectInfo:
+    """Words about one effect.
+
+    Attributes
+    ----------
+    kind : EffectKind
+    physics : str
+        What on a survey platform causes it.
+    signature : str
+        How it shows in the residual.
+    frame : str
+        Frame in which its residual lives (``mag`` or ``enu``).
+
+    """
+
+    kind: EffectKind
+    physics: str
+    signature: str
+    frame: str
+
+
+EFFECTS: dict[EffectKind, EffectInfo] = {
+    EffectKind.HARD_IRON: EffectInfo(
+        EffectKind.HARD_IRON,
+        "a permanent field fixed to the sensor: magnetised steel or a battery near the "
+        "magnetometer, or the sensor's own bias; it turns with the platform",
+        "a constant residual in the mag frame, the same whatever the heading",
+        "mag",
+    ),
+    EffectKind.SOFT_IRON: EffectInfo(
+        EffectKind.SOFT_IRON,
+        "induced magnetisation of soft-magnetic parts near the sensor and unequal axis "
+        "gains or non-orthogonal axes of the sensor: the sphere of readings becomes an ellipsoid",
+        "a residual that grows with the field component along some mag axes and flips sign "
+        "with it (twice per turn)",
+        "mag",
+    ),
+    EffectKind.TIME_OFFSET: EffectInfo(
+        EffectKind.TIME_OFFSET,
+        "unsynchronised clocks or a transport/filter delay between the magnetometer and the "
+        "attitude source: the reading is stamped later (or earlier) than it was sensed",
+        "a residual proportional to the rate of change of the field in the sensor frame",
+        "mag",
+    ),
+    EffectKind.EDDY_CURRENT: EffectInfo(
+        EffectKind.EDDY_CURRENT,
+        "currents induced in conducting parts of the airframe by the changing field as it "
+        "rotates; their field lags and differs per axis (a time offset is the isotropic case)",
+        "a residual linear in the rate of change of the reading, with different gains per axis",
+        "mag",
+    ),
+    EffectKind.FIELD_DRIFT: EffectInfo(
+        EffectKind.FIELD_DRIFT,
+        "slow change of the background field during the recording: diurnal variation, a "
+        "geomagnetic storm, a survey line crossing a regional gradient",
+        "a slow trend common to all headings once rotated to ENU",
+        "enu",
+    ),
+    EffectKind.DISTURBANCE: EffectInfo(
+        EffectKind.DISTURBANCE,
+        "a transient external field: a vehicle or a person with steel passing, a lift, "
+        "power cables switched on near the survey",
+        "a bump in the residual confined to a time window, fixed in ENU",
+        "enu",
+    ),
+    EffectKind.HARD_IRON_STEP: EffectInfo(
+        EffectKind.HARD_IRON_STEP,
+        "a magnetised object moved close to the sensor for a while (a tool, a phone, a "
+        "payload switched on): an offset that turns with the platform, present only then",
+        "a constant mag-frame residual inside a time window",
+        "mag",
+    ),
+    EffectKind.AXIS_TILT: EffectInfo(
+        EffectKind.AXIS_TILT,
+        "the turntable's rotation axis is not where its nominal axis says (mechanical tilt of "
+        "the table), so the attitude derived from its angle is wrong (Tang et al. 2016)",
+        "a once-per-turn residual that a known reference field exposes",
+        "enu",
+    ),
+}
+
+
+# ----------------------------------------------------------------------------- motion stats
+
+
+@dataclass(frozen=True)
+class MotionStats:
+    """Descriptors of the motion that decide what is identifiable.
+
+    Attributes
+    ----------
+    axis_spread : float
+        Second largest / largest eigenvalue of the angular-velocity second moment (0 for a
+        rotation about a single axis, ~1 for rich 3-D motion).
+    rate_cv : float
+        Coefficient of variation of the rotation rate (0 for a constant rate).
+    rate_rms_deg_s : float
+        RMS rotation rate, deg/s.
+    main_axis_body : ndarray (3,)
+        Dominant rotation axis, body frame.
+    total_turn_deg : float
+        Integrated rotation angle over the recording.
+
+    """
+
+    axis_spread: float
+    rate_cv: float
+    rate_rms_deg_s: float
+    main_axis_body: F64
+    total_turn_deg: float
+
+
+def motion_stats(data: FitData) -> MotionStats:
+    """Angular velocity statistics from the attitude track at the sample stamps."""
+    t = data.t_s
+    h = max(data.track.step_s, 1e-3)
+    q0 = data.track.at(t - h)
+    q1 = data.track.at(t + h)
+    C0 = quat_to_matrix(q0)
+    C1 = quat_to_matrix(q1)
+    # body-frame angular velocity: C0.T C1 = exp([w]x 2h)
+    dC = np.swapaxes(C0, -1, -2) @ C1
+    w = np.stack(
+        [dC[:, 2, 1] - dC[:, 1, 2], dC[:, 0, 2] - dC[:, 2, 0], dC[:, 1, 0] - dC[:, 0, 1]], -1
+    )
+    w = w / (2.0 * 2.0 * h)
+    M = w.T @ w / max(len(w), 1)
+    ev, evec = np.linalg.eigh(M)
+    spread = float(ev[1] / ev[2]) if ev[2] > 0 else 0.0
+    rate = np.linalg.norm(w, axis=1)
+    mean = float(np.mean(rate))
+    cv = float(np.std(rate) / mean) if mean > 1e-9 else 0.0
+    dt = np.diff(t, prepend=t[0])
+    return MotionStats(
+        axis_spread=spread,
+        rate_cv=cv,
+        rate_rms_deg_s=float(np.degrees(np.sqrt(np.mean(rate**2)))),
+        main_axis_body=evec[:, 2],
+        total_turn_deg=float(np.degrees(np.sum(rate * dt))),
+    )
+
+
+def identifiability_reason(
+    kind: EffectKind, stats: MotionStats, data: FitData, efficiency: float
+) -> str | None:
+    """Why ``kind`` cannot be determined from this recording, or None if it can.
+
+    Parameters
+    ----------
+    kind : EffectKind
+        The candidate effect.
+    stats : MotionStats
+        The recording's motion.
+    data : FitData
+        The data (a known reference field changes what is identifiable).
+    efficiency : float
+        Smallest eigenvalue ratio of the term's efficient information (Schur complement
+        against the parameters already in the model) to its own information: the fraction of
+        the weakest parameter combination that the other parameters cannot mimic.
+
+    Returns
+    -------
+    str or None
+
+    """
+    single_axis = stats.axis_spread < 0.02
+    if stats.total_turn_deg < 20.0 and kind is not EffectKind.FIELD_DRIFT:
+        return (
+            f"the platform turned only {stats.total_turn_deg:.0f} deg in total: without rotation "
+            "every field-like term is the same constant as B_enu"
+        )
+    if kind is EffectKind.AXIS_TILT:
+        if data.B_known_enu_nT is None:
+            return (
+                "a tilt of the rotation axis is absorbed exactly by R_body_mag and B_enu while "
+                "the field is estimated; give a reference field to determine it"
+            )
+    if kind is EffectKind.HARD_IRON and single_axis and data.B_known_enu_nT is None:
+        return (
+            "rotation about a single axis only (axis spread "
+            f"{stats.axis_spread:.3f}): the offset component along that axis is confounded with "
+            "the unknown field; rotate about a second axis or give a reference field"
+        )
+    rate_kinds = (EffectKind.TIME_OFFSET, EffectKind.EDDY_CURRENT)
+    if kind in rate_kinds and single_axis and stats.rate_cv < 0.05:
+        return (
+            f"rotation at a constant rate about one axis (rate CV {stats.rate_cv:.3f}): a time "
+            "offset equals a fixed heading rotation, absorbed by R_body_mag; vary the rotation "
+            "rate or rotate about more than one axis"
+        )
+    if kind is EffectKind.FIELD_DRIFT and stats.total_turn_deg < 20.0:
+        return (
+            "the platform hardly turned: a slow field change cannot be told from a slow change "
+            "of attitude or offset"
+        )
+    if efficiency < 1e-3:
+        which = {
+            EffectKind.FIELD_DRIFT: "slow attitude changes and the field",
+            EffectKind.SOFT_IRON: "the field magnitude and R_body_mag",
+            EffectKind.EDDY_CURRENT: "the time offset and R_body_mag",
+        }.get(kind, "terms already in the model")
+        return (
+            f"the motion leaves this term confounded with {which} (only {efficiency:.1e} of its "
+            "weakest combination is independent of them)"
+        )
+    return None
+
+
+# ----------------------------------------------------------------------------- fitting
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """A Levenberg-Marquardt fit.
+
+    Attributes
+    ----------
+    state : ModelState
+    residual_nT : ndarray (N, 3)
+        ``y - prediction`` on the fitted samples.
+    rss : float
+        Residual sum of squares, nT^2.
+    info : ndarray (P, P)
+        ``J.T J`` at the solution (unscaled information).
+    n_iter : int
+
+    """
+
+    state: ModelState
+    residual_nT: F64
+    rss: float
+    info: F64
+    n_iter: int
+
+    @property
+    def rms_nT(self) -> float:
+        """RMS of the residual over all components, nT."""
+        return float(np.sqrt(self.rss / max(self.residual_nT.size, 1)))
+
+
+def normal_equations(J: F64, r: F64) -> tuple[F64, F64]:
+    """``J.T J`` and ``J.T r`` for J (N, 3, P) and r (N, 3)."""
+    Jf = J.reshape(-1, J.shape[-1])
+    return gram(Jf, Jf), gram(Jf, r.reshape(-1, 1))[:, 0]
+
+
+def gram(A: F64, B: F64) -> F64:
+    """``A.T @ B`` for tall matrices, without multi-threaded BLAS.
+
+    On a loaded machine a threaded BLAS call for these small products can stall for tenths
+    of a second (threads spinning for cores others hold); einsum's single-threaded loop is
+    predictable and fast enough for (3N, P) with P up to ~50.
+    """
+    return np.einsum("np,nq->pq", A, B)
+
+
+def fit(
+    state: ModelState, data: FitData, *, max_iter: int = 40, rtol: float = 1e-10
+) -> FitResult:
+    """Levenberg-Marquardt over every parameter of ``state`` (rotations on SO(3)).
+
+    Parameters
+    ----------
+    state : ModelState
+        Starting values; also fixes which terms are in the model.
+    data : FitData
+        What to fit.
+    max_iter : int
+        Iteration limit.
+    rtol : float
+        Stop when the relative decrease of the RSS falls below this.
+
+    Returns
+    -------
+    FitResult
+
+    """
+    fixed_B = data.B_known_enu_nT is not None
+    if fixed_B:
+        state = replace(state, B_enu_nT=np.asarray(data.B_known_enu_nT, dtype=float))
+    ev = evaluate(state, data)
+    r = data.y_nT - ev.y_nT
+    rss = float(np.sum(r * r))
+    lam = 1e-4
+    it = 0
+    H, g = normal_equations(ev.J, r)
+    for it in range(1, max_iter + 1):  # noqa: B007 (it is reported)
+        d = np.diag(H).copy()
+        scale = d + 1e-9 * max(float(np.max(d)), 1e-30)
+        step_ok = False
+        for _ in range(12):
+            try:
+                dx = np.linalg.solve(H + lam * np.diag(scale), g)
+            except np.linalg.LinAlgError:
+                lam *= 10.0
+                continue
+            cand = state.update(dx, fixed_B=fixed_B)
+            ev_c = evaluate(cand, data, jacobian=False)
+            r_c = data.y_nT - ev_c.y_nT
+            rss_c = float(np.sum(r_c * r_c))
+            if np.isfinite(rss_c) and rss_c <= rss:
+                step_ok = True
+                break
+            lam *= 5.0
+        if not step_ok:
+            break
+        rel = (rss - rss_c) / max(rss, 1e-30)
+        state, rss = cand, rss_c
+        lam = max(lam / 4.0, 1e-9)
+        ev = evaluate(state, data)
+        r = data.y_nT - ev.y_nT
+        H, g = normal_equations(ev.J, r)
+        if rel < rtol:
+            break
+    return FitResult(state, r, rss, H, it)
+
+
+def wahba_init(data: FitData, n_iter: int = 10) -> ModelState:
+    """Baseline ``R_body_mag`` and ``B_enu`` without any prior: alternating Wahba / mean field.
+
+    ``C_enu_body(t) R y(t) = B`` for every sample when the model holds, so for a given ``R``
+    the field is the mean of the rotated readings, and for a given field ``R`` solves
+    Wahba's problem between the readings (mag) and the field in the body frame. Several
+    starting rotations guard against a poor local minimum.
+    """
+    q = data.track.at(data.t_s)
+    C = quat_to_matrix(q)
+    y = data.y_nT - np.mean(data.y_nT, axis=0) * 0.0
+    best: tuple[float, F64, F64] | None = None
+    starts = [np.eye(3)] + [so3_exp(np.array(v) * np.pi / 2) for v in
+                            ([1, 0, 0], [0, 1, 0], [0, 0, 1], [-1, 0, 0], [0, -1, 0], [0, 0, -1])]
+    starts += [so3_exp(np.array([np.pi, 0, 0])), so3_exp(np.array([0, np.pi, 0]))]
+    for R in starts:
+        B = data.B_known_enu_nT
+        for _ in range(n_iter):
+            if data.B_known_enu_nT is None:
+                B = np.mean(_mv(C, y @ R.T), axis=0)
+            b = B @ C  # rows C.T @ B
+            # Wahba: R = argmin sum |b - R y|^2 (Kabsch)
+            Hm = b.T @ y
+            U, _, Vt = np.linalg.svd(Hm)
+            Sd = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+            R = U @ Sd @ Vt
+        b = B @ C
+        cost = float(np.sum((y - b @ R) ** 2))
+        if best is None or cost < best[0]:
+            best = (cost, R, np.asarray(B, dtype=float))
+    assert best is not None
+    return ModelState(R_body_mag=best[1], B_enu_nT=best[2])

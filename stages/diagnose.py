@@ -1,0 +1,991 @@
+"""Diagnose: find the physics the fitted model left out, name it, model it, verify it.
+
+Starting from the baseline model (misalignment ``R_body_mag`` and field ``B_enu`` only), every
+candidate effect of :mod:`pipeline.effects` is tested with a score (Lagrange multiplier) test
+at the current fit: the gradient and the information of the added parameters at zero, with
+the parameters already in the model profiled out (Schur complement), no refit. The strongest
+candidate is refitted and kept only if it lowers the BIC (with the sample count discounted
+for residual correlation) **and** the error on held-out time blocks; then the loop repeats
+until nothing qualifies. Effects local in time (``disturbance``, ``hard_iron_step``) are
+located first by a scan of the robust residual norm; their windows become candidate terms.
+Terms the motion cannot determine go to ``not_identifiable`` with the reason.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+
+from pipeline.calibration import Calibration
+from pipeline.effects import (
+    EFFECTS,
+    LOCAL_KINDS,
+    AttitudeTrack,
+    EffectKind,
+    FitData,
+    FitResult,
+    ModelState,
+    Term,
+    evaluate,
+    fit,
+    gram,
+    identifiability_reason,
+    motion_stats,
+    term_params,
+    term_sigma,
+    wahba_init,
+)
+from pipeline.errors import EstimationError
+from pipeline.geometry import quat_to_matrix
+from pipeline.recording import AlignedSeries, Context, Recording
+
+FORMAT = "magalign.diagnosis/1"
+
+GLOBAL_KINDS = (
+    EffectKind.HARD_IRON,
+    EffectKind.SOFT_IRON,
+    EffectKind.TIME_OFFSET,
+    EffectKind.EDDY_CURRENT,
+    EffectKind.FIELD_DRIFT,
+    EffectKind.AXIS_TILT,
+)
+
+
+# ----------------------------------------------------------------------------- values
+
+
+@dataclass(frozen=True)
+class Signature:
+    """Data for the figure of one finding (decimated; not part of diagnosis.json).
+
+    Attributes
+    ----------
+    t_s : ndarray (M,)
+    residual_before_nT : ndarray (M, 3)
+        Residual before the term was added, in the finding's frame.
+    contribution_nT : ndarray (M, 3)
+        The fitted term's contribution, same frame.
+    regressor : ndarray (M, 3) or None
+        What the residual should be proportional to (e.g. the reading's rate of change for
+        a time offset), nT/s.
+
+    """
+
+    t_s: np.ndarray
+    residual_before_nT: np.ndarray
+    contribution_nT: np.ndarray
+    regressor: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One effect added to the model, with its evidence (CONVENTIONS diagnosis.json)."""
+
+    effect: str
+    params: dict[str, Any]
+    sigma: dict[str, Any]
+    evidence: dict[str, float]
+    where: dict[str, Any]
+    explanation: str
+    signature: Signature | None = field(default=None, compare=False, repr=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the finding object of diagnosis.json."""
+        return {
+            "effect": self.effect,
+            "params": self.params,
+            "sigma": self.sigma,
+            "evidence": self.evidence,
+            "where": self.where,
+            "explanation": self.explanation,
+        }
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """What the diagnosis found.
+
+    Attributes
+    ----------
+    baseline, final : dict
+        ``{effects, residual_rms_nT, heldout_rms_nT}``.
+    findings : tuple of Finding
+        In the order they were added.
+    not_identifiable : tuple of (effect, reason)
+    duration_s : float
+
+    """
+
+    baseline: dict[str, Any]
+    final: dict[str, Any]
+    findings: tuple[Finding, ...]
+    not_identifiable: tuple[tuple[str, str], ...]
+    duration_s: float = 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the diagnosis.json object (CONVENTIONS, ``magalign.diagnosis/1``)."""
+        return {
+            "format": FORMAT,
+            "baseline": self.baseline,
+            "final": self.final,
+            "findings": [f.to_dict() for f in self.findings],
+            "not_identifiable": [{"effect": e, "reason": r} for e, r in self.not_identifiable],
+        }
+
+    @property
+    def effects(self) -> frozenset[str]:
+        """Names of the effects found."""
+        return frozenset(f.effect for f in self.findings)
+
+    def table(self) -> str:
+        """Return the printed table: effect, estimate, statistic, dBIC, RMS, held-out RMS."""
+        head = (
+            f"{'effect':<15} {'estimate (1 sigma)':<46} {'stat':>9} {'dBIC':>9} "
+            f"{'rms nT':>15} {'held-out nT':>15}  explanation"
+        )
+        lines = [head, "-" * len(head)]
+        b = self.baseline
+        lines.append(
+            f"{'baseline':<15} {', '.join(b['effects']) or 'R_body_mag, B_enu':<46} {'':>9} "
+            f"{'':>9} {b['residual_rms_nT']:>15.2f} {b['heldout_rms_nT']:>15.2f}"
+        )
+        for fd in self.findings:
+            ev = fd.evidence
+            lines.append(
+                f"{fd.effect:<15} {_estimate_text(fd):<46} {ev['statistic']:>9.1f} "
+                f"{ev['delta_bic']:>9.1f} "
+                f"{ev['rms_before_nT']:>7.2f}>{ev['rms_after_nT']:<7.2f} "
+                f"{ev['heldout_rms_before_nT']:>7.2f}>{ev['heldout_rms_after_nT']:<7.2f}  "
+                f"{fd.explanation}"
+            )
+        if not self.findings:
+            lines.append("(no findings: the baseline model explains the recording)")
+        for e, r in self.not_identifiable:
+            lines.append(f"not identifiable: {e}: {r}")
+        return "\n".join(lines)
+
+
+def _estimate_text(fd: Finding) -> str:
+    p, s = fd.params, fd.sigma
+    if fd.effect in ("hard_iron", "hard_iron_step"):
+        o, so = p["offset_nT"], s["offset_nT"]
+        txt = "o=[" + ", ".join(f"{a:.1f}+-{b:.1f}" for a, b in zip(o, so, strict=True)) + "] nT"
+        if fd.effect == "hard_iron_step":
+            txt += " in " + _windows_text(p["windows_s"])
+        return txt
+    if fd.effect == "time_offset":
+        return f"tau={p['time_offset_s'] * 1e3:.2f}+-{s['time_offset_s'] * 1e3:.2f} ms"
+    if fd.effect == "soft_iron":
+        d = np.asarray(p["D"])
+        return "diag(D)=[" + ", ".join(f"{x:.4f}" for x in np.diag(d)) + "]"
+    if fd.effect == "eddy_current":
+        e = np.asarray(p["E_s"]) * 1e3
+        return "diag(E_s)=[" + ", ".join(f"{x:.2f}" for x in np.diag(e)) + "] ms"
+    if fd.effect == "field_drift":
+        return "p2p=[" + ", ".join(f"{x:.1f}" for x in p["peak_to_peak_nT"]) + "] nT ENU"
+    if fd.effect == "disturbance":
+        return f"peak {p['peak_nT']:.0f} nT in " + _windows_text(p["windows_s"])
+    if fd.effect == "axis_tilt":
+        return f"tilt {p['tilt_deg']:.3f} deg az {p['azimuth_deg']:.0f} deg"
+    return str(p)
+
+
+def _windows_text(w: list[list[float]]) -> str:
+    return ", ".join(f"[{a:.1f}, {b:.1f}) s" for a, b in w)
+
+
+# ----------------------------------------------------------------------------- configuration
+
+
+@dataclass(frozen=True)
+class DiagnoseConfig:
+    """Thresholds of the detection and selection (calibrated on null simulations).
+
+    Attributes
+    ----------
+    n_folds : int
+        Cross-validation folds; fold ``j`` holds out the time blocks ``j, j+n, j+2n, ...``.
+    block_s : float
+        Length of one contiguous held-out block, s.
+    bic_margin : float
+        Required decrease of the (correlation-discounted) BIC.
+    heldout_margin : float
+        Required relative decrease of the held-out RMS.
+    max_findings : int
+    n_refit : int
+        How many of the strongest score-test candidates are refitted per round.
+    max_samples : int
+        Longer recordings are decimated to this many samples (the attitude track is kept at
+        full rate, so rates of change stay exact).
+    scan_smooth_s : float
+        Width of the moving window of the residual-norm scan, s.
+    scan_sigma : float
+        Excess of the smoothed residual norm over its median, in robust sigmas, that opens a
+        window.
+
+    """
+
+    n_folds: int = 5
+    block_s: float = 1.0
+    bic_margin: float = 20.0
+    heldout_margin: float = 0.002
+    max_findings: int = 6
+    max_samples: int = 12000
+    n_refit: int = 3
+    scan_smooth_s: float = 0.5
+    scan_sigma: float = 8.0
+
+
+# ----------------------------------------------------------------------------- statistics
+
+
+def robust_sigma(r: np.ndarray) -> float:
+    """Robust noise scale of residual components: 1.4826 MAD, nT."""
+    x = np.asarray(r).ravel()
+    return float(1.4826 * np.median(np.abs(x - np.median(x)))) + 1e-12
+
+
+def inflation(r: np.ndarray, t_s: np.ndarray, block_s: float = 0.5) -> float:
+    """Variance inflation of the mean from residual correlation (>= 1).
+
+    Attitude noise that is correlated in time makes neighbouring residuals alike; the
+    information per sample is then smaller than white-noise theory says. The ratio of the
+    variance of block means to the variance expected for independent samples measures it.
+    """
+    n = len(t_s)
+    if n < 20:
+        return 1.0
+    dt = float(np.median(np.diff(t_s)))
+    L = max(2, int(round(block_s / max(dt, 1e-9))))
+    nb = n // L
+    if nb < 5:
+        return 1.0
+    x = np.asarray(r)[: nb * L].reshape(nb, L, -1)
+    v = np.var(np.asarray(r)[: nb * L], axis=0)
+    vb = np.var(x.mean(axis=1), axis=0)
+    ratio = float(np.sum(vb * L) / max(np.sum(v), 1e-30))
+    return max(1.0, ratio)
+
+
+@dataclass(frozen=True)
+class ScoreTest:
+    """Score (Lagrange multiplier) test of a candidate term at the current fit.
+
+    Attributes
+    ----------
+    term : Term
+    statistic : float
+        ``g' I_eff^-1 g / sigma^2`` (chi-square with ``k`` dof under the null, white noise).
+    efficiency : float
+        Smallest generalised eigenvalue of ``I_eff`` vs the term's own information (0: fully
+        confounded with parameters already in the model).
+    k : int
+
+    """
+
+    term: Term
+    statistic: float
+    efficiency: float
+    k: int
+
+
+def score_test(cur: FitResult, term: Term, data: FitData, sigma: float) -> ScoreTest:
+    """Score test of adding ``term`` to the model of ``cur`` (no refit)."""
+    st = cur.state.with_term(term)
+    ev = evaluate(st, data)
+    J = ev.J.reshape(-1, ev.J.shape[-1])
+    r = cur.residual_nT.reshape(-1)
+    p0 = cur.state.n_params()
+    if data.B_known_enu_nT is not None:
+        keep = np.r_[0:3, 6:p0]
+    else:
+        keep = np.arange(p0)
+    Jb, Jc = J[:, keep], J[:, p0:]
+    Hbb, Hbc, Hcc = gram(Jb, Jb), gram(Jb, Jc), gram(Jc, Jc)
+    g = gram(Jc, r[:, None])[:, 0]
+    gb = gram(Jb, r[:, None])[:, 0]  # ~0 at a converged fit; kept for exactness
+    sb = np.sqrt(np.clip(np.diag(Hbb), 1e-30, None))
+    Hbb_n = Hbb / np.outer(sb, sb)
+    try:
+        X = np.linalg.lstsq(Hbb_n + 1e-12 * np.eye(len(sb)), (Hbc / sb[:, None]), rcond=None)[0]
+        xb = np.linalg.lstsq(Hbb_n + 1e-12 * np.eye(len(sb)), gb / sb, rcond=None)[0]
+    except np.linalg.LinAlgError:
+        return ScoreTest(term, 0.0, 0.0, term.n_params())
+    Ieff = Hcc - (Hbc / sb[:, None]).T @ X
+    geff = g - (Hbc / sb[:, None]).T @ xb
+    sc = np.sqrt(np.clip(np.diag(Hcc), 1e-30, None))
+    In = Ieff / np.outer(sc, sc)
+    In = 0.5 * (In + In.T)
+    ev_all = np.linalg.eigvalsh(In)
+    Hn = Hcc / np.outer(sc, sc)
+    try:
+        Lc = np.linalg.cholesky(0.5 * (Hn + Hn.T) + 1e-12 * np.eye(len(sc)))
+        Li = np.linalg.inv(Lc)
+        eff = float(np.linalg.eigvalsh(Li @ In @ Li.T)[0])
+    except np.linalg.LinAlgError:
+        eff = float(ev_all[0])
+    # pseudo-inverse with a relative floor: confounded directions carry no evidence
+    w, V = np.linalg.eigh(In)
+    good = w > 1e-8 * max(float(w[-1]), 1e-30)
+    z = V.T @ (geff / sc)
+    stat = float(np.sum(z[good] ** 2 / w[good])) / sigma**2
+    return ScoreTest(term, stat, max(eff, 0.0), term.n_params())
+
+
+# ----------------------------------------------------------------------------- location
+
+
+def scan_windows(
+    residual_nT: np.ndarray, t_s: np.ndarray, cfg: DiagnoseConfig
+) -> list[tuple[float, float]]:
+    """Windows where the robust residual norm stands out (likelihood-ratio-style scan).
+
+    The squared residual norm is normalised by a robust noise scale, smoothed over
+    ``scan_smooth_s``, and compared with its own median plus ``scan_sigma`` robust sigmas of
+    the smoothed series (so correlated noise raises the bar). A window opens where the
+    smoothed statistic crosses that level and is widened to where it falls back to the
+    half-way level; windows closer than one smoothing width are merged.
+
+    Returns
+    -------
+    list of (start_s, end_s)
+        Half-open windows, s from the first magnetometer sample.
+
+    """
+    n = len(t_s)
+    if n < 50:
+        return []
+    dt = float(np.median(np.diff(t_s)))
+    w = max(3, int(round(cfg.scan_smooth_s / dt)))
+    sig = robust_sigma(residual_nT)
+    z = np.sum(residual_nT**2, axis=1) / (3 * sig * sig)
+    # robust to single spikes: moving median would be ideal; a trimmed value keeps it cheap
+    z = np.minimum(z, np.percentile(z, 99.9) * 4)
+    c = np.cumsum(np.concatenate([[0.0], z]))
+    s = np.empty(n)
+    half = w // 2
+    lo = np.clip(np.arange(n) - half, 0, n)
+    hi = np.clip(np.arange(n) + half + 1, 0, n)
+    s = (c[hi] - c[lo]) / (hi - lo)
+    med = float(np.median(s))
+    mad = float(1.4826 * np.median(np.abs(s - med))) + 1e-12
+    level = med + cfg.scan_sigma * mad
+    # a window needs a real excess, not just a little above a very quiet median
+    level = max(level, med + 2.0)
+    above = s > level
+    if not above.any():
+        return []
+    lower = med + 0.5 * (level - med)
+    low_mask = s > lower
+    out: list[tuple[int, int]] = []
+    idx = np.flatnonzero(np.diff(np.concatenate([[0], low_mask.astype(int), [0]])))
+    for a, b in zip(idx[0::2], idx[1::2], strict=True):
+        if above[a:b].any():
+            out.append((a, b))
+    merged: list[list[int]] = []
+    for a, b in out:
+        if merged and a - merged[-1][1] < w:
+            merged[-1][1] = b
+        else:
+            merged.append([a, b])
+    wins = []
+    for a, b in merged:
+        start = float(t_s[a])
+        end = float(t_s[min(b, n - 1)])
+        if end - start < 2 * dt:
+            continue
+        if end - start > 0.5 * (t_s[-1] - t_s[0]):
+            continue  # not local: a global term's job
+        wins.append((start, end))
+    return wins
+
+
+def refine_step(
+    w: tuple[float, float], residual_nT: np.ndarray, t_s: np.ndarray, reach_s: float = 1.0
+) -> tuple[float, float]:
+    """Change-point refinement of an offset window: maximise the explained residual energy.
+
+    For a constant offset in ``[a, b)`` the least-squares gain is ``|sum r|^2 / n``; both
+    edges are searched within ``reach_s`` of the scan's window using cumulative sums.
+    """
+    n = len(t_s)
+    c = np.vstack([np.zeros(3), np.cumsum(residual_nT, axis=0)])
+    ia = np.flatnonzero((t_s >= w[0] - reach_s) & (t_s <= w[0] + reach_s))
+    ib = np.flatnonzero((t_s >= w[1] - reach_s) & (t_s <= w[1] + reach_s)) + 1
+    if ia.size == 0 or ib.size == 0:
+        return w
+    ia = ia[:: max(1, ia.size // 150)]
+    ib = ib[:: max(1, ib.size // 150)]
+    S = c[ib][None, :, :] - c[ia][:, None, :]
+    cnt = (ib[None, :] - ia[:, None]).astype(float)
+    gain = np.where(cnt > 0, np.sum(S * S, axis=-1) / np.maximum(cnt, 1.0), -np.inf)
+    i, j = np.unravel_index(int(np.argmax(gain)), gain.shape)
+    a = float(t_s[ia[i]])
+    b = float(t_s[ib[j]]) if ib[j] < n else float(t_s[-1]) + 1e-6
+    return (a, b) if b > a else w
+
+
+# ----------------------------------------------------------------------------- cross-validation
+
+
+def fold_of(t_s: np.ndarray, cfg: DiagnoseConfig) -> np.ndarray:
+    """Fold index of each sample: contiguous blocks of ``block_s`` dealt round-robin."""
+    blocks = np.floor((t_s - t_s[0]) / cfg.block_s).astype(np.int64)
+    return blocks % cfg.n_folds
+
+
+def heldout_rms(state: ModelState, data: FitData, cfg: DiagnoseConfig) -> float:
+    """RMS prediction error on held-out time blocks, nT.
+
+    Each fold is refitted from the current state with the values of local terms reset to
+    zero (so a window's amplitude is learnt only from training samples), then predicts the
+    held-out blocks. Random samples are never held out: neighbouring samples share
+    attitude noise and would leak.
+    """
+    folds = fold_of(data.t_s, cfg)
+    sq, cnt = 0.0, 0
+    start = dataclasses.replace(
+        state,
+        values=tuple(
+            np.zeros_like(v) if t.kind in LOCAL_KINDS else v
+            for t, v in zip(state.terms, state.values, strict=True)
+        ),
+    )
+    for j in range(cfg.n_folds):
+        test = folds == j
+        if test.sum() == 0 or (~test).sum() < 10:
+            continue
+        res = fit(start, data.subset(~test), max_iter=6, rtol=1e-6)
+        pred = evaluate(res.state, data.subset(test), jacobian=False).y_nT
+        e = data.y_nT[test] - pred
+        sq += float(np.sum(e * e))
+        cnt += e.size
+    return float(np.sqrt(sq / max(cnt, 1)))
+
+
+# ----------------------------------------------------------------------------- main loop
+
+
+def _bic(rss: float, n_eff: float, k: int) -> float:
+    return n_eff * np.log(rss / n_eff) + k * np.log(n_eff)
+
+
+def _n_eff(res: FitResult, data: FitData) -> float:
+    return res.residual_nT.size / inflation(res.residual_nT, data.t_s)
+
+
+def _axes(x: np.ndarray) -> list[str]:
+    rms = np.sqrt(np.mean(np.asarray(x) ** 2, axis=0))
+    if not np.any(rms > 0):
+        return []
+    return [a for a, v in zip("xyz", rms, strict=True) if v >= 0.3 * rms.max()]
+
+
+def _contribution(before: ModelState, after: ModelState, data: FitData) -> np.ndarray:
+    """Prediction difference (mag frame) made by the last term at the fitted values."""
+    without = dataclasses.replace(
+        after, terms=after.terms[:-1], values=after.values[:-1],
+        T_enu=np.eye(3) if after.terms[-1].kind is EffectKind.AXIS_TILT else after.T_enu,
+    )
+    return (
+        evaluate(after, data, jacobian=False).y_nT - evaluate(without, data, jacobian=False).y_nT
+    )
+
+
+def _to_enu(v_mag: np.ndarray, state: ModelState, data: FitData) -> np.ndarray:
+    """Map mag-frame vectors to ENU with the fitted rotation and attitude (inverse model)."""
+    C = quat_to_matrix(data.track.at(data.t_s - state.tau_s()))
+    v = np.linalg.solve(state.D(), v_mag.T).T @ state.R_body_mag.T
+    return np.einsum("nij,nj->ni", C, v)
+
+
+def diagnose_data(
+    data: FitData,
+    init: ModelState | None = None,
+    cfg: DiagnoseConfig | None = None,
+    *,
+    turntable: bool = False,
+) -> tuple[Diagnosis, FitResult]:
+    """Run detection, selection and location on prepared data.
+
+    Parameters
+    ----------
+    data : FitData
+        Stamps, readings and attitude track.
+    init : ModelState, optional
+        Baseline starting values (``R_body_mag``, ``B_enu``); Wahba initialisation otherwise.
+    cfg : DiagnoseConfig, optional
+        Thresholds (defaults when omitted).
+    turntable : bool
+        The attitude comes from a single-axis turntable (``axis_tilt`` is then a candidate).
+
+    Returns
+    -------
+    (Diagnosis, FitResult)
+        The diagnosis and the final fit.
+
+    """
+    cfg = cfg or DiagnoseConfig()
+    if len(data) < 30:
+        raise EstimationError("too few magnetometer samples with an attitude to diagnose")
+    from_wahba = init is None
+    if init is None:
+        init = wahba_init(data)
+    cur = fit(ModelState(init.R_body_mag, init.B_enu_nT), data)
+    if not from_wahba:
+        # a poor starting point (e.g. an estimator that assumed a clean sensor) must not
+        # decide the baseline: keep the better of it and Wahba's start
+        alt = fit(wahba_init(data), data)
+        if alt.rss < cur.rss:
+            cur = alt
+    stats = motion_stats(data)
+    cv_cur = heldout_rms(cur.state, data, cfg)
+    baseline = {"effects": [], "residual_rms_nT": cur.rms_nT, "heldout_rms_nT": cv_cur}
+    findings: list[Finding] = []
+    not_ident: dict[str, str] = {}
+    kinds = list(GLOBAL_KINDS)
+    if not (turntable or data.B_known_enu_nT is not None):
+        kinds.remove(EffectKind.AXIS_TILT)
+    if turntable and data.B_known_enu_nT is None:
+        why = identifiability_reason(EffectKind.AXIS_TILT, stats, data, 0.0)
+        not_ident["axis_tilt"] = why or ""
+    rejected: set[tuple] = set()  # failed in this round; retried once the model changes
+    dropped: set[tuple] = set()  # removed by the backward step; never re-added
+    cov_final = None
+    while len(findings) < cfg.max_findings:
+        sig = robust_sigma(cur.residual_nT)
+        present = {t.kind for t in cur.state.terms}
+        cands: list[Term] = [Term(k) for k in kinds if k not in present]
+        taken = [w for t in cur.state.terms if t.kind in LOCAL_KINDS for w in t.windows_s]
+        for w in scan_windows(cur.residual_nT, data.t_s, cfg):
+            if any(w[0] < b + 1.0 and w[1] > a - 1.0 for a, b in taken):
+                continue  # the edge of a window already modelled, not a new event
+            # the scan sees where the excess is large; a bell-shaped transient starts and
+            # ends earlier and later than that
+            pad = max(0.5, 0.25 * (w[1] - w[0]))
+            wd = (max(float(data.t_s[0]), w[0] - pad), min(float(data.t_s[-1]), w[1] + pad))
+            ks = min(2.0, max(0.75, (wd[1] - wd[0]) / 6))
+            cands.append(Term(EffectKind.DISTURBANCE, (wd,), knot_step_s=ks))
+            ws = refine_step(w, cur.residual_nT, data.t_s)
+            cands.append(Term(EffectKind.HARD_IRON_STEP, (ws,)))
+        tests = []
+        for term in cands:
+            if (term.kind, term.windows_s) in rejected | dropped:
+                continue
+            st = score_test(cur, term, data, sig)
+            reason = identifiability_reason(term.kind, stats, data, st.efficiency)
+            if reason is not None:
+                if term.kind in LOCAL_KINDS:
+                    continue
+                if not findings:
+                    not_ident.setdefault(term.kind.value, reason)
+                elif term.kind is EffectKind.TIME_OFFSET and EffectKind.EDDY_CURRENT in present:
+                    not_ident.setdefault(term.kind.value, (
+                        "a time offset is the isotropic part of the eddy-current term already "
+                        "in the model (E_s = -tau I to first order): the two cannot be told "
+                        "apart"))
+                continue
+            tests.append(st)
+        n = cur.residual_nT.size
+        tests.sort(key=lambda s: -s.statistic + s.k * np.log(n))
+        # the score test ranks the candidates; the few strongest are refitted and the one
+        # with the lowest BIC is the strongest (a score statistic far from the null is only
+        # a local approximation when much is still unmodelled)
+        fits = []
+        for st in tests[: cfg.n_refit]:
+            if -st.statistic + st.k * np.log(n) > 0:
+                break
+            fr = _refit(cur, st.term, data, cfg)
+            if fr is None:
+                rejected.add((st.term.kind, st.term.windows_s))
+                continue
+            fits.append((fr[1], st, fr[0]))
+        fits.sort(key=lambda x: x[0])
+        # nested terms resolve to the simplest that explains the data as well (time offset
+        # inside eddy currents, a mag-frame step inside a free ENU disturbance)
+        by_kind = {f[1].term.kind: f for f in fits}
+        if fits:
+            best = fits[0]
+            simpler = {EffectKind.EDDY_CURRENT: EffectKind.TIME_OFFSET,
+                       EffectKind.DISTURBANCE: EffectKind.HARD_IRON_STEP}.get(best[1].term.kind)
+            if simpler is not None:
+                alt = by_kind.get(simpler)
+                if alt is None and simpler is EffectKind.TIME_OFFSET and simpler not in present:
+                    fr = _refit(cur, Term(simpler), data, cfg)
+                    alt = None if fr is None else (fr[1], best[1], fr[0])
+                elif alt is None and simpler is EffectKind.HARD_IRON_STEP:
+                    fr = _refit(cur, Term(simpler, best[1].term.windows_s), data, cfg)
+                    alt = None if fr is None else (fr[1], best[1], fr[0])
+                if alt is not None and alt[0] <= best[0] + cfg.bic_margin:
+                    fits.remove(best) if best in fits else None
+                    fits.insert(0, alt)
+        accepted = False
+        for dbic, st, res in fits:
+            cv_new = _heldout_ok(cur, res, data, cfg, cv_cur)
+            if cv_new is None:
+                rejected.add((st.term.kind, st.term.windows_s))
+                continue
+            term = res.state.terms[-1]
+            findings.append(_finding(cur, res, term, st, dbic, cv_cur, cv_new, data))
+            cur, cv_cur = res, cv_new
+            accepted = True
+            rejected.clear()
+            break
+        if not accepted:
+            break
+        # backward step: a term chosen earlier, while more was unmodelled, may have stood in
+        # for what a later term explains properly; drop it if it no longer earns its margin
+        i = 0
+        while i < len(cur.state.terms) - 1:
+            st_wo = _without(cur.state, i)
+            res_wo = fit(st_wo, data)
+            n_eff = _n_eff(cur, data)
+            bic_cur = _bic(cur.rss, n_eff, cur.state.n_params())
+            keep = bic_cur - _bic(res_wo.rss, n_eff, res_wo.state.n_params())
+            t_i = cur.state.terms[i]
+            if keep > -cfg.bic_margin:
+                dropped.add((t_i.kind, t_i.windows_s))
+                findings.pop(i)
+                cur = res_wo
+                cv_cur = heldout_rms(cur.state, data, cfg)
+                continue
+            simpler = _simpler(t_i)
+            if simpler is not None and simpler.kind not in {t.kind for t in st_wo.terms}:
+                res_s = fit(res_wo.state.with_term(simpler), data)
+                if _bic(res_s.rss, n_eff, res_s.state.n_params()) - bic_cur < cfg.bic_margin:
+                    # the simpler nested term explains the data as well: it replaces the other
+                    cv_s = heldout_rms(res_s.state, data, cfg)
+                    st_s = score_test(res_wo, simpler, data, robust_sigma(res_wo.residual_nT))
+                    dbic_s = _bic(res_s.rss, n_eff, res_s.state.n_params()) - _bic(
+                        res_wo.rss, n_eff, res_wo.state.n_params())
+                    cv_wo = heldout_rms(res_wo.state, data, cfg)
+                    findings.pop(i)
+                    findings.append(_finding(res_wo, res_s, simpler, st_s, dbic_s, cv_wo, cv_s,
+                                             data))
+                    dropped.add((t_i.kind, t_i.windows_s))
+                    cur, cv_cur = res_s, cv_s
+                    continue
+            i += 1
+    cov_final = _covariance(cur, data)
+    findings = [
+        dataclasses.replace(
+            f,
+            params=term_params(cur.state.terms[i], cur.state.values[i], cur.state, data),
+            sigma=_sigma_for(cur, i, cov_final, data),
+        )
+        for i, f in enumerate(findings)
+    ]
+    final = {
+        "effects": [f.effect for f in findings],
+        "residual_rms_nT": cur.rms_nT,
+        "heldout_rms_nT": cv_cur,
+    }
+    diag = Diagnosis(
+        baseline=baseline,
+        final=final,
+        findings=tuple(findings),
+        not_identifiable=tuple(
+            (k, v) for k, v in not_ident.items() if k not in final["effects"]
+        ),
+        duration_s=data.duration_s,
+    )
+    return diag, cur
+
+
+def _simpler(term: Term) -> Term | None:
+    """Return the simplest nested special case of ``term``, or None.
+
+    A time offset inside eddy currents, a mag-frame step inside a free ENU disturbance.
+    """
+    if term.kind is EffectKind.EDDY_CURRENT:
+        return Term(EffectKind.TIME_OFFSET)
+    if term.kind is EffectKind.DISTURBANCE:
+        return Term(EffectKind.HARD_IRON_STEP, term.windows_s)
+    return None
+
+
+def _without(state: ModelState, i: int) -> ModelState:
+    """``state`` without its ``i``-th term."""
+    t = state.terms[i]
+    return dataclasses.replace(
+        state,
+        terms=state.terms[:i] + state.terms[i + 1:],
+        values=state.values[:i] + state.values[i + 1:],
+        T_enu=np.eye(3) if t.kind is EffectKind.AXIS_TILT else state.T_enu,
+    )
+
+
+def _refit(
+    cur: FitResult, term: Term, data: FitData, cfg: DiagnoseConfig
+) -> tuple[FitResult, float] | None:
+    """Refit with ``term``; return (fit, delta BIC) if the BIC drops by ``bic_margin``."""
+    res = fit(cur.state.with_term(term), data)
+    if not res.rss < cur.rss:
+        return None
+    n_eff = _n_eff(res, data)
+    dbic = _bic(res.rss, n_eff, res.state.n_params()) - _bic(cur.rss, n_eff, cur.state.n_params())
+    if dbic > -cfg.bic_margin:
+        return None
+    return res, float(dbic)
+
+
+def _heldout_ok(
+    cur: FitResult, res: FitResult, data: FitData, cfg: DiagnoseConfig, cv_old: float
+) -> float | None:
+    """Held-out RMS of the model with the new term, or None if it does not improve enough.
+
+    The improvement in chi-square units of the (correlation-discounted) noise must clear the
+    same bar as the BIC: a term that only fits noise does not predict new blocks.
+    """
+    cv_new = heldout_rms(res.state, data, cfg)
+    n_eff = _n_eff(res, data)
+    s2 = res.rss / res.residual_nT.size
+    k = res.state.n_params() - cur.state.n_params()
+    gain = (cv_old**2 - cv_new**2) * n_eff / s2
+    if cv_new < cv_old * (1.0 - cfg.heldout_margin) and gain >= k * np.log(n_eff) + cfg.bic_margin:
+        return cv_new
+    return None
+
+
+def _covariance(res: FitResult, data: FitData) -> np.ndarray:
+    """Parameter covariance: ``s^2 (J'J)^-1`` times the residual-correlation inflation."""
+    P = res.info.shape[0]
+    dof = max(res.residual_nT.size - P, 1)
+    s2 = res.rss / dof * inflation(res.residual_nT, data.t_s)
+    H = res.info.copy()
+    if data.B_known_enu_nT is not None:
+        H[3:6, :] = 0.0
+        H[:, 3:6] = 0.0
+        H[3:6, 3:6] = np.eye(3)
+    return s2 * np.linalg.pinv(H, rcond=1e-13)
+
+
+def _sigma_for(res: FitResult, i: int, cov: np.ndarray, data: FitData) -> dict[str, Any]:
+    term = res.state.terms[i]
+    o = res.state.offsets()[i]
+    blk = cov[o : o + term.n_params(), o : o + term.n_params()]
+    return term_sigma(term, blk, res.state, data)
+
+
+def _finding(
+    cur: FitResult,
+    res: FitResult,
+    term: Term,
+    st: ScoreTest,
+    dbic: float,
+    cv_before: float,
+    cv_after: float,
+    data: FitData,
+) -> Finding:
+    info = EFFECTS[term.kind]
+    i = len(res.state.terms) - 1
+    params = term_params(term, res.state.values[i], res.state, data)
+    contrib = _contribution(cur.state, res.state, data)
+    resid = cur.residual_nT
+    frame = info.frame
+    if frame == "enu":
+        contrib_f = _to_enu(contrib, res.state, data)
+        resid_f = _to_enu(resid, res.state, data)
+    else:
+        contrib_f, resid_f = contrib, resid
+    if term.windows_s:
+        windows = [[float(a), float(b)] for a, b in term.windows_s]
+        m = term.indicator(data.t_s) > 0
+        axes = _axes(contrib_f[m]) if m.any() else []
+    else:
+        windows = [[0.0, float(data.t_s[-1])]]
+        axes = _axes(contrib_f)
+    stride = max(1, len(data) // 4000)
+    regressor = None
+    if term.kind in (EffectKind.TIME_OFFSET, EffectKind.EDDY_CURRENT):
+        regressor = evaluate(cur.state, data, jacobian=False).ydot0_nT_s[::stride]
+    sigtr = Signature(data.t_s[::stride], resid_f[::stride], contrib_f[::stride], regressor)
+    expl = f"{info.physics}; signature: {info.signature}"
+    return Finding(
+        effect=term.kind.value,
+        params=params,
+        sigma={},
+        evidence={
+            "statistic": float(st.statistic),
+            "delta_bic": float(dbic),
+            "rms_before_nT": cur.rms_nT,
+            "rms_after_nT": res.rms_nT,
+            "heldout_rms_before_nT": float(cv_before),
+            "heldout_rms_after_nT": float(cv_after),
+        },
+        where={"windows_s": windows, "axes": axes, "frame": frame},
+        explanation=expl,
+        signature=sigtr,
+    )
+
+
+# ----------------------------------------------------------------------------- stage
+
+
+def fit_data_from(
+    recording: Recording,
+    aligned: AlignedSeries,
+    *,
+    reference_field_enu_nT: np.ndarray | None = None,
+    max_samples: int | None = None,
+) -> FitData:
+    """Build the fitting data: stamps in s from the first magnetometer sample.
+
+    The attitude track is the recording's attitude channel (so a time offset re-interpolates
+    it); without one (turntable), the aligned attitude shifted back by the ``tau`` it was
+    interpolated with.
+    """
+    t0 = int(recording.mag.t_ns[0]) if len(recording.mag) else int(aligned.t_ns[0])
+    t_s = (np.asarray(aligned.t_ns, dtype=np.int64) - t0) * 1e-9
+    if recording.attitude is not None and len(recording.attitude) >= 2:
+        ta = (np.asarray(recording.attitude.t_ns, dtype=np.int64) - t0) * 1e-9
+        track = AttitudeTrack(ta, np.asarray(recording.attitude.q_enu_body, dtype=float))
+        track = track.denoised()
+    else:
+        track = AttitudeTrack(t_s - aligned.time_offset_s, np.asarray(aligned.q_enu_body))
+    y = np.asarray(aligned.mag_nT, dtype=float)
+    if max_samples is not None and len(t_s) > max_samples:
+        stride = int(np.ceil(len(t_s) / max_samples))
+        t_s, y = t_s[::stride], y[::stride]
+    B = None if reference_field_enu_nT is None else np.asarray(reference_field_enu_nT, float)
+    return FitData(t_s, y, track, B_known_enu_nT=B)
+
+
+def calibration_from(res: FitResult, data: FitData, findings: tuple[Finding, ...]) -> Calibration:
+    """Return the final model as a Calibration; terms beyond D, o, tau go to ``effects``."""
+    st = res.state
+    cov = _covariance(res, data)
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    sig_rot = np.degrees(sd[0:3])
+    D = st.D() if st.value(EffectKind.SOFT_IRON) is not None else None
+    o = st.value(EffectKind.HARD_IRON)
+    tau = st.value(EffectKind.TIME_OFFSET)
+    extra: dict[str, Any] = {}
+    sig: dict[str, Any] = {}
+    for i, t in enumerate(st.terms):
+        blk = slice(st.offsets()[i], st.offsets()[i] + t.n_params())
+        if t.kind is EffectKind.HARD_IRON:
+            sig["offset"] = sd[blk]
+        elif t.kind is EffectKind.SOFT_IRON:
+            sig["D"] = np.asarray(term_sigma(t, cov[blk, blk], st, data)["D"])
+        elif t.kind is EffectKind.TIME_OFFSET:
+            sig["tau"] = float(sd[blk][0])
+        else:
+            extra.setdefault(t.kind.value, []).append(term_params(t, st.values[i], st, data))
+    effects = {k: (v[0] if len(v) == 1 else v) for k, v in extra.items()}
+    return Calibration(
+        R_body_mag=st.R_body_mag,
+        sigma_rotvec_deg=sig_rot,
+        B_enu_nT=st.B_enu_nT,
+        estimator="diagnose",
+        residual_rms_nT=res.rms_nT,
+        n_samples=len(data),
+        D=D,
+        offset_nT=o,
+        time_offset_s=None if tau is None else float(tau[0]),
+        sigma_D=sig.get("D"),
+        sigma_offset_nT=sig.get("offset"),
+        sigma_time_offset_s=sig.get("tau"),
+        sigma_B_enu_nT=None if data.B_known_enu_nT is not None else sd[3:6],
+        effects=effects,
+    )
+
+
+@dataclass(frozen=True)
+class Diagnose:
+    """Stage: find, name, model and verify what the calibration model leaves out.
+
+    Parameters
+    ----------
+    config : DiagnoseConfig
+    reference_field_enu_nT : tuple of 3 floats, optional
+        Known background field (ENU, nT); the field is then not estimated (and ``axis_tilt``
+        becomes identifiable on a turntable).
+
+    """
+
+    config: DiagnoseConfig = field(default_factory=DiagnoseConfig)
+    reference_field_enu_nT: tuple[float, float, float] | None = None
+
+    requires: ClassVar[frozenset[str]] = frozenset({"recording", "aligned", "calibration"})
+    provides: ClassVar[frozenset[str]] = frozenset({"diagnosis", "calibration"})
+
+    def run(self, ctx: Context) -> Context:
+        """Diagnose ``ctx.recording``; the final model replaces ``ctx.calibration``."""
+        rec, al = ctx.recording, ctx.aligned
+        data = fit_data_from(
+            rec, al, reference_field_enu_nT=self.reference_field_enu_nT,
+            max_samples=self.config.max_samples,
+        )
+        init = None
+        cal = ctx.calibration
+        if cal is not None:
+            init = ModelState(np.asarray(cal.R_body_mag), np.asarray(cal.B_enu_nT))
+        diag, res = diagnose_data(data, init, self.config, turntable=rec.turntable is not None)
+        return ctx.replace(diagnosis=diag, calibration=calibration_from(res, data, diag.findings))
+
+
+# ----------------------------------------------------------------------------- figures
+
+
+def finding_figures(diagnosis: Diagnosis, dpi: int = 90) -> list[tuple[str, bytes]]:
+    """One PNG per finding showing its signature in the residual.
+
+    Time offset / eddy currents: residual before against the reading's rate of change.
+    Local effects: residual norm against time with the located windows shaded.
+    Others: residual before and the fitted contribution against time, per axis.
+
+    Returns
+    -------
+    list of (title, png bytes)
+
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = []
+    for f in diagnosis.findings:
+        s = f.signature
+        if s is None:
+            continue
+        fig, ax = plt.subplots(figsize=(7, 3.6), dpi=dpi)
+        frame = f.where["frame"]
+        if s.regressor is not None:
+            for i, c in enumerate("xyz"):
+                ax.plot(s.regressor[:, i], s.residual_before_nT[:, i], ".", ms=2, alpha=0.4,
+                        label=f"{c}")
+            ax.set_xlabel("rate of change of the reading (mag frame), nT/s")
+            ax.set_ylabel("residual before, nT")
+            ax.legend(markerscale=4)
+        elif f.effect in ("disturbance", "hard_iron_step"):
+            ax.plot(s.t_s, np.linalg.norm(s.residual_before_nT, axis=1), lw=0.6,
+                    label="|residual| before")
+            ax.plot(s.t_s, np.linalg.norm(s.contribution_nT, axis=1), lw=1.2,
+                    label="|fitted term|")
+            for a, b in f.where["windows_s"]:
+                ax.axvspan(a, b, color="tab:red", alpha=0.15)
+            ax.set_xlabel("time from first sample, s")
+            ax.set_ylabel("nT")
+            ax.legend()
+        else:
+            for i, c in enumerate("xyz"):
+                ax.plot(s.t_s, s.residual_before_nT[:, i], lw=0.5, alpha=0.6,
+                        label=f"residual {c}")
+                ax.plot(s.t_s, s.contribution_nT[:, i], lw=1.2, label=f"term {c}")
+            ax.set_xlabel("time from first sample, s")
+            ax.set_ylabel(f"nT ({frame} frame)")
+            ax.legend(ncol=3, fontsize=7)
+        title = f"{f.effect}: {_estimate_text(f)}"
+        ax.set_title(title, fontsize=9)
+        fig.tight_layout()
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png")
+        plt.close(fig)
+        out.append((title, buf.getvalue()))
+    return out

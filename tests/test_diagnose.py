@@ -1,0 +1,106 @@
+import json
+
+import numpy as np
+import pytest
+from _diag_sim import make_data
+
+from pipeline.effects import EffectKind as K
+from pipeline.effects import Term
+from pipeline.recording import AlignedSeries, AttitudeSeries, Context, Recording, VectorSeries
+from pipeline.stage import Pipeline
+from stages.diagnose import Diagnose, DiagnoseConfig, diagnose_data, finding_figures
+
+CFG = DiagnoseConfig()
+
+
+def _check_heldout_drops(diag):
+    for f in diag.findings:
+        ev = f.evidence
+        assert ev["heldout_rms_after_nT"] < ev["heldout_rms_before_nT"], f.effect
+        assert ev["delta_bic"] < 0
+
+
+def _bump(window, peak):
+    """Disturbance values for a hat basis of step 1 s: a triangle-ish bump in ENU."""
+    a, b = window
+    n = int(np.ceil(b - a)) + 1
+    shape = np.sin(np.linspace(0, np.pi, n)) ** 2
+    return (shape[:, None] * np.array([0.6, 0.3, 0.74]) * peak).ravel()
+
+
+def _near(a, b, tol):
+    return abs(a - b) < tol
+
+
+CASES = [
+    ("hard_iron", (Term(K.HARD_IRON),), (np.array([40.0, -25.0, 15.0]),),
+     lambda f, s: np.allclose(f.params["offset_nT"], [40, -25, 15],
+                              atol=4 * np.max(s["offset_nT"]) + 0.5)),
+    ("time_offset", (Term(K.TIME_OFFSET),), (np.array([0.004]),),
+     lambda f, s: _near(f.params["time_offset_s"], 0.004, 4 * s["time_offset_s"] + 1e-5)),
+    ("eddy_current", (Term(K.EDDY_CURRENT),), (np.diag([0.004, -0.003, 0.001]).ravel(),),
+     lambda f, s: _near(np.asarray(f.params["E_s"])[0, 0], 0.004, 2e-4)),
+    ("field_drift", (Term(K.FIELD_DRIFT),), (np.r_[30.0, -20.0, 10.0, np.zeros(9)],),
+     lambda f, s: np.allclose(f.params["peak_to_peak_nT"], [60, 40, 20], atol=6.0)),
+    ("hard_iron_step", (Term(K.HARD_IRON_STEP, ((30.0, 40.0),)),),
+     (np.array([40.0, 30.0, -20.0]),),
+     lambda f, s: _near(f.where["windows_s"][0][0], 30, 0.3)
+     and _near(f.where["windows_s"][0][1], 40, 0.3)),
+    ("disturbance", (Term(K.DISTURBANCE, ((20.0, 26.0),)),), (_bump((20.0, 26.0), 200.0),),
+     lambda f, s: _near(f.where["windows_s"][0][0], 20, 1.0)
+     and _near(f.where["windows_s"][0][1], 26, 1.0)),
+]
+
+
+@pytest.mark.parametrize("kind,terms,values,check", CASES, ids=[c[0] for c in CASES])
+def test_each_effect_detected_and_located(kind, terms, values, check):
+    data, _ = make_data(terms, values, seed=11)
+    diag, _ = diagnose_data(data, cfg=CFG)
+    assert [f.effect for f in diag.findings] == [kind]
+    f = diag.findings[0]
+    assert check(f, f.sigma), (f.params, f.sigma, f.where)
+    _check_heldout_drops(diag)
+    assert f.where["frame"] in ("mag", "enu") and f.where["axes"]
+
+
+@pytest.mark.parametrize("seed", [21, 22, 23, 24])
+def test_null_recordings_have_no_findings(seed):
+    data, _ = make_data(seed=seed)
+    diag, _ = diagnose_data(data, cfg=CFG)
+    assert diag.findings == ()
+    assert diag.final["heldout_rms_nT"] == diag.baseline["heldout_rms_nT"]
+
+
+def test_single_axis_motion_reports_hard_iron_not_identifiable():
+    data, _ = make_data(single_axis=True, seed=5)
+    diag, _ = diagnose_data(data, cfg=CFG)
+    assert "hard_iron" in dict(diag.not_identifiable)
+    assert diag.findings == ()
+
+
+def test_stage_output_format_and_figures():
+    data, truth = make_data((Term(K.TIME_OFFSET),), (np.array([0.005]),), seed=3)
+    t0 = 1_700_000_000_000_000_000
+    t_ns = t0 + np.round(data.t_s * 1e9).astype(np.int64)
+    ta_ns = t0 + np.round(data.track.t_s * 1e9).astype(np.int64)
+    rec = Recording("mem", (), VectorSeries(t_ns, data.y_nT), "/mag",
+                    AttitudeSeries(ta_ns, data.track.q_enu_body), "/att")
+    aligned = AlignedSeries(t_ns, data.y_nT, data.track.at(data.t_s))
+    ctx = Context(recording=rec, aligned=aligned, calibration=None)
+    pipe = Pipeline([Diagnose()], initial=("recording", "aligned", "calibration"))
+    out = pipe.run(ctx)
+    d = out.diagnosis.to_dict()
+    json.dumps(d, allow_nan=False)
+    assert d["format"] == "magalign.diagnosis/1"
+    assert set(d) >= {"baseline", "final", "findings", "not_identifiable"}
+    f = d["findings"][0]
+    assert set(f) == {"effect", "params", "sigma", "evidence", "where", "explanation"}
+    assert set(f["evidence"]) == {"statistic", "delta_bic", "rms_before_nT", "rms_after_nT",
+                                  "heldout_rms_before_nT", "heldout_rms_after_nT"}
+    assert set(f["where"]) == {"windows_s", "axes", "frame"}
+    cal = out.calibration
+    assert abs(cal.time_offset_s - 0.005) < 3e-4
+    assert cal.to_dict()["format"] == "magalign.calibration/1"
+    figs = finding_figures(out.diagnosis)
+    assert len(figs) == 1 and figs[0][1][:8] == b"\x89PNG\r\n\x1a\n"
+    assert "time_offset" in out.diagnosis.table()
