@@ -670,8 +670,11 @@ EFFECTS: dict[EffectKind, EffectInfo] = {
     ),
     EffectKind.FIELD_DRIFT: EffectInfo(
         EffectKind.FIELD_DRIFT,
-        "slow change of the background field during the recording: diurnal variation, a "
-        "geomagnetic storm, a survey line crossing a regional gradient",
+        "slow change of the field around the sensor during the recording. Outdoors: diurnal "
+        "variation, a geomagnetic storm or another external drift of the background field. "
+        "Indoors, or on a platform that moves through a non-uniform field (steel in floors "
+        "and walls, a survey line crossing a regional gradient): the field varying with the "
+        "sensor's position, which appears as a change in time as the sensor moves",
         "a slow trend common to all headings once rotated to ENU",
         "enu",
     ),
@@ -697,6 +700,53 @@ EFFECTS: dict[EffectKind, EffectInfo] = {
         "enu",
     ),
 }
+
+
+# Rate of change of the geomagnetic field: about 0.1 nT/min for the quiet diurnal variation,
+# rarely above 10 nT/min at mid latitudes even in a storm. A fitted drift much faster than
+# that is more likely the sensor moving through a spatially varying field.
+GEOMAGNETIC_RATE_NT_MIN = 10.0
+
+
+def explanation(kind: EffectKind, params: dict[str, Any], duration_s: float) -> str:
+    """Words for one finding: the physics, the signature, and what the fitted values suggest.
+
+    Parameters
+    ----------
+    kind : EffectKind
+        The effect found.
+    params : dict
+        The finding's CONVENTIONS params.
+    duration_s : float
+        Span of the recording, s.
+
+    Returns
+    -------
+    str
+
+    """
+    info = EFFECTS[kind]
+    text = f"{info.physics}; signature: {info.signature}"
+    if kind is EffectKind.FIELD_DRIFT:
+        p2p = float(np.max(params["peak_to_peak_nT"]))
+        rate = p2p / max(duration_s / 60.0, 1e-9)
+        text += (
+            f". The fitted change reaches {p2p:.0f} nT over {duration_s:.0f} s "
+            f"(about {rate:.1f} nT/min); "
+        )
+        if rate > GEOMAGNETIC_RATE_NT_MIN:
+            text += (
+                f"that is faster than geomagnetic variation (below ~{GEOMAGNETIC_RATE_NT_MIN:.0f} "
+                "nT/min outside severe storms), so the sensor most likely moved through a "
+                "spatially varying field"
+            )
+        else:
+            text += "that is within the range of diurnal or storm-time geomagnetic variation"
+        text += (
+            ". A spatial field gradient cannot be separated from a drift in time without the "
+            "sensor's positions, which this recording does not carry: the term models both"
+        )
+    return text
 
 
 # ----------------------------------------------------------------------------- motion stats

@@ -31,6 +31,7 @@ from pipeline.effects import (
     ModelState,
     Term,
     evaluate,
+    explanation,
     fit,
     gram,
     identifiability_reason,
@@ -544,6 +545,7 @@ def diagnose_data(
             cur = alt
     stats = motion_stats(data)
     cv_cur = heldout_rms(cur.state, data, cfg)
+    base_fit, cv_base = cur, cv_cur
     baseline = {"effects": [], "residual_rms_nT": cur.rms_nT, "heldout_rms_nT": cv_cur}
     findings: list[Finding] = []
     not_ident: dict[str, str] = {}
@@ -562,8 +564,8 @@ def diagnose_data(
         cands: list[Term] = [Term(k) for k in kinds if k not in present]
         taken = [w for t in cur.state.terms if t.kind in LOCAL_KINDS for w in t.windows_s]
         for w in scan_windows(cur.residual_nT, data.t_s, cfg):
-            if any(w[0] < b + 1.0 and w[1] > a - 1.0 for a, b in taken):
-                continue  # the edge of a window already modelled, not a new event
+            if any(w[0] >= a and w[1] <= b for a, b in taken):
+                continue  # inside a window already modelled, not a new event
             # the scan sees where the excess is large; a bell-shaped transient starts and
             # ends earlier and later than that
             pad = max(0.5, 0.25 * (w[1] - w[0]))
@@ -670,12 +672,17 @@ def diagnose_data(
                     cur, cv_cur = res_s, cv_s
                     continue
             i += 1
+    # the evidence of each finding was measured against the model of the moment it was added;
+    # later rounds may have dropped or replaced terms before it. Re-measure it as a build-up in
+    # the final order so that the numbers chain from the baseline to the final model.
+    findings = _chain_evidence(findings, cur, base_fit, cv_base, cv_cur, data, cfg)
     cov_final = _covariance(cur, data)
     findings = [
         dataclasses.replace(
             f,
-            params=term_params(cur.state.terms[i], cur.state.values[i], cur.state, data),
+            params=(p := term_params(cur.state.terms[i], cur.state.values[i], cur.state, data)),
             sigma=_sigma_for(cur, i, cov_final, data),
+            explanation=explanation(cur.state.terms[i].kind, p, data.duration_s),
         )
         for i, f in enumerate(findings)
     ]
@@ -694,6 +701,68 @@ def diagnose_data(
         duration_s=data.duration_s,
     )
     return diag, cur
+
+
+def _prefix(state: ModelState, k: int) -> ModelState:
+    """``state`` with only its first ``k`` terms (values as fitted in ``state``)."""
+    has_tilt = any(t.kind is EffectKind.AXIS_TILT for t in state.terms[:k])
+    return dataclasses.replace(
+        state, terms=state.terms[:k], values=state.values[:k],
+        T_enu=state.T_enu if has_tilt else np.eye(3),
+    )
+
+
+def _chain_evidence(
+    findings: list[Finding],
+    final: FitResult,
+    base: FitResult,
+    cv_base: float,
+    cv_final: float,
+    data: FitData,
+    cfg: DiagnoseConfig,
+) -> list[Finding]:
+    """Recompute each finding's evidence as a sequential build-up in the final order.
+
+    Finding ``k`` is measured between the model with the findings before it and the model
+    that adds it, so ``rms_after`` of finding ``k`` is ``rms_before`` of finding ``k + 1``,
+    the first ``rms_before`` is the baseline's and the last ``rms_after`` the final model's
+    (the same for the held-out RMS). Intermediate models are refitted from the final values.
+
+    Parameters
+    ----------
+    findings : list of Finding
+        In the order of ``final.state.terms``.
+    final, base : FitResult
+        The final and the baseline fit.
+    cv_base, cv_final : float
+        Their held-out RMS, nT.
+    data : FitData
+        The fitted samples.
+    cfg : DiagnoseConfig
+        Cross-validation settings.
+
+    Returns
+    -------
+    list of Finding
+        Same effects and order; evidence, ``where`` and signature re-measured.
+
+    """
+    K = len(findings)
+    if K == 0:
+        return findings
+    fits = [base] + [fit(_prefix(final.state, k), data) for k in range(1, K)] + [final]
+    cvs = [cv_base] + [heldout_rms(f.state, data, cfg) for f in fits[1:K]] + [cv_final]
+    out = []
+    for k, fd in enumerate(findings):
+        before, after = fits[k], fits[k + 1]
+        term = after.state.terms[-1]
+        st = score_test(before, term, data, robust_sigma(before.residual_nT))
+        n_eff = _n_eff(after, data)
+        dbic = _bic(after.rss, n_eff, after.state.n_params()) - _bic(
+            before.rss, n_eff, before.state.n_params())
+        new = _finding(before, after, term, st, float(dbic), cvs[k], cvs[k + 1], data)
+        out.append(dataclasses.replace(new, params=fd.params, sigma=fd.sigma))
+    return out
 
 
 def _simpler(term: Term) -> Term | None:
@@ -804,7 +873,7 @@ def _finding(
     if term.kind in (EffectKind.TIME_OFFSET, EffectKind.EDDY_CURRENT):
         regressor = evaluate(cur.state, data, jacobian=False).ydot0_nT_s[::stride]
     sigtr = Signature(data.t_s[::stride], resid_f[::stride], contrib_f[::stride], regressor)
-    expl = f"{info.physics}; signature: {info.signature}"
+    expl = explanation(term.kind, params, data.duration_s)
     return Finding(
         effect=term.kind.value,
         params=params,

@@ -104,3 +104,57 @@ def test_stage_output_format_and_figures():
     figs = finding_figures(out.diagnosis)
     assert len(figs) == 1 and figs[0][1][:8] == b"\x89PNG\r\n\x1a\n"
     assert "time_offset" in out.diagnosis.table()
+
+
+def test_evidence_chains_from_baseline_to_final_on_two_effects():
+    # drift and a time offset together: the evidence of each finding is a build-up in the
+    # final order, whatever rounds of selection (and backward steps) led there
+    drift = np.r_[40.0, -30.0, 20.0, np.zeros(9)]
+    data, _ = make_data((Term(K.FIELD_DRIFT), Term(K.TIME_OFFSET)),
+                        (drift, np.array([0.004])), seed=7)
+    diag, res = diagnose_data(data, cfg=CFG)
+    assert sorted(f.effect for f in diag.findings) == ["field_drift", "time_offset"]
+    assert [t.kind.value for t in res.state.terms] == [f.effect for f in diag.findings]
+    ev = [f.evidence for f in diag.findings]
+    for key in ("rms", "heldout_rms"):
+        b = "residual_rms_nT" if key == "rms" else "heldout_rms_nT"
+        assert ev[0][f"{key}_before_nT"] == diag.baseline[b]
+        for e0, e1 in zip(ev[:-1], ev[1:], strict=True):
+            assert abs(e0[f"{key}_after_nT"] - e1[f"{key}_before_nT"]) < 1e-9
+        assert ev[-1][f"{key}_after_nT"] == diag.final[b]
+    _check_heldout_drops(diag)
+    # the final model leaves white noise of 5 nT
+    assert 4.5 < diag.final["residual_rms_nT"] < 5.5
+
+
+def test_chain_evidence_rebuilds_a_swapped_history():
+    # a history where the later-added term ends up first (as a backward step that drops and
+    # re-adds a term produces): the stale numbers must be re-measured in the final order
+    import dataclasses
+
+    from pipeline.effects import fit
+    from stages.diagnose import _chain_evidence, heldout_rms
+
+    data, _ = make_data((Term(K.HARD_IRON), Term(K.TIME_OFFSET)),
+                        (np.array([60.0, -40.0, 20.0]), np.array([0.004])), seed=9)
+    diag, res = diagnose_data(data, cfg=CFG)
+    assert len(diag.findings) == 2
+    st = res.state
+    swapped = dataclasses.replace(st, terms=st.terms[::-1], values=st.values[::-1])
+    final = fit(swapped, data)
+    base = fit(dataclasses.replace(st, terms=(), values=()), data)
+    cv_b, cv_f = heldout_rms(base.state, data, CFG), heldout_rms(final.state, data, CFG)
+    stale = list(diag.findings[::-1])
+    chained = _chain_evidence(stale, final, base, cv_b, cv_f, data, CFG)
+    assert [f.effect for f in chained] == [f.effect for f in stale]
+    e0, e1 = chained[0].evidence, chained[1].evidence
+    assert e0["rms_before_nT"] == base.rms_nT and e1["rms_after_nT"] == final.rms_nT
+    assert e0["rms_after_nT"] == e1["rms_before_nT"]
+    assert e0["heldout_rms_after_nT"] == e1["heldout_rms_before_nT"]
+    assert e0["heldout_rms_before_nT"] == cv_b and e1["heldout_rms_after_nT"] == cv_f
+    # the stale evidence of the (now first) finding was measured after the other one
+    assert stale[0].evidence["rms_before_nT"] < e0["rms_before_nT"]
+    # each step still helps, and the params/sigma are the final model's
+    for f, g in zip(chained, stale, strict=True):
+        assert f.evidence["rms_after_nT"] < f.evidence["rms_before_nT"]
+        assert f.params == g.params

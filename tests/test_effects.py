@@ -124,3 +124,19 @@ def test_every_effect_has_words():
     assert set(EFFECTS) == set(EffectKind)
     for info in EFFECTS.values():
         assert len(info.physics) > 40 and info.frame in ("mag", "enu")
+
+
+def test_field_drift_explanation_names_both_causes_and_the_gradient_limit():
+    from pipeline.effects import explanation
+
+    # 20 nT over an hour: geomagnetic; 1700 nT over 3 minutes: the sensor moved through a
+    # non-uniform field
+    slow = explanation(EffectKind.FIELD_DRIFT, {"peak_to_peak_nT": [5.0, 20.0, 8.0]}, 3600.0)
+    fast = explanation(EffectKind.FIELD_DRIFT, {"peak_to_peak_nT": [300.0, 1700.0, 900.0]}, 180.0)
+    for text in (slow, fast):
+        assert "diurnal" in text and "position" in text and "non-uniform" in text
+        assert "gradient cannot be separated" in text
+    assert "within the range of" in slow and "spatially varying" not in slow
+    assert "spatially varying field" in fast and "566.7 nT/min" in fast
+    assert explanation(EffectKind.HARD_IRON, {"offset_nT": [1.0, 0, 0]}, 60.0).startswith(
+        EFFECTS[EffectKind.HARD_IRON].physics)
