@@ -27,7 +27,7 @@ bench: $(STAMP)
 	@for b in bench/*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
 
 golden: $(STAMP)
-	$(BIN)/python -m tests.make_golden
+	$(BIN)/python tests/make_golden.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check pipeline stages tests bench

@@ -1,0 +1,143 @@
+"""``magalign process INPUT --out DIR``: the whole pipeline on a recording, folder or campaign.
+
+INPUT is one ``.mcap`` recording, a folder of them, or a campaign ``.toml``
+(``docs/campaigns.md``). Calibration runs are processed first; survey lines that name one are
+restored with its result. One failing recording does not stop the others (exit status 3,
+each failure listed). Finished outputs whose input bytes and configuration are unchanged are
+reused, so an interrupted run resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+from ..errors import CampaignPartialFailure, InputError, UsageError
+
+
+def _vec3(text: str) -> tuple[float, float, float]:
+    try:
+        v = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected E,N,U in nT, got {text!r}") from None
+    if len(v) != 3:
+        raise argparse.ArgumentTypeError(f"expected three numbers E,N,U, got {text!r}")
+    return v  # type: ignore[return-value]
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register the subcommand."""
+    from ..campaign import EstimatorName, TermName
+
+    p = sub.add_parser("process", help="process a recording, a folder or a campaign TOML",
+                       description=__doc__.splitlines()[0])
+    p.add_argument("input", help="recording (.mcap), folder of recordings, or campaign (.toml)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--calibration", help="calibration.json to restore survey recordings with "
+                   "(those that do not name a calibration run)")
+    p.add_argument("--jobs", type=int, default=None, help="local worker processes (default 1)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--dask-local", type=int, default=None, metavar="N",
+                   help="start a Dask LocalCluster of N workers")
+    g.add_argument("--scheduler", default=None, metavar="ADDR",
+                   help="join a Dask scheduler tcp://host:port (trust it like a shell)")
+    p.add_argument("--estimator", choices=[e.value for e in EstimatorName], default=None,
+                   help="estimator (default: the campaign's, else ml)")
+    p.add_argument("--estimate", default=None, metavar="TERMS",
+                   help="comma-separated extra terms: " + ",".join(t.value for t in TermName))
+    p.add_argument("--reference-field", type=_vec3, default=None, metavar="E,N,U",
+                   help="known background field, ENU, nT")
+    p.add_argument("--mag", default=None, metavar="TOPIC", help="magnetometer topic")
+    p.add_argument("--attitude", default=None, metavar="TOPIC", help="attitude topic")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def _overrides(args: argparse.Namespace):
+    """Options given explicitly on the command line (they win over a campaign file's)."""
+    from ..campaign import EstimatorName, ReferenceField, ReferenceFieldMode, TermName
+
+    ov: dict = {}
+    if args.estimator is not None:
+        ov["estimator"] = EstimatorName(args.estimator)
+    if args.estimate is not None:
+        try:
+            ov["terms"] = tuple(sorted({TermName(t.strip()) for t in args.estimate.split(",")
+                                        if t.strip()}, key=lambda t: t.value))
+        except ValueError:
+            raise UsageError(f"--estimate {args.estimate!r}: terms are "
+                             + ", ".join(t.value for t in TermName)) from None
+    if args.reference_field is not None:
+        ov["reference_field"] = ReferenceField(ReferenceFieldMode.FIXED,
+                                               enu_nT=args.reference_field)
+    if args.mag is not None:
+        ov["mag_topic"] = args.mag
+    if args.attitude is not None:
+        ov["attitude_topic"] = args.attitude
+    return ov
+
+
+def run(args: argparse.Namespace) -> int:
+    """Process; print where the results are; exit 3 when some recordings failed."""
+    from ..campaign import RecordingOptions, campaign_for_input, run_campaign
+    from ..executors import make_executor
+    from ..summary import row_for, write_summary
+
+    if args.jobs is not None and (args.dask_local is not None or args.scheduler is not None):
+        raise UsageError("--jobs is for the local pool; with Dask give --dask-local N only")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out} exists and is not a folder")
+    ov = _overrides(args)
+    camp = campaign_for_input(args.input, options=RecordingOptions(**ov), out_dir=out)
+    if ov:
+        camp = dataclasses.replace(camp, recordings=tuple(
+            dataclasses.replace(r, options=dataclasses.replace(r.options, **ov))
+            for r in camp.recordings))
+    executor = make_executor(jobs=args.jobs, dask_local=args.dask_local,
+                             scheduler=args.scheduler)
+    bar = None
+    try:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(camp.recordings), file=sys.stderr, unit="rec",
+                   desc="magalign process", disable=True if args.no_progress else None)
+
+        def progress(res: dict) -> None:
+            bar.set_postfix_str(f"{res['name']}: {res['status']}", refresh=False)
+            bar.update(1)
+
+        results = run_campaign(camp, out, executor, calibration_path=args.calibration,
+                               progress=progress)
+    finally:
+        if bar is not None:
+            bar.close()
+        executor.close()
+    out_r = out.resolve()
+    rows = [row_for(out_r, r) for r in results]
+    pq_path, html_path = write_summary(out_r, rows, title=f"magalign: {camp.name}")
+    n_ok = sum(r["status"] == "ok" for r in results)
+    n_re = sum(r["status"] == "reused" for r in results)
+    failures = [(r["name"], r["error"] or "unknown error") for r in results
+                if r["status"] == "failed"]
+    print(f"{len(results)} recording(s): {n_ok} processed, {n_re} reused (unchanged), "
+          f"{len(failures)} failed ({executor.describe()})")
+    print(f"results in {out}:")
+    print(f"  summary  {out / html_path.name}   (open in a browser)")
+    print(f"  table    {out / pq_path.name}")
+    for r in rows:
+        if r["rrd"]:
+            print(f"  {r['name']}: magalign view {out / r['rrd']}")
+        if r["report"]:
+            print(f"  {' ' * len(r['name'])}  report {out / r['report']}")
+    if failures and len(results) == 1 and Path(args.input).suffix.lower() == ".mcap":
+        # One recording given: its failure is bad input (exit 2, one line), not a campaign
+        # that partly failed (CONVENTIONS, "Exit status").
+        raise InputError(failures[0][1])
+    if failures:
+        for name, why in failures:
+            print(f"magalign: FAILED {name}: {why}", file=sys.stderr)
+        raise CampaignPartialFailure(failures)
+    return 0

@@ -1,0 +1,208 @@
+"""Regression runs: archived logs against their stored baselines; tolerances; exit codes."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.errors import InputError
+from pipeline.geometry import quat_to_matrix, rotvec_to_quat
+from pipeline.regress import REGRESSION, Tolerances, compare, format_table
+
+HERE = Path(__file__).resolve().parent
+DATA = HERE / "data"
+GOLDEN = HERE / "golden"
+REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+sys.path.insert(0, str(HERE))  # make_golden
+
+
+def _cli(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "pipeline.cli", *args], capture_output=True,
+                          text=True, timeout=timeout, cwd=HERE.parent)
+
+
+@pytest.fixture(scope="module")
+def archived_results(tmp_path_factory) -> Path:
+    """tests/data processed now (the campaign tests/golden was made from)."""
+    out = tmp_path_factory.mktemp("regress") / "results"
+    r = _cli("process", str(DATA / "campaign.toml"), "--out", str(out), "--jobs", "2",
+             "--no-progress")
+    assert r.returncode == 0, r.stderr
+    return out
+
+
+def test_archived_logs_are_small_and_deterministic(tmp_path):
+    from make_golden import write_data
+
+    stored = sorted(DATA.glob("*.mcap"))
+    assert 2 <= len(stored) <= 3
+    for f in stored:
+        assert f.stat().st_size < 300_000
+    fresh = write_data(tmp_path)
+    for f in fresh:
+        assert f.read_bytes() == (DATA / f.name).read_bytes(), f"{f.name} is not reproducible"
+
+
+def test_archived_logs_match_golden(archived_results):
+    r = _cli("regress", str(archived_results), "--baseline", str(GOLDEN))
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "0 regression(s)" in r.stdout
+    assert "rotation_deg" in r.stdout and "findings" in r.stdout
+
+
+def _move_rotation(cal_file: Path, deg: float, axis=(0.0, 0.0, 1.0)) -> None:
+    d = json.loads(cal_file.read_text())
+    dR = quat_to_matrix(rotvec_to_quat(np.radians(deg) * np.asarray(axis)))
+    d["R_body_mag"] = (dR @ np.asarray(d["R_body_mag"])).tolist()
+    cal_file.write_text(json.dumps(d))
+
+
+def test_regress_passes_against_itself_and_fails_on_moved_rotation(archived_results, tmp_path):
+    r = _cli("regress", str(archived_results), "--baseline", str(archived_results))
+    assert r.returncode == 0, r.stdout + r.stderr
+    base = tmp_path / "base"
+    shutil.copytree(archived_results, base)
+    _move_rotation(base / "rotation" / "calibration.json", 0.5, axis=(0.6, 0.0, 0.8))
+    r = _cli("regress", str(archived_results), "--baseline", str(base))
+    assert r.returncode == 1, r.stdout + r.stderr
+    bad = [ln for ln in r.stdout.splitlines() if REGRESSION in ln]
+    assert len(bad) == 1 and bad[0].startswith("rotation ") and "rotation_deg" in bad[0]
+    assert "0.5" in bad[0]
+    assert "rotation" in r.stderr and r.stderr.count("\n") == 1  # one line on stderr
+    # within tolerance: 0.05 deg is not a regression
+    shutil.rmtree(base)
+    shutil.copytree(archived_results, base)
+    _move_rotation(base / "rotation" / "calibration.json", 0.05)
+    assert _cli("regress", str(archived_results), "--baseline", str(base)).returncode == 0
+
+
+def test_unfinished_recording_is_a_regression(archived_results, tmp_path):
+    res = tmp_path / "res"
+    shutil.copytree(archived_results, res)
+    (res / "line_restored" / ".magalign-done.json").unlink()  # as if killed midway
+    rows = compare(res, GOLDEN)
+    bad = [r for r in rows if r.status == REGRESSION]
+    assert [(r.recording, r.quantity) for r in bad] == [("line_restored", "recording")]
+
+
+def test_regress_bad_input_exits_2(tmp_path):
+    r = _cli("regress", str(tmp_path / "nope"), "--baseline", str(GOLDEN))
+    assert r.returncode == 2 and "results folder not found" in r.stderr
+    assert "Traceback" not in r.stderr
+    base = tmp_path / "base"
+    (base / "rec").mkdir(parents=True)
+    (base / "rec" / "calibration.json").write_text("{not json")
+    res = tmp_path / "res"
+    (res / "rec").mkdir(parents=True)
+    (res / "rec" / "calibration.json").write_text("{}")
+    (res / "rec" / ".magalign-done.json").write_text("{}")
+    r = _cli("regress", str(res), "--baseline", str(base))
+    assert r.returncode == 2 and "not valid JSON" in r.stderr
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(InputError, match="no recording"):
+        compare(res, empty)
+
+
+# --------------------------------------------------------------------------- tolerances
+
+def _cal(rotvec_deg, sigma=(0.01, 0.01, 0.02), **kw):
+    R = quat_to_matrix(rotvec_to_quat(np.radians(rotvec_deg)))
+    d = {"format": "magalign.calibration/1", "R_body_mag": R.tolist(),
+         "rotvec_body_mag_deg": list(rotvec_deg), "sigma_rotvec_deg": list(sigma),
+         "B_enu_nT": [500.0, 17000.0, -48000.0], "residual_rms_nT": 10.0, "offset_nT": None,
+         "D": None, "time_offset_s": None}
+    d.update(kw)
+    return d
+
+
+def _diag(*findings):
+    return {"format": "magalign.diagnosis/1", "findings": [
+        {"effect": e, "params": p} for e, p in findings]}
+
+
+def _write(folder: Path, name: str, cal: dict, diag: dict | None = None, marker=True) -> None:
+    d = folder / name
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "calibration.json").write_text(json.dumps(cal))
+    if diag is not None:
+        (d / "diagnosis.json").write_text(json.dumps(diag))
+    if marker:
+        (d / ".magalign-done.json").write_text("{}")
+
+
+CASES = [
+    # (result calibration overrides, result findings, expected regressed quantities)
+    ({}, [("disturbance", {"windows_s": [[10.0, 16.0]], "peak_nT": 60.0})], []),
+    ({"rotvec": (1.2, -1.0, 1.7)}, None, ["rotation_deg"]),
+    ({"rotvec": (1.25, -1.0, 1.2)}, None, []),
+    ({"sigma": (0.01, 0.01, None)}, None, ["sigma_rotvec_deg.z"]),
+    ({"sigma": (0.0105, 0.009, 0.021)}, None, []),
+    ({"sigma": (0.02, 0.01, 0.02)}, None, ["sigma_rotvec_deg.x"]),
+    ({"offset_nT": [1.0, 2.0, 3.0]}, None, ["offset_nT"]),
+    ({"residual_rms_nT": 10.4}, None, []),
+    ({"residual_rms_nT": 12.0}, None, ["residual_rms_nT"]),
+    ({}, [], ["findings"]),
+    ({}, [("disturbance", {"windows_s": [[10.5, 16.2]], "peak_nT": 66.0})], []),
+    ({}, [("disturbance", {"windows_s": [[12.0, 16.0]], "peak_nT": 60.0})],
+     ["findings.disturbance.windows_s"]),
+    ({}, [("disturbance", {"windows_s": [[10.0, 16.0]], "peak_nT": 90.0})],
+     ["findings.disturbance.peak_nT"]),
+    ({}, [("disturbance", {"windows_s": [[10.0, 16.0]], "peak_nT": 60.0}),
+          ("hard_iron", {"offset_nT": [5.0, 0.0, 0.0]})], ["findings"]),
+]
+
+
+@pytest.mark.parametrize(("change", "findings", "expected"), CASES)
+def test_tolerances_per_quantity(tmp_path, change, findings, expected):
+    base_f = [("disturbance", {"windows_s": [[10.0, 16.0]], "peak_nT": 60.0})]
+    _write(tmp_path / "base", "rec", _cal((1.2, -1.0, 1.2)), _diag(*base_f), marker=False)
+    change = dict(change)
+    rv = change.pop("rotvec", (1.2, -1.0, 1.2))
+    sg = change.pop("sigma", (0.01, 0.01, 0.02))
+    res_f = base_f if findings is None else findings
+    _write(tmp_path / "res", "rec", _cal(rv, sg, **change), _diag(*res_f))
+    rows = compare(tmp_path / "res", tmp_path / "base")
+    got = sorted(r.quantity for r in rows if r.status == REGRESSION)
+    assert got == sorted(expected), format_table(rows)
+
+
+def test_tolerances_file_overrides(tmp_path):
+    _write(tmp_path / "base", "rec", _cal((1.2, -1.0, 1.2)), marker=False)
+    _write(tmp_path / "res", "rec", _cal((1.2, -1.0, 1.5)))
+    assert any(r.status == REGRESSION for r in compare(tmp_path / "res", tmp_path / "base"))
+    (tmp_path / "base" / "tolerances.toml").write_text("[tolerances]\nrotation_deg = 0.5\n")
+    assert not any(r.status == REGRESSION for r in compare(tmp_path / "res", tmp_path / "base"))
+    (tmp_path / "base" / "tolerances.toml").write_text("[tolerances]\nrotaton_deg = 0.5\n")
+    from pipeline.errors import ConfigError
+
+    with pytest.raises(ConfigError) as ei:
+        compare(tmp_path / "res", tmp_path / "base")
+    assert ei.value.line == 2 and "rotaton_deg" in ei.value.one_line()
+    assert Tolerances().rotation_deg < 0.5
+
+
+# --------------------------------------------------------------------------- real recordings
+
+@pytest.mark.real
+@pytest.mark.slow
+@pytest.mark.skipif(not REAL.is_dir(), reason=f"real recordings not present ({REAL})")
+@pytest.mark.skipif(not (GOLDEN / "real").is_dir(),
+                    reason="no stored baseline of the real recordings (run make golden)")
+def test_real_recordings_match_golden(tmp_path):
+    from make_golden import REAL_CAMPAIGN_TOML
+
+    camp = tmp_path / "real.toml"
+    camp.write_text(REAL_CAMPAIGN_TOML.format(real=REAL.as_posix()))
+    out = tmp_path / "out"
+    p = _cli("process", str(camp), "--out", str(out), "--jobs", "2", "--no-progress",
+             timeout=1500)
+    assert p.returncode in (0, 3), p.stderr
+    r = _cli("regress", str(out), "--baseline", str(GOLDEN / "real"))
+    assert r.returncode == 0, r.stdout + r.stderr
