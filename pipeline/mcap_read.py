@@ -27,6 +27,7 @@ Stamps are header stamps (CONVENTIONS), ``log_time`` only for messages without a
 from __future__ import annotations
 
 import json
+import mmap
 import struct
 import warnings
 import zlib
@@ -38,7 +39,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .cdr import CdrLayout, normalise_type, stamp_ns
+from .cdr import CdrLayout, gather_le, normalise_type, stamp_ns
 from .errors import (
     ChannelError,
     CorruptRecordingError,
@@ -175,6 +176,25 @@ class _Scan:
     top_messages: dict[int, list[int]] = field(default_factory=dict)
     problems: list[Problem] = field(default_factory=list)
     complete_bytes: int = 0  # bytes up to the end of the last complete record
+    mapped: Any = None  # the mmap.mmap when the file is memory-mapped
+
+
+def _release(scan: _Scan, start: int, length: int) -> None:
+    """Drop the mapped pages of ``[start, start + length)`` from this process's memory.
+
+    The file stays mapped (a later access reads the pages again, usually from the page
+    cache); this keeps the resident size of a long recording to about one chunk.
+    """
+    if scan.mapped is None or not hasattr(mmap, "MADV_DONTNEED"):
+        return
+    page = mmap.PAGESIZE
+    lo = (start // page) * page
+    hi = start + length
+    if hi > lo:
+        try:
+            scan.mapped.madvise(mmap.MADV_DONTNEED, lo, min(hi, len(scan.mapped)) - lo)
+        except (OSError, ValueError):
+            pass  # advice only
 
 
 # --------------------------------------------------------------------------- helpers
@@ -183,7 +203,7 @@ def _u(buf: NDArray[np.uint8], pos: NDArray[np.int64], dtype: str) -> np.ndarray
     dt = np.dtype(dtype)
     if dt.itemsize == 1:
         return buf[pos]
-    return np.ascontiguousarray(buf[pos[:, None] + np.arange(dt.itemsize)]).view(dt).reshape(-1)
+    return gather_le(buf, pos, dt)
 
 
 def _str(b: bytes, p: int) -> tuple[str, int]:
@@ -224,11 +244,26 @@ def _problem(scan_problems: list[Problem], code: str, message: str, count: int =
 
 
 # --------------------------------------------------------------------------- scanning
+#: files at least this large are memory-mapped instead of read: pages are then loaded as the
+#: chunks are decoded and can be dropped by the OS again, so a recording larger than the
+#: memory can be read chunk by chunk (:func:`iter_recording_chunks`)
+MMAP_MIN_BYTES = 64 << 20
+
+
+def _map_file(p: Path) -> bytes | mmap.mmap:
+    """Return the file's bytes: read into memory, or memory-mapped read-only when large."""
+    size = p.stat().st_size
+    if size < MMAP_MIN_BYTES:
+        return p.read_bytes()
+    with open(p, "rb") as fh:
+        return mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
+
+
 def _scan(path: str | Path) -> _Scan:
     """Read the file and list its top-level records (see the module docstring)."""
     p = Path(path)
     try:
-        raw = p.read_bytes()
+        raw = _map_file(p)
     except FileNotFoundError:
         raise InputError("no such file", path=p) from None
     except IsADirectoryError:
@@ -239,13 +274,14 @@ def _scan(path: str | Path) -> _Scan:
     if size == 0:
         raise NotMcapError("empty file (0 bytes)", path=p,
                            hint="the logger may have crashed before writing anything")
-    if not raw.startswith(MAGIC[: min(size, 8)]) or size < 8:
-        if raw.startswith(MAGIC[: min(size, 8)]):
+    if raw[:8] != MAGIC[: min(size, 8)] or size < 8:
+        if raw[:8] == MAGIC[: min(size, 8)]:
             raise NotMcapError(f"cut inside the MCAP header ({size} bytes)", path=p,
                                hint="nothing can be recovered from this file")
         raise NotMcapError("not an MCAP file (bad magic bytes)", path=p,
                            hint="pass a .mcap recording")
-    scan = _Scan(str(p), np.frombuffer(raw, dtype=np.uint8))
+    scan = _Scan(str(p), np.frombuffer(raw, dtype=np.uint8),
+                 mapped=raw if isinstance(raw, mmap.mmap) else None)
     pos = 8
     ended = False  # footer seen
     data_end = False
@@ -490,6 +526,7 @@ def _iter_blocks(scan: _Scan, want: set[int]) -> Iterator[tuple[NDArray[np.uint8
                 sel[cid] = off
         if sel:
             yield buf, sel
+        _release(scan, ch.data_start, ch.data_len)  # decompressed: the bytes are not needed
 
 
 def _record_columns(buf: NDArray[np.uint8], rec: np.ndarray) -> dict[str, np.ndarray]:
@@ -504,6 +541,23 @@ def _record_columns(buf: NDArray[np.uint8], rec: np.ndarray) -> dict[str, np.nda
     }
 
 
+def _ranges_mask(size: int, start: np.ndarray, length: np.ndarray) -> np.ndarray:
+    """Boolean mask of ``size`` bytes, True inside the sorted, disjoint ``[start, start+length)``.
+
+    Built as alternating runs (gap, range, gap, ...) with one ``np.repeat``: about one byte
+    of work per output byte, no per-byte index arithmetic.
+    """
+    end = start + length
+    runs = np.empty(2 * len(start) + 1, dtype=np.int64)
+    runs[0] = start[0]
+    runs[2:-1:2] = start[1:] - end[:-1]
+    runs[1:-1:2] = length
+    runs[-1] = size - end[-1]
+    pattern = np.zeros(len(runs), dtype=np.bool_)
+    pattern[1::2] = True
+    return np.repeat(pattern, runs)
+
+
 def _copy_ranges(buf: NDArray[np.uint8], start: np.ndarray, length: np.ndarray,
                  sep: int | None = None) -> NDArray[np.uint8]:
     """Concatenate ``buf[start_i:start_i + length_i]``, each followed by ``sep`` if given."""
@@ -512,6 +566,11 @@ def _copy_ranges(buf: NDArray[np.uint8], start: np.ndarray, length: np.ndarray,
         return np.zeros(0, dtype=np.uint8)
     length = length.astype(np.int64)
     payload = int(length.sum())
+    start = start.astype(np.int64)
+    if sep is None and (n == 1 or bool(np.all(np.diff(start) >= length[:-1]))):
+        # ranges in order and disjoint (message records of one chunk): select the bytes with a
+        # mask; no index array of one int64 per byte
+        return buf[_ranges_mask(len(buf), start, length)]
     # offset of each byte within its own range, without a Python loop
     within = np.arange(payload, dtype=np.int64) - np.repeat(np.cumsum(length) - length, length)
     src = np.repeat(start.astype(np.int64), length) + within
@@ -525,6 +584,33 @@ def _copy_ranges(buf: NDArray[np.uint8], start: np.ndarray, length: np.ndarray,
 
 
 # --------------------------------------------------------------------------- raw channels
+def _raw_from_parts(scan: _Scan, parts: dict[int, list[dict[str, np.ndarray]]]
+                    ) -> list[RawChannel]:
+    out = []
+    for cid in sorted(scan.channels):
+        c = scan.channels[cid]
+        s = scan.schemas.get(c.schema_id, _Schema(0, "", "", b""))
+        ps = parts[cid]
+
+        def cat(key: str, dtype: Any, ps: list = ps) -> np.ndarray:
+            if len(ps) == 1:
+                return ps[0][key].astype(dtype, copy=False)
+            return np.concatenate([p[key] for p in ps]).astype(dtype) if ps else np.zeros(
+                0, dtype)
+
+        lengths = cat("length", np.int64)
+        out.append(RawChannel(
+            topic=c.topic, schema_name=s.name, schema_encoding=s.encoding,
+            schema_data=s.data, message_encoding=c.message_encoding,
+            metadata=dict(c.metadata), log_time_ns=cat("log_time_ns", np.int64),
+            publish_time_ns=cat("publish_time_ns", np.int64), sequence=cat("sequence",
+                                                                           np.uint32),
+            data=cat("data", np.uint8),
+            offsets=np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64),
+        ))
+    return out
+
+
 def read_raw_channels(path: str | Path) -> list[RawChannel]:
     """Every channel's messages as columns, to copy them unchanged into another file.
 
@@ -547,27 +633,71 @@ def read_raw_channels(path: str | Path) -> list[RawChannel]:
             cols = _record_columns(buf, rec)
             cols["data"] = _copy_ranges(buf, cols["start"], cols["length"])
             parts[cid].append(cols)
-    out = []
-    for cid in sorted(scan.channels):
-        c = scan.channels[cid]
-        s = scan.schemas.get(c.schema_id, _Schema(0, "", "", b""))
-        ps = parts[cid]
+    return _raw_from_parts(scan, parts)
 
-        def cat(key: str, dtype: Any, ps: list = ps) -> np.ndarray:
-            return np.concatenate([p[key] for p in ps]).astype(dtype) if ps else np.zeros(
-                0, dtype)
 
-        lengths = cat("length", np.int64)
-        out.append(RawChannel(
-            topic=c.topic, schema_name=s.name, schema_encoding=s.encoding,
-            schema_data=s.data, message_encoding=c.message_encoding,
-            metadata=dict(c.metadata), log_time_ns=cat("log_time_ns", np.int64),
-            publish_time_ns=cat("publish_time_ns", np.int64), sequence=cat("sequence",
-                                                                           np.uint32),
-            data=cat("data", np.uint8),
-            offsets=np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64),
-        ))
-    return out
+def _chunk_start_ns(scan: _Scan, ch: _Chunk) -> int:
+    """Return the chunk record's ``message_start_time``."""
+    return int(scan.buf[ch.offset + 9 : ch.offset + 17].view("<u8")[0])
+
+
+def iter_raw_channels(
+    path: str | Path, *, max_messages: int = 200_000
+) -> Iterator[tuple[list[RawChannel], int | None]]:
+    """:func:`read_raw_channels` range by range, in bounded memory (long recordings).
+
+    Yields
+    ------
+    (raw_channels, later_min_log_ns)
+        Every channel (in channel id order, possibly empty) with the messages of about
+        ``max_messages`` messages' worth of MCAP chunks, in file order; and the smallest log
+        time any later range can hold (``None`` for the last range), so that a writer can
+        flush everything before it (:meth:`pipeline.mcap_write.McapColumnWriter.flush`).
+
+    """
+    scan = _scan(path)
+    _prepare(scan)
+    # smallest start time of the chunks after each chunk (suffix minimum)
+    good = [ch for ch in scan.chunks if not ch.bad and ch.index]
+    starts = np.array([_chunk_start_ns(scan, ch) for ch in good], dtype=np.uint64)
+    later = np.minimum.accumulate(starts[::-1])[::-1] if len(starts) else starts
+    next_of = {id(ch): (int(later[k + 1]) if k + 1 < len(good) else None)
+               for k, ch in enumerate(good)}
+    parts: dict[int, list[dict[str, np.ndarray]]] = {cid: [] for cid in scan.channels}
+
+    def add(buf: NDArray[np.uint8], sel: dict[int, np.ndarray]) -> int:
+        for cid, rec in sel.items():
+            cols = _record_columns(buf, rec)
+            cols["data"] = _copy_ranges(buf, cols["start"], cols["length"])
+            parts[cid].append(cols)
+        return sum(len(r) for r in sel.values())
+
+    # top-level messages of an unchunked file: all in the first range
+    count = 0
+    for cid in sorted(scan.top_messages.keys() & scan.channels.keys()):
+        count += add(scan.buf, {cid: np.asarray(scan.top_messages[cid], dtype=np.int64)})
+    pending = count > 0
+    for ch in good:
+        # the same steps as _iter_blocks, chunk by chunk, to know where each range ends
+        b = _decompress(scan, ch)
+        if b is not None:
+            buf = np.frombuffer(b, dtype=np.uint8)
+            sel = {}
+            for cid in ch.index.keys() & scan.channels.keys():
+                off = ch.index[cid]
+                off = off[off + 31 <= len(b)]
+                if len(off):
+                    sel[cid] = off
+            count += add(buf, sel)
+            pending = True
+        _release(scan, ch.data_start, ch.data_len)
+        bound = next_of[id(ch)]
+        if count >= max_messages and bound is not None and not scan.top_messages:
+            yield _raw_from_parts(scan, parts), bound
+            parts = {cid: [] for cid in scan.channels}
+            count, pending = 0, False
+    if pending or count == 0:
+        yield _raw_from_parts(scan, parts), None
 
 
 # --------------------------------------------------------------------------- decoding
@@ -713,25 +843,41 @@ _SUPPORTED_HINT = "supported: " + ", ".join(MAG_TYPES + ATTITUDE_TYPES + TURNTAB
 
 def _decode_channels(scan: _Scan, cids: list[int]) -> dict[int, _Decoded]:
     decoders = {cid: _Decoder(scan, scan.channels[cid]) for cid in cids}
-    parts: dict[int, list[_Decoded]] = {cid: [] for cid in cids}
+    # Upper bound of each channel's message count, from the message indexes: the columns are
+    # filled chunk by chunk into arrays of that size (one copy of the data, where collecting
+    # the chunks' columns and concatenating them held two).
+    cap = {cid: len(scan.top_messages.get(cid, ())) + sum(
+        len(ch.index.get(cid, ())) for ch in scan.chunks if not ch.bad and ch.index)
+        for cid in cids}
+    cols: dict[int, list[np.ndarray]] = {}
+    fill = dict.fromkeys(cids, 0)
+    frames = dict.fromkeys(cids, "")
     for buf, sel in _iter_blocks(scan, set(cids)):
         for cid, rec in sel.items():
-            parts[cid].append(decoders[cid].decode(buf, rec))
+            d = decoders[cid].decode(buf, rec)
+            k, i = len(d.t_ns), fill[cid]
+            parts = (d.t_ns, d.values, d.log_time_ns)
+            if cid not in cols:
+                cols[cid] = [np.empty((max(cap[cid], k),) + a.shape[1:], dtype=a.dtype)
+                             for a in parts]
+            elif i + k > cols[cid][0].shape[0]:  # more than indexed: grow
+                cols[cid] = [np.concatenate([c[:i], np.empty((k,) + c.shape[1:], c.dtype)])
+                             for c in cols[cid]]
+            for c, a in zip(cols[cid], parts, strict=True):
+                c[i : i + k] = a
+            fill[cid] = i + k
+            frames[cid] = frames[cid] or d.frame_id
     out = {}
     for cid in cids:
-        ps = parts[cid]
-        if not ps:
+        if cid not in cols:
             width = {"sensor_msgs/MagneticField": 3, "magalign.Magnetometer": 3}.get(
                 decoders[cid].type, 4)
             shape = (0,) if decoders[cid].type in TURNTABLE_TYPES else (0, width)
             out[cid] = _Decoded(np.zeros(0, np.int64), np.zeros(shape), np.zeros(0, np.int64))
             continue
-        out[cid] = _Decoded(
-            np.concatenate([p.t_ns for p in ps]),
-            np.concatenate([p.values for p in ps]),
-            np.concatenate([p.log_time_ns for p in ps]),
-            next((p.frame_id for p in ps if p.frame_id), ""),
-        )
+        n = fill[cid]
+        t, v, log = (c if n == c.shape[0] else c[:n].copy() for c in cols[cid])
+        out[cid] = _Decoded(t, v, log, frames[cid])
     return out
 
 
@@ -847,7 +993,11 @@ def _check_quaternions(name: str, dec: _Decoded, problems: list[Problem]) -> _De
         problems.append(Problem("non_unit_quaternion", f"{name}: {k} quaternions were not of "
                                 f"unit norm (up to {np.abs(n - 1).max():.3g} off) and were "
                                 "normalised", k))
-    return _Decoded(dec.t_ns, q / n[:, None], dec.log_time_ns, dec.frame_id)
+    if q.flags.writeable and q.flags.owndata:
+        q /= n[:, None]  # the decoder's own array: normalise in place (no second copy)
+    else:
+        q = q / n[:, None]
+    return _Decoded(dec.t_ns, q, dec.log_time_ns, dec.frame_id)
 
 
 def _check_mag(path: str, name: str, mag: VectorSeries, problems: list[Problem]) -> None:
@@ -956,8 +1106,10 @@ def read_recording(
             raise
     ids = [i for i in (mag_id, att_id, tt_id) if i is not None]
     dec = _decode_channels(scan, ids)
+    counts = {cid: len(dec[cid].t_ns) for cid in ids}
+    stamps = {cid: dec[cid].t_ns for cid in ids}
     problems = scan.problems
-    d_mag = dec[mag_id]
+    d_mag = dec.pop(mag_id)  # popped: checks that copy the columns free the originals
     if len(d_mag.t_ns) == 0:
         raise CorruptRecordingError(f"no readable magnetometer messages on "
                                     f"{scan.channels[mag_id].topic}", path=p,
@@ -971,7 +1123,7 @@ def read_recording(
     attitude = None
     if att_id is not None:
         name = scan.channels[att_id].topic
-        d = _sort_dedupe(name, _check_quaternions(name, _drop_nonfinite(name, dec[att_id],
+        d = _sort_dedupe(name, _check_quaternions(name, _drop_nonfinite(name, dec.pop(att_id),
                                                                         problems), problems),
                          problems, p)
         if len(d.t_ns) < MIN_ATTITUDE_SAMPLES:
@@ -982,16 +1134,15 @@ def read_recording(
     turntable = None
     if tt_id is not None:
         name = scan.channels[tt_id].topic
-        d = _sort_dedupe(name, _drop_nonfinite(name, dec[tt_id], problems), problems, p)
+        d = _sort_dedupe(name, _drop_nonfinite(name, dec.pop(tt_id), problems), problems, p)
         if attitude is None and len(d.t_ns) < MIN_ATTITUDE_SAMPLES:
             raise DataQualityError(f"{name}: only {len(d.t_ns)} usable turntable samples",
                                    path=p, hint="the recording is too short to calibrate")
         turntable = AngleSeries(d.t_ns, np.unwrap(np.radians(d.values)))
-    counts = {cid: len(dec[cid].t_ns) for cid in ids}
     mag_ch = scan.channels[mag_id]
     return Recording(
         path=p,
-        channels=_channel_infos(scan, counts, {cid: dec[cid].t_ns for cid in ids}),
+        channels=_channel_infos(scan, counts, stamps),
         mag=mag,
         mag_topic=mag_ch.topic,
         attitude=attitude,
@@ -1088,3 +1239,127 @@ def inspect_recording(path: str | Path) -> dict:
         "problems": [{"code": p.code, "message": p.message, "count": p.count}
                      for p in problems],
     }
+
+
+# --------------------------------------------------------------------------- chunked reading
+@dataclass(frozen=True)
+class RecordingChunk:
+    """The samples of one range of MCAP chunks (see :func:`iter_recording_chunks`).
+
+    Attributes
+    ----------
+    index : int
+        0, 1, 2, ... in file order.
+    mag : VectorSeries
+        Magnetometer samples of the range, nT, frame ``mag``, sorted by stamp, non-finite
+        samples dropped.
+    attitude : AttitudeSeries or None
+        Attitude samples of the range (unit quaternions ``q_enu_body``), sorted by stamp.
+    turntable : AngleSeries or None
+        Turntable angle samples of the range (rad, not unwrapped across chunks).
+
+    """
+
+    index: int
+    mag: VectorSeries
+    attitude: AttitudeSeries | None
+    turntable: AngleSeries | None
+
+
+def _chunk_part(dec: _Decoded | None, quat: bool) -> _Decoded | None:
+    if dec is None:
+        return None
+    vals = dec.values.reshape(len(dec.t_ns), -1)
+    ok = np.isfinite(vals).all(axis=1)
+    if quat:
+        norm = np.linalg.norm(dec.values, axis=1)
+        ok &= norm > 1e-6
+    t, v = dec.t_ns[ok], dec.values[ok]
+    if quat:
+        v = v / np.linalg.norm(v, axis=1)[:, None]
+    order = np.argsort(t, kind="stable")
+    return _Decoded(t[order], v[order], dec.log_time_ns[ok][order], dec.frame_id)
+
+
+def iter_recording_chunks(
+    path: str | Path,
+    *,
+    max_messages: int = 200_000,
+    mag_topic: str | None = None,
+    attitude_topic: str | None = None,
+    turntable_topic: str | None = None,
+) -> Iterator[RecordingChunk]:
+    """Read a recording range by range, in bounded memory, for files too large for memory.
+
+    The file is memory-mapped (:data:`MMAP_MIN_BYTES`), its MCAP chunks are decoded in file
+    order, and their samples are handed out in groups of about ``max_messages`` messages (a
+    whole number of MCAP chunks). Channels are chosen as by :func:`read_recording`. Only the
+    per-sample checks are made (non-finite values dropped, quaternions normalised, zero
+    quaternions dropped, each range sorted by stamp); whole-recording checks (duplicates,
+    clock jumps, gaps, stuck sensor) need the whole recording: use :func:`read_recording`
+    when it fits in memory.
+
+    Parameters
+    ----------
+    path : path
+        MCAP file (never modified).
+    max_messages : int
+        Messages of the chosen channels per yielded range (at least one MCAP chunk).
+    mag_topic, attitude_topic, turntable_topic : str, optional
+        Channels to use.
+
+    Yields
+    ------
+    RecordingChunk
+
+    Raises
+    ------
+    NotMcapError, CorruptRecordingError, ChannelError, SchemaError
+
+    """
+    scan = _scan(path)
+    _prepare(scan)
+    mag_id = _pick(scan, Role.MAGNETOMETER, mag_topic, True)
+    att_id = _pick(scan, Role.ATTITUDE, attitude_topic, False)
+    tt_id = None
+    if att_id is None or turntable_topic is not None:
+        tt_id = _pick(scan, Role.TURNTABLE, turntable_topic, att_id is None)
+    ids = [i for i in (mag_id, att_id, tt_id) if i is not None]
+    decoders = {cid: _Decoder(scan, scan.channels[cid]) for cid in ids}
+    parts: dict[int, list[_Decoded]] = {cid: [] for cid in ids}
+    count, index = 0, 0
+
+    def emit() -> RecordingChunk:
+        cat = {}
+        for cid in ids:
+            ps = parts[cid]
+            if not ps:
+                cat[cid] = None
+                continue
+            cat[cid] = _Decoded(np.concatenate([p.t_ns for p in ps]),
+                                np.concatenate([p.values for p in ps]),
+                                np.concatenate([p.log_time_ns for p in ps]), ps[0].frame_id)
+            parts[cid] = []
+        m = _chunk_part(cat[mag_id], False)
+        a = _chunk_part(cat.get(att_id) if att_id is not None else None, True)
+        tt = _chunk_part(cat.get(tt_id) if tt_id is not None else None, False)
+        return RecordingChunk(
+            index=index,
+            mag=VectorSeries(m.t_ns, m.values, Frame.MAG, "nT") if m is not None
+            else VectorSeries(np.zeros(0, np.int64), np.zeros((0, 3)), Frame.MAG, "nT"),
+            attitude=None if a is None or not len(a.t_ns) else AttitudeSeries(a.t_ns, a.values),
+            turntable=None if tt is None or not len(tt.t_ns)
+            else AngleSeries(tt.t_ns, np.radians(tt.values)),
+        )
+
+    for buf, sel in _iter_blocks(scan, set(ids)):
+        for cid, rec in sel.items():
+            d = decoders[cid].decode(buf, rec)
+            parts[cid].append(d)
+            count += len(d.t_ns)
+        if count >= max_messages:
+            yield emit()
+            index += 1
+            count = 0
+    if count:
+        yield emit()

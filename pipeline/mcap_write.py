@@ -97,6 +97,8 @@ _MSG_HDR = np.dtype(
 )
 _MSG_HDR_SIZE = 31
 _MSG_FIXED = 2 + 4 + 8 + 8  # Message content before the payload
+#: up to this many interleaved blocks in a chunk are merged with byte masks (_write_chunk)
+_MASK_MERGE_MAX_BLOCKS = 8
 _INDEX_ENTRY = np.dtype([("log_time", "<u8"), ("offset", "<u8")])
 
 
@@ -116,6 +118,23 @@ def _map_ss(m: Mapping[str, str]) -> bytes:
 
 def _record(op: int, content: bytes) -> bytes:
     return struct.pack("<BQ", op, len(content)) + content
+
+
+def _ranges_mask(size: int, start: np.ndarray, length: np.ndarray) -> np.ndarray:
+    """Boolean mask of ``size`` bytes, True inside the sorted, disjoint ``[start, start+length)``.
+
+    Built as alternating runs (gap, range, gap, ...) with one ``np.repeat``: about one byte
+    of work per output byte, no per-byte index arithmetic.
+    """
+    end = start + length
+    runs = np.empty(2 * len(start) + 1, dtype=np.int64)
+    runs[0] = start[0]
+    runs[2:-1:2] = start[1:] - end[:-1]
+    runs[1:-1:2] = length
+    runs[-1] = size - end[-1]
+    pattern = np.zeros(len(runs), dtype=np.bool_)
+    pattern[1::2] = True
+    return np.repeat(pattern, runs)
 
 
 def _gather_segments(src: np.ndarray, start: np.ndarray, length: np.ndarray) -> np.ndarray:
@@ -268,6 +287,7 @@ class McapColumnWriter:
         self._t_min: int | None = None
         self._t_max: int | None = None
         self._flushed_before = 0
+        self._zstd: Any = None
 
     # ---------------------------------------------------------------- context management
 
@@ -491,7 +511,9 @@ class McapColumnWriter:
         if self.compression is Compression.ZSTD:
             import zstandard
 
-            return zstandard.ZstdCompressor(level=self.zstd_level).compress(raw)
+            if self._zstd is None:  # one compressor for all chunks (its context is reused)
+                self._zstd = zstandard.ZstdCompressor(level=self.zstd_level)
+            return self._zstd.compress(raw)
         if self.compression is Compression.LZ4:
             import lz4.frame
 
@@ -644,6 +666,24 @@ class McapColumnWriter:
             # Consecutive messages of one block: the records are already contiguous.
             b = blocks[b0]
             raw = b.records[b.rec_off[loc[0]] : b.rec_off[loc[-1] + 1]]
+        elif len(used := np.flatnonzero(np.bincount(blk))) <= _MASK_MERGE_MAX_BLOCKS:
+            # Records of a few blocks interleaved by log time. Each block's records in this
+            # chunk are (almost always) a consecutive run of that block: copy the run as one
+            # slice into the output bytes it occupies, selected by a boolean mask (one byte per
+            # output byte) instead of an index array of one int per byte.
+            total = int(rec_len.sum())
+            dst = np.cumsum(rec_len) - rec_len
+            raw = np.empty(total, dtype=np.uint8)
+            for bid in used:
+                m = blk == bid
+                b = blocks[int(bid)]
+                lm, lens_m = loc[m], rec_len[m]
+                lo, hi = int(lm[0]), int(lm[-1]) + 1
+                if hi - lo == lm.shape[0] and (hi - lo == 1 or bool(np.all(np.diff(lm) == 1))):
+                    src = b.records[b.rec_off[lo] : b.rec_off[hi]]
+                else:
+                    src = _gather_segments(b.records, b.rec_off[lm], lens_m)
+                raw[_ranges_mask(total, dst[m], lens_m)] = src
         else:
             # Copy the touched span of each block once, then gather the records in log order.
             pieces, src_start, base = [], np.empty(n, dtype=np.int64), 0
@@ -672,7 +712,7 @@ class McapColumnWriter:
         rec_start = (np.cumsum(rec_len) - rec_len).astype(np.uint64)
         mi_offsets: dict[int, int] = {}
         mi_start = out.pos
-        for cid in np.unique(chan):
+        for cid in np.flatnonzero(np.bincount(chan)):
             m = chan == cid
             entries = np.empty(int(m.sum()), dtype=_INDEX_ENTRY)
             entries["log_time"] = log[m]

@@ -54,6 +54,12 @@ class ProcessOptions:
         Write ``report.html`` and its PNG figures.
     max_gap_s : float
         Longest attitude gap (s) bridged by interpolation.
+    scale_samples : int or None
+        Recordings with more magnetometer samples than this are processed at scale: the ML
+        rotation (and offset) from chunked sufficient statistics of every sample
+        (:class:`StreamingEstimate`), segmentation, other estimators and diagnosis on every
+        k-th sample (:data:`DECIMATED_SAMPLES` of them); restoring, metrics and the outputs
+        always use every sample. ``None``: never.
 
     """
 
@@ -68,6 +74,98 @@ class ProcessOptions:
     write_rerun: bool = True
     write_report: bool = True
     max_gap_s: float | None = None
+    scale_samples: int | None = 600_000
+
+
+#: analysis stages of a long recording see at most this many magnetometer samples
+DECIMATED_SAMPLES = 150_000
+#: aligned samples reduced at once by :class:`StreamingEstimate` (bounds its temporaries)
+STREAM_BLOCK = 200_000
+
+
+@dataclass(frozen=True)
+class StreamingEstimate:
+    """Stage: ML rotation (and offset) of a long recording from chunked sufficient statistics.
+
+    :mod:`stages.estimators.streaming`: the aligned samples are reduced block by block to a
+    fixed set of sums and Gauss-Newton runs on the sums, so estimation costs one pass over
+    the data and no per-sample matrices.
+    """
+
+    estimate_offset: bool = False
+    reference_field_enu_nT: tuple[float, float, float] | None = None
+
+    requires: ClassVar[frozenset[str]] = frozenset({"aligned"})
+    provides: ClassVar[frozenset[str]] = frozenset({"calibration"})
+
+    def run(self, ctx: Context) -> Context:
+        """Fit ``calibration`` from ``ctx.aligned``."""
+        from stages.estimators.streaming import SufficientStats, fit_stats
+
+        al = ctx.aligned
+        blocks = (
+            SufficientStats.from_samples(al.q_enu_body[i : i + STREAM_BLOCK],
+                                         al.mag_nT[i : i + STREAM_BLOCK],
+                                         al.t_ns[i : i + STREAM_BLOCK])
+            for i in range(0, len(al), STREAM_BLOCK)
+        )
+        st = sum(blocks, SufficientStats())
+        ref = None if self.reference_field_enu_nT is None else np.asarray(
+            self.reference_field_enu_nT, dtype=float)
+        fit = fit_stats(st, estimate_offset=self.estimate_offset, reference_field_enu_nT=ref)
+        return ctx.replace(calibration=fit.to_calibration())
+
+
+@dataclass(frozen=True)
+class OnDecimated:
+    """Stage: run ``inner`` on every ``step``-th magnetometer sample of a long recording.
+
+    Segmentation and diagnosis of hours of data need not see every sample (their windows
+    are seconds long); the fields ``inner`` provides are taken over into the full context.
+    The attitude is kept whole so the decimated samples are aligned as before.
+    """
+
+    inner: Any
+    step: int
+
+    @property
+    def requires(self) -> frozenset[str]:  # type: ignore[override]
+        """The inner stage's requirements."""
+        return self.inner.requires
+
+    @property
+    def provides(self) -> frozenset[str]:  # type: ignore[override]
+        """The inner stage's results."""
+        return self.inner.provides
+
+    def run(self, ctx: Context) -> Context:
+        """Run ``inner`` on the decimated context; return ``ctx`` with its results."""
+        small = decimate_context(ctx, self.step)
+        out = self.inner.run(small)
+        return ctx.replace(**{k: getattr(out, k) for k in self.inner.provides})
+
+
+def decimate_context(ctx: Context, step: int) -> Context:
+    """``ctx`` with every ``step``-th magnetometer sample (recording.mag and aligned)."""
+    import dataclasses
+
+    from .recording import AlignedSeries, VectorSeries
+
+    rec, al = ctx.recording, ctx.aligned
+    changes: dict[str, Any] = {}
+    if rec is not None:
+        m = rec.mag
+        changes["recording"] = dataclasses.replace(
+            rec, mag=VectorSeries(m.t_ns[::step], m.values[::step], m.frame, m.unit))
+    if al is not None:
+        if al.index is not None:
+            keep = np.flatnonzero(al.index % step == 0)
+            index = al.index[keep] // step
+        else:
+            keep, index = np.arange(0, len(al), step), None
+        changes["aligned"] = AlignedSeries(al.t_ns[keep], al.mag_nT[keep], al.q_enu_body[keep],
+                                           al.time_offset_s, index)
+    return ctx.replace(**changes)
 
 
 @dataclass(frozen=True)
@@ -126,6 +224,13 @@ def build_stages(ctx: Context, out_dir: Path, options: ProcessOptions) -> list:
 
     rec = ctx.recording
     stages: list = []
+    n = len(rec.mag)
+    large = options.scale_samples is not None and n > options.scale_samples
+    step = max(1, -(-n // DECIMATED_SAMPLES)) if large else 1
+
+    def scaled(stage: Any) -> Any:
+        return OnDecimated(stage, step) if step > 1 else stage
+
     tilt_note = None
     if rec.attitude is None and rec.turntable is not None:
         from stages.turntable import plan_turntable
@@ -138,18 +243,25 @@ def build_stages(ctx: Context, out_dir: Path, options: ProcessOptions) -> list:
     stages.append(Resample(max_gap_s=options.max_gap_s))
     seg_cls = _optional("stages.segment", "SegmentMotion")
     if seg_cls is not None:
-        stages.append(seg_cls())
+        stages.append(scaled(seg_cls()))
     if options.calibration_path is not None:
         stages.append(LoadCalibration(str(options.calibration_path)))
     else:
-        from stages.estimate import Estimate
+        from stages.estimate import Estimate, EstimatorKind, Term
 
         kw: dict[str, Any] = {"terms": frozenset(options.terms)}
         if options.estimator is not None:
             kw["estimator"] = options.estimator
         if options.reference_field_enu_nT is not None:
             kw["reference_field_enu_nT"] = tuple(float(x) for x in options.reference_field_enu_nT)
-        stages.append(Estimate(**kw))
+        terms = {Term(t) for t in options.terms}
+        ml = options.estimator is None or EstimatorKind(options.estimator) is EstimatorKind.ML
+        if large and ml and terms <= {Term.OFFSET}:
+            # every sample, in bounded memory: chunked sufficient statistics
+            stages.append(StreamingEstimate(Term.OFFSET in terms,
+                                            kw.get("reference_field_enu_nT")))
+        else:
+            stages.append(scaled(Estimate(**kw)))
     if options.diagnose and options.calibration_path is None:
         diag_cls = _optional("stages.diagnose", "Diagnose")
         if diag_cls is not None:
@@ -160,7 +272,7 @@ def build_stages(ctx: Context, out_dir: Path, options: ProcessOptions) -> list:
                 dkw["reference_field_enu_nT"] = tuple(
                     float(x) for x in options.reference_field_enu_nT
                 )
-            stages.append(diag_cls(**dkw))
+            stages.append(scaled(diag_cls(**dkw)))
     if tilt_note is not None and options.calibration_path is None:
         stages.append(tilt_note)  # axis_tilt (or why not) into calibration effects/warnings
     stages.append(Restore(max_gap_s=options.max_gap_s))
@@ -266,9 +378,14 @@ def process_recording(
             timings[clock["name"]] = timings.get(clock["name"], 0.0) + now - clock["t"]
         clock["name"], clock["t"] = name, now
 
-    ctx = Pipeline([ingest]).run(ctx, progress=tick)
-    rest = Pipeline(build_stages(ctx, rec_dir, options), initial=ctx.provided() | {"source"})
-    ctx = rest.run(ctx, progress=tick)
+    from stages.restore import clear_cache
+
+    try:
+        ctx = Pipeline([ingest]).run(ctx, progress=tick)
+        rest = Pipeline(build_stages(ctx, rec_dir, options), initial=ctx.provided() | {"source"})
+        ctx = rest.run(ctx, progress=tick)
+    finally:
+        clear_cache()  # the restored samples of this recording are not needed any more
     tick(None)
     row = summary_row(ctx, stem, rec_dir)
     row["timings_s"] = {k: round(v, 3) for k, v in timings.items()}

@@ -32,10 +32,14 @@ AUTO_GAP_INTERVALS = 5.0
 
 def auto_max_gap_s(attitude: AttitudeSeries) -> float:
     """Default gap threshold: ``max(0.05 s, 5 x median attitude interval)``."""
-    t = np.unique(np.asarray(attitude.t_ns))
+    t = np.asarray(attitude.t_ns)
+    d = np.diff(t)
+    if not bool(np.all(d > 0)):  # sorted without duplicates (what ingest gives) skips the sort
+        t = np.unique(t)
+        d = np.diff(t)
     if len(t) < 2:
         return MIN_AUTO_GAP_S
-    return max(MIN_AUTO_GAP_S, AUTO_GAP_INTERVALS * float(np.median(np.diff(t))) * 1e-9)
+    return max(MIN_AUTO_GAP_S, AUTO_GAP_INTERVALS * float(np.median(d)) * 1e-9)
 
 
 def interpolate_attitude(

@@ -33,6 +33,7 @@ attitude span) are left out of ``restored``; their number is
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -126,10 +127,48 @@ def corrected_mag_nT(cal: Any, t_ns: np.ndarray, mag_nT: np.ndarray) -> np.ndarr
     return y
 
 
+#: Results of the last few :func:`attitude_at_mag` / :func:`restore_samples` calls, keyed by
+#: the identity of their (immutable) inputs. Restore, Metrics, WriteCorrectedMcap, WriteRerun
+#: and Report all need the same interpolated attitude and restored samples of one recording;
+#: computing them once removes the SLERP and the rotations that dominated those stages.
+_CACHE: dict[tuple, tuple[tuple, Any]] = {}
+_CACHE_SIZE = 4
+
+
+def _cached(key: tuple, objs: tuple, compute: Any) -> Any:
+    """``compute()``, or its earlier result for the same objects (by identity) and ``key``."""
+    hit = _CACHE.get(key)
+    if hit is not None and all(r() is o for r, o in zip(hit[0], objs, strict=True)):
+        return hit[1]
+    result = compute()
+    try:
+        refs = tuple(weakref.ref(o) for o in objs)
+    except TypeError:  # not weak-referenceable: do not cache
+        return result
+    for k in [k for k, v in _CACHE.items() if any(r() is None for r in v[0])]:
+        del _CACHE[k]  # entries of recordings that no longer exist
+    while len(_CACHE) >= _CACHE_SIZE:
+        del _CACHE[next(iter(_CACHE))]
+    _CACHE[key] = (refs, result)
+    return result
+
+
+def clear_cache() -> None:
+    """Forget every cached result (``process_recording`` calls it when a recording is done)."""
+    _CACHE.clear()
+
+
+def _readonly(*arrays: np.ndarray) -> None:
+    for a in arrays:
+        a.setflags(write=False)
+
+
 def attitude_at_mag(
     recording: Recording, time_offset_s: float, max_gap_s: float | None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Attitude ``q_enu_body`` at every magnetometer stamp minus ``tau``.
+
+    The result is cached for the recording (read-only arrays).
 
     Returns
     -------
@@ -137,6 +176,14 @@ def attitude_at_mag(
     valid : ndarray of bool, shape (N,)
 
     """
+    key = ("attitude", id(recording), float(time_offset_s), max_gap_s)
+    return _cached(key, (recording,),
+                   lambda: _attitude_at_mag(recording, time_offset_s, max_gap_s))
+
+
+def _attitude_at_mag(
+    recording: Recording, time_offset_s: float, max_gap_s: float | None
+) -> tuple[np.ndarray, np.ndarray]:
     from stages.resample import interpolate_attitude
 
     if recording.attitude is None or len(recording.attitude) == 0:
@@ -152,7 +199,9 @@ def attitude_at_mag(
     q, valid = interpolate_attitude(
         recording.attitude, recording.mag.t_ns, time_offset_s=time_offset_s, max_gap_s=max_gap_s
     )
-    return np.asarray(q, dtype=float), np.asarray(valid, dtype=bool)
+    q, valid = np.array(q, dtype=float), np.array(valid, dtype=bool)
+    _readonly(q, valid)
+    return q, valid
 
 
 @dataclass(frozen=True)
@@ -206,8 +255,14 @@ def restore_samples(
     Returns
     -------
     RestoredSamples
+        Cached for the recording and calibration objects (read-only arrays).
 
     """
+    key = ("restored", id(recording), id(cal), max_gap_s)
+    return _cached(key, (recording, cal), lambda: _restore_samples(recording, cal, max_gap_s))
+
+
+def _restore_samples(recording: Recording, cal: Any, max_gap_s: float | None) -> RestoredSamples:
     t_ns = recording.mag.t_ns
     y = recording.mag.values
     tau = time_offset_of(cal)
@@ -232,6 +287,8 @@ def restore_samples(
     resid = y - pred
     enu[~valid] = np.nan
     resid[~valid] = np.nan
+    m = np.array(m, dtype=float)
+    _readonly(m, enu, resid)
     return RestoredSamples(t_ns, m, q, enu, resid, valid)
 
 
