@@ -134,7 +134,7 @@ class Model:
     def b_body(self, s: State, tau: float | None = None) -> F64:
         """Predicted body field ``C.T @ B``, (N, 3)."""
         C = self.C(s.tau if tau is None else tau)
-        return np.einsum("nji,j->ni", C, s.B)
+        return s.B @ C  # rows C.T @ B
 
     def predict(self, s: State) -> F64:
         """Predicted magnetometer readings, (N, 3)."""
@@ -144,11 +144,12 @@ class Model:
     def jacobian(self, s: State) -> F64:
         """dy/dparams, (N, 3, P), in the order of ``blocks``."""
         C = self.C(s.tau)
-        b = np.einsum("nji,j->ni", C, s.B)
+        b = s.B @ C  # rows C.T @ B
         DRt = s.D @ s.R.T
         N = len(b)
         J = np.zeros((N, 3, self.n_params))
-        J[:, :, self.blocks["rot"]] = DRt @ skew(b)  # D R_bar.T [b]x
+        # D R_bar.T [b]x, row i = (DRt[i] x b)^T since a.(b x v) = v.(a x b): no (N,3,3) skew.
+        J[:, :, self.blocks["rot"]] = np.cross(DRt[None, :, :], b[:, None, :])
         if "B" in self.blocks:
             J[:, :, self.blocks["B"]] = DRt @ np.swapaxes(C, 1, 2)
         if "offset" in self.blocks:
@@ -171,7 +172,7 @@ class Model:
         if nm is None:
             return np.broadcast_to(np.eye(3), (N, 3, 3))
         C = self.C(s.tau)
-        b = np.einsum("nji,j->ni", C, s.B)
+        b = s.B @ C  # rows C.T @ B
         A = s.D @ s.R.T @ skew(b)  # maps body attitude error to y
         S_att = nm.attitude_cov_body(C)
         Sig = np.matmul(np.matmul(A, S_att), np.swapaxes(A, 1, 2))
@@ -211,14 +212,17 @@ def inv_sym3(S: F64) -> F64:
 
 
 def _normal(J: F64, W: F64, r: F64, w: F64) -> tuple[F64, F64]:
-    WJ = np.einsum("nij,njk->nik", W, J) * w[:, None, None]
-    H = np.einsum("nip,niq->pq", J, WJ)
-    g = np.einsum("nip,ni->p", WJ, r)
+    # Batched matmul and one BLAS product over the stacked rows: einsum is ~5x slower here.
+    WJ = (W @ J) * w[:, None, None]
+    P = J.shape[2]
+    WJf = WJ.reshape(-1, P)
+    H = J.reshape(-1, P).T @ WJf
+    g = WJf.T @ r.reshape(-1)
     return H, g
 
 
 def _cost(r: F64, W: F64, w: F64) -> tuple[float, F64]:
-    q = np.einsum("ni,nij,nj->n", r, W, r)
+    q = np.sum(r * (W @ r[:, :, None])[:, :, 0], axis=1)
     return float(np.sum(w * q)), np.sqrt(np.maximum(q, 0.0))
 
 
@@ -319,14 +323,20 @@ class MLEstimator:
         if Term.TIME_OFFSET in p.terms:
             p = _inside_attitude_span(p)
         model = Model(p, estimate_B=p.reference_field_enu_nT is None)
-        s0 = self.initial_state(p)
+        # Coarse to fine: on a long recording, start and converge on an evenly decimated
+        # subset; the full-data Gauss-Newton then needs one or two iterations to the same
+        # optimum (the start only has to lie in its basin).
+        pc = _decimated(p, COARSE_SAMPLES) if p.n > 2 * COARSE_SAMPLES else p
+        s0 = self.initial_state(pc)
         if model.with_tau:
             # Fit without tau first: the rotation must be close before tau's Jacobian is useful.
             m0 = Model(
-                Problem(**{**p.__dict__, "terms": p.terms - {Term.TIME_OFFSET}}),
+                Problem(**{**pc.__dict__, "terms": pc.terms - {Term.TIME_OFFSET}}),
                 estimate_B=model.estimate_B,
             )
             s0, _, _ = gauss_newton(m0, s0, self.max_iter)
+        if pc is not p:
+            s0, _, _ = gauss_newton(Model(pc, estimate_B=model.estimate_B), s0, self.max_iter)
         s, w, W = gauss_newton(model, s0, self.max_iter)
         return self.finish(p, model, s, w, W)
 
@@ -435,6 +445,33 @@ class MLEstimator:
 #: out: there the attitude at ``t - tau`` would be extrapolated (clamped), which both biases the
 #: fit and breaks the exact tau / rotation degeneracy the observability analysis must see.
 TAU_EDGE_MARGIN_S = 0.25
+
+
+#: Samples of the coarse stage of a long recording (see :meth:`MLEstimator.fit`).
+COARSE_SAMPLES = 20_000
+
+
+def _decimated(p: Problem, n_max: int) -> Problem:
+    """Every k-th sample of ``p`` (at most ``n_max``), keeping the full attitude series.
+
+    The time-offset term re-interpolates the attitude at ``t - tau``; that needs the whole
+    series, so when the aligned samples are the only attitude they are kept as the series.
+    """
+    from pipeline.recording import AttitudeSeries
+
+    k = int(np.ceil(p.n / n_max))
+    att = p.attitude
+    if att is None:
+        att = AttitudeSeries(p.t_ns - np.int64(round(p.time_offset0_s * 1e9)), p.q_enu_body)
+    return Problem(
+        **{
+            **p.__dict__,
+            "t_ns": p.t_ns[::k],
+            "mag_nT": p.mag_nT[::k],
+            "q_enu_body": p.q_enu_body[::k],
+            "attitude": att,
+        }
+    )
 
 
 def _inside_attitude_span(p: Problem) -> Problem:
