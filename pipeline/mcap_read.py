@@ -1000,10 +1000,17 @@ def _check_quaternions(name: str, dec: _Decoded, problems: list[Problem]) -> _De
     return _Decoded(dec.t_ns, q, dec.log_time_ns, dec.frame_id)
 
 
-def _check_mag(path: str, name: str, mag: VectorSeries, problems: list[Problem]) -> None:
-    v = mag.values
-    if len(mag) < MIN_MAG_SAMPLES:
-        raise DataQualityError(f"{name}: only {len(mag)} usable magnetometer samples",
+def _check_mag(path: str, name: str, dec: _Decoded, problems: list[Problem]) -> _Decoded:
+    """Refuse unusable magnetometer data; return ``dec`` without samples pinned at a rail.
+
+    A saturated axis reports its extreme value again and again while the true field is
+    beyond it; those samples would bias the rotation by degrees, so they are dropped like
+    NaN samples (and counted in ``problems``). More than half of the samples pinned is
+    refused: what is left cannot be trusted to represent the motion.
+    """
+    v = dec.values
+    if len(v) < MIN_MAG_SAMPLES:
+        raise DataQualityError(f"{name}: only {len(v)} usable magnetometer samples",
                                path=path, hint="the recording is too short to calibrate "
                                f"anything (at least {MIN_MAG_SAMPLES} needed)")
     if np.all(v == v[0]):
@@ -1021,21 +1028,54 @@ def _check_mag(path: str, name: str, mag: VectorSeries, problems: list[Problem])
                     "sensor_msgs/MagneticField must carry tesla (REP-145)")
         raise DataQualityError(f"{name}: median field magnitude {mag_nT:.4g} nT is far "
                                "outside the Earth's 20,000-70,000 nT", path=path, hint=hint)
-    # saturation: many samples pinned at the extreme value of an axis
+    # saturation: many samples pinned at the extreme value of an axis (a rail)
+    pinned = np.zeros(len(v), dtype=bool)
+    rails: list[str] = []
     for ax in range(3):
         for ext in (v[:, ax].max(), v[:, ax].min()):
-            k = int(np.count_nonzero(v[:, ax] == ext))
+            at = v[:, ax] == ext
+            k = int(np.count_nonzero(at))
             if k >= max(10, len(v) // 100):
-                frac = k / len(v)
-                if frac > 0.5:
-                    raise DataQualityError(
-                        f"{name}: {frac:.0%} of the magnetometer samples sit at {ext:.6g} nT "
-                        f"on axis {'xyz'[ax]}: the sensor is saturated", path=path,
-                        hint="reduce the sensor's range setting or move it from magnetic "
-                        "sources")
-                problems.append(Problem(
-                    "saturated", f"{name}: {k} samples pinned at {ext:.6g} nT on axis "
-                    f"{'xyz'[ax]} (saturated sensor?)", k))
+                pinned |= at
+                rails.append(f"{k} at {ext:.6g} nT on axis {'xyz'[ax]}")
+    if not pinned.any():
+        return dec
+    k = int(np.count_nonzero(pinned))
+    where = "; ".join(rails)
+    if k > len(v) / 2:
+        raise DataQualityError(
+            f"{name}: {k / len(v):.0%} of the magnetometer samples sit at the extreme value "
+            f"of an axis ({where}): the sensor is saturated", path=path,
+            hint="reduce the sensor's range setting or move it from magnetic sources")
+    problems.append(Problem(
+        "saturated", f"{name}: {k} samples pinned at the rail of a saturated sensor ({where}) "
+        "were dropped", k))
+    keep = ~pinned
+    return _Decoded(dec.t_ns[keep], v[keep], dec.log_time_ns[keep], dec.frame_id)
+
+
+def _clean(role: Role, name: str, dec: _Decoded, problems: list[Problem], path: str
+           ) -> _Decoded:
+    """Run the reader's value checks of one channel, in the order :func:`read_recording` needs.
+
+    Non-finite samples dropped; quaternions (attitude) checked and normalised; clock jumps
+    dropped, stamps sorted, duplicates dropped; magnetometer data refused when unusable
+    (too short, stuck, wrong unit, saturated) and samples pinned at a rail dropped. Every
+    repair is appended to ``problems``. :func:`inspect_recording` runs the same checks.
+
+    Raises
+    ------
+    DataQualityError
+        Magnetometer data that cannot be used at all.
+
+    """
+    dec = _drop_nonfinite(name, dec, problems)
+    if role is Role.ATTITUDE:
+        dec = _check_quaternions(name, dec, problems)
+    dec = _sort_dedupe(name, dec, problems, path)
+    if role is Role.MAGNETOMETER:
+        dec = _check_mag(path, name, dec, problems)
+    return dec
 
 
 def _gap_problems(name: str, t: np.ndarray, problems: list[Problem], min_gap_s: float = 1.0
@@ -1115,17 +1155,13 @@ def read_recording(
                                     f"{scan.channels[mag_id].topic}", path=p,
                                     hint="the recording is damaged or empty")
     mag_name = scan.channels[mag_id].topic
-    d_mag = _drop_nonfinite(mag_name, d_mag, problems)
-    d_mag = _sort_dedupe(mag_name, d_mag, problems, p)
+    d_mag = _clean(Role.MAGNETOMETER, mag_name, d_mag, problems, p)
     mag = VectorSeries(d_mag.t_ns, d_mag.values, Frame.MAG, "nT")
-    _check_mag(p, mag_name, mag, problems)
     _gap_problems(mag_name, mag.t_ns, problems)
     attitude = None
     if att_id is not None:
         name = scan.channels[att_id].topic
-        d = _sort_dedupe(name, _check_quaternions(name, _drop_nonfinite(name, dec.pop(att_id),
-                                                                        problems), problems),
-                         problems, p)
+        d = _clean(Role.ATTITUDE, name, dec.pop(att_id), problems, p)
         if len(d.t_ns) < MIN_ATTITUDE_SAMPLES:
             raise DataQualityError(f"{name}: only {len(d.t_ns)} usable attitude samples",
                                    path=p, hint="the recording is too short to calibrate")
@@ -1134,7 +1170,7 @@ def read_recording(
     turntable = None
     if tt_id is not None:
         name = scan.channels[tt_id].topic
-        d = _sort_dedupe(name, _drop_nonfinite(name, dec.pop(tt_id), problems), problems, p)
+        d = _clean(Role.TURNTABLE, name, dec.pop(tt_id), problems, p)
         if attitude is None and len(d.t_ns) < MIN_ATTITUDE_SAMPLES:
             raise DataQualityError(f"{name}: only {len(d.t_ns)} usable turntable samples",
                                    path=p, hint="the recording is too short to calibrate")
@@ -1153,6 +1189,60 @@ def read_recording(
         mag_frame_id=d_mag.frame_id,
         problems=tuple(problems),
     )
+
+
+def problem_warnings(path: str | Path, problems: tuple[Problem, ...] | list[Problem],
+                     said: set[str] | frozenset[str] = frozenset()) -> list[str]:
+    """Messages of the problems a user has not heard yet, each naming the file.
+
+    Parameters
+    ----------
+    path : path
+        The recording the problems are in.
+    problems : sequence of Problem
+        ``Recording.problems``.
+    said : set of str
+        Messages already issued as warnings (damage found while scanning the file is warned
+        by the reader itself).
+
+    Returns
+    -------
+    list of str
+        One line per problem, in order, starting with ``path``.
+
+    """
+    out = []
+    for pr in problems:
+        if pr.message in said:
+            continue
+        out.append(pr.message if pr.message.startswith(str(path)) else f"{path}: {pr.message}")
+    return out
+
+
+def read_recording_warning(path: str | Path, **kw: Any) -> Recording:
+    """:func:`read_recording`, with every problem it handled also issued as a warning.
+
+    Damage found while scanning the file is warned by the reader itself; what it repaired in
+    the data (dropped NaN or duplicated samples, sorted stamps, gaps) is only listed in
+    ``Recording.problems``, and the user must still hear what was lost. Used by the
+    ``calibrate`` command; ``process`` collects the same messages in its worker processes
+    (:func:`pipeline.process_one.process_recording`).
+
+    Warns
+    -----
+    RecoveredDataWarning
+        Once per problem.
+
+    """
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rec = read_recording(path, **kw)
+    said = {str(w.message) for w in caught}
+    for w in caught:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    for msg in problem_warnings(path, rec.problems, said):
+        warnings.warn(msg, RecoveredDataWarning, stacklevel=2)
+    return rec
 
 
 def _rate_hz(t: np.ndarray) -> float | None:
@@ -1181,6 +1271,11 @@ def inspect_recording(path: str | Path) -> dict:
 
     Stamps are header stamps for supported types and log times for other channels.
     Nothing is refused here except files that are not MCAP at all: problems are listed.
+    They are the damage found in the file (cut, chunks failing their CRC or not
+    decompressing), the stamp checks of every channel (backwards, duplicated, gaps) and, for
+    magnetometer, attitude and turntable channels, the value checks of
+    :func:`read_recording` (NaN/Inf, zero or non-unit quaternions, clock jumps, saturation;
+    what it would refuse is listed with code ``unusable``).
 
     Returns
     -------
@@ -1191,7 +1286,7 @@ def inspect_recording(path: str | Path) -> dict:
     """
     scan = _scan(path)
     _prepare(scan)
-    problems = list(scan.problems)
+    problems: list[Problem] = []  # per channel; scan.problems grows while chunks are decoded
     stamps: dict[int, np.ndarray] = {}
     chans = []
     for cid in sorted(scan.channels):
@@ -1200,9 +1295,12 @@ def inspect_recording(path: str | Path) -> dict:
         t = None
         if role is not Role.OTHER:
             try:
-                t = _decode_channels(scan, [cid])[cid].t_ns
+                dec = _decode_channels(scan, [cid])[cid]
             except InputError as exc:
                 problems.append(Problem("undecodable", exc.message))
+            else:
+                t = dec.t_ns
+                problems += _value_problems(scan, role, c.topic, dec)
         if t is None:
             log = [_record_columns(buf, sel[cid])["log_time_ns"]
                    for buf, sel in _iter_blocks(scan, {cid})]
@@ -1237,8 +1335,26 @@ def inspect_recording(path: str | Path) -> dict:
         "channels": chans,
         "duration_s": float(duration),
         "problems": [{"code": p.code, "message": p.message, "count": p.count}
-                     for p in problems],
+                     for p in [*scan.problems, *problems]],
     }
+
+
+#: problem codes of :func:`_clean` that :func:`inspect_recording` finds itself for every
+#: channel (stamps backwards, duplicated), in words that describe the file, not the repair
+_INFO_OWN_CODES = frozenset({"out_of_order", "duplicate"})
+
+
+def _value_problems(scan: _Scan, role: Role, name: str, dec: _Decoded) -> list[Problem]:
+    """List what :func:`read_recording` would repair or refuse in one decoded channel."""
+    found: list[Problem] = []
+    # _clean may normalise quaternions in place; the caller needs only the stamps, and
+    # those are never modified
+    try:
+        _clean(role, name, dec, found, scan.path)
+    except DataQualityError as exc:
+        msg = exc.message + (f" ({exc.hint})" if exc.hint else "")
+        found.append(Problem("unusable", msg))
+    return [pr for pr in found if pr.code not in _INFO_OWN_CODES]
 
 
 # --------------------------------------------------------------------------- chunked reading

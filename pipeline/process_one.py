@@ -17,6 +17,7 @@ from __future__ import annotations
 import importlib
 import json
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -25,6 +26,7 @@ import numpy as np
 
 from .atomic import safe_join, write_text_atomic
 from .calibration import Calibration
+from .errors import NotObservableError, RecoveredDataWarning
 from .recording import Context
 from .stage import Pipeline
 
@@ -183,6 +185,37 @@ class LoadCalibration:
 
 
 @dataclass(frozen=True)
+class RequireObservable:
+    """Stage: refuse an estimate that no rotation axis of the recording's motion determines.
+
+    A platform that did not rotate gives an arbitrary rotation; every output written from it
+    (and every survey line restored with it) would look like a result. The ``calibrate``
+    command refuses the same case. Not used when a calibration file is given: a survey line
+    that never turns is restored with the calibration run's result.
+    """
+
+    requires: ClassVar[frozenset[str]] = frozenset({"recording", "calibration"})
+    provides: ClassVar[frozenset[str]] = frozenset()
+
+    def run(self, ctx: Context) -> Context:
+        """Return ``ctx`` as it is, or raise when nothing about the rotation is observable.
+
+        Raises
+        ------
+        NotObservableError
+            All three rotation axes unobservable.
+
+        """
+        if len(ctx.calibration.unobservable_axes_body) >= 3:
+            raise NotObservableError(
+                "the platform did not rotate: nothing about the misalignment is observable",
+                path=ctx.recording.path,
+                hint="record rotations about at least two different axes, or restore this "
+                "recording with a calibration run's result (--calibration FILE)")
+        return ctx.replace()  # a new Context, as every stage returns
+
+
+@dataclass(frozen=True)
 class WriteResults:
     """Stage: write calibration.json (and diagnosis.json when diagnosed) into ``out_dir``."""
 
@@ -262,6 +295,7 @@ def build_stages(ctx: Context, out_dir: Path, options: ProcessOptions) -> list:
                                             kw.get("reference_field_enu_nT")))
         else:
             stages.append(scaled(Estimate(**kw)))
+        stages.append(RequireObservable())
     if options.diagnose and options.calibration_path is None:
         diag_cls = _optional("stages.diagnose", "Diagnose")
         if diag_cls is not None:
@@ -348,7 +382,10 @@ def process_recording(
         One summary row: ``stem``, ``status``, ``rotvec_body_mag_deg``, ``sigma_rotvec_deg``,
         ``residual_rms_nT``, ``ratio_pct_x/y/z`` (fluctuation range, whole recording),
         ``findings`` (effect names), ``paths`` (output name -> path), ``timings_s`` (stage
-        name -> wall seconds) and more.
+        name -> wall seconds), ``run_warnings`` (``[category, message]`` pairs: every warning
+        raised while processing, and every problem the reader repaired; they are collected
+        here, not shown, so that the caller can issue them where the user sees them) and
+        more.
 
     Raises
     ------
@@ -380,13 +417,56 @@ def process_recording(
 
     from stages.restore import clear_cache
 
-    try:
-        ctx = Pipeline([ingest]).run(ctx, progress=tick)
-        rest = Pipeline(build_stages(ctx, rec_dir, options), initial=ctx.provided() | {"source"})
-        ctx = rest.run(ctx, progress=tick)
-    finally:
-        clear_cache()  # the restored samples of this recording are not needed any more
+    # Warnings are collected, not shown: this runs in a worker process whose stderr is not
+    # the user's terminal (and has Python's two-line warning format); the command that
+    # started the worker issues them once from the row (pipeline.commands.process).
+    with warnings.catch_warnings(record=True) as caught:
+        try:
+            ctx = Pipeline([ingest]).run(ctx, progress=tick)
+            rest = Pipeline(build_stages(ctx, rec_dir, options),
+                            initial=ctx.provided() | {"source"})
+            ctx = rest.run(ctx, progress=tick)
+        finally:
+            clear_cache()  # the restored samples of this recording are not needed any more
     tick(None)
     row = summary_row(ctx, stem, rec_dir)
     row["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
+    row["run_warnings"] = run_warnings(str(path), caught, ctx.recording.problems)
     return row
+
+
+def run_warnings(path: str, caught: list[warnings.WarningMessage],
+                 problems: tuple) -> list[list[str]]:
+    """Return the warnings of one run as ``[category name, message]`` pairs, each once.
+
+    Parameters
+    ----------
+    path : str
+        The recording.
+    caught : list of warnings.WarningMessage
+        What was warned while it was processed (the reader warns the damage it found in
+        the file).
+    problems : tuple of pipeline.recording.Problem
+        ``Recording.problems``: also what the reader repaired in the data without warning
+        (dropped NaN samples, sorted stamps, ...), which the user must hear too.
+
+    Returns
+    -------
+    list of [str, str]
+        JSON-able, in the order they arose; the problems as ``RecoveredDataWarning``.
+
+    """
+    from .mcap_read import problem_warnings
+
+    out: list[list[str]] = []
+    seen: set[str] = set()
+    for w in caught:
+        msg = str(w.message)
+        if msg not in seen:
+            seen.add(msg)
+            out.append([w.category.__name__, msg])
+    for msg in problem_warnings(path, problems, seen):
+        if msg not in seen:
+            seen.add(msg)
+            out.append([RecoveredDataWarning.__name__, msg])
+    return out

@@ -70,3 +70,44 @@ def test_real_lab_03(capsys):
     rec = read_recording(REAL / "lab_03.mcap")  # the real indoor MEMS data pass every check
     assert 20_000 < np.median(np.linalg.norm(rec.mag.values, axis=1)) < 70_000
     assert rec.mag_frame_id == "imu"
+
+
+def test_info_lists_value_problems_as_the_reader_finds_them(tmp_path, capsys):
+    """NaN samples and zero quaternions: the reader's own checks, same counts (issue 9)."""
+    t, mag_T, q = motion(300)
+    mag_T[[3, 50]] = np.nan
+    mag_T[77, 2] = np.inf
+    q[[5, 6]] = 0.0
+    p = write_ros2(tmp_path / "v.mcap", [
+        ("/mag", MAG, DEFS[MAG], t, mag_T, ["imu"]),
+        ("/att", "sensor_msgs/msg/Imu", DEFS["sensor_msgs/msg/Imu"], t, q, ["b"])])
+    out = json.loads(_info(capsys, str(p), "--json"))
+    got = {(pr["code"], pr["message"].split(":")[0]): pr["count"] for pr in out["problems"]}
+    assert got == {("nonfinite", "/mag"): 3, ("zero_quaternion", "/att"): 2}
+    rec = read_recording(p)
+    assert {(pr.code, pr.message.split(":")[0]): pr.count for pr in rec.problems} == got
+    assert "NaN" in _info(capsys, str(p))
+
+
+def test_info_json_lists_a_chunk_failing_its_crc_once(tmp_path, capsys):
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType
+
+    t, mag_T, q = motion(300)
+    p = write_ros2(tmp_path / "c.mcap", [
+        ("/mag", MAG, DEFS[MAG], t, mag_T, ["imu"]),
+        ("/att", "sensor_msgs/msg/Imu", DEFS["sensor_msgs/msg/Imu"], t, q, ["b"])],
+        compression=CompressionType.NONE, chunk_size=2048)
+    with open(p, "rb") as fh:
+        c = make_reader(fh).get_summary().chunk_indexes[2]
+    data = bytearray(p.read_bytes())
+    # chunk record: opcode, length, 3 x u64, u32 crc, compression string, u64 records length
+    data[c.chunk_start_offset + 9 + 28 + 4 + len(c.compression) + 8 + 100] ^= 0xFF
+    bad = tmp_path / "crc.mcap"
+    bad.write_bytes(bytes(data))
+    with pytest.warns(RecoveredDataWarning, match="CRC"):
+        out = json.loads(_info(capsys, str(bad), "--json"))
+    crc = [pr for pr in out["problems"] if pr["code"] == "chunk_crc"]
+    assert len(crc) == 1 and crc[0]["count"] > 0
+    count = {ch["topic"]: ch["count"] for ch in out["channels"]}
+    assert count["/mag"] + count["/att"] == 600 - crc[0]["count"]

@@ -252,3 +252,42 @@ def test_ingest_stage_contract():
     with pytest.raises(Exception):  # noqa: B017  frozen dataclass
         Ingest().mag_topic = "/x"  # type: ignore[misc]
     assert json.dumps(T0)  # fixture epoch is an int
+
+
+def _mag_att(tmp_path, mag_T, name="sat.mcap"):
+    t, _, q = motion(len(mag_T))
+    return t, write_ros2(tmp_path / name, [("/mag", MAG, DEFS[MAG], t, mag_T, ["imu"]),
+                                           ("/att", "sensor_msgs/msg/Imu",
+                                            DEFS["sensor_msgs/msg/Imu"], t, q, ["b"])])
+
+
+def test_samples_pinned_at_a_rail_are_dropped(tmp_path):
+    """An axis clipped at its range limit: those samples go, like NaN samples (issue 9)."""
+    _, mag_T, _ = motion(300)
+    rail = float(np.quantile(mag_T[:, 1], 0.25))
+    pinned = mag_T[:, 1] <= rail
+    mag_T[:, 1] = np.maximum(mag_T[:, 1], rail)
+    t, p = _mag_att(tmp_path, mag_T)
+    rec = read_recording(p)
+    sat = [pr for pr in rec.problems if pr.code == "saturated"]
+    assert len(sat) == 1 and sat[0].count == int(pinned.sum()) > 60
+    assert "dropped" in sat[0].message and "axis y" in sat[0].message
+    np.testing.assert_array_equal(rec.mag.t_ns, t[~pinned])
+    np.testing.assert_allclose(rec.mag.values, mag_T[~pinned] * 1e9, rtol=1e-15)
+
+
+def test_rails_on_two_axes_pinning_most_samples_are_refused(tmp_path):
+    """Each rail holds fewer than half of the samples, both together more: refused."""
+    from pipeline.errors import DataQualityError
+
+    _, mag_T, _ = motion(300)
+    lo = float(np.quantile(mag_T[:, 0], 0.4))
+    hi = float(np.quantile(mag_T[:, 2], 0.6))
+    n_pinned = int(np.count_nonzero((mag_T[:, 0] <= lo) | (mag_T[:, 2] >= hi)))
+    assert n_pinned > 150  # the noise of the axes is independent: about 64 %
+    mag_T[:, 0] = np.maximum(mag_T[:, 0], lo)
+    mag_T[:, 2] = np.minimum(mag_T[:, 2], hi)
+    _, p = _mag_att(tmp_path, mag_T)
+    with pytest.raises(DataQualityError, match=r"saturated") as ei:
+        read_recording(p)
+    assert f"{n_pinned / 300:.0%}" in ei.value.message

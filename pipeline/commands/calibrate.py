@@ -8,14 +8,13 @@ Options (CONVENTIONS): ``--estimator ml|li2020|ellipsoid|dpi``, ``--reference-fi
 from __future__ import annotations
 
 import argparse
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.atomic import atomic_path
-from pipeline.errors import NotObservableError, RecoveredDataWarning, UsageError
-from pipeline.recording import Recording
+from pipeline.errors import NotObservableError, UsageError
+from pipeline.mcap_read import read_recording_warning
 
 
 def _floats(text: str, n: int, what: str) -> list[float]:
@@ -73,28 +72,6 @@ def reference_from_args(args: argparse.Namespace) -> np.ndarray | None:
 
         return np.asarray(igrf_enu_nT(lat, lon, alt, parts[3].strip()), float)
     return None
-
-
-def read_recording_warning(path: str, **kw) -> Recording:
-    """``read_recording``, with every problem it handled also issued as a warning.
-
-    Damage found while scanning the file is warned by the reader itself; what it repaired in
-    the data (dropped NaN or duplicated samples, sorted stamps, gaps) is only listed in
-    ``Recording.problems``, and the user must still hear what was lost.
-    """
-    from pipeline.mcap_read import read_recording
-
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        rec = read_recording(path, **kw)
-    said = {str(w.message) for w in caught}
-    for w in caught:
-        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    for p in rec.problems:
-        if p.message not in said:
-            msg = p.message if p.message.startswith(str(path)) else f"{path}: {p.message}"
-            warnings.warn(msg, RecoveredDataWarning, stacklevel=2)
-    return rec
 
 
 def run(args: argparse.Namespace) -> int:

@@ -9,8 +9,11 @@ With ``--json`` one object is printed (CONVENTIONS)::
 ``1 / median stamp interval`` (header stamps; log times for channels of other types) or
 null with fewer than two messages; ``duration_s`` spans the magnetometer stamps (all
 channels when there is no magnetometer). ``problems`` lists what was found wrong and
-handled (a cut file, skipped chunks, stamps backwards or duplicated, gaps): ``code`` is a
-short fixed identifier, ``message`` says it in words, ``count`` how many samples or bytes.
+handled (a cut file, chunks skipped for a bad CRC or compression, stamps backwards or
+duplicated, gaps) and what reading would repair or refuse in the values (the same checks as
+``calibrate`` and ``process``: NaN/Inf samples, zero or non-unit quaternions, clock jumps,
+samples pinned at a rail; code ``unusable`` for what they would refuse): ``code`` is a short
+fixed identifier, ``message`` says it in words, ``count`` how many samples or bytes.
 """
 
 from __future__ import annotations

@@ -10,10 +10,13 @@ reused, so an interrupted run resumes where it stopped.
 from __future__ import annotations
 
 import argparse
+import builtins
 import dataclasses
 import sys
+import warnings
 from pathlib import Path
 
+from .. import errors
 from ..errors import CampaignPartialFailure, InputError, UsageError
 
 
@@ -79,6 +82,28 @@ def _overrides(args: argparse.Namespace):
     return ov
 
 
+def _category(name: str) -> type[Warning]:
+    """Return the warning class named ``name`` (magalign's or built-in), else UserWarning."""
+    cls = getattr(errors, name, None) or getattr(builtins, name, None)
+    return cls if isinstance(cls, type) and issubclass(cls, Warning) else UserWarning
+
+
+def issue_warnings(results: list[dict]) -> None:
+    """Issue, in this process, the warnings each recording's run collected.
+
+    The recordings are processed in worker processes (or on Dask workers), whose warnings
+    would otherwise be lost or printed there in Python's two-line format; the rows carry
+    them back (``run_warnings``, :func:`pipeline.process_one.process_recording`) and each is
+    warned here once, as one ``magalign: warning: ...`` line. A reused result repeats its
+    warnings: its outputs were made from the same damaged input.
+    """
+    for res in results:
+        row = res.get("row") or {}
+        for pair in row.get("run_warnings") or ():
+            cat, msg = pair
+            warnings.warn(str(msg), _category(str(cat)), stacklevel=2)
+
+
 def run(args: argparse.Namespace) -> int:
     """Process; print where the results are; exit 3 when some recordings failed."""
     from ..campaign import RecordingOptions, campaign_for_input, run_campaign
@@ -115,6 +140,7 @@ def run(args: argparse.Namespace) -> int:
         if bar is not None:
             bar.close()
         executor.close()
+    issue_warnings(results)
     out_r = out.resolve()
     rows = [row_for(out_r, r) for r in results]
     pq_path, html_path = write_summary(out_r, rows, title=f"magalign: {camp.name}")
