@@ -109,12 +109,36 @@ def quat_to_matrix(q: ArrayLike) -> F64:
 
 
 def matrix_to_quat(C: ArrayLike) -> F64:
-    """Rotation matrices to unit quaternions (scalar-last, ``w >= 0``), shape (..., 4)."""
-    from scipy.spatial.transform import Rotation
+    """Rotation matrices to unit quaternions (scalar-last, ``w >= 0``), shape (..., 4).
 
+    Shepperd's method: of the four candidate formulas, each sample uses the one whose
+    denominator (``4 w``, ``4 x``, ``4 y`` or ``4 z``) is largest, so no precision is lost near
+    180 deg rotations. Plain numpy: importing scipy's rotation module costs more than a
+    ``magalign calibrate`` run's whole fit.
+    """
     C = np.asarray(C, dtype=float)
-    flat = C.reshape(-1, 3, 3)
-    q = Rotation.from_matrix(flat).as_quat()
+    m = C.reshape(-1, 3, 3)
+    tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
+    # 4 * (squared component) for w, x, y, z
+    cand = np.stack([1 + tr, 1 + 2 * m[:, 0, 0] - tr, 1 + 2 * m[:, 1, 1] - tr,
+                     1 + 2 * m[:, 2, 2] - tr], -1)
+    k = np.argmax(cand, axis=-1)
+    s = 2.0 * np.sqrt(np.maximum(cand[np.arange(len(m)), k], 1e-300))  # 4 * largest component
+    d21, d02, d10 = m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]
+    s21, s02, s10 = m[:, 2, 1] + m[:, 1, 2], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 0] + m[:, 0, 1]
+    q = np.empty((len(m), 4))
+    rows = [  # (x, y, z, w) * s for k = w, x, y, z
+        (d21, d02, d10, s * s / 4),
+        (s * s / 4, s10, s02, d21),
+        (s10, s * s / 4, s21, d02),
+        (s02, s21, s * s / 4, d10),
+    ]
+    for j, comps in enumerate(rows):
+        sel = k == j
+        if sel.any():
+            q[sel] = np.stack([c[sel] if np.ndim(c) else np.full(sel.sum(), c)
+                               for c in comps], -1) / s[sel, None]
+    q = np.where(q[:, 3:4] < 0, -q, q)
     return quat_normalize(q.reshape(C.shape[:-2] + (4,)))
 
 

@@ -47,6 +47,7 @@ from .base import (
     irls_weights,
     rotation_words,
     sigma_with_null,
+    solve_many_truncated,
     solve_truncated,
 )
 from .ellipsoid import fit_ellipsoid
@@ -133,8 +134,7 @@ class Model:
 
     def b_body(self, s: State, tau: float | None = None) -> F64:
         """Predicted body field ``C.T @ B``, (N, 3)."""
-        C = self.C(s.tau if tau is None else tau)
-        return s.B @ C  # rows C.T @ B
+        return _rows_Ct_B(self.C(s.tau if tau is None else tau), s.B)
 
     def predict(self, s: State) -> F64:
         """Predicted magnetometer readings, (N, 3)."""
@@ -144,16 +144,20 @@ class Model:
     def jacobian(self, s: State) -> F64:
         """dy/dparams, (N, 3, P), in the order of ``blocks``."""
         C = self.C(s.tau)
-        b = s.B @ C  # rows C.T @ B
+        b = _rows_Ct_B(C, s.B)
         DRt = s.D @ s.R.T
         N = len(b)
-        J = np.zeros((N, 3, self.n_params))
-        # D R_bar.T [b]x, row i = (DRt[i] x b)^T since a.(b x v) = v.(a x b): no (N,3,3) skew.
-        J[:, :, self.blocks["rot"]] = np.cross(DRt[None, :, :], b[:, None, :])
+        J = np.empty((N, 3, self.n_params))
+        # D R_bar.T [b]x, row i = (DRt[i] x b)^T since a.(b x v) = v.(a x b); DRt[i] x b is
+        # [DRt[i]]x b, so all N rows come from one (N, 3) x (3, 9) product.
+        K = np.stack([skew(DRt[i]) for i in range(3)])  # (3 rows i, 3 params j, 3 k)
+        J[:, :, self.blocks["rot"]] = (b @ K.reshape(9, 3).T).reshape(N, 3, 3)
         if "B" in self.blocks:
-            J[:, :, self.blocks["B"]] = DRt @ np.swapaxes(C, 1, 2)
+            # D R.T C_n.T, from one (3N, 3) x (3, 3) product: [n, j, i] = (C_n DRt.T)[j, i]
+            J[:, :, self.blocks["B"]] = (
+                (C.reshape(-1, 3) @ DRt.T).reshape(N, 3, 3).transpose(0, 2, 1))
         if "offset" in self.blocks:
-            J[:, :, self.blocks["offset"]] = np.eye(3)
+            J[:, :, self.blocks["offset"]] = np.eye(3)  # broadcast over N
         if "D" in self.blocks:
             m = b @ s.R
             J[:, :, self.blocks["D"]] = np.einsum("kij,nj->nik", self.basis, m)
@@ -165,14 +169,15 @@ class Model:
             J[:, :, self.blocks["tau"].start] = (bp - bm) @ DRt.T / (2 * h)
         return J
 
-    def weights(self, s: State) -> F64:
-        """Inverse per-sample covariances ``W_i``, (N, 3, 3); identity without a noise model."""
+    def weights(self, s: State) -> F64 | None:
+        """Inverse per-sample covariances ``W_i``, (N, 3, 3); ``None`` (identity) without a
+        noise model, which the normal equations and the cost treat without any 3x3 product.
+        """
         nm = self.p.noise
-        N = self.p.n
         if nm is None:
-            return np.broadcast_to(np.eye(3), (N, 3, 3))
+            return None
         C = self.C(s.tau)
-        b = s.B @ C  # rows C.T @ B
+        b = _rows_Ct_B(C, s.B)
         A = s.D @ s.R.T @ skew(b)  # maps body attitude error to y
         S_att = nm.attitude_cov_body(C)
         Sig = np.matmul(np.matmul(A, S_att), np.swapaxes(A, 1, 2))
@@ -211,46 +216,79 @@ def inv_sym3(S: F64) -> F64:
     return out / det[:, None, None]
 
 
-def _normal(J: F64, W: F64, r: F64, w: F64) -> tuple[F64, F64]:
+def _rows_Ct_B(C: F64, B: F64) -> F64:
+    """Rows ``C_i.T @ B`` for C (N, 3, 3), B (3,): three fused row sums, not N tiny matmuls."""
+    return C[:, 0, :] * B[0] + C[:, 1, :] * B[1] + C[:, 2, :] * B[2]
+
+
+def _normal(J: F64, W: F64 | None, r: F64, w: F64) -> tuple[F64, F64]:
     # Batched matmul and one BLAS product over the stacked rows: einsum is ~5x slower here.
-    WJ = (W @ J) * w[:, None, None]
     P = J.shape[2]
+    if W is None:  # isotropic: J.T diag(w) J without the identity products
+        Jf = J.reshape(-1, P)
+        WJf = Jf if np.all(w == 1.0) else (J * w[:, None, None]).reshape(-1, P)
+        return Jf.T @ WJf, WJf.T @ r.reshape(-1)
+    WJ = (W @ J) * w[:, None, None]
     WJf = WJ.reshape(-1, P)
     H = J.reshape(-1, P).T @ WJf
     g = WJf.T @ r.reshape(-1)
     return H, g
 
 
-def _cost(r: F64, W: F64, w: F64) -> tuple[float, F64]:
-    q = np.sum(r * (W @ r[:, :, None])[:, :, 0], axis=1)
+def _cost(r: F64, W: F64 | None, w: F64) -> tuple[float, F64]:
+    if W is None:
+        q = np.einsum("ij,ij->i", r, r)
+    else:
+        q = np.einsum("ij,ij->i", r, (W @ r[:, :, None])[:, :, 0])
     return float(np.sum(w * q)), np.sqrt(np.maximum(q, 0.0))
 
 
-def gauss_newton(model: Model, s: State, max_iter: int = 60) -> tuple[State, F64, F64]:
-    """Gauss-Newton (with step halving) to convergence, inside an IRLS loop when robust.
+@dataclass(frozen=True)
+class GNResult:
+    """Where Gauss-Newton stopped: the state and its last linearisation.
 
-    Returns the final state, the robust weights and the per-sample inverse covariances.
+    ``H`` is the normal matrix ``J.T W J`` of the last iteration, taken at the state before a
+    final step smaller than :data:`STEP_TOL_SIGMA` standard deviations (or at ``s`` itself):
+    the covariance computed from it differs from one at ``s`` by far less than its own
+    uncertainty, and saves a full-data Jacobian.
     """
+
+    s: State
+    w: F64  # robust weights (N,)
+    W: F64 | None  # per-sample inverse covariances (N, 3, 3); None = identity
+    r: F64  # residuals at s (N, 3), nT
+    H: F64  # (P, P)
+
+
+#: Gauss-Newton stops once a step moves every parameter by less than this many of its standard
+#: deviations: with quadratic convergence the error left is far smaller still.
+STEP_TOL_SIGMA = 1e-4
+
+
+def gauss_newton(model: Model, s: State, max_iter: int = 60) -> GNResult:
+    """Gauss-Newton (with step halving) to convergence, inside an IRLS loop when robust."""
     w = np.ones(model.p.n)
-    s, W, r = _gn_fixed_weights(model, s, w, max_iter)
-    if model.p.robust is RobustLoss.NONE:
-        return s, w, W
-    scale = 1.0 if model.p.noise is not None else None
-    for _ in range(20):
-        _, rn = _cost(r, W, np.ones(model.p.n))
-        w_new = irls_weights(rn, model.p.robust, scale)
-        if np.max(np.abs(w_new - w)) < 1e-6:
-            break
-        w = w_new
-        s, W, r = _gn_fixed_weights(model, s, w, max_iter)
-    return s, w, W
+    s, W, r, H = _gn_fixed_weights(model, s, w, max_iter)
+    if model.p.robust is not RobustLoss.NONE:
+        scale = 1.0 if model.p.noise is not None else None
+        for _ in range(20):
+            _, rn = _cost(r, W, np.ones(model.p.n))
+            w_new = irls_weights(rn, model.p.robust, scale)
+            if np.max(np.abs(w_new - w)) < 1e-6:
+                break
+            w = w_new
+            s, W, r, H = _gn_fixed_weights(model, s, w, max_iter)
+    return GNResult(s, w, W, r, H)
 
 
-def _gn_fixed_weights(model: Model, s: State, w: F64, max_iter: int) -> tuple[State, F64, F64]:
+def _gn_fixed_weights(model: Model, s: State, w: F64, max_iter: int
+                      ) -> tuple[State, F64 | None, F64, F64]:
     y = model.p.mag_nT
     W = model.weights(s)
     r = y - model.predict(s)
     cost, _ = _cost(r, W, w)
+    dof = max(3 * model.p.n - model.n_params, 1)
+    H = np.zeros((model.n_params, model.n_params))
     for it in range(max_iter):
         J = model.jacobian(s)
         H, g = _normal(J, W, r, w)
@@ -270,9 +308,15 @@ def _gn_fixed_weights(model: Model, s: State, w: F64, max_iter: int) -> tuple[St
             break
         rel = (cost - c_new) / max(cost, 1e-300)
         s, W, r, cost = s_new, W_new, r_new, c_new
-        if np.max(np.abs(lam * delta[model.blocks["rot"]])) < 1e-13 or (rel < 1e-14 and it > 2):
+        # The step in units of each parameter's standard deviation (from this H; the noise
+        # scale as in MLEstimator.finish).
+        s2 = c_new / dof if model.p.noise is None else 1.0
+        var = np.diag(solve_many_truncated(H, np.eye(model.n_params), RELATIVE_INFO_THRESHOLD)) * s2
+        small = np.abs(lam * delta) <= STEP_TOL_SIGMA * np.sqrt(np.maximum(var, 0.0))
+        if (small.all() or np.max(np.abs(lam * delta[model.blocks["rot"]])) < 1e-13
+                or (rel < 1e-14 and it > 2)):
             break
-    return s, W, r
+    return s, W, r, H
 
 
 @dataclass(frozen=True)
@@ -334,17 +378,14 @@ class MLEstimator:
                 Problem(**{**pc.__dict__, "terms": pc.terms - {Term.TIME_OFFSET}}),
                 estimate_B=model.estimate_B,
             )
-            s0, _, _ = gauss_newton(m0, s0, self.max_iter)
+            s0 = gauss_newton(m0, s0, self.max_iter).s
         if pc is not p:
-            s0, _, _ = gauss_newton(Model(pc, estimate_B=model.estimate_B), s0, self.max_iter)
-        s, w, W = gauss_newton(model, s0, self.max_iter)
-        return self.finish(p, model, s, w, W)
+            s0 = gauss_newton(Model(pc, estimate_B=model.estimate_B), s0, self.max_iter).s
+        return self.finish(p, model, gauss_newton(model, s0, self.max_iter))
 
-    def finish(self, p: Problem, model: Model, s: State, w: F64, W: F64) -> Calibration:
+    def finish(self, p: Problem, model: Model, gn: GNResult) -> Calibration:
         """Covariance, observability and the Calibration value."""
-        r = p.mag_nT - model.predict(s)
-        J = model.jacobian(s)
-        H, _ = _normal(J, W, r, w)
+        s, w, W, r, H = gn.s, gn.w, gn.W, gn.r, gn.H
         dof = max(3 * p.n - model.n_params, 1)
         chi2, _ = _cost(r, W, w)
         # Unknown noise: scale by the residual variance. Known noise: the model's own.
