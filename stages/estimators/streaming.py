@@ -413,7 +413,9 @@ def _nearest_about_axis(st: SufficientStats, s: _State, axis_body: F64, R_nomina
     theta = np.arctan2(c1, -c2)  # maximiser of c1 sin(theta) - c2 cos(theta)
     R = so3_exp(theta * a) @ s.R
     B, o = _solve_linear(st, R, B_fixed, with_offset)
-    if cost(st, R, B, o) > cost(st, s.R, s.B, s.o) * (1 + 1e-9) + 1e-9:
+    # The cost from the sums cancels sum_yy against terms of the same size: its rounding is
+    # ~1e-16 sum_yy, so "no worse" is judged with a margin of that scale (not an absolute one).
+    if cost(st, R, B, o) > cost(st, s.R, s.B, s.o) * (1 + 1e-9) + 1e-13 * st.sum_yy:
         return s  # not an exact symmetry of this data: keep the optimum
     return _State(R, B, o)
 
