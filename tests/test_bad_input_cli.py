@@ -108,7 +108,7 @@ ANSWERS: dict[tuple[str, str], Expect] = {
     ("stamps_backwards", "calibrate"): ok(r"6 stamps going backwards", r"sorted"),
     ("stamps_duplicated", "info"): ok(r"6 duplicated stamps"),
     ("stamps_duplicated", "calibrate"): ok(r"6 samples with a duplicated stamp", r"dropped"),
-    ("stamps_jump_hours", "info"): ok(r"gaps longer"),
+    ("stamps_jump_hours", "info"): ok(r"gaps? longer"),
     ("stamps_jump_hours", "calibrate"): ok(r"4 samples with stamps more than an hour",
                                            r"dropped"),
     ("long_gap", "info"): ok(r"gaps? longer than"),
