@@ -21,6 +21,7 @@ process: $(STAMP)
 	$(BIN)/magalign process $(CAMPAIGN) --out $(OUT) --jobs $(JOBS)
 
 test: $(STAMP)
+	$(BIN)/ruff check pipeline stages tests bench
 	$(BIN)/python -m pytest -q -x -p no:cacheprovider tests
 
 bench: $(STAMP)

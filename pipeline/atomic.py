@@ -42,6 +42,7 @@ def atomic_path(dest: str | Path, inputs: tuple[str | Path, ...] = ()) -> Iterat
         Final name.
     inputs : tuple of path
         Input files that must never be overwritten; writing over one is refused.
+
     """
     dest = Path(dest)
     for i in inputs:

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
-from .geometry import quat_rotate, quat_to_rotvec, matrix_to_quat
+from .geometry import matrix_to_quat, quat_rotate, quat_to_rotvec
 
 FORMAT = "magalign.calibration/1"
 
@@ -80,6 +80,7 @@ class Calibration:
         Further model terms (CONVENTIONS effect names -> params), e.g. ``eddy_current``.
     warnings : tuple of str
         Observability and data-quality warnings in words.
+
     """
 
     R_body_mag: np.ndarray
@@ -154,6 +155,7 @@ class Calibration:
         -------
         ndarray, shape (N, 3)
             ``C_enu_body @ R_body_mag @ inv(D) @ (y - o)``, ENU, nT.
+
         """
         m = self.calibrated_mag(mag_nT)
         return quat_rotate(q_enu_body, m @ self.R_body_mag.T)
@@ -173,7 +175,7 @@ class Calibration:
 
     # ------------------------------------------------------------------ serialisation
     def to_dict(self) -> dict[str, Any]:
-        """The calibration.json object (CONVENTIONS)."""
+        """Return the calibration.json object (CONVENTIONS)."""
         return {
             "format": FORMAT,
             "R_body_mag": _list(self.R_body_mag),
@@ -236,7 +238,8 @@ class Calibration:
                 warnings=tuple(d.get("warnings") or ()),
             )
         except (KeyError, TypeError, ValueError) as exc:
-            raise InputError(f"calibration file is incomplete or malformed: {exc}", path=path) from exc
+            raise InputError(f"calibration file is incomplete or malformed: {exc}",
+                             path=path) from exc
 
     @classmethod
     def from_json(cls, text: str, path: str | None = None) -> Calibration:
@@ -258,5 +261,5 @@ class Calibration:
         return cls.from_json(text, path=str(p))
 
     def replace(self, **changes: Any) -> Calibration:
-        """A new calibration with ``changes``."""
+        """Return a new calibration with ``changes``."""
         return dataclasses.replace(self, **changes)

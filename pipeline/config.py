@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import enum
 import re
-import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
+
+import tomllib
 
 from .errors import ConfigError
 
@@ -30,6 +31,7 @@ class TomlDoc:
     path : str
     data : dict
     text : str
+
     """
 
     path: str
@@ -86,7 +88,7 @@ class TomlDoc:
         return None
 
     def error(self, key: str, message: str, hint: str | None = None) -> ConfigError:
-        """A :class:`ConfigError` naming this file, ``key`` and its line."""
+        """Return a :class:`ConfigError` naming this file, ``key`` and its line."""
         return ConfigError(message, path=self.path, key=key, line=self.line_of(key), hint=hint)
 
     def get(self, key: str, default: Any = _MISSING, *, table: Mapping | None = None) -> Any:
@@ -103,7 +105,7 @@ class TomlDoc:
 
     def number(self, key: str, default: Any = _MISSING, *, lo: float | None = None,
                hi: float | None = None, table: Mapping | None = None) -> float:
-        """A real number within ``[lo, hi]``."""
+        """Return a real number within ``[lo, hi]``."""
         v = self.get(key, default, table=table)
         if isinstance(v, bool) or not isinstance(v, int | float):
             raise self.error(key, f"must be a number, got {v!r}")
@@ -113,7 +115,7 @@ class TomlDoc:
 
     def vector(self, key: str, n: int = 3, default: Any = _MISSING, *,
                table: Mapping | None = None) -> list[float]:
-        """A list of ``n`` numbers."""
+        """Return a list of ``n`` numbers."""
         v = self.get(key, default, table=table)
         if not isinstance(v, list) or len(v) != n or not all(
             isinstance(x, int | float) and not isinstance(x, bool) for x in v
@@ -123,7 +125,7 @@ class TomlDoc:
 
     def choice(self, key: str, enum_type: type[E], default: Any = _MISSING, *,
                table: Mapping | None = None) -> E:
-        """A value of ``enum_type`` spelled as its value."""
+        """Return a value of ``enum_type`` spelled as its value."""
         v = self.get(key, default, table=table)
         if isinstance(v, enum_type):
             return v

@@ -21,6 +21,7 @@ class MagalignError(Exception):
         The file the problem is in; named first in the one-line message.
     hint : str, optional
         What to do about it.
+
     """
 
     exit_code: int = 2
@@ -57,6 +58,7 @@ class ChannelError(InputError):
     ----------
     role : str, optional
         ``"magnetometer"`` or ``"attitude"``: the role that could not be filled.
+
     """
 
     def __init__(self, message: str, *, role: str | None = None, **kw):
@@ -81,6 +83,7 @@ class ConfigError(MagalignError):
         Dotted key of the offending entry.
     line : int, optional
         1-based line number in the file.
+
     """
 
     def __init__(
@@ -115,6 +118,7 @@ class PipelineBuildError(MagalignError):
         Name of the stage whose requirements are not provided.
     missing : tuple of str
         The context fields it requires that no earlier stage provides.
+
     """
 
     def __init__(self, stage: str, missing: tuple[str, ...], available: tuple[str, ...]):

@@ -23,10 +23,12 @@ def skew(v: ArrayLike) -> F64:
     Parameters
     ----------
     v : array_like, shape (..., 3)
+        The vector(s) of the cross product's left side.
 
     Returns
     -------
     ndarray, shape (..., 3, 3)
+
     """
     v = np.asarray(v, dtype=float)
     z = np.zeros(v.shape[:-1])
@@ -55,7 +57,7 @@ def so3_log(C: ArrayLike) -> F64:
 
 
 def quat_normalize(q: ArrayLike) -> F64:
-    """Unit quaternion(s) with ``w >= 0`` (the same rotation), shape (..., 4)."""
+    """Normalise quaternion(s) to unit norm and ``w >= 0`` (the same rotation), (..., 4)."""
     q = np.asarray(q, dtype=float)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return np.where(q[..., 3:4] < 0, -q, q)
@@ -95,7 +97,7 @@ def quat_rotate(q: ArrayLike, v: ArrayLike) -> F64:
 
 
 def quat_to_matrix(q: ArrayLike) -> F64:
-    """Unit quaternion(s) to rotation matrices, shape (..., 3, 3)."""
+    """Convert unit quaternion(s) to rotation matrices, shape (..., 3, 3)."""
     q = np.asarray(q, dtype=float)
     x, y, z, w = np.moveaxis(q, -1, 0)
     return np.stack(
@@ -143,7 +145,7 @@ def matrix_to_quat(C: ArrayLike) -> F64:
 
 
 def quat_to_rotvec(q: ArrayLike) -> F64:
-    """Unit quaternion(s) to rotation vectors in rad, shape (..., 3)."""
+    """Convert unit quaternion(s) to rotation vectors in rad, shape (..., 3)."""
     q = quat_normalize(q)
     v = q[..., :3]
     s = np.linalg.norm(v, axis=-1)
@@ -166,7 +168,10 @@ def quat_slerp(q0: ArrayLike, q1: ArrayLike, s: ArrayLike) -> F64:
 
     Parameters
     ----------
-    q0, q1 : array_like, shape (N, 4)
+    q0 : array_like, shape (N, 4)
+        Start quaternions (scalar-last).
+    q1 : array_like, shape (N, 4)
+        End quaternions (scalar-last).
     s : array_like, shape (N,)
         Fraction in [0, 1] from ``q0`` to ``q1``.
 
@@ -174,6 +179,7 @@ def quat_slerp(q0: ArrayLike, q1: ArrayLike, s: ArrayLike) -> F64:
     -------
     ndarray, shape (N, 4)
         Takes the short way round (``q1`` is flipped where ``q0 . q1 < 0``).
+
     """
     q0 = np.asarray(q0, dtype=float)
     q1 = np.asarray(q1, dtype=float)
@@ -211,21 +217,24 @@ def Ez(alpha: ArrayLike) -> F64:
     """Elementary frame rotation about z by heading ``alpha`` (rad), Li 2020 Eq. 4."""
     a = np.asarray(alpha, dtype=float)
     c, s, o, z = np.cos(a), np.sin(a), np.ones_like(a), np.zeros_like(a)
-    return np.stack([np.stack([c, s, z], -1), np.stack([-s, c, z], -1), np.stack([z, z, o], -1)], -2)
+    rows = [np.stack([c, s, z], -1), np.stack([-s, c, z], -1), np.stack([z, z, o], -1)]
+    return np.stack(rows, -2)
 
 
 def Ex(gamma: ArrayLike) -> F64:
     """Elementary frame rotation about x by pitch ``gamma`` (rad), Li 2020 Eq. 5."""
     g = np.asarray(gamma, dtype=float)
     c, s, o, z = np.cos(g), np.sin(g), np.ones_like(g), np.zeros_like(g)
-    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, s], -1), np.stack([z, -s, c], -1)], -2)
+    rows = [np.stack([o, z, z], -1), np.stack([z, c, s], -1), np.stack([z, -s, c], -1)]
+    return np.stack(rows, -2)
 
 
 def Ey(beta: ArrayLike) -> F64:
     """Elementary frame rotation about y by roll ``beta`` (rad), Li 2020 Eq. 6."""
     b = np.asarray(beta, dtype=float)
     c, s, o, z = np.cos(b), np.sin(b), np.ones_like(b), np.zeros_like(b)
-    return np.stack([np.stack([c, z, -s], -1), np.stack([z, o, z], -1), np.stack([s, z, c], -1)], -2)
+    rows = [np.stack([c, z, -s], -1), np.stack([z, o, z], -1), np.stack([s, z, c], -1)]
+    return np.stack(rows, -2)
 
 
 def li2020_C_body_enu(heading: ArrayLike, pitch: ArrayLike, roll: ArrayLike) -> F64:

@@ -1090,7 +1090,8 @@ def _gap_problems(name: str, t: np.ndarray, problems: list[Problem], min_gap_s: 
         longest = float(dt.max()) * 1e-9
         code = "time_jump" if longest > 3600 else "gap"
         limit_s = max(min_gap_s, 100 * med * 1e-9)
-        problems.append(Problem(code, f"{name}: {k} gap{'s' if k > 1 else ''} longer than {limit_s:.3g} s "
+        gaps = "gaps" if k > 1 else "gap"
+        problems.append(Problem(code, f"{name}: {k} {gaps} longer than {limit_s:.3g} s "
                                 f"(longest {longest:.4g} s)", k))
 
 

@@ -64,6 +64,7 @@ class VectorSeries:
     frame : Frame
     unit : str
         ``"nT"`` for magnetic field.
+
     """
 
     t_ns: I64
@@ -84,7 +85,7 @@ class VectorSeries:
         return int(self.t_ns.shape[0])
 
     def window(self, start_ns: int, end_ns: int) -> VectorSeries:
-        """Samples with ``start_ns <= t < end_ns``."""
+        """Return the samples with ``start_ns <= t < end_ns``."""
         i0, i1 = np.searchsorted(self.t_ns, [start_ns, end_ns], side="left")
         return dataclasses.replace(self, t_ns=self.t_ns[i0:i1], values=self.values[i0:i1])
 
@@ -98,6 +99,7 @@ class AttitudeSeries:
     t_ns : ndarray of int64, shape (N,)
     q_enu_body : ndarray of float64, shape (N, 4)
         Unit quaternions rotating body vectors into ENU.
+
     """
 
     t_ns: I64
@@ -115,7 +117,7 @@ class AttitudeSeries:
         return int(self.t_ns.shape[0])
 
     def window(self, start_ns: int, end_ns: int) -> AttitudeSeries:
-        """Samples with ``start_ns <= t < end_ns``."""
+        """Return the samples with ``start_ns <= t < end_ns``."""
         i0, i1 = np.searchsorted(self.t_ns, [start_ns, end_ns], side="left")
         return dataclasses.replace(self, t_ns=self.t_ns[i0:i1], q_enu_body=self.q_enu_body[i0:i1])
 
@@ -129,6 +131,7 @@ class AngleSeries:
     t_ns : ndarray of int64, shape (N,)
     angle_rad : ndarray of float64, shape (N,)
         Turntable angle, unwrapped, rad.
+
     """
 
     t_ns: I64
@@ -192,6 +195,7 @@ class Segment:
         RMS of the swing about the fitted axis (wobble out of the rotation plane).
     coverage : float or None
         Fraction of the sphere of field directions in the body frame the window visits (0..1).
+
     """
 
     start_ns: int
@@ -230,6 +234,7 @@ class Recording:
         ``header.frame_id`` of the magnetometer messages.
     problems : tuple of Problem
         Damage found and handled while reading (recovered bytes, duplicates, ...).
+
     """
 
     path: str
@@ -267,6 +272,7 @@ class AlignedSeries:
         The ``tau`` used for the interpolation (CONVENTIONS).
     index : ndarray of int64, shape (N,)
         Index of each kept sample in the recording's magnetometer series.
+
     """
 
     t_ns: I64
@@ -286,7 +292,7 @@ class AlignedSeries:
         return int(self.t_ns.shape[0])
 
     def select(self, mask: np.ndarray) -> AlignedSeries:
-        """The samples where ``mask`` is true."""
+        """Return the samples where ``mask`` is true."""
         return AlignedSeries(
             self.t_ns[mask],
             self.mag_nT[mask],
@@ -315,7 +321,7 @@ class Context:
     options: Any = field(default=None)
 
     def replace(self, **changes: Any) -> Context:
-        """A new context with ``changes`` applied."""
+        """Return a new context with ``changes`` applied."""
         return dataclasses.replace(self, **changes)
 
     def provided(self) -> frozenset[str]:

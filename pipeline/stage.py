@@ -26,6 +26,7 @@ class Stage(Protocol):
         Context fields the stage reads.
     provides : frozenset of str
         Context fields the stage sets.
+
     """
 
     requires: ClassVar[frozenset[str]]
@@ -54,6 +55,7 @@ class Pipeline:
     ------
     PipelineBuildError
         If a stage requires a field nothing earlier provides.
+
     """
 
     def __init__(self, stages: Sequence[Stage], initial: Iterable[str] = ("source",)):
@@ -76,6 +78,7 @@ class Pipeline:
         Parameters
         ----------
         ctx : Context
+            The input data; never modified.
         progress : callable, optional
             Called as ``progress(stage_name, index, total)`` before each stage.
 
@@ -83,6 +86,7 @@ class Pipeline:
         -------
         Context
             The context after the last stage; ``ctx`` itself is unchanged.
+
         """
         for i, st in enumerate(self.stages):
             if progress is not None:

@@ -9,7 +9,7 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
@@ -78,7 +78,8 @@ def test_li2020_heading_turns_body_counter_clockwise():
 def test_novatel_azimuth_is_clockwise_from_north(az):
     q = g.novatel_to_quat(0.0, 0.0, az)
     fwd = g.quat_rotate(q, [0.0, 1.0, 0.0])  # NovAtel y is forward
-    np.testing.assert_allclose(fwd[:2], [np.sin(np.radians(az)), np.cos(np.radians(az))], atol=1e-12)
+    np.testing.assert_allclose(fwd[:2], [np.sin(np.radians(az)), np.cos(np.radians(az))],
+                               atol=1e-12)
     np.testing.assert_allclose(g.quat_to_novatel(q)[2], az, atol=1e-9)
 
 
@@ -176,7 +177,8 @@ def test_config_errors_name_file_key_and_line(tmp_path):
     doc = TomlDoc.load(p)
     with pytest.raises(ConfigError) as ei:
         doc.vector("field.enu_nT")
-    assert "line 2" in str(ei.value) and "field.enu_nT" in str(ei.value) and "s.toml" in str(ei.value)
+    msg = str(ei.value)
+    assert "line 2" in msg and "field.enu_nT" in msg and "s.toml" in msg
     with pytest.raises(ConfigError, match="line 5"):
         doc.number("noise.mag_nT")
     with pytest.raises(ConfigError, match="line 1"):

@@ -52,7 +52,8 @@ def recordings(draw):
     )
 
 
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=25, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(rec=recordings())
 def test_any_valid_recording_round_trips(tmp_path_factory, rec):
     path = tmp_path_factory.mktemp("prop") / "r.mcap"

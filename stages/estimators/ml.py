@@ -170,8 +170,10 @@ class Model:
         return J
 
     def weights(self, s: State) -> F64 | None:
-        """Inverse per-sample covariances ``W_i``, (N, 3, 3); ``None`` (identity) without a
-        noise model, which the normal equations and the cost treat without any 3x3 product.
+        """Return the inverse per-sample covariances ``W_i``, (N, 3, 3).
+
+        ``None`` (identity) without a noise model: the normal equations and the cost then
+        skip every 3x3 product.
         """
         nm = self.p.noise
         if nm is None:
