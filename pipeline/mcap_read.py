@@ -541,7 +541,7 @@ def _record_columns(buf: NDArray[np.uint8], rec: np.ndarray) -> dict[str, np.nda
     }
 
 
-def _ranges_mask(size: int, start: np.ndarray, length: np.ndarray) -> np.ndarray:
+def ranges_mask(size: int, start: np.ndarray, length: np.ndarray) -> np.ndarray:
     """Boolean mask of ``size`` bytes, True inside the sorted, disjoint ``[start, start+length)``.
 
     Built as alternating runs (gap, range, gap, ...) with one ``np.repeat``: about one byte
@@ -570,7 +570,7 @@ def _copy_ranges(buf: NDArray[np.uint8], start: np.ndarray, length: np.ndarray,
     if sep is None and (n == 1 or bool(np.all(np.diff(start) >= length[:-1]))):
         # ranges in order and disjoint (message records of one chunk): select the bytes with a
         # mask; no index array of one int64 per byte
-        return buf[_ranges_mask(len(buf), start, length)]
+        return buf[ranges_mask(len(buf), start, length)]
     # offset of each byte within its own range, without a Python loop
     within = np.arange(payload, dtype=np.int64) - np.repeat(np.cumsum(length) - length, length)
     src = np.repeat(start.astype(np.int64), length) + within

@@ -40,6 +40,7 @@ from numpy.typing import ArrayLike, NDArray
 from . import geometry, messages
 from .atomic import atomic_path
 from .errors import OutputError, SchemaError
+from .mcap_read import ranges_mask
 
 __all__ = [
     "Compression",
@@ -118,23 +119,6 @@ def _map_ss(m: Mapping[str, str]) -> bytes:
 
 def _record(op: int, content: bytes) -> bytes:
     return struct.pack("<BQ", op, len(content)) + content
-
-
-def _ranges_mask(size: int, start: np.ndarray, length: np.ndarray) -> np.ndarray:
-    """Boolean mask of ``size`` bytes, True inside the sorted, disjoint ``[start, start+length)``.
-
-    Built as alternating runs (gap, range, gap, ...) with one ``np.repeat``: about one byte
-    of work per output byte, no per-byte index arithmetic.
-    """
-    end = start + length
-    runs = np.empty(2 * len(start) + 1, dtype=np.int64)
-    runs[0] = start[0]
-    runs[2:-1:2] = start[1:] - end[:-1]
-    runs[1:-1:2] = length
-    runs[-1] = size - end[-1]
-    pattern = np.zeros(len(runs), dtype=np.bool_)
-    pattern[1::2] = True
-    return np.repeat(pattern, runs)
 
 
 def _gather_segments(src: np.ndarray, start: np.ndarray, length: np.ndarray) -> np.ndarray:
@@ -683,7 +667,7 @@ class McapColumnWriter:
                     src = b.records[b.rec_off[lo] : b.rec_off[hi]]
                 else:
                     src = _gather_segments(b.records, b.rec_off[lm], lens_m)
-                raw[_ranges_mask(total, dst[m], lens_m)] = src
+                raw[ranges_mask(total, dst[m], lens_m)] = src
         else:
             # Copy the touched span of each block once, then gather the records in log order.
             pieces, src_start, base = [], np.empty(n, dtype=np.int64), 0
