@@ -384,3 +384,21 @@ def test_calibration_file_restores_survey_recording(tmp_path):
     assert run_campaign(c_line, out, SerialExecutor(), calibration_path=other)[0]["status"] == "ok"
     assert run_campaign(c_line, out, SerialExecutor(), calibration_path=other)[0]["status"] == \
         "reused"
+
+
+def _blas_threads(_: int) -> list[int]:
+    from threadpoolctl import threadpool_info
+
+    return [d["num_threads"] for d in threadpool_info() if d["user_api"] == "blas"]
+
+
+def test_local_workers_share_the_cores_among_their_blas_threads():
+    """Each of N workers' BLAS gets cpu_count // N threads (no oversubscription)."""
+    ex = LocalExecutor(2)
+    try:
+        got = [res for _, res in ex.map(_blas_threads, [0, 1, 2])]
+    finally:
+        ex.close()
+    want = max(1, (os.cpu_count() or 1) // 2)
+    assert all(not isinstance(r, BaseException) for r in got), got
+    assert all(r and set(r) == {want} for r in got), got
