@@ -183,14 +183,16 @@ def _tune_dask_workers() -> None:
 
     The statistical profiler samples the task thread every 10 ms and the GIL monitor every
     1 ms; ``MALLOC_TRIM_THRESHOLD_=65536`` returns freed memory to the OS at once, so each
-    large array is page-faulted in again. Local process pools have none of these.
+    large array is page-faulted in again. Setting that variable to any value also switches
+    off glibc's dynamic mmap threshold (every array above 128 kB is then mmap'ed and unmapped
+    afresh), so it is unset (``None``), not raised. Local process pools have none of these.
     """
     import dask
 
     dask.config.set({
         "distributed.worker.profile.enabled": False,
         "distributed.admin.system-monitor.gil.enabled": False,
-        "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": 128 * 1024 * 1024,
+        "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
     })
     names = ["distributed"] + [n for n in logging.root.manager.loggerDict
                                if n.startswith("distributed.")]
