@@ -746,6 +746,16 @@ def explanation(kind: EffectKind, params: dict[str, Any], duration_s: float) -> 
             ". A spatial field gradient cannot be separated from a drift in time without the "
             "sensor's positions, which this recording does not carry: the term models both"
         )
+    if kind is EffectKind.AXIS_TILT:
+        text += (
+            f". The axis leans {params['tilt_deg']:.3g} deg towards bearing "
+            f"{params['azimuth_deg']:.0f} deg. With R_body_mag estimated, the readings fix only "
+            "the angle between the rotation axis and the field: every axis on that cone around "
+            "B fits equally (a lean across the field's bearing turns B about the axis, which "
+            "R_body_mag absorbs), and the one of least tilt, leaning along the field's bearing, "
+            "is reported. The true tilt is at least this large; a mounting known from another "
+            "calibration would determine its direction"
+        )
     return text
 
 

@@ -326,15 +326,22 @@ def score_test(cur: FitResult, term: Term, data: FitData, sigma: float) -> Score
     try:
         Lc = np.linalg.cholesky(0.5 * (Hn + Hn.T) + 1e-12 * np.eye(len(sc)))
         Li = np.linalg.inv(Lc)
-        eff = float(np.linalg.eigvalsh(Li @ In @ Li.T)[0])
+        effs = np.linalg.eigvalsh(Li @ In @ Li.T)
     except np.linalg.LinAlgError:
-        eff = float(ev_all[0])
+        effs = ev_all
+    # A tilted turntable axis with a known field: only the lean towards the field's horizontal
+    # direction changes the readings (Tang 2016; the other lean is a rotation of B about the
+    # axis, absorbed by R_body_mag), so the term is admitted on its best direction and fitted
+    # on that direction alone (the confounded one stays at zero).
+    partial = term.kind is EffectKind.AXIS_TILT
+    eff = float(effs[-1] if partial else effs[0])
     # pseudo-inverse with a relative floor: confounded directions carry no evidence
     w, V = np.linalg.eigh(In)
     good = w > 1e-8 * max(float(w[-1]), 1e-30)
     z = V.T @ (geff / sc)
     stat = float(np.sum(z[good] ** 2 / w[good])) / sigma**2
-    return ScoreTest(term, stat, max(eff, 0.0), term.n_params())
+    k = int(np.count_nonzero(good)) if partial else term.n_params()
+    return ScoreTest(term, stat, max(eff, 0.0), max(k, 1))
 
 
 # ----------------------------------------------------------------------------- location
