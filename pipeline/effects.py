@@ -629,6 +629,11 @@ class EffectInfo:
         How it shows in the residual.
     frame : str
         Frame in which its residual lives (``mag`` or ``enu``).
+    identifiable_in_part : bool
+        Some of its directions are confounded with the model's other parameters by nature,
+        and the rest still carry the physics: the term is admitted on its best-determined
+        direction and fitted there (the confounded directions stay at zero), instead of
+        being refused on its weakest one.
 
     """
 
@@ -636,6 +641,7 @@ class EffectInfo:
     physics: str
     signature: str
     frame: str
+    identifiable_in_part: bool = False
 
 
 EFFECTS: dict[EffectKind, EffectInfo] = {
@@ -698,6 +704,9 @@ EFFECTS: dict[EffectKind, EffectInfo] = {
         "the table), so the attitude derived from its angle is wrong (Tang et al. 2016)",
         "a once-per-turn residual that a known reference field exposes",
         "enu",
+        # With a known field only the angle between the axis and B is determined (Tang 2016):
+        # a lean across the field's bearing turns B about the axis, which R_body_mag absorbs.
+        identifiable_in_part=True,
     ),
 }
 

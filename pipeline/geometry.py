@@ -138,8 +138,7 @@ def matrix_to_quat(C: ArrayLike) -> F64:
     for j, comps in enumerate(rows):
         sel = k == j
         if sel.any():
-            q[sel] = np.stack([c[sel] if np.ndim(c) else np.full(sel.sum(), c)
-                               for c in comps], -1) / s[sel, None]
+            q[sel] = np.stack([c[sel] for c in comps], -1) / s[sel, None]
     q = np.where(q[:, 3:4] < 0, -q, q)
     return quat_normalize(q.reshape(C.shape[:-2] + (4,)))
 

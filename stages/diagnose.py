@@ -329,11 +329,8 @@ def score_test(cur: FitResult, term: Term, data: FitData, sigma: float) -> Score
         effs = np.linalg.eigvalsh(Li @ In @ Li.T)
     except np.linalg.LinAlgError:
         effs = ev_all
-    # A tilted turntable axis with a known field: only the lean towards the field's horizontal
-    # direction changes the readings (Tang 2016; the other lean is a rotation of B about the
-    # axis, absorbed by R_body_mag), so the term is admitted on its best direction and fitted
-    # on that direction alone (the confounded one stays at zero).
-    partial = term.kind is EffectKind.AXIS_TILT
+    # e.g. a tilted turntable axis with a known field (see EffectInfo.identifiable_in_part)
+    partial = EFFECTS[term.kind].identifiable_in_part
     eff = float(effs[-1] if partial else effs[0])
     # pseudo-inverse with a relative floor: confounded directions carry no evidence
     w, V = np.linalg.eigh(In)

@@ -48,7 +48,6 @@ from .base import (
     rotation_words,
     sigma_with_null,
     solve_many_truncated,
-    solve_truncated,
 )
 from .ellipsoid import fit_ellipsoid
 
@@ -294,7 +293,9 @@ def _gn_fixed_weights(model: Model, s: State, w: F64, max_iter: int
     for it in range(max_iter):
         J = model.jacobian(s)
         H, g = _normal(J, W, r, w)
-        delta = solve_truncated(H, g)
+        # One truncated pseudo-inverse serves the step and, below, the parameters' sigmas.
+        H_pinv = solve_many_truncated(H, np.eye(model.n_params), RELATIVE_INFO_THRESHOLD)
+        delta = H_pinv @ g
         lam = 1.0
         improved = False
         for _ in range(20):
@@ -313,7 +314,7 @@ def _gn_fixed_weights(model: Model, s: State, w: F64, max_iter: int
         # The step in units of each parameter's standard deviation (from this H; the noise
         # scale as in MLEstimator.finish).
         s2 = c_new / dof if model.p.noise is None else 1.0
-        var = np.diag(solve_many_truncated(H, np.eye(model.n_params), RELATIVE_INFO_THRESHOLD)) * s2
+        var = np.diag(H_pinv) * s2
         small = np.abs(lam * delta) <= STEP_TOL_SIGMA * np.sqrt(np.maximum(var, 0.0))
         if (small.all() or np.max(np.abs(lam * delta[model.blocks["rot"]])) < 1e-13
                 or (rel < 1e-14 and it > 2)):
