@@ -18,6 +18,7 @@ import numpy as np
 
 from .errors import InputError
 from .geometry import matrix_to_quat, quat_rotate, quat_to_rotvec
+from .verdict import Verdict
 
 FORMAT = "magalign.calibration/1"
 
@@ -40,6 +41,21 @@ def _list(x: np.ndarray | None) -> Any:
         return a.tolist()
     # JSON has no inf: an unobservable (infinite-sigma) entry is written as null.
     return _nulls(a)
+
+
+def _jsonable(x: Any) -> Any:
+    """Plain JSON values (numpy scalars and arrays converted, non-finite floats as null)."""
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, (np.floating, float)):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    return x
 
 
 def _nulls(a: np.ndarray) -> Any:
@@ -80,6 +96,18 @@ class Calibration:
         Further model terms (CONVENTIONS effect names -> params), e.g. ``eddy_current``.
     warnings : tuple of str
         Observability and data-quality warnings in words.
+    verdict : Verdict or None
+        OK, QUESTIONABLE or REFUSED with the reason (:mod:`pipeline.verdict`).
+    n_eff : float or None
+        Effective number of independent samples behind the rotation's sigma (the samples
+        divided by the inflation of its variance by correlated residuals).
+    not_estimated : tuple of dict
+        ``{term, reason}`` for requested terms the motion could not determine.
+    checks : dict
+        What the estimator's global checks found (JSON values): ``split`` (halves),
+        ``starts`` (multi-start), ``n_eff_fraction``, ``refusals`` and ``doubts``.
+    sample_hold : dict or None
+        ``{native_rate_hz, repeated_fraction}`` when repeated messages were left out.
 
     """
 
@@ -100,6 +128,11 @@ class Calibration:
     R_nominal_body_mag: np.ndarray | None = None
     effects: dict = field(default_factory=dict)
     warnings: tuple[str, ...] = ()
+    verdict: Verdict | None = None
+    n_eff: float | None = None
+    not_estimated: tuple[dict, ...] = ()
+    checks: dict = field(default_factory=dict)
+    sample_hold: dict | None = None
 
     def __post_init__(self) -> None:
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
@@ -114,6 +147,7 @@ class Calibration:
         set_("R_nominal_body_mag", _arr(self.R_nominal_body_mag, (3, 3)))
         set_("unobservable_axes_body", tuple(_arr(a, (3,)) for a in self.unobservable_axes_body))
         set_("warnings", tuple(self.warnings))
+        set_("not_estimated", tuple(self.not_estimated))
         if self.time_offset_s is not None:
             set_("time_offset_s", float(self.time_offset_s))
 
@@ -201,6 +235,11 @@ class Calibration:
             "rotvec_from_nominal_deg": _list(self.rotvec_from_nominal_deg),
             "effects": self.effects,
             "warnings": list(self.warnings),
+            "verdict": None if self.verdict is None else self.verdict.to_dict(),
+            "n_eff": None if self.n_eff is None else float(self.n_eff),
+            "not_estimated": [dict(d) for d in self.not_estimated],
+            "checks": _jsonable(self.checks),
+            "sample_hold": self.sample_hold,
         }
 
     def to_json(self, indent: int = 2) -> str:
@@ -236,6 +275,11 @@ class Calibration:
                 R_nominal_body_mag=d.get("R_nominal_body_mag"),
                 effects=d.get("effects") or {},
                 warnings=tuple(d.get("warnings") or ()),
+                verdict=None if d.get("verdict") is None else Verdict.from_dict(d["verdict"]),
+                n_eff=d.get("n_eff"),
+                not_estimated=tuple(d.get("not_estimated") or ()),
+                checks=d.get("checks") or {},
+                sample_hold=d.get("sample_hold"),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"calibration file is incomplete or malformed: {exc}",

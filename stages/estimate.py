@@ -78,6 +78,7 @@ def fit_calibration(
     robust: bool | RobustLoss = False,
     windows_ns: Sequence[tuple[int, int]] | None = None,
     noise: NoiseModel | None = None,
+    drop_repeats: bool = True,
 ) -> Calibration:
     """Estimate the calibration of one recording.
 
@@ -104,6 +105,9 @@ def fit_calibration(
     noise : NoiseModel, optional
         Sensor figures for the weighting; ``None`` means unknown isotropic noise (the
         covariance is then scaled by the residual variance).
+    drop_repeats : bool
+        Leave out repeated sample-and-hold messages (:mod:`pipeline.sample_hold`) when the
+        recording has them.
 
     Returns
     -------
@@ -132,6 +136,13 @@ def fit_calibration(
         R_nom = R_nom.reshape(3, 3)
         if not np.allclose(R_nom @ R_nom.T, np.eye(3), atol=1e-6) or np.linalg.det(R_nom) < 0:
             raise EstimationError("the nominal mounting R_nominal_body_mag is not a rotation")
+    from pipeline.sample_hold import detect_sample_hold
+
+    # Sample-and-hold (CONVENTIONS effect sample_hold): a repeated message carries no new
+    # conversion and was sensed up to one native period before its stamp; left out.
+    hold = detect_sample_hold(al.t_ns, al.mag_nT) if drop_repeats else None
+    if hold is not None:
+        al = al.select(hold.first)
     problem = Problem(
         t_ns=al.t_ns,
         mag_nT=al.mag_nT,
@@ -144,7 +155,38 @@ def fit_calibration(
         robust=_robust(robust),
         noise=noise,
     )
-    return make_estimator(estimator).fit(problem)
+    cal = make_estimator(estimator).fit(problem)
+    if hold is not None:
+        cal = cal.replace(
+            sample_hold=hold.params(),
+            warnings=cal.warnings + (
+                f"sample-and-hold: {100 * hold.repeated_fraction:.0f} % of the magnetometer "
+                f"messages repeat the previous one (native rate {hold.native_rate_hz:.1f} Hz, "
+                f"messages {hold.message_rate_hz:.1f} Hz); the repeats were left out",),
+        )
+    return with_verdict(cal, al)
+
+
+def with_verdict(cal: Calibration, aligned: AlignedSeries,
+                 residual_rms_nT: float | None = None) -> Calibration:
+    """Return ``cal`` with its verdict (:mod:`pipeline.verdict`) from the aligned samples.
+
+    The sensor noise is measured in the still windows of ``aligned`` (repeated
+    sample-and-hold messages left out); the fit's checks (``cal.checks``) give the refusals
+    and doubts. ``residual_rms_nT`` overrides the calibration's own (a later, fuller model).
+    """
+    from pipeline.sample_hold import repeated
+    from pipeline.verdict import judge, sensor_noise_nT
+
+    keep = ~repeated(aligned.mag_nT)
+    noise = sensor_noise_nT(aligned.t_ns, aligned.mag_nT, aligned.q_enu_body, keep)
+    res = cal.residual_rms_nT if residual_rms_nT is None else residual_rms_nT
+    refusals = list(cal.checks.get("refusals", ()))
+    if len(cal.unobservable_axes_body) >= 3:
+        refusals.insert(0, "the platform did not rotate: nothing about the misalignment is "
+                        "observable; record rotations about at least two different axes")
+    doubts = list(cal.checks.get("doubts", ()))
+    return cal.replace(verdict=judge(res, noise, refusals=refusals, doubts=doubts))
 
 
 @dataclass(frozen=True)

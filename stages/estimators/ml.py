@@ -49,6 +49,14 @@ from .base import (
     sigma_with_null,
     solve_many_truncated,
 )
+from .checks import (
+    SplitCheck,
+    confounded,
+    info_halves,
+    per_sample_rot_info,
+    sandwich_cov,
+    split_inflation,
+)
 from .ellipsoid import fit_ellipsoid
 
 # Symmetric basis of D: three diagonal then three off-diagonal elements.
@@ -330,11 +338,14 @@ class MLEstimator:
     ----------
     max_iter : int
         Gauss-Newton iterations.
+    checks : bool
+        Run the global checks (determinability, multi-start, split halves; see ``fit``).
 
     """
 
     max_iter: int = 60
     name: str = "ml"
+    checks: bool = True
 
     def initial_state(self, p: Problem) -> State:
         """Closed-form start: ellipsoid (when D is wanted and the data cover 3D), then Wahba."""
@@ -366,15 +377,70 @@ class MLEstimator:
         return State(R, np.asarray(B, float), o, D, float(p.time_offset0_s))
 
     def fit(self, p: Problem) -> Calibration:
-        """Estimate; see :class:`Calibration` for the fields."""
+        """Estimate; see :class:`Calibration` for the fields.
+
+        With ``checks`` (the default) the fit is checked globally (module ``checks``): terms
+        the motion confounds are not estimated, the fit is repeated from several starts,
+        the covariance is the block sandwich, and the rotation of two halves of equal
+        information is compared; what the checks find goes to ``Calibration.checks``
+        (``refusals`` and ``doubts`` for the verdict) and ``not_estimated``.
+        """
         if Term.TIME_OFFSET in p.terms:
             p = _inside_attitude_span(p)
+        not_estimated: list[dict] = []
+        refusals: list[str] = []
+        doubts: list[str] = []
+        if self.checks:
+            p, not_estimated, base_note = self._determinable(p)
+            if base_note:
+                doubts.append(base_note)
         model = Model(p, estimate_B=p.reference_field_enu_nT is None)
+        gn, pc = self._solve(p, model, self.initial_state)
+        cal = self.finish(p, model, gn)
+        if not self.checks:
+            return cal
+        info: dict = {}
+        if not_estimated:
+            doubts.append("not estimated (the motion cannot determine them): "
+                          + ", ".join(d["term"] for d in not_estimated))
+        gn, cal, start_note, start_info = self._multistart(p, pc, model, gn, cal)
+        info["starts"] = start_info
+        if start_note is not None:
+            refusals.append(start_note)
+        split = self._split(p, model, gn, cal)
+        if split is not None:
+            info["split"] = split.to_dict()
+            if not split.consistent:
+                before = cal.sigma_rotvec_deg
+                cal = self._inflate(cal, split)
+                d = split.diff_deg
+                words = (
+                    f"the two halves of the recording disagree by {np.linalg.norm(d):.2f} deg "
+                    f"(chi-square {split.chi2:.0f} for 3 degrees of freedom): the model leaves "
+                    "out physics that changes over the recording; sigmas include the "
+                    "disagreement"
+                )
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    grow = np.nanmax(np.where(np.isfinite(before), cal.sigma_rotvec_deg
+                                              / np.maximum(before, 1e-300), 1.0))
+                if grow > SPLIT_DOUBT_GROWTH:
+                    doubts.append(words)
+                else:
+                    cal = cal.replace(warnings=cal.warnings + (words,))
+        info["refusals"] = refusals
+        info["doubts"] = doubts
+        return cal.replace(checks={**cal.checks, **info}, not_estimated=tuple(not_estimated))
+
+    def _solve(self, p: Problem, model: Model, start) -> tuple[GNResult, Problem]:
+        """Run coarse-to-fine Gauss-Newton from ``start(problem)``.
+
+        Returns the result and the coarse problem.
+        """
         # Coarse to fine: on a long recording, start and converge on an evenly decimated
         # subset; the full-data Gauss-Newton then needs one or two iterations to the same
         # optimum (the start only has to lie in its basin).
         pc = _decimated(p, COARSE_SAMPLES) if p.n > 2 * COARSE_SAMPLES else p
-        s0 = self.initial_state(pc)
+        s0 = start(pc)
         if model.with_tau:
             # Fit without tau first: the rotation must be close before tau's Jacobian is useful.
             m0 = Model(
@@ -384,7 +450,203 @@ class MLEstimator:
             s0 = gauss_newton(m0, s0, self.max_iter).s
         if pc is not p:
             s0 = gauss_newton(Model(pc, estimate_B=model.estimate_B), s0, self.max_iter).s
-        return self.finish(p, model, gauss_newton(model, s0, self.max_iter))
+        return gauss_newton(model, s0, self.max_iter), pc
+
+    # ------------------------------------------------------------------ global checks
+    def _determinable(self, p: Problem) -> tuple[Problem, list[dict], str | None]:
+        """Leave out the requested terms that the motion confounds (``checks.confounded``).
+
+        The information of the full requested model is taken at the fit of the rotation and
+        field alone (offset 0, D = I, the initial tau): the motion decides what can be
+        determined, not a start that may already have wandered. Terms are removed one at a
+        time, each time the one whose removal leaves the best-determined model, until no
+        block is confounded.
+        """
+        extra = [t for t in (Term.SOFT_IRON, Term.OFFSET, Term.TIME_OFFSET) if t in p.terms]
+        pb = Problem(**{**p.__dict__, "terms": frozenset()})
+        pcb = _decimated(pb, CHECK_SAMPLES) if pb.n > 2 * CHECK_SAMPLES else pb
+        mb = Model(pcb, estimate_B=pb.reference_field_enu_nT is None)
+        sb = gauss_newton(mb, self.initial_state(pcb), self.max_iter).s
+        pcf = Problem(**{**pcb.__dict__, "terms": p.terms})
+        sb = State(sb.R, sb.B, np.zeros(3), np.eye(3), float(p.time_offset0_s))
+        if Term.SOFT_IRON in p.terms and pb.reference_field_enu_nT is not None:
+            # a known |B| carries the scale of D: start it at the measured ratio
+            yn = np.median(np.linalg.norm(pcb.mag_nT, axis=1))
+            sb = State(sb.R, sb.B, sb.o, np.eye(3) * yn / np.linalg.norm(sb.B), sb.tau)
+
+        def ratios(terms: frozenset) -> tuple[dict, dict]:
+            m = Model(Problem(**{**pcf.__dict__, "terms": terms}),
+                      estimate_B=pb.reference_field_enu_nT is None)
+            J = m.jacobian(sb)
+            H, _ = _normal(J, m.weights(sb), np.zeros((pcf.n, 3)), np.ones(pcf.n))
+            return analyse(H, m.blocks).block_ratio, m.blocks
+
+        words = {
+            Term.OFFSET: "the offset trades against the field and the rotation: the field "
+            "direction in the sensor frame did not cover enough of the sphere (rotate the "
+            "sensor through very different attitudes, about at least two axes)",
+            Term.SOFT_IRON: "the soft-iron matrix trades against the rotation: the motion did "
+            "not turn the sensor through enough directions (tumble it about all three axes)",
+            Term.TIME_OFFSET: "the time offset trades against the rotation: the rotation rate "
+            "hardly changed (vary the rotation rate, turn back and forth)",
+        }
+        terms = frozenset(extra)
+        dropped: list[dict] = []
+        while True:
+            rat, blocks = ratios(terms)
+            bad = confounded(rat, list(blocks))
+            if not bad or not terms:
+                break
+            # remove the term whose absence leaves the best-determined model
+            best, best_score = None, -1.0
+            for t in extra:
+                if t not in terms:
+                    continue
+                r2, b2 = ratios(terms - {t})
+                score = min(
+                    (float(np.min(v[v >= RELATIVE_INFO_THRESHOLD])) if np.any(
+                        v >= RELATIVE_INFO_THRESHOLD) else 1.0) for v in r2.values()
+                )
+                if score > best_score:
+                    best, best_score = t, score
+            assert best is not None
+            worst = min(bad.values())
+            dropped.append({
+                "term": best.value,
+                "reason": f"{words[best]} (only {worst:.1e} of the information of its weakest "
+                "combination is left once the other parameters are free)",
+            })
+            terms = terms - {best}
+        note = None
+        rat, blocks = ratios(terms)
+        bad = confounded(rat, ["rot"])
+        if bad:
+            note = (
+                "the motion barely determines the rotation about one axis (only "
+                f"{bad['rot']:.1e} of its information survives the field being unknown): "
+                "rotate about a second, very different axis"
+            )
+        return Problem(**{**p.__dict__, "terms": terms}), dropped, note
+
+    def _multistart(self, p: Problem, pc: Problem, model: Model, gn: GNResult,
+                    cal: Calibration) -> tuple[GNResult, Calibration, str | None, list]:
+        """Repeat the fit from other starts; refuse when distinct minima fit about as well.
+
+        Starts (on the coarse problem): the closed-form start, a neutral one (no offset,
+        D = I, Wahba on the raw readings) and the closed-form rotation turned by 90 deg about
+        each body axis. A minimum that fits better replaces the result; one that fits about
+        as well (within 25 effective chi-square units, i.e. 5 sigma) but with a rotation
+        that differs by more than 1 deg and 5 sigma makes the result start-dependent.
+        """
+        if pc.n > 2 * CHECK_SAMPLES:
+            pc = _decimated(pc, CHECK_SAMPLES)
+        mc = Model(pc, estimate_B=model.estimate_B)
+        s_main = gn.s
+        starts = [self.initial_state(pc), self._neutral_state(pc)]
+        for k in range(3):
+            e = np.zeros(3)
+            e[k] = np.pi / 2
+            s = starts[0]
+            R = so3_exp(e) @ s.R
+            starts.append(State(R, s.B, s.o, s.D, s.tau))
+        # the main solution's cost on the coarse problem
+        results = [(s_main, _cost(pc.mag_nT - mc.predict(s_main), mc.weights(s_main),
+                                  np.ones(pc.n))[0])]
+        for s in starts:
+            try:
+                g = gauss_newton(mc, s, self.max_iter)
+            except (np.linalg.LinAlgError, FloatingPointError):
+                continue
+            c, _ = _cost(g.r, g.W, np.ones(pc.n))
+            if np.isfinite(c):
+                results.append((g.s, c))
+        c_main = results[0][1]
+        dof = max(3 * pc.n - mc.n_params, 1)
+        frac = max(float(cal.checks.get("n_eff_fraction", 1.0)), 1e-3)
+        s2_eff = (c_main / dof) / frac if p.noise is None else 1.0 / frac
+        sig = np.radians(np.where(np.isfinite(cal.sigma_rotvec_deg), cal.sigma_rotvec_deg, 0.0))
+        info = []
+        note = None
+        best_s, best_c = results[0]
+        for s, c in results[1:]:
+            ang = float(np.degrees(np.linalg.norm(_log(s.R @ s_main.R.T))))
+            dchi = (c - c_main) / s2_eff
+            info.append({"rotation_from_result_deg": ang, "delta_chi2": float(dchi)})
+            if c < best_c and dchi < -25.0:
+                best_s, best_c = s, c
+        if best_s is not s_main:
+            # a clearly better minimum: the result moves there
+            gn = gauss_newton(model, best_s, self.max_iter)
+            cal = self.finish(p, model, gn)
+            s_main, c_main = best_s, best_c
+            sig = np.radians(np.where(np.isfinite(cal.sigma_rotvec_deg),
+                                      cal.sigma_rotvec_deg, 0.0))
+        for s, c in results[1:]:
+            dv = _log(s.R @ s_main.R.T)
+            ang = float(np.degrees(np.linalg.norm(dv)))
+            z = np.abs(dv) / np.maximum(sig, 1e-12)
+            dchi = (c - c_main) / s2_eff
+            if ang > 1.0 and np.max(z) > 5.0 and abs(dchi) < 25.0:
+                rv = np.degrees(_log(s.R))
+                note = (
+                    "the fit depends on its start: a rotation of "
+                    + ", ".join(f"{v:+.1f}" for v in rv)
+                    + f" deg fits these data about as well ({ang:.1f} deg away): the motion "
+                    "does not determine the misalignment with the requested terms; rotate "
+                    "about more axes or estimate fewer terms"
+                )
+                break
+        return gn, cal, note, info
+
+    def _neutral_state(self, p: Problem) -> State:
+        """No offset, D = I (trace-scaled when a reference fixes |B|), Wahba on raw readings."""
+        R, B = init_rotation(p.mag_nT, p.C_enu_body, p.reference_field_enu_nT)
+        D = np.eye(3)
+        if p.reference_field_enu_nT is not None and Term.SOFT_IRON in p.terms:
+            D = D * np.median(np.linalg.norm(p.mag_nT, axis=1)) / np.linalg.norm(
+                p.reference_field_enu_nT)
+        return State(R, np.asarray(B, float), np.zeros(3), D, float(p.time_offset0_s))
+
+    def _split(self, p: Problem, model: Model, gn: GNResult,
+               cal: Calibration) -> SplitCheck | None:
+        """Fit two contiguous halves of equal rotation information and compare them."""
+        if p.n < 200:
+            return None
+        J = model.jacobian(gn.s)
+        info = per_sample_rot_info(J, gn.W, model.blocks["rot"])
+        first = info_halves(info)
+        sub = MLEstimator(max_iter=self.max_iter, name=self.name, checks=False)
+        out = []
+        for m in (first, ~first):
+            ph = _subset(p, m)
+            if ph.n < 50:
+                return None
+            mh = Model(ph, estimate_B=model.estimate_B)
+            try:
+                g = gauss_newton(mh, gn.s, self.max_iter)
+                c = sub.finish(ph, mh, g)
+            except (EstimationError, np.linalg.LinAlgError):
+                return None
+            if c.unobservable_axes_body and not cal.unobservable_axes_body:
+                return None
+            out.append(c)
+        a, b = out
+        d = _log(a.R_body_mag @ b.R_body_mag.T)
+        Ca = np.radians(a.sigma_rotvec_deg) ** 2
+        Cb = np.radians(b.sigma_rotvec_deg) ** 2
+        var = Ca + Cb
+        ok = np.isfinite(var) & (var > 0)
+        chi2 = float(np.sum(d[ok] ** 2 / var[ok]))
+        t_split = float((p.t_ns[np.flatnonzero(~first)[0]] - p.t_ns[0]) * 1e-9)
+        return SplitCheck(a.rotvec_body_mag_deg, b.rotvec_body_mag_deg, np.degrees(d), chi2,
+                          t_split)
+
+    @staticmethod
+    def _inflate(cal: Calibration, split: SplitCheck) -> Calibration:
+        """Add the halves' disagreement to the rotation sigmas (``checks.split_inflation``)."""
+        extra = split_inflation(np.radians(split.diff_deg))
+        var = np.radians(cal.sigma_rotvec_deg) ** 2 + np.diag(extra)
+        return cal.replace(sigma_rotvec_deg=np.degrees(np.sqrt(var)))
 
     def finish(self, p: Problem, model: Model, gn: GNResult) -> Calibration:
         """Covariance, observability and the Calibration value."""
@@ -394,7 +656,9 @@ class MLEstimator:
         # Unknown noise: scale by the residual variance. Known noise: the model's own.
         s2 = chi2 / dof if p.noise is None else 1.0
         an = analyse(H, model.blocks)
-        cov = an.cov * s2
+        cov_white = an.cov * s2
+        # Block sandwich (module ``checks``): correlated residuals, never below white.
+        cov, n_eff_frac = sandwich_cov(model.jacobian(s), W, w, r, p.t_ns, an.cov, cov_white)
         blocks = model.blocks
         warnings: list[str] = []
 
@@ -404,6 +668,7 @@ class MLEstimator:
 
         rot_null = an.block_null.get("rot", np.zeros((3, 0)))
         sig_rot = sigma_with_null(block_cov("rot"), rot_null)
+        sig_rot_white = sigma_with_null(cov_white[blocks["rot"], blocks["rot"]], rot_null)
         axes = [canonical_axis(v) for v in rot_null.T]
         if axes:
             warnings.append(rotation_words(axes, p.reference_field_enu_nT is not None))
@@ -482,6 +747,9 @@ class MLEstimator:
             sigma_B_enu_nT=sig_B,
             R_nominal_body_mag=p.R_nominal_body_mag,
             warnings=tuple(warnings),
+            n_eff=float(p.n * n_eff_frac),
+            checks={"n_eff_fraction": n_eff_frac,
+                    "sigma_rotvec_white_deg": np.degrees(sig_rot_white).tolist()},
         )
 
 
@@ -493,6 +761,12 @@ TAU_EDGE_MARGIN_S = 0.25
 
 #: Samples of the coarse stage of a long recording (see :meth:`MLEstimator.fit`).
 COARSE_SAMPLES = 20_000
+#: Samples (evenly spread) on which determinability and the other starts are checked: the
+#: information ratios are scale-free and a start's basin does not depend on the sample count.
+CHECK_SAMPLES = 4_000
+#: The halves' disagreement makes the result questionable when it more than doubles a sigma
+#: (below that it is a warning: the sigmas already carry it).
+SPLIT_DOUBT_GROWTH = 2.0
 
 
 def _decimated(p: Problem, n_max: int) -> Problem:
@@ -516,6 +790,24 @@ def _decimated(p: Problem, n_max: int) -> Problem:
             "attitude": att,
         }
     )
+
+
+def _subset(p: Problem, mask: np.ndarray) -> Problem:
+    """Return the samples of ``p`` where ``mask`` is true, with the whole attitude series."""
+    from pipeline.recording import AttitudeSeries
+
+    att = p.attitude
+    if att is None:
+        att = AttitudeSeries(p.t_ns - np.int64(round(p.time_offset0_s * 1e9)), p.q_enu_body)
+    return Problem(**{**p.__dict__, "t_ns": p.t_ns[mask], "mag_nT": p.mag_nT[mask],
+                      "q_enu_body": p.q_enu_body[mask], "attitude": att})
+
+
+def _log(R: F64) -> F64:
+    """Return the rotation vector (rad) of a rotation matrix."""
+    from pipeline.geometry import matrix_to_quat, quat_to_rotvec
+
+    return quat_to_rotvec(matrix_to_quat(R))
 
 
 def _inside_attitude_span(p: Problem) -> Problem:
