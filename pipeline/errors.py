@@ -139,6 +139,14 @@ class NotObservableError(EstimationError):
     """The motion in the recording cannot determine what was asked for."""
 
 
+class RefusedError(EstimationError):
+    """The fit's checks refused the result.
+
+    Start-dependent, or the model does not describe the data; the message gives the reason
+    and what motion or model is missing.
+    """
+
+
 class OutputError(MagalignError):
     """An output cannot be written (disk full, path escaping the output folder, ...)."""
 

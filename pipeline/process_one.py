@@ -309,6 +309,10 @@ def build_stages(ctx: Context, out_dir: Path, options: ProcessOptions) -> list:
             stages.append(scaled(diag_cls(**dkw)))
     if tilt_note is not None and options.calibration_path is None:
         stages.append(tilt_note)  # axis_tilt (or why not) into calibration effects/warnings
+    if options.calibration_path is None:
+        from stages.estimate import Judge
+
+        stages.append(Judge())  # the verdict on the final model
     stages.append(Restore(max_gap_s=options.max_gap_s))
     stages.append(Metrics(out_dir=str(out_dir), max_gap_s=options.max_gap_s))
     stages.append(WriteResults(str(out_dir)))
@@ -328,6 +332,12 @@ def _finite_list(a: Any) -> list | None:
     if a is None:
         return None
     return [None if not np.isfinite(x) else float(x) for x in np.asarray(a, dtype=float).ravel()]
+
+
+def _verdict_line(cal: Calibration) -> str:
+    from stages.estimate import verdict_line
+
+    return verdict_line(cal)
 
 
 def summary_row(ctx: Context, stem: str, out_dir: Path) -> dict[str, Any]:
@@ -352,6 +362,9 @@ def summary_row(ctx: Context, stem: str, out_dir: Path) -> dict[str, Any]:
         "offset_nT": _finite_list(cal.offset_nT),
         "time_offset_s": cal.time_offset_s,
         "warnings": list(cal.warnings),
+        "verdict": None if cal.verdict is None else cal.verdict.status.value,
+        "verdict_reason": None if cal.verdict is None else cal.verdict.reason,
+        "verdict_line": _verdict_line(cal),
         "findings": findings,
         "out_dir": str(out_dir),
         "paths": {k: v for k, v in ctx.outputs},

@@ -999,7 +999,12 @@ class Diagnose:
         if cal is not None:
             init = ModelState(np.asarray(cal.R_body_mag), np.asarray(cal.B_enu_nT))
         diag, res = diagnose_data(data, init, self.config, turntable=rec.turntable is not None)
-        return ctx.replace(diagnosis=diag, calibration=calibration_from(res, data, diag.findings))
+        final = calibration_from(res, data, diag.findings)
+        if cal is not None:
+            from stages.estimate import carry_checks
+
+            final = carry_checks(cal, final)
+        return ctx.replace(diagnosis=diag, calibration=final)
 
 
 # ----------------------------------------------------------------------------- figures

@@ -28,6 +28,10 @@ from .estimators.base import (
 
 __all__ = [
     "Estimate",
+    "Judge",
+    "carry_checks",
+    "verdict_line",
+    "with_verdict",
     "EstimatorKind",
     "NoiseModel",
     "RobustLoss",
@@ -187,6 +191,63 @@ def with_verdict(cal: Calibration, aligned: AlignedSeries,
                         "observable; record rotations about at least two different axes")
     doubts = list(cal.checks.get("doubts", ()))
     return cal.replace(verdict=judge(res, noise, refusals=refusals, doubts=doubts))
+
+
+def carry_checks(before: Calibration, after: Calibration) -> Calibration:
+    """Return ``after`` (a fuller model of the same recording) with ``before``'s checks.
+
+    The estimate's global checks (split halves, starts, terms not estimated, sample-and-hold,
+    effective samples) still hold for the final model; its rotation sigmas are never smaller
+    than the estimate's honest ones (a model with more terms does not determine the rotation
+    better than the data's own consistency allows).
+    """
+    sig = np.asarray(after.sigma_rotvec_deg, float)
+    if before.sigma_rotvec_deg is not None:
+        sig = np.fmax(sig, np.asarray(before.sigma_rotvec_deg, float))
+        sig = np.where(np.isinf(after.sigma_rotvec_deg), np.inf, sig)
+    return after.replace(
+        sigma_rotvec_deg=sig,
+        checks={**before.checks, **after.checks},
+        not_estimated=before.not_estimated,
+        sample_hold=before.sample_hold if after.sample_hold is None else after.sample_hold,
+        n_eff=before.n_eff if after.n_eff is None else after.n_eff,
+        warnings=tuple(dict.fromkeys(before.warnings + after.warnings)),
+    )
+
+
+def verdict_line(cal: Calibration) -> str:
+    """One line for a person: misalignment angle +- sigma and axis, time offset, verdict."""
+    rv = np.asarray(cal.rotvec_body_mag_deg, float)
+    sg = np.asarray(cal.sigma_rotvec_deg, float)
+    ang = float(np.linalg.norm(rv))
+    u = rv / ang if ang > 0 else np.array([0.0, 0.0, 1.0])
+    s_ang = float(np.sqrt(np.sum((u * sg) ** 2))) if np.all(np.isfinite(sg)) else float("inf")
+    parts = [
+        f"misalignment {ang:.2f} +- {s_ang:.2f} deg about body ["
+        + ", ".join(f"{c:+.2f}" for c in u) + "]"
+    ]
+    if cal.time_offset_s is not None:
+        parts.append(f"time offset {cal.time_offset_s * 1e3:+.1f} ms")
+    if cal.verdict is not None:
+        v = cal.verdict
+        if v.sensor_noise_nT is not None:
+            parts.append(f"residual {v.residual_rms_nT:.0f} nT vs noise {v.sensor_noise_nT:.0f} nT")
+        else:
+            parts.append(f"residual {v.residual_rms_nT:.0f} nT")
+        parts.append(v.status.value)
+    return "; ".join(parts)
+
+
+@dataclass(frozen=True)
+class Judge:
+    """Stage: the verdict on the final calibration (after diagnosis), from the aligned data."""
+
+    requires: ClassVar[frozenset[str]] = frozenset({"aligned", "calibration"})
+    provides: ClassVar[frozenset[str]] = frozenset({"calibration"})
+
+    def run(self, ctx: Context) -> Context:
+        """Return ``ctx`` with ``calibration.verdict`` for its final model."""
+        return ctx.replace(calibration=with_verdict(ctx.calibration, ctx.aligned))
 
 
 @dataclass(frozen=True)

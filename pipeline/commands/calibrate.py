@@ -13,8 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.atomic import atomic_path
-from pipeline.errors import NotObservableError, UsageError
+from pipeline.errors import NotObservableError, RefusedError, UsageError
 from pipeline.mcap_read import read_recording_warning
+from pipeline.verdict import Status
 
 
 def _floats(text: str, n: int, what: str) -> list[float]:
@@ -104,6 +105,9 @@ def run(args: argparse.Namespace) -> int:
         raise NotObservableError(
             "the platform did not rotate: nothing about the misalignment is observable",
             path=args.recording, hint="record rotations about at least two different axes")
+    if cal.verdict is not None and cal.verdict.status is Status.REFUSED:
+        # Same reason: a refused fit is not written where a later run would find it.
+        raise RefusedError(f"calibration refused: {cal.verdict.reason}", path=args.recording)
     out = Path(args.out) / "calibration.json"
     with atomic_path(out, inputs=(args.recording,)) as tmp:
         tmp.write_text(cal.to_json() + "\n")
@@ -138,4 +142,13 @@ def summary(cal) -> str:
             f"{(cal.sigma_time_offset_s or 0) * 1e3:.3f} ms"
         )
     lines += [f"warning: {w}" for w in cal.warnings]
+    lines += [f"not estimated: {d['term']}: {d['reason']}" for d in cal.not_estimated]
+    if cal.n_eff is not None:
+        lines.append(f"effective independent samples behind the sigmas: {cal.n_eff:.0f} of "
+                     f"{cal.n_samples} (correlated residuals)")
+    from stages.estimate import verdict_line
+
+    lines.append(verdict_line(cal))
+    if cal.verdict is not None:
+        lines.append(f"verdict {cal.verdict.line()}")
     return "\n".join(lines)

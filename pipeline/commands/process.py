@@ -150,6 +150,10 @@ def run(args: argparse.Namespace) -> int:
                 if r["status"] == "failed"]
     print(f"{len(results)} recording(s): {n_ok} processed, {n_re} reused (unchanged), "
           f"{len(failures)} failed ({executor.describe()})")
+    for r in results:
+        line = (r.get("row") or {}).get("verdict_line")
+        if line:
+            print(f"{r['name']}: {line}")
     print(f"results in {out}:")
     print(f"  summary  {out / html_path.name}   (open in a browser)")
     print(f"  table    {out / pq_path.name}")
