@@ -307,6 +307,29 @@ def _calibration_html(cal: Any) -> str:
     return f"<table class=kv>{body}</table>"
 
 
+_VERDICT_COLOUR = {"OK": "#d4edda", "QUESTIONABLE": "#fff3cd", "REFUSED": "#f8d7da"}
+
+
+def _verdict_html(cal: Any) -> str:
+    """Return the verdict box for the top of the report: one-line summary and reason."""
+    from stages.estimate import verdict_line
+
+    v = getattr(cal, "verdict", None)
+    status = "not judged" if v is None else v.status.value
+    colour = _VERDICT_COLOUR.get(status, "#eee")
+    reason = "" if v is None else f"<p>{html.escape(v.reason)}</p>"
+    ne = "".join(f"<li>{html.escape(d['term'])}: {html.escape(d['reason'])}</li>"
+                 for d in getattr(cal, "not_estimated", ()))
+    ne = f"<p>Not estimated:</p><ul>{ne}</ul>" if ne else ""
+    neff = getattr(cal, "n_eff", None)
+    neff_html = "" if neff is None else (
+        f"<p>Sigmas from {neff:.0f} effective independent samples of {int(cal.n_samples)} "
+        "(residuals correlated in time; block sandwich and split-half check).</p>")
+    return (f"<div class=verdict style='background:{colour};border:1px solid #999;"
+            f"padding:.5em 1em;font-size:15px'><b>Verdict: {html.escape(status)}</b> &mdash; "
+            f"{html.escape(verdict_line(cal))}{reason}{ne}{neff_html}</div>")
+
+
 def _diagnosis_html(diagnosis: Any) -> tuple[str, list[tuple[str, bytes]]]:
     if diagnosis is None:
         return "<p>Not diagnosed.</p>", []
@@ -397,6 +420,7 @@ def render_html(
 <html lang="en"><head><meta charset="utf-8"><title>magalign: {html.escape(stem)}</title>
 <style>{CSS}</style></head><body>
 <h1>magalign report: {html.escape(stem)}</h1>
+{_verdict_html(calibration)}
 <p>Recording <code>{html.escape(Path(recording.path).name)}</code>,
 {recording.duration_s:.1f} s, {len(recording.mag)} magnetometer samples on
 <code>{html.escape(recording.mag_topic)}</code>, attitude on

@@ -127,7 +127,7 @@ def info_halves(info: F64) -> NDArray[np.bool_]:
     if c[-1] <= 0:
         half = len(info) // 2
     else:
-        half = int(np.searchsorted(c, 0.5 * c[-1]))
+        half = int(np.searchsorted(c, 0.5 * c[-1])) + 1
     m = np.zeros(len(info), bool)
     m[:max(1, min(half, len(info) - 1))] = True
     return m
