@@ -54,6 +54,13 @@ class EffectKind(str, enum.Enum):
 
 LOCAL_KINDS = frozenset({EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP})
 
+#: A term (or the rotation) keeping less than this fraction of the information of its weakest
+#: parameter combination once the other parameters are free is confounded by the motion: its
+#: sigma is over 10 times what it would be alone, and a model error of a tenth of the noise
+#: moves it by a sigma. Not estimated, by calibrate (``stages.estimators.checks``) and by
+#: diagnose alike.
+CONFOUND_RATIO = 1e-2
+
 # Symmetric traceless basis of the soft-iron deviation S (5 matrices): the trace of D is the
 # field magnitude's job when B_enu is free (D = s I and B/s predict the same readings).
 _SOFT_BASIS = np.zeros((5, 3, 3))
@@ -881,7 +888,7 @@ def identifiability_reason(
             "the platform hardly turned: a slow field change cannot be told from a slow change "
             "of attitude or offset"
         )
-    if efficiency < 1e-3:
+    if efficiency < CONFOUND_RATIO:
         which = {
             EffectKind.FIELD_DRIFT: "slow attitude changes and the field",
             EffectKind.SOFT_IRON: "the field magnitude and R_body_mag",

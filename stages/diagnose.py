@@ -22,6 +22,7 @@ import numpy as np
 
 from pipeline.calibration import Calibration
 from pipeline.effects import (
+    CONFOUND_RATIO,
     EFFECTS,
     LOCAL_KINDS,
     AttitudeTrack,
@@ -285,6 +286,10 @@ class ScoreTest:
         Smallest generalised eigenvalue of ``I_eff`` vs the term's own information (0: fully
         confounded with parameters already in the model).
     k : int
+    rot_efficiency : float
+        The same fraction for the rotation ``R_body_mag`` once the term is in the model: a
+        term that leaves the rotation confounded (below ``CONFOUND_RATIO``) is not admitted,
+        however well it fits.
 
     """
 
@@ -292,6 +297,7 @@ class ScoreTest:
     statistic: float
     efficiency: float
     k: int
+    rot_efficiency: float = 1.0
 
 
 def score_test(cur: FitResult, term: Term, data: FitData, sigma: float) -> ScoreTest:
@@ -338,7 +344,17 @@ def score_test(cur: FitResult, term: Term, data: FitData, sigma: float) -> Score
     z = V.T @ (geff / sc)
     stat = float(np.sum(z[good] ** 2 / w[good])) / sigma**2
     k = int(np.count_nonzero(good)) if partial else term.n_params()
-    return ScoreTest(term, stat, max(eff, 0.0), max(k, 1))
+    return ScoreTest(term, stat, max(eff, 0.0), max(k, 1), _rot_efficiency(Jb, Jc))
+
+
+def _rot_efficiency(Jb: np.ndarray, Jc: np.ndarray) -> float:
+    """Fraction of the rotation's weakest information left with the base and new terms free."""
+    from stages.estimators.base import RELATIVE_INFO_THRESHOLD, analyse
+
+    Ja = np.concatenate([Jb, Jc], 1)
+    lam = analyse(gram(Ja, Ja), {"rot": slice(0, 3)}).block_ratio["rot"]
+    live = lam[lam >= RELATIVE_INFO_THRESHOLD]
+    return float(np.min(live)) if live.size else 1.0
 
 
 # ----------------------------------------------------------------------------- location
@@ -584,6 +600,13 @@ def diagnose_data(
                 continue
             st = score_test(cur, term, data, sig)
             reason = identifiability_reason(term.kind, stats, data, st.efficiency)
+            if reason is None and st.rot_efficiency < CONFOUND_RATIO \
+                    and term.kind not in LOCAL_KINDS:
+                reason = (
+                    f"with it the motion leaves the rotation R_body_mag confounded (only "
+                    f"{st.rot_efficiency:.1e} of its weakest combination stays determined): it "
+                    "would trade against the misalignment; rotate through more attitudes"
+                )
             if reason is not None:
                 if term.kind in LOCAL_KINDS:
                     continue
@@ -968,6 +991,43 @@ def calibration_from(res: FitResult, data: FitData, findings: tuple[Finding, ...
     )
 
 
+def final_split(res: FitResult, data: FitData):
+    """Refit the final model on two contiguous halves of equal rotation information.
+
+    Returns a :class:`stages.estimators.checks.SplitCheck` (the halves' rotations, their
+    difference and its chi-square under the halves' covariances), or None when a half is too
+    small. A term that the motion barely determines, or physics the final model still leaves
+    out, shows up as halves that disagree.
+    """
+    from pipeline.geometry import matrix_to_quat, quat_to_rotvec
+    from stages.estimators.checks import SplitCheck, info_halves
+
+    if len(data) < 200:
+        return None
+    ev = evaluate(res.state, data)
+    Jr = ev.J[:, :, 0:3]
+    first = info_halves(np.einsum("nip,nip->n", Jr, Jr))
+    out = []
+    for m in (first, ~first):
+        sub = data.subset(m)
+        if len(sub) < 50:
+            return None
+        r = fit(res.state, sub)
+        cov = _covariance(r, sub)
+        out.append((r.state.R_body_mag, np.clip(np.diag(cov)[0:3], 0.0, None)))
+    (Ra, va), (Rb, vb) = out
+
+    def rv(R: np.ndarray) -> np.ndarray:
+        return quat_to_rotvec(matrix_to_quat(R))
+
+    d = rv(Ra @ Rb.T)
+    var = va + vb
+    ok = np.isfinite(var) & (var > 0)
+    chi2 = float(np.sum(d[ok] ** 2 / var[ok]))
+    t_split = float(data.t_s[np.flatnonzero(~first)[0]] - data.t_s[0])
+    return SplitCheck(np.degrees(rv(Ra)), np.degrees(rv(Rb)), np.degrees(d), chi2, t_split)
+
+
 @dataclass(frozen=True)
 class Diagnose:
     """Stage: find, name, model and verify what the calibration model leaves out.
@@ -1000,10 +1060,39 @@ class Diagnose:
             init = ModelState(np.asarray(cal.R_body_mag), np.asarray(cal.B_enu_nT))
         diag, res = diagnose_data(data, init, self.config, turntable=rec.turntable is not None)
         final = calibration_from(res, data, diag.findings)
+        split = final_split(res, data)
         if cal is not None:
             from stages.estimate import carry_checks
 
-            final = carry_checks(cal, final)
+            explained = bool(diag.findings) and (split is None or split.consistent)
+            final = carry_checks(cal, final, explained=explained)
+        if split is not None:
+            final = final.replace(checks={**final.checks, "split_final": split.to_dict()})
+            if not split.consistent:
+                from stages.estimators.checks import split_inflation
+
+                var = (np.radians(final.sigma_rotvec_deg) ** 2
+                       + np.diag(split_inflation(np.radians(split.diff_deg))))
+                doubt = (
+                    f"the two halves of the recording disagree by "
+                    f"{np.linalg.norm(split.diff_deg):.2f} deg under the final model (chi-square "
+                    f"{split.chi2:.0f} for 3 degrees of freedom): what it leaves out, or a term "
+                    "the motion barely determines, changes over the recording; sigmas include "
+                    "the disagreement"
+                )
+                doubts = [d for d in final.checks.get("doubts", ())
+                          if not d.startswith("the two halves")] + [doubt]
+                final = final.replace(sigma_rotvec_deg=np.degrees(np.sqrt(var)),
+                                      checks={**final.checks, "doubts": doubts})
+        iron = [e for e, _ in diag.not_identifiable if e in ("hard_iron", "soft_iron")]
+        if iron and len(final.unobservable_axes_body) == 0:
+            doubt = (
+                f"the motion cannot determine {' or '.join(x.replace('_', ' ') for x in iron)}"
+                ": the misalignment assumes there is none; a magnetised or soft-magnetic part "
+                "near the sensor would bias it (see the diagnosis)"
+            )
+            final = final.replace(checks={**final.checks, "doubts": list(
+                final.checks.get("doubts", ())) + [doubt]})
         return ctx.replace(diagnosis=diag, calibration=final)
 
 

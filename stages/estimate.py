@@ -193,21 +193,31 @@ def with_verdict(cal: Calibration, aligned: AlignedSeries,
     return cal.replace(verdict=judge(res, noise, refusals=refusals, doubts=doubts))
 
 
-def carry_checks(before: Calibration, after: Calibration) -> Calibration:
+def carry_checks(before: Calibration, after: Calibration, *, explained: bool = False,
+                 ) -> Calibration:
     """Return ``after`` (a fuller model of the same recording) with ``before``'s checks.
 
-    The estimate's global checks (split halves, starts, terms not estimated, sample-and-hold,
-    effective samples) still hold for the final model; its rotation sigmas are never smaller
-    than the estimate's honest ones (a model with more terms does not determine the rotation
-    better than the data's own consistency allows).
+    The estimate's global checks (starts, terms not estimated, sample-and-hold, effective
+    samples) still hold for the final model; its rotation sigmas are never smaller than the
+    estimate's sandwich sigmas (correlated residuals do not go away with more terms). The
+    split-half disagreement is carried (as sigma and doubt) only when the final model has not
+    ``explained`` more than the estimate (a diagnosis with findings models the physics that
+    made the halves disagree; its own sigmas then stand).
     """
+    checks = dict(before.checks)
+    floor = before.sigma_rotvec_deg
+    if explained:
+        if "sigma_rotvec_sandwich_deg" in checks:
+            floor = np.asarray(checks["sigma_rotvec_sandwich_deg"], float)
+        checks["doubts"] = [d for d in checks.get("doubts", ())
+                            if not d.startswith("the two halves")]
     sig = np.asarray(after.sigma_rotvec_deg, float)
-    if before.sigma_rotvec_deg is not None:
-        sig = np.fmax(sig, np.asarray(before.sigma_rotvec_deg, float))
+    if floor is not None:
+        sig = np.fmax(sig, np.asarray(floor, float))
         sig = np.where(np.isinf(after.sigma_rotvec_deg), np.inf, sig)
     return after.replace(
         sigma_rotvec_deg=sig,
-        checks={**before.checks, **after.checks},
+        checks={**checks, **after.checks},
         not_estimated=before.not_estimated,
         sample_hold=before.sample_hold if after.sample_hold is None else after.sample_hold,
         n_eff=before.n_eff if after.n_eff is None else after.n_eff,

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from pipeline.effects import CONFOUND_RATIO
+
 F64 = NDArray[np.float64]
 
 #: Blocks of the sandwich covariance, s. Residual correlation longer than this (slow physics
@@ -34,11 +36,6 @@ BLOCK_S = 1.0
 #: At least this many blocks: shorter recordings get shorter blocks (the block covariance has
 #: about ``n_blocks`` degrees of freedom, so its sigmas err by ``1 / sqrt(2 n_blocks)``).
 MIN_BLOCKS = 40
-#: A direction of a block keeping less than this fraction of its information once the other
-#: parameters are marginalised is confounded: its sigma is over 30 times what it would be
-#: alone, and a model error of one sensor-noise sigma moves it by as much. Exact nulls (below
-#: ``RELATIVE_INFO_THRESHOLD``) are the unobservable directions handled by the estimator.
-CONFOUND_RATIO = 1e-2
 #: 95 % quantile of chi-square with 3 degrees of freedom: halves that disagree by more are
 #: inconsistent with the covariance (the model leaves out physics that changes in time).
 SPLIT_CHI2_95 = 7.815

@@ -391,7 +391,7 @@ class MLEstimator:
         refusals: list[str] = []
         doubts: list[str] = []
         if self.checks:
-            p, not_estimated, base_note = self._determinable(p)
+            p, not_estimated, base_note, nested = self._determinable(p)
             if base_note:
                 doubts.append(base_note)
         model = Model(p, estimate_B=p.reference_field_enu_nT is None)
@@ -403,13 +403,15 @@ class MLEstimator:
         if not_estimated:
             doubts.append("not estimated (the motion cannot determine them): "
                           + ", ".join(d["term"] for d in not_estimated))
-        gn, cal, start_note, start_info = self._multistart(p, pc, model, gn, cal)
+        gn, cal, start_note, start_info = self._multistart(p, pc, model, gn, cal, nested)
         info["starts"] = start_info
+        info["nested"] = [{k: v for k, v in nf.items() if k != "state"} for nf in nested]
         if start_note is not None:
             refusals.append(start_note)
         split = self._split(p, model, gn, cal)
         if split is not None:
             info["split"] = split.to_dict()
+            info["sigma_rotvec_sandwich_deg"] = [float(x) for x in cal.sigma_rotvec_deg]
             if not split.consistent:
                 before = cal.sigma_rotvec_deg
                 cal = self._inflate(cal, split)
@@ -453,20 +455,32 @@ class MLEstimator:
         return gauss_newton(model, s0, self.max_iter), pc
 
     # ------------------------------------------------------------------ global checks
-    def _determinable(self, p: Problem) -> tuple[Problem, list[dict], str | None]:
+    def _determinable(self, p: Problem) -> tuple[Problem, list[dict], str | None, list[dict]]:
         """Leave out the requested terms that the motion confounds (``checks.confounded``).
 
         The information of the full requested model is taken at the fit of the rotation and
         field alone (offset 0, D = I, the initial tau): the motion decides what can be
         determined, not a start that may already have wandered. Terms are removed one at a
         time, each time the one whose removal leaves the best-determined model, until no
-        block is confounded.
+        block is confounded. Also returns the nested fits (rotation and field; with the
+        offset when asked for) on the check samples: their solutions are starts of the
+        multi-start and their rotations are reported beside the result.
         """
         extra = [t for t in (Term.SOFT_IRON, Term.OFFSET, Term.TIME_OFFSET) if t in p.terms]
         pb = Problem(**{**p.__dict__, "terms": frozenset()})
         pcb = _decimated(pb, CHECK_SAMPLES) if pb.n > 2 * CHECK_SAMPLES else pb
         mb = Model(pcb, estimate_B=pb.reference_field_enu_nT is None)
-        sb = gauss_newton(mb, self.initial_state(pcb), self.max_iter).s
+        gb = gauss_newton(mb, self.initial_state(pcb), self.max_iter)
+        sb = gb.s
+        nested = [{"terms": [], "rotvec_deg": _log(sb.R) * 180.0 / np.pi,
+                   "residual_rms_nT": float(np.sqrt(np.mean(gb.r**2))), "state": sb}]
+        if Term.OFFSET in p.terms:
+            # the next nested model, rotation, field and offset: a start of its own
+            po = Problem(**{**pcb.__dict__, "terms": frozenset({Term.OFFSET})})
+            go = gauss_newton(Model(po, estimate_B=mb.estimate_B), sb, self.max_iter)
+            nested.append({"terms": ["offset"], "rotvec_deg": _log(go.s.R) * 180.0 / np.pi,
+                           "residual_rms_nT": float(np.sqrt(np.mean(go.r**2))),
+                           "state": go.s})
         pcf = Problem(**{**pcb.__dict__, "terms": p.terms})
         sb = State(sb.R, sb.B, np.zeros(3), np.eye(3), float(p.time_offset0_s))
         if Term.SOFT_IRON in p.terms and pb.reference_field_enu_nT is not None:
@@ -526,10 +540,11 @@ class MLEstimator:
                 f"{bad['rot']:.1e} of its information survives the field being unknown): "
                 "rotate about a second, very different axis"
             )
-        return Problem(**{**p.__dict__, "terms": terms}), dropped, note
+        return Problem(**{**p.__dict__, "terms": terms}), dropped, note, nested
 
     def _multistart(self, p: Problem, pc: Problem, model: Model, gn: GNResult,
-                    cal: Calibration) -> tuple[GNResult, Calibration, str | None, list]:
+                    cal: Calibration, nested: list[dict] | None = None,
+                    ) -> tuple[GNResult, Calibration, str | None, list]:
         """Repeat the fit from other starts; refuse when distinct minima fit about as well.
 
         Starts (on the coarse problem): the closed-form start, a neutral one (no offset,
@@ -543,6 +558,11 @@ class MLEstimator:
         mc = Model(pc, estimate_B=model.estimate_B)
         s_main = gn.s
         starts = [self.initial_state(pc), self._neutral_state(pc)]
+        for nf in nested or ():
+            # the nested fits' solutions (no D, no tau: those start neutral)
+            sn = nf["state"]
+            o = sn.o if "offset" in model.blocks else np.zeros(3)
+            starts.append(State(sn.R, sn.B, o, starts[1].D, float(p.time_offset0_s)))
         for k in range(3):
             e = np.zeros(3)
             e[k] = np.pi / 2
