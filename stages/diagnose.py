@@ -287,9 +287,9 @@ class ScoreTest:
         confounded with parameters already in the model).
     k : int
     rot_efficiency : float
-        The same fraction for the rotation ``R_body_mag`` once the term is in the model: a
-        term that leaves the rotation confounded (below ``CONFOUND_RATIO``) is not admitted,
-        however well it fits.
+        The same fraction for the rotation ``R_body_mag`` once the term is in the model, when
+        the term at least halves it (else 1): a term that leaves the rotation confounded
+        (below ``CONFOUND_RATIO``) is not admitted, however well it fits.
 
     """
 
@@ -344,15 +344,18 @@ def score_test(cur: FitResult, term: Term, data: FitData, sigma: float) -> Score
     z = V.T @ (geff / sc)
     stat = float(np.sum(z[good] ** 2 / w[good])) / sigma**2
     k = int(np.count_nonzero(good)) if partial else term.n_params()
-    return ScoreTest(term, stat, max(eff, 0.0), max(k, 1), _rot_efficiency(Jb, Jc))
+    rot_with = _rot_efficiency(np.concatenate([Jb, Jc], 1))
+    rot_base = _rot_efficiency(Jb)
+    # what the term itself costs the rotation: below 1 when it trades against R
+    rot_eff = rot_with if rot_with < 0.5 * rot_base else 1.0
+    return ScoreTest(term, stat, max(eff, 0.0), max(k, 1), rot_eff)
 
 
-def _rot_efficiency(Jb: np.ndarray, Jc: np.ndarray) -> float:
-    """Fraction of the rotation's weakest information left with the base and new terms free."""
+def _rot_efficiency(J: np.ndarray) -> float:
+    """Fraction of the rotation's weakest information left with the other columns free."""
     from stages.estimators.base import RELATIVE_INFO_THRESHOLD, analyse
 
-    Ja = np.concatenate([Jb, Jc], 1)
-    lam = analyse(gram(Ja, Ja), {"rot": slice(0, 3)}).block_ratio["rot"]
+    lam = analyse(gram(J, J), {"rot": slice(0, 3)}).block_ratio["rot"]
     live = lam[lam >= RELATIVE_INFO_THRESHOLD]
     return float(np.min(live)) if live.size else 1.0
 
@@ -1060,6 +1063,8 @@ class Diagnose:
             init = ModelState(np.asarray(cal.R_body_mag), np.asarray(cal.B_enu_nT))
         diag, res = diagnose_data(data, init, self.config, turntable=rec.turntable is not None)
         final = calibration_from(res, data, diag.findings)
+        from stages.estimators.checks import apply_split
+
         split = final_split(res, data)
         if cal is not None:
             from stages.estimate import carry_checks
@@ -1068,22 +1073,7 @@ class Diagnose:
             final = carry_checks(cal, final, explained=explained)
         if split is not None:
             final = final.replace(checks={**final.checks, "split_final": split.to_dict()})
-            if not split.consistent:
-                from stages.estimators.checks import split_inflation
-
-                var = (np.radians(final.sigma_rotvec_deg) ** 2
-                       + np.diag(split_inflation(np.radians(split.diff_deg))))
-                doubt = (
-                    f"the two halves of the recording disagree by "
-                    f"{np.linalg.norm(split.diff_deg):.2f} deg under the final model (chi-square "
-                    f"{split.chi2:.0f} for 3 degrees of freedom): what it leaves out, or a term "
-                    "the motion barely determines, changes over the recording; sigmas include "
-                    "the disagreement"
-                )
-                doubts = [d for d in final.checks.get("doubts", ())
-                          if not d.startswith("the two halves")] + [doubt]
-                final = final.replace(sigma_rotvec_deg=np.degrees(np.sqrt(var)),
-                                      checks={**final.checks, "doubts": doubts})
+            final = apply_split(final, split, " under the final model")
         iron = [e for e, _ in diag.not_identifiable if e in ("hard_iron", "soft_iron")]
         if iron and len(final.unobservable_axes_body) == 0:
             doubt = (

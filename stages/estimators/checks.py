@@ -206,3 +206,47 @@ def confounded(ratios: dict[str, F64], names: list[str]) -> dict[str, float]:
         if live.size and float(np.min(live)) < CONFOUND_RATIO:
             out[n] = float(np.min(live))
     return out
+
+
+#: The halves' disagreement makes the result questionable when it more than doubles a sigma
+#: (below that it is a warning: the sigmas already carry it).
+SPLIT_DOUBT_GROWTH = 2.0
+
+
+def apply_split(cal, split: SplitCheck, what: str = ""):
+    """Return ``cal`` with an inconsistent split's disagreement in its rotation sigmas.
+
+    Parameters
+    ----------
+    cal : Calibration
+        The fit whose rotation was split.
+    split : SplitCheck
+        Its split-half check.
+    what : str
+        Words for the model that was split (e.g. ``" under the final model"``).
+
+    Returns
+    -------
+    cal : Calibration
+        Sigmas inflated by :func:`split_inflation`; the words are appended to ``warnings``
+        when no sigma more than doubles, else to ``checks["doubts"]`` (the verdict).
+
+    """
+    if split.consistent:
+        return cal
+    before = np.asarray(cal.sigma_rotvec_deg, float)
+    var = np.radians(before) ** 2 + np.diag(split_inflation(np.radians(split.diff_deg)))
+    after = np.degrees(np.sqrt(var))
+    words = (
+        f"the two halves of the recording disagree by {np.linalg.norm(split.diff_deg):.2f} "
+        f"deg{what} (chi-square {split.chi2:.0f} for 3 degrees of freedom): the model leaves "
+        "out physics that changes over the recording, or a term the motion barely determines; "
+        "sigmas include the disagreement"
+    )
+    fin = np.isfinite(before) & (before > 0)
+    grow = float(np.max(after[fin] / before[fin])) if np.any(fin) else 1.0
+    cal = cal.replace(sigma_rotvec_deg=after)
+    if grow > SPLIT_DOUBT_GROWTH:
+        doubts = [d for d in cal.checks.get("doubts", ()) if not d.startswith("the two halves")]
+        return cal.replace(checks={**cal.checks, "doubts": doubts + [words]})
+    return cal.replace(warnings=cal.warnings + (words,))

@@ -51,11 +51,11 @@ from .base import (
 )
 from .checks import (
     SplitCheck,
+    apply_split,
     confounded,
     info_halves,
     per_sample_rot_info,
     sandwich_cov,
-    split_inflation,
 )
 from .ellipsoid import fit_ellipsoid
 
@@ -412,23 +412,8 @@ class MLEstimator:
         if split is not None:
             info["split"] = split.to_dict()
             info["sigma_rotvec_sandwich_deg"] = [float(x) for x in cal.sigma_rotvec_deg]
-            if not split.consistent:
-                before = cal.sigma_rotvec_deg
-                cal = self._inflate(cal, split)
-                d = split.diff_deg
-                words = (
-                    f"the two halves of the recording disagree by {np.linalg.norm(d):.2f} deg "
-                    f"(chi-square {split.chi2:.0f} for 3 degrees of freedom): the model leaves "
-                    "out physics that changes over the recording; sigmas include the "
-                    "disagreement"
-                )
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    grow = np.nanmax(np.where(np.isfinite(before), cal.sigma_rotvec_deg
-                                              / np.maximum(before, 1e-300), 1.0))
-                if grow > SPLIT_DOUBT_GROWTH:
-                    doubts.append(words)
-                else:
-                    cal = cal.replace(warnings=cal.warnings + (words,))
+            cal = apply_split(cal.replace(checks={**cal.checks, "doubts": doubts}), split)
+            doubts = list(cal.checks.get("doubts", ()))
         info["refusals"] = refusals
         info["doubts"] = doubts
         return cal.replace(checks={**cal.checks, **info}, not_estimated=tuple(not_estimated))
@@ -661,12 +646,6 @@ class MLEstimator:
         return SplitCheck(a.rotvec_body_mag_deg, b.rotvec_body_mag_deg, np.degrees(d), chi2,
                           t_split)
 
-    @staticmethod
-    def _inflate(cal: Calibration, split: SplitCheck) -> Calibration:
-        """Add the halves' disagreement to the rotation sigmas (``checks.split_inflation``)."""
-        extra = split_inflation(np.radians(split.diff_deg))
-        var = np.radians(cal.sigma_rotvec_deg) ** 2 + np.diag(extra)
-        return cal.replace(sigma_rotvec_deg=np.degrees(np.sqrt(var)))
 
     def finish(self, p: Problem, model: Model, gn: GNResult) -> Calibration:
         """Covariance, observability and the Calibration value."""
@@ -784,9 +763,6 @@ COARSE_SAMPLES = 20_000
 #: Samples (evenly spread) on which determinability and the other starts are checked: the
 #: information ratios are scale-free and a start's basin does not depend on the sample count.
 CHECK_SAMPLES = 4_000
-#: The halves' disagreement makes the result questionable when it more than doubles a sigma
-#: (below that it is a warning: the sigmas already carry it).
-SPLIT_DOUBT_GROWTH = 2.0
 
 
 def _decimated(p: Problem, n_max: int) -> Problem:
