@@ -1095,6 +1095,88 @@ def _gap_problems(name: str, t: np.ndarray, problems: list[Problem], min_gap_s: 
                                 f"(longest {longest:.4g} s)", k))
 
 
+#: an attitude stamp interval longer than this many median intervals has lost samples
+ATTITUDE_GAP_FACTOR = 1.5
+
+
+def attitude_gaps(t_ns: np.ndarray, span_ns: tuple[int, int] | None = None) -> dict | None:
+    """Measure the attitude samples missing against the channel's own median rate.
+
+    A gap is a stamp interval longer than :data:`ATTITUDE_GAP_FACTOR` median intervals (a
+    motion-capture system losing its markers, an INS dropping messages); it holds
+    ``round(interval / median) - 1`` missing samples. With ``span_ns`` (the magnetometer's
+    first and last stamp) the stretches of it before the first and after the last attitude
+    sample count as missing too: those magnetometer samples have no attitude either.
+
+    Parameters
+    ----------
+    t_ns : ndarray of int64
+        Stamps of the attitude channel, sorted.
+    span_ns : (int, int), optional
+        First and last magnetometer stamp.
+
+    Returns
+    -------
+    dict or None
+        ``{rate_hz, missing_samples, missing_s, n_gaps, longest_gap_s, gap_samples,
+        gap_s, lead_samples, lead_s, trail_samples, trail_s}`` (times in s: ``gap_s`` is
+        the time without attitude beyond one median interval per gap), or None when nothing
+        is missing or there are fewer than three stamps.
+
+    """
+    if len(t_ns) < 3:
+        return None
+    t = np.asarray(t_ns, dtype=np.int64)
+    dt = np.diff(t)
+    pos = dt[dt > 0]
+    if not len(pos):
+        return None
+    med = float(np.median(pos))
+    g = dt[dt > ATTITUDE_GAP_FACTOR * med].astype(float)
+    lead = trail = 0.0
+    if span_ns is not None:
+        lead = max(0.0, float(t[0] - span_ns[0]))
+        trail = max(0.0, float(span_ns[1] - t[-1]))
+    out = {
+        "rate_hz": 1e9 / med,
+        "n_gaps": int(len(g)),
+        "longest_gap_s": float(g.max()) * 1e-9 if len(g) else 0.0,
+        "gap_samples": int(np.maximum(np.rint(g / med) - 1, 1).sum()),
+        "gap_s": float((g - med).sum()) * 1e-9,
+        "lead_samples": int(np.rint(lead / med)),
+        "lead_s": lead * 1e-9,
+        "trail_samples": int(np.rint(trail / med)),
+        "trail_s": trail * 1e-9,
+    }
+    out["missing_samples"] = out["gap_samples"] + out["lead_samples"] + out["trail_samples"]
+    out["missing_s"] = out["gap_s"] + (out["lead_s"] if out["lead_samples"] else 0.0) + (
+        out["trail_s"] if out["trail_samples"] else 0.0)
+    return out if out["missing_samples"] else None
+
+
+def _attitude_gap_problems(name: str, t_ns: np.ndarray, problems: list[Problem],
+                           span_ns: tuple[int, int] | None = None) -> None:
+    """Add an ``attitude_gaps`` problem when the attitude lost samples (:func:`attitude_gaps`)."""
+    g = attitude_gaps(t_ns, span_ns)
+    if g is None:
+        return
+    where = []
+    if g["lead_samples"]:
+        where.append(f"{g['lead_samples']:,} in the {g['lead_s']:.3f} s before the first "
+                     "attitude sample")
+    if g["trail_samples"]:
+        where.append(f"{g['trail_samples']:,} in the {g['trail_s']:.3f} s after the last")
+    if g["n_gaps"]:
+        gaps = "gaps" if g["n_gaps"] > 1 else "gap"
+        where.append(f"{g['gap_samples']:,} in {g['n_gaps']:,} {gaps} inside "
+                     f"(longest {g['longest_gap_s']:.3g} s)")
+    problems.append(Problem(
+        "attitude_gaps",
+        f"{name}: {g['missing_samples']:,} attitude samples missing against its median rate "
+        f"{g['rate_hz']:.4g} Hz ({g['missing_s']:.3f} s of the magnetometer's span without "
+        f"attitude): " + "; ".join(where), g["missing_samples"]))
+
+
 # --------------------------------------------------------------------------- public
 def read_recording(
     path: str | Path,
@@ -1326,6 +1408,10 @@ def inspect_recording(path: str | Path) -> dict:
     starts = [c["start_ns"] for c in chans if c["start_ns"] is not None]
     ends = [c["end_ns"] for c in chans if c["end_ns"] is not None]
     mags = [c for c in chans if c["role"] == Role.MAGNETOMETER.value and c["count"] > 1]
+    span = (mags[0]["start_ns"], mags[0]["end_ns"]) if mags else None
+    for cid, c in zip(sorted(scan.channels), chans, strict=True):
+        if c["role"] == Role.ATTITUDE.value:
+            _attitude_gap_problems(c["topic"], np.sort(stamps[cid]), problems, span)
     if mags:
         duration = (mags[0]["end_ns"] - mags[0]["start_ns"]) * 1e-9
     else:
