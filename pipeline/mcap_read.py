@@ -757,6 +757,9 @@ class _Decoder:
         if t == "sensor_msgs/MagneticField":
             return ["header.stamp.sec", "header.stamp.nanosec", "header.frame_id",
                     "magnetic_field.x", "magnetic_field.y", "magnetic_field.z"]
+        if t == "sensor_msgs/Imu":
+            return ["header.stamp.sec", "header.stamp.nanosec", "header.frame_id"] + [
+                f"orientation.{k}" for k in "xyzw"]
         if t in _CDR_QUAT:
             q = _CDR_QUAT[t]
             return ["header.stamp.sec", "header.stamp.nanosec"] + [
@@ -791,6 +794,11 @@ class _Decoder:
             s0, n0 = f["header.frame_id"][0]
             frame = bytes(buf[s0 : s0 + max(n0 - 1, 0)]).decode("utf-8", "replace")
             return _Decoded(t_ns, v, log, frame)
+        if t == "sensor_msgs/Imu":  # its frame_id names the IMU's own (body) frame
+            s0, n0 = f["header.frame_id"][0]
+            frame = bytes(buf[s0 : s0 + max(n0 - 1, 0)]).decode("utf-8", "replace")
+            return _Decoded(t_ns, np.stack([f[f"orientation.{k}"] for k in "xyzw"], axis=-1),
+                            log, frame)
         if t in _CDR_QUAT:
             q = _CDR_QUAT[t]
             return _Decoded(t_ns, np.stack([f[f"{q}.{k}"] for k in "xyzw"], axis=-1), log)
@@ -1231,6 +1239,11 @@ def read_recording(
     dec = _decode_channels(scan, ids)
     counts = {cid: len(dec[cid].t_ns) for cid in ids}
     stamps = {cid: dec[cid].t_ns for cid in ids}
+    # The body frame's name: an Imu message's frame_id is the IMU's own frame (REP-145); the
+    # frame_id of a pose, a quaternion or an INS solution names the reference frame instead.
+    att_frame = ("" if att_id is None
+                 or _type_of(scan, scan.channels[att_id]).replace("/msg/", "/") != "sensor_msgs/Imu"
+                 else dec[att_id].frame_id)
     problems = scan.problems
     d_mag = dec.pop(mag_id)  # popped: checks that copy the columns free the originals
     if len(d_mag.t_ns) == 0:
@@ -1270,6 +1283,7 @@ def read_recording(
         else EncodingFamily.ROS2,
         turntable=turntable,
         mag_frame_id=d_mag.frame_id,
+        attitude_frame_id=att_frame,
         problems=tuple(problems),
     )
 
