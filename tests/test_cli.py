@@ -39,7 +39,7 @@ def test_version(capsys):
 def test_every_help_text_is_plain_words():
     parser = build_parser()
     subs = _subparsers(parser)
-    assert {"info", "calibrate", "diagnose", "process", "view"} <= set(subs)
+    assert {"info", "calibrate", "diagnose", "process", "export", "view"} <= set(subs)
     texts = {"magalign": parser.format_help()}
     texts |= {name: p.format_help() for name, p in subs.items()}
     for name, text in texts.items():
