@@ -19,6 +19,7 @@ from .errors import MagalignError
 
 COMMANDS = (
     "info",
+    "export",
     "simulate",
     "calibrate",
     "diagnose",
@@ -34,12 +35,30 @@ class _Parser(argparse.ArgumentParser):
     """argparse that exits with status 2 and one line, as CONVENTIONS require."""
 
     def error(self, message: str) -> None:  # noqa: D102
-        self.exit(2, f"magalign: usage: {message} (see magalign {self.prog.split()[-1]} -h)\n")
+        words = self.prog.split()
+        see = "magalign -h" if len(words) < 2 else f"magalign {words[-1]} -h"
+        self.exit(2, f"magalign: usage: {message} (see {see})\n")
+
+
+DESCRIPTION = ("Calibrate the misalignment between a magnetometer and its attitude source "
+               "from MCAP recordings.")
+
+
+def package_version() -> str:
+    """Return the installed magalign version (package metadata), or "unknown"."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("magalign")
+    except PackageNotFoundError:  # running from a source tree that was never installed
+        return "unknown"
 
 
 def build_parser() -> argparse.ArgumentParser:
     """Build the argument parser with every available subcommand."""
-    parser = _Parser(prog="magalign", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="magalign", description=DESCRIPTION)
+    parser.add_argument("--version", action="version",
+                        version=f"magalign {package_version()}")
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)

@@ -170,3 +170,7 @@ class CampaignPartialFailure(MagalignError):
 
 class RecoveredDataWarning(UserWarning):
     """A damaged recording was read as far as it is intact; the message says what was lost."""
+
+
+class QuestionableCalibrationWarning(UserWarning):
+    """A calibration whose verdict is QUESTIONABLE is used or exported; the message says why."""

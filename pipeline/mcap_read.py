@@ -757,6 +757,9 @@ class _Decoder:
         if t == "sensor_msgs/MagneticField":
             return ["header.stamp.sec", "header.stamp.nanosec", "header.frame_id",
                     "magnetic_field.x", "magnetic_field.y", "magnetic_field.z"]
+        if t == "sensor_msgs/Imu":
+            return ["header.stamp.sec", "header.stamp.nanosec", "header.frame_id"] + [
+                f"orientation.{k}" for k in "xyzw"]
         if t in _CDR_QUAT:
             q = _CDR_QUAT[t]
             return ["header.stamp.sec", "header.stamp.nanosec"] + [
@@ -791,6 +794,11 @@ class _Decoder:
             s0, n0 = f["header.frame_id"][0]
             frame = bytes(buf[s0 : s0 + max(n0 - 1, 0)]).decode("utf-8", "replace")
             return _Decoded(t_ns, v, log, frame)
+        if t == "sensor_msgs/Imu":  # its frame_id names the IMU's own (body) frame
+            s0, n0 = f["header.frame_id"][0]
+            frame = bytes(buf[s0 : s0 + max(n0 - 1, 0)]).decode("utf-8", "replace")
+            return _Decoded(t_ns, np.stack([f[f"orientation.{k}"] for k in "xyzw"], axis=-1),
+                            log, frame)
         if t in _CDR_QUAT:
             q = _CDR_QUAT[t]
             return _Decoded(t_ns, np.stack([f[f"{q}.{k}"] for k in "xyzw"], axis=-1), log)
@@ -1095,6 +1103,88 @@ def _gap_problems(name: str, t: np.ndarray, problems: list[Problem], min_gap_s: 
                                 f"(longest {longest:.4g} s)", k))
 
 
+#: an attitude stamp interval longer than this many median intervals has lost samples
+ATTITUDE_GAP_FACTOR = 1.5
+
+
+def attitude_gaps(t_ns: np.ndarray, span_ns: tuple[int, int] | None = None) -> dict | None:
+    """Measure the attitude samples missing against the channel's own median rate.
+
+    A gap is a stamp interval longer than :data:`ATTITUDE_GAP_FACTOR` median intervals (a
+    motion-capture system losing its markers, an INS dropping messages); it holds
+    ``round(interval / median) - 1`` missing samples. With ``span_ns`` (the magnetometer's
+    first and last stamp) the stretches of it before the first and after the last attitude
+    sample count as missing too: those magnetometer samples have no attitude either.
+
+    Parameters
+    ----------
+    t_ns : ndarray of int64
+        Stamps of the attitude channel, sorted.
+    span_ns : (int, int), optional
+        First and last magnetometer stamp.
+
+    Returns
+    -------
+    dict or None
+        ``{rate_hz, missing_samples, missing_s, n_gaps, longest_gap_s, gap_samples,
+        gap_s, lead_samples, lead_s, trail_samples, trail_s}`` (times in s: ``gap_s`` is
+        the time without attitude beyond one median interval per gap), or None when nothing
+        is missing or there are fewer than three stamps.
+
+    """
+    if len(t_ns) < 3:
+        return None
+    t = np.asarray(t_ns, dtype=np.int64)
+    dt = np.diff(t)
+    pos = dt[dt > 0]
+    if not len(pos):
+        return None
+    med = float(np.median(pos))
+    g = dt[dt > ATTITUDE_GAP_FACTOR * med].astype(float)
+    lead = trail = 0.0
+    if span_ns is not None:
+        lead = max(0.0, float(t[0] - span_ns[0]))
+        trail = max(0.0, float(span_ns[1] - t[-1]))
+    out = {
+        "rate_hz": 1e9 / med,
+        "n_gaps": int(len(g)),
+        "longest_gap_s": float(g.max()) * 1e-9 if len(g) else 0.0,
+        "gap_samples": int(np.maximum(np.rint(g / med) - 1, 1).sum()),
+        "gap_s": float((g - med).sum()) * 1e-9,
+        "lead_samples": int(np.rint(lead / med)),
+        "lead_s": lead * 1e-9,
+        "trail_samples": int(np.rint(trail / med)),
+        "trail_s": trail * 1e-9,
+    }
+    out["missing_samples"] = out["gap_samples"] + out["lead_samples"] + out["trail_samples"]
+    out["missing_s"] = out["gap_s"] + (out["lead_s"] if out["lead_samples"] else 0.0) + (
+        out["trail_s"] if out["trail_samples"] else 0.0)
+    return out if out["missing_samples"] else None
+
+
+def _attitude_gap_problems(name: str, t_ns: np.ndarray, problems: list[Problem],
+                           span_ns: tuple[int, int] | None = None) -> None:
+    """Add an ``attitude_gaps`` problem when the attitude lost samples (:func:`attitude_gaps`)."""
+    g = attitude_gaps(t_ns, span_ns)
+    if g is None:
+        return
+    where = []
+    if g["lead_samples"]:
+        where.append(f"{g['lead_samples']:,} in the {g['lead_s']:.3f} s before the first "
+                     "attitude sample")
+    if g["trail_samples"]:
+        where.append(f"{g['trail_samples']:,} in the {g['trail_s']:.3f} s after the last")
+    if g["n_gaps"]:
+        gaps = "gaps" if g["n_gaps"] > 1 else "gap"
+        where.append(f"{g['gap_samples']:,} in {g['n_gaps']:,} {gaps} inside "
+                     f"(longest {g['longest_gap_s']:.3g} s)")
+    problems.append(Problem(
+        "attitude_gaps",
+        f"{name}: {g['missing_samples']:,} attitude samples missing against its median rate "
+        f"{g['rate_hz']:.4g} Hz ({g['missing_s']:.3f} s of the magnetometer's span without "
+        f"attitude): " + "; ".join(where), g["missing_samples"]))
+
+
 # --------------------------------------------------------------------------- public
 def read_recording(
     path: str | Path,
@@ -1149,6 +1239,11 @@ def read_recording(
     dec = _decode_channels(scan, ids)
     counts = {cid: len(dec[cid].t_ns) for cid in ids}
     stamps = {cid: dec[cid].t_ns for cid in ids}
+    # The body frame's name: an Imu message's frame_id is the IMU's own frame (REP-145); the
+    # frame_id of a pose, a quaternion or an INS solution names the reference frame instead.
+    att_frame = ("" if att_id is None
+                 or _type_of(scan, scan.channels[att_id]).replace("/msg/", "/") != "sensor_msgs/Imu"
+                 else dec[att_id].frame_id)
     problems = scan.problems
     d_mag = dec.pop(mag_id)  # popped: checks that copy the columns free the originals
     if len(d_mag.t_ns) == 0:
@@ -1188,6 +1283,7 @@ def read_recording(
         else EncodingFamily.ROS2,
         turntable=turntable,
         mag_frame_id=d_mag.frame_id,
+        attitude_frame_id=att_frame,
         problems=tuple(problems),
     )
 
@@ -1326,6 +1422,10 @@ def inspect_recording(path: str | Path) -> dict:
     starts = [c["start_ns"] for c in chans if c["start_ns"] is not None]
     ends = [c["end_ns"] for c in chans if c["end_ns"] is not None]
     mags = [c for c in chans if c["role"] == Role.MAGNETOMETER.value and c["count"] > 1]
+    span = (mags[0]["start_ns"], mags[0]["end_ns"]) if mags else None
+    for cid, c in zip(sorted(scan.channels), chans, strict=True):
+        if c["role"] == Role.ATTITUDE.value:
+            _attitude_gap_problems(c["topic"], np.sort(stamps[cid]), problems, span)
     if mags:
         duration = (mags[0]["end_ns"] - mags[0]["start_ns"]) * 1e-9
     else:

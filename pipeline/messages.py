@@ -427,3 +427,61 @@ def encode(
             raise SchemaError(f"JSON type {msg_type} has no variant {variant!r}")
         return _encode_json(msg_type, t, fields, frame_id)
     return _encode_cdr(msg_type, t, fields, frame_id, variant)
+
+
+# --------------------------------------------------------------------------------------------
+# output-only messages of the corrected MCAP (schemas.OUTPUT_ROS2_TYPES / OUTPUT_JSON_TYPES)
+
+
+def encode_tf_static(
+    t_ns: int, parent_frame_id: str, child_frame_id: str, q_xyzw: ArrayLike,
+    translation_m: ArrayLike = (0.0, 0.0, 0.0),
+) -> tuple[U8, I64]:
+    """Encode one ``tf2_msgs/msg/TFMessage`` holding one ``geometry_msgs/TransformStamped``.
+
+    Parameters
+    ----------
+    t_ns : int
+        Header stamp, ns since the Unix epoch.
+    parent_frame_id, child_frame_id : str
+        ``header.frame_id`` and ``child_frame_id``: the transform gives the child frame's
+        pose in the parent frame, ``p_parent = R @ p_child + translation`` (REP-105/tf2).
+    q_xyzw : array_like, shape (4,)
+        Rotation ``R`` as a unit quaternion, scalar last.
+    translation_m : array_like, shape (3,)
+        Translation in metres.
+
+    Returns
+    -------
+    data, offsets
+        One message, in the layout of :func:`encode`.
+
+    """
+    lay = _Layout()
+    lay.prim("<u4", const=1)  # sequence<TransformStamped> of length 1
+    lay.header(parent_frame_id)
+    lay.string(child_frame_id)
+    lay.prim("<f8", "translation_m", 3)
+    lay.prim("<f8", "q_xyzw", 4)
+    buf = np.frombuffer(bytes(lay.template), dtype=np.uint8).copy()
+    rec = buf.view(lay.dtype())
+    sec, nsec = _stamp_columns(np.array([t_ns], dtype=np.int64))
+    rec["sec"], rec["nanosec"] = sec[0], nsec[0]
+    rec["translation_m"] = np.asarray(translation_m, dtype=float).reshape(3)
+    rec["q_xyzw"] = np.asarray(q_xyzw, dtype=float).reshape(4)
+    return buf, np.array([0, buf.shape[0]], dtype=np.int64)
+
+
+def encode_field_magnitude_json(t_ns: ArrayLike, magnitude_nT: ArrayLike,
+                                frame_id: str = "") -> tuple[U8, I64]:
+    """Encode N ``magalign.FieldMagnitude`` JSON messages ``{t_ns, frame_id, magnitude_nT}``.
+
+    NaN is written as ``NaN``, as on every JSON channel of magalign.
+    """
+    t = np.asarray(t_ns, dtype=np.int64)
+    n = t.shape[0]
+    if n == 0:
+        return np.zeros(0, dtype=np.uint8), np.zeros(1, dtype=np.int64)
+    v = _scalar_json(magnitude_nT, n, "magnitude_nT", "magalign.FieldMagnitude")
+    return flatten_rows(_cat(b'{"t_ns": ', t.astype("S"), b', "frame_id": ',
+                             _json_string(frame_id), b', "magnitude_nT": ', v, b"}"))

@@ -232,6 +232,10 @@ class Recording:
     encoding : EncodingFamily
     mag_frame_id : str
         ``header.frame_id`` of the magnetometer messages.
+    attitude_frame_id : str
+        Name of the attitude source's body frame: the ``header.frame_id`` of
+        ``sensor_msgs/Imu`` messages; empty for the other types, whose frame_id names the
+        reference frame (a pose, an INS solution), and when the messages carry none.
     problems : tuple of Problem
         Damage found and handled while reading (recovered bytes, duplicates, ...).
 
@@ -246,6 +250,7 @@ class Recording:
     encoding: EncodingFamily = EncodingFamily.ROS2
     turntable: AngleSeries | None = None
     mag_frame_id: str = ""
+    attitude_frame_id: str = ""
     problems: tuple[Problem, ...] = ()
 
     @property

@@ -42,6 +42,11 @@ ROS2_TYPES: tuple[str, ...] = (
     "novatel_oem7_msgs/msg/INSPVA",
 )
 
+#: Types only magalign's outputs carry (the corrected MCAP), never read as input: the static
+#: transform body -> mag (ROS 2) and the field magnitude of JSON recordings.
+OUTPUT_ROS2_TYPES: tuple[str, ...] = ("tf2_msgs/msg/TFMessage",)
+OUTPUT_JSON_TYPES: tuple[str, ...] = ("magalign.FieldMagnitude",)
+
 #: Layout variants per ROS 2 type (``None`` is the default layout).
 VARIANTS: dict[str, tuple[str | None, ...]] = {
     "novatel_oem7_msgs/msg/INSPVA": (None, "no_nov_header", "novatel_header"),
@@ -49,6 +54,9 @@ VARIANTS: dict[str, tuple[str | None, ...]] = {
 
 
 def _resource_name(msg_type: str, variant: str | None) -> str:
+    if msg_type in OUTPUT_JSON_TYPES + OUTPUT_ROS2_TYPES and variant is None:
+        stem = msg_type.replace("/", ".")
+        return f"{stem}.json" if msg_type in OUTPUT_JSON_TYPES else f"{stem}.msg"
     if msg_type in JSON_TYPES:
         if variant is not None:
             raise SchemaError(f"JSON type {msg_type} has no variant {variant!r}")
@@ -95,7 +103,7 @@ def schema_for(msg_type: str, variant: str | None = None) -> tuple[str, str, byt
     ``(msg_type, "jsonschema", json_schema, "json")``.
     """
     data = schema_text(msg_type, variant)
-    if msg_type in JSON_TYPES:
+    if msg_type in JSON_TYPES + OUTPUT_JSON_TYPES:
         return msg_type, "jsonschema", data, "json"
     return msg_type, "ros2msg", data, "cdr"
 

@@ -8,12 +8,25 @@ Contents of the output file:
   additive effects of the calibration removed), frame_id = the input's magnetometer frame_id;
 - ``<mag topic>/enu``: the restored field (:mod:`stages.restore`), frame_id ``"enu"``;
 - ``<mag topic>/residual``: measured minus predicted by the fitted forward model, mag frame;
+- ``<mag topic>/magnitude``: the calibrated field magnitude ``|inv(D) @ (y - o - e)|`` in nT
+  (the total field a surveyor maps; independent of the rotation, so present for every
+  sample, also those without an attitude): ``std_msgs/msg/Float64`` whose ``data`` is in
+  **nanotesla** (ROS 2 in; the topic's unit is documented in ``docs/exports.md``), or
+  ``magalign.FieldMagnitude`` ``{t_ns, frame_id, magnitude_nT}`` (JSON in);
 
-one message per input magnetometer sample on each of the three, stamped (header stamp and
-log time) with the magnetometer sample's stamp. Samples without a usable attitude have no
-ENU value and no residual: their ``/enu`` and ``/residual`` messages carry NaN in all three
-components (IEEE NaN in CDR; ``NaN`` in JSON, which Python's ``json`` reads back), so the
-three channels stay one-to-one with the input magnetometer.
+one message per input magnetometer sample on each of the four, stamped (header stamp and
+log time) with the magnetometer sample's stamp (``Float64`` has no header: its log time
+carries the stamp). And one ``/tf_static`` message (``tf2_msgs/msg/TFMessage``, ROS 2 CDR in
+either family), logged at the first magnetometer stamp, with one transform: parent
+``header.frame_id`` = the attitude source's body frame (the ``frame_id`` of
+``sensor_msgs/Imu`` messages, else ``"body"``), ``child_frame_id`` = the magnetometer's
+frame_id (else ``"mag"``), rotation = ``R_body_mag`` as a quaternion (the mag frame's
+orientation in the body frame: ``v_body = R_body_mag @ v_mag``), zero translation.
+
+Samples without a usable attitude have no ENU value and no residual: their ``/enu`` and
+``/residual`` messages carry NaN in all three components (IEEE NaN in CDR; ``NaN`` in
+JSON, which Python's ``json`` reads back), so the channels stay one-to-one with the input
+magnetometer.
 
 Encoding follows the input's family: ROS 2 in -> ``sensor_msgs/msg/MagneticField`` in tesla
 (CDR); JSON in -> ``magalign.Magnetometer`` in nT.
@@ -39,7 +52,10 @@ from pipeline.recording import Context, EncodingFamily, Recording
 
 METADATA_NAME = "magalign.calibration"
 ATTACHMENT_NAME = "calibration.json"
-SUFFIXES = ("calibrated", "enu", "residual")
+SUFFIXES = ("calibrated", "enu", "residual", "magnitude")
+TF_STATIC_TOPIC = "/tf_static"
+#: body frame name of the /tf_static transform when the recording names none
+DEFAULT_BODY_FRAME = "body"
 #: input messages copied per range (bounds the memory of long recordings)
 COPY_RANGE_MESSAGES = 400_000
 
@@ -71,9 +87,10 @@ def write_corrected_mcap(
         ``dest``.
 
     """
+    from pipeline.geometry import matrix_to_quat
     from pipeline.mcap_read import iter_raw_channels
     from pipeline.mcap_write import McapColumnWriter
-    from pipeline.messages import encode, schema_for
+    from pipeline.messages import encode, encode_field_magnitude_json, encode_tf_static, schema_for
     from stages.restore import restore_samples
 
     dest = Path(dest)
@@ -93,6 +110,9 @@ def write_corrected_mcap(
     )
     topic_base = recording.mag_topic.rstrip("/")
     t_ns = rs.t_ns
+    magnitude_nT = np.linalg.norm(rs.calibrated_mag_nT, axis=1)
+    mag_type = "std_msgs/msg/Float64" if ros2 else "magalign.FieldMagnitude"
+    body_frame = getattr(recording, "attitude_frame_id", "") or DEFAULT_BODY_FRAME
     # The input is copied range by range (READER's iter_raw_channels) and the writer flushes
     # each range before the next is read: memory holds one range of input messages, not the
     # whole file. The new channels' messages (log time = stamp) go in with the range whose
@@ -118,15 +138,33 @@ def write_corrected_mcap(
                 sid = w.add_schema(s_name, s_enc, bytes(s_data))  # the writer de-duplicates
                 new_ids = [w.add_channel(f"{topic_base}/{suffix}", m_enc, sid, {"magalign": "1"})
                            for suffix, _v, _f in series]
+                s_name, s_enc, s_data, m_enc = schema_for(mag_type)
+                sid = w.add_schema(s_name, s_enc, bytes(s_data))
+                new_ids.append(w.add_channel(f"{topic_base}/magnitude", m_enc, sid,
+                                             {"magalign": "1", "unit": "nT"}))
+                s_name, s_enc, s_data, m_enc = schema_for("tf2_msgs/msg/TFMessage")
+                sid = w.add_schema(s_name, s_enc, bytes(s_data))
+                tf_id = w.add_channel(TF_STATIC_TOPIC, m_enc, sid, {"magalign": "1"})
+                if len(t_ns):  # before the first flush: any log time may still be written
+                    data, offsets = encode_tf_static(
+                        int(t_ns[0]), body_frame, mag_frame,
+                        matrix_to_quat(np.asarray(calibration.R_body_mag, float)))
+                    w.add_messages(tf_id, t_ns[:1], data, offsets)
             upto = len(t_ns) if bound is None else int(np.searchsorted(t_ns, bound, "left"))
             upto = max(upto, done)
             if upto > done:
                 sl = slice(done, upto)
-                for cid, (_suffix, values_nT, frame_id) in zip(new_ids, series, strict=True):
+                for cid, (_suffix, values_nT, frame_id) in zip(new_ids[:3], series, strict=True):
                     v = values_nT[sl]
                     fields = {"mag_T": v * 1e-9} if ros2 else {"mag_nT": v}  # REP-145: tesla
                     data, offsets = encode(msg_type, t_ns[sl], fields, frame_id=frame_id)
                     w.add_messages(cid, t_ns[sl], data, offsets)
+                if ros2:  # Float64: no header, the log time is the stamp; data in nT
+                    data, offsets = encode(mag_type, t_ns[sl], {"value": magnitude_nT[sl]})
+                else:
+                    data, offsets = encode_field_magnitude_json(t_ns[sl], magnitude_nT[sl],
+                                                                mag_frame)
+                w.add_messages(new_ids[3], t_ns[sl], data, offsets)
                 done = upto
             if bound is not None:
                 w.flush(bound)

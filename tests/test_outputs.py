@@ -102,9 +102,10 @@ def test_corrected_mcap(tmp_path, json_family):
         in_counts = Counter(c.topic for _, c, _ in make_reader(f).iter_messages())
     for topic, k in in_counts.items():
         assert counts[topic] == k
-    for suffix in ("calibrated", "enu", "residual"):
+    for suffix in ("calibrated", "enu", "residual", "magnitude"):
         assert counts[f"/mag/{suffix}"] == n_mag  # one message per magnetometer sample
-    assert summary.statistics.message_count == sum(in_counts.values()) + 3 * n_mag
+    # four channels with one message per magnetometer sample, and one /tf_static message
+    assert summary.statistics.message_count == sum(in_counts.values()) + 4 * n_mag + 1
     (m,) = [m for m in meta if m.name == "magalign.calibration"]
     assert Calibration.from_json(m.metadata["json"]).estimator == "truth"
     (a,) = [a for a in att if a.name == "calibration.json"]

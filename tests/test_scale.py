@@ -119,7 +119,8 @@ def test_corrected_mcap_written_range_by_range(tmp_path, monkeypatch):
     with open(out, "rb") as fh:
         reader = make_reader(fh, validate_crcs=True)
         logs = [m.log_time for _s, _c, m in reader.iter_messages(log_time_order=False)]
-        assert reader.get_summary().statistics.message_count == len(logs) == 4 * 5_000 + 5_000
+        assert reader.get_summary().statistics.message_count == len(logs) == (
+            2 * 5_000 + 4 * 5_000 + 1)  # input; 4 new channels; one /tf_static
     assert np.all(np.diff(np.array(logs, dtype=np.int64)) >= 0)
 
 

@@ -13,36 +13,27 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.atomic import atomic_path
+from pipeline.commands._options import add_field_options, add_topic_options, field_from_args
 from pipeline.errors import NotObservableError, RefusedError, UsageError
 from pipeline.mcap_read import read_recording_warning
 from pipeline.verdict import Status
 
 
-def _floats(text: str, n: int, what: str) -> list[float]:
-    parts = [p.strip() for p in text.split(",")]
-    try:
-        vals = [float(p) for p in parts]
-    except ValueError as exc:
-        raise UsageError(f"{what} must be {n} comma-separated numbers, got {text!r}") from exc
-    if len(vals) != n or not all(np.isfinite(vals)):
-        raise UsageError(f"{what} must be {n} comma-separated finite numbers, got {text!r}")
-    return vals
-
-
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register the subcommand."""
-    p = sub.add_parser("calibrate", help="estimate the magnetometer misalignment")
+    p = sub.add_parser("calibrate", help="estimate the magnetometer misalignment",
+                       description="Estimate the misalignment between the magnetometer and "
+                       "the attitude source of one recording; writes DIR/calibration.json.")
     p.add_argument("recording", help="MCAP recording")
-    p.add_argument("--out", required=True, help="output folder (gets calibration.json)")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="output folder (gets calibration.json)")
     p.add_argument(
         "--estimator",
         default="ml",
         choices=["ml", "li2020", "ellipsoid", "dpi"],
         help="estimation method (default ml)",
     )
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--reference-field", metavar="E,N,U", help="known background field, nT, ENU")
-    g.add_argument("--igrf", metavar="LAT,LON,ALT_M,DATE", help="reference field from the IGRF")
+    add_field_options(p)
     p.add_argument(
         "--estimate",
         default="",
@@ -55,24 +46,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         choices=["none", "huber", "cauchy"],
         help="robust loss against outliers (default none)",
     )
-    p.add_argument("--mag", metavar="TOPIC", help="magnetometer topic")
-    p.add_argument("--attitude", metavar="TOPIC", help="attitude topic")
+    add_topic_options(p)
     p.set_defaults(func=run)
 
 
-def reference_from_args(args: argparse.Namespace) -> np.ndarray | None:
-    """Return the reference field (ENU, nT) asked for on the command line, or None."""
-    if getattr(args, "reference_field", None):
-        return np.array(_floats(args.reference_field, 3, "--reference-field"))
-    if getattr(args, "igrf", None):
-        parts = args.igrf.split(",")
-        if len(parts) != 4:
-            raise UsageError(f"--igrf must be LAT,LON,ALT_M,DATE, got {args.igrf!r}")
-        lat, lon, alt = _floats(",".join(parts[:3]), 3, "--igrf LAT,LON,ALT_M")
-        from pipeline.igrf import igrf_enu_nT
-
-        return np.asarray(igrf_enu_nT(lat, lon, alt, parts[3].strip()), float)
-    return None
+#: Kept for callers of the former name (the option parsing lives in ``_options``).
+reference_from_args = field_from_args
 
 
 def run(args: argparse.Namespace) -> int:

@@ -11,31 +11,19 @@ import json
 from pathlib import Path
 
 from ..atomic import write_text_atomic
-from ..errors import UsageError
+from ._options import add_field_options, add_topic_options, field_from_args
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register the subcommand."""
-    p = sub.add_parser("diagnose", help="find and model the physics the calibration left out")
+    p = sub.add_parser("diagnose", help="find and model the physics the calibration left out",
+                       description="Find, name, model and verify what the calibration model "
+                       "leaves out; writes DIR/diagnosis.json and DIR/calibration.json.")
     p.add_argument("recording", help="MCAP recording")
-    p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--mag", default=None, help="magnetometer topic")
-    p.add_argument("--attitude", default=None, help="attitude topic")
-    p.add_argument("--reference-field", default=None, metavar="E,N,U",
-                   help="known background field, ENU nT (not estimated then)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    add_topic_options(p)
+    add_field_options(p)
     p.set_defaults(func=run)
-
-
-def _field(text: str | None) -> tuple[float, float, float] | None:
-    if text is None:
-        return None
-    try:
-        v = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        v = ()
-    if len(v) != 3:
-        raise UsageError(f"--reference-field needs E,N,U in nT, got {text!r}")
-    return v  # type: ignore[return-value]
 
 
 def diagnose_file(path: str | Path, *, mag_topic: str | None = None,
@@ -68,8 +56,10 @@ def diagnose_file(path: str | Path, *, mag_topic: str | None = None,
 
 def run(args: argparse.Namespace) -> int:
     """Diagnose and write the outputs; returns the exit status."""
+    ref = field_from_args(args)
     ctx = diagnose_file(args.recording, mag_topic=args.mag, attitude_topic=args.attitude,
-                        reference_field_enu_nT=_field(args.reference_field))
+                        reference_field_enu_nT=None if ref is None
+                        else tuple(float(x) for x in ref))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "diagnosis.json",

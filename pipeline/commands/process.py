@@ -18,16 +18,7 @@ from pathlib import Path
 
 from .. import errors
 from ..errors import CampaignPartialFailure, InputError, UsageError
-
-
-def _vec3(text: str) -> tuple[float, float, float]:
-    try:
-        v = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected E,N,U in nT, got {text!r}") from None
-    if len(v) != 3:
-        raise argparse.ArgumentTypeError(f"expected three numbers E,N,U, got {text!r}")
-    return v  # type: ignore[return-value]
+from ._options import add_field_options, add_topic_options, check_mcap_file, field_from_args
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -35,9 +26,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     from ..campaign import EstimatorName, TermName
 
     p = sub.add_parser("process", help="process a recording, a folder or a campaign TOML",
-                       description=__doc__.splitlines()[0])
+                       description="The whole pipeline on one recording, a folder of "
+                       "recordings or a campaign TOML file.")
     p.add_argument("input", help="recording (.mcap), folder of recordings, or campaign (.toml)")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--calibration", help="calibration.json to restore survey recordings with "
                    "(those that do not name a calibration run)")
     p.add_argument("--jobs", type=int, default=None, help="local worker processes (default 1)")
@@ -49,11 +41,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--estimator", choices=[e.value for e in EstimatorName], default=None,
                    help="estimator (default: the campaign's, else ml)")
     p.add_argument("--estimate", default=None, metavar="TERMS",
-                   help="comma-separated extra terms: " + ",".join(t.value for t in TermName))
-    p.add_argument("--reference-field", type=_vec3, default=None, metavar="E,N,U",
-                   help="known background field, ENU, nT")
-    p.add_argument("--mag", default=None, metavar="TOPIC", help="magnetometer topic")
-    p.add_argument("--attitude", default=None, metavar="TOPIC", help="attitude topic")
+                   help="comma-separated extra terms: " + ", ".join(t.value for t in TermName))
+    add_field_options(p)
+    add_topic_options(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -72,9 +62,10 @@ def _overrides(args: argparse.Namespace):
         except ValueError:
             raise UsageError(f"--estimate {args.estimate!r}: terms are "
                              + ", ".join(t.value for t in TermName)) from None
-    if args.reference_field is not None:
+    ref = field_from_args(args)
+    if ref is not None:
         ov["reference_field"] = ReferenceField(ReferenceFieldMode.FIXED,
-                                               enu_nT=args.reference_field)
+                                               enu_nT=tuple(float(x) for x in ref))
     if args.mag is not None:
         ov["mag_topic"] = args.mag
     if args.attitude is not None:
@@ -115,6 +106,10 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out} exists and is not a folder")
+    inp = Path(args.input)
+    single = inp.is_file() and inp.suffix.lower() != ".toml"
+    if single:
+        check_mcap_file(inp)  # not a recording: one line, exit 2, no output folder
     ov = _overrides(args)
     camp = campaign_for_input(args.input, options=RecordingOptions(**ov), out_dir=out)
     if ov:
@@ -162,7 +157,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"  {r['name']}: magalign view {out / r['rrd']}")
         if r["report"]:
             print(f"  {' ' * len(r['name'])}  report {out / r['report']}")
-    if failures and len(results) == 1 and Path(args.input).suffix.lower() == ".mcap":
+    if failures and len(results) == 1 and single:
         # One recording given: its failure is bad input (exit 2, one line), not a campaign
         # that partly failed (CONVENTIONS, "Exit status").
         raise InputError(failures[0][1])

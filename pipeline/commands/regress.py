@@ -14,7 +14,8 @@ from ..errors import RegressionFailure
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register the subcommand."""
     p = sub.add_parser("regress", help="compare results with a stored baseline",
-                       description=__doc__.splitlines()[0])
+                       description="Compare results with stored ones, within tolerances; "
+                       "exit status 1 when a quantity is outside its tolerance.")
     p.add_argument("results", help="results folder (the --out of magalign process)")
     p.add_argument("--baseline", required=True, help="baseline folder")
     p.add_argument("--tolerances", default=None, metavar="TOML",

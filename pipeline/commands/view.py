@@ -18,6 +18,7 @@ import sys
 from pathlib import Path
 
 from ..errors import InputError, UsageError
+from ._options import check_mcap_file
 
 SUFFIXES = (".rrd", ".mcap")
 
@@ -44,6 +45,8 @@ def files_to_view(path: str | Path) -> list[Path]:
         raise InputError("no such file or folder", path=p)
     if p.suffix.lower() not in SUFFIXES:
         raise InputError("not a .rrd or .mcap file", path=p)
+    if p.suffix.lower() == ".mcap":
+        check_mcap_file(p)
     return [p]
 
 

@@ -1,0 +1,136 @@
+"""The command line itself: version, help texts, shared options, inputs that are not MCAP."""
+
+from __future__ import annotations
+
+import argparse
+import re
+import subprocess
+import sys
+from importlib.metadata import version
+from pathlib import Path
+
+import pytest
+
+from pipeline.cli import build_parser, main
+
+#: Markup that must not reach a user's terminal: rst roles, double backticks, and references
+#: to the project's internal conventions file.
+MARKUP = re.compile(r"``|:(func|mod|class|meth|attr|data|ref):|CONVENTIONS")
+
+
+def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return dict(action.choices)
+    raise AssertionError("no subcommands")
+
+
+def _options(p: argparse.ArgumentParser) -> dict[str, argparse.Action]:
+    return {s: a for a in p._actions for s in a.option_strings}
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.strip() == f"magalign {version('magalign')}"
+
+
+def test_every_help_text_is_plain_words():
+    parser = build_parser()
+    subs = _subparsers(parser)
+    assert {"info", "calibrate", "diagnose", "process", "export", "view"} <= set(subs)
+    texts = {"magalign": parser.format_help()}
+    texts |= {name: p.format_help() for name, p in subs.items()}
+    for name, text in texts.items():
+        bad = MARKUP.search(text)
+        assert bad is None, f"magalign {name} --help shows {bad.group(0)!r}:\n{text}"
+        assert len(text.splitlines()) >= 3, name
+
+
+def test_help_through_the_program_exits_zero_with_plain_text():
+    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "process", "--help"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "--reference-field" in r.stdout
+    assert MARKUP.search(r.stdout) is None
+
+
+def test_one_spelling_per_option_across_subcommands():
+    subs = _subparsers(build_parser())
+    seen: dict[str, tuple[str, str | tuple, str]] = {}
+    for name, p in subs.items():
+        for opt, a in _options(p).items():
+            if opt in ("-h", "--help"):
+                continue
+            key = (a.metavar, a.help)
+            if opt in seen and opt in ("--mag", "--attitude", "--reference-field", "--igrf"):
+                assert key == seen[opt][1:], f"{opt} differs between {seen[opt][0]} and {name}"
+            seen.setdefault(opt, (name, *key))
+    for name in ("calibrate", "diagnose", "process"):
+        opts = _options(subs[name])
+        for opt, metavar in (("--mag", "TOPIC"), ("--attitude", "TOPIC"),
+                             ("--reference-field", "E,N,U"),
+                             ("--igrf", "LAT,LON,ALT_M,DATE")):
+            assert opt in opts, f"magalign {name} lacks {opt}"
+            assert opts[opt].metavar == metavar
+
+
+def test_usage_error_names_the_subcommand(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["calibrate"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].endswith("(see magalign calibrate -h)")
+    with pytest.raises(SystemExit):
+        main(["nonsense-command"])
+    assert capsys.readouterr().err.strip().endswith("(see magalign -h)")
+
+
+def test_field_options_parse_and_refuse():
+    from pipeline.commands._options import field_from_args
+    from pipeline.errors import UsageError
+
+    ns = argparse.Namespace
+    assert field_from_args(ns(reference_field=None, igrf=None)) is None
+    b = field_from_args(ns(reference_field="1000, 20000,-40000", igrf=None))
+    assert b.tolist() == [1000.0, 20000.0, -40000.0]
+    # IGRF at Berlin: total field ~49,800 nT, pointing down (negative Up) and north.
+    g = field_from_args(ns(reference_field=None, igrf="52.5,13.4,50,2024-06-01"))
+    assert 45_000 < float((g**2).sum() ** 0.5) < 55_000 and g[2] < 0 < g[1]
+    for bad in ("1,2", "1,2,nan", "a,b,c"):
+        with pytest.raises(UsageError, match="--reference-field"):
+            field_from_args(ns(reference_field=bad, igrf=None))
+    with pytest.raises(UsageError, match="--igrf"):
+        field_from_args(ns(reference_field=None, igrf="52.5,13.4,2024-06-01"))
+
+
+# ------------------------------------------------------------------ inputs that are not MCAP
+
+def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "pipeline.cli", *args], capture_output=True,
+                          text=True, timeout=300, cwd=cwd)
+
+
+@pytest.mark.parametrize("command", ["info", "calibrate", "diagnose", "process", "view"])
+@pytest.mark.parametrize("name", ["table.csv", "renamed.mcap"])
+def test_not_mcap_is_one_line_exit_2_and_no_output(tmp_path, command, name):
+    src = tmp_path / name
+    src.write_text("t,x,y,z\n0,1,2,3\n1,1,2,3\n")
+    out = tmp_path / "out"
+    args = [command, str(src)]
+    if command in ("calibrate", "diagnose", "process"):
+        args += ["--out", str(out)]
+    if command == "process":
+        args.append("--no-progress")
+    if command == "view":
+        args.append("--web")
+    r = _run(*args, cwd=tmp_path)
+    err = r.stderr.strip().splitlines()
+    assert r.returncode == 2, r.stderr
+    assert len(err) == 1, r.stderr
+    if command == "view" and name.endswith(".csv"):
+        assert re.search(r"not a \.rrd or \.mcap file", err[0])
+    else:
+        assert "not an MCAP file" in err[0]
+    assert str(src) in err[0] and "Traceback" not in r.stderr
+    assert not out.exists()
