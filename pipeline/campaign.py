@@ -56,21 +56,12 @@ class ReferenceFieldMode(str, enum.Enum):
     IGRF = "igrf"
 
 
-class EstimatorName(str, enum.Enum):
-    """Estimators (values of ``stages.estimate.EstimatorKind``)."""
+from stages.estimators.base import EstimatorKind, Term  # noqa: E402
 
-    ML = "ml"
-    LI2020 = "li2020"
-    ELLIPSOID = "ellipsoid"
-    DPI = "dpi"
-
-
-class TermName(str, enum.Enum):
-    """Extra model terms (values of ``stages.estimate.Term``)."""
-
-    OFFSET = "offset"
-    SOFT_IRON = "soft_iron"
-    TIME_OFFSET = "time_offset"
+# One spelling per option: the estimator kinds come from the registry, the terms from the
+# estimators' own enum (re-exported under the names this module has always used).
+EstimatorName = EstimatorKind
+TermName = Term
 
 
 @dataclass(frozen=True)
@@ -645,13 +636,8 @@ def _process_options(task: RecordingTask) -> Any:
     o = task.options
     names = {f.name for f in dataclasses.fields(ProcessOptions)}
     want: dict[str, Any] = {}
-    try:
-        from stages.estimate import EstimatorKind, Term
-
-        est: Any = EstimatorKind(o.estimator.value)
-        terms: Any = frozenset(Term(t.value) for t in o.terms)
-    except ImportError:  # pragma: no cover - estimator module not installed
-        est, terms = o.estimator, frozenset(o.terms)
+    est: Any = EstimatorKind(o.estimator)
+    terms: Any = frozenset(Term(t) for t in o.terms)
     want["estimator"] = est
     want["terms"] = terms
     want["mag_topic"] = o.mag_topic

@@ -41,24 +41,26 @@ __all__ = [
 ]
 
 
-def make_estimator(kind: EstimatorKind) -> Estimator:
-    """Return the estimator object for ``kind``."""
-    kind = EstimatorKind(kind)
-    if kind is EstimatorKind.ML:
-        from .estimators.ml import MLEstimator
+def make_estimator(kind: EstimatorKind | str) -> Estimator:
+    """Return the estimator object for ``kind`` from the registry (default hyperparameters).
 
-        return MLEstimator()
-    if kind is EstimatorKind.LI2020:
-        from .estimators.li2020 import Li2020Estimator
+    Raises
+    ------
+    UsageError
+        ``kind`` is not in :data:`stages.estimators.registry.ESTIMATORS`.
 
-        return Li2020Estimator()
-    if kind is EstimatorKind.ELLIPSOID:
-        from .estimators.ellipsoid import EllipsoidEstimator
+    """
+    import importlib
 
-        return EllipsoidEstimator()
-    from .estimators.dpi import DpiEstimator
+    from pipeline.errors import UsageError
 
-    return DpiEstimator()
+    from .estimators.registry import ESTIMATORS
+
+    name = getattr(kind, "value", kind)
+    if name not in ESTIMATORS:
+        raise UsageError(f"unknown estimator {name!r}: choose one of {', '.join(ESTIMATORS)}")
+    module, cls = ESTIMATORS[name].split(":")
+    return getattr(importlib.import_module(module), cls)()
 
 
 def _terms(terms: Iterable[Term | str]) -> frozenset[Term]:

@@ -17,6 +17,7 @@ from pipeline.commands._options import add_field_options, add_topic_options, fie
 from pipeline.errors import NotObservableError, RefusedError, UsageError
 from pipeline.mcap_read import read_recording_warning
 from pipeline.verdict import Status
+from stages.estimators.registry import DESCRIPTIONS, ESTIMATORS
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -30,8 +31,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--estimator",
         default="ml",
-        choices=["ml", "li2020", "ellipsoid", "dpi"],
-        help="estimation method (default ml)",
+        choices=list(ESTIMATORS),
+        help="estimation method (default ml): "
+        + "; ".join(f"{k}: {v}" for k, v in DESCRIPTIONS.items()),
     )
     add_field_options(p)
     p.add_argument(

@@ -23,6 +23,8 @@ from pipeline.errors import EstimationError
 from pipeline.geometry import quat_slerp, quat_to_matrix, skew
 from pipeline.recording import AttitudeSeries
 
+from .registry import ESTIMATORS
+
 F64 = NDArray[np.float64]
 
 #: An eigen-direction of the information matrix keeps less than this fraction of its
@@ -34,16 +36,13 @@ F64 = NDArray[np.float64]
 RELATIVE_INFO_THRESHOLD = 1e-6
 
 
-class EstimatorKind(enum.Enum):
-    """Which estimator :func:`stages.estimate.fit_calibration` uses."""
-
-    ML = "ml"
-    LI2020 = "li2020"
-    ELLIPSOID = "ellipsoid"
-    DPI = "dpi"
+#: Which estimator :func:`stages.estimate.fit_calibration` uses: one member per entry of the
+#: registry (:data:`stages.estimators.registry.ESTIMATORS`), e.g. ``EstimatorKind.ML``.
+EstimatorKind = enum.Enum(  # type: ignore[misc]
+    "EstimatorKind", {k.upper(): k for k in ESTIMATORS}, type=str, module=__name__)
 
 
-class Term(enum.Enum):
+class Term(str, enum.Enum):
     """Optional model terms estimated beside the rotation (CONVENTIONS names)."""
 
     OFFSET = "offset"
