@@ -39,6 +39,8 @@ B8 = NDArray[np.bool_]
 
 #: Below this fraction of repeats among samples whose neighbours differ, nothing is reported.
 MIN_MOVING_REPEAT_FRACTION = 0.02
+#: Runs of identical messages longer than this are not sample-and-hold evidence.
+MAX_HOLD_RUN = 8
 #: Re-stamping follows the sensor clock over windows of this many conversions (about 0.2 s).
 RESTAMP_WINDOW = 41
 
@@ -146,6 +148,10 @@ def detect_sample_hold(t_ns: I64, mag_nT: F64) -> SampleHold | None:
         return None
     rep = repeated(mag_nT)
     mov = _moving(mag_nT, rep)
+    # a sensor that holds its conversion for a few messages makes short runs; a long run of
+    # identical readings is a still (or noise-free, or stuck) reading, not sample-and-hold
+    run_id = np.cumsum(~rep) - 1
+    mov &= (np.bincount(run_id) <= MAX_HOLD_RUN)[run_id]
     n_mov = int(np.sum(mov))
     if n_mov < 10 or np.sum(rep & mov) < MIN_MOVING_REPEAT_FRACTION * n_mov:
         return None
