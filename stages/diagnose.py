@@ -1094,7 +1094,7 @@ def sample_hold_finding(
     message is predicted at the stamp of the first copy of its conversion; (b) as (a), with
     the conversions re-stamped on the sensor's native grid (``SampleHold.t_sensed_ns``). The
     better one is kept; without it (the messages fitted and predicted at their own stamps)
-    is the final model of ``diag``. The finding is added when the handling does not raise
+    is the final model of ``diag``. The finding is added when the handling lowers
     the held-out error; its evidence is the change of the in-sample and held-out RMS over the
     same messages.
 
@@ -1131,7 +1131,7 @@ def sample_hold_finding(
             best = (cv, name, train, test)
     # the same blocks as the handled variants (differs from diag.final only by block edges)
     cv_old = _heldout_split(res.state, data, data, cfg)
-    if best is None or not best[0] <= cv_old:
+    if best is None or not best[0] < cv_old:
         return None
     cv_new, name, train, test = best
     res_h = fit(res.state, train)
