@@ -1050,16 +1050,17 @@ def _positions_at(recording: Recording, t_ns: np.ndarray) -> np.ndarray | None:
     return p
 
 
-def _heldout_split(state: ModelState, train: FitData, test: FitData, cfg: DiagnoseConfig
-                   ) -> float:
+def _heldout_split(state: ModelState, train: FitData, test: FitData, cfg: DiagnoseConfig,
+                   t0_s: float) -> float:
     """Held-out RMS (nT) when the model is fitted on ``train`` and predicts ``test``.
 
-    Like :func:`heldout_rms` (the same time blocks, by time from the first magnetometer
-    sample), but the samples fitted and the samples predicted may differ: the repeats of a
-    sample-and-hold sensor are predicted although only the first copies are fitted.
+    Like :func:`heldout_rms` (the same time blocks, counted from ``t0_s``: with the first
+    sample of the diagnosis data the folds are exactly those of :func:`heldout_rms`), but the
+    samples fitted and the samples predicted may differ: the repeats of a sample-and-hold
+    sensor are predicted although only the first copies are fitted.
     """
-    f_tr = np.floor(train.t_s / cfg.block_s).astype(np.int64) % cfg.n_folds
-    f_te = np.floor(test.t_s / cfg.block_s).astype(np.int64) % cfg.n_folds
+    f_tr = np.floor((train.t_s - t0_s) / cfg.block_s).astype(np.int64) % cfg.n_folds
+    f_te = np.floor((test.t_s - t0_s) / cfg.block_s).astype(np.int64) % cfg.n_folds
     start = dataclasses.replace(state, values=tuple(
         np.zeros_like(v) if t.kind in LOCAL_KINDS else v
         for t, v in zip(state.terms, state.values, strict=True)))
@@ -1126,11 +1127,11 @@ def sample_hold_finding(
         test = dataclasses.replace(data, t_s=(t_new[idx] - t0) * 1e-9)
         if len(train) < 30:
             continue
-        cv = _heldout_split(res.state, train, test, cfg)
+        cv = _heldout_split(res.state, train, test, cfg, float(data.t_s[0]))
         if best is None or cv < best[0]:
             best = (cv, name, train, test)
-    # the same blocks as the handled variants (differs from diag.final only by block edges)
-    cv_old = _heldout_split(res.state, data, data, cfg)
+    # the same blocks as the handled variants and as diag.final's held-out error
+    cv_old = _heldout_split(res.state, data, data, cfg, float(data.t_s[0]))
     if best is None or not best[0] < cv_old:
         return None
     cv_new, name, train, test = best
