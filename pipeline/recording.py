@@ -189,7 +189,7 @@ class PositionSeries:
         t0, t1 = tv[i], tv[i + 1]
         span = (t1 - t0).astype(float)
         s = np.where(span > 0, (t - t0) / np.where(span > 0, span, 1.0), 0.0)
-        inside = (t >= tv[0]) & (t <= tv[-1]) & (span <= max_gap_s * 1e9)
+        inside = (t >= tv[0]) & (t <= tv[-1]) & ((span <= max_gap_s * 1e9) | (t == t0) | (t == t1))
         p = pv[i] + s[:, None] * (pv[i + 1] - pv[i])
         out[inside] = p[inside]
         return out
