@@ -32,9 +32,13 @@ KINDS = (
     "field_drift",
     "disturbance",
     "hard_iron_step",
+    "field_gradient",
+    "sample_hold",
 )
+# field_gradient: 5 parameters and the searched yaw of the position frame; sample_hold: the
+# native rate (the repeats follow from it)
 _K = {"hard_iron": 3, "soft_iron": 5, "time_offset": 1, "eddy_current": 9, "field_drift": 12,
-      "disturbance": 15, "hard_iron_step": 3}
+      "disturbance": 15, "hard_iron_step": 3, "field_gradient": 6, "sample_hold": 1}
 
 DURATION_S = 60.0
 RATE_HZ = 50.0
@@ -72,6 +76,16 @@ def _effect_params(kind: str, rng: np.random.Generator, scale: float) -> dict[st
         a = float(rng.uniform(8.0, DURATION_S - 20.0))
         return {"windows_s": [[a, a + float(rng.uniform(6.0, 12.0))]],
                 "offset_nT": (u * 60.0 * scale).tolist()}
+    if kind == "field_gradient":
+        # symmetric traceless (free space), Frobenius norm 400 nT/m at scale 1 (about 120 nT
+        # over the 0.3 m of the path)
+        A = rng.normal(size=(3, 3))
+        G = 0.5 * (A + A.T)
+        G -= np.trace(G) / 3.0 * np.eye(3)
+        G *= 400.0 * scale / np.linalg.norm(G)
+        return {"G_nT_per_m": G.tolist()}
+    if kind == "sample_hold":
+        return {"native_rate_hz": float(RATE_HZ * rng.uniform(0.55, 0.85))}
     raise ValueError(kind)
 
 
@@ -95,6 +109,13 @@ def _scenario(rng: np.random.Generator, effects: dict[str, dict[str, Any]], i: i
         "sensor": {"misalignment_rotvec_deg": rng.uniform(-2.0, 2.0, 3).tolist()},
         "effects": effects,
         "noise": {"mag_sigma_nT": 2.0, "heading_sigma_deg": 0.01, "pitch_roll_sigma_deg": 0.005},
+        # every recording moves through space and writes its positions into the pose (in a
+        # room frame of random bearing), so that nulls can show a gradient is not invented
+        "trajectory": {"amplitude_m": rng.uniform(0.2, 0.4, 3).tolist(),
+                       "period_s": rng.uniform(5.0, 13.0, 3).tolist(),
+                       "phase_rad": rng.uniform(0.0, 2 * np.pi, 3).tolist(),
+                       "frame_yaw_deg": float(rng.uniform(0.0, 360.0))},
+        "output": {"attitude_type": "geometry_msgs/msg/PoseStamped"},
     }
 
 
@@ -123,7 +144,8 @@ def _strength(sim_full: Any, sim_without: Any, kind: str, noise: dict[str, float
     return float(np.sqrt(lam / lam_thr))
 
 
-def generate(n: int, seed: int, out_dir: str | Path, *, null_fraction: float = 0.3) -> Path:
+def generate(n: int, seed: int, out_dir: str | Path, *, null_fraction: float = 0.3,
+             only: list[list[str]] | None = None) -> Path:
     """Write ``n`` challenge recordings to ``out_dir`` and the key beside it.
 
     Parameters
@@ -136,6 +158,9 @@ def generate(n: int, seed: int, out_dir: str | Path, *, null_fraction: float = 0
         Folder for ``rec_000.mcap ...``; the key goes to ``<out_dir>_key/key.json``.
     null_fraction : float
         Probability that a recording has no effect (the rest: 5/7 one effect, 2/7 a pair).
+    only : list of list of str, optional
+        The effects of each recording, at full strength, instead of random ones (``n`` is
+        then ``len(only)``).
 
     Returns
     -------
@@ -149,7 +174,7 @@ def generate(n: int, seed: int, out_dir: str | Path, *, null_fraction: float = 0
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     key: dict[str, Any] = {"format": "magalign.challenge_key/1", "seed": seed, "recordings": {}}
-    for i in range(n):
+    for i in range(len(only) if only is not None else n):
         r = rng.uniform()
         count = 0 if r < null_fraction else (
             1 if r < null_fraction + (1.0 - null_fraction) * 5.0 / 7.0 else 2)
@@ -160,9 +185,11 @@ def generate(n: int, seed: int, out_dir: str | Path, *, null_fraction: float = 0
         # a time offset is the isotropic case of eddy currents: together they are one term
         if {"eddy_current", "time_offset"} <= set(kinds):
             kinds.remove("eddy_current")
+        if only is not None:
+            kinds = list(only[i])
         effects = {}
         for k in kinds:
-            scale = float(rng.choice([1.0, 1.0, 0.5, 0.1]))
+            scale = float(rng.choice([1.0, 1.0, 0.5, 0.1])) if only is None else 1.0
             effects[str(k)] = _effect_params(str(k), rng, scale)
         scen = _scenario(rng, effects, i)
         sim = simulate(scenario_from_dict(scen, path=f"rec_{i:03d}"))
@@ -174,7 +201,7 @@ def generate(n: int, seed: int, out_dir: str | Path, *, null_fraction: float = 0
         name = f"rec_{i:03d}"
         write_simulated(sim, out / f"{name}.mcap")
         key["recordings"][name] = {
-            "effects": {k: _public_params(k, v) for k, v in effects.items()},
+            "effects": {k: _public_params(k, v, scen, sim) for k, v in effects.items()},
             "strength_x_threshold": strengths,
             "truth": sim.truth.to_dict(),
         }
@@ -184,7 +211,18 @@ def generate(n: int, seed: int, out_dir: str | Path, *, null_fraction: float = 0
     return kp
 
 
-def _public_params(kind: str, p: dict[str, Any]) -> dict[str, Any]:
+def _public_params(kind: str, p: dict[str, Any], scen: dict | None = None, sim: Any = None
+                   ) -> dict[str, Any]:
+    if kind == "field_gradient" and scen is not None:
+        # what a diagnosis reports: G_enu Q, Q the rotation from the written (room) frame
+        a = np.radians(scen["trajectory"]["frame_yaw_deg"])
+        Q = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0, 0, 1.0]])
+        return {"G_nT_per_m": (np.asarray(p["G_nT_per_m"]) @ Q).tolist(),
+                "position_frame": "attitude_source_local"}
+    if kind == "sample_hold" and sim is not None:
+        m = np.asarray(sim.recording.mag.values)
+        rep = float(np.mean(np.all(m[1:] == m[:-1], axis=1))) if len(m) > 1 else 0.0
+        return {"native_rate_hz": p["native_rate_hz"], "repeated_fraction": rep}
     keep = {"field_drift": ("peak_to_peak_nT",), "disturbance": ("windows_s", "peak_nT")}
     if kind in keep:
         return {k: p[k] for k in keep[kind]}
@@ -211,6 +249,11 @@ def _param_errors(kind: str, true: dict[str, Any], found: dict[str, Any],
         return z(found["D"], Dt, sigma.get("D", 1e-12))
     if kind == "eddy_current":
         return z(found["E_s"], true["E_s"], sigma.get("E_s", 1e-12))
+    if kind == "field_gradient":
+        return z(found["G_nT_per_m"], true["G_nT_per_m"], sigma.get("G_nT_per_m", 1e-12))
+    if kind == "sample_hold":
+        return z(found["native_rate_hz"], true["native_rate_hz"],
+                 sigma.get("native_rate_hz", 1e-12))
     return []
 
 

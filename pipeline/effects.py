@@ -7,7 +7,8 @@ Forward model (CONVENTIONS, "Measurement model"), one magnetometer sample stampe
     y0(t)  = D @ m(t)
     y(t)   = y0(t) + o + o_step * 1[t in windows] + E_s @ dy0/dt
 
-with ``F(t)`` the ENU field terms (``field_drift``, ``disturbance``), ``T`` the turntable-axis
+with ``F(t)`` the ENU field terms (``field_drift``, ``disturbance``, ``field_gradient``:
+``G (p(t) - p_ref)`` with ``p`` the attitude source's position), ``T`` the turntable-axis
 tilt (``axis_tilt``), ``D = I + S`` (``soft_iron``, ``S`` symmetric and traceless because the
 isotropic scale of ``D`` is the field magnitude when ``B_enu`` is estimated), ``o``
 (``hard_iron``), ``o_step`` (``hard_iron_step``), ``E_s`` (``eddy_current``). ``dy0/dt`` is the
@@ -50,6 +51,8 @@ class EffectKind(str, enum.Enum):
     DISTURBANCE = "disturbance"
     HARD_IRON_STEP = "hard_iron_step"
     AXIS_TILT = "axis_tilt"
+    FIELD_GRADIENT = "field_gradient"
+    SAMPLE_HOLD = "sample_hold"  # a timing effect handled on the data, not a model term
 
 
 LOCAL_KINDS = frozenset({EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP})
@@ -198,6 +201,14 @@ class FitData:
         A reference field; when given, ``B_enu`` is held at it (not estimated).
     turntable_axis_body : ndarray (3,) or None
         Nominal rotation axis of a single-axis attitude source (turntable), body frame.
+    p_m : ndarray (N, 3) or None
+        Position of the attitude source at each sample, m, in ``position_frame`` (finite:
+        samples without a position are not in the data when positions are used).
+    p_ref_m : ndarray (3,) or None
+        Reference position ``p_ref`` of ``field_gradient`` (the mean position), m.
+    position_frame : str or None
+        ``enu`` or ``attitude_source_local`` (third axis up, horizontal axes rotated about Up
+        by an unknown angle).
 
     """
 
@@ -206,13 +217,25 @@ class FitData:
     track: AttitudeTrack
     B_known_enu_nT: F64 | None = None
     turntable_axis_body: F64 | None = None
+    p_m: F64 | None = None
+    p_ref_m: F64 | None = None
+    position_frame: str | None = None
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
 
     def subset(self, mask: np.ndarray) -> FitData:
         """Return the samples where ``mask`` is true (same attitude track)."""
-        return replace(self, t_s=self.t_s[mask], y_nT=self.y_nT[mask])
+        p = None if self.p_m is None else self.p_m[mask]
+        return replace(self, t_s=self.t_s[mask], y_nT=self.y_nT[mask], p_m=p)
+
+    @property
+    def dp_m(self) -> F64:
+        """Positions relative to the reference, (N, 3), m (zeros without positions)."""
+        if self.p_m is None:
+            return np.zeros((len(self), 3))
+        ref = np.zeros(3) if self.p_ref_m is None else self.p_ref_m
+        return self.p_m - ref
 
     @property
     def duration_s(self) -> float:
@@ -234,12 +257,16 @@ class Term:
         Half-open windows, s from the first magnetometer sample (local effects only).
     knot_step_s : float
         Spacing of the linear B-spline (hat) knots of a ``disturbance`` field.
+    yaw_rad : float
+        ``field_gradient`` in a position frame rotated about Up: the rotation ``Q = Rz(yaw)``
+        from that frame to ENU, located by a search (like a window), not fitted.
 
     """
 
     kind: EffectKind
     windows_s: tuple[tuple[float, float], ...] = ()
     knot_step_s: float = 1.0
+    yaw_rad: float = 0.0
 
     def knots(self) -> list[F64]:
         """Knot times of each disturbance window (hat functions, both ends included)."""
@@ -254,7 +281,7 @@ class Term:
         k = self.kind
         if k in (EffectKind.HARD_IRON, EffectKind.HARD_IRON_STEP):
             return 3
-        if k is EffectKind.SOFT_IRON:
+        if k in (EffectKind.SOFT_IRON, EffectKind.FIELD_GRADIENT):
             return 5
         if k is EffectKind.TIME_OFFSET:
             return 1
@@ -277,6 +304,22 @@ class Term:
 
 
 DRIFT_DEGREE = 4
+
+
+def rot_z(yaw_rad: float) -> F64:
+    """Return the rotation about Up by ``yaw_rad``, (3, 3): ``p_enu = Q @ p_local``."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def gradient_matrix(value: F64, yaw_rad: float = 0.0) -> F64:
+    """``G_enu @ Q`` (3, 3), nT/m: ENU field change per metre along the position axes.
+
+    ``G_enu = sum_k value_k S_k`` with ``S_k`` the symmetric traceless basis (a field in free
+    space is curl-free, ``G = G.T``, and divergence-free, ``trace G = 0``: 5 parameters),
+    ``Q = rot_z(yaw_rad)`` the rotation from the position frame to ENU.
+    """
+    return np.tensordot(value, _SOFT_BASIS, axes=1) @ rot_z(yaw_rad)
 
 
 def drift_basis(t_s: F64, t0_s: float, t1_s: float) -> F64:
@@ -480,6 +523,9 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
         elif term.kind is EffectKind.DISTURBANCE:
             Phi = np.concatenate([hat_basis(t, k) for k in term.knots()], axis=1)
             Bt += Phi @ v.reshape(-1, 3)
+        elif term.kind is EffectKind.FIELD_GRADIENT:
+            # B(p) = B_enu + G_enu Q (p - p_ref)  (CONVENTIONS field_gradient)
+            Bt += data.dp_m @ gradient_matrix(v, term.yaw_rad).T
     TT = state.T_enu.T
     Bp = Bt @ TT.T  # T.T @ B_t per row
 
@@ -545,6 +591,11 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             J[:, :, i : i + 3 * K] = (Phi[:, :, None, None] * G[:, None, :, :]).transpose(
                 0, 2, 1, 3
             ).reshape(n, 3, 3 * K)
+        elif k is EffectKind.FIELD_GRADIENT:
+            # dB/dg_k = S_k Q (p - p_ref); dy/dg_k = G (N,3,3) @ that
+            dpq = data.dp_m @ rot_z(term.yaw_rad).T  # Q (p - p_ref) per row
+            dB = np.einsum("kij,nj->nik", _SOFT_BASIS, dpq)  # (N, 3, 5)
+            J[:, :, i : i + 5] = np.matmul(G, dB)
         elif k is EffectKind.AXIS_TILT:
             # T.T <- T.T exp(-[d]x): d(T.T B)/dd = T.T [B]x, d = basis @ (2 params)
             Pb = _tilt_basis(state)
@@ -586,6 +637,11 @@ def term_params(term: Term, value: F64, state: ModelState, data: FitData) -> dic
     if k is EffectKind.HARD_IRON_STEP:
         return {"windows_s": [[float(a), float(b)] for a, b in term.windows_s],
                 "offset_nT": value.tolist()}
+    if k is EffectKind.FIELD_GRADIENT:
+        ref = np.zeros(3) if data.p_ref_m is None else np.asarray(data.p_ref_m, dtype=float)
+        return {"G_nT_per_m": gradient_matrix(value, term.yaw_rad).tolist(),
+                "position_frame": data.position_frame or "enu",
+                "reference_position_m": ref.tolist()}
     if k is EffectKind.AXIS_TILT:
         axis_true = state.T_enu @ np.array([0.0, 0.0, 1.0])
         tilt = float(np.degrees(np.arccos(np.clip(axis_true[2], -1.0, 1.0))))
@@ -617,6 +673,11 @@ def term_sigma(term: Term, cov: F64, state: ModelState, data: FitData) -> dict[s
         return {"peak_nT": float(np.sqrt(np.max(np.sum(sd.reshape(-1, 3) ** 2, axis=1))))}
     if k is EffectKind.AXIS_TILT:
         return {"tilt_deg": float(np.degrees(np.max(sd)))}
+    if k is EffectKind.FIELD_GRADIENT:
+        # M = sum_k g_k S_k Q: Var(M_ij) = sum_kl (S_k Q)_ij cov_kl (S_l Q)_ij
+        SQ = _SOFT_BASIS @ rot_z(term.yaw_rad)
+        var = np.einsum("kij,kl,lij->ij", SQ, cov, SQ)
+        return {"G_nT_per_m": np.sqrt(np.clip(var, 0, None)).tolist()}
     raise ValueError(k)
 
 
@@ -715,6 +776,21 @@ EFFECTS: dict[EffectKind, EffectInfo] = {
         # a lean across the field's bearing turns B about the axis, which R_body_mag absorbs.
         identifiable_in_part=True,
     ),
+    EffectKind.FIELD_GRADIENT: EffectInfo(
+        EffectKind.FIELD_GRADIENT,
+        "a field that varies from place to place (steel in floors, walls, desks and "
+        "equipment indoors; a regional anomaly outdoors), seen as the sensor moves through it",
+        "a residual fixed in ENU that follows the sensor's position, not the time",
+        "enu",
+    ),
+    EffectKind.SAMPLE_HOLD: EffectInfo(
+        EffectKind.SAMPLE_HOLD,
+        "the sensor converts slower than its messages are sent: a message repeats the last "
+        "conversion, stamped up to one native period after the field was sensed",
+        "exact repeats of the reading, and a residual that grows with the rate of change of "
+        "the reading (the repeats are late)",
+        "mag",
+    ),
 }
 
 
@@ -724,7 +800,9 @@ EFFECTS: dict[EffectKind, EffectInfo] = {
 GEOMAGNETIC_RATE_NT_MIN = 10.0
 
 
-def explanation(kind: EffectKind, params: dict[str, Any], duration_s: float) -> str:
+def explanation(
+    kind: EffectKind, params: dict[str, Any], duration_s: float, note: str | None = None
+) -> str:
     """Words for one finding: the physics, the signature, and what the fitted values suggest.
 
     Parameters
@@ -735,6 +813,9 @@ def explanation(kind: EffectKind, params: dict[str, Any], duration_s: float) -> 
         The finding's CONVENTIONS params.
     duration_s : float
         Span of the recording, s.
+    note : str, optional
+        ``field_drift`` with positions in the recording: what the test of a spatial
+        gradient found (replaces the remark that drift and gradient cannot be separated).
 
     Returns
     -------
@@ -758,9 +839,33 @@ def explanation(kind: EffectKind, params: dict[str, Any], duration_s: float) -> 
             )
         else:
             text += "that is within the range of diurnal or storm-time geomagnetic variation"
+        if note is None:
+            text += (
+                ". A spatial field gradient cannot be separated from a drift in time without "
+                "the sensor's positions, which this recording does not carry: the term models "
+                "both"
+            )
+        else:
+            text += ". " + note
+    if kind is EffectKind.FIELD_GRADIENT:
+        G = np.asarray(params["G_nT_per_m"], dtype=float)
+        frob = float(np.linalg.norm(G))
         text += (
-            ". A spatial field gradient cannot be separated from a drift in time without the "
-            "sensor's positions, which this recording does not carry: the term models both"
+            f". The fitted gradient is {frob / 1e3:.2f} uT/m (Frobenius norm of G), "
+            f"{float(np.max(np.abs(G))) / 1e3:.2f} uT/m at most per component, about the "
+            "mean position"
+        )
+        if params.get("position_frame") == "attitude_source_local":
+            Q = yaw_of_gradient(G)
+            text += (
+                "; the positions are in the attitude source's own frame (third axis up, "
+                "horizontal axes of unknown bearing), so G is G_enu Q with Q a rotation about "
+                f"Up, found at {np.degrees(Q):.0f} deg (where G_enu Q^T is most nearly "
+                "symmetric)"
+            )
+        text += (
+            ". Calibrate where the field is uniform (away from steel, or with the sensor kept "
+            "at one place while it turns), or keep the positions and this term in the model"
         )
     if kind is EffectKind.AXIS_TILT:
         text += (
@@ -773,6 +878,47 @@ def explanation(kind: EffectKind, params: dict[str, Any], duration_s: float) -> 
             "calibration would determine its direction"
         )
     return text
+
+
+def yaw_of_gradient(M: F64) -> float:
+    """Rotation about Up (rad) that makes ``M Q^T`` symmetric: the position frame's yaw.
+
+    For ``M = G_enu Rz(a)`` with ``G_enu`` symmetric, ``M Rz(a)^T`` is symmetric; the
+    antisymmetric part of ``M Rz(b)^T`` is checked on a fine grid of ``b`` (defined up to
+    half a turn when G has no vertical-horizontal coupling).
+    """
+    b = np.radians(np.arange(0.0, 360.0, 0.5))
+    asym = [np.linalg.norm(M @ rot_z(x).T - (M @ rot_z(x).T).T) for x in b]
+    return float(b[int(np.argmin(asym))])
+
+
+def position_confounding(data: FitData) -> tuple[float, float]:
+    """Spread of the positions and the part of it that is not a function of time.
+
+    Returns
+    -------
+    (spread_m, independent)
+        RMS distance from the reference position, m; the fraction of the position variance
+        left after a fit of the drift basis (a constant and Legendre P1..P4 in time): 0 when
+        the path is a slow function of time that a field drift would mimic, 1 when the
+        sensor comes back to the same places at different times.
+
+    """
+    if data.p_m is None or len(data) < 10:
+        return 0.0, 0.0
+    dp = data.dp_m
+    spread = float(np.sqrt(np.mean(np.sum(dp**2, axis=1))))
+    P = np.column_stack([np.ones(len(data)), drift_basis(data.t_s, 0.0, _span(data))])
+    coef, *_ = np.linalg.lstsq(P, dp, rcond=None)
+    left = dp - P @ coef
+    tot = float(np.sum((dp - dp.mean(axis=0)) ** 2))
+    return spread, float(np.sum(left**2) / tot) if tot > 0 else 0.0
+
+
+#: A gradient needs the sensor to move at least this far (RMS about its mean position), m.
+MIN_POSITION_SPREAD_M = 0.02
+#: ... and at least this fraction of that movement not to be a smooth function of time.
+MIN_POSITION_INDEPENDENT = 0.05
 
 
 # ----------------------------------------------------------------------------- motion stats
@@ -859,6 +1005,27 @@ def identifiability_reason(
 
     """
     single_axis = stats.axis_spread < 0.02
+    if kind is EffectKind.FIELD_GRADIENT:
+        if data.p_m is None:
+            return "no positions in the recording (the attitude messages carry none)"
+        spread, indep = position_confounding(data)
+        if spread < MIN_POSITION_SPREAD_M:
+            return (
+                f"the sensor hardly moved through space ({spread * 100:.1f} cm RMS about its "
+                "mean position): a field gradient has nothing to act on"
+            )
+        if indep < MIN_POSITION_INDEPENDENT:
+            return (
+                f"the sensor's path is a slow function of time (only {100 * indep:.1f} % of "
+                "the position variance is left after a quartic in time): a gradient along it "
+                "cannot be told from a field drift; revisit places at different times"
+            )
+        if efficiency < 1e-3:
+            return (
+                "the path through space leaves the gradient confounded with terms already in "
+                f"the model (only {efficiency:.1e} of its weakest combination is independent)"
+            )
+        return None
     if stats.total_turn_deg < 20.0 and kind is not EffectKind.FIELD_DRIFT:
         return (
             f"the platform turned only {stats.total_turn_deg:.0f} deg in total: without rotation "

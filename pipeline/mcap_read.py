@@ -26,6 +26,7 @@ Stamps are header stamps (CONVENTIONS), ``log_time`` only for messages without a
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import mmap
 import struct
@@ -56,6 +57,8 @@ from .recording import (
     ChannelInfo,
     EncodingFamily,
     Frame,
+    PositionFrame,
+    PositionSeries,
     Problem,
     Recording,
     Role,
@@ -74,6 +77,7 @@ ATTITUDE_TYPES = (
     "geometry_msgs/PoseStamped",
     "geometry_msgs/QuaternionStamped",
     "novatel_oem7_msgs/INSPVA",
+    "nav_msgs/Odometry",
     "magalign.AttitudeQuaternion",
     "magalign.AttitudeEuler",
 )
@@ -84,7 +88,18 @@ _CDR_QUAT = {
     "sensor_msgs/Imu": "orientation",
     "geometry_msgs/PoseStamped": "pose.orientation",
     "geometry_msgs/QuaternionStamped": "quaternion",
+    "nav_msgs/Odometry": "pose.pose.orientation",
 }
+# CDR paths of the position an attitude message carries (read when the stored definition
+# has them); INSPVA's geodetic fix is converted to local ENU after sorting (first fix origin)
+_CDR_POSITION = {
+    "geometry_msgs/PoseStamped": "pose.position",
+    "nav_msgs/Odometry": "pose.pose.position",
+}
+_INSPVA_FIX = ("latitude", "longitude", "height")
+#: WGS84 semi-major axis (m) and first eccentricity squared
+_WGS84_A_M = 6378137.0
+_WGS84_E2 = 6.69437999014e-3
 
 #: Plausible range of the median field magnitude. The Earth's field is 20,000-70,000 nT; an
 #: indoor MEMS sensor near steel reads somewhat off that (the lab data: ~43,800 nT), so only
@@ -709,6 +724,43 @@ class _Decoded:
     values: np.ndarray  # (N,3) nT | (N,4) q_enu_body | (N,) turntable deg
     log_time_ns: np.ndarray
     frame_id: str = ""
+    position: np.ndarray | None = None  # (N, 3): metres, or lat deg, lon deg, height m
+    position_kind: str = ""  # "local" (metres, the source's frame) or "geodetic"
+
+    def take(self, idx: np.ndarray, values: np.ndarray | None = None) -> _Decoded:
+        """Rows ``idx`` (mask or indices) of every column; ``values`` replaces the values."""
+        v = self.values[idx] if values is None else values
+        pos = None if self.position is None else self.position[idx]
+        return _Decoded(self.t_ns[idx], v, self.log_time_ns[idx], self.frame_id, pos,
+                        self.position_kind)
+
+
+def geodetic_to_local_enu(lat_deg: np.ndarray, lon_deg: np.ndarray, h_m: np.ndarray
+                          ) -> np.ndarray:
+    """Local ENU positions (N, 3), m, of geodetic fixes: flat-earth tangent plane.
+
+    The origin is the first finite fix; east and north are the longitude and latitude
+    differences times the WGS84 prime-vertical and meridian radii of curvature at the origin
+    (plus its height), up is the height difference. Over a survey of a few kilometres the
+    error of the plane is below a metre per ten kilometres (curvature ``d^2 / (2 R)``), far
+    below what a field gradient needs.
+    """
+    lat, lon, h = (np.asarray(a, dtype=float) for a in (lat_deg, lon_deg, h_m))
+    out = np.full((lat.shape[0], 3), np.nan)
+    ok = np.isfinite(lat) & np.isfinite(lon) & np.isfinite(h)
+    if not ok.any():
+        return out
+    i0 = int(np.argmax(ok))
+    phi0 = np.radians(lat[i0])
+    w = np.sqrt(1.0 - _WGS84_E2 * np.sin(phi0) ** 2)
+    r_n = _WGS84_A_M / w  # prime vertical
+    r_m = _WGS84_A_M * (1.0 - _WGS84_E2) / w**3  # meridian
+    dlon = (lon - lon[i0] + 180.0) % 360.0 - 180.0
+    out[:, 0] = np.radians(dlon) * (r_n + h[i0]) * np.cos(phi0)
+    out[:, 1] = np.radians(lat - lat[i0]) * (r_m + h[i0])
+    out[:, 2] = h - h[i0]
+    out[~ok] = np.nan
+    return out
 
 
 class _Decoder:
@@ -762,10 +814,16 @@ class _Decoder:
                 f"orientation.{k}" for k in "xyzw"]
         if t in _CDR_QUAT:
             q = _CDR_QUAT[t]
-            return ["header.stamp.sec", "header.stamp.nanosec"] + [
-                f"{q}.{k}" for k in "xyzw"]
+            out = ["header.stamp.sec", "header.stamp.nanosec"] + [f"{q}.{k}" for k in "xyzw"]
+            pp = _CDR_POSITION.get(t)
+            if pp is not None and self.layout.has_field(f"{pp}.x"):
+                out += [f"{pp}.{k}" for k in "xyz"]
+            return out
         if t == "novatel_oem7_msgs/INSPVA":
-            return ["header.stamp.sec", "header.stamp.nanosec", "roll", "pitch", "azimuth"]
+            out = ["header.stamp.sec", "header.stamp.nanosec", "roll", "pitch", "azimuth"]
+            if all(self.layout.has_field(k) for k in _INSPVA_FIX):
+                out += list(_INSPVA_FIX)
+            return out
         if t == "std_msgs/Float64":
             return ["data"]
         raise SchemaError(f"channel {self.topic}: message type {self.type} is not supported",
@@ -801,8 +859,15 @@ class _Decoder:
                             log, frame)
         if t in _CDR_QUAT:
             q = _CDR_QUAT[t]
-            return _Decoded(t_ns, np.stack([f[f"{q}.{k}"] for k in "xyzw"], axis=-1), log)
+            pp = _CDR_POSITION.get(t)
+            pos = (np.stack([f[f"{pp}.{k}"] for k in "xyz"], axis=-1)
+                   if pp is not None and f"{pp}.x" in f else None)
+            return _Decoded(t_ns, np.stack([f[f"{q}.{k}"] for k in "xyzw"], axis=-1), log,
+                            position=pos, position_kind="local" if pos is not None else "")
         q = novatel_to_quat(f["roll"], f["pitch"], f["azimuth"])
+        if "latitude" in f:
+            fix = np.stack([f[k] for k in _INSPVA_FIX], axis=-1).astype(float)
+            return _Decoded(t_ns, q, log, position=fix, position_kind="geodetic")
         return _Decoded(t_ns, q, log)
 
     def _from_json(self, buf: np.ndarray, cols: dict, log: np.ndarray) -> _Decoded:
@@ -860,11 +925,15 @@ def _decode_channels(scan: _Scan, cids: list[int]) -> dict[int, _Decoded]:
     cols: dict[int, list[np.ndarray]] = {}
     fill = dict.fromkeys(cids, 0)
     frames = dict.fromkeys(cids, "")
+    kinds = dict.fromkeys(cids, "")
     for buf, sel in _iter_blocks(scan, set(cids)):
         for cid, rec in sel.items():
             d = decoders[cid].decode(buf, rec)
             k, i = len(d.t_ns), fill[cid]
             parts = (d.t_ns, d.values, d.log_time_ns)
+            if d.position is not None:
+                parts += (d.position,)
+                kinds[cid] = d.position_kind
             if cid not in cols:
                 cols[cid] = [np.empty((max(cap[cid], k),) + a.shape[1:], dtype=a.dtype)
                              for a in parts]
@@ -884,8 +953,8 @@ def _decode_channels(scan: _Scan, cids: list[int]) -> dict[int, _Decoded]:
             out[cid] = _Decoded(np.zeros(0, np.int64), np.zeros(shape), np.zeros(0, np.int64))
             continue
         n = fill[cid]
-        t, v, log = (c if n == c.shape[0] else c[:n].copy() for c in cols[cid])
-        out[cid] = _Decoded(t, v, log, frames[cid])
+        t, v, log, *pos = (c if n == c.shape[0] else c[:n].copy() for c in cols[cid])
+        out[cid] = _Decoded(t, v, log, frames[cid], pos[0] if pos else None, kinds[cid])
     return out
 
 
@@ -949,7 +1018,7 @@ def _pick(scan: _Scan, role: Role, topic: str | None, required: bool) -> int | N
 def _sort_dedupe(name: str, dec: _Decoded, problems: list[Problem], path: str
                  ) -> _Decoded:
     """Drop clock jumps, sort by stamp, drop duplicated stamps; count all in problems."""
-    t, v, log = dec.t_ns, dec.values, dec.log_time_ns
+    t, log = dec.t_ns, dec.log_time_ns
     if len(t) > 2:
         d = t - log
         jump = np.abs(d - np.median(d)) > STAMP_JUMP_NS
@@ -957,21 +1026,22 @@ def _sort_dedupe(name: str, dec: _Decoded, problems: list[Problem], path: str
             k = int(jump.sum())
             problems.append(Problem("stamp_jump", f"{name}: {k} samples with stamps more than "
                                     "an hour away from their receive time were dropped", k))
-            keep = ~jump
-            t, v, log = t[keep], v[keep], log[keep]
+            dec = dec.take(~jump)
+            t = dec.t_ns
     back = int(np.count_nonzero(np.diff(t) < 0))
     if back:
         problems.append(Problem("out_of_order", f"{name}: {back} stamps going backwards; "
                                 "samples were sorted by stamp", back))
         order = np.argsort(t, kind="stable")
-        t, v, log = t[order], v[order], log[order]
+        dec = dec.take(order)
+        t = dec.t_ns
     dup = np.concatenate([[False], np.diff(t) == 0]) if len(t) else np.zeros(0, bool)
     if dup.any():
         k = int(dup.sum())
         problems.append(Problem("duplicate", f"{name}: {k} samples with a duplicated stamp "
                                 "were dropped (first kept)", k))
-        t, v, log = t[~dup], v[~dup], log[~dup]
-    return _Decoded(t, v, log, dec.frame_id)
+        dec = dec.take(~dup)
+    return dec
 
 
 def _drop_nonfinite(name: str, dec: _Decoded, problems: list[Problem]) -> _Decoded:
@@ -982,7 +1052,7 @@ def _drop_nonfinite(name: str, dec: _Decoded, problems: list[Problem]) -> _Decod
     k = int((~ok).sum())
     problems.append(Problem("nonfinite", f"{name}: {k} samples with NaN or Inf values were "
                             "dropped", k))
-    return _Decoded(dec.t_ns[ok], dec.values[ok], dec.log_time_ns[ok], dec.frame_id)
+    return dec.take(ok)
 
 
 def _check_quaternions(name: str, dec: _Decoded, problems: list[Problem]) -> _Decoded:
@@ -994,7 +1064,7 @@ def _check_quaternions(name: str, dec: _Decoded, problems: list[Problem]) -> _De
         problems.append(Problem("zero_quaternion", f"{name}: {k} zero quaternions were "
                                 "dropped", k))
         q, n = q[~zero], n[~zero]
-        dec = _Decoded(dec.t_ns[~zero], q, dec.log_time_ns[~zero], dec.frame_id)
+        dec = dec.take(~zero, q)
     off = np.abs(n - 1.0) > 1e-6
     if off.any():
         k = int(off.sum())
@@ -1005,7 +1075,7 @@ def _check_quaternions(name: str, dec: _Decoded, problems: list[Problem]) -> _De
         q /= n[:, None]  # the decoder's own array: normalise in place (no second copy)
     else:
         q = q / n[:, None]
-    return _Decoded(dec.t_ns, q, dec.log_time_ns, dec.frame_id)
+    return dataclasses.replace(dec, values=q)
 
 
 def _check_mag(path: str, name: str, dec: _Decoded, problems: list[Problem]) -> _Decoded:
@@ -1255,6 +1325,7 @@ def read_recording(
     mag = VectorSeries(d_mag.t_ns, d_mag.values, Frame.MAG, "nT")
     _gap_problems(mag_name, mag.t_ns, problems)
     attitude = None
+    position = None
     if att_id is not None:
         name = scan.channels[att_id].topic
         d = _clean(Role.ATTITUDE, name, dec.pop(att_id), problems, p)
@@ -1262,6 +1333,7 @@ def read_recording(
             raise DataQualityError(f"{name}: only {len(d.t_ns)} usable attitude samples",
                                    path=p, hint="the recording is too short to calibrate")
         attitude = AttitudeSeries(d.t_ns, d.values)
+        position = _position_series(d)
         _gap_problems(name, attitude.t_ns, problems, min_gap_s=0.1)
     turntable = None
     if tt_id is not None:
@@ -1285,7 +1357,31 @@ def read_recording(
         mag_frame_id=d_mag.frame_id,
         attitude_frame_id=att_frame,
         problems=tuple(problems),
+        position=position,
     )
+
+
+def _position_series(d: _Decoded) -> PositionSeries | None:
+    """Return the attitude channel's positions (NaN rows kept), or None without any.
+
+    ``PoseStamped`` / ``Odometry`` positions are in the source's own frame: a local frame
+    whose third axis is up but whose horizontal axes need not be east and north (a
+    motion-capture room), frame ``attitude_source_local``. INSPVA fixes become ENU metres on
+    the tangent plane at the first fix (:func:`geodetic_to_local_enu`). A channel whose
+    positions are all zero or all NaN carries none (a writer that fills the field with zeros).
+    """
+    if d.position is None or len(d.t_ns) == 0:
+        return None
+    if d.position_kind == "geodetic":
+        p = geodetic_to_local_enu(d.position[:, 0], d.position[:, 1], d.position[:, 2])
+        frame = PositionFrame.ENU
+    else:
+        p = np.asarray(d.position, dtype=float)
+        frame = PositionFrame.ATTITUDE_SOURCE_LOCAL
+    fin = np.isfinite(p).all(axis=1)
+    if not fin.any() or not np.any(p[fin] != 0.0):
+        return None
+    return PositionSeries(d.t_ns, p, frame)
 
 
 def problem_warnings(path: str | Path, problems: tuple[Problem, ...] | list[Problem],

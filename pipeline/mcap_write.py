@@ -841,6 +841,7 @@ def write_recording(
     metadata: Mapping[str, Mapping[str, str]] | None = None,
     inputs: Sequence[str | Path] = (),
     chunk_size: int = 1 << 20,
+    attitude_extra: Mapping[str, ArrayLike] | None = None,
 ) -> Path:
     """Write a recording as a real logger would: each stream's messages stamped, logged late.
 
@@ -877,6 +878,10 @@ def write_recording(
         Files that must not be overwritten.
     chunk_size : int
         Target uncompressed chunk size, bytes.
+    attitude_extra : mapping of str to ndarray, optional
+        Further columns of the attitude messages (see :func:`pipeline.messages.encode`),
+        e.g. ``position_m`` (M, 3) for ``PoseStamped`` or ``latitude_deg``,
+        ``longitude_deg``, ``height_m`` (M,) for INSPVA.
 
     Returns
     -------
@@ -901,8 +906,11 @@ def write_recording(
         if attitude_t_ns is None:
             raise OutputError("q_enu_body given without attitude_t_ns", path=path)
         q = np.asarray(q_enu_body, dtype=np.float64).reshape(-1, 4)
+        att_fields = _attitude_fields(attitude_type, q)
+        att_fields.update({k: np.asarray(v, dtype=np.float64)
+                           for k, v in (attitude_extra or {}).items()})
         streams.append((attitude_type, attitude_topic, np.asarray(attitude_t_ns, dtype=np.int64),
-                        _attitude_fields(attitude_type, q), attitude_frame_id,
+                        att_fields, attitude_frame_id,
                         attitude_log_delay_ns, attitude_variant))
     if turntable_deg is not None:
         if turntable_t_ns is None:

@@ -122,6 +122,84 @@ class AttitudeSeries:
         return dataclasses.replace(self, t_ns=self.t_ns[i0:i1], q_enu_body=self.q_enu_body[i0:i1])
 
 
+class PositionFrame(str, enum.Enum):
+    """Frame of a position series.
+
+    ``enu``: east, north, up in metres from a local origin (a NED source converted; for
+    geodetic fixes the flat-earth tangent plane at the first fix). ``attitude_source_local``:
+    the attitude source's own local frame (a motion-capture room): its third axis is up
+    (it shares the vertical with ENU) but its horizontal axes are rotated about Up by an
+    angle that is not known.
+    """
+
+    ENU = "enu"
+    ATTITUDE_SOURCE_LOCAL = "attitude_source_local"
+
+
+@dataclass(frozen=True)
+class PositionSeries:
+    """Positions of the attitude source, read from the attitude channel.
+
+    Attributes
+    ----------
+    t_ns : ndarray of int64, shape (N,)
+        Stamps, ns since the Unix epoch (the attitude channel's, sorted).
+    p_m : ndarray of float64, shape (N, 3)
+        Positions, metres, in ``frame``; a row is NaN where the position was lost (a
+        motion-capture marker occluded). NaN rows are kept so that ``t_ns`` stays the
+        attitude's; users of the series decide what a lost position means.
+    frame : PositionFrame
+
+    """
+
+    t_ns: I64
+    p_m: F64
+    frame: PositionFrame = PositionFrame.ENU
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.t_ns, dtype=np.int64)
+        p = np.asarray(self.p_m, dtype=np.float64).reshape(-1, 3)
+        if t.shape[0] != p.shape[0]:
+            raise ValueError(f"t_ns has {t.shape[0]} stamps but p_m has {p.shape[0]} rows")
+        object.__setattr__(self, "t_ns", _readonly(t))
+        object.__setattr__(self, "p_m", _readonly(p))
+        object.__setattr__(self, "frame", PositionFrame(self.frame))
+
+    def __len__(self) -> int:
+        return int(self.t_ns.shape[0])
+
+    @property
+    def valid(self) -> np.ndarray:
+        """Rows with a finite position, (N,) bool."""
+        return np.isfinite(self.p_m).all(axis=1)
+
+    def at(self, t_ns: np.ndarray, max_gap_s: float = 0.1) -> F64:
+        """Positions at ``t_ns`` by linear interpolation between valid rows, (M, 3), m.
+
+        NaN outside the span of the valid rows and where the two valid neighbours are more
+        than ``max_gap_s`` apart (a lost stretch is not bridged).
+        """
+        t = np.asarray(t_ns, dtype=np.int64)
+        ok = self.valid
+        tv, pv = self.t_ns[ok], self.p_m[ok]
+        out = np.full((t.shape[0], 3), np.nan)
+        if tv.shape[0] < 2:
+            return out
+        i = np.clip(np.searchsorted(tv, t, side="right") - 1, 0, tv.shape[0] - 2)
+        t0, t1 = tv[i], tv[i + 1]
+        span = (t1 - t0).astype(float)
+        s = np.where(span > 0, (t - t0) / np.where(span > 0, span, 1.0), 0.0)
+        inside = (t >= tv[0]) & (t <= tv[-1]) & ((span <= max_gap_s * 1e9) | (t == t0) | (t == t1))
+        p = pv[i] + s[:, None] * (pv[i + 1] - pv[i])
+        out[inside] = p[inside]
+        return out
+
+    def window(self, start_ns: int, end_ns: int) -> PositionSeries:
+        """Return the samples with ``start_ns <= t < end_ns``."""
+        i0, i1 = np.searchsorted(self.t_ns, [start_ns, end_ns], side="left")
+        return dataclasses.replace(self, t_ns=self.t_ns[i0:i1], p_m=self.p_m[i0:i1])
+
+
 @dataclass(frozen=True)
 class AngleSeries:
     """A turntable angle channel: rotation about a nominal axis.
@@ -238,6 +316,10 @@ class Recording:
         reference frame (a pose, an INS solution), and when the messages carry none.
     problems : tuple of Problem
         Damage found and handled while reading (recovered bytes, duplicates, ...).
+    position : PositionSeries or None
+        Positions carried by the attitude channel (``PoseStamped`` ``pose.position``,
+        ``Odometry`` ``pose.pose.position``, INSPVA latitude/longitude/height as local ENU);
+        None when the attitude channel carries none.
 
     """
 
@@ -252,6 +334,7 @@ class Recording:
     mag_frame_id: str = ""
     attitude_frame_id: str = ""
     problems: tuple[Problem, ...] = ()
+    position: PositionSeries | None = None
 
     @property
     def duration_s(self) -> float:

@@ -39,6 +39,8 @@ B8 = NDArray[np.bool_]
 
 #: Below this fraction of repeats among samples whose neighbours differ, nothing is reported.
 MIN_MOVING_REPEAT_FRACTION = 0.02
+#: Runs of identical messages longer than this are not sample-and-hold evidence.
+MAX_HOLD_RUN = 8
 #: Re-stamping follows the sensor clock over windows of this many conversions (about 0.2 s).
 RESTAMP_WINDOW = 41
 
@@ -81,15 +83,19 @@ class SampleHold:
             "repeated_fraction": float(self.repeated_fraction),
         }
 
-    def explanation(self) -> str:
-        """One paragraph for a person."""
+    def explanation(self, restamped: bool = True) -> str:
+        """One paragraph for a person; ``restamped``: the conversions were re-stamped."""
+        how = ("the repeats are left out of the fit and the remaining conversions are "
+               "re-stamped on the native grid" if restamped else
+               "the repeats are left out of the fit and every message is taken at the stamp "
+               "of the first copy of its conversion (re-stamping on the native grid did not "
+               "predict held-out data better)")
         return (
             f"The magnetometer converts at about {self.native_rate_hz:.1f} Hz but its messages "
             f"arrive at {self.message_rate_hz:.1f} Hz: {100 * self.repeated_fraction:.0f} % of "
             "the messages repeat the previous reading, and each repeat is stamped up to one "
             f"native period ({1e3 / self.native_rate_hz:.1f} ms) after the field was sensed. "
-            f"The stamps err by {1e3 * self.lag_rms_s:.1f} ms RMS; the repeats are left out of "
-            "the fit and the remaining conversions are re-stamped on the native grid."
+            f"The stamps err by {1e3 * self.lag_rms_s:.1f} ms RMS; {how}."
         )
 
 
@@ -142,6 +148,10 @@ def detect_sample_hold(t_ns: I64, mag_nT: F64) -> SampleHold | None:
         return None
     rep = repeated(mag_nT)
     mov = _moving(mag_nT, rep)
+    # a sensor that holds its conversion for a few messages makes short runs; a long run of
+    # identical readings is a still (or noise-free, or stuck) reading, not sample-and-hold
+    run_id = np.cumsum(~rep) - 1
+    mov &= (np.bincount(run_id) <= MAX_HOLD_RUN)[run_id]
     n_mov = int(np.sum(mov))
     if n_mov < 10 or np.sum(rep & mov) < MIN_MOVING_REPEAT_FRACTION * n_mov:
         return None
@@ -168,7 +178,7 @@ def detect_sample_hold(t_ns: I64, mag_nT: F64) -> SampleHold | None:
 
 
 def _local_lag_ns(t_first: I64) -> I64:
-    """Lag of each conversion's stamp above the local native grid, ns, (K,).
+    """Lag of each conversion's stamp above the local native grid, ns, (K,); 0 off-grid.
 
     Detrended by the mean period, the stamps sit above the grid by a lag in ``[0, one message
     period)``. The sensor's own clock wanders (about 0.4 % over ten seconds on the real
@@ -182,7 +192,16 @@ def _local_lag_ns(t_first: I64) -> I64:
     r = ts - k * T
     w = min(RESTAMP_WINDOW, len(r))
     env = _running_min(r, w)
-    return np.maximum(np.round(r - env), 0).astype(np.int64)
+    lag = np.maximum(np.round(r - env), 0).astype(np.int64)
+    # On a regular native grid the first copy of a conversion is at most one message period
+    # late. Lags well beyond that mean the conversions are not on a regular grid (a sensor
+    # that stalls now and then: runs of 1 and 3 messages, never 2, on the real recordings);
+    # then the first copy's own stamp is the best estimate of the sensing time.
+    dt = np.diff(t_first)
+    msg_period = float(np.min(dt[dt > 0])) if np.any(dt > 0) else 0.0
+    if len(lag) and float(np.percentile(lag, 95)) > 1.5 * msg_period:
+        return np.zeros(len(t_first), np.int64)
+    return lag
 
 
 def _running_min(x: F64, w: int) -> F64:

@@ -58,6 +58,8 @@ from .recording import (
     ChannelInfo,
     EncodingFamily,
     Frame,
+    PositionFrame,
+    PositionSeries,
     Recording,
     Role,
     VectorSeries,
@@ -387,6 +389,56 @@ class AxisTilt:
 
 
 @dataclass(frozen=True)
+class FieldGradient:
+    """Field varying in space: ``B(p) = B_enu + G (p - p_ref)`` along the trajectory.
+
+    ``G_nT_per_m`` is the ENU gradient (symmetric and traceless: curl- and divergence-free),
+    ``reference_position_m`` the ENU point where the field is ``B_enu`` (default: the
+    trajectory's centre). Needs a ``[trajectory]``.
+    """
+
+    G_nT_per_m: Mat3
+    reference_position_m: Vec3 | None = None
+
+
+@dataclass(frozen=True)
+class SampleHold:
+    """The sensor converts at ``native_rate_hz``; every message repeats the latest conversion."""
+
+    native_rate_hz: float
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Motion through space: a Lissajous path in ENU, metres.
+
+    ``p_enu(t) = centre + amplitude * sin(2 pi t / period + phase)`` per axis. Positions are
+    written into the attitude messages that carry one (``PoseStamped`` in a frame rotated
+    about Up by ``frame_yaw_deg`` from ENU, like a motion-capture room; INSPVA as latitude,
+    longitude and height about ``origin_lat_lon_deg``).
+    """
+
+    amplitude_m: Vec3 = (0.3, 0.3, 0.2)
+    period_s: Vec3 = (23.0, 17.0, 11.0)
+    phase_rad: Vec3 = (0.0, 1.0, 2.0)
+    center_m: Vec3 = (0.0, 0.0, 1.5)
+    frame_yaw_deg: float = 0.0
+    origin_lat_lon_deg: tuple[float, float] = (52.5, 13.3)
+
+    def p_enu_m(self, t_s: F64) -> F64:
+        """ENU positions at ``t_s`` (s from the scenario start), (N, 3), m."""
+        t = np.asarray(t_s, dtype=float)[:, None]
+        return np.array(self.center_m) + np.array(self.amplitude_m) * np.sin(
+            2 * math.pi * t / np.array(self.period_s) + np.array(self.phase_rad))
+
+    def Q_enu_local(self) -> F64:
+        """Rotation about Up from the written position frame to ENU (``p_enu = Q p_local``)."""
+        a = math.radians(self.frame_yaw_deg)
+        return np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0],
+                         [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
 class Effects:
     """Every CONVENTIONS effect, ``None`` when absent."""
 
@@ -398,6 +450,8 @@ class Effects:
     disturbance: Disturbance | None = None
     hard_iron_step: HardIronStep | None = None
     axis_tilt: AxisTilt | None = None
+    field_gradient: FieldGradient | None = None
+    sample_hold: SampleHold | None = None
 
     def params(self) -> dict[str, dict[str, Any]]:
         """Effect name -> params in CONVENTIONS form (lists, matrices as lists of rows)."""
@@ -411,6 +465,8 @@ class Effects:
             "disturbance": ("windows_s", "peak_nT"),
             "hard_iron_step": ("windows_s", "offset_nT"),
             "axis_tilt": ("tilt_deg", "azimuth_deg"),
+            "field_gradient": ("G_nT_per_m", "reference_position_m"),
+            "sample_hold": ("native_rate_hz",),
         }
         for name, keys in conv.items():
             eff = getattr(self, name)
@@ -512,6 +568,7 @@ class Scenario:
     seed: int = 0
     description: str = ""
     path: str = "<dict>"
+    trajectory: Trajectory | None = None
 
     @property
     def profile(self) -> Profile:
@@ -522,7 +579,7 @@ class Scenario:
 # --- parsing -----------------------------------------------------------------------------
 
 _TOP_KEYS = {"name", "description", "seed", "timing", "motion", "field", "sensor", "effects",
-             "noise", "output"}
+             "noise", "output", "trajectory"}
 _TIMING_KEYS = {"start", "duration_s", "mag_rate_hz", "mag_phase_s", "attitude_rate_hz",
                 "attitude_phase_s"}
 _EFFECT_KEYS = {
@@ -534,6 +591,8 @@ _EFFECT_KEYS = {
     "disturbance": {"windows_s", "peak_nT", "direction_enu"},
     "hard_iron_step": {"windows_s", "offset_nT", "edge_s"},
     "axis_tilt": {"tilt_deg", "azimuth_deg"},
+    "field_gradient": {"G_nT_per_m", "reference_position_m"},
+    "sample_hold": {"native_rate_hz"},
 }
 
 
@@ -671,7 +730,37 @@ def _parse_effects(doc: TomlDoc) -> Effects:
             kw[name] = AxisTilt(
                 doc.number(f"{p}.tilt_deg", lo=0.0, hi=90.0), doc.number(f"{p}.azimuth_deg")
             )
+        elif name == "field_gradient":
+            G = _matrix(doc, f"{p}.G_nT_per_m")
+            Ga = np.array(G)
+            scale = max(float(np.abs(Ga).max()), 1e-12)
+            if not np.allclose(Ga, Ga.T, atol=1e-9 * scale) or abs(np.trace(Ga)) > 1e-9 * scale:
+                raise doc.error(f"{p}.G_nT_per_m", "must be symmetric and traceless (a field "
+                                "gradient in free space is curl- and divergence-free)")
+            ref = doc.get(f"{p}.reference_position_m", None)
+            ref = None if ref is None else tuple(doc.vector(f"{p}.reference_position_m"))
+            kw[name] = FieldGradient(G, ref)
+        elif name == "sample_hold":
+            kw[name] = SampleHold(doc.number(f"{p}.native_rate_hz", lo=1e-3))
     return Effects(**kw)
+
+
+def _parse_trajectory(doc: TomlDoc) -> Trajectory | None:
+    if doc.get("trajectory", None) is None:
+        return None
+    tbl = _table(doc, "trajectory")
+    names = {f.name for f in dataclasses.fields(Trajectory)}
+    doc.check_keys(tbl, names, "trajectory")
+    d = Trajectory()
+    kw: dict[str, Any] = {}
+    for k in ("amplitude_m", "period_s", "phase_rad", "center_m"):
+        kw[k] = tuple(doc.vector(f"trajectory.{k}", default=list(getattr(d, k))))
+    if min(kw["period_s"]) <= 0:
+        raise doc.error("trajectory.period_s", "must be positive")
+    kw["frame_yaw_deg"] = doc.number("trajectory.frame_yaw_deg", d.frame_yaw_deg)
+    kw["origin_lat_lon_deg"] = tuple(doc.vector("trajectory.origin_lat_lon_deg", 2,
+                                                default=list(d.origin_lat_lon_deg)))
+    return Trajectory(**kw)
 
 
 def _parse_sensor(doc: TomlDoc) -> Sensor:
@@ -803,6 +892,9 @@ def scenario_from_doc(doc: TomlDoc) -> Scenario:
     effects = _parse_effects(doc)
     if effects.axis_tilt is not None and not isinstance(motion, Turntable):
         raise doc.error("effects.axis_tilt", "applies to the turntable profile only")
+    trajectory = _parse_trajectory(doc)
+    if effects.field_gradient is not None and trajectory is None:
+        raise doc.error("effects.field_gradient", "needs a [trajectory] (motion through space)")
     noise_tbl = _table(doc, "noise")
     doc.check_keys(noise_tbl, {"mag_sigma_nT", "heading_sigma_deg", "pitch_roll_sigma_deg"},
                    "noise")
@@ -823,6 +915,7 @@ def scenario_from_doc(doc: TomlDoc) -> Scenario:
         seed=seed,
         description=desc,
         path=doc.path,
+        trajectory=trajectory,
     )
 
 
@@ -987,6 +1080,12 @@ class _Model:
         B = np.broadcast_to(self.B0, (t_s.shape[0], 3)).copy()
         if self.drift is not None:
             B += self.drift(t_s)
+        fg = self.sc.effects.field_gradient
+        if fg is not None and self.sc.trajectory is not None:
+            tr = self.sc.trajectory
+            ref = np.array(tr.center_m if fg.reference_position_m is None
+                           else fg.reference_position_m)
+            B += (tr.p_enu_m(t_s) - ref) @ np.array(fg.G_nT_per_m).T  # B(p) = B + G (p - p_ref)
         dist = self.sc.effects.disturbance
         if dist is not None:
             B += dist.peak_nT * _bells(t_s - self.t0, dist.windows_s)[:, None] * np.array(
@@ -1043,6 +1142,47 @@ def _as_read(q: F64, attitude_type: str) -> F64:
     return quat_normalize(q)
 
 
+def _written_position(sc: Scenario, t_att: F64, att_t_ns: NDArray) -> PositionSeries | None:
+    """Positions as ingest reads them back, or None when the messages carry none.
+
+    ``PoseStamped``: the trajectory in the frame rotated by ``frame_yaw_deg`` about Up
+    (``attitude_source_local``); INSPVA: ENU on the tangent plane at the first fix.
+    """
+    tr = sc.trajectory
+    if tr is None:
+        return None
+    p_enu = tr.p_enu_m(t_att)
+    if sc.output.attitude_type == "geometry_msgs/msg/PoseStamped":
+        return PositionSeries(att_t_ns, p_enu @ tr.Q_enu_local(),
+                              PositionFrame.ATTITUDE_SOURCE_LOCAL)
+    if sc.output.attitude_type == "novatel_oem7_msgs/msg/INSPVA":
+        from .mcap_read import geodetic_to_local_enu
+
+        lat, lon, h = _geodetic(tr, p_enu)
+        return PositionSeries(att_t_ns, geodetic_to_local_enu(lat, lon, h), PositionFrame.ENU)
+    return None
+
+
+def _geodetic(tr: Trajectory, p_enu: F64) -> tuple[F64, F64, F64]:
+    """Latitude, longitude (deg) and height (m) of ENU points about the trajectory origin.
+
+    The inverse of the flat-earth tangent plane of :func:`pipeline.mcap_read.
+    geodetic_to_local_enu` (exact for it), origin at the trajectory's origin latitude and
+    longitude and height 0 m at ENU ``z = 0``.
+    """
+    from .mcap_read import _WGS84_A_M, _WGS84_E2
+
+    lat0, lon0 = (math.radians(x) for x in tr.origin_lat_lon_deg)
+    w = math.sqrt(1.0 - _WGS84_E2 * math.sin(lat0) ** 2)
+    r_n, r_m = _WGS84_A_M / w, _WGS84_A_M * (1.0 - _WGS84_E2) / w**3
+    # the reader's origin is the first fix: make the first fix the stated origin
+    h0 = float(p_enu[0, 2])
+    d = p_enu - p_enu[0]
+    lat = np.degrees(lat0 + d[:, 1] / (r_m + h0))
+    lon = np.degrees(lon0 + d[:, 0] / ((r_n + h0) * math.cos(lat0)))
+    return lat, lon, p_enu[:, 2]
+
+
 def _rate(t_ns: NDArray) -> float | None:
     """Return the nominal rate as ingest reports it: 1 / median stamp interval, Hz."""
     dt = np.diff(t_ns)
@@ -1086,8 +1226,18 @@ def simulate(scenario: Scenario, *, seed: int | None = None) -> Simulated:
     t_att = (att_t_ns - tm.start_ns).astype(float) * 1e-9
 
     model = _Model(sc, float(t_mag[0]), float(t_mag[-1]), rng_drift)
-    clean = model.y_full(t_mag)
-    mag = clean + rng_mag.standard_normal(clean.shape) * sc.noise.mag_sigma_nT
+    sh = sc.effects.sample_hold
+    if sh is not None and t_mag.shape[0]:
+        # conversions on the native grid; each message repeats the latest one at its stamp
+        t_conv = t_mag[0] + np.arange(int((t_mag[-1] - t_mag[0]) * sh.native_rate_hz) + 1
+                                      ) / sh.native_rate_hz
+        k = np.clip(np.searchsorted(t_conv, t_mag + 1e-12, side="right") - 1, 0, None)
+        clean_conv = model.y_full(t_conv)
+        conv = clean_conv + rng_mag.standard_normal(clean_conv.shape) * sc.noise.mag_sigma_nT
+        clean, mag = clean_conv[k], conv[k]
+    else:
+        clean = model.y_full(t_mag)
+        mag = clean + rng_mag.standard_normal(clean.shape) * sc.noise.mag_sigma_nT
     if sc.output.mag_type == "sensor_msgs/msg/MagneticField":
         # REP-145 puts tesla on the wire; keep exactly what reading the file back gives.
         mag = (mag * 1e-9) * 1e9
@@ -1097,6 +1247,7 @@ def simulate(scenario: Scenario, *, seed: int | None = None) -> Simulated:
                             Role.MAGNETOMETER, int(mag_t_ns.shape[0]), _rate(mag_t_ns))]
     attitude = None
     turntable = None
+    position = None
     attitude_topic: str | None = out.attitude_topic
     use_angle = (isinstance(sc.motion, Turntable)
                  and sc.motion.attitude_source is AttitudeSource.TURNTABLE)
@@ -1114,6 +1265,7 @@ def simulate(scenario: Scenario, *, seed: int | None = None) -> Simulated:
                                  sc.noise.pitch_roll_sigma_deg, rng_att)
         q_meas = _as_read(matrix_to_quat(C_meas), out.attitude_type)
         attitude = AttitudeSeries(att_t_ns, q_meas)
+        position = _written_position(sc, t_att, att_t_ns)
         channels.append(ChannelInfo(out.attitude_topic, out.attitude_type,
                                     _encoding_name(out.attitude_type), Role.ATTITUDE,
                                     int(att_t_ns.shape[0]), _rate(att_t_ns)))
@@ -1129,6 +1281,7 @@ def simulate(scenario: Scenario, *, seed: int | None = None) -> Simulated:
         turntable=turntable,
         mag_frame_id=out.frame_id,
         problems=(),
+        position=position,
     )
     axis_tilt = None
     if sc.effects.axis_tilt is not None and isinstance(sc.motion, Turntable):
@@ -1173,6 +1326,15 @@ def write_simulated(sim: Simulated, path: str | Path) -> Path:
         kw.update(attitude_t_ns=rec.attitude.t_ns, q_enu_body=rec.attitude.q_enu_body,
                   attitude_type=out.attitude_type, attitude_topic=out.attitude_topic,
                   attitude_variant=out.attitude_variant)
+        tr = sim.scenario.trajectory
+        if rec.position is not None and tr is not None:
+            t_att = (rec.attitude.t_ns - sim.scenario.timing.start_ns).astype(float) * 1e-9
+            if out.attitude_type == "novatel_oem7_msgs/msg/INSPVA":
+                lat, lon, h = _geodetic(tr, tr.p_enu_m(t_att))
+                kw["attitude_extra"] = {"latitude_deg": lat, "longitude_deg": lon,
+                                        "height_m": h}
+            else:
+                kw["attitude_extra"] = {"position_m": np.asarray(rec.position.p_m)}
     if rec.turntable is not None:
         kw.update(turntable_t_ns=rec.turntable.t_ns,
                   turntable_deg=np.degrees(rec.turntable.angle_rad),

@@ -34,6 +34,7 @@ from pipeline.effects import (
     evaluate,
     explanation,
     fit,
+    gradient_matrix,
     gram,
     identifiability_reason,
     motion_stats,
@@ -44,6 +45,7 @@ from pipeline.effects import (
 from pipeline.errors import EstimationError
 from pipeline.geometry import quat_to_matrix
 from pipeline.recording import AlignedSeries, Context, Recording
+from pipeline.sample_hold import SampleHold, detect_sample_hold
 
 FORMAT = "magalign.diagnosis/1"
 
@@ -54,7 +56,11 @@ GLOBAL_KINDS = (
     EffectKind.EDDY_CURRENT,
     EffectKind.FIELD_DRIFT,
     EffectKind.AXIS_TILT,
+    EffectKind.FIELD_GRADIENT,
 )
+
+#: Yaw grid of the search for a position frame rotated about Up (``field_gradient``), deg.
+YAW_GRID_DEG = np.arange(0.0, 360.0, 10.0)
 
 
 # ----------------------------------------------------------------------------- values
@@ -193,6 +199,13 @@ def _estimate_text(fd: Finding) -> str:
         return f"peak {p['peak_nT']:.0f} nT in " + _windows_text(p["windows_s"])
     if fd.effect == "axis_tilt":
         return f"tilt {p['tilt_deg']:.3f} deg az {p['azimuth_deg']:.0f} deg"
+    if fd.effect == "field_gradient":
+        g = float(np.linalg.norm(np.asarray(p["G_nT_per_m"]))) / 1e3
+        sg = float(np.linalg.norm(np.asarray(s.get("G_nT_per_m", 0.0)))) / 1e3
+        return f"|G|={g:.2f}+-{sg:.2f} uT/m ({p['position_frame']})"
+    if fd.effect == "sample_hold":
+        return (f"native {p['native_rate_hz']:.1f} Hz, "
+                f"{100 * p['repeated_fraction']:.1f} % repeats")
     return str(p)
 
 
@@ -300,11 +313,56 @@ class ScoreTest:
     rot_efficiency: float = 1.0
 
 
+def gradient_candidate(cur: FitResult, data: FitData, sigma: float) -> ScoreTest:
+    """Return the ``field_gradient`` term with the best position-frame yaw and its score test.
+
+    Positions in ENU: yaw 0. Positions in the attitude source's frame (rotated about Up by an
+    unknown angle): the Jacobian columns are ``cos(a) A + sin(a) B + C`` in the yaw ``a``, so
+    three evaluations give them for every yaw; the score statistic is maximised over a
+    10-degree grid and refined by a parabola through the best grid point. The yaw is then
+    held (like the window of a local term); the search costs about one degree of freedom,
+    well inside the BIC margin.
+    """
+    if data.position_frame != "attitude_source_local":
+        return score_test(cur, Term(EffectKind.FIELD_GRADIENT), data, sigma)
+    p0 = cur.state.n_params()
+    cols = []
+    for yaw in (0.0, np.pi / 2, np.pi):
+        ev = evaluate(cur.state.with_term(Term(EffectKind.FIELD_GRADIENT, yaw_rad=yaw)), data)
+        cols.append(ev.J.reshape(-1, ev.J.shape[-1]))
+    Jb = cols[0][:, :p0]
+    C = 0.5 * (cols[0][:, p0:] + cols[2][:, p0:])
+    A = 0.5 * (cols[0][:, p0:] - cols[2][:, p0:])
+    Bm = cols[1][:, p0:] - C
+
+    def at(deg: float) -> ScoreTest:
+        a = np.radians(deg)
+        J = np.concatenate([Jb, np.cos(a) * A + np.sin(a) * Bm + C], axis=1)
+        return _score_from_J(cur, Term(EffectKind.FIELD_GRADIENT, yaw_rad=float(a)), J, data,
+                             sigma)
+
+    tests = [at(d) for d in YAW_GRID_DEG]
+    stats = np.array([t.statistic for t in tests])
+    i = int(np.argmax(stats))
+    s_m, s_0, s_p = stats[i - 1], stats[i], stats[(i + 1) % len(stats)]
+    den = s_m - 2 * s_0 + s_p
+    step = float(YAW_GRID_DEG[1] - YAW_GRID_DEG[0])
+    shift = 0.5 * (s_m - s_p) / den * step if den < 0 else 0.0
+    best = at(float(YAW_GRID_DEG[i]) + float(np.clip(shift, -step, step)))
+    return best if best.statistic >= tests[i].statistic else tests[i]
+
+
 def score_test(cur: FitResult, term: Term, data: FitData, sigma: float) -> ScoreTest:
     """Score test of adding ``term`` to the model of ``cur`` (no refit)."""
     st = cur.state.with_term(term)
     ev = evaluate(st, data)
-    J = ev.J.reshape(-1, ev.J.shape[-1])
+    return _score_from_J(cur, term, ev.J.reshape(-1, ev.J.shape[-1]), data, sigma)
+
+
+def _score_from_J(
+    cur: FitResult, term: Term, J: np.ndarray, data: FitData, sigma: float
+) -> ScoreTest:
+    """Score test from the Jacobian (3N, P) of the model with ``term`` appended."""
     r = cur.residual_nT.reshape(-1)
     p0 = cur.state.n_params()
     if data.B_known_enu_nT is not None:
@@ -601,7 +659,11 @@ def diagnose_data(
         for term in cands:
             if (term.kind, term.windows_s) in rejected | dropped:
                 continue
-            st = score_test(cur, term, data, sig)
+            if term.kind is EffectKind.FIELD_GRADIENT and data.p_m is not None:
+                st = gradient_candidate(cur, data, sig)
+                term = st.term
+            else:
+                st = score_test(cur, term, data, sig)
             reason = identifiability_reason(term.kind, stats, data, st.efficiency)
             if reason is None and st.rot_efficiency < CONFOUND_RATIO \
                     and term.kind not in LOCAL_KINDS:
@@ -707,12 +769,13 @@ def diagnose_data(
     # the final order so that the numbers chain from the baseline to the final model.
     findings = _chain_evidence(findings, cur, base_fit, cv_base, cv_cur, data, cfg)
     cov_final = _covariance(cur, data)
+    note = _gradient_note(cur, data, not_ident)
     findings = [
         dataclasses.replace(
             f,
             params=(p := term_params(cur.state.terms[i], cur.state.values[i], cur.state, data)),
             sigma=_sigma_for(cur, i, cov_final, data),
-            explanation=explanation(cur.state.terms[i].kind, p, data.duration_s),
+            explanation=explanation(cur.state.terms[i].kind, p, data.duration_s, note=note),
         )
         for i, f in enumerate(findings)
     ]
@@ -731,6 +794,35 @@ def diagnose_data(
         duration_s=data.duration_s,
     )
     return diag, cur
+
+
+def _gradient_note(cur: FitResult, data: FitData, not_ident: dict[str, str]) -> str | None:
+    """Return what the test of a spatial gradient found, for the drift explanation.
+
+    None without positions (the drift explanation then says that drift and gradient cannot
+    be separated).
+    """
+    if data.p_m is None:
+        return None
+    for t, v in zip(cur.state.terms, cur.state.values, strict=True):
+        if t.kind is EffectKind.FIELD_GRADIENT:
+            g = float(np.linalg.norm(gradient_matrix(v, t.yaw_rad))) / 1e3
+            return (
+                "The recording carries positions: a spatial field gradient was tested and is "
+                f"in the model (field_gradient, {g:.2f} uT/m); this drift is the change left "
+                "in time once the field's variation along the path is modelled"
+            )
+    why = not_ident.get(EffectKind.FIELD_GRADIENT.value)
+    if why:
+        return (
+            "The recording carries positions, but a spatial field gradient could not be "
+            f"tested: {why}; the term may still stand for both"
+        )
+    return (
+        "The recording carries positions: a spatial field gradient was tested and did not "
+        "lower both the BIC and the held-out error, so this is a change in time rather than "
+        "the field varying along the sensor's path"
+    )
 
 
 def _prefix(state: ModelState, k: int) -> ModelState:
@@ -947,11 +1039,168 @@ def fit_data_from(
     else:
         track = AttitudeTrack(t_s - aligned.time_offset_s, np.asarray(aligned.q_enu_body))
     y = np.asarray(aligned.mag_nT, dtype=float)
+    pos: dict[str, Any] = {}
+    p = _positions_at(recording, aligned.t_ns)
+    if p is not None:
+        ok = np.isfinite(p).all(axis=1)
+        t_s, y, p = t_s[ok], y[ok], p[ok]
+        pos = {"p_m": p, "p_ref_m": p.mean(axis=0),
+               "position_frame": recording.position.frame.value}  # type: ignore[union-attr]
     if max_samples is not None and len(t_s) > max_samples:
         stride = int(np.ceil(len(t_s) / max_samples))
         t_s, y = t_s[::stride], y[::stride]
+        if pos:
+            pos["p_m"] = pos["p_m"][::stride]
     B = None if reference_field_enu_nT is None else np.asarray(reference_field_enu_nT, float)
-    return FitData(t_s, y, track, B_known_enu_nT=B)
+    return FitData(t_s, y, track, B_known_enu_nT=B, **pos)
+
+
+#: Positions are used only when at least this fraction of the samples has one.
+MIN_POSITION_COVERAGE = 0.5
+
+
+def _positions_at(recording: Recording, t_ns: np.ndarray) -> np.ndarray | None:
+    """Positions at the magnetometer stamps (N, 3), m, NaN where unknown; None when unused.
+
+    Samples without a position (lost markers: NaN rows, or gaps longer than 0.1 s) are
+    left out of the diagnosis, for every model alike so that the BIC and held-out errors
+    compare the same samples. When fewer than :data:`MIN_POSITION_COVERAGE` of the samples
+    have a position, the positions are not used at all (``field_gradient`` is then not
+    identifiable: no positions).
+    """
+    if recording.position is None or len(t_ns) == 0:
+        return None
+    p = recording.position.at(np.asarray(t_ns, dtype=np.int64))
+    if np.mean(np.isfinite(p).all(axis=1)) < MIN_POSITION_COVERAGE:
+        return None
+    return p
+
+
+def _heldout_split(state: ModelState, train: FitData, test: FitData, cfg: DiagnoseConfig,
+                   t0_s: float) -> float:
+    """Held-out RMS (nT) when the model is fitted on ``train`` and predicts ``test``.
+
+    Like :func:`heldout_rms` (the same time blocks, counted from ``t0_s``: with the first
+    sample of the diagnosis data the folds are exactly those of :func:`heldout_rms`), but the
+    samples fitted and the samples predicted may differ: the repeats of a sample-and-hold
+    sensor are predicted although only the first copies are fitted.
+    """
+    f_tr = np.floor((train.t_s - t0_s) / cfg.block_s).astype(np.int64) % cfg.n_folds
+    f_te = np.floor((test.t_s - t0_s) / cfg.block_s).astype(np.int64) % cfg.n_folds
+    start = dataclasses.replace(state, values=tuple(
+        np.zeros_like(v) if t.kind in LOCAL_KINDS else v
+        for t, v in zip(state.terms, state.values, strict=True)))
+    sq, cnt = 0.0, 0
+    for j in range(cfg.n_folds):
+        te, tr = f_te == j, f_tr != j
+        if te.sum() == 0 or tr.sum() < 10:
+            continue
+        res = fit(start, train.subset(tr), max_iter=6, rtol=1e-6)
+        sub = test.subset(te)
+        e = sub.y_nT - evaluate(res.state, sub, jacobian=False).y_nT
+        sq += float(np.sum(e * e))
+        cnt += e.size
+    return float(np.sqrt(sq / max(cnt, 1)))
+
+
+def sample_hold_finding(
+    diag: Diagnosis,
+    res: FitResult,
+    data: FitData,
+    recording: Recording,
+    aligned: AlignedSeries,
+    sh: SampleHold,
+    cfg: DiagnoseConfig,
+    *,
+    reference_field_enu_nT: Any = None,
+) -> tuple[Diagnosis, FitResult, FitData] | None:
+    """Add the ``sample_hold`` finding: the final model refitted on the handled data.
+
+    Two handlings are compared on the same messages (the diagnosis samples, repeats
+    included) by their held-out RMS: (a) the repeats are left out of the fit and every
+    message is predicted at the stamp of the first copy of its conversion; (b) as (a), with
+    the conversions re-stamped on the sensor's native grid (``SampleHold.t_sensed_ns``). The
+    better one is kept; without it (the messages fitted and predicted at their own stamps)
+    is the final model of ``diag``. The finding is added when the handling lowers
+    the held-out error; its evidence is the change of the in-sample and held-out RMS over the
+    same messages.
+
+    Returns
+    -------
+    (Diagnosis, FitResult, FitData) or None
+        The diagnosis with the finding appended, the fit on the handled data, and that data;
+        None when the handling does not help.
+
+    """
+    mag_t = np.asarray(recording.mag.t_ns, dtype=np.int64)
+    t0 = int(mag_t[0])
+    idx = np.clip(np.searchsorted(mag_t, t0 + np.round(data.t_s * 1e9).astype(np.int64)), 0,
+                  len(mag_t) - 1)
+    first_idx = np.maximum.accumulate(np.where(sh.first, np.arange(len(mag_t)), 0))
+    al_idx = (np.arange(len(aligned)) if aligned.index is None
+              else np.asarray(aligned.index, dtype=np.int64))
+    keep = sh.first[al_idx]
+    variants = {
+        "first_stamp": mag_t[first_idx],
+        "native_grid": np.asarray(sh.t_sensed_ns, dtype=np.int64),
+    }
+    best = None
+    for name, t_new in variants.items():
+        al_new = AlignedSeries(t_new[al_idx][keep], aligned.mag_nT[keep],
+                               aligned.q_enu_body[keep], aligned.time_offset_s, al_idx[keep])
+        train = fit_data_from(recording, al_new, reference_field_enu_nT=reference_field_enu_nT,
+                              max_samples=cfg.max_samples)
+        test = dataclasses.replace(data, t_s=(t_new[idx] - t0) * 1e-9)
+        if len(train) < 30:
+            continue
+        cv = _heldout_split(res.state, train, test, cfg, float(data.t_s[0]))
+        if best is None or cv < best[0]:
+            best = (cv, name, train, test)
+    # the same blocks as the handled variants and as diag.final's held-out error
+    cv_old = _heldout_split(res.state, data, data, cfg, float(data.t_s[0]))
+    if best is None or not best[0] < cv_old:
+        return None
+    cv_new, name, train, test = best
+    res_h = fit(res.state, train)
+    r_new = test.y_nT - evaluate(res_h.state, test, jacobian=False).y_nT
+    rss_new = float(np.sum(r_new * r_new))
+    n_eff = _n_eff(res, data)
+    s2 = res.rss / res.residual_nT.size
+    span = float(mag_t[-1] - mag_t[0]) * 1e-9
+    p = sh.params()
+    restamped = name == "native_grid"
+    expl = EFFECTS[EffectKind.SAMPLE_HOLD].physics + "; signature: " + EFFECTS[
+        EffectKind.SAMPLE_HOLD].signature + ". " + sh.explanation(restamped=restamped) + (
+        f" Compared on the same messages, the held-out error goes from {cv_old:.1f} to "
+        f"{cv_new:.1f} nT. Read the sensor at its native rate (or publish only new "
+        "conversions, stamped when they were sensed)")
+    fd = Finding(
+        effect=EffectKind.SAMPLE_HOLD.value,
+        params=p,
+        sigma={"native_rate_hz": 1.0 / max(span, 1e-9),
+               "repeated_fraction": float(np.sqrt(p["repeated_fraction"] * (
+                   1 - p["repeated_fraction"]) / len(mag_t)))},
+        evidence={
+            # no parameter is added: the in-sample RSS over the messages cannot rise or fall
+            # by fitting, so the statistic and the BIC change are those of the held-out error
+            "statistic": float((cv_old**2 - cv_new**2) * n_eff / s2),
+            "delta_bic": float(n_eff * np.log(max(cv_new, 1e-30) ** 2 / max(cv_old, 1e-30) ** 2)),
+            "rms_before_nT": res.rms_nT,
+            "rms_after_nT": float(np.sqrt(rss_new / max(r_new.size, 1))),
+            "heldout_rms_before_nT": cv_old,
+            "heldout_rms_after_nT": float(cv_new),
+        },
+        where={"windows_s": [[0.0, float(data.t_s[-1])]], "axes": ["x", "y", "z"],
+               "frame": "mag"},
+        explanation=expl,
+    )
+    final = {
+        "effects": list(diag.final["effects"]) + [fd.effect],
+        "residual_rms_nT": fd.evidence["rms_after_nT"],
+        "heldout_rms_nT": float(cv_new),
+    }
+    return (dataclasses.replace(diag, findings=diag.findings + (fd,), final=final), res_h,
+            train)
 
 
 def calibration_from(res: FitResult, data: FitData, findings: tuple[Finding, ...]) -> Calibration:
@@ -1062,7 +1311,17 @@ class Diagnose:
         if cal is not None:
             init = ModelState(np.asarray(cal.R_body_mag), np.asarray(cal.B_enu_nT))
         diag, res = diagnose_data(data, init, self.config, turntable=rec.turntable is not None)
+        sh = detect_sample_hold(rec.mag.t_ns, rec.mag.values)
+        extra: dict[str, Any] = {}
+        if sh is not None:
+            out = sample_hold_finding(diag, res, data, rec, al, sh, self.config,
+                                      reference_field_enu_nT=self.reference_field_enu_nT)
+            if out is not None:
+                diag, res, data = out
+                extra["sample_hold"] = diag.findings[-1].params
         final = calibration_from(res, data, diag.findings)
+        if extra:
+            final = dataclasses.replace(final, effects={**(final.effects or {}), **extra})
         from stages.estimators.checks import apply_split
 
         split = final_split(res, data)

@@ -35,6 +35,13 @@ def tumble(
     return AttitudeTrack(t, q)
 
 
+def lissajous_m(t_s: np.ndarray, amplitude_m: float = 0.3) -> np.ndarray:
+    """A path through space that revisits places at different times, (N, 3), m."""
+    t = np.asarray(t_s, dtype=float)[:, None]
+    return np.array([0.0, 0.0, 1.5]) + amplitude_m * np.array([1.0, 1.0, 0.6]) * np.sin(
+        2 * np.pi * t / np.array([7.3, 5.1, 3.7]) + np.array([0.0, 1.0, 2.0]))
+
+
 def make_data(
     terms: tuple[Term, ...] = (),
     values: tuple[np.ndarray, ...] = (),
@@ -44,17 +51,27 @@ def make_data(
     noise_nT: float = 5.0,
     seed: int = 0,
     single_axis: bool = False,
+    positions: np.ndarray | None = None,
+    position_frame: str = "enu",
 ) -> tuple[FitData, ModelState]:
-    """Readings predicted by the model with ``terms`` plus white noise; returns (data, truth)."""
+    """Readings predicted by the model with ``terms`` plus white noise; returns (data, truth).
+
+    ``positions`` (N, 3), m, in ``position_frame``: the path of the sensor (``p_ref`` is its
+    mean), needed by ``field_gradient``; a callable of the stamps (s) also works.
+    """
     track = tumble(duration_s, rate_hz, seed, single_axis)
     R = so3_exp(np.radians([2.0, -1.5, 3.0]))
     truth = ModelState(R, B_ENU.copy(), tuple(terms), tuple(np.asarray(v, float) for v in values))
     t = track.t_s.copy()
-    data = FitData(t, np.zeros((len(t), 3)), track)
+    pos: dict = {}
+    if positions is not None:
+        p = positions(t) if callable(positions) else np.asarray(positions, float)
+        pos = {"p_m": p, "p_ref_m": p.mean(axis=0), "position_frame": position_frame}
+    data = FitData(t, np.zeros((len(t), 3)), track, **pos)
     y = evaluate(truth, data, jacobian=False).y_nT
     rng = np.random.default_rng(seed + 1000)
     y = y + rng.normal(0.0, noise_nT, y.shape)
-    return FitData(t, y, track), truth
+    return FitData(t, y, track, **pos), truth
 
 
 def all_terms() -> tuple[tuple[Term, ...], tuple[np.ndarray, ...]]:

@@ -39,6 +39,15 @@ DEFS = {
     "geometry_msgs/msg/QuaternionStamped": (
         "std_msgs/Header header\ngeometry_msgs/Quaternion quaternion\n" + HEADER + QUAT),
     "std_msgs/msg/Float64": "float64 data\n",
+    "nav_msgs/msg/Odometry": (
+        "std_msgs/Header header\nstring child_frame_id\n"
+        "geometry_msgs/PoseWithCovariance pose\ngeometry_msgs/TwistWithCovariance twist\n"
+        + HEADER
+        + SEP + "MSG: geometry_msgs/PoseWithCovariance\nPose pose\nfloat64[36] covariance\n"
+        + SEP + "MSG: geometry_msgs/Pose\nPoint position\nQuaternion orientation\n"
+        + SEP + "MSG: geometry_msgs/Point\nfloat64 x\nfloat64 y\nfloat64 z\n" + QUAT
+        + SEP + "MSG: geometry_msgs/TwistWithCovariance\nTwist twist\nfloat64[36] covariance\n"
+        + SEP + "MSG: geometry_msgs/Twist\nVector3 linear\nVector3 angular\n" + VECTOR3),
 }
 
 _INS_STATUS = (SEP + "MSG: novatel_oem7_msgs/InertialSolutionStatus\n"
@@ -89,6 +98,13 @@ def ros_msg(msg_type: str, t: int, value: np.ndarray, frame: str = "f") -> dict:
     if msg_type == "geometry_msgs/msg/PoseStamped":
         return {"header": header(t, frame),
                 "pose": {"position": {"x": 1.0, "y": 2.0, "z": 3.0}, "orientation": q}}
+    if msg_type == "nav_msgs/msg/Odometry":
+        z3 = {"x": 0.0, "y": 0.0, "z": 0.0}
+        # position: x = seconds since T0, so that the test can check the order of rows
+        pos = {"x": (t - T0) * 1e-9, "y": 2.0, "z": 3.0}
+        return {"header": header(t, frame), "child_frame_id": "base_link",
+                "pose": {"pose": {"position": pos, "orientation": q}, "covariance": [0.0] * 36},
+                "twist": {"twist": {"linear": z3, "angular": z3}, "covariance": [0.0] * 36}}
     if msg_type == "geometry_msgs/msg/QuaternionStamped":
         return {"header": header(t, frame), "quaternion": q}
     if msg_type == "std_msgs/msg/Float64":

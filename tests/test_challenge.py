@@ -33,3 +33,34 @@ def test_generate_hides_the_key_and_score_counts(tmp_path):
     assert sum(sum(v.values()) for v in r["confusion"].values()) >= total_true
     assert "true/found" in confusion_text(r)
     assert main(["score", str(out), str(res_dir)]) == 0
+
+
+def test_concealed_gradient_and_sample_hold_are_found_and_nulls_stay_clean(tmp_path):
+    """A gradient along a path (positions in a room frame) and a sample-and-hold sensor are
+    found with their parameters within 3 sigma or 10 %; a null recording gets neither."""
+    import numpy as np
+
+    out = tmp_path / "chal"
+    kp = generate(0, 5, out, only=[["field_gradient"], ["sample_hold"], []])
+    key = json.loads(kp.read_text())["recordings"]
+    res = tmp_path / "res"
+    found = {}
+    for p in sorted(out.glob("*.mcap")):
+        assert main(["diagnose", str(p), "--out", str(res / p.stem)]) == 0
+        d = json.loads((res / p.stem / "diagnosis.json").read_text())
+        found[p.stem] = {f["effect"]: f for f in d["findings"]}
+        if not key[p.stem]["effects"]:
+            assert not {"field_gradient", "sample_hold"} & set(found[p.stem]), p.stem
+    g = found["rec_000"].get("field_gradient")
+    assert g is not None, list(found["rec_000"])
+    want = np.asarray(key["rec_000"]["effects"]["field_gradient"]["G_nT_per_m"])
+    M, S = np.asarray(g["params"]["G_nT_per_m"]), np.asarray(g["sigma"]["G_nT_per_m"])
+    err = np.abs(M - want)
+    assert np.all((err <= 3 * S) | (err <= 0.1 * np.abs(want).max())), (M, want, S)  # nT/m
+    h = found["rec_001"].get("sample_hold")
+    assert h is not None, list(found["rec_001"])
+    true_rate = key["rec_001"]["effects"]["sample_hold"]["native_rate_hz"]
+    assert abs(h["params"]["native_rate_hz"] - true_rate) <= max(
+        3 * h["sigma"]["native_rate_hz"], 0.1 * true_rate)  # Hz
+    true_rep = key["rec_001"]["effects"]["sample_hold"]["repeated_fraction"]
+    assert abs(h["params"]["repeated_fraction"] - true_rep) < 0.01

@@ -197,3 +197,110 @@ def test_tilted_turntable_axis_found_with_a_reference_field(tmp_path):
     _check_heldout_drops(d)
     assert f.evidence["heldout_rms_after_nT"] < 0.01 * f.evidence["heldout_rms_before_nT"]
     assert "lean" in f.explanation
+
+
+# ----------------------------------------------------------------------------- field gradient
+
+G_ENU = np.array([[1200.0, -800.0, 1500.0], [-800.0, -3000.0, 600.0], [1500.0, 600.0, 1800.0]])
+
+
+def _grad_value(G):
+    from pipeline.effects import _SOFT_BASIS
+
+    v, *_ = np.linalg.lstsq(_SOFT_BASIS.reshape(5, 9).T, G.ravel(), rcond=None)
+    return v
+
+
+@pytest.mark.parametrize("frame, yaw_deg", [("enu", 0.0), ("attitude_source_local", 35.0)])
+def test_field_gradient_found_with_positions(frame, yaw_deg):
+    """A gradient of a few uT/m along a path (0.3 m): found, G within 3 sigma or 10 %."""
+    from _diag_sim import lissajous_m
+
+    from pipeline.effects import rot_z
+
+    yaw = np.radians(yaw_deg)
+    term = Term(K.FIELD_GRADIENT, yaw_rad=yaw)
+    data, _ = make_data((term,), (_grad_value(G_ENU),), noise_nT=20.0, seed=11,
+                        positions=lissajous_m, position_frame=frame)
+    diag, _ = diagnose_data(data, cfg=CFG)
+    assert "field_gradient" in diag.effects, diag.table()
+    _check_heldout_drops(diag)
+    f = next(f for f in diag.findings if f.effect == "field_gradient")
+    M = np.asarray(f.params["G_nT_per_m"])
+    S = np.asarray(f.sigma["G_nT_per_m"])
+    want = G_ENU @ rot_z(yaw)
+    ok = (np.abs(M - want) <= 3 * S + 1.0) | (np.abs(M - want) <= 0.1 * np.abs(want).max())
+    assert ok.all(), (M, want, S)
+    assert f.params["position_frame"] == frame
+    assert "uT/m" in f.explanation
+
+
+def test_field_gradient_null_and_without_positions():
+    """No gradient along a path: no finding; no positions: not identifiable, said so."""
+    from _diag_sim import lissajous_m
+
+    data, _ = make_data(noise_nT=20.0, seed=12, positions=lissajous_m,
+                        position_frame="attitude_source_local")
+    diag, _ = diagnose_data(data, cfg=CFG)
+    assert "field_gradient" not in diag.effects, diag.table()
+    data, _ = make_data((Term(K.FIELD_DRIFT),), (np.r_[300.0, 100, -200, np.zeros(9)],),
+                        noise_nT=20.0, seed=13)
+    diag, _ = diagnose_data(data, cfg=CFG)
+    why = dict(diag.not_identifiable).get("field_gradient", "")
+    assert "no positions" in why
+    drift = next(f for f in diag.findings if f.effect == "field_drift")
+    assert "cannot be separated" in drift.explanation
+
+
+# ----------------------------------------------------------------------------- sample and hold
+
+
+def _sim(effects, seconds=40.0, noise=2.0, trajectory=None, motion="multiaxis"):
+    from pipeline.simulate import scenario_from_dict, simulate
+
+    timing = {"mag_rate_hz": 100.0, "attitude_rate_hz": 100.0}
+    if isinstance(motion, str):
+        motion = {"profile": motion}
+        timing["duration_s"] = seconds
+    sc = {"name": "sh", "timing": timing,
+          "motion": motion, "field": {"enu_nT": [1500.0, 21000.0, -43000.0]},
+          "effects": effects,
+          "noise": {"mag_sigma_nT": noise, "heading_sigma_deg": 0.0,
+                    "pitch_roll_sigma_deg": 0.0},
+          "output": {"attitude_type": "geometry_msgs/msg/PoseStamped"}}
+    if trajectory is not None:
+        sc["trajectory"] = trajectory
+    return simulate(scenario_from_dict(sc))
+
+
+def _run(sim):
+    from stages.resample import Resample
+
+    ctx = Resample().run(Context(source="x", recording=sim.recording))
+    return Diagnose(config=DiagnoseConfig(max_samples=3000)).run(ctx).diagnosis
+
+
+def test_sample_hold_found_with_its_native_rate():
+    sim = _run(_sim({"sample_hold": {"native_rate_hz": 70.0}}))
+    f = next((f for f in sim.findings if f.effect == "sample_hold"), None)
+    assert f is not None, sim.table()
+    assert abs(f.params["native_rate_hz"] - 70.0) < 0.7  # Hz, 1 %
+    assert abs(f.params["repeated_fraction"] - 0.30) < 0.01
+    ev = f.evidence
+    assert ev["heldout_rms_after_nT"] < ev["heldout_rms_before_nT"]
+    assert "native" in f.explanation
+
+
+def test_sample_hold_never_fires_without_repeats():
+    from pipeline.sample_hold import detect_sample_hold
+
+    # noise-free and static: consecutive samples are identical, but nothing changes
+    # noise-free dwells at 8 headings (100 Hz, 2 s each): every sample in a dwell repeats
+    t_ns = np.arange(1600, dtype=np.int64) * 10_000_000
+    ang = np.radians(45.0) * (np.arange(1600) // 200)
+    mag = np.stack([20000 * np.cos(ang), 20000 * np.sin(ang), -43000 + 0 * ang], -1)
+    assert np.mean(np.all(np.diff(mag, axis=0) == 0, axis=1)) > 0.99
+    assert detect_sample_hold(t_ns, mag) is None
+    # moving, noisy, no sample-and-hold
+    diag = _run(_sim({}, seconds=30.0))
+    assert "sample_hold" not in diag.effects, diag.table()

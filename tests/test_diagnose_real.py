@@ -6,6 +6,7 @@ was found (run with ``-s`` to see the tables) for the lead's note.
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
@@ -35,3 +36,48 @@ def test_real_recording_findings_improve_heldout(path):
         assert ev["heldout_rms_after_nT"] < ev["heldout_rms_before_nT"], f.effect
         assert ev["delta_bic"] < 0
     assert diag.final["heldout_rms_nT"] <= diag.baseline["heldout_rms_nT"]
+
+
+LAB_03 = REAL / "lab_03.mcap"
+
+
+@pytest.mark.skipif(not FILES, reason="real recordings absent: ../shared/data/real not found")
+def test_real_recordings_sample_hold_rate_and_repeats():
+    """The lab magnetometer converts at about 202 Hz; 29 % of its 285.7 Hz messages repeat."""
+    from pipeline.mcap_read import read_recording
+    from pipeline.sample_hold import detect_sample_hold
+
+    for path in FILES:
+        rec = read_recording(path)
+        sh = detect_sample_hold(rec.mag.t_ns, rec.mag.values)
+        assert sh is not None, path.name
+        assert abs(sh.native_rate_hz - 202.4) < 2.0, path.name  # Hz
+        assert abs(sh.repeated_fraction - 0.291) < 0.01, path.name
+        assert abs(sh.message_rate_hz - 285.714) < 0.1, path.name
+
+
+@pytest.mark.skipif(not LAB_03.exists(), reason="real recordings absent: lab_03.mcap not found")
+def test_real_recording_gradient_and_sample_hold_findings():
+    """lab_03 (positions in the motion-capture room frame): diagnose reports sample_hold at
+    ~202 Hz with ~29 % repeats; a field_gradient finding, if any, lowers the held-out error."""
+    from pipeline.mcap_read import read_recording
+    from pipeline.recording import Context
+    from stages.diagnose import Diagnose, DiagnoseConfig
+    from stages.resample import Resample
+
+    rec = read_recording(LAB_03)
+    assert rec.position is not None and rec.position.frame.value == "attitude_source_local"
+    ctx = Resample().run(Context(source=str(LAB_03), recording=rec)).replace(calibration=None)
+    diag = Diagnose(config=DiagnoseConfig(max_samples=3000, max_findings=4)).run(ctx).diagnosis
+    print(f"\n{LAB_03.name}\n{diag.table()}")
+    by = {f.effect: f for f in diag.findings}
+    sh = by.get("sample_hold")
+    assert sh is not None, diag.table()
+    assert abs(sh.params["native_rate_hz"] - 202.6) < 2.0  # Hz
+    assert abs(sh.params["repeated_fraction"] - 0.291) < 0.01
+    g = by.get("field_gradient")
+    if g is not None:
+        ev = g.evidence
+        assert ev["heldout_rms_after_nT"] < ev["heldout_rms_before_nT"]
+        assert ev["delta_bic"] < 0
+        assert 1.0 < np.linalg.norm(np.asarray(g.params["G_nT_per_m"])) / 1e3 < 20.0  # uT/m
