@@ -149,32 +149,34 @@ class Diagnosis:
         """Names of the effects found."""
         return frozenset(f.effect for f in self.findings)
 
-    def table(self) -> str:
-        """Return the printed table: effect, estimate, statistic, dBIC, RMS, held-out RMS."""
-        head = (
-            f"{'effect':<15} {'estimate (1 sigma)':<46} {'stat':>9} {'dBIC':>9} "
-            f"{'rms nT':>15} {'held-out nT':>15}  explanation"
-        )
+    def table(self, width: int = 100) -> str:
+        """Return the printed table, no line longer than ``width`` characters.
+
+        Effect, estimate, score statistic, dBIC and held-out RMS before > after; the
+        explanations are in diagnosis.json and the report.
+        """
+        import textwrap
+
+        head = (f"{'effect':<15} {'estimate (1 sigma)':<40} {'stat':>8} {'dBIC':>8} "
+                f"{'held-out nT':>17}")
         lines = [head, "-" * len(head)]
         b = self.baseline
-        lines.append(
-            f"{'baseline':<15} {', '.join(b['effects']) or 'R_body_mag, B_enu':<46} {'':>9} "
-            f"{'':>9} {b['residual_rms_nT']:>15.2f} {b['heldout_rms_nT']:>15.2f}"
-        )
+        lines.append(f"{'baseline':<15} {', '.join(b['effects']) or 'R_body_mag, B_enu':<40} "
+                     f"{'':>8} {'':>8} {b['heldout_rms_nT']:>17.1f}")
         for fd in self.findings:
             ev = fd.evidence
-            lines.append(
-                f"{fd.effect:<15} {_estimate_text(fd):<46} {ev['statistic']:>9.1f} "
-                f"{ev['delta_bic']:>9.1f} "
-                f"{ev['rms_before_nT']:>7.2f}>{ev['rms_after_nT']:<7.2f} "
-                f"{ev['heldout_rms_before_nT']:>7.2f}>{ev['heldout_rms_after_nT']:<7.2f}  "
-                f"{fd.explanation}"
-            )
+            est = _estimate_text(fd)
+            if len(est) > 40:
+                est = est[:39] + "~"
+            held = f"{ev['heldout_rms_before_nT']:.1f} > {ev['heldout_rms_after_nT']:.1f}"
+            lines.append(f"{fd.effect:<15} {est:<40} {ev['statistic']:>8.1f} "
+                         f"{ev['delta_bic']:>8.1f} {held:>17}")
         if not self.findings:
             lines.append("(no findings: the baseline model explains the recording)")
         for e, r in self.not_identifiable:
-            lines.append(f"not identifiable: {e}: {r}")
-        return "\n".join(lines)
+            lines += textwrap.wrap(f"not identifiable: {e}: {r}", width,
+                                   subsequent_indent="    ")
+        return "\n".join(line[:width] for line in lines)
 
 
 def _estimate_text(fd: Finding) -> str:

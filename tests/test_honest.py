@@ -274,3 +274,19 @@ def test_real_verdict_compares_residual_with_still_window_noise(name):
     assert cal.sample_hold["native_rate_hz"] == pytest.approx(202.5, abs=1.0)
     assert cal.sample_hold["repeated_fraction"] == pytest.approx(0.29, abs=0.01)
     assert cal.n_eff < cal.n_samples
+
+
+def test_diagnose_command_lines_fit_100_columns_and_say_where_it_wrote(tmp_path, capsys):
+    from pipeline.cli import main
+
+    src = Path(__file__).resolve().parent / "data" / "line_disturbed.mcap"
+    out = tmp_path / "d"
+    assert main(["diagnose", str(src), "--out", str(out)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    table = [ln for ln in lines if not ln.startswith("wrote ")]
+    assert all(len(ln) <= 100 for ln in table), max(table, key=len)
+    assert f"wrote {out / 'diagnosis.json'}" in lines
+    cal = Calibration.load(out / "calibration.json")
+    assert cal.verdict is not None
+    assert any(ln.startswith("misalignment ") and cal.verdict.status.value in ln
+               for ln in lines)

@@ -64,6 +64,13 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "diagnosis.json",
                       json.dumps(ctx.diagnosis.to_dict(), indent=2, allow_nan=False))
-    write_text_atomic(out / "calibration.json", ctx.calibration.to_json())
+    from stages.estimate import verdict_line, with_verdict
+
+    cal = with_verdict(ctx.calibration, ctx.aligned)
+    write_text_atomic(out / "calibration.json", cal.to_json())
     print(ctx.diagnosis.table())
+    print(verdict_line(cal))
+    print("explanations and the verdict's reason are in the files:")
+    print(f"wrote {out / 'diagnosis.json'}")
+    print(f"wrote {out / 'calibration.json'}")
     return 0
