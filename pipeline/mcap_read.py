@@ -321,8 +321,13 @@ def _scan(path: str | Path) -> _Scan:
                 c = _parse_channel(raw, body)
                 scan.channels.setdefault(c.id, c)
             elif op == OP_MESSAGE and not data_end:
-                (cid,) = struct.unpack_from("<H", raw, body)
-                scan.top_messages.setdefault(cid, []).append(pos)
+                if length < 22:  # shorter than a message's fixed fields: not a message
+                    _problem(scan.problems, "short_record",
+                             f"{p}: message record at byte {pos} is too short ({length} "
+                             "bytes); it was skipped", 1)
+                else:
+                    (cid,) = struct.unpack_from("<H", raw, body)
+                    scan.top_messages.setdefault(cid, []).append(pos)
             elif op == OP_CHUNK and not data_end:
                 last_chunk = _chunk_header(raw, pos, body, length, size)
                 scan.chunks.append(last_chunk)
@@ -506,6 +511,52 @@ def _prepare(scan: _Scan) -> None:
         ch.index_trusted = True
 
 
+def _valid_records(buf: NDArray[np.uint8], off: np.ndarray, cid: int) -> np.ndarray:
+    """Mask of the offsets ``off`` that hold a whole Message record of channel ``cid``.
+
+    A record is whole when its opcode is Message, its length covers the fixed fields (22
+    bytes) and it ends inside ``buf``; the channel id in the record must be ``cid``.
+    """
+    n = len(buf)
+    inside = (off >= 0) & (off + 31 <= n)
+    ok = np.zeros(len(off), dtype=bool)
+    o = off[inside]
+    if len(o):
+        length = _u(buf, o + 1, "<u8")
+        room = (n - 9 - o).astype(np.uint64)
+        ok[inside] = ((buf[o] == OP_MESSAGE) & (length >= 22) & (length <= room)
+                      & (_u(buf, o + 9, "<u2") == cid))
+    return ok
+
+
+def _select(scan: _Scan, ch: _Chunk, buf: NDArray[np.uint8], want: set[int]
+            ) -> dict[int, np.ndarray]:
+    """Message record offsets of the wanted channels in one decompressed chunk.
+
+    The message indexes stored after a chunk are not covered by its CRC: an offset that does
+    not point at a whole Message record of its channel means the index is damaged, and the
+    chunk is then walked record by record instead (one problem noted, nothing lost).
+    """
+    sel = {}
+    damaged = False
+    for cid in want & ch.index.keys():
+        off = ch.index[cid]
+        ok = _valid_records(buf, off, cid)
+        if not ok.all():
+            damaged = True
+            break
+        if len(off):
+            sel[cid] = off
+    if not damaged:
+        return sel
+    idx, _ = _walk(scan, buf.tobytes())
+    ch.index = idx
+    _problem(scan.problems, "damaged_index",
+             f"{scan.path}: the message index of the chunk at byte {ch.offset} does not match "
+             "its records; the chunk was read record by record instead", 0)
+    return {cid: idx[cid] for cid in want & idx.keys() if len(idx[cid])}
+
+
 def _iter_blocks(scan: _Scan, want: set[int]) -> Iterator[tuple[NDArray[np.uint8],
                                                                  dict[int, np.ndarray]]]:
     """Yield ``(buffer, {channel id: message record offsets})`` for the wanted channels."""
@@ -518,12 +569,7 @@ def _iter_blocks(scan: _Scan, want: set[int]) -> Iterator[tuple[NDArray[np.uint8
         if b is None:
             continue
         buf = np.frombuffer(b, dtype=np.uint8)
-        sel = {}
-        for cid in want & ch.index.keys():
-            off = ch.index[cid]
-            off = off[off + 31 <= len(b)]
-            if len(off):
-                sel[cid] = off
+        sel = _select(scan, ch, buf, want)
         if sel:
             yield buf, sel
         _release(scan, ch.data_start, ch.data_len)  # decompressed: the bytes are not needed
@@ -682,13 +728,7 @@ def iter_raw_channels(
         b = _decompress(scan, ch)
         if b is not None:
             buf = np.frombuffer(b, dtype=np.uint8)
-            sel = {}
-            for cid in ch.index.keys() & scan.channels.keys():
-                off = ch.index[cid]
-                off = off[off + 31 <= len(b)]
-                if len(off):
-                    sel[cid] = off
-            count += add(buf, sel)
+            count += add(buf, _select(scan, ch, buf, set(scan.channels)))
             pending = True
         _release(scan, ch.data_start, ch.data_len)
         bound = next_of[id(ch)]
@@ -966,9 +1006,18 @@ def _sort_dedupe(name: str, dec: _Decoded, problems: list[Problem], path: str
     return _Decoded(t, v, log, dec.frame_id)
 
 
+def _finite_rows(values: np.ndarray) -> np.ndarray:
+    """Return True for each sample (row, or element of a 1-D column) with finite values.
+
+    Also for a channel with no readable message (shape ``(0,)`` or ``(0, k)``), where a
+    ``reshape(0, -1)`` would be ambiguous.
+    """
+    fin = np.isfinite(values)
+    return fin if fin.ndim == 1 else fin.all(axis=tuple(range(1, fin.ndim)))
+
+
 def _drop_nonfinite(name: str, dec: _Decoded, problems: list[Problem]) -> _Decoded:
-    vals = dec.values.reshape(len(dec.t_ns), -1)
-    ok = np.isfinite(vals).all(axis=1)
+    ok = _finite_rows(dec.values)
     if ok.all():
         return dec
     k = int((~ok).sum())
@@ -1386,8 +1435,7 @@ class RecordingChunk:
 def _chunk_part(dec: _Decoded | None, quat: bool) -> _Decoded | None:
     if dec is None:
         return None
-    vals = dec.values.reshape(len(dec.t_ns), -1)
-    ok = np.isfinite(vals).all(axis=1)
+    ok = _finite_rows(dec.values)
     if quat:
         norm = np.linalg.norm(dec.values, axis=1)
         ok &= norm > 1e-6
