@@ -17,7 +17,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from ..errors import InputError, UsageError
+from ..errors import InputError, NotMcapError, UsageError
 
 SUFFIXES = (".rrd", ".mcap")
 
@@ -44,7 +44,33 @@ def files_to_view(path: str | Path) -> list[Path]:
         raise InputError("no such file or folder", path=p)
     if p.suffix.lower() not in SUFFIXES:
         raise InputError("not a .rrd or .mcap file", path=p)
+    if p.suffix.lower() == ".mcap":
+        _check_mcap_start(p)
     return [p]
+
+
+def _check_mcap_start(p: Path) -> None:
+    """Refuse an ``.mcap`` that is not an MCAP file at all (the viewer would only fail).
+
+    Only the first bytes are read; damage further in is the viewer's to report (it shows
+    what it can read).
+    """
+    from ..mcap_read import MAGIC
+
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(len(MAGIC))
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc.strerror}", path=p) from None
+    if not head:
+        raise NotMcapError("empty file (0 bytes)", path=p,
+                           hint="the logger may have crashed before writing anything")
+    if head != MAGIC:
+        if MAGIC.startswith(head):
+            raise NotMcapError(f"cut inside the MCAP header ({len(head)} bytes)", path=p,
+                               hint="nothing can be recovered from this file")
+        raise NotMcapError("not an MCAP file (bad magic bytes)", path=p,
+                           hint="pass a .mcap recording")
 
 
 def rerun_program() -> str:
