@@ -1,6 +1,18 @@
 """Outputs appear only when complete: write to a temporary name, then rename.
 
-A run killed at any point leaves at most a ``.tmp-*`` file that no reader takes as finished.
+A run killed at any point leaves at most a ``.NAME.XXXX.tmp`` file that no reader takes as
+finished.
+
+Test hook
+---------
+The kill tests must stop a run at a moment they choose, whatever the speed of the machine.
+With the environment variable ``MAGALIGN_TEST_PAUSE_DIR`` set to a folder, every atomic write
+appends its events to ``DIR/events``, one line each: ``created NAME`` (temporary file
+made), ``written NAME`` (temporary file complete, not yet renamed), ``renamed NAME`` (final
+name in place); ``NAME`` is ``<folder>/<file name>`` of the output. When an event's line
+equals ``MAGALIGN_TEST_PAUSE_AT``, or its number (1-based) does, the process writes
+``DIR/paused`` and waits until ``DIR/go`` exists (the test kills it meanwhile). Without the
+variable nothing of this runs. It is a test hook, not a feature.
 """
 
 from __future__ import annotations
@@ -8,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
@@ -30,6 +43,29 @@ def safe_join(root: str | Path, *parts: str) -> Path:
     if root_p != out and root_p not in out.parents:
         raise OutputError(f"output path {out} escapes the output folder", path=root_p)
     return out
+
+
+PAUSE_DIR_ENV = "MAGALIGN_TEST_PAUSE_DIR"
+PAUSE_AT_ENV = "MAGALIGN_TEST_PAUSE_AT"
+
+
+def _test_event(event: str, dest: Path) -> None:
+    """Record an atomic-write event and pause there when asked (see the module docstring)."""
+    folder = os.environ.get(PAUSE_DIR_ENV)
+    if not folder:
+        return
+    line = f"{event} {dest.parent.name}/{dest.name}"
+    log = Path(folder) / "events"
+    with open(log, "a", encoding="utf-8") as fh:
+        fh.write(line + "\n")
+    n = len(log.read_text(encoding="utf-8").splitlines())
+    if os.environ.get(PAUSE_AT_ENV) not in (line, str(n)):
+        return
+    flag = Path(folder) / "paused"
+    flag.with_suffix(".part").write_text(f"{n} {line}\n", encoding="utf-8")
+    os.replace(flag.with_suffix(".part"), flag)  # whole when it appears
+    while not (Path(folder) / "go").exists():
+        time.sleep(0.01)
 
 
 @contextlib.contextmanager
@@ -55,6 +91,7 @@ def atomic_path(dest: str | Path, inputs: tuple[str | Path, ...] = ()) -> Iterat
     os.close(fd)
     tmp_p = Path(tmp)
     try:
+        _test_event("created", dest)
         yield tmp_p
         with open(tmp_p, "rb+") as fh:
             os.fsync(fh.fileno())
@@ -62,7 +99,9 @@ def atomic_path(dest: str | Path, inputs: tuple[str | Path, ...] = ()) -> Iterat
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp_p, 0o666 & ~umask)
+        _test_event("written", dest)
         os.replace(tmp_p, dest)
+        _test_event("renamed", dest)
     except BaseException:
         with contextlib.suppress(OSError):
             tmp_p.unlink()
