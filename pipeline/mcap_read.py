@@ -95,6 +95,12 @@ FIELD_MAX_NT = 200_000.0
 #: difference) are taken as clock jumps and dropped
 STAMP_JUMP_NS = 3600 * 1_000_000_000
 MIN_MAG_SAMPLES = 10
+#: magnetometer samples larger than this many times the median field magnitude are damaged
+#: values, not readings (a sensor's range is at most some 30 times the Earth's field)
+SPIKE_FACTOR = 100.0
+#: no magnetometer reads this (1000 T): a value beyond it is damage (chunked reading, which
+#: has no median to compare with, drops such samples)
+ABSURD_NT = 1e12
 MIN_ATTITUDE_SAMPLES = 2
 
 
@@ -1026,9 +1032,16 @@ def _drop_nonfinite(name: str, dec: _Decoded, problems: list[Problem]) -> _Decod
     return _Decoded(dec.t_ns[ok], dec.values[ok], dec.log_time_ns[ok], dec.frame_id)
 
 
+def _quat_norm(q: np.ndarray) -> np.ndarray:
+    """Norm of each quaternion without overflow or underflow (damaged values reach 1e308)."""
+    m = np.abs(q).max(axis=1) if len(q) else np.zeros(0)
+    safe = np.where(m > 0, m, 1.0)
+    return m * np.linalg.norm(q / safe[:, None], axis=1)
+
+
 def _check_quaternions(name: str, dec: _Decoded, problems: list[Problem]) -> _Decoded:
     q = dec.values
-    n = np.linalg.norm(q, axis=1)
+    n = _quat_norm(q)
     zero = n < 1e-6
     if zero.any():
         k = int(zero.sum())
@@ -1077,6 +1090,21 @@ def _check_mag(path: str, name: str, dec: _Decoded, problems: list[Problem]) -> 
                     "sensor_msgs/MagneticField must carry tesla (REP-145)")
         raise DataQualityError(f"{name}: median field magnitude {mag_nT:.4g} nT is far "
                                "outside the Earth's 20,000-70,000 nT", path=path, hint=hint)
+    # a few samples far beyond any field the sensor can see are damaged values (a flipped
+    # exponent bit), not readings: dropped like NaN (their squares would overflow the fit)
+    with np.errstate(over="ignore"):
+        wild = ~(np.linalg.norm(v, axis=1) <= SPIKE_FACTOR * mag_nT)
+    if wild.any():
+        k = int(np.count_nonzero(wild))
+        problems.append(Problem("impossible_value", f"{name}: {k} samples more than "
+                                f"{SPIKE_FACTOR:g} times the median field magnitude were "
+                                "dropped (damaged values)", k))
+        dec = _Decoded(dec.t_ns[~wild], v[~wild], dec.log_time_ns[~wild], dec.frame_id)
+        v = dec.values
+        if len(v) < MIN_MAG_SAMPLES:
+            raise DataQualityError(f"{name}: only {len(v)} usable magnetometer samples",
+                                   path=path, hint="the recording is too short to calibrate "
+                                   f"anything (at least {MIN_MAG_SAMPLES} needed)")
     # saturation: many samples pinned at the extreme value of an axis (a rail)
     pinned = np.zeros(len(v), dtype=bool)
     rails: list[str] = []
@@ -1436,12 +1464,16 @@ def _chunk_part(dec: _Decoded | None, quat: bool) -> _Decoded | None:
     if dec is None:
         return None
     ok = _finite_rows(dec.values)
+    if not quat and dec.values.ndim == 2:
+        # damaged values (a flipped exponent bit) would overflow the streaming sums
+        with np.errstate(over="ignore", invalid="ignore"):
+            ok &= np.abs(dec.values).max(axis=1, initial=0.0) < ABSURD_NT
     if quat:
-        norm = np.linalg.norm(dec.values, axis=1)
+        norm = _quat_norm(np.where(ok[:, None], dec.values, 0.0))
         ok &= norm > 1e-6
     t, v = dec.t_ns[ok], dec.values[ok]
     if quat:
-        v = v / np.linalg.norm(v, axis=1)[:, None]
+        v = v / norm[ok][:, None]
     order = np.argsort(t, kind="stable")
     return _Decoded(t[order], v[order], dec.log_time_ns[ok][order], dec.frame_id)
 

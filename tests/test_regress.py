@@ -94,10 +94,17 @@ def test_archived_logs_match_golden(archived_results):
     assert "rotation_deg" in r.stdout and "findings" in r.stdout
 
 
-def _move_rotation(cal_file: Path, deg: float, axis=(0.0, 0.0, 1.0)) -> None:
+def _move_rotation(cal_file: Path, deg: float, axis=(0.0, 0.0, 1.0), *,
+                   keep_rotvec: bool = False) -> None:
+    """Turn a calibration's R_body_mag by ``deg``; its rotation vector follows unless kept."""
+    from pipeline.geometry import matrix_to_quat, quat_to_rotvec
+
     d = json.loads(cal_file.read_text())
     dR = quat_to_matrix(rotvec_to_quat(np.radians(deg) * np.asarray(axis)))
-    d["R_body_mag"] = (dR @ np.asarray(d["R_body_mag"])).tolist()
+    R = dR @ np.asarray(d["R_body_mag"])
+    d["R_body_mag"] = R.tolist()
+    if not keep_rotvec:
+        d["rotvec_body_mag_deg"] = np.degrees(quat_to_rotvec(matrix_to_quat(R))).tolist()
     cal_file.write_text(json.dumps(d))
 
 
@@ -118,6 +125,21 @@ def test_regress_passes_against_itself_and_fails_on_moved_rotation(archived_resu
     shutil.copytree(archived_results, base)
     _move_rotation(base / "rotation" / "calibration.json", 0.05)
     assert _cli("regress", str(archived_results), "--baseline", str(base)).returncode == 0
+
+
+def test_baseline_whose_matrix_and_vector_disagree_is_refused(archived_results, tmp_path):
+    """The table shows the rotation vector and compares the matrix: they must agree."""
+    base = tmp_path / "base"
+    shutil.copytree(archived_results, base)
+    cal = base / "rotation" / "calibration.json"
+    _move_rotation(cal, 0.5, axis=(0.6, 0.0, 0.8), keep_rotvec=True)
+    r = _cli("regress", str(archived_results), "--baseline", str(base))
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert r.stderr.count("\n") == 1 and "Traceback" not in r.stderr
+    assert str(cal) in r.stderr and "rotvec_body_mag_deg" in r.stderr
+    assert "R_body_mag" in r.stderr
+    with pytest.raises(InputError, match="rotvec_body_mag_deg"):
+        compare(archived_results, base)
 
 
 def test_unfinished_recording_is_a_regression(archived_results, tmp_path):
@@ -155,7 +177,7 @@ def _cal(rotvec_deg, sigma=(0.01, 0.01, 0.02), **kw):
     d = {"format": "magalign.calibration/1", "R_body_mag": R.tolist(),
          "rotvec_body_mag_deg": list(rotvec_deg), "sigma_rotvec_deg": list(sigma),
          "B_enu_nT": [500.0, 17000.0, -48000.0], "residual_rms_nT": 10.0, "offset_nT": None,
-         "D": None, "time_offset_s": None}
+         "D": None, "time_offset_s": None, "estimator": "ml", "n_samples": 1500}
     d.update(kw)
     return d
 
