@@ -10,14 +10,17 @@ With the environment variable ``MAGALIGN_TEST_PAUSE_DIR`` set to a folder, every
 appends its events to ``DIR/events``, one line each: ``created NAME`` (temporary file
 made), ``written NAME`` (temporary file complete, not yet renamed), ``renamed NAME`` (final
 name in place); ``NAME`` is ``<folder>/<file name>`` of the output. When an event's line
-equals ``MAGALIGN_TEST_PAUSE_AT``, or its number (1-based) does, the process writes
-``DIR/paused`` and waits until ``DIR/go`` exists (the test kills it meanwhile). Without the
-variable nothing of this runs. It is a test hook, not a feature.
+equals ``MAGALIGN_TEST_PAUSE_AT``, or its number (1-based) does, the process writes its pid
+to ``DIR/pid``, then ``DIR/paused``, and waits until ``DIR/go`` exists (the test kills it
+meanwhile); it pauses only once (not again once ``DIR/paused`` exists, e.g. in a worker
+that retries the recording). Without the variable nothing of this runs. It is a test hook,
+not a feature.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
 import time
@@ -45,6 +48,18 @@ def safe_join(root: str | Path, *parts: str) -> Path:
     return out
 
 
+#: errors of a full disk or file system (what the writer inside the block may meet)
+_NO_SPACE = frozenset({errno.ENOSPC, errno.EFBIG, errno.EDQUOT, errno.EROFS})
+
+
+def _write_hint(exc: OSError) -> str:
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+        return "free some disk space (or raise the file size limit) and run again"
+    if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        return "choose an output folder you can write to"
+    return "check the output folder"
+
+
 PAUSE_DIR_ENV = "MAGALIGN_TEST_PAUSE_DIR"
 PAUSE_AT_ENV = "MAGALIGN_TEST_PAUSE_AT"
 
@@ -59,9 +74,10 @@ def _test_event(event: str, dest: Path) -> None:
     with open(log, "a", encoding="utf-8") as fh:
         fh.write(line + "\n")
     n = len(log.read_text(encoding="utf-8").splitlines())
-    if os.environ.get(PAUSE_AT_ENV) not in (line, str(n)):
-        return
     flag = Path(folder) / "paused"
+    if os.environ.get(PAUSE_AT_ENV) not in (line, str(n)) or flag.exists():
+        return
+    (Path(folder) / "pid").write_text(f"{os.getpid()}\n", encoding="utf-8")
     flag.with_suffix(".part").write_text(f"{n} {line}\n", encoding="utf-8")
     os.replace(flag.with_suffix(".part"), flag)  # whole when it appears
     while not (Path(folder) / "go").exists():
@@ -86,8 +102,12 @@ def atomic_path(dest: str | Path, inputs: tuple[str | Path, ...] = ()) -> Iterat
             raise OutputError("refusing to write over an input file", path=dest)
         if Path(i).resolve() == dest.resolve():
             raise OutputError("refusing to write over an input file", path=dest)
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
+    try:
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
+    except OSError as exc:
+        raise OutputError(f"cannot create a file in this folder: {exc.strerror}",
+                          path=dest.parent, hint=_write_hint(exc)) from exc
     os.close(fd)
     tmp_p = Path(tmp)
     try:
@@ -102,9 +122,12 @@ def atomic_path(dest: str | Path, inputs: tuple[str | Path, ...] = ()) -> Iterat
         _test_event("written", dest)
         os.replace(tmp_p, dest)
         _test_event("renamed", dest)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(OSError):
             tmp_p.unlink()
+        if isinstance(exc, OSError) and exc.errno in _NO_SPACE:
+            raise OutputError(f"cannot write {dest.name}: {exc.strerror}", path=dest.parent,
+                              hint=_write_hint(exc)) from exc
         raise
 
 

@@ -38,7 +38,7 @@ class MagalignError(Exception):
         A stage deep in the pipeline may not know which file its data came from; the
         command (or the campaign worker) that read it does, and every error line names one.
         """
-        if self.path is None and path is not None:
+        if self.path is None and path is not None and not self.message.startswith(str(path)):
             self.path = str(path)
             self.args = (self.one_line(),)
         return self
