@@ -198,3 +198,27 @@ def test_real_program_on_damaged_files(damaged, tmp_path):
         except subprocess.TimeoutExpired:
             pytest.fail(f"{cmd} {p.name} ran longer than {HANG_S} s")
         _check_answer(r.returncode, r.stderr, p, cmd)
+
+
+def test_damaged_campaign_toml_is_refused_or_read(tmp_path):
+    """A damaged campaign file is read or refused with a ConfigError naming it; never a crash."""
+    import shutil
+
+    from pipeline.campaign import load_campaign
+    from pipeline.errors import ConfigError, InputError, UsageError
+
+    data = Path(__file__).resolve().parent / "data"
+    for f in data.glob("*.mcap"):
+        shutil.copy(f, tmp_path / f.name)  # the campaign's relative paths resolve
+    src = (data / "campaign.toml").read_bytes()
+    read = refused = 0
+    for i in range(max(200, N_FILES * 3)):
+        p = tmp_path / "campaign.toml"
+        p.write_bytes(fz.damage(src, sorted(fz.MUTATIONS)[i % len(fz.MUTATIONS)], SEED + i))
+        try:
+            load_campaign(p)
+            read += 1
+        except (ConfigError, InputError, UsageError) as exc:
+            assert exc.path == str(p), exc.one_line()
+            refused += 1
+    assert read and refused
