@@ -6,8 +6,9 @@ STAMP   := $(VENV)/.installed
 CAMPAIGN ?= pipeline/demo/campaign.toml
 OUT     ?= out/demo
 JOBS    ?= 2
+FRESH   ?= /tmp/magalign-fresh
 
-.PHONY: setup process test bench golden lint clean
+.PHONY: setup process test test-fresh bench golden lint clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -23,6 +24,30 @@ process: $(STAMP)
 test: $(STAMP)
 	$(BIN)/ruff check pipeline stages tests bench
 	$(BIN)/python -m pytest -q -x -p no:cacheprovider tests
+
+# The committed HEAD cloned afresh into $(FRESH), each clone in a fresh venv, tested twice:
+# with the newest dependencies pyproject.toml allows and with the oldest (the lowest release
+# series of every >= bound, tests/oldest_deps.py). See docs/testing.md.
+test-fresh:
+	rm -rf $(FRESH) && mkdir -p $(FRESH)
+	if [ -d ../shared ]; then ln -s "$(abspath ../shared)" $(FRESH)/shared; fi
+	set -e; for deps in newest oldest; do \
+	  git clone -q . $(FRESH)/$$deps; \
+	  cd $(FRESH)/$$deps; \
+	  $(PY) -m venv .venv; \
+	  .venv/bin/pip install --quiet --upgrade pip; \
+	  if [ $$deps = oldest ]; then \
+	    .venv/bin/python tests/oldest_deps.py pyproject.toml > constraints.txt; \
+	    .venv/bin/pip install --quiet -c constraints.txt -e '.[dev]'; \
+	  else \
+	    .venv/bin/pip install --quiet --upgrade --upgrade-strategy eager -e '.[dev]'; \
+	  fi; \
+	  .venv/bin/pip freeze > $(FRESH)/$$deps.freeze.txt; \
+	  touch .venv/.installed; \
+	  echo "== make test with the $$deps dependencies"; \
+	  $(MAKE) test; \
+	  cd $(CURDIR); \
+	done
 
 bench: $(STAMP)
 	@for b in bench/*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done

@@ -1,13 +1,29 @@
 """Outputs appear only when complete: write to a temporary name, then rename.
 
-A run killed at any point leaves at most a ``.tmp-*`` file that no reader takes as finished.
+A run killed at any point leaves at most a ``.NAME.XXXX.tmp`` file that no reader takes as
+finished.
+
+Test hook
+---------
+The kill tests must stop a run at a moment they choose, whatever the speed of the machine.
+With the environment variable ``MAGALIGN_TEST_PAUSE_DIR`` set to a folder, every atomic write
+appends its events to ``DIR/events``, one line each: ``created NAME`` (temporary file
+made), ``written NAME`` (temporary file complete, not yet renamed), ``renamed NAME`` (final
+name in place); ``NAME`` is ``<folder>/<file name>`` of the output. When an event's line
+equals ``MAGALIGN_TEST_PAUSE_AT``, or its number (1-based) does, the process writes its pid
+to ``DIR/pid``, then ``DIR/paused``, and waits until ``DIR/go`` exists (the test kills it
+meanwhile); it pauses only once (not again once ``DIR/paused`` exists, e.g. in a worker
+that retries the recording). Without the variable nothing of this runs. It is a test hook,
+not a feature.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
@@ -32,6 +48,42 @@ def safe_join(root: str | Path, *parts: str) -> Path:
     return out
 
 
+#: errors of a full disk or file system (what the writer inside the block may meet)
+_NO_SPACE = frozenset({errno.ENOSPC, errno.EFBIG, errno.EDQUOT, errno.EROFS})
+
+
+def _write_hint(exc: OSError) -> str:
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+        return "free some disk space (or raise the file size limit) and run again"
+    if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        return "choose an output folder you can write to"
+    return "check the output folder"
+
+
+PAUSE_DIR_ENV = "MAGALIGN_TEST_PAUSE_DIR"
+PAUSE_AT_ENV = "MAGALIGN_TEST_PAUSE_AT"
+
+
+def _test_event(event: str, dest: Path) -> None:
+    """Record an atomic-write event and pause there when asked (see the module docstring)."""
+    folder = os.environ.get(PAUSE_DIR_ENV)
+    if not folder:
+        return
+    line = f"{event} {dest.parent.name}/{dest.name}"
+    log = Path(folder) / "events"
+    with open(log, "a", encoding="utf-8") as fh:
+        fh.write(line + "\n")
+    n = len(log.read_text(encoding="utf-8").splitlines())
+    flag = Path(folder) / "paused"
+    if os.environ.get(PAUSE_AT_ENV) not in (line, str(n)) or flag.exists():
+        return
+    (Path(folder) / "pid").write_text(f"{os.getpid()}\n", encoding="utf-8")
+    flag.with_suffix(".part").write_text(f"{n} {line}\n", encoding="utf-8")
+    os.replace(flag.with_suffix(".part"), flag)  # whole when it appears
+    while not (Path(folder) / "go").exists():
+        time.sleep(0.01)
+
+
 @contextlib.contextmanager
 def atomic_path(dest: str | Path, inputs: tuple[str | Path, ...] = ()) -> Iterator[Path]:
     """Yield a temporary path next to ``dest``; rename it to ``dest`` when the block succeeds.
@@ -50,11 +102,16 @@ def atomic_path(dest: str | Path, inputs: tuple[str | Path, ...] = ()) -> Iterat
             raise OutputError("refusing to write over an input file", path=dest)
         if Path(i).resolve() == dest.resolve():
             raise OutputError("refusing to write over an input file", path=dest)
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
+    try:
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
+    except OSError as exc:
+        raise OutputError(f"cannot create a file in this folder: {exc.strerror}",
+                          path=dest.parent, hint=_write_hint(exc)) from exc
     os.close(fd)
     tmp_p = Path(tmp)
     try:
+        _test_event("created", dest)
         yield tmp_p
         with open(tmp_p, "rb+") as fh:
             os.fsync(fh.fileno())
@@ -62,10 +119,15 @@ def atomic_path(dest: str | Path, inputs: tuple[str | Path, ...] = ()) -> Iterat
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp_p, 0o666 & ~umask)
+        _test_event("written", dest)
         os.replace(tmp_p, dest)
-    except BaseException:
+        _test_event("renamed", dest)
+    except BaseException as exc:
         with contextlib.suppress(OSError):
             tmp_p.unlink()
+        if isinstance(exc, OSError) and exc.errno in _NO_SPACE:
+            raise OutputError(f"cannot write {dest.name}: {exc.strerror}", path=dest.parent,
+                              hint=_write_hint(exc)) from exc
         raise
 
 

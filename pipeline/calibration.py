@@ -18,6 +18,7 @@ import numpy as np
 
 from .errors import InputError
 from .geometry import matrix_to_quat, quat_rotate, quat_to_rotvec
+from .validate import check_calibration_dict
 from .verdict import Verdict
 
 FORMAT = "magalign.calibration/1"
@@ -292,6 +293,7 @@ class Calibration:
             d = json.loads(text)
         except json.JSONDecodeError as exc:
             raise InputError(f"calibration is not valid JSON: {exc}", path=path) from exc
+        check_calibration_dict(d, path)
         return cls.from_dict(d, path=path)
 
     @classmethod

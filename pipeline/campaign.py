@@ -709,7 +709,8 @@ def run_task(task: RecordingTask) -> dict[str, Any]:
         return {**base, "status": "ok", "row": row, "error": None,
                 "elapsed_s": round(time.perf_counter() - t0, 3)}
     except MagalignError as exc:
-        return {**base, "status": "failed", "row": None, "error": exc.one_line()}
+        return {**base, "status": "failed", "row": None,
+                "error": exc.naming(task.input_path).one_line()}
     except Exception as exc:  # noqa: BLE001 - one bad recording must not stop the campaign
         return {**base, "status": "failed", "row": None,
                 "error": f"{task.input_path}: internal error {type(exc).__name__}: {exc}"}

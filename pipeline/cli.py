@@ -15,7 +15,7 @@ import sys
 import traceback
 import warnings
 
-from .errors import MagalignError
+from .errors import MagalignError, UsageError
 
 COMMANDS = (
     "info",
@@ -90,27 +90,46 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.INFO if args.verbose else logging.WARNING,
         format="magalign: %(message)s",
     )
-    logging.captureWarnings(True)
-    warnings.simplefilter("default")
-    saved_format = warnings.formatwarning
-    if not debug:
-        warnings.formatwarning = _format_warning
-    try:
-        status = int(args.func(args) or 0)
-    except MagalignError as exc:
-        if debug:
-            traceback.print_exc()
-        print(f"magalign: {exc.one_line()}", file=sys.stderr)
-        status = exc.exit_code
-    except KeyboardInterrupt:
-        print("magalign: interrupted; no partial output was kept", file=sys.stderr)
-        status = 130
-    except BrokenPipeError:
-        status = 0
-    finally:
-        warnings.formatwarning = saved_format
+    # Warnings are held until the command ends: a command that fails with bad input says so
+    # in exactly one line (what it repaired before giving up is moot); one that succeeds, or
+    # a campaign that partly failed, prints each warning as one line.
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        try:
+            status = int(args.func(args) or 0)
+            failed = False
+        except MagalignError as exc:
+            if exc.exit_code == 2 and not isinstance(exc, UsageError):
+                # bad input: the recording (or input) the command was given, unless named
+                exc.naming(getattr(args, "recording", None) or getattr(args, "input", None))
+            if debug:
+                traceback.print_exc()
+            _show(caught, debug or exc.exit_code != 2, debug)
+            print(f"magalign: {exc.one_line()}", file=sys.stderr)
+            status, failed = exc.exit_code, True
+        except KeyboardInterrupt:
+            _show(caught, True, debug)
+            print("magalign: interrupted; no partial output was kept", file=sys.stderr)
+            status, failed = 130, True
+        except BrokenPipeError:
+            status, failed = 0, False
+        if not failed:
+            _show(caught, True, debug)
     sys.stdout.flush()
     return status
+
+
+def _show(caught: list[warnings.WarningMessage], show: bool, debug: bool) -> None:
+    """Print the warnings a command issued, one line each (with their source under --debug)."""
+    if not show:
+        return
+    for w in caught:
+        if debug:
+            text = warnings.formatwarning(w.message, w.category, w.filename, w.lineno)
+        else:
+            text = _format_warning(w.message, w.category, w.filename, w.lineno)
+        print(f"magalign: {text.rstrip()}", file=sys.stderr)
+    caught.clear()
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -32,6 +32,17 @@ class MagalignError(Exception):
         self.hint = hint
         super().__init__(self.one_line())
 
+    def naming(self, path: str | Path | None) -> MagalignError:
+        """Name ``path`` as the file of an error raised without one; returns ``self``.
+
+        A stage deep in the pipeline may not know which file its data came from; the
+        command (or the campaign worker) that read it does, and every error line names one.
+        """
+        if self.path is None and path is not None and not self.message.startswith(str(path)):
+            self.path = str(path)
+            self.args = (self.one_line(),)
+        return self
+
     def one_line(self) -> str:
         """Return the single line the CLI prints: ``file: problem (what to do)``."""
         head = f"{self.path}: " if self.path else ""

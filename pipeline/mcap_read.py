@@ -110,6 +110,12 @@ FIELD_MAX_NT = 200_000.0
 #: difference) are taken as clock jumps and dropped
 STAMP_JUMP_NS = 3600 * 1_000_000_000
 MIN_MAG_SAMPLES = 10
+#: magnetometer samples larger than this many times the median field magnitude are damaged
+#: values, not readings (a sensor's range is at most some 30 times the Earth's field)
+SPIKE_FACTOR = 100.0
+#: no magnetometer reads this (1000 T): a value beyond it is damage (chunked reading, which
+#: has no median to compare with, drops such samples)
+ABSURD_NT = 1e12
 MIN_ATTITUDE_SAMPLES = 2
 
 
@@ -336,8 +342,13 @@ def _scan(path: str | Path) -> _Scan:
                 c = _parse_channel(raw, body)
                 scan.channels.setdefault(c.id, c)
             elif op == OP_MESSAGE and not data_end:
-                (cid,) = struct.unpack_from("<H", raw, body)
-                scan.top_messages.setdefault(cid, []).append(pos)
+                if length < 22:  # shorter than a message's fixed fields: not a message
+                    _problem(scan.problems, "short_record",
+                             f"{p}: message record at byte {pos} is too short ({length} "
+                             "bytes); it was skipped", 1)
+                else:
+                    (cid,) = struct.unpack_from("<H", raw, body)
+                    scan.top_messages.setdefault(cid, []).append(pos)
             elif op == OP_CHUNK and not data_end:
                 last_chunk = _chunk_header(raw, pos, body, length, size)
                 scan.chunks.append(last_chunk)
@@ -521,6 +532,52 @@ def _prepare(scan: _Scan) -> None:
         ch.index_trusted = True
 
 
+def _valid_records(buf: NDArray[np.uint8], off: np.ndarray, cid: int) -> np.ndarray:
+    """Mask of the offsets ``off`` that hold a whole Message record of channel ``cid``.
+
+    A record is whole when its opcode is Message, its length covers the fixed fields (22
+    bytes) and it ends inside ``buf``; the channel id in the record must be ``cid``.
+    """
+    n = len(buf)
+    inside = (off >= 0) & (off + 31 <= n)
+    ok = np.zeros(len(off), dtype=bool)
+    o = off[inside]
+    if len(o):
+        length = _u(buf, o + 1, "<u8")
+        room = (n - 9 - o).astype(np.uint64)
+        ok[inside] = ((buf[o] == OP_MESSAGE) & (length >= 22) & (length <= room)
+                      & (_u(buf, o + 9, "<u2") == cid))
+    return ok
+
+
+def _select(scan: _Scan, ch: _Chunk, buf: NDArray[np.uint8], want: set[int]
+            ) -> dict[int, np.ndarray]:
+    """Message record offsets of the wanted channels in one decompressed chunk.
+
+    The message indexes stored after a chunk are not covered by its CRC: an offset that does
+    not point at a whole Message record of its channel means the index is damaged, and the
+    chunk is then walked record by record instead (one problem noted, nothing lost).
+    """
+    sel = {}
+    damaged = False
+    for cid in want & ch.index.keys():
+        off = ch.index[cid]
+        ok = _valid_records(buf, off, cid)
+        if not ok.all():
+            damaged = True
+            break
+        if len(off):
+            sel[cid] = off
+    if not damaged:
+        return sel
+    idx, _ = _walk(scan, buf.tobytes())
+    ch.index = idx
+    _problem(scan.problems, "damaged_index",
+             f"{scan.path}: the message index of the chunk at byte {ch.offset} does not match "
+             "its records; the chunk was read record by record instead", 0)
+    return {cid: idx[cid] for cid in want & idx.keys() if len(idx[cid])}
+
+
 def _iter_blocks(scan: _Scan, want: set[int]) -> Iterator[tuple[NDArray[np.uint8],
                                                                  dict[int, np.ndarray]]]:
     """Yield ``(buffer, {channel id: message record offsets})`` for the wanted channels."""
@@ -533,12 +590,7 @@ def _iter_blocks(scan: _Scan, want: set[int]) -> Iterator[tuple[NDArray[np.uint8
         if b is None:
             continue
         buf = np.frombuffer(b, dtype=np.uint8)
-        sel = {}
-        for cid in want & ch.index.keys():
-            off = ch.index[cid]
-            off = off[off + 31 <= len(b)]
-            if len(off):
-                sel[cid] = off
+        sel = _select(scan, ch, buf, want)
         if sel:
             yield buf, sel
         _release(scan, ch.data_start, ch.data_len)  # decompressed: the bytes are not needed
@@ -697,13 +749,7 @@ def iter_raw_channels(
         b = _decompress(scan, ch)
         if b is not None:
             buf = np.frombuffer(b, dtype=np.uint8)
-            sel = {}
-            for cid in ch.index.keys() & scan.channels.keys():
-                off = ch.index[cid]
-                off = off[off + 31 <= len(b)]
-                if len(off):
-                    sel[cid] = off
-            count += add(buf, sel)
+            count += add(buf, _select(scan, ch, buf, set(scan.channels)))
             pending = True
         _release(scan, ch.data_start, ch.data_len)
         bound = next_of[id(ch)]
@@ -1044,9 +1090,18 @@ def _sort_dedupe(name: str, dec: _Decoded, problems: list[Problem], path: str
     return dec
 
 
+def _finite_rows(values: np.ndarray) -> np.ndarray:
+    """Return True for each sample (row, or element of a 1-D column) with finite values.
+
+    Also for a channel with no readable message (shape ``(0,)`` or ``(0, k)``), where a
+    ``reshape(0, -1)`` would be ambiguous.
+    """
+    fin = np.isfinite(values)
+    return fin if fin.ndim == 1 else fin.all(axis=tuple(range(1, fin.ndim)))
+
+
 def _drop_nonfinite(name: str, dec: _Decoded, problems: list[Problem]) -> _Decoded:
-    vals = dec.values.reshape(len(dec.t_ns), -1)
-    ok = np.isfinite(vals).all(axis=1)
+    ok = _finite_rows(dec.values)
     if ok.all():
         return dec
     k = int((~ok).sum())
@@ -1055,9 +1110,16 @@ def _drop_nonfinite(name: str, dec: _Decoded, problems: list[Problem]) -> _Decod
     return dec.take(ok)
 
 
+def _quat_norm(q: np.ndarray) -> np.ndarray:
+    """Norm of each quaternion without overflow or underflow (damaged values reach 1e308)."""
+    m = np.abs(q).max(axis=1) if len(q) else np.zeros(0)
+    safe = np.where(m > 0, m, 1.0)
+    return m * np.linalg.norm(q / safe[:, None], axis=1)
+
+
 def _check_quaternions(name: str, dec: _Decoded, problems: list[Problem]) -> _Decoded:
     q = dec.values
-    n = np.linalg.norm(q, axis=1)
+    n = _quat_norm(q)
     zero = n < 1e-6
     if zero.any():
         k = int(zero.sum())
@@ -1106,6 +1168,21 @@ def _check_mag(path: str, name: str, dec: _Decoded, problems: list[Problem]) -> 
                     "sensor_msgs/MagneticField must carry tesla (REP-145)")
         raise DataQualityError(f"{name}: median field magnitude {mag_nT:.4g} nT is far "
                                "outside the Earth's 20,000-70,000 nT", path=path, hint=hint)
+    # a few samples far beyond any field the sensor can see are damaged values (a flipped
+    # exponent bit), not readings: dropped like NaN (their squares would overflow the fit)
+    with np.errstate(over="ignore"):
+        wild = ~(np.linalg.norm(v, axis=1) <= SPIKE_FACTOR * mag_nT)
+    if wild.any():
+        k = int(np.count_nonzero(wild))
+        problems.append(Problem("impossible_value", f"{name}: {k} samples more than "
+                                f"{SPIKE_FACTOR:g} times the median field magnitude were "
+                                "dropped (damaged values)", k))
+        dec = _Decoded(dec.t_ns[~wild], v[~wild], dec.log_time_ns[~wild], dec.frame_id)
+        v = dec.values
+        if len(v) < MIN_MAG_SAMPLES:
+            raise DataQualityError(f"{name}: only {len(v)} usable magnetometer samples",
+                                   path=path, hint="the recording is too short to calibrate "
+                                   f"anything (at least {MIN_MAG_SAMPLES} needed)")
     # saturation: many samples pinned at the extreme value of an axis (a rail)
     pinned = np.zeros(len(v), dtype=bool)
     rails: list[str] = []
@@ -1582,14 +1659,17 @@ class RecordingChunk:
 def _chunk_part(dec: _Decoded | None, quat: bool) -> _Decoded | None:
     if dec is None:
         return None
-    vals = dec.values.reshape(len(dec.t_ns), -1)
-    ok = np.isfinite(vals).all(axis=1)
+    ok = _finite_rows(dec.values)
+    if not quat and dec.values.ndim == 2:
+        # damaged values (a flipped exponent bit) would overflow the streaming sums
+        with np.errstate(over="ignore", invalid="ignore"):
+            ok &= np.abs(dec.values).max(axis=1, initial=0.0) < ABSURD_NT
     if quat:
-        norm = np.linalg.norm(dec.values, axis=1)
+        norm = _quat_norm(np.where(ok[:, None], dec.values, 0.0))
         ok &= norm > 1e-6
     t, v = dec.t_ns[ok], dec.values[ok]
     if quat:
-        v = v / np.linalg.norm(v, axis=1)[:, None]
+        v = v / norm[ok][:, None]
     order = np.argsort(t, kind="stable")
     return _Decoded(t[order], v[order], dec.log_time_ns[ok][order], dec.frame_id)
 

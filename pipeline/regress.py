@@ -27,6 +27,7 @@ from .config import TomlDoc
 from .errors import InputError
 from .geometry import angle_between_deg
 from .summary import flatten_numbers
+from .validate import check_calibration_dict, check_diagnosis_dict, check_metrics_dict
 
 OK = "ok"
 REGRESSION = "REGRESSION"
@@ -121,7 +122,8 @@ def _fmt(x: Any) -> str:
     return str(x)
 
 
-def _load(path: Path) -> dict[str, Any] | None:
+def _load(path: Path, check: Any = None) -> dict[str, Any] | None:
+    """Read a result file: None when absent; checked by ``check(d, path)`` when given."""
     if not path.is_file():
         return None
     try:
@@ -131,6 +133,8 @@ def _load(path: Path) -> dict[str, Any] | None:
                          hint="regenerate the results (or the baseline with make golden)") from exc
     if not isinstance(d, dict):
         raise InputError("not a JSON object", path=path)
+    if check is not None:
+        check(d, path)
     return d
 
 
@@ -329,11 +333,12 @@ def compare(results: str | Path, baseline: str | Path,
             rows += c.rows
             continue
         bd, rd = base / name, res / name
-        _compare_calibration(c, _load(bd / "calibration.json"), _load(rd / "calibration.json"),
-                             tolerances)
-        _compare_metrics(c, _load(bd / "metrics.json"), _load(rd / "metrics.json"), tolerances)
-        _compare_findings(c, _load(bd / "diagnosis.json"), _load(rd / "diagnosis.json"),
-                          tolerances)
+        _compare_calibration(c, _load(bd / "calibration.json", check_calibration_dict),
+                             _load(rd / "calibration.json", check_calibration_dict), tolerances)
+        _compare_metrics(c, _load(bd / "metrics.json", check_metrics_dict),
+                         _load(rd / "metrics.json", check_metrics_dict), tolerances)
+        _compare_findings(c, _load(bd / "diagnosis.json", check_diagnosis_dict),
+                          _load(rd / "diagnosis.json", check_diagnosis_dict), tolerances)
         rows += c.rows
     for name in sorted(res_recs - set(base_recs)):
         rows.append(Diff(name, "recording", "-", "finished", "-", "-", NEW))

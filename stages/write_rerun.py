@@ -31,6 +31,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.atomic import atomic_path
+from pipeline.errors import OutputError
 from pipeline.recording import Context, Recording, Segment
 
 ENU_NAMES = ("east", "north", "up")
@@ -128,6 +129,9 @@ def write_rrd(
         ``dest``.
 
     """
+    # rerun's own log lines (several per failure) would break the one-line answer; a failed
+    # write is reported by magalign itself (OutputError below)
+    os.environ.setdefault("RUST_LOG", "off")
     import rerun as rr
 
     from pipeline.geometry import quat_to_li2020_euler
@@ -218,8 +222,12 @@ def write_rrd(
                                                                       dtype="datetime64[ns]"))],
                     columns=rr.TextLog.columns(text=texts, level=["WARN"] * len(texts)),
                 )
-        rec.flush()
-        rec.disconnect()
+        try:
+            rec.flush()
+            rec.disconnect()
+        except RuntimeError as exc:  # rerun's file writer stopped (disk full, ...)
+            raise OutputError(f"cannot write the rerun recording: {exc}", path=dest,
+                              hint="free some disk space and run again") from exc
     return dest
 
 

@@ -4,16 +4,15 @@ from __future__ import annotations
 
 import json
 import os
-import random
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from _pause import wait_paused
 
 from pipeline.campaign import (
     DONE_MARKER,
@@ -317,48 +316,51 @@ def _check_finished_outputs_complete(out: Path) -> None:
 
 
 def test_killed_run_resumes_without_redoing_or_trusting_partial_output(tmp_path):
+    from pipeline.atomic import PAUSE_AT_ENV, PAUSE_DIR_ENV
+
     camp = _tiny_campaign(tmp_path)
     out = tmp_path / "out"
-    rng = random.Random()
-    seed = rng.randrange(1 << 30)
-    rng.seed(seed)
     cmd = [sys.executable, "-m", "pipeline.cli", "process", str(camp), "--out", str(out),
            "--jobs", "1", "--no-progress"]
-    kills = 0
-    for attempt in range(3):
+    # Kill points chosen by the test (the atomic-write hook), each with the markers that
+    # must exist then: every output of rotation written but not its done-marker; rotation
+    # finished and line_restored begun; line_restored finished and line_disturbed partway.
+    stops = [("written rotation/.magalign-done.json", set()),
+             ("created line_restored/calibration.json", {"rotation"}),
+             ("renamed line_disturbed/metrics.json", {"rotation", "line_restored"})]
+    states = []
+    for k, (at, markers) in enumerate(stops):
+        hook = tmp_path / f"hook{k}"
+        hook.mkdir()
+        env = {**os.environ, PAUSE_DIR_ENV: str(hook), PAUSE_AT_ENV: at}
         p = subprocess.Popen(cmd, cwd=HERE.parent, stdout=subprocess.DEVNULL,
-                             stderr=subprocess.DEVNULL, start_new_session=True)
-        if attempt == 0:
-            # the first kill lands after a first recording finished, at a random moment
-            t_end = time.monotonic() + 180
-            while (p.poll() is None and not _marker_state(out)
-                   and time.monotonic() < t_end):
-                time.sleep(0.05)
-            delay = rng.uniform(0.0, 1.5)
-        else:
-            delay = rng.uniform(0.5, 8.0)
+                             stderr=subprocess.DEVNULL, start_new_session=True, env=env)
         try:
-            p.wait(timeout=delay)
-        except subprocess.TimeoutExpired:
+            assert wait_paused(p, hook).endswith(at)
+        finally:
             os.killpg(p.pid, signal.SIGKILL)  # the run and its worker processes
             p.wait()
-            kills += 1
+        state = _marker_state(out)
+        assert set(state) == markers, (at, sorted(state))
         _check_finished_outputs_complete(out)
+        states.append(state)
+    # the partial outputs left by a kill are there, without a marker
+    assert (out / "line_disturbed" / "metrics.json").is_file()
+    # a finished recording is not redone by a later (killed) run
+    assert states[2]["rotation"] == states[1]["rotation"]
     before = _marker_state(out)
-    r = subprocess.run(cmd, cwd=HERE.parent, capture_output=True, text=True, timeout=240)
-    assert r.returncode == 0, f"seed {seed}: {r.stderr}"
+    r = subprocess.run(cmd, cwd=HERE.parent, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
     after = _marker_state(out)
     assert set(after) == {"rotation", "line_restored", "line_disturbed"}
     for name, state in before.items():
-        assert after[name] == state, f"seed {seed}: {name} was redone"
+        assert after[name] == state, f"{name} was redone"
     table = pq.read_table(out / "summary.parquet").to_pylist()
     rows = {row["name"]: row["status"] for row in table}
-    for name in rows:
-        assert rows[name] == ("reused" if name in before else "ok"), f"seed {seed}"
+    assert rows == {"rotation": "reused", "line_restored": "reused", "line_disturbed": "ok"}
     _check_finished_outputs_complete(out)
-    assert kills >= 1, f"seed {seed}: no run was interrupted"
     # temporary files of the killed runs are gone; none was taken as a result
-    assert not list(out.glob(".*.tmp")) and not list(out.glob("*/.*.tmp")), f"seed {seed}"
+    assert not list(out.glob(".*.tmp")) and not list(out.glob("*/.*.tmp"))
 
 
 def test_calibration_file_restores_survey_recording(tmp_path):

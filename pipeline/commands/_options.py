@@ -118,3 +118,6 @@ def check_mcap_file(path: str | Path) -> None:
     if head != MCAP_MAGIC[: len(head)]:
         raise NotMcapError("not an MCAP file (bad magic bytes)", path=p,
                            hint="pass a .mcap recording")
+    if len(head) < len(MCAP_MAGIC):
+        raise NotMcapError(f"cut inside the MCAP header ({len(head)} bytes)", path=p,
+                           hint="nothing can be recovered from this file")

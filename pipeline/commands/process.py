@@ -160,7 +160,7 @@ def run(args: argparse.Namespace) -> int:
     if failures and len(results) == 1 and single:
         # One recording given: its failure is bad input (exit 2, one line), not a campaign
         # that partly failed (CONVENTIONS, "Exit status").
-        raise InputError(failures[0][1])
+        raise InputError(failures[0][1], path="")  # the line names its file already
     if failures:
         for name, why in failures:
             print(f"magalign: FAILED {name}: {why}", file=sys.stderr)
