@@ -27,6 +27,7 @@ Stamps are header stamps (CONVENTIONS), ``log_time`` only for messages without a
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import mmap
 import struct
@@ -424,8 +425,12 @@ def _finish_scan(scan: _Scan, last_chunk: _Chunk | None, last_index: dict, pos: 
 
 
 # --------------------------------------------------------------------------- chunks
-def _decompress(scan: _Scan, ch: _Chunk) -> bytes | None:
-    """Decompress a chunk's records; a torn chunk as far as its bytes go."""
+def _inflate(scan: _Scan, ch: _Chunk) -> tuple[bytes | None, str, str]:
+    """Decompress a chunk and check its CRC: ``(bytes or None, problem kind, detail)``.
+
+    Touches nothing shared (it runs on worker threads, see :func:`_decompressed`); a torn
+    chunk is decompressed as far as its bytes go.
+    """
     comp = scan.buf[ch.data_start : ch.data_start + ch.data_len].tobytes()
     try:
         if ch.compression == "":
@@ -446,28 +451,67 @@ def _decompress(scan: _Scan, ch: _Chunk) -> bytes | None:
             else:
                 out = lz4.frame.decompress(comp)
         else:
-            ch.bad = True
-            _problem(scan.problems, "chunk_compression",
-                     f"{scan.path}: chunk at byte {ch.offset} uses unknown compression "
-                     f"{ch.compression!r}; its {_index_count(ch)} messages were skipped",
-                     _index_count(ch))
-            return None
+            return None, "chunk_compression", ""
     except Exception as exc:  # zstd/lz4 raise their own error types  # noqa: BLE001
         if ch.torn:
-            return b""
-        ch.bad = True
-        _problem(scan.problems, "chunk_undecompressable",
-                 f"{scan.path}: chunk at byte {ch.offset} does not decompress ({exc}); its "
-                 f"{_index_count(ch)} messages were skipped", _index_count(ch))
-        return None
-    if not ch.torn:
-        if len(out) != ch.uncompressed_size or (ch.crc and zlib.crc32(out) != ch.crc):
-            ch.bad = True
-            _problem(scan.problems, "chunk_crc",
-                     f"{scan.path}: chunk at byte {ch.offset} fails its CRC check; its "
-                     f"{_index_count(ch)} messages were skipped", _index_count(ch))
-            return None
-    return out
+            return b"", "", ""
+        return None, "chunk_undecompressable", str(exc)
+    if not ch.torn and (len(out) != ch.uncompressed_size
+                        or (ch.crc and zlib.crc32(out) != ch.crc)):
+        return None, "chunk_crc", ""
+    return out, "", ""
+
+
+def _report(scan: _Scan, ch: _Chunk, result: tuple[bytes | None, str, str]) -> bytes | None:
+    """Note the problem of an inflated chunk (in file order, on the reading thread)."""
+    out, kind, detail = result
+    if out is not None:
+        return out
+    ch.bad = True
+    what = {"chunk_compression": f"uses unknown compression {ch.compression!r}",
+            "chunk_undecompressable": f"does not decompress ({detail})",
+            "chunk_crc": "fails its CRC check"}[kind]
+    _problem(scan.problems, kind, f"{scan.path}: chunk at byte {ch.offset} {what}; its "
+             f"{_index_count(ch)} messages were skipped", _index_count(ch))
+    return None
+
+
+def _decompress(scan: _Scan, ch: _Chunk) -> bytes | None:
+    """Decompress a chunk's records (None, with its problem noted, when it cannot be read)."""
+    return _report(scan, ch, _inflate(scan, ch))
+
+
+DECOMPRESS_THREADS = 2
+"""Threads inflating chunks ahead of the decoding (zstd, lz4 and zlib's CRC release the GIL)."""
+
+DECOMPRESS_AHEAD = 8
+"""Chunks inflated ahead of the one being decoded (memory: that many chunks)."""
+
+
+def _decompressed(scan: _Scan, chunks: list[_Chunk]) -> Iterator[tuple[_Chunk, bytes | None]]:
+    """``(chunk, its records or None)`` in file order, inflated on threads ahead of use.
+
+    Problems are noted here, in file order, so that messages come out the same whatever the
+    threads' timing.
+    """
+    if len(chunks) < 3 or DECOMPRESS_THREADS < 2:
+        for ch in chunks:
+            yield ch, _decompress(scan, ch)
+        return
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=DECOMPRESS_THREADS,
+                            thread_name_prefix="magalign-inflate") as ex:
+        it = iter(chunks)
+        pending = deque((ch, ex.submit(_inflate, scan, ch))
+                        for ch in itertools.islice(it, DECOMPRESS_AHEAD))
+        while pending:
+            ch, fut = pending.popleft()
+            nxt = next(it, None)
+            if nxt is not None:
+                pending.append((nxt, ex.submit(_inflate, scan, nxt)))
+            yield ch, _report(scan, ch, fut.result())
 
 
 def _index_count(ch: _Chunk) -> int | str:
@@ -583,17 +627,67 @@ def _iter_blocks(scan: _Scan, want: set[int]) -> Iterator[tuple[NDArray[np.uint8
     """Yield ``(buffer, {channel id: message record offsets})`` for the wanted channels."""
     for cid in sorted(want & scan.top_messages.keys()):
         yield scan.buf, {cid: np.asarray(scan.top_messages[cid], dtype=np.int64)}
-    for ch in scan.chunks:
-        if ch.bad or not ch.index or not (want & ch.index.keys()):
-            continue
-        b = _decompress(scan, ch)
+    # Chunks are decoded in batches of about BATCH_BYTES: a logger's chunks hold a few hundred
+    # kB, and decoding each on its own spent most of the time in per-call overhead (issue 18).
+    bufs: list[bytes] = []
+    sels: list[dict[int, np.ndarray]] = []
+    size = 0
+    todo = [ch for ch in scan.chunks
+            if not ch.bad and ch.index and (want & ch.index.keys())]
+    for ch, b in _decompressed(scan, todo):
         if b is None:
             continue
-        buf = np.frombuffer(b, dtype=np.uint8)
-        sel = _select(scan, ch, buf, want)
-        if sel:
-            yield buf, sel
+        sel = _select(scan, ch, np.frombuffer(b, dtype=np.uint8), want)
         _release(scan, ch.data_start, ch.data_len)  # decompressed: the bytes are not needed
+        if not sel:
+            continue
+        bufs.append(b)
+        sels.append(sel)
+        size += len(b)
+        if size >= BATCH_BYTES:
+            yield _join_blocks(bufs, sels)
+            bufs, sels, size = [], [], 0
+    if bufs:
+        yield _join_blocks(bufs, sels)
+
+
+BATCH_BYTES = 8 << 20
+"""Decompressed bytes decoded at once (memory: about twice this, whatever the file size)."""
+
+
+def _join_blocks(bufs: list[bytes], sels: list[dict[int, np.ndarray]]
+                 ) -> tuple[NDArray[np.uint8], dict[int, np.ndarray]]:
+    """One buffer of several decompressed chunks, with their record offsets shifted into it."""
+    if len(bufs) == 1:
+        return np.frombuffer(bufs[0], dtype=np.uint8), sels[0]
+    base = np.cumsum([0] + [len(b) for b in bufs[:-1]])
+    joined: dict[int, list[np.ndarray]] = {}
+    for b0, sel in zip(base.tolist(), sels, strict=True):
+        for cid, off in sel.items():
+            joined.setdefault(cid, []).append(off + b0)
+    buf = np.frombuffer(b"".join(bufs), dtype=np.uint8)
+    return buf, {cid: np.concatenate(v) for cid, v in joined.items()}
+
+
+def _compact_records(buf: NDArray[np.uint8], rec: np.ndarray
+                     ) -> tuple[NDArray[np.uint8], np.ndarray]:
+    """Copy the records at ``rec`` side by side when they all have one length.
+
+    A sensor's messages usually have one size. One gather of whole records (each a ``V{n}``
+    value) then replaces a dozen field gathers scattered over a large buffer: the field reads
+    that follow walk a compact array in order, which the CPU's caches serve (issue 18: 2-3x
+    faster ingest). Records of several sizes are returned as they are.
+    """
+    if len(rec) < 2:
+        return buf, rec
+    reclen = _u(buf, rec + 1, "<u8")
+    n = int(reclen[0]) + 9
+    if n > 1 << 16 or not bool((reclen == reclen[0]).all()) or int(rec.max()) + n > len(buf):
+        return buf, rec
+    view = np.ndarray(shape=(len(buf) - n + 1,), dtype=f"V{n}", buffer=np.ascontiguousarray(buf),
+                      strides=(1,))
+    compact = view[rec].view(np.uint8).reshape(-1)
+    return compact, np.arange(len(rec), dtype=np.int64) * n
 
 
 def _record_columns(buf: NDArray[np.uint8], rec: np.ndarray) -> dict[str, np.ndarray]:
@@ -876,6 +970,7 @@ class _Decoder:
                           path=self.path, hint=_SUPPORTED_HINT)
 
     def decode(self, buf: NDArray[np.uint8], rec: np.ndarray) -> _Decoded:
+        buf, rec = _compact_records(buf, rec)
         cols = _record_columns(buf, rec)
         log = cols["log_time_ns"]
         if self.layout is not None:
@@ -1112,6 +1207,10 @@ def _drop_nonfinite(name: str, dec: _Decoded, problems: list[Problem]) -> _Decod
 
 def _quat_norm(q: np.ndarray) -> np.ndarray:
     """Norm of each quaternion without overflow or underflow (damaged values reach 1e308)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        n = np.sqrt(np.einsum("ij,ij->i", q, q))
+    if bool(((n > 1e-150) & (n < 1e150)).all()):
+        return n  # the usual case: one pass, no scaling needed
     m = np.abs(q).max(axis=1) if len(q) else np.zeros(0)
     safe = np.where(m > 0, m, 1.0)
     return m * np.linalg.norm(q / safe[:, None], axis=1)
@@ -1157,7 +1256,9 @@ def _check_mag(path: str, name: str, dec: _Decoded, problems: list[Problem]) -> 
         raise DataQualityError(f"{name}: every magnetometer sample is identical "
                                f"({v[0].tolist()} nT): the sensor is stuck", path=path,
                                hint="check the sensor and its driver")
-    mag_nT = float(np.median(np.linalg.norm(v, axis=1)))
+    with np.errstate(over="ignore", invalid="ignore"):
+        norm_nT = np.sqrt(np.einsum("ij,ij->i", v, v))
+    mag_nT = float(np.median(norm_nT))
     if mag_nT > FIELD_MAX_NT or mag_nT < FIELD_MIN_NT:
         if mag_nT > FIELD_MAX_NT:
             hint = ("the values look like microtesla (or gauss) written into a tesla field; "
@@ -1171,7 +1272,7 @@ def _check_mag(path: str, name: str, dec: _Decoded, problems: list[Problem]) -> 
     # a few samples far beyond any field the sensor can see are damaged values (a flipped
     # exponent bit), not readings: dropped like NaN (their squares would overflow the fit)
     with np.errstate(over="ignore"):
-        wild = ~(np.linalg.norm(v, axis=1) <= SPIKE_FACTOR * mag_nT)
+        wild = ~(norm_nT <= SPIKE_FACTOR * mag_nT)
     if wild.any():
         k = int(np.count_nonzero(wild))
         problems.append(Problem("impossible_value", f"{name}: {k} samples more than "
