@@ -41,6 +41,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from schemas import MESSAGE_TYPES, MessageRole, types_of
+
 from .cdr import CdrLayout, gather_le, normalise_type, stamp_ns
 from .errors import (
     ChannelError,
@@ -52,6 +54,7 @@ from .errors import (
     SchemaError,
 )
 from .geometry import li2020_euler_to_quat, novatel_to_quat
+from .mcap_format import MAGIC, MAX_OPCODE, Opcode
 from .recording import (
     AngleSeries,
     AttitudeSeries,
@@ -66,37 +69,17 @@ from .recording import (
     VectorSeries,
 )
 
-MAGIC = b"\x89MCAP0\r\n"
-OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_MESSAGE_INDEX = range(1, 8)
-OP_DATA_END = 0x0F
-_MAX_OPCODE = 0x0F
+#: message types by role, as normalised schema names (``pkg/Type`` or magalign.*), from the one
+#: table of supported types (``schemas.MESSAGE_TYPES``)
+MAG_TYPES = tuple(MESSAGE_TYPES[n].short_name for n in types_of(MessageRole.MAGNETOMETER))
+ATTITUDE_TYPES = tuple(MESSAGE_TYPES[n].short_name for n in types_of(MessageRole.ATTITUDE))
+TURNTABLE_TYPES = tuple(MESSAGE_TYPES[n].short_name for n in types_of(MessageRole.TURNTABLE))
 
-#: message types by role; keys are normalised schema names (``pkg/Type`` or magalign.*)
-MAG_TYPES = ("sensor_msgs/MagneticField", "magalign.Magnetometer")
-ATTITUDE_TYPES = (
-    "sensor_msgs/Imu",
-    "geometry_msgs/PoseStamped",
-    "geometry_msgs/QuaternionStamped",
-    "novatel_oem7_msgs/INSPVA",
-    "nav_msgs/Odometry",
-    "magalign.AttitudeQuaternion",
-    "magalign.AttitudeEuler",
-)
-TURNTABLE_TYPES = ("std_msgs/Float64", "magalign.Turntable")
-
-# CDR field paths needed per type
-_CDR_QUAT = {
-    "sensor_msgs/Imu": "orientation",
-    "geometry_msgs/PoseStamped": "pose.orientation",
-    "geometry_msgs/QuaternionStamped": "quaternion",
-    "nav_msgs/Odometry": "pose.pose.orientation",
-}
-# CDR paths of the position an attitude message carries (read when the stored definition
-# has them); INSPVA's geodetic fix is converted to local ENU after sorting (first fix origin)
-_CDR_POSITION = {
-    "geometry_msgs/PoseStamped": "pose.position",
-    "nav_msgs/Odometry": "pose.pose.position",
-}
+# CDR field paths of the orientation and of the position an attitude message carries (the
+# position is read when the stored definition has it); INSPVA's geodetic fix is converted to
+# local ENU after sorting (first fix origin)
+_CDR_QUAT = {t.short_name: t.quaternion for t in MESSAGE_TYPES.values() if t.quaternion}
+_CDR_POSITION = {t.short_name: t.position for t in MESSAGE_TYPES.values() if t.position}
 _INSPVA_FIX = ("latitude", "longitude", "height")
 #: WGS84 semi-major axis (m) and first eccentricity squared
 _WGS84_A_M = 6378137.0
@@ -316,7 +299,7 @@ def _scan(path: str | Path) -> _Scan:
         op = raw[pos]
         (length,) = struct.unpack_from("<Q", raw, pos + 1)
         body = pos + 9
-        if op == 0 or (op > _MAX_OPCODE and op < 0x80) or length > size:
+        if op == 0 or (op > MAX_OPCODE and op < 0x80) or length > size:
             if pos + 9 + length <= size or op == 0:
                 _problem(scan.problems, "corrupt_record",
                          f"{p}: unreadable record at byte {pos} (opcode {op:#x}); "
@@ -327,22 +310,22 @@ def _scan(path: str | Path) -> _Scan:
         if body + length > size:
             break  # torn record: handled below
         if not saw_header:
-            if op != OP_HEADER:
+            if op != Opcode.HEADER:
                 raise NotMcapError("MCAP magic without a header record", path=p)
             saw_header = True
             scan.profile, _ = _str(raw, body)
-        if op != OP_MESSAGE_INDEX and last_chunk is not None:
+        if op != Opcode.MESSAGE_INDEX and last_chunk is not None:
             last_chunk.index = last_chunk_index or None
             last_chunk.index_trusted = bool(last_chunk_index)
             last_chunk, last_chunk_index = None, {}
         try:
-            if op == OP_SCHEMA:
+            if op == Opcode.SCHEMA:
                 s = _parse_schema(raw, body)
                 scan.schemas.setdefault(s.id, s)
-            elif op == OP_CHANNEL:
+            elif op == Opcode.CHANNEL:
                 c = _parse_channel(raw, body)
                 scan.channels.setdefault(c.id, c)
-            elif op == OP_MESSAGE and not data_end:
+            elif op == Opcode.MESSAGE and not data_end:
                 if length < 22:  # shorter than a message's fixed fields: not a message
                     _problem(scan.problems, "short_record",
                              f"{p}: message record at byte {pos} is too short ({length} "
@@ -350,16 +333,16 @@ def _scan(path: str | Path) -> _Scan:
                 else:
                     (cid,) = struct.unpack_from("<H", raw, body)
                     scan.top_messages.setdefault(cid, []).append(pos)
-            elif op == OP_CHUNK and not data_end:
+            elif op == Opcode.CHUNK and not data_end:
                 last_chunk = _chunk_header(raw, pos, body, length, size)
                 scan.chunks.append(last_chunk)
-            elif op == OP_MESSAGE_INDEX and last_chunk is not None:
+            elif op == Opcode.MESSAGE_INDEX and last_chunk is not None:
                 (cid, n) = struct.unpack_from("<HI", raw, body)
                 pairs = np.frombuffer(raw, dtype="<u8", count=n // 8, offset=body + 6)
                 last_chunk_index[cid] = np.sort(pairs[1::2].astype(np.int64))
-            elif op == OP_DATA_END:
+            elif op == Opcode.DATA_END:
                 data_end = True
-            elif op == OP_FOOTER:
+            elif op == Opcode.FOOTER:
                 ended = True
                 pos = body + length
                 break
@@ -399,7 +382,7 @@ def _finish_scan(scan: _Scan, last_chunk: _Chunk | None, last_index: dict, pos: 
     if truncated and not any(pr.code == "corrupt_record" for pr in scan.problems):
         lost = size - pos
         torn_chunk = None
-        if pos + 9 <= size and raw[pos] == OP_CHUNK:
+        if pos + 9 <= size and raw[pos] == Opcode.CHUNK:
             try:
                 torn_chunk = _chunk_header(raw[pos : pos + 64 + 4096].tobytes(), 0, 9,
                                            0, size - pos)
@@ -534,15 +517,15 @@ def _walk(scan: _Scan, b: bytes) -> tuple[dict[int, np.ndarray], int]:
         if body + length > n or op == 0:
             break
         try:
-            if op == OP_MESSAGE:
+            if op == Opcode.MESSAGE:
                 if length < 22:
                     break
                 (cid,) = struct.unpack_from("<H", b, body)
                 msgs.setdefault(cid, []).append(pos)
-            elif op == OP_SCHEMA:
+            elif op == Opcode.SCHEMA:
                 s = _parse_schema(b, body)
                 scan.schemas.setdefault(s.id, s)
-            elif op == OP_CHANNEL:
+            elif op == Opcode.CHANNEL:
                 c = _parse_channel(b, body)
                 scan.channels.setdefault(c.id, c)
         except (struct.error, ValueError):
@@ -589,7 +572,7 @@ def _valid_records(buf: NDArray[np.uint8], off: np.ndarray, cid: int) -> np.ndar
     if len(o):
         length = _u(buf, o + 1, "<u8")
         room = (n - 9 - o).astype(np.uint64)
-        ok[inside] = ((buf[o] == OP_MESSAGE) & (length >= 22) & (length <= room)
+        ok[inside] = ((buf[o] == Opcode.MESSAGE) & (length >= 22) & (length <= room)
                       & (_u(buf, o + 9, "<u2") == cid))
     return ok
 

@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from schemas import JSON_TYPES, ROS2_TYPES
+from schemas import MESSAGE_TYPES as _TABLE
 from schemas import schema_for as _schema_for
 
 from .errors import SchemaError
@@ -41,6 +42,7 @@ __all__ = ["encode", "schema_for", "flatten_rows", "MESSAGE_TYPES", "CDR_HEADER"
 #: Encapsulation header of little-endian plain CDR (CDR_LE), as ROS 2 writes it.
 CDR_HEADER = b"\x00\x01\x00\x00"
 
+#: the input types magalign writes (schemas.MESSAGE_TYPES is the table of every type)
 MESSAGE_TYPES: tuple[str, ...] = ROS2_TYPES + JSON_TYPES
 
 _NS = 1_000_000_000
@@ -195,19 +197,9 @@ _CDR_LAYOUTS: dict[str, Callable[[str, str | None], _Layout]] = {
     "novatel_oem7_msgs/msg/INSPVA": _layout_inspva,
 }
 
-# Columns each type needs from the caller; everything else has a default.
+# Columns each type needs from the caller (everything else has a default): schemas' table.
 _REQUIRED: dict[str, tuple[str, ...]] = {
-    "sensor_msgs/msg/MagneticField": ("mag_T",),
-    "sensor_msgs/msg/Imu": ("q_xyzw",),
-    "geometry_msgs/msg/PoseStamped": ("q_xyzw",),
-    "geometry_msgs/msg/QuaternionStamped": ("q_xyzw",),
-    "std_msgs/msg/Float64": ("value",),
-    "novatel_oem7_msgs/msg/INSPVA": ("roll_deg", "pitch_deg", "azimuth_deg"),
-    "magalign.Magnetometer": ("mag_nT",),
-    "magalign.AttitudeQuaternion": ("q_xyzw",),
-    "magalign.AttitudeEuler": ("heading_deg", "pitch_deg", "roll_deg"),
-    "magalign.Turntable": ("angle_deg",),
-}
+    t.name: t.columns for t in _TABLE.values() if t.written and t.columns}
 
 
 def _stamp_columns(t_ns: I64) -> tuple[NDArray[np.int32], NDArray[np.uint32]]:

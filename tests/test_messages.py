@@ -325,3 +325,32 @@ def test_property_json_round_trip_exact(t_ns, data, frame_id):
         d = json.loads(r)
         assert d["t_ns"] == t_ns[i] and d["frame_id"] == frame_id
         np.testing.assert_array_equal(d["q_enu_body"], q[i])
+
+
+def test_one_table_of_message_types():
+    """schemas.MESSAGE_TYPES is the only list: reader, writer, simulator and schemas follow it."""
+    import pipeline.mcap_read as reader
+    import pipeline.simulate as simulate
+    from pipeline import messages
+    from schemas import MESSAGE_TYPES, MessageRole, schema_text
+
+    by_role = {MessageRole.MAGNETOMETER: (reader.MAG_TYPES, simulate.MAG_TYPES),
+               MessageRole.ATTITUDE: (reader.ATTITUDE_TYPES, simulate.ATTITUDE_TYPES),
+               MessageRole.TURNTABLE: (reader.TURNTABLE_TYPES, simulate.TURNTABLE_TYPES)}
+    for t in MESSAGE_TYPES.values():
+        if t.role is MessageRole.OUTPUT:
+            assert all(t.short_name not in r for r, _ in by_role.values())
+            assert schema_text(t.name)
+            continue
+        read, simulated = by_role[t.role]
+        assert t.short_name in read, t.name
+        assert (t.name in simulated) == t.written, t.name
+        if t.written:  # a stored schema, an encoder and its columns for every layout variant
+            for v in t.variants:
+                assert schema_text(t.name, v)
+            assert t.name in messages.MESSAGE_TYPES and t.columns
+            assert (t.name in messages._CDR_LAYOUTS) == (t.encoding == "ros2")
+        if t.quaternion:
+            assert reader._CDR_QUAT[t.short_name] == t.quaternion
+    n_input = sum(t.role is not MessageRole.OUTPUT for t in MESSAGE_TYPES.values())
+    assert sum(len(r) for r, _ in by_role.values()) == n_input

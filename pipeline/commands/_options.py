@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError, NotMcapError, UsageError
+from ..mcap_format import MAGIC
 
 #: The first 8 bytes of every MCAP file (https://mcap.dev/spec).
-MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 MAG_HELP = ("magnetometer topic; needed only when the recording has more than one "
             "magnetometer channel")
@@ -105,7 +105,7 @@ def check_mcap_file(path: str | Path) -> None:
     p = Path(path)
     try:
         with open(p, "rb") as fh:
-            head = fh.read(len(MCAP_MAGIC))
+            head = fh.read(len(MAGIC))
     except FileNotFoundError:
         raise InputError("no such file", path=p) from None
     except IsADirectoryError:
@@ -115,9 +115,9 @@ def check_mcap_file(path: str | Path) -> None:
     if not head:
         raise NotMcapError("empty file (0 bytes)", path=p,
                            hint="the logger may have crashed before writing anything")
-    if head != MCAP_MAGIC[: len(head)]:
+    if head != MAGIC[: len(head)]:
         raise NotMcapError("not an MCAP file (bad magic bytes)", path=p,
                            hint="pass a .mcap recording")
-    if len(head) < len(MCAP_MAGIC):
+    if len(head) < len(MAGIC):
         raise NotMcapError(f"cut inside the MCAP header ({len(head)} bytes)", path=p,
                            hint="nothing can be recovered from this file")
