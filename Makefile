@@ -8,7 +8,7 @@ OUT     ?= out/demo
 JOBS    ?= 2
 FRESH   ?= /tmp/magalign-fresh
 
-.PHONY: setup process test test-fresh bench golden lint clean
+.PHONY: setup process test test-fresh bench golden lint typecheck clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -23,6 +23,7 @@ process: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/ruff check pipeline stages tests bench
+	$(BIN)/mypy
 	$(BIN)/python -m pytest -q -x -p no:cacheprovider tests
 
 # The committed HEAD cloned afresh into $(FRESH), each clone in a fresh venv, tested twice:
@@ -57,6 +58,11 @@ golden: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check pipeline stages tests bench
+
+# mypy on the modules listed in pyproject.toml ([tool.mypy] files: the clean ones); `make test`
+# runs it after ruff. See docs/testing.md.
+typecheck: $(STAMP)
+	$(BIN)/mypy
 
 clean:
 	rm -rf out build *.egg-info

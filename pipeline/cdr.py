@@ -345,6 +345,7 @@ class CdrLayout:
                 return pos
             reps = f.array if count is None else None
             if reps is None:
+                assert count is not None  # reps is None only for a sequence
                 if not (count == count[0]).all():
                     raise SchemaError(
                         f"{self.schema_name}: field {path} is a sequence of varying length "

@@ -14,6 +14,7 @@ import logging
 import sys
 import traceback
 import warnings
+from typing import NoReturn
 
 from .errors import MagalignError, UsageError
 
@@ -34,7 +35,7 @@ COMMANDS = (
 class _Parser(argparse.ArgumentParser):
     """argparse that exits with status 2 and one line, as CONVENTIONS require."""
 
-    def error(self, message: str) -> None:  # noqa: D102
+    def error(self, message: str) -> NoReturn:  # noqa: D102
         words = self.prog.split()
         see = "magalign -h" if len(words) < 2 else f"magalign {words[-1]} -h"
         self.exit(2, f"magalign: usage: {message} (see {see})\n")

@@ -32,7 +32,7 @@ import zlib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any, Protocol
+from typing import IO, TYPE_CHECKING, Any, Protocol, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -44,6 +44,11 @@ from .atomic import atomic_path
 from .errors import OutputError, SchemaError
 from .mcap_format import MAGIC, Opcode
 from .mcap_read import ranges_mask
+
+if TYPE_CHECKING:
+    # An ndarray is a buffer, but numpy's stubs declare ``__buffer__`` only for Python >= 3.12:
+    # arrays handed to memoryview() are cast to this protocol.
+    from typing_extensions import Buffer
 
 __all__ = [
     "Compression",
@@ -131,7 +136,7 @@ class _Sink:
         self.track_crc = True
 
     def write(self, b: bytes | memoryview | np.ndarray) -> None:
-        mv = memoryview(b).cast("B") if not isinstance(b, bytes) else b
+        mv = memoryview(cast("Buffer", b)).cast("B") if not isinstance(b, bytes) else b
         self.fh.write(mv)
         if self.track_crc:
             self.crc = zlib.crc32(mv, self.crc)
@@ -484,7 +489,7 @@ class McapColumnWriter:
             import lz4.frame
 
             return lz4.frame.compress(raw)
-        return memoryview(raw).cast("B")
+        return memoryview(cast("Buffer", raw)).cast("B")
 
     def _write_definitions(self) -> None:
         """Write Schema and Channel records not yet in the file (before any message uses them)."""
@@ -504,6 +509,7 @@ class McapColumnWriter:
         """
         self.open()
         self._write_definitions()
+        keep: list[_Block]
         if before_ns is None:
             todo, keep = self._blocks, []
         else:
@@ -664,7 +670,7 @@ class McapColumnWriter:
                 base += int(b.rec_off[hi]) - s0
             raw = _gather_segments(np.concatenate(pieces), src_start, rec_len)
         raw = np.ascontiguousarray(raw)
-        crc = zlib.crc32(memoryview(raw).cast("B"))
+        crc = zlib.crc32(memoryview(cast("Buffer", raw)).cast("B"))
         comp = self._compress(raw)
         start_t, end_t = int(log[0]), int(log[-1])
         comp_name = self.compression.mcap_name

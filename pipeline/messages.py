@@ -211,7 +211,7 @@ def _stamp_columns(t_ns: I64) -> tuple[NDArray[np.int32], NDArray[np.uint32]]:
 
 
 def _encode_cdr(
-    msg_type: str, t_ns: I64, fields: Mapping[str, np.ndarray], frame_id: str,
+    msg_type: str, t_ns: I64, fields: Mapping[str, ArrayLike], frame_id: str,
     variant: str | None,
 ) -> tuple[U8, I64]:
     lay = _CDR_LAYOUTS[msg_type](frame_id, variant)
@@ -299,7 +299,7 @@ def _cat(*parts: bytes | NDArray[np.bytes_]) -> NDArray[np.bytes_]:
     return np.asarray(out)
 
 
-def _vec_json(a: np.ndarray, n: int, k: int, name: str, msg_type: str) -> NDArray[np.bytes_]:
+def _vec_json(a: ArrayLike, n: int, k: int, name: str, msg_type: str) -> NDArray[np.bytes_]:
     a = np.asarray(a, dtype=np.float64)
     if a.shape != (n, k):
         raise SchemaError(f"{msg_type}: field {name} must have shape ({n}, {k}), got {a.shape}")
@@ -313,7 +313,7 @@ def _vec_json(a: np.ndarray, n: int, k: int, name: str, msg_type: str) -> NDArra
     return _cat(*parts)
 
 
-def _scalar_json(a: np.ndarray, n: int, name: str, msg_type: str) -> NDArray[np.bytes_]:
+def _scalar_json(a: ArrayLike, n: int, name: str, msg_type: str) -> NDArray[np.bytes_]:
     a = np.asarray(a, dtype=np.float64)
     if a.shape != (n,):
         raise SchemaError(f"{msg_type}: field {name} must have shape ({n},), got {a.shape}")
@@ -321,7 +321,7 @@ def _scalar_json(a: np.ndarray, n: int, name: str, msg_type: str) -> NDArray[np.
 
 
 def _encode_json(
-    msg_type: str, t_ns: I64, fields: Mapping[str, np.ndarray], frame_id: str
+    msg_type: str, t_ns: I64, fields: Mapping[str, ArrayLike], frame_id: str
 ) -> tuple[U8, I64]:
     n = t_ns.shape[0]
     head: list[bytes | NDArray[np.bytes_]] = [b'{"t_ns": ', t_ns.astype("S")]

@@ -38,6 +38,7 @@ def reproduce(out_dir: str | Path) -> int:
     mcap = write_simulated(sim, out / "li2020_section41.mcap")
     rec = read_recording(mcap)
     al = Resample().run(Context(source=str(mcap), recording=rec)).aligned
+    assert al is not None  # Resample sets it
     B = sim.truth.B_enu_nT
     rows = []
     for kind in EstimatorKind:

@@ -72,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
     rec = read_recording_warning(args.recording, mag_topic=args.mag,
                                  attitude_topic=args.attitude)
     ctx = Resample().run(Context(source=str(args.recording), recording=rec))
+    assert ctx.aligned is not None  # Resample sets it
     cal = fit_calibration(
         rec,
         ctx.aligned,
