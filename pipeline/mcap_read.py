@@ -454,11 +454,9 @@ def _report(scan: _Scan, ch: _Chunk, result: tuple[bytes | None, str, str]) -> b
     what = {"chunk_compression": f"uses unknown compression {ch.compression!r}",
             "chunk_undecompressable": f"does not decompress ({detail})",
             "chunk_crc": "fails its CRC check"}[kind]
-    # The count is the text "(unknown number of)" when the chunk has no index: Problem.count is
-    # declared int. Kept as it is here (a type-only change); to be fixed with the behaviour.
+    n = _index_count(ch)
     _problem(scan.problems, kind, f"{scan.path}: chunk at byte {ch.offset} {what}; its "
-             f"{_index_count(ch)} messages were skipped",
-             _index_count(ch))  # type: ignore[arg-type]
+             f"{n} messages were skipped", n if isinstance(n, int) else 0)
     return None
 
 

@@ -237,7 +237,11 @@ class ChannelInfo:
 
 @dataclass(frozen=True)
 class Problem:
-    """Something wrong in a recording that was handled (and what was lost)."""
+    """Something wrong in a recording that was handled (and what was lost).
+
+    ``count`` is the number of samples or messages lost or repaired, 0 when it is not known
+    (a damaged chunk without an index: the message says so).
+    """
 
     code: str
     message: str
