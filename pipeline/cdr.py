@@ -183,8 +183,8 @@ def gather_le(buf: NDArray[np.uint8], pos: NDArray[np.int64], dt: np.dtype) -> n
             # copied in order, about 20x faster than a fancy index of n values
             return np.ndarray(shape=(n,), dtype=dt, buffer=buf, offset=p0,
                               strides=(step,)).copy()
-    records = np.ndarray(shape=(buf.shape[0] - k + 1,), dtype=f"V{k}", buffer=buf,
-                         strides=(1,))
+    records: np.ndarray = np.ndarray(shape=(buf.shape[0] - k + 1,), dtype=f"V{k}", buffer=buf,
+                                     strides=(1,))
     return records[pos].view(dt)
 
 

@@ -669,8 +669,8 @@ def _compact_records(buf: NDArray[np.uint8], rec: np.ndarray
     n = int(reclen[0]) + 9
     if n > 1 << 16 or not bool((reclen == reclen[0]).all()) or int(rec.max()) + n > len(buf):
         return buf, rec
-    view = np.ndarray(shape=(len(buf) - n + 1,), dtype=f"V{n}", buffer=np.ascontiguousarray(buf),
-                      strides=(1,))
+    view: np.ndarray = np.ndarray(shape=(len(buf) - n + 1,), dtype=f"V{n}",
+                                  buffer=np.ascontiguousarray(buf), strides=(1,))
     compact = view[rec].view(np.uint8).reshape(-1)
     return compact, np.arange(len(rec), dtype=np.int64) * n
 
