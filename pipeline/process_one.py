@@ -301,7 +301,7 @@ def build_stages(ctx: Context, out_dir: Path, options: ProcessOptions) -> list:
         if diag_cls is not None:
             # Diagnose replaces the calibration by its final model (more effects), so the
             # field is restored and measured after it, with that model.
-            dkw: dict[str, Any] = {}
+            dkw: dict[str, Any] = {"max_gap_s": options.max_gap_s}
             if options.reference_field_enu_nT is not None:
                 dkw["reference_field_enu_nT"] = tuple(
                     float(x) for x in options.reference_field_enu_nT

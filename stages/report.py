@@ -285,8 +285,10 @@ def samples_text(cal: Any) -> str:
     n = int(cal.n_samples)
     fs = (getattr(cal, "checks", None) or {}).get("fit_samples")
     if isinstance(fs, dict) and fs.get("stride", 1) and int(fs.get("stride", 1)) > 1:
-        return (f"{n} (every {int(fs['stride'])}th of {int(fs.get('of', 0))} samples with an "
-                "attitude, decimated for the diagnosis fit)")
+        k = int(fs["stride"])
+        nth = {2: "2nd", 3: "3rd"}.get(k, f"{k}th")
+        return (f"{n} (every {nth} of {int(fs.get('of', 0))} samples with an attitude, "
+                f"decimated for the diagnosis fit{fs.get('note', '')})")
     if isinstance(fs, dict):
         return f"{n} (every sample with an attitude{fs.get('note', '')})"
     held = getattr(cal, "sample_hold", None)
@@ -368,9 +370,10 @@ _VERDICT_COLOUR = {"OK": "#d4edda", "QUESTIONABLE": "#fff3cd", "REFUSED": "#f8d7
 def _residual_html(restored: Any) -> str:
     if restored is None:
         return ""
+    rms = f"<span id=residual_rms_nT>{restored.residual_rms_nT:.7g}</span>"
     return (f"<p>Residual of the final model (every term of the calibration, diagnosed effects "
-            f"included): {_fmt(restored.residual_rms_nT, 3)} nT RMS over "
-            f"{int(np.count_nonzero(restored.valid))} samples with a usable attitude.</p>")
+            f"included): {rms} nT RMS over {int(np.count_nonzero(restored.valid))} samples "
+            "with a usable attitude.</p>")
 
 
 def _verdict_html(cal: Any) -> str:

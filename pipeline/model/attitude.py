@@ -159,7 +159,9 @@ class AttitudeInterpolator:
             q_out[inside] = quat_normalize(qa[0])
             w_out[inside] = 0.0
             return Interpolated(q_out, inside, w_out, pos)
+        held = np.zeros(n, dtype=bool)
         if self.clamp:
+            held = (tq < tr[0]) | (tq > tr[-1])  # held end sample: no rotation
             tq = np.clip(tq, tr[0], tr[-1])
         i = np.searchsorted(tr, tq, side="right") - 1  # tr[i] <= tq < tr[i + 1]
         i = np.where(tq == tr[-1], len(tr) - 2, i)
@@ -172,6 +174,7 @@ class AttitudeInterpolator:
         jv = j[valid]
         q_out[valid] = quat_slerp(qa[jv], qa[jv + 1], s[valid])
         w_out[valid] = self._phi[jv] / np.where(dt[valid] > 0, dt[valid], 1.0)[:, None]
+        w_out[valid & held] = 0.0
         pos[valid] = s[valid]
         return Interpolated(q_out, valid, w_out, pos)
 
@@ -185,6 +188,39 @@ class AttitudeInterpolator:
         t0 = self.t_ns[0] if len(self.t_ns) else np.int64(0)
         tq = (t_q - t0).astype(float) * 1e-9 - float(time_offset_s)
         return self.at_rel_s(tq)
+
+
+def interpolation_noise_factor(position: F64) -> F64:
+    """Variance of SLERP-interpolated white attitude noise relative to one sample's, (N,).
+
+    Between two samples with independent errors of variance ``sigma^2`` the interpolated
+    error at ``s`` is ``(1 - s) e_i + s e_{i+1}`` (to first order), of variance
+    ``((1 - s)^2 + s^2) sigma^2``: 1 on a sample, 1/2 midway, 2/3 on average over ``s``.
+    """
+    s = np.asarray(position, dtype=float)
+    return (1.0 - s) ** 2 + s**2
+
+
+def attitude_noise_rad(q_enu_body: F64) -> float:
+    """Robust estimate of the white attitude noise of a sampled track (RMS angle, rad).
+
+    From the second differences of the sign-aligned quaternions (the motion of a few Hz at
+    most barely contributes at attitude rates of 50 Hz and more): a small error ``delta``
+    (rad, any axes) moves the vector part by ``delta / 2``, so for white noise
+    ``E |d2|^2 = 6/4 E |delta|^2``; second differences over ten times their median (motion
+    spikes) are left out.
+    """
+    q = np.array(q_enu_body, dtype=float)
+    if len(q) < 30:
+        return 0.0
+    sgn = np.where(np.sum(q[1:] * q[:-1], axis=1) < 0, -1.0, 1.0)
+    q[1:] *= np.cumprod(sgn)[:, None]
+    d2 = q[2:] - 2.0 * q[1:-1] + q[:-2]
+    e2 = np.sum(d2[:, :3] ** 2, axis=1)
+    med = float(np.median(e2))
+    if med <= 0:
+        return 0.0
+    return float(np.sqrt(np.mean(e2[e2 <= 10.0 * med]) / 1.5))
 
 
 def interpolate_attitude(

@@ -57,6 +57,10 @@ if TYPE_CHECKING:
 
 F64 = NDArray[np.float64]
 
+#: The time offset model (the attitude re-interpolated at ``t - tau``, (J5)) is checked for
+#: lags up to this (s) at rotation rates up to 5 rad/s (``tests/test_model.py``); estimators
+#: fit ``tau`` on the samples at least this far inside the attitude's span.
+MAX_TIME_OFFSET_S = 0.1
 #: Order of the Legendre polynomials of ``field_drift`` (P1..P4; the constant is ``B_enu``).
 DRIFT_DEGREE = 4
 #: Half-width of the central difference of the eddy-current regressor, in attitude intervals.
