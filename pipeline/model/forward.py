@@ -109,6 +109,21 @@ def in_windows(t_s: F64, windows_s: Any) -> np.ndarray:
     return out
 
 
+def sensor_reading(b_body_nT: F64, R_body_mag: F64, D: F64 | None = None,
+                   offset_nT: F64 | None = None) -> F64:
+    """(M3)-(M4) and the offset: ``D @ R_body_mag.T @ b + o`` for each row of ``b`` (N, 3), nT.
+
+    The one place the sensor terms act on the body-frame field: :func:`evaluate` and the ML
+    estimator's inner loop (:class:`stages.estimators.ml.Model`) both call it.
+    """
+    y = np.asarray(b_body_nT, dtype=float) @ np.asarray(R_body_mag)  # rows R.T @ b
+    if D is not None:
+        y = y @ np.asarray(D).T
+    if offset_nT is not None:
+        y = y + offset_nT
+    return y
+
+
 def _as_list(p: Any) -> list[dict]:
     if p is None:
         return []
@@ -332,10 +347,8 @@ def evaluate(
     Bt = model.B_enu_nT[None, :] + model.external_field_nT(t_s, p_m)
     Ct = _Ct(q)
     b = np.matmul(Ct, Bt[:, :, None])[:, :, 0]
-    R = model.R_body_mag
-    D = model.D_or_I
-    m = b @ R
-    y0 = m @ D.T
+    m = b @ model.R_body_mag
+    y0 = sensor_reading(b, model.R_body_mag, model.D)
     sensor = model.step_offset_nT(t_s)
     if model.offset_nT is not None:
         sensor = sensor + model.offset_nT

@@ -153,8 +153,9 @@ class Model:
 
     def predict(self, s: State) -> F64:
         """Predicted magnetometer readings, (N, 3)."""
-        m = self.b_body(s) @ s.R  # rows R.T @ b
-        return m @ s.D.T + s.o
+        from pipeline.model.forward import sensor_reading
+
+        return sensor_reading(self.b_body(s), s.R, s.D, s.o)  # (M3)-(M4) + o
 
     def jacobian(self, s: State) -> F64:
         """dy/dparams, (N, 3, P), in the order of ``blocks``."""
