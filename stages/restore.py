@@ -177,13 +177,6 @@ def restore_samples(
     return out
 
 
-def restored_of(ctx: Context, max_gap_s: float | None = None) -> RestoreResult:
-    """``ctx.restored``, or (a stage run without Restore before it) computed now."""
-    if ctx.restored is not None:
-        return ctx.restored
-    return restore_samples(ctx.recording, ctx.calibration, max_gap_s=max_gap_s)
-
-
 @dataclass(frozen=True)
 class Restore:
     """Stage: every magnetometer sample to ENU by the inverse model (module docstring).
