@@ -1354,7 +1354,7 @@ class Diagnose:
     max_gap_s: float | None = None
 
     requires: ClassVar[frozenset[str]] = frozenset({"recording", "aligned", "calibration"})
-    provides: ClassVar[frozenset[str]] = frozenset({"diagnosis", "calibration"})
+    provides: ClassVar[frozenset[str]] = frozenset({"diagnosis", "calibration", "restored"})
 
     def run(self, ctx: Context) -> Context:
         """Diagnose ``ctx.recording``; the final model replaces ``ctx.calibration``."""
@@ -1405,14 +1405,17 @@ class Diagnose:
         if "sample_hold" in extra:
             fit_samples["note"] = ", sample-and-hold repeats left out"
         final = final.replace(checks={**final.checks, "fit_samples": fit_samples})
+        restored = None
         if rec.attitude is not None and len(rec.attitude) >= 2:
             from stages.restore import restore_samples
 
-            rms = restore_samples(rec, final, max_gap_s=self.max_gap_s).residual_rms_nT
+            restored = restore_samples(rec, final, max_gap_s=self.max_gap_s)
+            rms = restored.residual_rms_nT
             if np.isfinite(rms):
                 final = final.replace(residual_rms_nT=rms)
                 diag = dataclasses.replace(diag, final={**diag.final, "residual_rms_nT": rms})
-        return ctx.replace(diagnosis=diag, calibration=final)
+        # the restore result of the final model goes along: Restore keeps it (same model)
+        return ctx.replace(diagnosis=diag, calibration=final, restored=restored)
 
 
 # ----------------------------------------------------------------------------- figures

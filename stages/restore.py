@@ -74,6 +74,9 @@ class RestoreResult:
         The calibration's background field.
     max_gap_s : float
         Attitude gap rule used.
+    model_key : str
+        What the result was computed from (:func:`model_key_of`): a stage that gets the same
+        model and gap rule reuses it instead of restoring again.
 
     """
 
@@ -88,6 +91,7 @@ class RestoreResult:
     valid0: np.ndarray
     B_enu_nT: np.ndarray
     max_gap_s: float
+    model_key: str = ""
 
     # ------------------------------------------------------------------ counts
     @property
@@ -132,6 +136,20 @@ class RestoreResult:
 RestoredSamples = RestoreResult
 
 
+def model_key_of(cal: Calibration, max_gap_s: float | None) -> str:
+    """Return the terms of ``cal`` the restore depends on, and the gap rule, as one string.
+
+    Two calibrations with the same key restore a recording identically (the verdict, the
+    sigmas, the checks and the warnings do not enter the model).
+    """
+    import json
+
+    d = cal.to_dict()
+    keys = ("R_body_mag", "B_enu_nT", "D", "offset_nT", "time_offset_s", "effects")
+    return json.dumps({"model": {k: d[k] for k in keys}, "max_gap_s": max_gap_s},
+                      sort_keys=True, default=str)
+
+
 def restore_samples(
     recording: Recording, cal: Calibration, *, max_gap_s: float | None = None
 ) -> RestoreResult:
@@ -171,6 +189,7 @@ def restore_samples(
         residual_nT=np.array(rs.residual_nT), valid=np.array(rs.valid),
         q0_enu_body=np.array(at0.q_enu_body), valid0=np.array(at0.valid),
         B_enu_nT=np.array(cal.B_enu_nT, dtype=float), max_gap_s=interp.max_gap_s,
+        model_key=model_key_of(cal, max_gap_s),
     )
     _readonly(out.raw_mag_nT, out.calibrated_mag_nT, out.q_enu_body, out.enu_nT,
               out.residual_nT, out.valid, out.q0_enu_body, out.valid0, out.B_enu_nT)
@@ -188,6 +207,8 @@ class Restore:
         ``None``: READER's :func:`stages.resample.auto_max_gap_s` (as :class:`Resample`).
 
     Provides ``restored``: the :class:`RestoreResult` of the recording and its calibration.
+    When the context already holds the restore result of the same model and gap rule (the
+    ``Diagnose`` stage computes it for the final residual), it is kept, not recomputed.
 
     """
 
@@ -198,6 +219,9 @@ class Restore:
 
     def run(self, ctx: Context) -> Context:
         """Restore ``ctx.recording.mag`` with ``ctx.calibration``."""
+        old = ctx.restored
+        if old is not None and old.model_key == model_key_of(ctx.calibration, self.max_gap_s):
+            return ctx.replace(restored=old)
         rs = restore_samples(ctx.recording, ctx.calibration, max_gap_s=self.max_gap_s)
         return ctx.replace(restored=rs)
 

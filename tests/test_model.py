@@ -352,3 +352,24 @@ def test_final_residual_is_one_number_everywhere(tmp_path):
     assert (m["n_used"] + m["n_without_attitude"] + m["n_without_attitude_at_stamp"]
             == m["n_samples"] == len(rs.t_ns))
     assert f"{m['n_used']} of {m['n_samples']} samples used" in html
+
+
+def test_restore_runs_once_after_diagnose():
+    # Diagnose restores the recording with its final model (for the final residual); the
+    # Restore stage keeps that result instead of computing it again, and computes it anew
+    # when the model differs.
+    from stages.diagnose import Diagnose
+    from stages.resample import Resample
+    from stages.restore import Restore
+
+    sim = _diag_recording()
+    ctx = Resample().run(Context(recording=sim.recording))
+    ctx = Diagnose().run(ctx)
+    assert ctx.restored is not None
+    out = Restore().run(ctx)
+    assert out.restored is ctx.restored and out is not ctx
+    assert out.restored.residual_rms_nT == pytest.approx(
+        ctx.diagnosis.final["residual_rms_nT"], rel=1e-12)
+    other = Restore().run(ctx.replace(calibration=ctx.calibration.replace(offset_nT=None)))
+    assert other.restored is not ctx.restored
+    assert other.restored.residual_rms_nT > ctx.restored.residual_rms_nT
