@@ -301,7 +301,7 @@ def build_stages(ctx: Context, out_dir: Path, options: ProcessOptions) -> list:
         if diag_cls is not None:
             # Diagnose replaces the calibration by its final model (more effects), so the
             # field is restored and measured after it, with that model.
-            dkw: dict[str, Any] = {}
+            dkw: dict[str, Any] = {"max_gap_s": options.max_gap_s}
             if options.reference_field_enu_nT is not None:
                 dkw["reference_field_enu_nT"] = tuple(
                     float(x) for x in options.reference_field_enu_nT
@@ -428,19 +428,14 @@ def process_recording(
             timings[clock["name"]] = timings.get(clock["name"], 0.0) + now - clock["t"]
         clock["name"], clock["t"] = name, now
 
-    from stages.restore import clear_cache
-
     # Warnings are collected, not shown: this runs in a worker process whose stderr is not
     # the user's terminal (and has Python's two-line warning format); the command that
     # started the worker issues them once from the row (pipeline.commands.process).
     with warnings.catch_warnings(record=True) as caught:
-        try:
-            ctx = Pipeline([ingest]).run(ctx, progress=tick)
-            rest = Pipeline(build_stages(ctx, rec_dir, options),
-                            initial=ctx.provided() | {"source"})
-            ctx = rest.run(ctx, progress=tick)
-        finally:
-            clear_cache()  # the restored samples of this recording are not needed any more
+        ctx = Pipeline([ingest]).run(ctx, progress=tick)
+        rest = Pipeline(build_stages(ctx, rec_dir, options),
+                        initial=ctx.provided() | {"source"})
+        ctx = rest.run(ctx, progress=tick)
     tick(None)
     row = summary_row(ctx, stem, rec_dir)
     row["timings_s"] = {k: round(v, 3) for k, v in timings.items()}

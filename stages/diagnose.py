@@ -31,6 +31,7 @@ from pipeline.effects import (
     FitResult,
     ModelState,
     Term,
+    estimate_noise_model,
     evaluate,
     explanation,
     fit,
@@ -331,7 +332,8 @@ def gradient_candidate(cur: FitResult, data: FitData, sigma: float) -> ScoreTest
     cols = []
     for yaw in (0.0, np.pi / 2, np.pi):
         ev = evaluate(cur.state.with_term(Term(EffectKind.FIELD_GRADIENT, yaw_rad=yaw)), data)
-        cols.append(ev.J.reshape(-1, ev.J.shape[-1]))
+        J = ev.J if ev.sqrt_w is None else ev.J * ev.sqrt_w[:, None, None]
+        cols.append(J.reshape(-1, J.shape[-1]))
     Jb = cols[0][:, :p0]
     C = 0.5 * (cols[0][:, p0:] + cols[2][:, p0:])
     A = 0.5 * (cols[0][:, p0:] - cols[2][:, p0:])
@@ -358,7 +360,8 @@ def score_test(cur: FitResult, term: Term, data: FitData, sigma: float) -> Score
     """Score test of adding ``term`` to the model of ``cur`` (no refit)."""
     st = cur.state.with_term(term)
     ev = evaluate(st, data)
-    return _score_from_J(cur, term, ev.J.reshape(-1, ev.J.shape[-1]), data, sigma)
+    J = ev.J if ev.sqrt_w is None else ev.J * ev.sqrt_w[:, None, None]
+    return _score_from_J(cur, term, J.reshape(-1, J.shape[-1]), data, sigma)
 
 
 def _score_from_J(
@@ -627,9 +630,17 @@ def diagnose_data(
         if alt.rss < cur.rss:
             cur = alt
     stats = motion_stats(data)
+    # the baseline residual as calibrate reports it (equal weights); then the likelihood's
+    # weights for what the attitude noise does between attitude samples
+    # (effects.sample_weights)
+    base_rms = cur.rms_nT
+    nm = estimate_noise_model(cur.residual_nT, data)
+    if nm is not None:
+        data = dataclasses.replace(data, noise_model=nm)
+        cur = fit(cur.state, data)
     cv_cur = heldout_rms(cur.state, data, cfg)
+    baseline = {"effects": [], "residual_rms_nT": base_rms, "heldout_rms_nT": cv_cur}
     base_fit, cv_base = cur, cv_cur
-    baseline = {"effects": [], "residual_rms_nT": cur.rms_nT, "heldout_rms_nT": cv_cur}
     findings: list[Finding] = []
     not_ident: dict[str, str] = {}
     kinds = list(GLOBAL_KINDS)
@@ -733,6 +744,14 @@ def diagnose_data(
             break
         if not accepted:
             break
+        if data.noise_model is None:
+            # the attitude noise may only now stand out of what the model leaves
+            nm = estimate_noise_model(
+                cur.residual_nT if cur.raw_residual_nT is None else cur.raw_residual_nT, data)
+            if nm is not None:
+                data = dataclasses.replace(data, noise_model=nm)
+                cur = fit(cur.state, data)
+                cv_cur = heldout_rms(cur.state, data, cfg)
         # backward step: a term chosen earlier, while more was unmodelled, may have stood in
         # for what a later term explains properly; drop it if it no longer earns its margin
         i = 0
@@ -1036,8 +1055,9 @@ def fit_data_from(
     t_s = (np.asarray(aligned.t_ns, dtype=np.int64) - t0) * 1e-9
     if recording.attitude is not None and len(recording.attitude) >= 2:
         ta = (np.asarray(recording.attitude.t_ns, dtype=np.int64) - t0) * 1e-9
+        # THE interpolator (SLERP), as calibrate and restore: the same recording and model
+        # give the same prediction
         track = AttitudeTrack(ta, np.asarray(recording.attitude.q_enu_body, dtype=float))
-        track = track.denoised()
     else:
         track = AttitudeTrack(t_s - aligned.time_offset_s, np.asarray(aligned.q_enu_body))
     y = np.asarray(aligned.mag_nT, dtype=float)
@@ -1048,13 +1068,14 @@ def fit_data_from(
         t_s, y, p = t_s[ok], y[ok], p[ok]
         pos = {"p_m": p, "p_ref_m": p.mean(axis=0),
                "position_frame": recording.position.frame.value}  # type: ignore[union-attr]
+    n_avail, stride = len(t_s), 1
     if max_samples is not None and len(t_s) > max_samples:
         stride = int(np.ceil(len(t_s) / max_samples))
         t_s, y = t_s[::stride], y[::stride]
         if pos:
             pos["p_m"] = pos["p_m"][::stride]
     B = None if reference_field_enu_nT is None else np.asarray(reference_field_enu_nT, float)
-    return FitData(t_s, y, track, B_known_enu_nT=B, **pos)
+    return FitData(t_s, y, track, B_known_enu_nT=B, stride=stride, n_available=n_avail, **pos)
 
 
 #: Positions are used only when at least this fraction of the samples has one.
@@ -1205,6 +1226,29 @@ def sample_hold_finding(
             train)
 
 
+def _model_values(term: Term, value: np.ndarray, data: FitData) -> dict[str, Any]:
+    """Return the fitted field of a ``disturbance`` / ``field_drift`` term (forward model).
+
+    The CONVENTIONS params of these terms (``peak_nT``, ``peak_to_peak_nT``) describe them
+    but cannot reproduce them; the calibration also carries the fitted values so that
+    :meth:`pipeline.calibration.Calibration.predict` includes them (the residual of the
+    final model is then the same number everywhere).
+    """
+    if term.kind is EffectKind.DISTURBANCE:
+        knots = term.knots()
+        v = np.asarray(value, dtype=float).reshape(-1, 3)
+        out, i = [], 0
+        for kn in knots:
+            out.append(v[i:i + len(kn)].tolist())
+            i += len(kn)
+        return {"knots_s": [k.tolist() for k in knots], "knot_field_nT": out}
+    if term.kind is EffectKind.FIELD_DRIFT:
+        span = float(data.track.t_s[-1]) if data.track.t_s[-1] > 0 else 1.0
+        return {"legendre_nT": np.asarray(value, dtype=float).reshape(-1, 3).tolist(),
+                "span_s": span}
+    return {}
+
+
 def calibration_from(res: FitResult, data: FitData, findings: tuple[Finding, ...]) -> Calibration:
     """Return the final model as a Calibration; terms beyond D, o, tau go to ``effects``."""
     st = res.state
@@ -1225,7 +1269,9 @@ def calibration_from(res: FitResult, data: FitData, findings: tuple[Finding, ...
         elif t.kind is EffectKind.TIME_OFFSET:
             sig["tau"] = float(sd[blk][0])
         else:
-            extra.setdefault(t.kind.value, []).append(term_params(t, st.values[i], st, data))
+            params = term_params(t, st.values[i], st, data)
+            params.update(_model_values(t, st.values[i], data))
+            extra.setdefault(t.kind.value, []).append(params)
     effects = {k: (v[0] if len(v) == 1 else v) for k, v in extra.items()}
     return Calibration(
         R_body_mag=st.R_body_mag,
@@ -1292,14 +1338,23 @@ class Diagnose:
     reference_field_enu_nT : tuple of 3 floats, optional
         Known background field (ENU, nT); the field is then not estimated (and ``axis_tilt``
         becomes identifiable on a turntable).
+    max_gap_s : float or None
+        Attitude gap rule of the final model's residual over the whole recording (as the
+        Restore stage); None: the automatic rule.
+
+    The final residual (``diagnosis.final.residual_rms_nT`` and the final calibration's
+    ``residual_rms_nT``) is that of the final model over every sample of the recording with
+    a usable attitude (:func:`stages.restore.restore_samples`): the number the restored
+    ``<mag>/residual`` channel, the residual figure and the report show.
 
     """
 
     config: DiagnoseConfig = field(default_factory=DiagnoseConfig)
     reference_field_enu_nT: tuple[float, float, float] | None = None
+    max_gap_s: float | None = None
 
     requires: ClassVar[frozenset[str]] = frozenset({"recording", "aligned", "calibration"})
-    provides: ClassVar[frozenset[str]] = frozenset({"diagnosis", "calibration"})
+    provides: ClassVar[frozenset[str]] = frozenset({"diagnosis", "calibration", "restored"})
 
     def run(self, ctx: Context) -> Context:
         """Diagnose ``ctx.recording``; the final model replaces ``ctx.calibration``."""
@@ -1313,6 +1368,7 @@ class Diagnose:
         if cal is not None:
             init = ModelState(np.asarray(cal.R_body_mag), np.asarray(cal.B_enu_nT))
         diag, res = diagnose_data(data, init, self.config, turntable=rec.turntable is not None)
+        data = dataclasses.replace(data, noise_model=res.noise_model)
         sh = detect_sample_hold(rec.mag.t_ns, rec.mag.values)
         extra: dict[str, Any] = {}
         if sh is not None:
@@ -1344,7 +1400,22 @@ class Diagnose:
             )
             final = final.replace(checks={**final.checks, "doubts": list(
                 final.checks.get("doubts", ())) + [doubt]})
-        return ctx.replace(diagnosis=diag, calibration=final)
+        fit_samples: dict[str, Any] = {"n": len(data), "stride": int(data.stride),
+                                       "of": int(data.n_available or len(data))}
+        if "sample_hold" in extra:
+            fit_samples["note"] = ", sample-and-hold repeats left out"
+        final = final.replace(checks={**final.checks, "fit_samples": fit_samples})
+        restored = None
+        if rec.attitude is not None and len(rec.attitude) >= 2:
+            from stages.restore import restore_samples
+
+            restored = restore_samples(rec, final, max_gap_s=self.max_gap_s)
+            rms = restored.residual_rms_nT
+            if np.isfinite(rms):
+                final = final.replace(residual_rms_nT=rms)
+                diag = dataclasses.replace(diag, final={**diag.final, "residual_rms_nT": rms})
+        # the restore result of the final model goes along: Restore keeps it (same model)
+        return ctx.replace(diagnosis=diag, calibration=final, restored=restored)
 
 
 # ----------------------------------------------------------------------------- figures

@@ -81,6 +81,27 @@ def _envelope(t: np.ndarray, v: np.ndarray, max_points: int) -> tuple[np.ndarray
     return tt, vv
 
 
+def residual_figure_data(vd: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Return the arrays the residual figure is drawn from: time (s) and residual (nT, mag frame).
+
+    Parameters
+    ----------
+    vd : ViewData
+        :func:`stages.restore.view_data` of the context's restore result.
+
+    Returns
+    -------
+    t_s : ndarray (M,)
+        Seconds from the first magnetometer sample, samples with a usable attitude only.
+    residual_nT : ndarray (M, 3)
+        Measured minus predicted by the final model (every diagnosed effect included): the
+        same numbers as the ``<mag>/residual`` channel of the corrected MCAP.
+
+    """
+    v = np.asarray(vd.valid, dtype=bool)
+    return np.asarray(vd.t_s)[v], np.asarray(vd.residual_nT)[v]
+
+
 def make_figures(
     recording: Recording,
     calibration: Any,
@@ -89,6 +110,7 @@ def make_figures(
     max_gap_s: float | None = None,
     dpi: int = 90,
     max_points: int = 8000,
+    restored: Any = None,
 ) -> dict[str, bytes]:
     """Render the report's figures.
 
@@ -107,6 +129,8 @@ def make_figures(
     max_points : int
         Most points drawn per series (longer series: min/max envelope per bin, so the
         plotted range is the true fluctuation range).
+    restored : RestoreResult, optional
+        ``ctx.restored``; computed when not given.
 
     Returns
     -------
@@ -115,10 +139,12 @@ def make_figures(
 
     """
     from pipeline.geometry import quat_to_li2020_euler
-    from stages.restore import view_data
+    from stages.restore import restore_samples, view_data
 
     plt = _plt()
-    vd = view_data(recording, calibration, max_gap_s=max_gap_s)
+    if restored is None:
+        restored = restore_samples(recording, calibration, max_gap_s=max_gap_s)
+    vd = view_data(restored, calibration.R_body_mag)
     sel = _decimate(len(vd.t_s), max_points)
     t = vd.t_s[sel]
     t0 = int(vd.t_ns[0]) if len(vd.t_ns) else 0
@@ -153,8 +179,9 @@ def make_figures(
     # Residuals per mag axis.
     fig, ax = plt.subplots(figsize=(12, 3.5), dpi=dpi)
     _shade(ax, segments, t0)
+    t_res, r_res = residual_figure_data(vd)
     for k, c in enumerate("xyz"):
-        ax.plot(*_envelope(vd.t_s, vd.residual_nT[:, k], max_points), color=AXIS_COLORS[k],
+        ax.plot(*_envelope(t_res, r_res[:, k], max_points), color=AXIS_COLORS[k],
                 lw=0.6, label=f"{c}")
     ax.set_xlabel("time (s)")
     ax.set_ylabel("residual, mag frame (nT)")
@@ -237,6 +264,39 @@ def _img(data: bytes, alt: str) -> str:
     return f'<figure><img alt="{html.escape(alt)}" src="data:image/png;base64,{b64}"></figure>'
 
 
+def counts_text(metrics: Any) -> str:
+    """Where every magnetometer sample went, in words; the named counts add up to the total.
+
+    Used + without a usable attitude at ``t - tau`` + without an attitude at the stamp itself
+    (restored but not compared with the uncalibrated field) = every sample. No sample is
+    dropped otherwise (sample-and-hold repeats are restored like the others).
+    """
+    n_stamp = int(getattr(metrics, "n_without_attitude_at_stamp", 0))
+    text = (f"{metrics.n_used} of {metrics.n_samples} samples used; "
+            f"{metrics.n_without_attitude} without a usable attitude")
+    if n_stamp:
+        text += (f"; {n_stamp} with an attitude at the sensing time t - tau but none at their "
+                 "own stamp (restored, not compared with the uncalibrated field)")
+    return text
+
+
+def samples_text(cal: Any) -> str:
+    """Return the calibration's ``n_samples`` with what it counts (the samples fitted)."""
+    n = int(cal.n_samples)
+    fs = (getattr(cal, "checks", None) or {}).get("fit_samples")
+    if isinstance(fs, dict) and fs.get("stride", 1) and int(fs.get("stride", 1)) > 1:
+        k = int(fs["stride"])
+        nth = {2: "2nd", 3: "3rd"}.get(k, f"{k}th")
+        return (f"{n} (every {nth} of {int(fs.get('of', 0))} samples with an attitude, "
+                f"decimated for the diagnosis fit{fs.get('note', '')})")
+    if isinstance(fs, dict):
+        return f"{n} (every sample with an attitude{fs.get('note', '')})"
+    held = getattr(cal, "sample_hold", None)
+    if held:
+        return f"{n} (samples with an attitude, sample-and-hold repeats left out)"
+    return f"{n} (samples with an attitude fitted by the estimator)"
+
+
 def _metrics_html(metrics: Any) -> str:
     if metrics is None:
         return "<p>No metrics.</p>"
@@ -261,10 +321,7 @@ def _metrics_html(metrics: Any) -> str:
         "<th colspan=3>absolute deviation (nT)</th><th colspan=3>standard deviation (nT)</th>"
         "</tr><tr>" + "<th>before</th><th>after</th><th>ratio %</th>" * 3 + "</tr>"
     )
-    extra = (
-        f"<p>{metrics.n_used} of {metrics.n_samples} samples used; "
-        f"{metrics.n_without_attitude} without a usable attitude.</p>"
-    )
+    extra = f"<p>{counts_text(metrics)}.</p>"
     if metrics.heading_error:
         he = metrics.heading_error
         keys = list(he["calibrated"])
@@ -297,7 +354,7 @@ def _calibration_html(cal: Any) -> str:
         ("B_enu (nT)", _vec(cal.B_enu_nT, 1)),
         ("1-sigma B_enu (nT)", _vec(cal.sigma_B_enu_nT, 2)),
         ("residual rms (nT)", _fmt(float(cal.residual_rms_nT), 3)),
-        ("samples", str(int(cal.n_samples))),
+        ("samples", html.escape(samples_text(cal))),
         ("unobservable axes (body)",
          ", ".join(_vec(a, 3) for a in cal.unobservable_axes_body) or "none"),
     ]
@@ -308,6 +365,15 @@ def _calibration_html(cal: Any) -> str:
 
 
 _VERDICT_COLOUR = {"OK": "#d4edda", "QUESTIONABLE": "#fff3cd", "REFUSED": "#f8d7da"}
+
+
+def _residual_html(restored: Any) -> str:
+    if restored is None:
+        return ""
+    rms = f"<span id=residual_rms_nT>{restored.residual_rms_nT:.7g}</span>"
+    return (f"<p>Residual of the final model (every term of the calibration, diagnosed effects "
+            f"included): {rms} nT RMS over {int(np.count_nonzero(restored.valid))} samples "
+            "with a usable attitude.</p>")
 
 
 def _verdict_html(cal: Any) -> str:
@@ -397,8 +463,13 @@ def render_html(
     metrics: Any,
     diagnosis: Any,
     figures: dict[str, bytes],
+    restored: Any = None,
 ) -> str:
-    """Return the self-contained report text (figures inline as base64)."""
+    """Return the self-contained report text (figures inline as base64).
+
+    ``restored``: the restore result; its final-model residual RMS is quoted by the residual
+    figure (the same number as ``diagnosis.json``'s final residual when diagnosed).
+    """
     stem = Path(recording.path).stem
     warn = "".join(f"<li>{html.escape(w)}</li>" for w in calibration.warnings)
     if calibration.unobservable_axes_body:
@@ -436,6 +507,7 @@ def render_html(
 {_calibration_html(calibration)}
 {f'<div class=warn><b>Warnings</b><ul>{warn}</ul></div>' if warn else '<p>No warning.</p>'}
 <h2>Residuals</h2>
+{_residual_html(restored)}
 {fig_html.get('fig_residual.png', '')}
 <h2>Field in the body frame (Li 2020, Fig. 7)</h2>
 {fig_html.get('fig_trajectory.png', '')}
@@ -457,14 +529,24 @@ def write_report(
     segments: tuple[Segment, ...] | None = None,
     *,
     max_gap_s: float | None = None,
+    restored: Any = None,
 ) -> Path:
-    """Write the figures and ``report.html`` into ``out_dir``; returns the report's path."""
+    """Write the figures and ``report.html`` into ``out_dir``; returns the report's path.
+
+    ``restored``: the :class:`stages.restore.RestoreResult` (``ctx.restored``); computed when
+    not given.
+    """
+    from stages.restore import restore_samples
+
     out = Path(out_dir)
-    figures = make_figures(recording, calibration, segments, max_gap_s=max_gap_s)
+    if restored is None:
+        restored = restore_samples(recording, calibration, max_gap_s=max_gap_s)
+    figures = make_figures(recording, calibration, segments, max_gap_s=max_gap_s,
+                           restored=restored)
     for name, data in figures.items():
         with atomic_path(out / name, (recording.path,)) as tmp:
             tmp.write_bytes(data)
-    text = render_html(recording, calibration, metrics, diagnosis, figures)
+    text = render_html(recording, calibration, metrics, diagnosis, figures, restored=restored)
     return write_text_atomic(out / "report.html", text)
 
 
@@ -489,5 +571,6 @@ class Report:
     def run(self, ctx: Context) -> Context:
         """Write the report and list it in ``ctx.outputs``."""
         p = write_report(self.out_dir, ctx.recording, ctx.calibration, ctx.metrics,
-                         ctx.diagnosis, ctx.segments, max_gap_s=self.max_gap_s)
+                         ctx.diagnosis, ctx.segments, max_gap_s=self.max_gap_s,
+                         restored=ctx.restored)
         return ctx.replace(outputs=ctx.outputs + (("report.html", str(p)),))

@@ -103,6 +103,7 @@ def write_rrd(
     diagnosis: Any = None,
     max_gap_s: float | None = None,
     max_points: int = 20000,
+    restored: Any = None,
 ) -> Path:
     """Write the rerun recording (module docstring for the entities).
 
@@ -122,6 +123,8 @@ def write_rrd(
         Attitude gap bridged by interpolation.
     max_points : int
         Most points per static 3D trajectory.
+    restored : RestoreResult, optional
+        ``ctx.restored``; computed when not given.
 
     Returns
     -------
@@ -135,9 +138,11 @@ def write_rrd(
     import rerun as rr
 
     from pipeline.geometry import quat_to_li2020_euler
-    from stages.restore import view_data
+    from stages.restore import restore_samples, view_data
 
-    vd = view_data(recording, calibration, max_gap_s=max_gap_s)
+    if restored is None:
+        restored = restore_samples(recording, calibration, max_gap_s=max_gap_s)
+    vd = view_data(restored, calibration.R_body_mag)
     stem = Path(recording.path).stem
     dest = Path(dest)
     t_all = np.asarray(vd.t_ns, dtype="datetime64[ns]")
@@ -263,5 +268,6 @@ class WriteRerun:
             diagnosis=ctx.diagnosis,
             max_gap_s=self.max_gap_s,
             max_points=self.max_points,
+            restored=ctx.restored,
         )
         return ctx.replace(outputs=ctx.outputs + (("rrd", str(dest)),))

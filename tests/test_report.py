@@ -35,7 +35,8 @@ def _ctx(tmp_path):
                       B_enu_nT=[1300.0, 15000.0, -49000.0], estimator="ml", residual_rms_nT=0.5,
                       n_samples=n, unobservable_axes_body=([0.0, 0.0, 1.0],),
                       warnings=("rotation about body z is not observable <here>",))
-    y = cal.predict(q) + 0.5 * np.random.default_rng(0).standard_normal((n, 3))
+    y = cal.predict(t, AttitudeSeries(t, q))
+    y = y + 0.5 * np.random.default_rng(0).standard_normal((n, 3))
     rec = Recording(path=str(tmp_path / "rec.mcap"), channels=(), mag=VectorSeries(t, y),
                     mag_topic="/mag", attitude=AttitudeSeries(t, q), attitude_topic="/att")
     seg = (Segment(int(t[0]), int(t[300]), SegmentKind.ROTATION),)

@@ -442,8 +442,8 @@ def iter_aligned_chunks(
         of a chunk is kept to bracket the first magnetometer samples of the next.
 
     """
+    from pipeline.model.attitude import interpolate_attitude
     from pipeline.recording import AttitudeSeries
-    from stages.resample import interpolate_attitude
 
     att_t = np.zeros(0, np.int64)
     att_q = np.zeros((0, 4))
