@@ -52,6 +52,7 @@ def reproduce(out_dir: str | Path) -> int:
                 row["error"] = exc.one_line()
                 rows.append(row)
                 continue
+            assert rec.attitude is not None  # simulated with an attitude source
             rest = cal.restore(al.mag_nT, al.t_ns, rec.attitude).enu_nT
             dev = np.abs(rest - B).max(0) if with_ref else np.abs(rest - rest.mean(0)).max(0)
             err = np.degrees(np.linalg.norm(_log(cal.R_body_mag @ sim.truth.R_body_mag.T)))

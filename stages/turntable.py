@@ -584,6 +584,7 @@ class AxisTiltNote:
     def run(self, ctx: Context) -> Context:
         """Return ``ctx`` with ``axis_tilt`` in the calibration's effects and warnings."""
         cal = ctx.calibration
+        assert cal is not None  # required: the pipeline checks it at build time
         effects = dict(cal.effects or {})
         warnings = tuple(cal.warnings)
         if self.params:
