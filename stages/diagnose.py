@@ -20,6 +20,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from pipeline import progress
 from pipeline.calibration import Calibration
 from pipeline.effects import (
     CONFOUND_RATIO,
@@ -587,6 +588,10 @@ def _to_enu(v_mag: np.ndarray, state: ModelState, data: FitData) -> np.ndarray:
     return np.einsum("nij,nj->ni", C, v)
 
 
+#: search rounds the progress line expects (most recordings need two or three)
+_ROUNDS_SHOWN = 3
+
+
 def diagnose_data(
     data: FitData,
     init: ModelState | None = None,
@@ -658,7 +663,9 @@ def diagnose_data(
             ws = refine_step(w, cur.residual_nT, data.t_s)
             cands.append(Term(EffectKind.HARD_IRON_STEP, (ws,)))
         tests = []
-        for term in cands:
+        for j, term in enumerate(cands):
+            progress.detail(f"search {len(findings) + 1}, candidate {j + 1}/{len(cands)}",
+                            len(findings) + 0.5 * j / len(cands), _ROUNDS_SHOWN)
             if (term.kind, term.windows_s) in rejected | dropped:
                 continue
             if term.kind is EffectKind.FIELD_GRADIENT and data.p_m is not None:
@@ -692,9 +699,11 @@ def diagnose_data(
         # with the lowest BIC is the strongest (a score statistic far from the null is only
         # a local approximation when much is still unmodelled)
         fits = []
-        for st in tests[: cfg.n_refit]:
+        for r, st in enumerate(tests[: cfg.n_refit]):
             if -st.statistic + st.k * np.log(n) > 0:
                 break
+            progress.detail(f"search {len(findings) + 1}, refit {r + 1}/{cfg.n_refit}",
+                            len(findings) + 0.5 + 0.5 * r / cfg.n_refit, _ROUNDS_SHOWN)
             fr = _refit(cur, st.term, data, cfg)
             if fr is None:
                 rejected.add((st.term.kind, st.term.windows_s))
