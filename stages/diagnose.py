@@ -1359,12 +1359,13 @@ class Diagnose:
 # ----------------------------------------------------------------------------- figures
 
 
-def finding_figures(diagnosis: Diagnosis, dpi: int = 90) -> list[tuple[str, bytes]]:
+def finding_figures(diagnosis: Diagnosis, dpi: int = 100) -> list[tuple[str, bytes]]:
     """One PNG per finding showing its signature in the residual.
 
     Time offset / eddy currents: residual before against the reading's rate of change.
     Local effects: residual norm against time with the located windows shaded.
-    Others: residual before and the fitted contribution against time, per axis.
+    Others: residual before and the fitted contribution against time, per axis. Colours
+    and fonts are the report's (:mod:`pipeline.style`).
 
     Returns
     -------
@@ -1375,44 +1376,51 @@ def finding_figures(diagnosis: Diagnosis, dpi: int = 90) -> list[tuple[str, byte
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    from pipeline import style
 
     out = []
     for f in diagnosis.findings:
         s = f.signature
         if s is None:
             continue
-        fig, ax = plt.subplots(figsize=(7, 3.6), dpi=dpi)
-        frame = f.where["frame"]
-        if s.regressor is not None:
-            for i, c in enumerate("xyz"):
-                ax.plot(s.regressor[:, i], s.residual_before_nT[:, i], ".", ms=2, alpha=0.4,
-                        label=f"{c}")
-            ax.set_xlabel("rate of change of the reading (mag frame), nT/s")
-            ax.set_ylabel("residual before, nT")
-            ax.legend(markerscale=4)
-        elif f.effect in ("disturbance", "hard_iron_step"):
-            ax.plot(s.t_s, np.linalg.norm(s.residual_before_nT, axis=1), lw=0.6,
-                    label="|residual| before")
-            ax.plot(s.t_s, np.linalg.norm(s.contribution_nT, axis=1), lw=1.2,
-                    label="|fitted term|")
-            for a, b in f.where["windows_s"]:
-                ax.axvspan(a, b, color="tab:red", alpha=0.15)
-            ax.set_xlabel("time from first sample, s")
-            ax.set_ylabel("nT")
-            ax.legend()
-        else:
-            for i, c in enumerate("xyz"):
-                ax.plot(s.t_s, s.residual_before_nT[:, i], lw=0.5, alpha=0.6,
-                        label=f"residual {c}")
-                ax.plot(s.t_s, s.contribution_nT[:, i], lw=1.2, label=f"term {c}")
-            ax.set_xlabel("time from first sample, s")
-            ax.set_ylabel(f"nT ({frame} frame)")
-            ax.legend(ncol=3, fontsize=7)
-        title = f"{f.effect}: {_estimate_text(f)}"
-        ax.set_title(title, fontsize=9)
-        fig.tight_layout()
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png")
-        plt.close(fig)
+        with plt.rc_context(style.rc() | {"savefig.dpi": dpi, "figure.dpi": dpi}):
+            fig, ax = plt.subplots(figsize=(12, 3.8))
+            frame = f.where["frame"]
+            if s.regressor is not None:
+                for i, c in enumerate("xyz"):
+                    ax.plot(s.regressor[:, i], s.residual_before_nT[:, i], ".", ms=2,
+                            alpha=0.4, color=style.AXIS[i], label=f"{frame} {c}")
+                ax.set_xlabel(f"rate of change of the reading ({frame} frame, nT/s)")
+                ax.set_ylabel("residual before (nT)")
+                ax.legend(markerscale=5, ncol=3, loc="upper right")
+            elif f.effect in ("disturbance", "hard_iron_step"):
+                ax.plot(s.t_s, np.linalg.norm(s.residual_before_nT, axis=1), lw=0.7,
+                        color=style.BEFORE, label="|residual| before this term")
+                ax.plot(s.t_s, np.linalg.norm(s.contribution_nT, axis=1), lw=1.6,
+                        color=style.AFTER, label="|fitted term|")
+                for a, b in f.where["windows_s"]:
+                    ax.axvspan(a, b, color=style.EVENT, alpha=0.5, lw=0, zorder=0)
+                h, lab = ax.get_legend_handles_labels()
+                ax.legend(h + [Patch(color=style.EVENT, alpha=0.5)],
+                          lab + ["window found"], loc="upper right", ncol=3)
+                ax.set_xlabel("time from the first sample (s)")
+                ax.set_ylabel("nT")
+            else:
+                for i, c in enumerate("xyz"):
+                    ax.plot(s.t_s, s.residual_before_nT[:, i], lw=0.5, alpha=0.35,
+                            color=style.AXIS[i], label=f"residual {c}")
+                    ax.plot(s.t_s, s.contribution_nT[:, i], lw=1.6, color=style.AXIS[i],
+                            label=f"fitted term {c}")
+                ax.set_xlabel("time from the first sample (s)")
+                ax.set_ylabel(f"nT ({frame} frame)")
+                ax.legend(ncol=3, loc="upper right")
+            title = f"{f.effect}: {_estimate_text(f)}"
+            ax.set_title(style.minus(title))
+            fig.tight_layout()
+            buf = io.BytesIO()
+            fig.savefig(buf, format="png")
+            plt.close(fig)
         out.append((title, buf.getvalue()))
     return out
