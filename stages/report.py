@@ -575,10 +575,17 @@ def _verdict_html(cal: Any) -> str:
             f"{html.escape(line)}{reason}{ne}{neff_html}</div>")
 
 
-def _diagnosis_html(diagnosis: Any, t0_ns: int = 0) -> tuple[str, list[tuple[str, bytes]]]:
+def _diagnosis_html(diagnosis: Any, t0_ns: int = 0, options: Any = None
+                    ) -> tuple[str, list[tuple[str, bytes]]]:
     from stages.report_text import rows_html
 
     if diagnosis is None:
+        given = getattr(options, "calibration_path", None)
+        if given:
+            return ("<p>Not diagnosed: this recording was restored with the calibration from "
+                    f"{html.escape(Path(given).name)} (of "
+                    f"{html.escape(Path(given).parent.name)}); the diagnosis is in the report "
+                    "of the recording that calibration was estimated from.</p>"), []
         return "<p>Not diagnosed.</p>", []
     d = diagnosis.to_dict() if hasattr(diagnosis, "to_dict") else dict(diagnosis)
     parts = [rows_html(d, t0_ns)]
@@ -687,7 +694,7 @@ def render_html(
     probs = "".join(
         f"<li>{html.escape(p.code)}: {html.escape(p.message)}</li>" for p in recording.problems
     )
-    diag_html, diag_figs = _diagnosis_html(diagnosis, t0)
+    diag_html, diag_figs = _diagnosis_html(diagnosis, t0, options)
     channels = "".join(
         f"<tr><td class=l>{html.escape(c.topic)}</td><td class=l>{html.escape(c.type)}</td>"
         f"<td class=l>{html.escape(str(getattr(c.role, 'value', c.role)))}</td>"
