@@ -74,7 +74,11 @@ def rc() -> dict[str, Any]:
 
 
 def minus(text: str) -> str:
-    """Return ``text`` with a true minus sign (U+2212) for a hyphen before a digit."""
+    """Return ``text`` with a true minus sign (U+2212) for a hyphen before a digit.
+
+    ``+-`` (plus-minus written in ASCII) becomes ``±``.
+    """
+    text = text.replace("+-", "\u00b1")
     out = []
     for i, ch in enumerate(text):
         nxt = text[i + 1] if i + 1 < len(text) else ""

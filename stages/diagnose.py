@@ -1416,8 +1416,8 @@ def finding_figures(diagnosis: Diagnosis, dpi: int = 100) -> list[tuple[str, byt
                 ax.set_xlabel("time from the first sample (s)")
                 ax.set_ylabel(f"nT ({frame} frame)")
                 ax.legend(ncol=3, loc="upper right")
-            title = f"{f.effect}: {_estimate_text(f)}"
-            ax.set_title(style.minus(title))
+            title = style.minus(f"{f.effect}: {_estimate_text(f)}").replace(" uT/m", " \u00b5T/m")
+            ax.set_title(title)
             fig.tight_layout()
             buf = io.BytesIO()
             fig.savefig(buf, format="png")

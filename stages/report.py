@@ -353,9 +353,10 @@ def _fig_sphere(plt: Any, vd: Any, calibration: Any, max_points: int = 3000) -> 
     good = np.isfinite(raw).all(axis=1) & np.isfinite(corr).all(axis=1)
     sel = np.flatnonzero(good)[_decimate(int(np.count_nonzero(good)), max_points)]
     radius = float(np.linalg.norm(vd.B_enu_nT))
-    fig, axes = plt.subplots(1, 3, figsize=(12, 4.6))
+    fig, axes = plt.subplots(1, 4, figsize=(12, 4.2),
+                             gridspec_kw={"width_ratios": [1, 1, 1, 1.1]})
     th = np.linspace(0, 2 * np.pi, 361)
-    for ax, (i, j) in zip(axes, ((0, 1), (0, 2), (1, 2)), strict=True):
+    for ax, (i, j) in zip(axes[:3], ((0, 1), (0, 2), (1, 2)), strict=True):
         ax.plot(raw[sel, i], raw[sel, j], ".", ms=5, color=style.BEFORE, alpha=0.4,
                 label="raw reading")
         ax.plot(corr[sel, i], corr[sel, j], ".", ms=1.5, color=style.AFTER, alpha=0.6,
@@ -369,11 +370,25 @@ def _fig_sphere(plt: Any, vd: Any, calibration: Any, max_points: int = 3000) -> 
         ax.set_title(f"{'xyz'[i]}{'xyz'[j]} plane")
         ax.xaxis.set_major_locator(plt.MaxNLocator(4))
         ax.yaxis.set_major_locator(plt.MaxNLocator(5))
+    # distance from the sphere: what an offset of a few hundred nT does, invisible above
+    ax = axes[3]
+    d_raw = np.linalg.norm(raw[good], axis=1) - radius
+    d_cor = np.linalg.norm(corr[good], axis=1) - radius
+    lim = float(np.percentile(np.abs(np.concatenate([d_raw, d_cor])), 99.5)) if good.any() \
+        else 1.0
+    edges = np.linspace(-lim, lim, 61)
+    ax.hist(d_raw, bins=edges, color=style.BEFORE, alpha=0.5, label="raw")
+    ax.hist(d_cor, bins=edges, histtype="step", color=style.AFTER, lw=1.6, label="corrected")
+    ax.axvline(0, color=style.REFERENCE, ls="--", lw=1)
+    ax.set_xlabel("|reading| \u2212 |B| (nT)")
+    ax.set_ylabel("samples")
+    ax.set_title("distance from the sphere")
+    ax.xaxis.set_major_locator(plt.MaxNLocator(4))
     h, lab = axes[0].get_legend_handles_labels()
     fig.legend(h, lab, loc="lower center", ncol=3, frameon=False, markerscale=4)
-    fig.suptitle("readings in the magnetometer frame: a sphere about the origin when the "
-                 "sensor is calibrated", fontsize=12)
-    fig.subplots_adjust(left=0.08, right=0.99, bottom=0.22, top=0.86, wspace=0.45)
+    fig.suptitle("readings in the magnetometer frame: a sphere of radius |B| about the origin "
+                 "when the sensor is calibrated", fontsize=12)
+    fig.subplots_adjust(left=0.085, right=0.99, bottom=0.22, top=0.85, wspace=0.55)
     return _png(fig)
 
 
@@ -514,9 +529,8 @@ def estimator_text(cal: Any, options: Any = None) -> str:
     est = str(cal.estimator)
     base = f"{name}: {DESCRIPTIONS.get(name, '')}".rstrip(": ")
     if est == "diagnose" or cal.effects:
-        fx = ", ".join(sorted(cal.effects or {}))
-        return base + ("; refitted by the diagnosis with its final model"
-                       + (f" (adds {fx})" if fx else ""))
+        return base + "; then refitted by the diagnosis with its final model (the terms it " \
+            "found, above)"
     if est != name:
         return f"{est}"
     return base
@@ -745,8 +759,9 @@ lacks (a once-per-turn wave: an offset; twice per turn: soft iron).</p>
 {fig_html.get('fig_sphere.png', '')}
 <h2>Attitude and segments</h2>
 {fig_html.get('fig_attitude.png', '')}
-{''.join(f'<h3>{html.escape(minus(t))}</h3>' + _img(b, t, f'finding-{i}')
-         for i, (t, b) in enumerate(diag_figs))}
+{'<h2>Diagnosis: each finding in the residual</h2>' if diag_figs else ''}
+{''.join(f'<h3>{html.escape(t.split(":")[0].replace("_", " "))}</h3>'
+         + _img(b, t, f'finding-{i}') for i, (t, b) in enumerate(diag_figs))}
 <h2>Recording</h2>
 <table><tr><th>topic</th><th>type</th><th>role</th><th>count</th><th>rate (Hz)</th></tr>
 {channels}</table>
