@@ -1404,7 +1404,8 @@ def finding_figures(diagnosis: Diagnosis, dpi: int = 100) -> list[tuple[str, byt
                     ax.axvspan(a, b, color=style.EVENT, alpha=0.5, lw=0, zorder=0)
                 h, lab = ax.get_legend_handles_labels()
                 ax.legend(h + [Patch(color=style.EVENT, alpha=0.5)],
-                          lab + ["window found"], loc="upper right", ncol=3)
+                          lab + ["window found"], loc="upper left", ncol=3)
+                ax.margins(y=0.25)  # room for the key above the curves
                 ax.set_xlabel("time from the first sample (s)")
                 ax.set_ylabel("nT")
             else:
