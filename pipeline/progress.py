@@ -308,12 +308,14 @@ class ProgressDisplay:
         self.started = time.time()
         self._direct: dict[str, dict[str, Any]] = {}
         self._lock = threading.Lock()
+        self._draw_lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._width = 0
 
     def __enter__(self) -> ProgressDisplay:
         if self.enabled:
+            self.draw()  # at once: the user sees that work started
             self._thread = threading.Thread(target=self._loop, daemon=True)
             self._thread.start()
         return self
@@ -322,9 +324,19 @@ class ProgressDisplay:
         self.close()
 
     def update(self, state: dict[str, Any]) -> None:
-        """Take the state of an in-process run (:class:`DirectSink` callback)."""
+        """Take the state of an in-process run (:class:`DirectSink` callback).
+
+        A new stage is drawn at once (not only at the next redraw), so that even a short
+        stage shows.
+        """
         with self._lock:
+            old = self._direct.get(state["name"])
             self._direct[state["name"]] = state
+        if self.enabled and (old is None or old.get("index") != state.get("index")):
+            try:
+                self.draw()
+            except (OSError, ValueError):
+                pass
 
     def run_done(self, name: str) -> None:
         """One recording (run) finished, whatever its status."""
@@ -378,6 +390,10 @@ class ProgressDisplay:
         """Redraw the line (nothing when disabled)."""
         if not self.enabled:
             return
+        with self._draw_lock:
+            self._draw()
+
+    def _draw(self) -> None:
         text = self.line()
         try:
             cols = os.get_terminal_size(self.stream.fileno()).columns
@@ -403,6 +419,10 @@ class ProgressDisplay:
         if self._thread is not None:
             self._thread.join(timeout=2)
             self._thread = None
+        with self._draw_lock:
+            self._clear()
+
+    def _clear(self) -> None:
         if self.enabled and self._width:
             try:
                 self.stream.write("\r" + " " * self._width + "\r")
