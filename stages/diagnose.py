@@ -20,6 +20,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from pipeline import progress
 from pipeline.calibration import Calibration
 from pipeline.effects import (
     CONFOUND_RATIO,
@@ -590,6 +591,10 @@ def _to_enu(v_mag: np.ndarray, state: ModelState, data: FitData) -> np.ndarray:
     return np.einsum("nij,nj->ni", C, v)
 
 
+#: search rounds the progress line expects (most recordings need two or three)
+_ROUNDS_SHOWN = 3
+
+
 def diagnose_data(
     data: FitData,
     init: ModelState | None = None,
@@ -669,7 +674,9 @@ def diagnose_data(
             ws = refine_step(w, cur.residual_nT, data.t_s)
             cands.append(Term(EffectKind.HARD_IRON_STEP, (ws,)))
         tests = []
-        for term in cands:
+        for j, term in enumerate(cands):
+            progress.detail(f"search {len(findings) + 1}, candidate {j + 1}/{len(cands)}",
+                            len(findings) + 0.5 * j / len(cands), _ROUNDS_SHOWN)
             if (term.kind, term.windows_s) in rejected | dropped:
                 continue
             if term.kind is EffectKind.FIELD_GRADIENT and data.p_m is not None:
@@ -703,9 +710,11 @@ def diagnose_data(
         # with the lowest BIC is the strongest (a score statistic far from the null is only
         # a local approximation when much is still unmodelled)
         fits = []
-        for st in tests[: cfg.n_refit]:
+        for r, st in enumerate(tests[: cfg.n_refit]):
             if -st.statistic + st.k * np.log(n) > 0:
                 break
+            progress.detail(f"search {len(findings) + 1}, refit {r + 1}/{cfg.n_refit}",
+                            len(findings) + 0.5 + 0.5 * r / cfg.n_refit, _ROUNDS_SHOWN)
             fr = _refit(cur, st.term, data, cfg)
             if fr is None:
                 rejected.add((st.term.kind, st.term.windows_s))
@@ -1421,12 +1430,13 @@ class Diagnose:
 # ----------------------------------------------------------------------------- figures
 
 
-def finding_figures(diagnosis: Diagnosis, dpi: int = 90) -> list[tuple[str, bytes]]:
+def finding_figures(diagnosis: Diagnosis, dpi: int = 100) -> list[tuple[str, bytes]]:
     """One PNG per finding showing its signature in the residual.
 
     Time offset / eddy currents: residual before against the reading's rate of change.
     Local effects: residual norm against time with the located windows shaded.
-    Others: residual before and the fitted contribution against time, per axis.
+    Others: residual before and the fitted contribution against time, per axis. Colours
+    and fonts are the report's (:mod:`pipeline.style`).
 
     Returns
     -------
@@ -1437,44 +1447,52 @@ def finding_figures(diagnosis: Diagnosis, dpi: int = 90) -> list[tuple[str, byte
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    from pipeline import style
 
     out = []
     for f in diagnosis.findings:
         s = f.signature
         if s is None:
             continue
-        fig, ax = plt.subplots(figsize=(7, 3.6), dpi=dpi)
-        frame = f.where["frame"]
-        if s.regressor is not None:
-            for i, c in enumerate("xyz"):
-                ax.plot(s.regressor[:, i], s.residual_before_nT[:, i], ".", ms=2, alpha=0.4,
-                        label=f"{c}")
-            ax.set_xlabel("rate of change of the reading (mag frame), nT/s")
-            ax.set_ylabel("residual before, nT")
-            ax.legend(markerscale=4)
-        elif f.effect in ("disturbance", "hard_iron_step"):
-            ax.plot(s.t_s, np.linalg.norm(s.residual_before_nT, axis=1), lw=0.6,
-                    label="|residual| before")
-            ax.plot(s.t_s, np.linalg.norm(s.contribution_nT, axis=1), lw=1.2,
-                    label="|fitted term|")
-            for a, b in f.where["windows_s"]:
-                ax.axvspan(a, b, color="tab:red", alpha=0.15)
-            ax.set_xlabel("time from first sample, s")
-            ax.set_ylabel("nT")
-            ax.legend()
-        else:
-            for i, c in enumerate("xyz"):
-                ax.plot(s.t_s, s.residual_before_nT[:, i], lw=0.5, alpha=0.6,
-                        label=f"residual {c}")
-                ax.plot(s.t_s, s.contribution_nT[:, i], lw=1.2, label=f"term {c}")
-            ax.set_xlabel("time from first sample, s")
-            ax.set_ylabel(f"nT ({frame} frame)")
-            ax.legend(ncol=3, fontsize=7)
-        title = f"{f.effect}: {_estimate_text(f)}"
-        ax.set_title(title, fontsize=9)
-        fig.tight_layout()
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png")
-        plt.close(fig)
+        with plt.rc_context(style.rc() | {"savefig.dpi": dpi, "figure.dpi": dpi}):
+            fig, ax = plt.subplots(figsize=(12, 3.8))
+            frame = f.where["frame"]
+            if s.regressor is not None:
+                for i, c in enumerate("xyz"):
+                    ax.plot(s.regressor[:, i], s.residual_before_nT[:, i], ".", ms=2,
+                            alpha=0.4, color=style.AXIS[i], label=f"{frame} {c}")
+                ax.set_xlabel(f"rate of change of the reading ({frame} frame, nT/s)")
+                ax.set_ylabel("residual before (nT)")
+                ax.legend(markerscale=5, ncol=3, loc="upper right")
+            elif f.effect in ("disturbance", "hard_iron_step"):
+                ax.plot(s.t_s, np.linalg.norm(s.residual_before_nT, axis=1), lw=0.7,
+                        color=style.BEFORE, label="|residual| before this term")
+                ax.plot(s.t_s, np.linalg.norm(s.contribution_nT, axis=1), lw=1.6,
+                        color=style.AFTER, label="|fitted term|")
+                for a, b in f.where["windows_s"]:
+                    ax.axvspan(a, b, color=style.EVENT, alpha=0.5, lw=0, zorder=0)
+                h, lab = ax.get_legend_handles_labels()
+                ax.legend(h + [Patch(color=style.EVENT, alpha=0.5)],
+                          lab + ["window found"], loc="upper left", ncol=3)
+                ax.margins(y=0.25)  # room for the key above the curves
+                ax.set_xlabel("time from the first sample (s)")
+                ax.set_ylabel("nT")
+            else:
+                for i, c in enumerate("xyz"):
+                    ax.plot(s.t_s, s.residual_before_nT[:, i], lw=0.5, alpha=0.35,
+                            color=style.AXIS[i], label=f"residual {c}")
+                    ax.plot(s.t_s, s.contribution_nT[:, i], lw=1.6, color=style.AXIS[i],
+                            label=f"fitted term {c}")
+                ax.set_xlabel("time from the first sample (s)")
+                ax.set_ylabel(f"nT ({frame} frame)")
+                ax.legend(ncol=3, loc="upper right")
+            title = style.minus(f"{f.effect}: {_estimate_text(f)}").replace(" uT/m", " \u00b5T/m")
+            ax.set_title(title)
+            fig.tight_layout()
+            buf = io.BytesIO()
+            fig.savefig(buf, format="png")
+            plt.close(fig)
         out.append((title, buf.getvalue()))
     return out
