@@ -607,13 +607,17 @@ def _select(scan: _Scan, ch: _Chunk, buf: NDArray[np.uint8], want: set[int]
     return {cid: idx[cid] for cid in want & idx.keys() if len(idx[cid])}
 
 
-def _iter_blocks(scan: _Scan, want: set[int]) -> Iterator[tuple[NDArray[np.uint8],
-                                                                 dict[int, np.ndarray]]]:
-    """Yield ``(buffer, {channel id: message record offsets})`` for the wanted channels."""
+def _iter_blocks(scan: _Scan, want: set[int], batch_bytes: int = 0
+                 ) -> Iterator[tuple[NDArray[np.uint8], dict[int, np.ndarray]]]:
+    """Yield ``(buffer, {channel id: message record offsets})`` for the wanted channels.
+
+    ``batch_bytes`` > 0 joins consecutive chunks into blocks of about that many decompressed
+    bytes (whole-recording reads: a logger's chunks hold a few hundred kB, and decoding each
+    on its own spent most of the time in per-call overhead, issue 18); 0 yields one block per
+    chunk (the chunked readers, whose memory bound is a chunk).
+    """
     for cid in sorted(want & scan.top_messages.keys()):
         yield scan.buf, {cid: np.asarray(scan.top_messages[cid], dtype=np.int64)}
-    # Chunks are decoded in batches of about BATCH_BYTES: a logger's chunks hold a few hundred
-    # kB, and decoding each on its own spent most of the time in per-call overhead (issue 18).
     bufs: list[bytes] = []
     sels: list[dict[int, np.ndarray]] = []
     size = 0
@@ -629,7 +633,7 @@ def _iter_blocks(scan: _Scan, want: set[int]) -> Iterator[tuple[NDArray[np.uint8
         bufs.append(b)
         sels.append(sel)
         size += len(b)
-        if size >= BATCH_BYTES:
+        if size >= batch_bytes:
             yield _join_blocks(bufs, sels)
             bufs, sels, size = [], [], 0
     if bufs:
@@ -1053,7 +1057,7 @@ def _decode_channels(scan: _Scan, cids: list[int]) -> dict[int, _Decoded]:
     fill = dict.fromkeys(cids, 0)
     frames = dict.fromkeys(cids, "")
     kinds = dict.fromkeys(cids, "")
-    for buf, sel in _iter_blocks(scan, set(cids)):
+    for buf, sel in _iter_blocks(scan, set(cids), BATCH_BYTES):
         for cid, rec in sel.items():
             d = decoders[cid].decode(buf, rec)
             k, i = len(d.t_ns), fill[cid]
