@@ -264,27 +264,47 @@ def _map_file(p: Path) -> bytes | mmap.mmap:
         return mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
 
 
+def open_error(path: str | Path, exc: OSError) -> InputError:
+    """Return the one-line error of a file that cannot be opened (reader and CLI alike)."""
+    p = Path(path)
+    if isinstance(exc, FileNotFoundError):
+        return InputError("no such file", path=p)
+    if isinstance(exc, IsADirectoryError):
+        return InputError("is a folder, not an MCAP file", path=p)
+    return InputError(f"cannot read: {exc.strerror}", path=p)
+
+
+def check_magic(head: bytes, path: str | Path) -> None:
+    """Refuse a file whose first bytes (``head``, 8 or fewer) are not MCAP's magic.
+
+    Raises
+    ------
+    NotMcapError
+        Empty, not starting with the magic bytes, or cut inside them.
+
+    """
+    p = Path(path)
+    head = bytes(head[: len(MAGIC)])
+    if not head:
+        raise NotMcapError("empty file (0 bytes)", path=p,
+                           hint="the logger may have crashed before writing anything")
+    if head != MAGIC[: len(head)]:
+        raise NotMcapError("not an MCAP file (bad magic bytes)", path=p,
+                           hint="pass a .mcap recording")
+    if len(head) < len(MAGIC):
+        raise NotMcapError(f"cut inside the MCAP header ({len(head)} bytes)", path=p,
+                           hint="nothing can be recovered from this file")
+
+
 def _scan(path: str | Path) -> _Scan:
     """Read the file and list its top-level records (see the module docstring)."""
     p = Path(path)
     try:
         raw = _map_file(p)
-    except FileNotFoundError:
-        raise InputError("no such file", path=p) from None
-    except IsADirectoryError:
-        raise InputError("is a folder, not an MCAP file", path=p) from None
     except OSError as exc:
-        raise InputError(f"cannot read: {exc.strerror}", path=p) from None
+        raise open_error(p, exc) from None
     size = len(raw)
-    if size == 0:
-        raise NotMcapError("empty file (0 bytes)", path=p,
-                           hint="the logger may have crashed before writing anything")
-    if raw[:8] != MAGIC[: min(size, 8)] or size < 8:
-        if raw[:8] == MAGIC[: min(size, 8)]:
-            raise NotMcapError(f"cut inside the MCAP header ({size} bytes)", path=p,
-                               hint="nothing can be recovered from this file")
-        raise NotMcapError("not an MCAP file (bad magic bytes)", path=p,
-                           hint="pass a .mcap recording")
+    check_magic(raw[: len(MAGIC)], p)
     scan = _Scan(str(p), np.frombuffer(raw, dtype=np.uint8),
                  mapped=raw if isinstance(raw, mmap.mmap) else None)
     pos = 8

@@ -846,7 +846,7 @@ def write_recording(
     turntable_t_ns, turntable_deg : ndarray, shapes (K,), optional
         Turntable angle channel, degrees.
     mag_type, attitude_type, turntable_type : str
-        Message types (see :data:`pipeline.messages.MESSAGE_TYPES`).
+        Message types (see :data:`pipeline.messages.WRITTEN_TYPES`).
     mag_topic, attitude_topic, turntable_topic : str
         Channel topics.
     mag_frame_id, attitude_frame_id : str

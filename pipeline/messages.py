@@ -37,13 +37,13 @@ from .errors import SchemaError
 U8 = NDArray[np.uint8]
 I64 = NDArray[np.int64]
 
-__all__ = ["encode", "schema_for", "flatten_rows", "MESSAGE_TYPES", "CDR_HEADER"]
+__all__ = ["encode", "schema_for", "flatten_rows", "WRITTEN_TYPES", "CDR_HEADER"]
 
 #: Encapsulation header of little-endian plain CDR (CDR_LE), as ROS 2 writes it.
 CDR_HEADER = b"\x00\x01\x00\x00"
 
 #: the input types magalign writes (schemas.MESSAGE_TYPES is the table of every type)
-MESSAGE_TYPES: tuple[str, ...] = ROS2_TYPES + JSON_TYPES
+WRITTEN_TYPES: tuple[str, ...] = ROS2_TYPES + JSON_TYPES
 
 _NS = 1_000_000_000
 # GPS time = TAI - 19 s; UTC - GPS offset is 18 s since 2017 (fixed here: the week fields of a
@@ -361,7 +361,7 @@ def encode(
     Parameters
     ----------
     msg_type : str
-        One of :data:`MESSAGE_TYPES`.
+        One of :data:`WRITTEN_TYPES`.
     t_ns : array_like of int64, shape (N,)
         Header stamps, ns since the Unix epoch (``std_msgs/msg/Float64`` has no header: the
         stamps only fix N there; the MCAP log time carries the time).
@@ -402,10 +402,10 @@ def encode(
         Unknown type or variant, missing or mis-shaped field.
 
     """
-    if msg_type not in MESSAGE_TYPES:
+    if msg_type not in WRITTEN_TYPES:
         raise SchemaError(
             f"cannot encode message type {msg_type!r}",
-            hint=f"supported: {', '.join(MESSAGE_TYPES)}",
+            hint=f"supported: {', '.join(WRITTEN_TYPES)}",
         )
     t = np.asarray(t_ns)
     if t.ndim != 1 or not (np.issubdtype(t.dtype, np.integer) or t.size == 0):

@@ -304,7 +304,6 @@ class ProgressDisplay:
         self.folder = Path(folder) if folder is not None else None
         self.interval_s = interval_s
         self.done = 0
-        self.last_name = ""
         self.started = time.time()
         self._direct: dict[str, dict[str, Any]] = {}
         self._lock = threading.Lock()
@@ -342,7 +341,6 @@ class ProgressDisplay:
         """One recording (run) finished, whatever its status."""
         with self._lock:
             self.done += 1
-            self.last_name = name
             self._direct.pop(name, None)
 
     def _states(self) -> list[dict[str, Any]]:

@@ -22,7 +22,6 @@ from __future__ import annotations
 import base64
 import html
 import io
-import json
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -456,20 +455,6 @@ def _vec(a: Any, nd: int = 3) -> str:
     if a is None:
         return "&ndash;"
     return "[" + ", ".join(_fmt(float(x), nd) for x in np.asarray(a, dtype=float).ravel()) + "]"
-
-
-def _short(x: Any) -> str:
-    """Compact JSON of finding params / windows: floats to 4 significant digits."""
-    def r(v: Any) -> Any:
-        if isinstance(v, dict):
-            return {k: r(w) for k, w in v.items()}
-        if isinstance(v, list | tuple):
-            return [r(w) for w in v]
-        if isinstance(v, float):
-            return float(f"{v:.4g}") if np.isfinite(v) else None
-        return v
-
-    return html.escape(json.dumps(r(x)))
 
 
 def _img(data: bytes, alt: str, key: str = "") -> str:

@@ -132,8 +132,6 @@ class RestoreResult:
         return float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
 
 
-#: The former name.
-RestoredSamples = RestoreResult
 
 
 def model_key_of(cal: Calibration, max_gap_s: float | None) -> str:

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
-from _pause import wait_paused
+from _pause import kill_paused_worker
 from test_campaign import _tiny_campaign
 from test_kill_rerun import check_no_partial_output
 
@@ -166,16 +166,7 @@ def test_worker_dies_in_a_dask_campaign(tmp_path):
                               "--out", str(out), "--scheduler", address, "--no-progress"],
                              cwd=HERE.parent, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                              text=True, start_new_session=True)
-        try:
-            wait_paused(p, hook)
-            pid = int((hook / "pid").read_text())
-            assert pid in [w.pid for w in workers]  # a worker, not the command
-            os.kill(pid, signal.SIGKILL)
-            _, err = p.communicate(timeout=900)
-        finally:
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGKILL)
-                p.wait()
+        err = kill_paused_worker(p, hook, lambda pid: pid in [w.pid for w in workers])
         assert p.returncode == 0, err
         assert sum(w.poll() is None for w in workers) == 1
     rows = {row["name"]: row["status"] for row in _rows(out)}

@@ -19,7 +19,7 @@ from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer as Ros2Writer
 
 from pipeline.errors import SchemaError
-from pipeline.messages import MESSAGE_TYPES, encode, schema_for
+from pipeline.messages import WRITTEN_TYPES, encode, schema_for
 from schemas import JSON_TYPES, ROS2_TYPES, VARIANTS, json_schema
 
 T0 = 1_700_000_000_123_456_789
@@ -238,7 +238,7 @@ def test_json_non_finite_and_frame_id_escaping():
 
 
 def test_schema_for_every_type_and_errors():
-    for t in MESSAGE_TYPES:
+    for t in WRITTEN_TYPES:
         name, s_enc, s_data, m_enc = schema_for(t)
         assert name == t and s_data
         assert (s_enc, m_enc) == (("jsonschema", "json") if t in JSON_TYPES
@@ -348,7 +348,7 @@ def test_one_table_of_message_types():
         if t.written:  # a stored schema, an encoder and its columns for every layout variant
             for v in t.variants:
                 assert schema_text(t.name, v)
-            assert t.name in messages.MESSAGE_TYPES and t.columns
+            assert t.name in messages.WRITTEN_TYPES and t.columns
             assert (t.name in messages._CDR_LAYOUTS) == (t.encoding == "ros2")
         if t.quaternion:
             assert reader._CDR_QUAT[t.short_name] == t.quaternion

@@ -144,8 +144,12 @@ class AttitudeInterpolator:
         """Median sample spacing, s (0.01 with fewer than two samples)."""
         return float(np.median(self._dt)) if len(self._dt) else 0.01
 
-    def at_rel_s(self, tq_s: F64) -> Interpolated:
-        """Return the attitude at ``tq_s``, seconds from the first attitude sample."""
+    def at_rel_s(self, tq_s: F64, *, clamp: bool | None = None) -> Interpolated:
+        """Return the attitude at ``tq_s``, seconds from the first attitude sample.
+
+        ``clamp`` overrides the interpolator's own setting for this query.
+        """
+        clamp = self.clamp if clamp is None else clamp
         tq = np.asarray(tq_s, dtype=float)
         tr, qa = self._tr, self.q_enu_body
         n = len(tq)
@@ -155,12 +159,12 @@ class AttitudeInterpolator:
         if len(tr) == 0 or n == 0:
             return Interpolated(q_out, np.zeros(n, dtype=bool), w_out, pos)
         if len(tr) == 1:
-            inside = np.ones(n, dtype=bool) if self.clamp else tq == tr[0]
+            inside = np.ones(n, dtype=bool) if clamp else tq == tr[0]
             q_out[inside] = quat_normalize(qa[0])
             w_out[inside] = 0.0
             return Interpolated(q_out, inside, w_out, pos)
         held = np.zeros(n, dtype=bool)
-        if self.clamp:
+        if clamp:
             held = (tq < tr[0]) | (tq > tr[-1])  # held end sample: no rotation
             tq = np.clip(tq, tr[0], tr[-1])
         i = np.searchsorted(tr, tq, side="right") - 1  # tr[i] <= tq < tr[i + 1]
@@ -178,16 +182,17 @@ class AttitudeInterpolator:
         pos[valid] = s[valid]
         return Interpolated(q_out, valid, w_out, pos)
 
-    def at(self, t_ns: I64, time_offset_s: float = 0.0) -> Interpolated:
+    def at(self, t_ns: I64, time_offset_s: float = 0.0, *,
+           clamp: bool | None = None) -> Interpolated:
         """Return the attitude at ``t - time_offset_s`` for stamps ``t_ns`` (ns since the epoch).
 
         ``time_offset_s`` is ``tau`` of CONVENTIONS: the sample stamped ``t`` was sensed at
-        ``t - tau``.
+        ``t - tau``. ``clamp`` overrides the interpolator's own setting for this query.
         """
         t_q = np.asarray(t_ns, dtype=np.int64)
         t0 = self.t_ns[0] if len(self.t_ns) else np.int64(0)
         tq = (t_q - t0).astype(float) * 1e-9 - float(time_offset_s)
-        return self.at_rel_s(tq)
+        return self.at_rel_s(tq, clamp=clamp)
 
 
 def interpolation_noise_factor(position: F64) -> F64:

@@ -368,12 +368,8 @@ def _rate(model: ForwardModel, it: AttitudeInterpolator, t_ns: NDArray[np.int64]
     """Eddy regressor ``ydot0`` (N, 3), ``C'.T`` and ``C''.T`` (N, 3, 3) by central differences."""
     h = max(RATE_STEP_INTERVALS * it.step_s, 1e-3)
     ident = np.array([0.0, 0.0, 0.0, 1.0])
-    saved = it.clamp
-    it.clamp = True  # the neighbours of a valid sample may fall just outside the span
-    try:
-        qs = [it.at(t_ns, tau + d).q_enu_body for d in (-h, 0.0, h)]  # s + h, s, s - h
-    finally:
-        it.clamp = saved
+    # clamped: the neighbours of a valid sample may fall just outside the span
+    qs = [it.at(t_ns, tau + d, clamp=True).q_enu_body for d in (-h, 0.0, h)]  # s+h, s, s-h
     Cp, C0, Cm = (_Ct(np.where(np.isfinite(x).all(axis=1)[:, None], x, ident)) for x in qs)
     Cdot = (Cp - Cm) / (2.0 * h)
     Cddot = (Cp - 2.0 * C0 + Cm) / (h * h)
