@@ -24,6 +24,8 @@ only when it is complete; writing over an input is refused.
 
 from __future__ import annotations
 
+import collections
+import concurrent.futures
 import contextlib
 import enum
 import struct
@@ -43,7 +45,6 @@ from . import geometry, messages
 from .atomic import atomic_path
 from .errors import OutputError, SchemaError
 from .mcap_format import MAGIC, Opcode
-from .mcap_read import ranges_mask
 
 if TYPE_CHECKING:
     # An ndarray is a buffer, but numpy's stubs declare ``__buffer__`` only for Python >= 3.12:
@@ -85,8 +86,10 @@ _MSG_HDR = np.dtype(
 )
 _MSG_HDR_SIZE = 31
 _MSG_FIXED = 2 + 4 + 8 + 8  # Message content before the payload
-#: up to this many interleaved blocks in a chunk are merged with byte masks (_write_chunk)
-_MASK_MERGE_MAX_BLOCKS = 8
+#: a chunk made of more runs of consecutive records than this is gathered (_write_chunk)
+_MAX_RUNS = 256
+#: chunks laid out ahead of the one being written (compressed on the helper thread)
+_IN_FLIGHT = 2
 _INDEX_ENTRY = np.dtype([("log_time", "<u8"), ("offset", "<u8")])
 
 
@@ -164,6 +167,19 @@ class _ChunkInfo:
     mi_length: int
     compressed_size: int
     uncompressed_size: int
+
+
+@dataclass
+class _PreparedChunk:
+    """A chunk laid out, not yet compressed: its records as slices, its index columns."""
+
+    pieces: list[np.ndarray]
+    total: int
+    start_time: int
+    end_time: int
+    chan: np.ndarray  # channel of each record, in chunk order
+    log: np.ndarray  # log time of each record, in chunk order
+    rec_start: np.ndarray  # offset of each record in the uncompressed chunk
 
 
 class RawChannelLike(Protocol):
@@ -259,6 +275,7 @@ class McapColumnWriter:
         self._t_max: int | None = None
         self._flushed_before = 0
         self._zstd: Any = None
+        self._pool: concurrent.futures.ThreadPoolExecutor | None = None
 
     # ---------------------------------------------------------------- context management
 
@@ -292,6 +309,7 @@ class McapColumnWriter:
 
     def abort(self, exc_type=None, exc=None, tb=None) -> None:
         """Drop everything; nothing appears under the final name."""
+        self._stop_packer()
         if self._fh is not None:
             with contextlib.suppress(OSError):
                 self._fh.close()
@@ -310,6 +328,7 @@ class McapColumnWriter:
         assert self._stack is not None and self._fh is not None
         try:
             self.flush()
+            self._stop_packer()
             self._finish()
             self._fh.close()
             self._fh = None
@@ -478,18 +497,26 @@ class McapColumnWriter:
 
     # ---------------------------------------------------------------- writing
 
-    def _compress(self, raw: np.ndarray) -> bytes | memoryview:
+    def _compress_pieces(self, pieces: list[np.ndarray], total: int) -> bytes | memoryview:
+        """Compress the concatenation of ``pieces`` (``total`` bytes) as one frame."""
         if self.compression is Compression.ZSTD:
             import zstandard
 
             if self._zstd is None:  # one compressor for all chunks (its context is reused)
                 self._zstd = zstandard.ZstdCompressor(level=self.zstd_level)
-            return self._zstd.compress(raw)
+            if len(pieces) == 1:
+                return self._zstd.compress(pieces[0])
+            # one frame with its content size, fed slice by slice (no joined copy)
+            cobj = self._zstd.compressobj(size=total)
+            parts = [cobj.compress(p) for p in pieces]
+            parts.append(cobj.flush())
+            return b"".join(parts)
+        joined = pieces[0] if len(pieces) == 1 else np.concatenate(pieces)
         if self.compression is Compression.LZ4:
             import lz4.frame
 
-            return lz4.frame.compress(raw)
-        return memoryview(cast("Buffer", raw)).cast("B")
+            return lz4.frame.compress(joined)
+        return memoryview(cast("Buffer", joined)).cast("B")
 
     def _write_definitions(self) -> None:
         """Write Schema and Channel records not yet in the file (before any message uses them)."""
@@ -612,15 +639,28 @@ class McapColumnWriter:
         cs = np.zeros(len(order) + 1, dtype=np.int64)
         np.cumsum(len_s, out=cs[1:])
         n_total = len(order)
+        # Chunk k is checksummed and compressed on a helper thread (zlib and zstd release the
+        # GIL) while this thread lays out chunk k + 1 and writes chunk k - 1: at most
+        # _IN_FLIGHT chunks of slices wait, so memory stays a few chunks.
+        pending: collections.deque[tuple[concurrent.futures.Future, _PreparedChunk]] = (
+            collections.deque())
+        pool = self._packer()
         i = 0
         while i < n_total:
             j = int(np.searchsorted(cs, cs[i] + self.chunk_size, side="right")) - 1
             j = min(max(j, i + 1), n_total)
-            self._chunks.append(self._write_chunk(blocks, log_s[i:j], blk_s[i:j], loc_s[i:j],
-                                                  chan_s[i:j], len_s[i:j]))
+            prep = self._prepare_chunk(blocks, log_s[i:j], blk_s[i:j], loc_s[i:j],
+                                       chan_s[i:j], len_s[i:j])
+            pending.append((pool.submit(self._pack, prep.pieces, prep.total), prep))
+            if len(pending) > _IN_FLIGHT:
+                fut, done = pending.popleft()
+                self._chunks.append(self._emit_chunk(done, *fut.result()))
             i = j
+        while pending:
+            fut, done = pending.popleft()
+            self._chunks.append(self._emit_chunk(done, *fut.result()))
 
-    def _write_chunk(
+    def _prepare_chunk(
         self,
         blocks: list[_Block],
         log: np.ndarray,
@@ -628,78 +668,105 @@ class McapColumnWriter:
         loc: np.ndarray,
         chan: np.ndarray,
         rec_len: np.ndarray,
-    ) -> _ChunkInfo:
+    ) -> _PreparedChunk:
+        """Lay out one chunk of the messages ``log``/``blk``/``loc`` (merged log-time order).
+
+        Inside the chunk the records are grouped by block (``add_messages`` call, in call
+        order), each block's records in log-time order: a group is one run of consecutive
+        records of a block (a sorted block), so the chunk is a short list of slices of the
+        blocks, checksummed and compressed piece by piece without being copied together.
+        Equal log times keep the call order and each channel's records stay in log-time
+        order; when grouping would break the latter (two blocks of one channel overlapping
+        in time within the chunk), the chunk keeps the merged log-time order instead.
+        """
+        n = log.shape[0]
+        order = np.argsort(blk, kind="stable")  # stable: log-time order within each block
+        if not _channels_sorted(chan[order], log[order]):
+            order = np.arange(n)
+        blk_g, loc_g, len_g = blk[order], loc[order], rec_len[order]
+        # runs of consecutive records of one block: one slice each
+        brk = np.flatnonzero((blk_g[1:] != blk_g[:-1]) | (loc_g[1:] != loc_g[:-1] + 1)) + 1
+        run_start = np.concatenate([[0], brk])
+        run_end = np.concatenate([brk, [n]])
+        pieces: list[np.ndarray] = []
+        if len(run_start) <= _MAX_RUNS:
+            for a, e in zip(run_start.tolist(), run_end.tolist(), strict=True):
+                b = blocks[int(blk_g[a])]
+                pieces.append(b.records[b.rec_off[loc_g[a]] : b.rec_off[loc_g[e - 1] + 1]])
+        else:  # many short runs (an unsorted block): copy each block's span, gather once
+            spans, src_start, base = [], np.empty(n, dtype=np.int64), 0
+            for bid in np.unique(blk_g):
+                m = blk_g == bid
+                b = blocks[int(bid)]
+                lo, hi = int(loc_g[m].min()), int(loc_g[m].max()) + 1
+                s0 = int(b.rec_off[lo])
+                spans.append(b.records[s0 : b.rec_off[hi]])
+                src_start[m] = base + b.rec_off[loc_g[m]] - s0
+                base += int(b.rec_off[hi]) - s0
+            pieces.append(_gather_segments(np.concatenate(spans), src_start, len_g))
+        rec_start = np.zeros(n, dtype=np.uint64)
+        np.cumsum(len_g[:-1], out=rec_start[1:])
+        return _PreparedChunk(pieces=pieces, total=int(len_g.sum()), start_time=int(log[0]),
+                              end_time=int(log[-1]), chan=chan[order], log=log[order],
+                              rec_start=rec_start)
+
+    def _packer(self) -> concurrent.futures.ThreadPoolExecutor:
+        """Return the helper thread that checksums and compresses chunks (created once)."""
+        if self._pool is None:
+            self._pool = concurrent.futures.ThreadPoolExecutor(
+                max_workers=1, thread_name_prefix="mcap-pack")
+        return self._pool
+
+    def _stop_packer(self) -> None:
+        """Stop the helper thread (after its queued chunks)."""
+        if self._pool is not None:
+            pool, self._pool = self._pool, None
+            pool.shutdown(wait=True, cancel_futures=True)
+
+    def _pack(self, pieces: list[np.ndarray], total: int) -> tuple[int, bytes | memoryview]:
+        """CRC-32 and compressed bytes of one chunk's records (runs on the helper thread)."""
+        crc = 0
+        for piece in pieces:
+            crc = zlib.crc32(memoryview(cast("Buffer", piece)).cast("B"), crc)
+        return crc, self._compress_pieces(pieces, total)
+
+    def _emit_chunk(self, prep: _PreparedChunk, crc: int, comp: bytes | memoryview
+                    ) -> _ChunkInfo:
+        """Write a packed chunk and its MessageIndex records (one per channel)."""
         out = self._out
         assert out is not None
-        n = log.shape[0]
-        b0 = int(blk[0])
-        if np.all(blk == b0) and int(loc[-1]) - int(loc[0]) == n - 1 and (
-            n == 1 or np.all(np.diff(loc) == 1)
-        ):
-            # Consecutive messages of one block: the records are already contiguous.
-            b = blocks[b0]
-            raw = b.records[b.rec_off[loc[0]] : b.rec_off[loc[-1] + 1]]
-        elif len(used := np.flatnonzero(np.bincount(blk))) <= _MASK_MERGE_MAX_BLOCKS:
-            # Records of a few blocks interleaved by log time. Each block's records in this
-            # chunk are (almost always) a consecutive run of that block: copy the run as one
-            # slice into the output bytes it occupies, selected by a boolean mask (one byte per
-            # output byte) instead of an index array of one int per byte.
-            total = int(rec_len.sum())
-            dst = np.cumsum(rec_len) - rec_len
-            raw = np.empty(total, dtype=np.uint8)
-            for bid in used:
-                m = blk == bid
-                b = blocks[int(bid)]
-                lm, lens_m = loc[m], rec_len[m]
-                lo, hi = int(lm[0]), int(lm[-1]) + 1
-                if hi - lo == lm.shape[0] and (hi - lo == 1 or bool(np.all(np.diff(lm) == 1))):
-                    src = b.records[b.rec_off[lo] : b.rec_off[hi]]
-                else:
-                    src = _gather_segments(b.records, b.rec_off[lm], lens_m)
-                raw[ranges_mask(total, dst[m], lens_m)] = src
-        else:
-            # Copy the touched span of each block once, then gather the records in log order.
-            pieces, src_start, base = [], np.empty(n, dtype=np.int64), 0
-            for bid in np.unique(blk):
-                m = blk == bid
-                b = blocks[int(bid)]
-                lo, hi = int(loc[m].min()), int(loc[m].max()) + 1
-                s0 = int(b.rec_off[lo])
-                pieces.append(b.records[s0 : b.rec_off[hi]])
-                src_start[m] = base + b.rec_off[loc[m]] - s0
-                base += int(b.rec_off[hi]) - s0
-            raw = _gather_segments(np.concatenate(pieces), src_start, rec_len)
-        raw = np.ascontiguousarray(raw)
-        crc = zlib.crc32(memoryview(cast("Buffer", raw)).cast("B"))
-        comp = self._compress(raw)
-        start_t, end_t = int(log[0]), int(log[-1])
         comp_name = self.compression.mcap_name
-        head = struct.pack("<QQQI", start_t, end_t, raw.shape[0], crc) + _str(comp_name)
-        head += struct.pack("<Q", len(comp))
+        head = struct.pack("<QQQI", prep.start_time, prep.end_time, prep.total, crc)
+        head += _str(comp_name) + struct.pack("<Q", len(comp))
         chunk_offset = out.pos
         out.write(struct.pack("<BQ", Opcode.CHUNK, len(head) + len(comp)) + head)
         out.write(comp)
         chunk_length = out.pos - chunk_offset
-
-        # One MessageIndex per channel: (log_time, offset of the record in the chunk).
-        rec_start = (np.cumsum(rec_len) - rec_len).astype(np.uint64)
+        chan_g = prep.chan
         mi_offsets: dict[int, int] = {}
         mi_start = out.pos
-        for cid in np.flatnonzero(np.bincount(chan)):
-            m = chan == cid
-            entries = np.empty(int(m.sum()), dtype=_INDEX_ENTRY)
-            entries["log_time"] = log[m]
-            entries["offset"] = rec_start[m]
+        for cid in np.flatnonzero(np.bincount(chan_g)).tolist():
+            m = chan_g == cid
+            entries = np.empty(int(np.count_nonzero(m)), dtype=_INDEX_ENTRY)
+            entries["log_time"] = prep.log[m]
+            entries["offset"] = prep.rec_start[m]
             body = entries.tobytes()
-            mi_offsets[int(cid)] = out.pos
-            out.write(struct.pack("<BQHI", Opcode.MESSAGE_INDEX, 2 + 4 + len(body), int(cid),
+            mi_offsets[cid] = out.pos
+            out.write(struct.pack("<BQHI", Opcode.MESSAGE_INDEX, 2 + 4 + len(body), cid,
                                   len(body)))
             out.write(body)
         return _ChunkInfo(
-            start_time=start_t, end_time=end_t, offset=chunk_offset, length=chunk_length,
-            mi_offsets=mi_offsets, mi_length=out.pos - mi_start, compressed_size=len(comp),
-            uncompressed_size=int(raw.shape[0]),
+            start_time=prep.start_time, end_time=prep.end_time, offset=chunk_offset,
+            length=chunk_length, mi_offsets=mi_offsets, mi_length=out.pos - mi_start,
+            compressed_size=len(comp), uncompressed_size=prep.total,
         )
+
+
+def _channels_sorted(chan: np.ndarray, log: np.ndarray) -> bool:
+    """Whether each channel's log times are non-decreasing in the order given."""
+    by_chan = np.argsort(chan, kind="stable")
+    c, t = chan[by_chan], log[by_chan]
+    return not bool(np.any((c[1:] == c[:-1]) & (t[1:] < t[:-1])))
 
 
 def _schema_record(sid: int, name: str, encoding: str, data: bytes) -> bytes:
