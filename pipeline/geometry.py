@@ -253,10 +253,18 @@ def quat_to_li2020_euler(q_enu_body: ArrayLike) -> tuple[F64, F64, F64]:
     From ``E = Ey(b) Ex(g) Ez(a)``: ``E[1,2] = sin g``, ``E[0,2] = -sin b cos g``,
     ``E[2,2] = cos b cos g``, ``E[1,0] = -sin a cos g``, ``E[1,1] = cos a cos g``.
     """
-    E = np.swapaxes(quat_to_matrix(q_enu_body), -1, -2)
-    pitch = np.arcsin(np.clip(E[..., 1, 2], -1.0, 1.0))
-    roll = np.arctan2(-E[..., 0, 2], E[..., 2, 2])
-    heading = np.arctan2(-E[..., 1, 0], E[..., 1, 1])
+    # E = C_enu_body.T; only the five elements used, each with the expression of
+    # quat_to_matrix (the same values, without building N 3x3 matrices)
+    q = np.asarray(q_enu_body, dtype=float)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    e12 = 2 * (y * z + x * w)  # C[2, 1]
+    e02 = 2 * (x * z - y * w)  # C[2, 0]
+    e22 = 1 - 2 * (x * x + y * y)  # C[2, 2]
+    e10 = 2 * (x * y - z * w)  # C[0, 1]
+    e11 = 1 - 2 * (x * x + z * z)  # C[1, 1]
+    pitch = np.arcsin(np.clip(e12, -1.0, 1.0))
+    roll = np.arctan2(-e02, e22)
+    heading = np.arctan2(-e10, e11)
     return heading, pitch, roll
 
 

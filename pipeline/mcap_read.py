@@ -33,7 +33,7 @@ import mmap
 import struct
 import warnings
 import zlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, overload
@@ -168,6 +168,10 @@ class _Chunk:
     index: dict[int, np.ndarray] | None = None  # channel id -> message record offsets
     index_trusted: bool = False
     bad: bool = False
+    # MessageIndex records found right after the chunk: channel id -> file offset, and the
+    # end of the last one (0: none)
+    mi_pos: dict[int, int] = field(default_factory=dict)
+    mi_end: int = 0
 
 
 @dataclass
@@ -360,6 +364,8 @@ def _scan(path: str | Path) -> _Scan:
                 (cid, n) = struct.unpack_from("<HI", raw, body)
                 pairs = np.frombuffer(raw, dtype="<u8", count=n // 8, offset=body + 6)
                 last_chunk_index[cid] = np.sort(pairs[1::2].astype(np.int64))
+                last_chunk.mi_pos[cid] = pos
+                last_chunk.mi_end = body + length
             elif op == Opcode.DATA_END:
                 data_end = True
             elif op == Opcode.FOOTER:
@@ -862,6 +868,85 @@ def iter_raw_channels(
             count, pending = 0, False
     if pending or count == 0:
         yield _raw_from_parts(scan, parts), None
+
+
+# --------------------------------------------------------------------------- pass-through
+@dataclass(frozen=True)
+class PassThroughChunk:
+    """One Chunk record of an intact input and the MessageIndex records after it, as bytes.
+
+    ``record`` and ``message_indexes`` are views of the file's bytes (nothing decompressed);
+    ``mi_offsets`` gives each channel's MessageIndex record as an offset from the start of
+    ``record``.
+    """
+
+    record: NDArray[np.uint8]
+    message_indexes: NDArray[np.uint8]
+    start_ns: int
+    end_ns: int
+    compression: str
+    compressed_size: int
+    uncompressed_size: int
+    mi_offsets: dict[int, int]
+    counts: dict[int, int]
+    release: Callable[[], None]
+
+
+@dataclass(frozen=True)
+class PassThrough:
+    """An input whose chunks can be copied as they are (:func:`pass_through`)."""
+
+    schemas: dict[int, tuple[str, str, bytes]]
+    channels: dict[int, tuple[str, str, int, dict[str, str]]]
+    chunks: list[PassThroughChunk]
+
+
+#: chunk compressions another MCAP reader understands as they are
+PASS_THROUGH_COMPRESSIONS = ("zstd", "lz4", "")
+
+
+def pass_through(path: str | Path) -> PassThrough | None:
+    """Return the input's chunks for copying without decompressing them, or None.
+
+    Only for an intact, indexed file: a footer, no problem found while scanning it, no
+    top-level messages, every chunk complete with its MessageIndex records right after it
+    (one per channel it holds, all channels known) and a compression every reader knows.
+    Anything else returns None and the caller copies message by message
+    (:func:`iter_raw_channels`), which recovers what a damaged file still holds. The chunks'
+    contents are not decompressed here: their CRCs are checked by whoever reads them.
+    """
+    with warnings.catch_warnings():  # a damaged file is reported by the other path
+        warnings.simplefilter("ignore")
+        scan = _scan(path)
+    if scan.problems or scan.top_messages or not scan.chunks:
+        return None
+    chunks = []
+    for ch in scan.chunks:
+        if (ch.bad or ch.torn or not ch.index_trusted or not ch.index or not ch.mi_pos
+                or ch.compression not in PASS_THROUGH_COMPRESSIONS
+                or set(ch.mi_pos) != set(ch.index)
+                or any(c not in scan.channels for c in ch.index)):
+            return None
+        end = ch.data_start + ch.data_len
+        if min(ch.mi_pos.values()) != end:
+            return None  # something between the chunk and its indexes
+
+        def release(ch: _Chunk = ch) -> None:
+            _release(scan, ch.offset, ch.mi_end - ch.offset)
+
+        chunks.append(PassThroughChunk(
+            record=scan.buf[ch.offset:end], message_indexes=scan.buf[end:ch.mi_end],
+            start_ns=_chunk_start_ns(scan, ch),
+            end_ns=int(scan.buf[ch.offset + 17 : ch.offset + 25].view("<u8")[0]),
+            compression=ch.compression, compressed_size=ch.data_len,
+            uncompressed_size=ch.uncompressed_size,
+            mi_offsets={c: p - ch.offset for c, p in ch.mi_pos.items()},
+            counts={c: len(v) for c, v in ch.index.items()}, release=release))
+    return PassThrough(
+        schemas={i: (x.name, x.encoding, bytes(x.data)) for i, x in scan.schemas.items()},
+        channels={i: (c.topic, c.message_encoding, c.schema_id, dict(c.metadata))
+                  for i, c in scan.channels.items()},
+        chunks=chunks)
 
 
 # --------------------------------------------------------------------------- decoding

@@ -167,6 +167,7 @@ class _ChunkInfo:
     mi_length: int
     compressed_size: int
     uncompressed_size: int
+    compression: str | None = None  # another chunk's own (pass-through); None: the writer's
 
 
 @dataclass
@@ -180,6 +181,20 @@ class _PreparedChunk:
     chan: np.ndarray  # channel of each record, in chunk order
     log: np.ndarray  # log time of each record, in chunk order
     rec_start: np.ndarray  # offset of each record in the uncompressed chunk
+
+
+class PassThroughChunkLike(Protocol):
+    """What :meth:`McapColumnWriter.add_chunk_record` needs (``mcap_read.PassThroughChunk``)."""
+
+    record: np.ndarray
+    message_indexes: np.ndarray
+    start_ns: int
+    end_ns: int
+    compression: str
+    compressed_size: int
+    uncompressed_size: int
+    mi_offsets: dict[int, int]
+    counts: dict[int, int]
 
 
 class RawChannelLike(Protocol):
@@ -342,14 +357,28 @@ class McapColumnWriter:
 
     # ---------------------------------------------------------------- content
 
-    def add_schema(self, name: str, encoding: str, data: bytes) -> int:
-        """Register a schema; identical schemas share one id. Returns the schema id (>= 1)."""
+    def add_schema(self, name: str, encoding: str, data: bytes,
+                   schema_id: int | None = None) -> int:
+        """Register a schema; returns its id (>= 1).
+
+        Without ``schema_id``, identical schemas share one id and a new one gets the next
+        free id; with it (copying another file's records as they are), the schema gets that
+        id.
+        """
         key = (str(name), str(encoding), bytes(data))
-        sid = self._schema_ids.get(key)
-        if sid is None:
-            sid = len(self._schemas) + 1
+        if schema_id is not None:
+            sid = int(schema_id)
+            if sid < 1 or sid > 0xFFFF or self._schemas.get(sid, key) != key:
+                raise OutputError(f"schema id {sid} unusable or taken", path=self.path)
             self._schemas[sid] = key
-            self._schema_ids[key] = sid
+            self._schema_ids.setdefault(key, sid)
+            return sid
+        known = self._schema_ids.get(key)
+        if known is not None:
+            return known
+        sid = max(self._schemas, default=0) + 1
+        self._schemas[sid] = key
+        self._schema_ids[key] = sid
         return sid
 
     def add_channel(
@@ -358,13 +387,20 @@ class McapColumnWriter:
         message_encoding: str,
         schema_id: int,
         metadata: Mapping[str, str] | None = None,
+        channel_id: int | None = None,
     ) -> int:
-        """Register a channel; returns its id (>= 1). ``schema_id`` 0 means no schema."""
+        """Register a channel; returns its id (>= 1). ``schema_id`` 0 means no schema.
+
+        ``channel_id``: the id to use (copying another file's records as they are); by
+        default the next free id.
+        """
         if schema_id != 0 and schema_id not in self._schemas:
             raise OutputError(f"channel {topic}: unknown schema id {schema_id}", path=self.path)
-        cid = len(self._channels) + 1
+        cid = max(self._channels, default=0) + 1 if channel_id is None else int(channel_id)
         if cid > 0xFFFF:
             raise OutputError("more than 65535 channels", path=self.path)
+        if cid < 1 or cid in self._channels:
+            raise OutputError(f"channel id {cid} unusable or taken", path=self.path)
         md = {str(k): str(v) for k, v in (metadata or {}).items()}
         self._channels[cid] = (str(topic), str(message_encoding), int(schema_id), md)
         self._next_seq[cid] = 0
@@ -478,6 +514,39 @@ class McapColumnWriter:
                 sorted=bool(np.all(log_u[1:] >= log_u[:-1])),
             )
         )
+
+    def add_chunk_record(self, chunk: PassThroughChunkLike) -> None:
+        """Write another file's Chunk record and its MessageIndex records as they are.
+
+        The chunk's channel (and schema) ids must have been registered with the same ids
+        (``add_channel(..., channel_id=...)``). The bytes are written at once, not merged
+        with the messages added by :meth:`add_messages`: chunks may overlap in time (readers
+        in log-time order go by the chunk and message indexes).
+        """
+        self.open()
+        unknown = set(chunk.counts) - set(self._channels)
+        if unknown:
+            raise OutputError(f"chunk of unregistered channels {sorted(unknown)}", path=self.path)
+        self._write_definitions()
+        out = self._out
+        assert out is not None
+        offset = out.pos
+        out.write(chunk.record)
+        mi_start = out.pos
+        out.write(chunk.message_indexes)
+        self._chunks.append(_ChunkInfo(
+            start_time=chunk.start_ns, end_time=chunk.end_ns, offset=offset,
+            length=mi_start - offset,
+            mi_offsets={c: offset + o for c, o in sorted(chunk.mi_offsets.items())},
+            mi_length=out.pos - mi_start, compressed_size=chunk.compressed_size,
+            uncompressed_size=chunk.uncompressed_size, compression=chunk.compression))
+        for c, k in chunk.counts.items():
+            self._counts[c] = self._counts.get(c, 0) + int(k)
+        if sum(chunk.counts.values()):
+            self._t_min = chunk.start_ns if self._t_min is None else min(self._t_min,
+                                                                         chunk.start_ns)
+            self._t_max = chunk.end_ns if self._t_max is None else max(self._t_max,
+                                                                       chunk.end_ns)
 
     def add_metadata(self, name: str, metadata: Mapping[str, str]) -> None:
         """Add a Metadata record ``name`` with string keys and values."""
@@ -800,6 +869,8 @@ def _map_bytes_u16_u64(m: Mapping[int, int]) -> bytes:
 
 
 def _chunk_index(c: _ChunkInfo, compression: str) -> bytes:
+    """ChunkIndex record of ``c`` (``compression``: the writer's, unless the chunk has its own)."""
+    compression = compression if c.compression is None else c.compression
     mi = _map_bytes_u16_u64(c.mi_offsets)
     body = (
         struct.pack("<QQQQ", c.start_time, c.end_time, c.offset, c.length)

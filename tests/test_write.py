@@ -474,3 +474,56 @@ def test_property_any_columns_round_trip(tmp_path_factory, blocks, chunk_size, c
         got = [(m.log_time, c.topic, m.data)
                for _, c, m in make_reader(fh, validate_crcs=True).iter_messages()]
     assert got == [(e[0], e[3], e[4]) for e in expected]
+
+
+# ------------------------------------------------------------------ pass-through copy
+
+def test_corrected_mcap_pass_through_equals_message_copy(tmp_path, monkeypatch):
+    """Input chunks copied as they are give the same messages as the message-by-message copy.
+
+    Per channel: log and publish times, sequence numbers and payloads, in order; the same
+    statistics; every CRC valid; and the input chunks' compressed bytes appear in the output.
+    """
+    import pipeline.mcap_read as mcap_read
+    from pipeline.calibration import Calibration
+    from pipeline.mcap_read import pass_through, read_recording
+    from stages.write_mcap import write_corrected_mcap
+
+    t_mag, mag, t_att, q = _sim(3000, 1500, seed=11)
+    src = write_recording(tmp_path / "in.mcap", mag_t_ns=t_mag, mag_nT=mag, attitude_t_ns=t_att,
+                          q_enu_body=q, mag_log_delay_ns=300_000, chunk_size=8192)
+    rec = read_recording(src)
+    cal = Calibration(R_body_mag=np.eye(3), sigma_rotvec_deg=[0.1] * 3,
+                      B_enu_nT=[1e4, 2e4, -3e4], estimator="truth", residual_rms_nT=1.0,
+                      n_samples=len(t_mag))
+    pt = pass_through(src)
+    assert pt is not None and len(pt.chunks) > 5
+    fast = write_corrected_mcap(rec, cal, tmp_path / "fast.mcap")
+    monkeypatch.setattr(mcap_read, "pass_through", lambda path: None)
+    slow = write_corrected_mcap(rec, cal, tmp_path / "slow.mcap")
+    for p in (fast, slow):
+        _check_file_crcs(p)
+
+    def per_channel(path):
+        msgs, s = _all_messages(path)
+        out: dict[str, list] = {}
+        for m in msgs:
+            out.setdefault(m[0], []).append(m[1:])
+        counts = {s.channels[c].topic: k for c, k in s.statistics.channel_message_counts.items()}
+        return out, counts, s.statistics.message_count
+
+    assert per_channel(fast) == per_channel(slow)
+    out = fast.read_bytes()
+    assert all(bytes(c.record) in out for c in pt.chunks)
+
+
+def test_pass_through_refuses_unchunked_and_cut_files(tmp_path):
+    from pipeline.mcap_read import pass_through
+
+    t_mag, mag, t_att, q = _sim(600, 300, seed=2)
+    src = write_recording(tmp_path / "in.mcap", mag_t_ns=t_mag, mag_nT=mag, attitude_t_ns=t_att,
+                          q_enu_body=q, chunk_size=4096)
+    assert pass_through(src) is not None
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(src.read_bytes()[:-200])
+    assert pass_through(cut) is None
