@@ -145,7 +145,10 @@ class OnDecimated:
         """Run ``inner`` on the decimated context; return ``ctx`` with its results."""
         small = decimate_context(ctx, self.step)
         out = self.inner.run(small)
-        return ctx.replace(**{k: getattr(out, k) for k in self.inner.provides})
+        # a restore result of the decimated samples is not one of the recording's: the
+        # Restore stage computes it again on every sample
+        return ctx.replace(**{k: getattr(ctx if k == "restored" else out, k)
+                              for k in self.inner.provides})
 
 
 def decimate_context(ctx: Context, step: int) -> Context:

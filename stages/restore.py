@@ -218,7 +218,8 @@ class Restore:
     def run(self, ctx: Context) -> Context:
         """Restore ``ctx.recording.mag`` with ``ctx.calibration``."""
         old = ctx.restored
-        if old is not None and old.model_key == model_key_of(ctx.calibration, self.max_gap_s):
+        if (old is not None and old.model_key == model_key_of(ctx.calibration, self.max_gap_s)
+                and old.n_total == len(ctx.recording.mag)):
             return ctx.replace(restored=old)
         rs = restore_samples(ctx.recording, ctx.calibration, max_gap_s=self.max_gap_s)
         return ctx.replace(restored=rs)

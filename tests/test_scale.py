@@ -98,8 +98,15 @@ def test_copy_ranges_equals_slicing(spans):
 
 
 def test_corrected_mcap_written_range_by_range(tmp_path, monkeypatch):
-    """Small copy ranges: every input message copied byte for byte, log times ordered,
-    readable by mcap's own reader with CRC checks; the new channels complete."""
+    """Small copy ranges: every input message copied byte for byte, each channel's log
+    times ordered in the file, readable by mcap's own reader with CRC checks; the new
+    channels complete.
+
+    Both copies: the input's chunks as they are (an intact input) and message by message
+    (the path for damaged inputs). Chunks may overlap in time (input chunks beside the new
+    channels' chunks), so the file order is in log-time order per channel, not across
+    channels; a reader in log-time order goes by the indexes.
+    """
     from mcap.reader import make_reader
 
     import stages.write_mcap as write_mcap
@@ -109,19 +116,53 @@ def test_corrected_mcap_written_range_by_range(tmp_path, monkeypatch):
     rec = read_recording(path)
     cal = calibrate_streaming(str(path))
     monkeypatch.setattr(write_mcap, "COPY_RANGE_MESSAGES", 1_000)
-    out = write_mcap.write_corrected_mcap(rec, cal, tmp_path / "out" / "d.corrected.mcap")
-    got = {r.topic: r for r in read_raw_channels(out)}
-    for r in read_raw_channels(path):
-        np.testing.assert_array_equal(got[r.topic].data, r.data)
-        np.testing.assert_array_equal(got[r.topic].log_time_ns, r.log_time_ns)
-    for suffix in write_mcap.SUFFIXES:
-        assert len(got[f"/mag/{suffix}"]) == len(rec.mag)
-    with open(out, "rb") as fh:
-        reader = make_reader(fh, validate_crcs=True)
-        logs = [m.log_time for _s, _c, m in reader.iter_messages(log_time_order=False)]
-        assert reader.get_summary().statistics.message_count == len(logs) == (
-            2 * 5_000 + 4 * 5_000 + 1)  # input; 4 new channels; one /tf_static
-    assert np.all(np.diff(np.array(logs, dtype=np.int64)) >= 0)
+    import pipeline.mcap_read as mcap_read
+
+    for copy in ("chunks", "messages"):
+        if copy == "messages":
+            monkeypatch.setattr(mcap_read, "pass_through", lambda path: None)
+        out = write_mcap.write_corrected_mcap(rec, cal, tmp_path / copy / "d.corrected.mcap")
+        got = {r.topic: r for r in read_raw_channels(out)}
+        for r in read_raw_channels(path):
+            np.testing.assert_array_equal(got[r.topic].data, r.data)
+            np.testing.assert_array_equal(got[r.topic].log_time_ns, r.log_time_ns)
+        for suffix in write_mcap.SUFFIXES:
+            assert len(got[f"/mag/{suffix}"]) == len(rec.mag)
+        with open(out, "rb") as fh:
+            reader = make_reader(fh, validate_crcs=True)
+            msgs = [(c.topic, m.log_time)
+                    for _s, c, m in reader.iter_messages(log_time_order=False)]
+            assert reader.get_summary().statistics.message_count == len(msgs) == (
+                2 * 5_000 + 4 * 5_000 + 1)  # input; 4 new channels; one /tf_static
+            ordered = [m.log_time for _s, _c, m in reader.iter_messages(log_time_order=True)]
+        assert sorted(ordered) == ordered and len(ordered) == len(msgs)
+        for topic in {t for t, _ in msgs}:
+            logs = np.array([t for tp, t in msgs if tp == topic], dtype=np.int64)
+            assert np.all(np.diff(logs) >= 0), topic
+
+
+def test_decimated_stage_does_not_leak_its_restore_result():
+    """A stage run on every k-th sample (OnDecimated) that restores (diagnosis) must not hand
+    its restore result of the decimated samples to the full recording's stages."""
+    from dataclasses import dataclass
+    from typing import ClassVar
+
+    from pipeline.process_one import OnDecimated
+    from pipeline.recording import Context, Recording, VectorSeries
+
+    @dataclass(frozen=True)
+    class Restoring:
+        requires: ClassVar[frozenset[str]] = frozenset({"recording"})
+        provides: ClassVar[frozenset[str]] = frozenset({"calibration", "restored"})
+
+        def run(self, ctx: Context) -> Context:
+            return ctx.replace(calibration="fitted", restored=len(ctx.recording.mag))
+
+    t = np.arange(100, dtype=np.int64)
+    rec = Recording(path="x.mcap", mag=VectorSeries(t, np.zeros((100, 3)), "mag", "nT"),
+                    channels=(), mag_topic="/mag", attitude=None, attitude_topic=None)
+    out = OnDecimated(Restoring(), 4).run(Context(recording=rec))
+    assert out.calibration == "fitted" and out.restored is None
 
 
 def test_process_scale_path_matches_the_normal_path(tmp_path, monkeypatch):
