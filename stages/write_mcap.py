@@ -35,6 +35,12 @@ The calibration is stored twice: as an MCAP metadata record named ``magalign.cal
 with one key ``"json"`` holding the calibration.json text, and as an attachment
 ``calibration.json`` (media type ``application/json``).
 
+How the input is copied: when it is an intact indexed MCAP (:func:`pipeline.mcap_read.
+pass_through`), its Chunk and MessageIndex records are copied as they are, with its schema and
+channel ids, nothing decompressed or re-encoded; the new channels go into chunks of their own
+beside them (chunks may overlap in time). Otherwise (a damaged or unindexed input) the
+messages that can be read are copied range by range into new chunks.
+
 The file is written to a temporary name and renamed when complete (WRITER's
 :class:`pipeline.mcap_write.McapColumnWriter`); writing over an input is refused.
 """
