@@ -192,11 +192,10 @@ def write_rrd(
 
     if restored is None:
         restored = restore_samples(recording, calibration, max_gap_s=max_gap_s)
-    vd = view_data(restored, calibration.R_body_mag)
     stem = Path(recording.path).stem
     dest = Path(dest)
-    t_all = np.asarray(vd.t_ns, dtype="datetime64[ns]")
-    v = vd.valid
+    t_all = np.asarray(restored.t_ns, dtype="datetime64[ns]")
+    v = restored.valid
 
     def times(mask: np.ndarray | None = None) -> list:
         return [rr.TimeColumn("time", timestamp=t_all if mask is None else t_all[mask])]
@@ -215,24 +214,31 @@ def write_rrd(
         rec = rr.RecordingStream("magalign", recording_id=f"magalign-{stem}")
         rec.save(str(tmp), default_blueprint=blueprint())
         rec.send_recording_name(stem)
-        # --- Li 2020 Figs. 5 and 8: ENU components before and after calibration
+        # The series the restore result holds go first: rerun encodes them on its own
+        # thread while the view series are computed.
+        # --- Li 2020 Figs. 5 and 8: ENU components after calibration, then before
+        enu = np.asarray(restored.enu_nT)
         for k, c in enumerate(ENU_NAMES):
-            for kind, arr, rgb in (
-                ("uncalibrated", vd.uncalibrated_enu_nT, BEFORE_RGB),
-                ("calibrated", vd.calibrated_enu_nT, AFTER_RGB),
-            ):
-                ent = f"field/{kind}/{c}"
-                m = np.isfinite(arr[:, k])
-                rec.log(ent, rr.SeriesLines(colors=[rgb], names=[f"{c} {kind}"]), static=True)
-                send_scalars(ent, arr[:, k], m)
+            ent = f"field/calibrated/{c}"
+            rec.log(ent, rr.SeriesLines(colors=[AFTER_RGB], names=[f"{c} calibrated"]),
+                    static=True)
+            send_scalars(ent, enu[:, k], np.isfinite(enu[:, k]))
         # --- residuals and raw magnetometer, mag frame
+        raw = np.asarray(restored.raw_mag_nT, dtype=float)
         for k, a in enumerate(AXES):
             rec.log(f"residual/{a}", rr.SeriesLines(colors=[AXIS_RGB[k]], names=[f"residual {a}"]),
                     static=True)
-            send_scalars(f"residual/{a}", vd.residual_nT[:, k], v)
+            send_scalars(f"residual/{a}", np.asarray(restored.residual_nT)[:, k], v)
             rec.log(f"mag/raw/{a}", rr.SeriesLines(colors=[AXIS_RGB[k]], names=[f"raw {a}"]),
                     static=True)
-            send_scalars(f"mag/raw/{a}", vd.raw_mag_nT[:, k])
+            send_scalars(f"mag/raw/{a}", raw[:, k])
+        vd = view_data(restored, calibration.R_body_mag)
+        unc = vd.uncalibrated_enu_nT
+        for k, c in enumerate(ENU_NAMES):
+            ent = f"field/uncalibrated/{c}"
+            rec.log(ent, rr.SeriesLines(colors=[BEFORE_RGB], names=[f"{c} uncalibrated"]),
+                    static=True)
+            send_scalars(ent, unc[:, k], np.isfinite(unc[:, k]))
         # --- attitude: Li 2020 Euler angles and a rotating body frame
         h, p, r = quat_to_li2020_euler(vd.q_enu_body)  # every row (identity where not valid)
         for name, ang in (("heading", h), ("pitch", p), ("roll", r)):
