@@ -920,6 +920,8 @@ def pass_through(path: str | Path) -> PassThrough | None:
         scan = _scan(path)
     if scan.problems or scan.top_messages or not scan.chunks:
         return None
+    if 0 in scan.schemas or 0 in scan.channels:
+        return None  # ids the writer does not give out (0 means "no schema")
     chunks = []
     for ch in scan.chunks:
         if (ch.bad or ch.torn or not ch.index_trusted or not ch.index or not ch.mi_pos
