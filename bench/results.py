@@ -31,7 +31,9 @@ def _commit() -> str:
                                cwd=root, text=True, capture_output=True, check=True).stdout
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
-    return head + ("+dirty" if dirty.strip() else "")
+    # results.csv itself changes with every run: only other changes make the commit dirty
+    changed = [ln for ln in dirty.splitlines() if not ln.endswith("bench/results.csv")]
+    return head + ("+dirty" if changed else "")
 
 
 def _machine() -> str:
