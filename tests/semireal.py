@@ -1,0 +1,219 @@
+"""Semi-real recordings (issue 15 B): effects injected into the real lab recordings.
+
+Each real recording (``../shared/data/real/lab_0*.mcap``: a MEMS magnetometer at 285.7 Hz,
+motion-capture ``PoseStamped`` with positions) is read with the ``mcap_ros2`` reader, changed
+here and written again with ``tests/indep_gen.write_streams`` (the ``mcap_ros2`` writer); no
+magalign model code is used. The base recording is rewritten the same way without an
+injection, so that base and injected files differ by the injection only.
+
+How each effect is injected (``y`` the recorded readings in the mag frame, nT; ``C(t)`` the
+recorded attitude, SLERP-interpolated at the magnetometer stamps; ``R`` the misalignment and
+``B`` the mean field, both from a Wahba fit made here, :func:`wahba`):
+
+- ``time_offset``: the magnetometer stamps are moved by ``+tau`` (CONVENTIONS: the sample
+  stamped ``t`` was sensed at ``t - tau``). Exact, whatever the sensor's own errors.
+- ``eddy_current``: ``y += E_s dy/dt``, ``dy/dt`` a Savitzky-Golay derivative (cubic, 51 ms)
+  of the recorded readings (CONVENTIONS ``eddy_current``).
+- ``heading_drift``: the attitude becomes ``Rz(h(t)) C(t)`` with ``h`` linear in time (the
+  attitude source's heading error). Exact.
+- ``field_drift``, ``disturbance``, ``field_gradient``: an ENU field ``F(t)`` added as
+  ``y += R.T C(t).T F(t)`` (the gradient from the recorded positions; none where they are
+  lost).
+- ``hard_iron``, ``hard_iron_step``: ``y += o`` (inside the window for the step). Exact.
+- ``soft_iron``: ``y <- D y`` (about the recorded reading, offsets included).
+
+A semi-real recording is scored against its base: a finding counts only if the base did not
+have that effect (:func:`new_findings`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from indep_gen import write_streams
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from scipy.signal import savgol_filter
+from scipy.spatial.transform import Rotation, Slerp
+
+REAL_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+
+
+@dataclass
+class Real:
+    """The streams of one real recording.
+
+    Attributes
+    ----------
+    t_mag_s : ndarray (N,)
+        Magnetometer stamps, s from the first one.
+    mag_nT : ndarray (N, 3)
+    t_att_s : ndarray (M,)
+    att : Rotation (M,)
+        ``q_enu_body``.
+    pos_m : ndarray (M, 3)
+        Positions (NaN where lost).
+    t0_ns : int
+        Stamp of the first magnetometer sample.
+
+    """
+
+    t_mag_s: np.ndarray
+    mag_nT: np.ndarray
+    t_att_s: np.ndarray
+    att: Rotation
+    pos_m: np.ndarray
+    t0_ns: int
+
+
+def read_real(path: Path, max_duration_s: float | None = None) -> Real:
+    """Read a lab recording (``/imu/mag`` and ``/mocap/pose``), optionally its first part."""
+    tm, ym, ta, qa, pa = [], [], [], [], []
+    with open(path, "rb") as fh:
+        decoded = list(make_reader(fh, decoder_factories=[DecoderFactory()])
+                       .iter_decoded_messages())
+    for _, channel, _, msg in decoded:
+        t = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        if channel.topic == "/imu/mag":
+            v = msg.magnetic_field
+            tm.append(t)
+            ym.append((v.x * 1e9, v.y * 1e9, v.z * 1e9))
+        elif channel.topic == "/mocap/pose":
+            o, p = msg.pose.orientation, msg.pose.position
+            ta.append(t)
+            qa.append((o.x, o.y, o.z, o.w))
+            pa.append((p.x, p.y, p.z))
+    tm_a, ta_a = np.asarray(tm, dtype=np.int64), np.asarray(ta, dtype=np.int64)
+    i, j = np.argsort(tm_a, kind="stable"), np.argsort(ta_a, kind="stable")
+    t0 = int(tm_a[i[0]])
+    r = Real((tm_a[i] - t0) * 1e-9, np.asarray(ym)[i], (ta_a[j] - t0) * 1e-9,
+             Rotation.from_quat(np.asarray(qa)[j]), np.asarray(pa)[j], t0)
+    if max_duration_s is not None:
+        km, ka = r.t_mag_s < max_duration_s, r.t_att_s < max_duration_s + 0.1
+        r = Real(r.t_mag_s[km], r.mag_nT[km], r.t_att_s[ka], r.att[ka], r.pos_m[ka], t0)
+    return r
+
+
+def attitude_at(r: Real, t_s: np.ndarray) -> Rotation:
+    """Recorded attitude at ``t_s`` by SLERP (held at the ends)."""
+    t = np.clip(t_s, r.t_att_s[0], r.t_att_s[-1])
+    return Slerp(r.t_att_s, r.att)(t)
+
+
+def wahba(r: Real, n_iter: int = 8) -> tuple[Rotation, np.ndarray]:
+    """``R_body_mag`` and the mean ENU field by alternating Kabsch and averaging."""
+    C = attitude_at(r, r.t_mag_s)
+    y = r.mag_nT - np.mean(r.mag_nT, axis=0) * 0.0
+    R = Rotation.identity()
+    for _ in range(n_iter):
+        B = np.mean(C.apply(R.apply(y)), axis=0)
+        R, _ = Rotation.align_vectors(C.inv().apply(np.tile(B, (len(y), 1))), y)
+    return R, B
+
+
+#: Effects injected and their three sizes (small, medium, large).
+SIZES: dict[str, tuple[Any, ...]] = {
+    "time_offset": (0.005, 0.025, 0.06),
+    "eddy_current": (0.001, 0.002, 0.004),   # E_s = diag(+e, -e, 0), s
+    "eddy_iso": (0.002, 0.005, 0.01),        # E_s = e I: a time offset of -e
+    "heading_drift": (0.03, 0.1, 0.3),       # deg over the recording
+    "field_drift": (50.0, 150.0, 500.0),     # nT peak to peak along (0.3, 0.5, -0.8)
+    "disturbance": (100.0, 300.0, 1000.0),   # nT peak
+    "hard_iron_step": (50.0, 150.0, 500.0),  # nT
+    "hard_iron": (30.0, 100.0, 300.0),       # nT
+    "field_gradient": (300.0, 1000.0, 3000.0),  # nT/m, Frobenius norm
+    "soft_iron": (0.005, 0.01, 0.03),        # Frobenius norm of D - I
+}
+#: The name a correct diagnosis reports for each injection.
+REPORTED = {"eddy_iso": "time_offset"}
+
+
+def inject(r: Real, case: str, size: float, seed: int = 0) -> tuple[Real, str, dict[str, Any]]:
+    """Return the recording with ``case`` injected at ``size``, the name to report, params.
+
+    ``time_offset`` takes a signed lag (s); the others the amplitudes of :data:`SIZES`.
+    """
+    rng = np.random.default_rng(seed)
+    t, y, dur = r.t_mag_s, r.mag_nT.copy(), float(r.t_mag_s[-1])
+    tm, att = t, r.att
+    rep = REPORTED.get(case, case)
+    if case == "time_offset":
+        tm = t + size
+        p: dict[str, Any] = {"time_offset_s": float(size)}
+    elif case in ("eddy_current", "eddy_iso"):
+        dt = float(np.median(np.diff(t)))
+        w = max(5, int(round(0.051 / dt)) | 1)
+        ydot = savgol_filter(y, w, 3, deriv=1, delta=dt, axis=0)
+        E = size * (np.eye(3) if case == "eddy_iso" else np.diag([1.0, -1.0, 0.0]))
+        y = y + ydot @ E.T
+        p = {"time_offset_s": -float(size)} if case == "eddy_iso" else {"E_s": E.tolist()}
+    elif case == "heading_drift":
+        h = np.radians(size) * r.t_att_s / dur
+        att = Rotation.from_rotvec(np.stack([0 * h, 0 * h, h], -1)) * r.att
+        p = {"rate_deg_per_h": size / dur * 3600.0, "peak_to_peak_deg": float(size)}
+    elif case in ("field_drift", "disturbance", "field_gradient"):
+        R, _ = wahba(r)
+        C = attitude_at(r, t)
+        if case == "field_drift":
+            d = np.array([0.3, 0.5, -0.8])
+            F = np.outer(0.5 * size * np.sin(np.pi * (t / dur - 0.5)), d / np.linalg.norm(d))
+            p = {"peak_to_peak_nT": (size * np.abs(d / np.linalg.norm(d))).tolist()}
+        elif case == "disturbance":
+            a = float(rng.uniform(0.3, 0.6) * dur)
+            x = np.clip((t - a) / 6.0, 0.0, 1.0)
+            F = size * np.sin(np.pi * x)[:, None] ** 2 * np.array([0.6, -0.3, 0.74])
+            p = {"windows_s": [[a, a + 6.0]], "peak_nT": float(size)}
+        else:
+            A = rng.normal(size=(3, 3))
+            G = 0.5 * (A + A.T)
+            G -= np.trace(G) / 3 * np.eye(3)
+            G *= size / np.linalg.norm(G)
+            ok = np.all(np.isfinite(r.pos_m), axis=1)
+            pos = np.stack([np.interp(t, r.t_att_s[ok], r.pos_m[ok, k]) for k in range(3)], -1)
+            F = (pos - pos.mean(axis=0)) @ G.T
+            p = {"G_nT_per_m": G.tolist()}
+        y = y + R.inv().apply(C.inv().apply(F))
+    elif case == "hard_iron":
+        o = rng.normal(size=3)
+        o *= size / np.linalg.norm(o)
+        y = y + o
+        p = {"offset_nT": o.tolist()}
+    elif case == "hard_iron_step":
+        o = rng.normal(size=3)
+        o *= size / np.linalg.norm(o)
+        a = float(rng.uniform(0.3, 0.6) * dur)
+        y = y + ((t >= a) & (t < a + 10.0))[:, None] * o
+        p = {"windows_s": [[a, a + 10.0]], "offset_nT": o.tolist()}
+    elif case == "soft_iron":
+        A = rng.normal(size=(3, 3))
+        S = 0.5 * (A + A.T)
+        S -= np.trace(S) / 3 * np.eye(3)
+        D = np.eye(3) + size * S / np.linalg.norm(S)
+        y = y @ D.T
+        p = {"D": D.tolist()}
+    else:
+        raise ValueError(case)
+    return Real(tm, y, r.t_att_s, att, r.pos_m, r.t0_ns), rep, p
+
+
+def write_real(r: Real, path: Path) -> Path:
+    """Write the streams (magnetometer, PoseStamped with positions) as an MCAP."""
+    return write_streams(path, r.t_mag_s, r.mag_nT, r.t_att_s, r.att,
+                         "geometry_msgs/msg/PoseStamped", r.pos_m, att_topic="/mocap/pose")
+
+
+def new_findings(base: list[str], injected: list[str]) -> list[str]:
+    """Findings of the injected recording that its base did not have."""
+    return [e for e in injected if e not in set(base)]
+
+
+def cases(sizes: tuple[int, ...] = (0, 1, 2)) -> list[tuple[str, float]]:
+    """Every (case, size) of the corpus: lags +-5, +-25, +-60 ms and the sized effects."""
+    out = [("time_offset", s * v) for v in SIZES["time_offset"] for s in (1.0, -1.0)]
+    for c, v in SIZES.items():
+        if c != "time_offset":
+            out += [(c, v[i]) for i in sizes]
+    return out
