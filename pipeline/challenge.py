@@ -34,11 +34,13 @@ KINDS = (
     "hard_iron_step",
     "field_gradient",
     "sample_hold",
+    "heading_drift",
 )
 # field_gradient: 5 parameters and the searched yaw of the position frame; sample_hold: the
 # native rate (the repeats follow from it)
 _K = {"hard_iron": 3, "soft_iron": 5, "time_offset": 1, "eddy_current": 9, "field_drift": 12,
-      "disturbance": 15, "hard_iron_step": 3, "field_gradient": 6, "sample_hold": 1}
+      "disturbance": 15, "hard_iron_step": 3, "field_gradient": 6, "sample_hold": 1,
+      "heading_drift": 2}
 
 DURATION_S = 60.0
 RATE_HZ = 50.0
@@ -86,7 +88,33 @@ def _effect_params(kind: str, rng: np.random.Generator, scale: float) -> dict[st
         return {"G_nT_per_m": G.tolist()}
     if kind == "sample_hold":
         return {"native_rate_hz": float(RATE_HZ * rng.uniform(0.55, 0.85))}
+    if kind == "heading_drift":
+        # an INS gyro bias: the heading error grows linearly, 0.1 deg over the recording at
+        # scale 1 (about 35 nT across a 20 uT horizontal field)
+        ptp = 0.1 * scale
+        rate = float(rng.choice([-1, 1])) * ptp / DURATION_S * 3600.0
+        return {"rate_deg_per_h": rate, "peak_to_peak_deg": ptp}
     raise ValueError(kind)
+
+
+def apply_heading_drift(sim: Any, rate_deg_per_h: float) -> Any:
+    """Return ``sim`` with its attitude channel turned about Up by ``h(t) = rate t``.
+
+    The attitude source reports ``Rz(h(t)) C_true(t)`` (CONVENTIONS ``heading_drift``), ``t``
+    from the first magnetometer sample; the magnetometer and the truth are unchanged.
+    """
+    import dataclasses
+
+    from .geometry import quat_mul
+
+    att = sim.recording.attitude
+    t0 = int(sim.recording.mag.t_ns[0])
+    h = np.radians(rate_deg_per_h / 3600.0) * (np.asarray(att.t_ns) - t0) * 1e-9
+    qz = np.stack([0 * h, 0 * h, np.sin(h / 2), np.cos(h / 2)], axis=-1)
+    q = quat_mul(qz, np.asarray(att.q_enu_body))
+    rec = dataclasses.replace(sim.recording,
+                              attitude=dataclasses.replace(att, q_enu_body=q))
+    return dataclasses.replace(sim, recording=rec)
 
 
 def _scenario(rng: np.random.Generator, effects: dict[str, dict[str, Any]], i: int) -> dict:
@@ -121,11 +149,16 @@ def _scenario(rng: np.random.Generator, effects: dict[str, dict[str, Any]], i: i
 
 def _strength(sim_full: Any, sim_without: Any, kind: str, noise: dict[str, float]) -> float:
     """Amplitude of an effect as a multiple of its detection threshold (see module doc)."""
+    d = np.asarray(sim_full.truth.mag_clean_nT) - np.asarray(sim_without.truth.mag_clean_nT)
+    return _strength_of(d, sim_full, kind, noise)
+
+
+def _strength_of(d: np.ndarray, sim_full: Any, kind: str, noise: dict[str, float]) -> float:
+    """Strength of a noise-free signature ``d`` (N, 3), mag frame nT (see the module doc)."""
     from .effects import AttitudeTrack, FitData, ModelState, evaluate
     from .simulate import Truth
 
     tr: Truth = sim_full.truth
-    d = np.asarray(sim_full.truth.mag_clean_nT) - np.asarray(sim_without.truth.mag_clean_nT)
     t_ns = np.asarray(tr.mag_t_ns)
     t_s = (t_ns - t_ns[0]) * 1e-9
     track = AttitudeTrack(t_s, np.asarray(tr.q_enu_body_true))
@@ -142,6 +175,26 @@ def _strength(sim_full: Any, sim_without: Any, kind: str, noise: dict[str, float
     lam = float(rem @ rem) / var
     lam_thr = _K[kind] * np.log(dv.size) + 20.0
     return float(np.sqrt(lam / lam_thr))
+
+
+def _heading_strength(sim: Any, rate_deg_per_h: float, noise: dict[str, float]) -> float:
+    """Strength of a heading drift (see the module doc).
+
+    Its signature is the field turned about Up, ``h(t) (-B_N, B_E, 0)`` in ENU, seen through
+    the true attitude.
+    """
+    from .geometry import quat_to_matrix
+
+    tr = sim.truth
+    t_ns = np.asarray(tr.mag_t_ns)
+    t_s = (t_ns - t_ns[0]) * 1e-9
+    B = np.asarray(tr.B_enu_nT, dtype=float)
+    h = np.radians(rate_deg_per_h / 3600.0) * t_s
+    dB = h[:, None] * np.array([-B[1], B[0], 0.0])
+    C = quat_to_matrix(np.asarray(tr.q_enu_body_true))
+    R = np.asarray(tr.R_body_mag)
+    d = np.einsum("ji,njk,nk->ni", R, C, dB)  # R.T C.T dB
+    return _strength_of(d, sim, "heading_drift", noise)
 
 
 def generate(n: int, seed: int, out_dir: str | Path, *, null_fraction: float = 0.3,
@@ -191,13 +244,21 @@ def generate(n: int, seed: int, out_dir: str | Path, *, null_fraction: float = 0
         for k in kinds:
             scale = float(rng.choice([1.0, 1.0, 0.5, 0.1])) if only is None else 1.0
             effects[str(k)] = _effect_params(str(k), rng, scale)
-        scen = _scenario(rng, effects, i)
+        # heading_drift is an error of the attitude source, applied to the written attitude
+        hd = effects.get("heading_drift")
+        scen = _scenario(rng, {k: v for k, v in effects.items() if k != "heading_drift"}, i)
         sim = simulate(scenario_from_dict(scen, path=f"rec_{i:03d}"))
         strengths = {}
         for k in effects:
-            rest = {kk: v for kk, v in effects.items() if kk != k}
+            if k == "heading_drift":
+                continue
+            rest = {kk: v for kk, v in scen["effects"].items() if kk != k}
             sim_wo = simulate(scenario_from_dict({**scen, "effects": rest}, path="x"))
             strengths[k] = _strength(sim, sim_wo, k, scen["noise"])
+        if hd is not None:
+            strengths["heading_drift"] = _heading_strength(sim, hd["rate_deg_per_h"],
+                                                           scen["noise"])
+            sim = apply_heading_drift(sim, hd["rate_deg_per_h"])
         name = f"rec_{i:03d}"
         write_simulated(sim, out / f"{name}.mcap")
         key["recordings"][name] = {
@@ -254,6 +315,9 @@ def _param_errors(kind: str, true: dict[str, Any], found: dict[str, Any],
     if kind == "sample_hold":
         return z(found["native_rate_hz"], true["native_rate_hz"],
                  sigma.get("native_rate_hz", 1e-12))
+    if kind == "heading_drift":
+        return z(found["rate_deg_per_h"], true["rate_deg_per_h"],
+                 sigma.get("rate_deg_per_h", 1e-12))
     return []
 
 

@@ -53,6 +53,7 @@ class EffectKind(str, enum.Enum):
     AXIS_TILT = "axis_tilt"
     FIELD_GRADIENT = "field_gradient"
     SAMPLE_HOLD = "sample_hold"  # a timing effect handled on the data, not a model term
+    HEADING_DRIFT = "heading_drift"
 
 
 LOCAL_KINDS = frozenset({EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP})
@@ -293,6 +294,8 @@ class Term:
             return 2
         if k is EffectKind.DISTURBANCE:
             return 3 * sum(len(kn) for kn in self.knots())
+        if k is EffectKind.HEADING_DRIFT:
+            return HEADING_DEGREE
         raise ValueError(k)
 
     def indicator(self, t_s: F64) -> F64:
@@ -304,6 +307,28 @@ class Term:
 
 
 DRIFT_DEGREE = 4
+#: Degree of the heading-drift polynomial (Legendre P1..P2 of time): a constant gyro bias
+#: makes the heading error grow linearly, a bias that changes with temperature bends it.
+HEADING_DEGREE = 2
+
+
+def heading_basis(t_s: F64, t0_s: float, t1_s: float) -> F64:
+    """Legendre P1..P``HEADING_DEGREE`` of the time scaled to [-1, 1], shape (N, 2).
+
+    The constant heading error is not in the basis: a fixed rotation about Up of the attitude
+    is a fixed rotation of ``B_enu`` about Up, which the estimated field absorbs.
+    """
+    x = (2.0 * (np.asarray(t_s) - t0_s) / max(t1_s - t0_s, 1e-9)) - 1.0
+    return np.polynomial.legendre.legvander(x, HEADING_DEGREE)[:, 1:]
+
+
+def rotate_about_up(v_enu: F64, h_rad: F64) -> F64:
+    """Rows of ``v_enu`` (N, 3) turned about Up by ``h_rad`` (N,): ``Rz(h) v``."""
+    c, s = np.cos(h_rad), np.sin(h_rad)
+    out = np.array(v_enu, dtype=float, copy=True)
+    out[:, 0] = c * v_enu[:, 0] - s * v_enu[:, 1]
+    out[:, 1] = s * v_enu[:, 0] + c * v_enu[:, 1]
+    return out
 
 
 def rot_z(yaw_rad: float) -> F64:
@@ -526,6 +551,14 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
         elif term.kind is EffectKind.FIELD_GRADIENT:
             # B(p) = B_enu + G_enu Q (p - p_ref)  (CONVENTIONS field_gradient)
             Bt += data.dp_m @ gradient_matrix(v, term.yaw_rad).T
+    # heading_drift: the attitude source reports Rz(h(t)) C_true(t), so the reading is
+    # R.T C_rep.T Rz(h) B (CONVENTIONS heading_drift): the ENU field turned about Up by h(t)
+    h_rad = None
+    for term, v in zip(state.terms, state.values, strict=True):
+        if term.kind is EffectKind.HEADING_DRIFT:
+            h_rad = heading_basis(t, 0.0, _span(data)) @ v
+            Bt_unturned = Bt
+            Bt = rotate_about_up(Bt, h_rad)
     TT = state.T_enu.T
     Bp = Bt @ TT.T  # T.T @ B_t per row
 
@@ -560,6 +593,13 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
     J[:, :, 0:3] = np.matmul(DRt, skew(b)) + np.matmul(E @ DRt, skew(bdot))
     if data.B_known_enu_nT is None:
         J[:, :, 3:6] = G
+        if h_rad is not None:  # dB_t/dB = Rz(h)
+            Rz = np.zeros((n, 3, 3))
+            Rz[:, 0, 0] = Rz[:, 1, 1] = np.cos(h_rad)
+            Rz[:, 1, 0] = np.sin(h_rad)
+            Rz[:, 0, 1] = -np.sin(h_rad)
+            Rz[:, 2, 2] = 1.0
+            J[:, :, 3:6] = np.matmul(G, Rz)
     bddot = _mv(Cddot, Bp)
     for term, i in zip(state.terms, state.offsets(), strict=True):
         k = term.kind
@@ -596,6 +636,12 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             dpq = data.dp_m @ rot_z(term.yaw_rad).T  # Q (p - p_ref) per row
             dB = np.einsum("kij,nj->nik", _SOFT_BASIS, dpq)  # (N, 3, 5)
             J[:, :, i : i + 5] = np.matmul(G, dB)
+        elif k is EffectKind.HEADING_DRIFT:
+            # d(Rz(h) B)/dh = Rz(h + pi/2) B with the vertical part removed; h = P v
+            dB = rotate_about_up(Bt_unturned, h_rad + 0.5 * np.pi)
+            dB[:, 2] = 0.0
+            P = heading_basis(t, 0.0, _span(data))
+            J[:, :, i : i + P.shape[1]] = _mv(G, dB)[:, :, None] * P[:, None, :]
         elif k is EffectKind.AXIS_TILT:
             # T.T <- T.T exp(-[d]x): d(T.T B)/dd = T.T [B]x, d = basis @ (2 params)
             Pb = _tilt_basis(state)
@@ -606,6 +652,40 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
 def _span(data: FitData) -> float:
     """Time span used to scale the drift basis (fixed per recording, not per subset)."""
     return float(data.track.t_s[-1]) if data.track.t_s[-1] > 0 else 1.0
+
+
+def heading_drift_params(value: F64, data: FitData) -> dict[str, Any]:
+    """CONVENTIONS params of ``heading_drift``: mean rate and range of ``h(t)``.
+
+    ``h(t) = sum_k v_k P_k(x(t))`` (rad) is the heading error of the attitude source, positive
+    counter-clockwise seen from above (the reported heading ahead of the true one, ENU yaw):
+    ``rate_deg_per_h = (h(end) - h(start)) / T``, ``peak_to_peak_deg = max h - min h``.
+    """
+    span = _span(data)
+    tt = np.linspace(0.0, span, 512)
+    h = np.degrees(heading_basis(tt, 0.0, span) @ value)
+    return {"rate_deg_per_h": float((h[-1] - h[0]) / max(span / 3600.0, 1e-12)),
+            "peak_to_peak_deg": float(h.max() - h.min())}
+
+
+def heading_signature_fraction(v_enu_nT: F64, B_enu_nT: F64) -> float:
+    """Fraction of an ENU field change that a heading drift can produce (0..1).
+
+    A heading error ``h`` turns the field about Up: ``dB = h (-B_N, B_E, 0)``. East and North
+    change in the ratio ``-B_N : B_E``; Up and ``|B|`` do not change. The fraction is the
+    energy of ``v_enu_nT`` (N, 3) along that direction over its total energy.
+    """
+    d = np.array([-B_enu_nT[1], B_enu_nT[0], 0.0])
+    nd = float(np.linalg.norm(d))
+    tot = float(np.sum(np.asarray(v_enu_nT) ** 2))
+    if nd <= 0 or tot <= 0:
+        return 0.0
+    return float(np.sum((np.asarray(v_enu_nT) @ (d / nd)) ** 2) / tot)
+
+
+#: A heading drift needs a horizontal field: below this fraction of |B| a rotation about Up
+#: changes the field by too little (near the magnetic poles).
+MIN_HORIZONTAL_FRACTION = 0.05
 
 
 # ----------------------------------------------------------------------------- parameters
@@ -642,6 +722,8 @@ def term_params(term: Term, value: F64, state: ModelState, data: FitData) -> dic
         return {"G_nT_per_m": gradient_matrix(value, term.yaw_rad).tolist(),
                 "position_frame": data.position_frame or "enu",
                 "reference_position_m": ref.tolist()}
+    if k is EffectKind.HEADING_DRIFT:
+        return heading_drift_params(value, data)
     if k is EffectKind.AXIS_TILT:
         axis_true = state.T_enu @ np.array([0.0, 0.0, 1.0])
         tilt = float(np.degrees(np.arccos(np.clip(axis_true[2], -1.0, 1.0))))
@@ -673,6 +755,12 @@ def term_sigma(term: Term, cov: F64, state: ModelState, data: FitData) -> dict[s
         return {"peak_nT": float(np.sqrt(np.max(np.sum(sd.reshape(-1, 3) ** 2, axis=1))))}
     if k is EffectKind.AXIS_TILT:
         return {"tilt_deg": float(np.degrees(np.max(sd)))}
+    if k is EffectKind.HEADING_DRIFT:
+        # rate: h(end) - h(start) = 2 v1 (P1 runs from -1 to 1, P2 is 1 at both ends);
+        # range: first order, as for field_drift (each polynomial swings by at most 2)
+        T_h = max(_span(data), 1e-9) / 3600.0
+        return {"rate_deg_per_h": float(np.degrees(2.0 * sd[0]) / T_h),
+                "peak_to_peak_deg": float(np.degrees(2.0 * np.sqrt(np.sum(sd**2))))}
     if k is EffectKind.FIELD_GRADIENT:
         # M = sum_k g_k S_k Q: Var(M_ij) = sum_kl (S_k Q)_ij cov_kl (S_l Q)_ij
         SQ = _SOFT_BASIS @ rot_z(term.yaw_rad)
@@ -783,6 +871,15 @@ EFFECTS: dict[EffectKind, EffectInfo] = {
         "a residual fixed in ENU that follows the sensor's position, not the time",
         "enu",
     ),
+    EffectKind.HEADING_DRIFT: EffectInfo(
+        EffectKind.HEADING_DRIFT,
+        "the attitude source's heading error changes during the recording (an INS or AHRS "
+        "integrating a gyro bias between heading fixes, a motion-capture frame creeping): the "
+        "attitude is turned about Up by a slowly growing angle",
+        "a slow ENU residual in which East and North change in the ratio -B_N : B_E while Up "
+        "and |B| stay unchanged (the field turning about the vertical)",
+        "enu",
+    ),
     EffectKind.SAMPLE_HOLD: EffectInfo(
         EffectKind.SAMPLE_HOLD,
         "the sensor converts slower than its messages are sent: a message repeats the last "
@@ -847,6 +944,15 @@ def explanation(
             )
         else:
             text += ". " + note
+    if kind is EffectKind.HEADING_DRIFT:
+        text += (
+            f". The attitude's heading error changes by {params['peak_to_peak_deg']:.3g} deg "
+            f"over {duration_s:.0f} s (a mean rate of {params['rate_deg_per_h']:.3g} deg/h). "
+            "A field that turns about Up without changing its magnitude would give the same "
+            "readings; the field does not do that by itself (diurnal and storm variations "
+            "change |B| and Up), an attitude source's heading does. Check the source's heading "
+            "aiding (magnetometer, GNSS dual antenna, mocap frame) and its gyro bias"
+        )
     if kind is EffectKind.FIELD_GRADIENT:
         G = np.asarray(params["G_nT_per_m"], dtype=float)
         frob = float(np.linalg.norm(G))
@@ -982,7 +1088,8 @@ def motion_stats(data: FitData) -> MotionStats:
 
 
 def identifiability_reason(
-    kind: EffectKind, stats: MotionStats, data: FitData, efficiency: float
+    kind: EffectKind, stats: MotionStats, data: FitData, efficiency: float,
+    horizontal_fraction: float | None = None,
 ) -> str | None:
     """Why ``kind`` cannot be determined from this recording, or None if it can.
 
@@ -998,6 +1105,8 @@ def identifiability_reason(
         Smallest eigenvalue ratio of the term's efficient information (Schur complement
         against the parameters already in the model) to its own information: the fraction of
         the weakest parameter combination that the other parameters cannot mimic.
+    horizontal_fraction : float, optional
+        ``|B_horizontal| / |B|`` of the current field (``heading_drift`` needs one).
 
     Returns
     -------
@@ -1050,6 +1159,17 @@ def identifiability_reason(
             "offset equals a fixed heading rotation, absorbed by R_body_mag; vary the rotation "
             "rate or rotate about more than one axis"
         )
+    if kind is EffectKind.HEADING_DRIFT:
+        if horizontal_fraction is not None and horizontal_fraction < MIN_HORIZONTAL_FRACTION:
+            return (
+                f"the field is nearly vertical (horizontal part {100 * horizontal_fraction:.1f} "
+                "% of |B|): a heading error hardly changes it"
+            )
+        if stats.total_turn_deg < 20.0:
+            return (
+                "the platform hardly turned: a slow heading error cannot be told from a slow "
+                "change of the field or of the offset"
+            )
     if kind is EffectKind.FIELD_DRIFT and stats.total_turn_deg < 20.0:
         return (
             "the platform hardly turned: a slow field change cannot be told from a slow change "
@@ -1060,6 +1180,7 @@ def identifiability_reason(
             EffectKind.FIELD_DRIFT: "slow attitude changes and the field",
             EffectKind.SOFT_IRON: "the field magnitude and R_body_mag",
             EffectKind.EDDY_CURRENT: "the time offset and R_body_mag",
+            EffectKind.HEADING_DRIFT: "the field and R_body_mag",
         }.get(kind, "terms already in the model")
         return (
             f"the motion leaves this term confounded with {which} (only {efficiency:.1e} of its "

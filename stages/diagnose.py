@@ -57,7 +57,17 @@ GLOBAL_KINDS = (
     EffectKind.FIELD_DRIFT,
     EffectKind.AXIS_TILT,
     EffectKind.FIELD_GRADIENT,
+    EffectKind.HEADING_DRIFT,
 )
+
+#: Nested pairs: the simpler term (value) is a special case of the other (key) and is
+#: reported when it explains the data as well (within the BIC margin). A heading drift is a
+#: field drift along ``(-B_N, B_E, 0)`` (the field turned about Up); a time offset is the
+#: isotropic eddy term ``E_s = -tau I``.
+NESTED_SIMPLER = {
+    EffectKind.EDDY_CURRENT: EffectKind.TIME_OFFSET,
+    EffectKind.FIELD_DRIFT: EffectKind.HEADING_DRIFT,
+}
 
 #: Yaw grid of the search for a position frame rotated about Up (``field_gradient``), deg.
 YAW_GRID_DEG = np.arange(0.0, 360.0, 10.0)
@@ -197,6 +207,9 @@ def _estimate_text(fd: Finding) -> str:
         return "diag(E_s)=[" + ", ".join(f"{x:.2f}" for x in np.diag(e)) + "] ms"
     if fd.effect == "field_drift":
         return "p2p=[" + ", ".join(f"{x:.1f}" for x in p["peak_to_peak_nT"]) + "] nT ENU"
+    if fd.effect == "heading_drift":
+        return (f"{p['rate_deg_per_h']:.3g}+-{s.get('rate_deg_per_h', 0.0):.2g} deg/h, "
+                f"p2p {p['peak_to_peak_deg']:.3g} deg")
     if fd.effect == "disturbance":
         return f"peak {p['peak_nT']:.0f} nT in " + _windows_text(p["windows_s"])
     if fd.effect == "axis_tilt":
@@ -562,6 +575,17 @@ def _n_eff(res: FitResult, data: FitData) -> float:
     return res.residual_nT.size / inflation(res.residual_nT, data.t_s)
 
 
+def _bic_between(a: FitResult, b: FitResult, data: FitData) -> float:
+    """BIC of fit ``a`` minus BIC of fit ``b``, both with one effective sample count.
+
+    Each candidate's delta BIC is discounted by the correlation of its own residual; two
+    candidates are compared with the smaller of their two counts (the conservative one), so
+    the difference measures their fits and parameter counts, not their residuals' texture.
+    """
+    n = min(_n_eff(a, data), _n_eff(b, data))
+    return _bic(a.rss, n, a.state.n_params()) - _bic(b.rss, n, b.state.n_params())
+
+
 def _axes(x: np.ndarray) -> list[str]:
     rms = np.sqrt(np.mean(np.asarray(x) ** 2, axis=0))
     if not np.any(rms > 0):
@@ -658,15 +682,25 @@ def diagnose_data(
             ws = refine_step(w, cur.residual_nT, data.t_s)
             cands.append(Term(EffectKind.HARD_IRON_STEP, (ws,)))
         tests = []
+        replace_trial = None
         for term in cands:
             if (term.kind, term.windows_s) in rejected | dropped:
+                continue
+            if term.kind is EffectKind.FIELD_DRIFT and EffectKind.HEADING_DRIFT in present:
+                # the heading drift spans part of the field drift: the field drift can only
+                # replace it (tried below), not be added to it
+                replace_trial = term
                 continue
             if term.kind is EffectKind.FIELD_GRADIENT and data.p_m is not None:
                 st = gradient_candidate(cur, data, sig)
                 term = st.term
             else:
                 st = score_test(cur, term, data, sig)
-            reason = identifiability_reason(term.kind, stats, data, st.efficiency)
+            Bc = cur.state.B_enu_nT
+            reason = identifiability_reason(
+                term.kind, stats, data, st.efficiency,
+                horizontal_fraction=float(np.linalg.norm(Bc[:2]) / max(np.linalg.norm(Bc),
+                                                                        1e-9)))
             if reason is None and st.rot_efficiency < CONFOUND_RATIO \
                     and term.kind not in LOCAL_KINDS:
                 reason = (
@@ -700,23 +734,27 @@ def diagnose_data(
                 rejected.add((st.term.kind, st.term.windows_s))
                 continue
             fits.append((fr[1], st, fr[0]))
+        if replace_trial is not None:
+            rt = _replacement_fit(cur, EffectKind.HEADING_DRIFT, replace_trial, data, cfg)
+            if rt is not None:
+                fits.append(rt)
         fits.sort(key=lambda x: x[0])
         # nested terms resolve to the simplest that explains the data as well (time offset
         # inside eddy currents, a mag-frame step inside a free ENU disturbance)
         by_kind = {f[1].term.kind: f for f in fits}
         if fits:
             best = fits[0]
-            simpler = {EffectKind.EDDY_CURRENT: EffectKind.TIME_OFFSET,
+            simpler = {**NESTED_SIMPLER,
                        EffectKind.DISTURBANCE: EffectKind.HARD_IRON_STEP}.get(best[1].term.kind)
             if simpler is not None:
                 alt = by_kind.get(simpler)
-                if alt is None and simpler is EffectKind.TIME_OFFSET and simpler not in present:
+                if alt is None and simpler in NESTED_SIMPLER.values() and simpler not in present:
                     fr = _refit(cur, Term(simpler), data, cfg)
                     alt = None if fr is None else (fr[1], best[1], fr[0])
                 elif alt is None and simpler is EffectKind.HARD_IRON_STEP:
                     fr = _refit(cur, Term(simpler, best[1].term.windows_s), data, cfg)
                     alt = None if fr is None else (fr[1], best[1], fr[0])
-                if alt is not None and alt[0] <= best[0] + cfg.bic_margin:
+                if alt is not None and _bic_between(alt[2], best[2], data) <= cfg.bic_margin:
                     fits.remove(best) if best in fits else None
                     fits.insert(0, alt)
         accepted = False
@@ -726,6 +764,11 @@ def diagnose_data(
                 rejected.add((st.term.kind, st.term.windows_s))
                 continue
             term = res.state.terms[-1]
+            gone = {t.kind for t in cur.state.terms} - {t.kind for t in res.state.terms}
+            if gone:  # a replacement: the nested term it contains leaves the model
+                findings = [f for f in findings if EffectKind(f.effect) not in gone]
+                cur = fit(dataclasses.replace(res.state, terms=res.state.terms[:-1],
+                                              values=res.state.values[:-1]), data)
             findings.append(_finding(cur, res, term, st, dbic, cv_cur, cv_new, data))
             cur, cv_cur = res, cv_new
             accepted = True
@@ -894,11 +937,33 @@ def _simpler(term: Term) -> Term | None:
 
     A time offset inside eddy currents, a mag-frame step inside a free ENU disturbance.
     """
-    if term.kind is EffectKind.EDDY_CURRENT:
-        return Term(EffectKind.TIME_OFFSET)
+    if term.kind in NESTED_SIMPLER:
+        return Term(NESTED_SIMPLER[term.kind])
     if term.kind is EffectKind.DISTURBANCE:
         return Term(EffectKind.HARD_IRON_STEP, term.windows_s)
     return None
+
+
+def _replacement_fit(
+    cur: FitResult, simple: EffectKind, term: Term, data: FitData, cfg: DiagnoseConfig
+) -> tuple[float, ScoreTest, FitResult] | None:
+    """Replace the nested ``simple`` term of the model by ``term``, which contains it.
+
+    Returns ``(delta BIC against the current model, score test, fit)`` when the replacement
+    lowers the BIC by ``bic_margin`` (the extra parameters counted), else None. The score test
+    is made against the model without ``simple``.
+    """
+    i = next(k for k, t in enumerate(cur.state.terms) if t.kind is simple)
+    wo = fit(_without(cur.state, i), data)
+    res = fit(wo.state.with_term(term), data)
+    if not res.rss < cur.rss:
+        return None
+    n_eff = _n_eff(res, data)
+    dbic = _bic(res.rss, n_eff, res.state.n_params()) - _bic(cur.rss, n_eff, cur.state.n_params())
+    if dbic > -cfg.bic_margin:
+        return None
+    st = score_test(wo, term, data, robust_sigma(wo.residual_nT))
+    return float(dbic), st, res
 
 
 def _without(state: ModelState, i: int) -> ModelState:
