@@ -754,7 +754,14 @@ def diagnose_data(
                 elif alt is None and simpler is EffectKind.HARD_IRON_STEP:
                     fr = _refit(cur, Term(simpler, best[1].term.windows_s), data, cfg)
                     alt = None if fr is None else (fr[1], best[1], fr[0])
-                if alt is not None and _bic_between(alt[2], best[2], data) <= cfg.bic_margin:
+                # the pairs of NESTED_SIMPLER are compared with one effective sample count:
+                # with each its own, a time offset lost to eddy currents by the texture of
+                # the residuals alone (issue 15); the window pair keeps its calibrated rule
+                if alt is not None and simpler in NESTED_SIMPLER.values():
+                    prefer = _bic_between(alt[2], best[2], data) <= cfg.bic_margin
+                else:
+                    prefer = alt is not None and alt[0] <= best[0] + cfg.bic_margin
+                if alt is not None and prefer:
                     fits.remove(best) if best in fits else None
                     fits.insert(0, alt)
         accepted = False

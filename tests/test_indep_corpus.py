@@ -72,7 +72,9 @@ def test_independent_nulls_have_no_findings(tmp_path):
         assert [f.effect for f in ctx.diagnosis.findings] == [], s
 
 
-@pytest.mark.parametrize("case,reported", [("eddy_current", "eddy_current")])
+@pytest.mark.parametrize("case,reported", [("time_offset", "time_offset"),
+                                           ("eddy_iso", "time_offset"),
+                                           ("eddy_current", "eddy_current")])
 def test_independent_rate_effects_named(tmp_path, case, reported):
     # mag 100 Hz, attitude 50 Hz (the rate mix of issue 15); 15x the detection threshold
     base = Spec(name=case, seed=17, duration_s=40.0, mag_rate_hz=100.0, att_rate_hz=50.0,
