@@ -69,6 +69,9 @@ NESTED_SIMPLER = {
     EffectKind.FIELD_DRIFT: EffectKind.HEADING_DRIFT,
 }
 
+#: Largest time offset the search is built for, s (issue 15: lags up to +-100 ms).
+MAX_LAG_S = 0.1
+
 #: Yaw grid of the search for a position frame rotated about Up (``field_gradient``), deg.
 YAW_GRID_DEG = np.arange(0.0, 360.0, 10.0)
 
@@ -694,6 +697,9 @@ def diagnose_data(
             if term.kind is EffectKind.FIELD_GRADIENT and data.p_m is not None:
                 st = gradient_candidate(cur, data, sig)
                 term = st.term
+            elif term.kind is EffectKind.EDDY_CURRENT and EffectKind.TIME_OFFSET in present:
+                # only what a time offset cannot explain: the anisotropic part of E_s
+                st = anisotropic_eddy_test(cur, data, sig)
             else:
                 st = score_test(cur, term, data, sig)
             Bc = cur.state.B_enu_nT
@@ -819,6 +825,10 @@ def diagnose_data(
     # the evidence of each finding was measured against the model of the moment it was added;
     # later rounds may have dropped or replaced terms before it. Re-measure it as a build-up in
     # the final order so that the numbers chain from the baseline to the final model.
+    canon = canonical_rate_terms(cur, data)
+    if canon is not cur:
+        cur, cv_cur = canon, heldout_rms(canon.state, data, cfg)
+    findings, cur, cv_cur = split_isotropic_eddy(findings, cur, cv_cur, data, cfg)
     findings = _chain_evidence(findings, cur, base_fit, cv_base, cv_cur, data, cfg)
     cov_final = _covariance(cur, data)
     note = _gradient_note(cur, data, not_ident)
@@ -973,6 +983,117 @@ def _replacement_fit(
     return float(dbic), st, res
 
 
+#: Orthonormal basis (8, 9) of the traceless 3x3 matrices, row-major: the part of ``E_s``
+#: that a time offset (``E_s = -tau I``, CONVENTIONS eddy_current) cannot produce.
+_TRACELESS = np.array(
+    [np.eye(3)[i][:, None] @ np.eye(3)[j][None, :] for i in range(3) for j in range(3)
+     if i != j]
+    + [np.diag([1.0, -1.0, 0.0]) / np.sqrt(2.0), np.diag([1.0, 1.0, -2.0]) / np.sqrt(6.0)]
+).reshape(8, 9)
+#: The isotropic direction of ``E_s`` (row-major), unit length.
+_ISO = np.eye(3).ravel() / np.sqrt(3.0)
+
+
+def anisotropic_eddy_test(cur: FitResult, data: FitData, sigma: float) -> ScoreTest:
+    """Score test of the anisotropic part of ``eddy_current`` with a time offset in the model.
+
+    The isotropic part of ``E_s`` is the time offset's (``E_s = -tau I`` to first order): with
+    ``time_offset`` in the model the eddy term is tested on the 8 traceless directions only,
+    so the nested simpler term keeps what it explains and the eddy term is admitted only for
+    what it cannot (issue 15). ``k`` stays 9 (conservative).
+    """
+    term = Term(EffectKind.EDDY_CURRENT)
+    ev = evaluate(cur.state.with_term(term), data)
+    J = ev.J.reshape(-1, ev.J.shape[-1])
+    p0 = cur.state.n_params()
+    Jt = np.concatenate([J[:, :p0], J[:, p0:] @ _TRACELESS.T], axis=1)
+    return _score_from_J(cur, term, Jt, data, sigma)
+
+
+def canonical_rate_terms(res: FitResult, data: FitData) -> FitResult:
+    """With ``time_offset`` and ``eddy_current`` both in the model, move ``tr(E_s)/3`` to tau.
+
+    The two share one direction (``E_s = -tau I`` to first order): the fit leaves it where the
+    iterations stopped. The canonical split gives the time offset the isotropic part, ``tau <-
+    tau - tr(E_s)/3`` and ``E_s <- E_s - tr(E_s)/3 I`` (no refit: a refit drifts back along the
+    shared direction). It is taken unless it worsens the fit by more than one parameter's BIC
+    (``ln N`` noise variances), which the second-order difference of the two terms stays far
+    below.
+    """
+    from pipeline.effects import normal_equations
+
+    kinds = [t.kind for t in res.state.terms]
+    if EffectKind.TIME_OFFSET not in kinds or EffectKind.EDDY_CURRENT not in kinds:
+        return res
+    it, ie = kinds.index(EffectKind.TIME_OFFSET), kinds.index(EffectKind.EDDY_CURRENT)
+    vals = list(res.state.values)
+    E = vals[ie].reshape(3, 3)
+    iso = float(np.trace(E)) / 3.0
+    vals[it] = vals[it] - iso
+    vals[ie] = (E - iso * np.eye(3)).ravel()
+    st = dataclasses.replace(res.state, values=tuple(vals))
+    ev = evaluate(st, data)
+    r = data.y_nT - ev.y_nT
+    rss = float(np.sum(r * r))
+    n = max(res.residual_nT.size, 2)
+    if not np.isfinite(rss) or rss - res.rss > np.log(n) * res.rss / n:
+        return res
+    H, _ = normal_equations(ev.J, r)
+    return FitResult(st, r, rss, H, res.n_iter)
+
+
+def split_isotropic_eddy(
+    findings: list[Finding], cur: FitResult, cv_cur: float, data: FitData,
+    cfg: DiagnoseConfig,
+) -> tuple[list[Finding], FitResult, float]:
+    """Turn an eddy term with a significant isotropic part into a time offset and the rest.
+
+    The simpler nested term is reported for what it explains: when the final model has
+    ``eddy_current`` but no ``time_offset`` and ``tr(E_s)/3`` differs from zero by more than
+    the BIC gate of one parameter (``z^2 > ln n_eff + bic_margin``), the model is refitted with
+    ``time_offset`` (tau = -tr(E_s)/3) and the traceless remainder of ``E_s``; the remainder is
+    kept only if it still lowers the BIC by ``bic_margin`` and the held-out error.
+    """
+    kinds = [t.kind for t in cur.state.terms]
+    if EffectKind.EDDY_CURRENT not in kinds or EffectKind.TIME_OFFSET in kinds:
+        return findings, cur, cv_cur
+    ie = kinds.index(EffectKind.EDDY_CURRENT)
+    o = cur.state.offsets()[ie]
+    cov = _covariance(cur, data)[o : o + 9, o : o + 9]
+    E = cur.state.values[ie]
+    iso = float(_ISO @ E)
+    var = float(_ISO @ cov @ _ISO)
+    n_eff = _n_eff(cur, data)
+    if var <= 0 or iso * iso / var <= np.log(n_eff) + cfg.bic_margin:
+        return findings, cur, cv_cur
+    tau = -iso / np.sqrt(3.0)  # E_iso = (iso / sqrt 3) I = -tau I
+    st = dataclasses.replace(
+        cur.state,
+        terms=cur.state.terms[:ie] + (Term(EffectKind.TIME_OFFSET),) + cur.state.terms[ie:],
+        values=cur.state.values[:ie] + (np.array([tau]),) + (
+            (E.reshape(3, 3) + tau * np.eye(3)).ravel(),) + cur.state.values[ie + 1:],
+    )
+    split = canonical_rate_terms(fit(st, data), data)
+    Es = split.state.values[ie + 1]
+    if abs(float(_ISO @ Es)) > 1e-3 * max(float(np.linalg.norm(Es)), 1e-12):
+        # the canonical split was refused: the data tell the isotropic eddy term from a
+        # time offset (second order, fast motion); the eddy term stays as it is
+        return findings, cur, cv_cur
+    placeholder = dataclasses.replace(findings[ie], effect=EffectKind.TIME_OFFSET.value)
+    new_findings = findings[:ie] + [placeholder] + findings[ie:]
+    # does the anisotropic remainder earn its place?
+    ie2 = ie + 1
+    wo = canonical_rate_terms(fit(_without(split.state, ie2), data), data)
+    n_eff = _n_eff(split, data)
+    keep = _bic(split.rss, n_eff, split.state.n_params()) - _bic(wo.rss, n_eff,
+                                                                   wo.state.n_params())
+    cv_split = heldout_rms(split.state, data, cfg)
+    cv_wo = heldout_rms(wo.state, data, cfg)
+    if keep > -cfg.bic_margin or _heldout_ok(wo, split, data, cfg, cv_wo) is None:
+        return new_findings[:ie2] + new_findings[ie2 + 1:], wo, cv_wo
+    return new_findings, split, cv_split
+
+
 def _without(state: ModelState, i: int) -> ModelState:
     """``state`` without its ``i``-th term."""
     t = state.terms[i]
@@ -988,7 +1109,7 @@ def _refit(
     cur: FitResult, term: Term, data: FitData, cfg: DiagnoseConfig
 ) -> tuple[FitResult, float] | None:
     """Refit with ``term``; return (fit, delta BIC) if the BIC drops by ``bic_margin``."""
-    res = fit(cur.state.with_term(term), data)
+    res = canonical_rate_terms(fit(cur.state.with_term(term), data), data)
     if not res.rss < cur.rss:
         return None
     n_eff = _n_eff(res, data)
@@ -1026,6 +1147,13 @@ def _covariance(res: FitResult, data: FitData) -> np.ndarray:
         H[3:6, :] = 0.0
         H[:, 3:6] = 0.0
         H[3:6, 3:6] = np.eye(3)
+    kinds = [t.kind for t in res.state.terms]
+    if EffectKind.TIME_OFFSET in kinds and EffectKind.EDDY_CURRENT in kinds:
+        # tr(E_s) = 0 (canonical_rate_terms): the shared direction belongs to tau
+        o = res.state.offsets()[kinds.index(EffectKind.EDDY_CURRENT)]
+        a = np.zeros(P)
+        a[o : o + 9] = _ISO
+        H = H + float(np.max(np.diag(H))) * np.outer(a, a)
     return s2 * np.linalg.pinv(H, rcond=1e-13)
 
 
@@ -1113,8 +1241,18 @@ def fit_data_from(
     else:
         track = AttitudeTrack(t_s - aligned.time_offset_s, np.asarray(aligned.q_enu_body))
     y = np.asarray(aligned.mag_nT, dtype=float)
+    # a sample whose sensing time t - tau falls outside the attitude track cannot be
+    # predicted (the track is held at its ends): for lags up to MAX_LAG_S the samples that
+    # close to the track's ends are left out (a lag of 100 ms otherwise shows as a step in
+    # the first 0.1 s)
+    edge = (t_s >= track.t_s[0] + MAX_LAG_S) & (t_s <= track.t_s[-1] - MAX_LAG_S)
+    if np.count_nonzero(edge) >= 0.9 * len(t_s):
+        t_s, y = t_s[edge], y[edge]
+        aligned_t_ns = np.asarray(aligned.t_ns)[edge]
+    else:
+        aligned_t_ns = np.asarray(aligned.t_ns)
     pos: dict[str, Any] = {}
-    p = _positions_at(recording, aligned.t_ns)
+    p = _positions_at(recording, aligned_t_ns)
     if p is not None:
         ok = np.isfinite(p).all(axis=1)
         t_s, y, p = t_s[ok], y[ok], p[ok]
