@@ -1,8 +1,8 @@
 """Diagnosis bench: confusion tables per corpus, parameter accuracy, and the speed.
 
 Usage: ``python bench/diagnose.py [N] [SEED] [WORKDIR] [SECTION ...]`` with sections
-``long``, ``challenge``, ``independent``, ``semireal``, ``rescore=DIR`` (default: the first
-four). Corpora:
+``long``, ``challenge``, ``independent``, ``semireal[=lab_01,...[:SECONDS]]``,
+``rescore=DIR`` (default: the first four). Corpora:
 
 - ``challenge``: ``pipeline.challenge`` (magalign's simulator), N recordings and N/2 nulls;
 - ``independent``: ``tests/indep_gen.py`` (no magalign model code): >= 60 nulls sweeping
@@ -177,11 +177,12 @@ def run_independent(work: Path, seed: int, n_null: int = 60) -> dict[str, Any]:
     return summarize(rows, "independent (tests/indep_gen.py)")
 
 
-def run_semireal(work: Path, max_s: float = SEMIREAL_S) -> dict[str, Any] | None:
+def run_semireal(work: Path, max_s: float = SEMIREAL_S,
+                 only: list[str] | None = None) -> dict[str, Any] | None:
     """Effects injected into each real recording, scored against the rewritten base."""
     import semireal as sr
 
-    files = sorted(sr.REAL_DIR.glob("lab_0*.mcap"))
+    files = sorted(f for f in sr.REAL_DIR.glob("lab_0*.mcap") if not only or f.stem in only)
     if not files:
         print("\n== semi-real: skipped (the real recordings are absent)")
         return None
@@ -216,6 +217,7 @@ def run_semireal(work: Path, max_s: float = SEMIREAL_S) -> dict[str, Any] | None
             rows.append({"name": f"{f.stem}:{label}", "true": [rep], "found": shown,
                          "strength": {rep: float("nan")}, "param_ok": pok,
                          "note": f"(all findings {found})"})
+            print(f"  {rows[-1]['name']}: new {shown} params {pok} all {found}", flush=True)
         print(f"{f.stem}: {len(cases)} injections in {time.perf_counter() - t0:.0f} s")
     r = summarize(rows, "semi-real (tests/semireal.py): columns are findings the base lacked")
     extra = [x for x in rows if set(x["found"]) - set(x["true"])]
@@ -281,8 +283,12 @@ def main() -> int:
                 print(f"false findings on null recordings: {r['null_false']}/{r['null_n']}")
             elif sec == "independent":
                 run_independent(work, seed, n_null=max(n, 60))
-            elif sec == "semireal":
-                run_semireal(work)
+            elif sec.startswith("semireal"):
+                # semireal[=lab_01,lab_03[:seconds]]
+                arg = sec.split("=", 1)[1] if "=" in sec else ""
+                names, _, secs = arg.partition(":")
+                run_semireal(work, float(secs) if secs else SEMIREAL_S,
+                             [x for x in names.split(",") if x] or None)
             elif sec.startswith("rescore="):
                 rescore(Path(sec.split("=", 1)[1]), work)
             else:
