@@ -44,7 +44,7 @@ ROTVEC_DEG = (1.0, -2.0, 3.0)
 B_ENU_NT = (10_000.0, 30_000.0, -20_000.0)
 #: bytes per sample pair held by a Recording: mag t (8) + xyz (24), attitude t (8) + q (32)
 RECORDING_BYTES = 72
-#: bytes per sample of RestoredSamples: t 8, calibrated 24, q 32, enu 24, residual 24, valid 1
+#: bytes per sample of RestoreResult: t 8, calibrated 24, q 32, enu 24, residual 24, valid 1
 RESTORED_BYTES = 113
 
 

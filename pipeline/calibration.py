@@ -3,7 +3,8 @@
 ``calibration.json`` follows CONVENTIONS.md, format ``magalign.calibration/1``.
 
 Model (CONVENTIONS): ``y_mag(t) = D @ R_body_mag.T @ C_enu_body(t - tau).T @ B_enu + o + e``;
-restoring inverts it: ``b_enu = C_enu_body(t - tau) @ R_body_mag @ inv(D) @ (y_mag - o)``.
+restoring inverts it: ``b_enu = C_enu_body(t - tau) @ R_body_mag @ inv(D) @ (y_mag - o - e)``.
+Both are :mod:`pipeline.model.forward` (:meth:`Calibration.predict`, :meth:`Calibration.restore`).
 """
 
 from __future__ import annotations
@@ -12,14 +13,18 @@ import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .errors import InputError
-from .geometry import matrix_to_quat, quat_rotate, quat_to_rotvec
+from .geometry import matrix_to_quat, quat_to_rotvec
 from .validate import check_calibration_dict
 from .verdict import Verdict
+
+if TYPE_CHECKING:
+    from .model.forward import ForwardModel, Restoration
+    from .recording import AttitudeSeries, PositionSeries
 
 FORMAT = "magalign.calibration/1"
 
@@ -176,37 +181,78 @@ class Calibration:
             y = np.linalg.solve(self.D, y.T).T
         return y
 
-    def apply(self, mag_nT: np.ndarray, q_enu_body: np.ndarray) -> np.ndarray:
-        """Restore magnetometer samples to ENU (CONVENTIONS, inverse model).
+    def forward_model(self) -> ForwardModel:
+        """Return the measurement model this calibration carries (:mod:`pipeline.model`)."""
+        from .model.forward import ForwardModel
+
+        return ForwardModel.from_calibration(self)
+
+    def predict(
+        self,
+        t_ns: np.ndarray,
+        attitude: AttitudeSeries,
+        *,
+        t0_ns: int | None = None,
+        max_gap_s: float | None = None,
+        position: PositionSeries | None = None,
+    ) -> np.ndarray:
+        """Forward model: the magnetometer readings predicted at the stamps ``t_ns``.
+
+        Every term the calibration carries (``D``, ``o``, ``tau`` by re-interpolating the
+        attitude at ``t - tau``, and the diagnosed effects: eddy currents, offset steps,
+        disturbances, field drift and gradient); :func:`pipeline.model.forward.evaluate`.
 
         Parameters
         ----------
-        mag_nT : ndarray, shape (N, 3)
-            Raw magnetometer, mag frame.
-        q_enu_body : ndarray, shape (N, 4)
-            Attitude at ``t - tau`` (the caller interpolates with ``time_offset_s``).
+        t_ns : ndarray of int64, shape (N,)
+            Magnetometer stamps, ns since the epoch.
+        attitude : AttitudeSeries
+            The attitude samples ``q_enu_body`` (THE interpolator,
+            with the gap rule).
+        t0_ns : int, optional
+            First magnetometer stamp of the recording (effect windows count from it);
+            default ``t_ns[0]``.
+        max_gap_s : float, optional
+            Attitude gap bridged, s; default the automatic rule.
+        position : PositionSeries, optional
+            Positions for a ``field_gradient`` effect.
 
         Returns
         -------
         ndarray, shape (N, 3)
-            ``C_enu_body @ R_body_mag @ inv(D) @ (y - o)``, ENU, nT.
+            Predicted ``y_mag``, nT; NaN where no attitude is available.
 
         """
-        m = self.calibrated_mag(mag_nT)
-        return quat_rotate(q_enu_body, m @ self.R_body_mag.T)
+        from .model.forward import predict
 
-    def predict(self, q_enu_body: np.ndarray, B_enu_nT: np.ndarray | None = None) -> np.ndarray:
-        """Forward model: the magnetometer reading predicted from the attitude, shape (N, 3)."""
-        from .geometry import quat_conj
+        return predict(self.forward_model(), t_ns, attitude, t0_ns=t0_ns,
+                       max_gap_s=max_gap_s, position=position)
 
-        B = self.B_enu_nT if B_enu_nT is None else np.asarray(B_enu_nT, dtype=float)
-        b_body = quat_rotate(quat_conj(q_enu_body), np.broadcast_to(B, (len(q_enu_body), 3)))
-        y = b_body @ self.R_body_mag  # R.T @ b for each row
-        if self.D is not None:
-            y = y @ self.D.T
-        if self.offset_nT is not None:
-            y = y + self.offset_nT
-        return y
+    def restore(
+        self,
+        mag_nT: np.ndarray,
+        t_ns: np.ndarray,
+        attitude: AttitudeSeries,
+        *,
+        t0_ns: int | None = None,
+        max_gap_s: float | None = None,
+        position: PositionSeries | None = None,
+    ) -> Restoration:
+        """Restore magnetometer samples to ENU by inverting every term (CONVENTIONS).
+
+        Parameters as :meth:`predict`, with ``mag_nT`` (N, 3) the raw readings, mag frame.
+
+        Returns
+        -------
+        Restoration
+            ``enu_nT`` (restored field, ENU, nT), ``calibrated_mag_nT``, ``residual_nT`` of
+            the full model, ``valid`` (:class:`pipeline.model.forward.Restoration`).
+
+        """
+        from .model.forward import restore
+
+        return restore(self.forward_model(), mag_nT, t_ns, attitude, t0_ns=t0_ns,
+                       max_gap_s=max_gap_s, position=position)
 
     # ------------------------------------------------------------------ serialisation
     def to_dict(self) -> dict[str, Any]:

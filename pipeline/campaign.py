@@ -27,7 +27,7 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -96,9 +96,13 @@ class ReferenceField:
 
             from .igrf import igrf_enu_nT
 
+            # the campaign file reader sets the site with the IGRF mode
+            assert self.lat_deg is not None and self.lon_deg is not None
+            assert self.alt_m is not None
             b = igrf_enu_nT(self.lat_deg, self.lon_deg, self.alt_m,
                             dt.date.fromisoformat(str(self.date)))
-            return tuple(float(x) for x in np.asarray(b).reshape(3))
+            return cast("tuple[float, float, float]",
+                        tuple(float(x) for x in np.asarray(b).reshape(3)))
         return None
 
 
@@ -118,7 +122,9 @@ class RecordingOptions:
 
     """
 
-    estimator: EstimatorName = EstimatorName.ML
+    # EstimatorKind is built from the estimator registry: its members are not known to a type
+    # checker, so they are looked up by value ("ml" is EstimatorKind.ML)
+    estimator: EstimatorName = EstimatorName("ml")
     terms: tuple[TermName, ...] = ()
     reference_field: ReferenceField = field(default_factory=ReferenceField)
     mag_topic: str | None = None
@@ -279,7 +285,7 @@ def _parse_options(doc: TomlDoc) -> RecordingOptions:
     if not isinstance(est, Mapping):
         raise doc.error("estimator", "must be a table")
     doc.check_keys(est, {"kind", "terms"}, "estimator")
-    kind = doc.choice("estimator.kind", EstimatorName, EstimatorName.ML)
+    kind = doc.choice("estimator.kind", EstimatorName, EstimatorName("ml"))
     terms_raw = est.get("terms", [])
     if not isinstance(terms_raw, list):
         raise doc.error("estimator.terms", f"must be a list of term names, got {terms_raw!r}")
@@ -305,7 +311,7 @@ def _parse_options(doc: TomlDoc) -> RecordingOptions:
             raise doc.error("reference_field.enu_nT",
                             f"field magnitude {np.linalg.norm(v):.0f} nT is not an Earth field "
                             "(expected 20,000-70,000 nT)", hint="give the field in nanotesla")
-        ref = ReferenceField(mode, enu_nT=tuple(v))
+        ref = ReferenceField(mode, enu_nT=cast("tuple[float, float, float]", tuple(v)))
     elif mode is ReferenceFieldMode.IGRF:
         lat = doc.number("reference_field.lat_deg", lo=-90, hi=90)
         lon = doc.number("reference_field.lon_deg", lo=-180, hi=360)
@@ -444,6 +450,7 @@ def campaign_from_doc(doc: TomlDoc) -> Campaign:
         elif rec_path is not None:
             nm = Path(rec_path).stem
         else:
+            assert scen_path is not None  # no path: a scenario (checked above)
             nm = Path(scen_path).stem
         if rec_path is not None and "name" in r and safe_name(nm) != safe_name(
                 Path(rec_path).stem):
@@ -658,6 +665,7 @@ def _generate(task: RecordingTask) -> None:
     """Simulate a scenario recording into the campaign's data folder (atomic write)."""
     from .simulate import load_scenario, simulate, write_simulated
 
+    assert task.scenario is not None  # called for scenario recordings only
     sim = simulate(load_scenario(task.scenario), seed=task.seed)
     Path(task.input_path).parent.mkdir(parents=True, exist_ok=True)
     write_simulated(sim, task.input_path)

@@ -11,9 +11,12 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
+import shlex
 import sys
 import traceback
 import warnings
+from typing import NoReturn
 
 from .errors import MagalignError, UsageError
 
@@ -34,7 +37,7 @@ COMMANDS = (
 class _Parser(argparse.ArgumentParser):
     """argparse that exits with status 2 and one line, as CONVENTIONS require."""
 
-    def error(self, message: str) -> None:  # noqa: D102
+    def error(self, message: str) -> NoReturn:  # noqa: D102
         words = self.prog.split()
         see = "magalign -h" if len(words) < 2 else f"magalign {words[-1]} -h"
         self.exit(2, f"magalign: usage: {message} (see {see})\n")
@@ -93,6 +96,9 @@ def main(argv: list[str] | None = None) -> int:
     # Warnings are held until the command ends: a command that fails with bad input says so
     # in exactly one line (what it repaired before giving up is moot); one that succeeds, or
     # a campaign that partly failed, prints each warning as one line.
+    # the report's provenance names the command line (worker processes inherit it)
+    old_command = os.environ.get("MAGALIGN_COMMAND")
+    os.environ["MAGALIGN_COMMAND"] = shlex.join(["magalign", *argv])
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("default")
         try:
@@ -115,6 +121,10 @@ def main(argv: list[str] | None = None) -> int:
             status, failed = 0, False
         if not failed:
             _show(caught, True, debug)
+        if old_command is None:
+            os.environ.pop("MAGALIGN_COMMAND", None)
+        else:
+            os.environ["MAGALIGN_COMMAND"] = old_command
     sys.stdout.flush()
     return status
 

@@ -35,7 +35,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .geometry import quat_slerp, quat_to_matrix, skew, so3_exp
+from .geometry import quat_to_matrix, skew, so3_exp
+from .model.attitude import AttitudeInterpolator
+from .model.forward import HEADING_DEGREE, heading_basis, rotate_about_up
+from .model.solve import gram, levenberg_marquardt, normal_equations  # noqa: F401 (re-exported)
 
 F64 = NDArray[np.float64]
 
@@ -79,7 +82,12 @@ for _k, (_i, _j) in enumerate([(0, 1), (0, 2), (1, 2)]):
 
 @dataclass(frozen=True)
 class AttitudeTrack:
-    """Attitude samples that can be evaluated at any time by SLERP.
+    """Attitude samples evaluated at any time by THE interpolator (C1 cubic on SO(3)).
+
+    The prediction of the diagnosis is the one of calibrate and restore
+    (:mod:`pipeline.model.attitude`): the C1 cubic between the samples, held constant outside
+    their span, no smoothing. (Attitude noise and interpolation error belong in the
+    weights of the likelihood, not in the prediction.)
 
     Attributes
     ----------
@@ -93,92 +101,27 @@ class AttitudeTrack:
     t_s: F64
     q_enu_body: F64
 
+    def __post_init__(self) -> None:
+        t_s = np.asarray(self.t_s, dtype=float)
+        # ns relative to the first sample keep the spacing exact to 1 ns
+        t_ns = np.round((t_s - t_s[0]) * 1e9).astype(np.int64) if len(t_s) else t_s
+        interp = AttitudeInterpolator(t_ns, self.q_enu_body, max_gap_s=np.inf, clamp=True)
+        object.__setattr__(self, "_interp", interp)
+
     def at(self, t_s: F64) -> F64:
-        """Quaternions ``q_enu_body`` at ``t_s`` (held constant outside the span), (N, 4).
+        """Quaternions ``q_enu_body`` at ``t_s`` (held constant outside the span), (N, 4)."""
+        tq = np.asarray(t_s, dtype=float) - float(self.t_s[0])
+        return self._interp.at_rel_s(tq).q_enu_body
 
-        Cubic (Catmull-Rom) interpolation of the sign-aligned quaternion components,
-        renormalised; SLERP where a neighbour is missing or across a gap. Linear (SLERP)
-        interpolation errs by ``s (1 - s) dt^2 / 2`` times the angular acceleration, which
-        for swinging motion is proportional to the swing itself: at 50 Hz that alone shows
-        up as nT-level offsets and scale errors, i.e. as spurious hard or soft iron.
-        """
-        t = np.clip(np.asarray(t_s, dtype=float), self.t_s[0], self.t_s[-1])
-        m = len(self.t_s)
-        i = np.clip(np.searchsorted(self.t_s, t, side="right") - 1, 0, m - 2)
-        t0, t1 = self.t_s[i], self.t_s[i + 1]
-        s = np.where(t1 > t0, (t - t0) / np.where(t1 > t0, t1 - t0, 1.0), 0.0)
-        q1 = self.q_enu_body[i]
-        lin = quat_slerp(q1, self.q_enu_body[i + 1], s)
-        if m < 4:
-            return lin
-        im, i2 = np.maximum(i - 1, 0), np.minimum(i + 2, m - 1)
-        q0, q2, q3 = self.q_enu_body[im], self.q_enu_body[i + 1], self.q_enu_body[i2]
-        # same hemisphere as q1
-        q0 = np.where(np.sum(q0 * q1, -1, keepdims=True) < 0, -q0, q0)
-        q2 = np.where(np.sum(q2 * q1, -1, keepdims=True) < 0, -q2, q2)
-        q3 = np.where(np.sum(q3 * q1, -1, keepdims=True) < 0, -q3, q3)
-        ss = s[:, None]
-        cub = 0.5 * (2 * q1 + (q2 - q0) * ss + (2 * q0 - 5 * q1 + 4 * q2 - q3) * ss**2
-                     + (-q0 + 3 * q1 - 3 * q2 + q3) * ss**3)
-        cub /= np.linalg.norm(cub, axis=-1, keepdims=True)
-        dt = t1 - t0
-        ok = (im == i - 1) & (i2 == i + 2)
-        ok &= np.abs(self.t_s[im] - t0 + dt) < 0.25 * dt
-        ok &= np.abs(self.t_s[i2] - t1 - dt) < 0.25 * dt
-        return np.where(ok[:, None], cub, lin)
+    def position(self, t_s: F64) -> F64:
+        """Where each ``t_s`` falls between its two attitude samples, 0..1, (N,)."""
+        tq = np.asarray(t_s, dtype=float) - float(self.t_s[0])
+        return self._interp.at_rel_s(tq).position
 
-    def smoothed(self, taps: int = 7) -> AttitudeTrack:
-        """Return the track low-passed by a symmetric binomial kernel (no delay).
-
-        White attitude noise makes the noise of a SLERP-interpolated attitude depend on
-        where between two samples it is read (half the variance mid-way): a fitted time
-        offset would then drift towards the mid-points and eddy terms would fit the noise
-        of neighbouring samples. Smoothing over a few samples makes the noise nearly
-        uniform; the motion (a few Hz at most) is untouched at these rates.
-        """
-        if taps < 3 or len(self.t_s) < 2 * taps:
-            return self
-        k = np.array([1.0])
-        for _ in range(taps - 1):
-            k = np.convolve(k, [0.5, 0.5])
-        q = np.array(self.q_enu_body, dtype=float)
-        # same hemisphere as the previous sample so that averaging is meaningful
-        flip = np.cumprod(np.where(np.sum(q[1:] * q[:-1], axis=1) < 0, -1.0, 1.0))
-        q[1:] *= flip[:, None]
-        pad = taps // 2
-        qp = np.concatenate([np.repeat(q[:1], pad, 0), q, np.repeat(q[-1:], pad, 0)])
-        qs = np.stack([np.convolve(qp[:, i], k, mode="valid") for i in range(4)], axis=-1)
-        qs /= np.linalg.norm(qs, axis=1, keepdims=True)
-        return AttitudeTrack(self.t_s, qs)
-
-    def denoised(self) -> AttitudeTrack:
-        """Return the track smoothed as much as its own noise warrants (see ``smoothed``).
-
-        The white-noise level is estimated from the second difference of the samples; the
-        motion's distortion by a binomial kernel of variance ``s^2`` is about
-        ``s^2 / 2 * |angular acceleration|``. The widest kernel whose distortion stays below a
-        fiftieth of the noise it removes is used (none for a clean or slowly sampled track):
-        a distorted swing is a bias that looks like hard or soft iron, noise only averages.
-        """
-        if len(self.t_s) < 30:
-            return self
-        dt = self.step_s
-        q = np.array(self.q_enu_body, dtype=float)
-        sgn = np.where(np.sum(q[1:] * q[:-1], axis=1) < 0, -1.0, 1.0)
-        q[1:] *= np.cumprod(sgn)[:, None]
-        d2 = q[2:] - 2.0 * q[1:-1] + q[:-2]
-        # rotation angle ~ 2 |dq|; white noise: var(d2) = 6 var(q); a robust RMS
-        noise_rad = 2.0 * 1.4826 * float(np.median(np.abs(d2))) / np.sqrt(6.0) * np.sqrt(3.0)
-        wide = self.smoothed(11).q_enu_body
-        k = max(1, int(round(0.1 / dt)))  # acceleration from a 0.1 s baseline: motion only
-        acc = 2.0 * np.linalg.norm(wide[2 * k:] - 2 * wide[k:-k] + wide[: -2 * k], axis=1)
-        acc_rad_s2 = float(np.sqrt(np.mean(acc**2))) / (k * dt) ** 2 if len(acc) else 0.0
-        best = 1
-        for taps in (3, 5, 7, 9, 11):
-            var_s2 = (taps - 1) / 4.0 * dt * dt
-            if 0.5 * var_s2 * acc_rad_s2 < 0.02 * noise_rad:
-                best = taps
-        return self.smoothed(best) if best > 1 else self
+    def omega_body(self, t_s: F64) -> F64:
+        """Angular velocity of the attitude at ``t_s``, body frame, rad/s, (N, 3) (exact)."""
+        tq = np.asarray(t_s, dtype=float) - float(self.t_s[0])
+        return self._interp.at_rel_s(tq).omega_body_rad_s
 
     @property
     def step_s(self) -> float:
@@ -210,6 +153,15 @@ class FitData:
     position_frame : str or None
         ``enu`` or ``attitude_source_local`` (third axis up, horizontal axes rotated about Up
         by an unknown angle).
+    noise_model : (float, float) or None
+        ``(sigma_mag2, c_att)``, nT^2: the variance of a residual component is modelled as
+        ``sigma_mag2 + c_att f(s)``, ``f`` the interpolated attitude noise factor of where the
+        sample falls between two attitude samples (:func:`sample_weights`). None: equal
+        weights.
+    stride : int
+        Every ``stride``-th usable sample was kept (decimated to a sample budget).
+    n_available : int or None
+        Usable samples before the decimation.
 
     """
 
@@ -221,6 +173,9 @@ class FitData:
     p_m: F64 | None = None
     p_ref_m: F64 | None = None
     position_frame: str | None = None
+    stride: int = 1
+    n_available: int | None = None
+    noise_model: tuple[float, float] | None = None
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
@@ -307,30 +262,6 @@ class Term:
 
 
 DRIFT_DEGREE = 4
-#: Degree of the heading-drift polynomial (Legendre P1..P2 of time): a constant gyro bias
-#: makes the heading error grow linearly, a bias that changes with temperature bends it.
-HEADING_DEGREE = 2
-
-
-def heading_basis(t_s: F64, t0_s: float, t1_s: float) -> F64:
-    """Legendre P1..P``HEADING_DEGREE`` of the time scaled to [-1, 1], shape (N, 2).
-
-    The constant heading error is not in the basis: a fixed rotation about Up of the attitude
-    is a fixed rotation of ``B_enu`` about Up, which the estimated field absorbs.
-    """
-    x = (2.0 * (np.asarray(t_s) - t0_s) / max(t1_s - t0_s, 1e-9)) - 1.0
-    return np.polynomial.legendre.legvander(x, HEADING_DEGREE)[:, 1:]
-
-
-def rotate_about_up(v_enu: F64, h_rad: F64) -> F64:
-    """Rows of ``v_enu`` (N, 3) turned about Up by ``h_rad`` (N,): ``Rz(h) v``."""
-    c, s = np.cos(h_rad), np.sin(h_rad)
-    out = np.array(v_enu, dtype=float, copy=True)
-    out[:, 0] = c * v_enu[:, 0] - s * v_enu[:, 1]
-    out[:, 1] = s * v_enu[:, 0] + c * v_enu[:, 1]
-    return out
-
-
 def rot_z(yaw_rad: float) -> F64:
     """Return the rotation about Up by ``yaw_rad``, (3, 3): ``p_enu = Q @ p_local``."""
     c, s = np.cos(yaw_rad), np.sin(yaw_rad)
@@ -479,6 +410,59 @@ class Evaluation:
     J: F64 | None
     ydot0_nT_s: F64
     G: F64
+    sqrt_w: F64 | None = None
+
+
+def sample_weights(data: FitData, tau_s: float) -> F64 | None:
+    """Likelihood weights of the samples from where they fall between attitude samples.
+
+    The prediction is THE one (:mod:`pipeline.model.attitude`); the white noise of
+    the attitude samples reaches the interpolated attitude with the variance factor
+    ``f(s)`` (:func:`pipeline.model.attitude.interpolation_noise_factor`),
+    ``s`` the position of ``t - tau`` between its two samples. Each residual component then
+    has the variance ``v = sigma_mag2 + c_att f(s)`` (``FitData.noise_model``); the weight is
+    ``w = v_mean / v`` with ``v_mean = sigma_mag2 + f_mean c_att``
+    (``f_mean = 57/70``, the average over ``s``), a
+    constant: ``sum w r^2`` then has the same expectation whatever ``tau`` (an unweighted fit
+    would drift ``tau`` and the eddy terms towards the low-noise mid-points).
+
+    Returns
+    -------
+    ndarray (N,) or None
+        None without a noise model.
+
+    """
+    if data.noise_model is None:
+        return None
+    from .model.attitude import MEAN_INTERPOLATION_NOISE_FACTOR, interpolation_noise_factor
+
+    s2, c = data.noise_model
+    f = interpolation_noise_factor(data.track.position(data.t_s - tau_s))
+    return (s2 + MEAN_INTERPOLATION_NOISE_FACTOR * c) / (s2 + c * f)
+
+
+def estimate_noise_model(residual_nT: F64, data: FitData) -> tuple[float, float] | None:
+    """``(sigma_mag2, c_att)`` (nT^2) of :func:`sample_weights` from a baseline fit.
+
+    ``c_att = 2/9 |B|^2 sigma_att^2``: an isotropic attitude error of RMS angle
+    ``sigma_att`` (:func:`pipeline.model.attitude.attitude_noise_rad`, from the track's
+    second differences) moves each component of ``C.T B`` by ``2/9 |B|^2 sigma_att^2`` in
+    variance; ``sigma_mag2`` is what the residual variance leaves (at least 5 % of it).
+    None when the attitude noise is negligible (below 0.1 % of the residual variance).
+    """
+    from .model.attitude import attitude_noise_rad, interpolation_noise_factor
+
+    var = float(np.mean(np.asarray(residual_nT) ** 2))
+    if not np.isfinite(var) or var <= 0:
+        return None
+    sig = attitude_noise_rad(data.track.q_enu_body)
+    y = np.asarray(data.y_nT, dtype=float)
+    c = 2.0 / 9.0 * float(np.mean(np.sum(y * y, axis=1))) * sig * sig
+    if c < 1e-3 * var:
+        return None
+    f = interpolation_noise_factor(data.track.position(data.t_s))
+    s2 = max(var - c * float(np.mean(f)), 0.05 * var)
+    return (s2, c)
 
 
 _CT_CACHE: dict[tuple, tuple[Any, F64]] = {}
@@ -536,7 +520,7 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
     Ct = _CT(data.track, s, base + (0,), own)
     Cp = _CT(data.track, s + h, base + (1,), own)
     Cm = _CT(data.track, s - h, base + (-1,), own)
-    Cdot = (Cp - Cm) / (2.0 * h)  # d/dt C.T, central difference of the SLERP track
+    Cdot = (Cp - Cm) / (2.0 * h)  # d/dt C.T, central difference of the interpolated track
     Cddot = (Cp - 2.0 * Ct + Cm) / (h * h)
 
     # --- ENU field at each sample: B + drift + disturbances
@@ -556,7 +540,7 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
     h_rad = None
     for term, v in zip(state.terms, state.values, strict=True):
         if term.kind is EffectKind.HEADING_DRIFT:
-            h_rad = heading_basis(t, 0.0, _span(data)) @ v
+            h_rad = heading_basis(t, _span(data)) @ v
             Bt_unturned = Bt
             Bt = rotate_about_up(Bt, h_rad)
     TT = state.T_enu.T
@@ -585,8 +569,10 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
     DRt = D @ R.T
     Gp = np.matmul(DRt, Ct) + np.matmul(E @ DRt, Cdot)
     G = Gp @ TT
+    w = sample_weights(data, tau)
+    sqrt_w = None if w is None else np.sqrt(w)
     if not jacobian:
-        return Evaluation(y, None, ydot0, G)
+        return Evaluation(y, None, ydot0, G, sqrt_w)
 
     J = np.zeros((n, 3, state.n_params()))
     # R: left perturbation, R.T <- R.T exp(-[d]x): dm/dd = R.T [b]x
@@ -613,8 +599,11 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
                 "kij,nj->nik", np.matmul(E, _SOFT_BASIS), mdot
             )
         elif k is EffectKind.TIME_OFFSET:
-            # b(t - tau): db/dtau = -bdot, dbdot/dtau = -bddot
-            J[:, :, i] = -(bdot @ DRt.T) - (bddot @ DRt.T) @ E.T
+            # b(t - tau) with the attitude re-interpolated at t - tau: db/dtau = omega x b with
+            # omega the exact interpolated rate at t - tau (pipeline.model.forward, (J5));
+            # dbdot/dtau = -bddot for the eddy regressor
+            w = data.track.omega_body(s)
+            J[:, :, i] = np.cross(w, b) @ DRt.T - (bddot @ DRt.T) @ E.T
         elif k is EffectKind.EDDY_CURRENT:
             # y_i += E_ij ydot0_j (row-major E)
             for r_ in range(3):
@@ -640,13 +629,13 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             # d(Rz(h) B)/dh = Rz(h + pi/2) B with the vertical part removed; h = P v
             dB = rotate_about_up(Bt_unturned, h_rad + 0.5 * np.pi)
             dB[:, 2] = 0.0
-            P = heading_basis(t, 0.0, _span(data))
+            P = heading_basis(t, _span(data))
             J[:, :, i : i + P.shape[1]] = _mv(G, dB)[:, :, None] * P[:, None, :]
         elif k is EffectKind.AXIS_TILT:
             # T.T <- T.T exp(-[d]x): d(T.T B)/dd = T.T [B]x, d = basis @ (2 params)
             Pb = _tilt_basis(state)
             J[:, :, i : i + 2] = np.matmul(np.matmul(Gp, TT), skew(Bt)) @ Pb
-    return Evaluation(y, J, ydot0, G)
+    return Evaluation(y, J, ydot0, G, sqrt_w)
 
 
 def _span(data: FitData) -> float:
@@ -663,7 +652,7 @@ def heading_drift_params(value: F64, data: FitData) -> dict[str, Any]:
     """
     span = _span(data)
     tt = np.linspace(0.0, span, 512)
-    h = np.degrees(heading_basis(tt, 0.0, span) @ value)
+    h = np.degrees(heading_basis(tt, span) @ value)
     return {"rate_deg_per_h": float((h[-1] - h[0]) / max(span / 3600.0, 1e-12)),
             "peak_to_peak_deg": float(h.max() - h.min())}
 
@@ -1200,12 +1189,17 @@ class FitResult:
     ----------
     state : ModelState
     residual_nT : ndarray (N, 3)
-        ``y - prediction`` on the fitted samples.
+        ``sqrt(w) (y - prediction)`` on the fitted samples (``w``: :func:`sample_weights`,
+        1 without a noise model).
     rss : float
-        Residual sum of squares, nT^2.
+        Weighted residual sum of squares, nT^2.
     info : ndarray (P, P)
-        ``J.T J`` at the solution (unscaled information).
+        ``J.T W J`` at the solution (unscaled information).
     n_iter : int
+    raw_residual_nT : ndarray (N, 3) or None
+        ``y - prediction`` unweighted (None: the same as ``residual_nT``).
+    noise_model : (float, float) or None
+        ``FitData.noise_model`` the fit was weighted with.
 
     """
 
@@ -1214,27 +1208,14 @@ class FitResult:
     rss: float
     info: F64
     n_iter: int
+    raw_residual_nT: F64 | None = None
+    noise_model: tuple[float, float] | None = None
 
     @property
     def rms_nT(self) -> float:
-        """RMS of the residual over all components, nT."""
-        return float(np.sqrt(self.rss / max(self.residual_nT.size, 1)))
-
-
-def normal_equations(J: F64, r: F64) -> tuple[F64, F64]:
-    """``J.T J`` and ``J.T r`` for J (N, 3, P) and r (N, 3)."""
-    Jf = J.reshape(-1, J.shape[-1])
-    return gram(Jf, Jf), gram(Jf, r.reshape(-1, 1))[:, 0]
-
-
-def gram(A: F64, B: F64) -> F64:
-    """``A.T @ B`` for tall matrices, without multi-threaded BLAS.
-
-    On a loaded machine a threaded BLAS call for these small products can stall for tenths
-    of a second (threads spinning for cores others hold); einsum's single-threaded loop is
-    predictable and fast enough for (3N, P) with P up to ~50.
-    """
-    return np.einsum("np,nq->pq", A, B)
+        """RMS of the (unweighted) residual over all components, nT."""
+        r = self.residual_nT if self.raw_residual_nT is None else self.raw_residual_nT
+        return float(np.sqrt(np.sum(r * r) / max(r.size, 1)))
 
 
 def fit(
@@ -1261,41 +1242,22 @@ def fit(
     fixed_B = data.B_known_enu_nT is not None
     if fixed_B:
         state = replace(state, B_enu_nT=np.asarray(data.B_known_enu_nT, dtype=float))
-    ev = evaluate(state, data)
-    r = data.y_nT - ev.y_nT
-    rss = float(np.sum(r * r))
-    lam = 1e-4
-    it = 0
-    H, g = normal_equations(ev.J, r)
-    for it in range(1, max_iter + 1):  # noqa: B007 (it is reported)
-        d = np.diag(H).copy()
-        scale = d + 1e-9 * max(float(np.max(d)), 1e-30)
-        step_ok = False
-        for _ in range(12):
-            try:
-                dx = np.linalg.solve(H + lam * np.diag(scale), g)
-            except np.linalg.LinAlgError:
-                lam *= 10.0
-                continue
-            cand = state.update(dx, fixed_B=fixed_B)
-            ev_c = evaluate(cand, data, jacobian=False)
-            r_c = data.y_nT - ev_c.y_nT
-            rss_c = float(np.sum(r_c * r_c))
-            if np.isfinite(rss_c) and rss_c <= rss:
-                step_ok = True
-                break
-            lam *= 5.0
-        if not step_ok:
-            break
-        rel = (rss - rss_c) / max(rss, 1e-30)
-        state, rss = cand, rss_c
-        lam = max(lam / 4.0, 1e-9)
-        ev = evaluate(state, data)
-        r = data.y_nT - ev.y_nT
-        H, g = normal_equations(ev.J, r)
-        if rel < rtol:
-            break
-    return FitResult(state, r, rss, H, it)
+
+    def resid(st: ModelState, with_jacobian: bool) -> tuple[F64, F64 | None]:
+        ev = evaluate(st, data, jacobian=with_jacobian)
+        r, J = data.y_nT - ev.y_nT, ev.J
+        if ev.sqrt_w is not None:  # the likelihood's weights (sample_weights)
+            r = r * ev.sqrt_w[:, None]
+            J = None if J is None else J * ev.sqrt_w[:, None, None]
+        return r, J
+
+    sol = levenberg_marquardt(state, resid, lambda st, dx: st.update(dx, fixed_B=fixed_B),
+                              max_iter=max_iter, rtol=rtol)
+    raw = None
+    if data.noise_model is not None:
+        raw = data.y_nT - evaluate(sol.state, data, jacobian=False).y_nT
+    return FitResult(sol.state, sol.residual, sol.rss, sol.info, sol.n_iter, raw,
+                     data.noise_model)
 
 
 def wahba_init(data: FitData, n_iter: int = 10) -> ModelState:

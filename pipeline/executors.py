@@ -238,6 +238,7 @@ class DaskExecutor:
             self.workers = max(1, len(self._client.scheduler_info().get("workers", {})))
             self._where = f"Dask scheduler {address} ({self.workers} worker(s))"
         else:
+            assert n_workers is not None  # exactly one of address, n_workers (checked above)
             if n_workers < 1:
                 raise UsageError(f"--dask-local must be at least 1, got {n_workers}")
             self._cluster = LocalCluster(

@@ -58,9 +58,9 @@ def so3_log(C: ArrayLike) -> F64:
 
 def quat_normalize(q: ArrayLike) -> F64:
     """Normalise quaternion(s) to unit norm and ``w >= 0`` (the same rotation), (..., 4)."""
-    q = np.asarray(q, dtype=float)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., 3:4] < 0, -q, q)
+    qa: F64 = np.asarray(q, dtype=float)
+    qn: F64 = qa / np.linalg.norm(qa, axis=-1, keepdims=True)
+    return np.where(qn[..., 3:4] < 0, -qn, qn)
 
 
 def quat_conj(q: ArrayLike) -> F64:

@@ -32,15 +32,23 @@ import zlib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any, Protocol
+from typing import IO, TYPE_CHECKING, Any, Protocol, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from schemas import MESSAGE_TYPES, MessageRole
+
 from . import geometry, messages
 from .atomic import atomic_path
 from .errors import OutputError, SchemaError
+from .mcap_format import MAGIC, Opcode
 from .mcap_read import ranges_mask
+
+if TYPE_CHECKING:
+    # An ndarray is a buffer, but numpy's stubs declare ``__buffer__`` only for Python >= 3.12:
+    # arrays handed to memoryview() are cast to this protocol.
+    from typing_extensions import Buffer
 
 __all__ = [
     "Compression",
@@ -50,28 +58,7 @@ __all__ = [
     "write_recording",
 ]
 
-MAGIC = b"\x89MCAP0\r\n"
 LIBRARY = "magalign mcap_write"
-
-
-class Op(enum.IntEnum):
-    """MCAP record opcodes."""
-
-    HEADER = 0x01
-    FOOTER = 0x02
-    SCHEMA = 0x03
-    CHANNEL = 0x04
-    MESSAGE = 0x05
-    CHUNK = 0x06
-    MESSAGE_INDEX = 0x07
-    CHUNK_INDEX = 0x08
-    ATTACHMENT = 0x09
-    ATTACHMENT_INDEX = 0x0A
-    STATISTICS = 0x0B
-    METADATA = 0x0C
-    METADATA_INDEX = 0x0D
-    SUMMARY_OFFSET = 0x0E
-    DATA_END = 0x0F
 
 
 class Compression(str, enum.Enum):
@@ -149,7 +136,7 @@ class _Sink:
         self.track_crc = True
 
     def write(self, b: bytes | memoryview | np.ndarray) -> None:
-        mv = memoryview(b).cast("B") if not isinstance(b, bytes) else b
+        mv = memoryview(cast("Buffer", b)).cast("B") if not isinstance(b, bytes) else b
         self.fh.write(mv)
         if self.track_crc:
             self.crc = zlib.crc32(mv, self.crc)
@@ -298,7 +285,7 @@ class McapColumnWriter:
             self._fh = open(self._tmp, "wb")  # closed in close() or abort()
             self._out = _Sink(self._fh)
             self._out.write(MAGIC)
-            self._out.write(_record(Op.HEADER, _str(self.profile) + _str(self.library)))
+            self._out.write(_record(Opcode.HEADER, _str(self.profile) + _str(self.library)))
         except BaseException as exc:
             self.abort(type(exc), exc, exc.__traceback__)
             raise
@@ -432,7 +419,7 @@ class McapColumnWriter:
         self._next_seq[channel_id] += n
 
         hdr = np.empty(n, dtype=_MSG_HDR)
-        hdr["op"] = Op.MESSAGE
+        hdr["op"] = Opcode.MESSAGE
         hdr["len"] = lens + _MSG_FIXED
         hdr["channel"] = channel_id
         hdr["sequence"] = seq
@@ -502,7 +489,7 @@ class McapColumnWriter:
             import lz4.frame
 
             return lz4.frame.compress(raw)
-        return memoryview(raw).cast("B")
+        return memoryview(cast("Buffer", raw)).cast("B")
 
     def _write_definitions(self) -> None:
         """Write Schema and Channel records not yet in the file (before any message uses them)."""
@@ -522,6 +509,7 @@ class McapColumnWriter:
         """
         self.open()
         self._write_definitions()
+        keep: list[_Block]
         if before_ns is None:
             todo, keep = self._blocks, []
         else:
@@ -551,23 +539,23 @@ class McapColumnWriter:
 
         metadata_index = []
         for name, md in self._metadata:
-            rec = _record(Op.METADATA, _str(name) + _map_ss(md))
-            metadata_index.append(_record(Op.METADATA_INDEX,
+            rec = _record(Opcode.METADATA, _str(name) + _map_ss(md))
+            metadata_index.append(_record(Opcode.METADATA_INDEX,
                                           struct.pack("<QQ", out.pos, len(rec)) + _str(name)))
             out.write(rec)
         attachment_index = []
         for name, media, data, log_t, create_t in self._attachments:
             body = (struct.pack("<QQ", log_t, create_t) + _str(name) + _str(media)
                     + struct.pack("<Q", len(data)) + data)
-            rec = _record(Op.ATTACHMENT, body + struct.pack("<I", zlib.crc32(body)))
+            rec = _record(Opcode.ATTACHMENT, body + struct.pack("<I", zlib.crc32(body)))
             attachment_index.append(_record(
-                Op.ATTACHMENT_INDEX,
+                Opcode.ATTACHMENT_INDEX,
                 struct.pack("<QQQQQ", out.pos, len(rec), log_t, create_t, len(data))
                 + _str(name) + _str(media),
             ))
             out.write(rec)
 
-        out.write(_record(Op.DATA_END, struct.pack("<I", out.crc)))
+        out.write(_record(Opcode.DATA_END, struct.pack("<I", out.crc)))
 
         # Summary section.
         summary_start = out.pos
@@ -580,12 +568,12 @@ class McapColumnWriter:
             + _map_bytes_u16_u64(counts)
         )
         groups: list[tuple[int, list[bytes]]] = [
-            (Op.SCHEMA, schema_recs),
-            (Op.CHANNEL, channel_recs),
-            (Op.STATISTICS, [_record(Op.STATISTICS, stats)]),
-            (Op.CHUNK_INDEX, [_chunk_index(c, self.compression.mcap_name) for c in chunks]),
-            (Op.ATTACHMENT_INDEX, attachment_index),
-            (Op.METADATA_INDEX, metadata_index),
+            (Opcode.SCHEMA, schema_recs),
+            (Opcode.CHANNEL, channel_recs),
+            (Opcode.STATISTICS, [_record(Opcode.STATISTICS, stats)]),
+            (Opcode.CHUNK_INDEX, [_chunk_index(c, self.compression.mcap_name) for c in chunks]),
+            (Opcode.ATTACHMENT_INDEX, attachment_index),
+            (Opcode.METADATA_INDEX, metadata_index),
         ]
         offsets = []
         for op, recs in groups:
@@ -594,10 +582,11 @@ class McapColumnWriter:
             start = out.pos
             blob = b"".join(recs)
             out.write(blob)
-            offsets.append(_record(Op.SUMMARY_OFFSET, struct.pack("<BQQ", op, start, len(blob))))
+            offsets.append(_record(Opcode.SUMMARY_OFFSET,
+                                   struct.pack("<BQQ", op, start, len(blob))))
         summary_offset_start = out.pos
         out.write(b"".join(offsets))
-        footer_head = struct.pack("<BQQQ", Op.FOOTER, 20, summary_start, summary_offset_start)
+        footer_head = struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start)
         out.write(footer_head)
         out.write(struct.pack("<I", out.crc))
         out.write(MAGIC)
@@ -681,14 +670,14 @@ class McapColumnWriter:
                 base += int(b.rec_off[hi]) - s0
             raw = _gather_segments(np.concatenate(pieces), src_start, rec_len)
         raw = np.ascontiguousarray(raw)
-        crc = zlib.crc32(memoryview(raw).cast("B"))
+        crc = zlib.crc32(memoryview(cast("Buffer", raw)).cast("B"))
         comp = self._compress(raw)
         start_t, end_t = int(log[0]), int(log[-1])
         comp_name = self.compression.mcap_name
         head = struct.pack("<QQQI", start_t, end_t, raw.shape[0], crc) + _str(comp_name)
         head += struct.pack("<Q", len(comp))
         chunk_offset = out.pos
-        out.write(struct.pack("<BQ", Op.CHUNK, len(head) + len(comp)) + head)
+        out.write(struct.pack("<BQ", Opcode.CHUNK, len(head) + len(comp)) + head)
         out.write(comp)
         chunk_length = out.pos - chunk_offset
 
@@ -703,7 +692,7 @@ class McapColumnWriter:
             entries["offset"] = rec_start[m]
             body = entries.tobytes()
             mi_offsets[int(cid)] = out.pos
-            out.write(struct.pack("<BQHI", Op.MESSAGE_INDEX, 2 + 4 + len(body), int(cid),
+            out.write(struct.pack("<BQHI", Opcode.MESSAGE_INDEX, 2 + 4 + len(body), int(cid),
                                   len(body)))
             out.write(body)
         return _ChunkInfo(
@@ -714,13 +703,13 @@ class McapColumnWriter:
 
 
 def _schema_record(sid: int, name: str, encoding: str, data: bytes) -> bytes:
-    return _record(Op.SCHEMA, struct.pack("<H", sid) + _str(name) + _str(encoding)
+    return _record(Opcode.SCHEMA, struct.pack("<H", sid) + _str(name) + _str(encoding)
                    + struct.pack("<I", len(data)) + data)
 
 
 def _channel_record(cid: int, topic: str, message_encoding: str, schema_id: int,
                     metadata: Mapping[str, str]) -> bytes:
-    return _record(Op.CHANNEL, struct.pack("<HH", cid, schema_id) + _str(topic)
+    return _record(Opcode.CHANNEL, struct.pack("<HH", cid, schema_id) + _str(topic)
                    + _str(message_encoding) + _map_ss(metadata))
 
 
@@ -752,7 +741,7 @@ def _chunk_index(c: _ChunkInfo, compression: str) -> bytes:
         + _str(compression)
         + struct.pack("<QQ", c.compressed_size, c.uncompressed_size)
     )
-    return _record(Op.CHUNK_INDEX, body)
+    return _record(Opcode.CHUNK_INDEX, body)
 
 
 # --------------------------------------------------------------------------------------------
@@ -779,12 +768,8 @@ def copy_channels(
     return ids
 
 
-_ATTITUDE_FIELDS = {
-    "sensor_msgs/msg/Imu",
-    "geometry_msgs/msg/PoseStamped",
-    "geometry_msgs/msg/QuaternionStamped",
-    "magalign.AttitudeQuaternion",
-}
+_ATTITUDE_FIELDS = {t.name for t in MESSAGE_TYPES.values()
+                    if t.role is MessageRole.ATTITUDE and t.columns == ("q_xyzw",)}
 
 
 def _attitude_fields(msg_type: str, q_enu_body: np.ndarray) -> dict[str, np.ndarray]:
@@ -861,7 +846,7 @@ def write_recording(
     turntable_t_ns, turntable_deg : ndarray, shapes (K,), optional
         Turntable angle channel, degrees.
     mag_type, attitude_type, turntable_type : str
-        Message types (see :data:`pipeline.messages.MESSAGE_TYPES`).
+        Message types (see :data:`pipeline.messages.WRITTEN_TYPES`).
     mag_topic, attitude_topic, turntable_topic : str
         Channel topics.
     mag_frame_id, attitude_frame_id : str

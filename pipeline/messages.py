@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from schemas import JSON_TYPES, ROS2_TYPES
+from schemas import MESSAGE_TYPES as _TABLE
 from schemas import schema_for as _schema_for
 
 from .errors import SchemaError
@@ -36,12 +37,13 @@ from .errors import SchemaError
 U8 = NDArray[np.uint8]
 I64 = NDArray[np.int64]
 
-__all__ = ["encode", "schema_for", "flatten_rows", "MESSAGE_TYPES", "CDR_HEADER"]
+__all__ = ["encode", "schema_for", "flatten_rows", "WRITTEN_TYPES", "CDR_HEADER"]
 
 #: Encapsulation header of little-endian plain CDR (CDR_LE), as ROS 2 writes it.
 CDR_HEADER = b"\x00\x01\x00\x00"
 
-MESSAGE_TYPES: tuple[str, ...] = ROS2_TYPES + JSON_TYPES
+#: the input types magalign writes (schemas.MESSAGE_TYPES is the table of every type)
+WRITTEN_TYPES: tuple[str, ...] = ROS2_TYPES + JSON_TYPES
 
 _NS = 1_000_000_000
 # GPS time = TAI - 19 s; UTC - GPS offset is 18 s since 2017 (fixed here: the week fields of a
@@ -195,19 +197,9 @@ _CDR_LAYOUTS: dict[str, Callable[[str, str | None], _Layout]] = {
     "novatel_oem7_msgs/msg/INSPVA": _layout_inspva,
 }
 
-# Columns each type needs from the caller; everything else has a default.
+# Columns each type needs from the caller (everything else has a default): schemas' table.
 _REQUIRED: dict[str, tuple[str, ...]] = {
-    "sensor_msgs/msg/MagneticField": ("mag_T",),
-    "sensor_msgs/msg/Imu": ("q_xyzw",),
-    "geometry_msgs/msg/PoseStamped": ("q_xyzw",),
-    "geometry_msgs/msg/QuaternionStamped": ("q_xyzw",),
-    "std_msgs/msg/Float64": ("value",),
-    "novatel_oem7_msgs/msg/INSPVA": ("roll_deg", "pitch_deg", "azimuth_deg"),
-    "magalign.Magnetometer": ("mag_nT",),
-    "magalign.AttitudeQuaternion": ("q_xyzw",),
-    "magalign.AttitudeEuler": ("heading_deg", "pitch_deg", "roll_deg"),
-    "magalign.Turntable": ("angle_deg",),
-}
+    t.name: t.columns for t in _TABLE.values() if t.written and t.columns}
 
 
 def _stamp_columns(t_ns: I64) -> tuple[NDArray[np.int32], NDArray[np.uint32]]:
@@ -219,7 +211,7 @@ def _stamp_columns(t_ns: I64) -> tuple[NDArray[np.int32], NDArray[np.uint32]]:
 
 
 def _encode_cdr(
-    msg_type: str, t_ns: I64, fields: Mapping[str, np.ndarray], frame_id: str,
+    msg_type: str, t_ns: I64, fields: Mapping[str, ArrayLike], frame_id: str,
     variant: str | None,
 ) -> tuple[U8, I64]:
     lay = _CDR_LAYOUTS[msg_type](frame_id, variant)
@@ -307,7 +299,7 @@ def _cat(*parts: bytes | NDArray[np.bytes_]) -> NDArray[np.bytes_]:
     return np.asarray(out)
 
 
-def _vec_json(a: np.ndarray, n: int, k: int, name: str, msg_type: str) -> NDArray[np.bytes_]:
+def _vec_json(a: ArrayLike, n: int, k: int, name: str, msg_type: str) -> NDArray[np.bytes_]:
     a = np.asarray(a, dtype=np.float64)
     if a.shape != (n, k):
         raise SchemaError(f"{msg_type}: field {name} must have shape ({n}, {k}), got {a.shape}")
@@ -321,7 +313,7 @@ def _vec_json(a: np.ndarray, n: int, k: int, name: str, msg_type: str) -> NDArra
     return _cat(*parts)
 
 
-def _scalar_json(a: np.ndarray, n: int, name: str, msg_type: str) -> NDArray[np.bytes_]:
+def _scalar_json(a: ArrayLike, n: int, name: str, msg_type: str) -> NDArray[np.bytes_]:
     a = np.asarray(a, dtype=np.float64)
     if a.shape != (n,):
         raise SchemaError(f"{msg_type}: field {name} must have shape ({n},), got {a.shape}")
@@ -329,7 +321,7 @@ def _scalar_json(a: np.ndarray, n: int, name: str, msg_type: str) -> NDArray[np.
 
 
 def _encode_json(
-    msg_type: str, t_ns: I64, fields: Mapping[str, np.ndarray], frame_id: str
+    msg_type: str, t_ns: I64, fields: Mapping[str, ArrayLike], frame_id: str
 ) -> tuple[U8, I64]:
     n = t_ns.shape[0]
     head: list[bytes | NDArray[np.bytes_]] = [b'{"t_ns": ', t_ns.astype("S")]
@@ -369,7 +361,7 @@ def encode(
     Parameters
     ----------
     msg_type : str
-        One of :data:`MESSAGE_TYPES`.
+        One of :data:`WRITTEN_TYPES`.
     t_ns : array_like of int64, shape (N,)
         Header stamps, ns since the Unix epoch (``std_msgs/msg/Float64`` has no header: the
         stamps only fix N there; the MCAP log time carries the time).
@@ -410,10 +402,10 @@ def encode(
         Unknown type or variant, missing or mis-shaped field.
 
     """
-    if msg_type not in MESSAGE_TYPES:
+    if msg_type not in WRITTEN_TYPES:
         raise SchemaError(
             f"cannot encode message type {msg_type!r}",
-            hint=f"supported: {', '.join(MESSAGE_TYPES)}",
+            hint=f"supported: {', '.join(WRITTEN_TYPES)}",
         )
     t = np.asarray(t_ns)
     if t.ndim != 1 or not (np.issubdtype(t.dtype, np.integer) or t.size == 0):

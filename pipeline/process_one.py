@@ -24,6 +24,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from . import progress
 from .atomic import safe_join, write_text_atomic
 from .calibration import Calibration
 from .errors import NotObservableError, RecoveredDataWarning
@@ -301,7 +302,7 @@ def build_stages(ctx: Context, out_dir: Path, options: ProcessOptions) -> list:
         if diag_cls is not None:
             # Diagnose replaces the calibration by its final model (more effects), so the
             # field is restored and measured after it, with that model.
-            dkw: dict[str, Any] = {}
+            dkw: dict[str, Any] = {"max_gap_s": options.max_gap_s}
             if options.reference_field_enu_nT is not None:
                 dkw["reference_field_enu_nT"] = tuple(
                     float(x) for x in options.reference_field_enu_nT
@@ -421,31 +422,38 @@ def process_recording(
     )
     timings: dict[str, float] = {}
     clock = {"name": None, "t": time.perf_counter()}
+    shown: list[str] = ["Ingest"]  # stage names for the progress line (known after ingest)
 
-    def tick(name: str | None, *_: int) -> None:
+    def tick(name: str | None, index: int = 0, total: int = 0) -> None:
         now = time.perf_counter()
         if clock["name"] is not None:
             timings[clock["name"]] = timings.get(clock["name"], 0.0) + now - clock["t"]
         clock["name"], clock["t"] = name, now
-
-    from stages.restore import clear_cache
+        if name is not None:
+            i = index if name == "Ingest" else index + 1
+            progress.stage(shown[i] if i < len(shown) else name, i, len(shown), shown)
 
     # Warnings are collected, not shown: this runs in a worker process whose stderr is not
     # the user's terminal (and has Python's two-line warning format); the command that
     # started the worker issues them once from the row (pipeline.commands.process).
-    with warnings.catch_warnings(record=True) as caught:
-        try:
-            ctx = Pipeline([ingest]).run(ctx, progress=tick)
-            rest = Pipeline(build_stages(ctx, rec_dir, options),
-                            initial=ctx.provided() | {"source"})
-            ctx = rest.run(ctx, progress=tick)
-        finally:
-            clear_cache()  # the restored samples of this recording are not needed any more
+    with warnings.catch_warnings(record=True) as caught, \
+            progress.use_sink(progress.current() or progress.sink_from_env(stem)):
+        ctx = Pipeline([ingest]).run(ctx, progress=tick)
+        rest = Pipeline(build_stages(ctx, rec_dir, options),
+                        initial=ctx.provided() | {"source"})
+        shown[1:] = [progress_name(st) for st in rest.stages]
+        ctx = rest.run(ctx, progress=tick)
     tick(None)
     row = summary_row(ctx, stem, rec_dir)
     row["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
     row["run_warnings"] = run_warnings(str(path), caught, ctx.recording.problems)
     return row
+
+
+def progress_name(stage: Any) -> str:
+    """Return the name a stage goes by on the progress line (the inner stage of ``OnDecimated``)."""
+    inner = getattr(stage, "inner", None)
+    return type(inner if inner is not None else stage).__name__
 
 
 def run_warnings(path: str, caught: list[warnings.WarningMessage],

@@ -10,10 +10,17 @@ from __future__ import annotations
 import dataclasses
 import enum
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from stages.diagnose import Diagnosis
+    from stages.metrics import MetricsResult
+    from stages.restore import RestoreResult
+
+    from .calibration import Calibration
 
 I64 = NDArray[np.int64]
 F64 = NDArray[np.float64]
@@ -237,7 +244,11 @@ class ChannelInfo:
 
 @dataclass(frozen=True)
 class Problem:
-    """Something wrong in a recording that was handled (and what was lost)."""
+    """Something wrong in a recording that was handled (and what was lost).
+
+    ``count`` is the number of samples or messages lost or repaired, 0 when it is not known
+    (a damaged chunk without an index: the message says so).
+    """
 
     code: str
     message: str
@@ -401,10 +412,11 @@ class Context:
     recording: Recording | None = None
     aligned: AlignedSeries | None = None
     segments: tuple[Segment, ...] | None = None
-    calibration: Any = None  # pipeline.calibration.Calibration
-    restored: VectorSeries | None = None
-    metrics: Any = None
-    diagnosis: Any = None
+    calibration: Calibration | None = None
+    #: the restore result of the final model, computed once by the Restore stage
+    restored: RestoreResult | None = None
+    metrics: MetricsResult | None = None
+    diagnosis: Diagnosis | None = None
     outputs: tuple[tuple[str, str], ...] = ()
     options: Any = field(default=None)
 

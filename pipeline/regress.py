@@ -18,7 +18,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -333,8 +333,11 @@ def compare(results: str | Path, baseline: str | Path,
             rows += c.rows
             continue
         bd, rd = base / name, res / name
-        _compare_calibration(c, _load(bd / "calibration.json", check_calibration_dict),
-                             _load(rd / "calibration.json", check_calibration_dict), tolerances)
+        # recordings_in lists only folders with a calibration.json
+        _compare_calibration(
+            c, cast("dict[str, Any]", _load(bd / "calibration.json", check_calibration_dict)),
+            cast("dict[str, Any]", _load(rd / "calibration.json", check_calibration_dict)),
+            tolerances)
         _compare_metrics(c, _load(bd / "metrics.json", check_metrics_dict),
                          _load(rd / "metrics.json", check_metrics_dict), tolerances)
         _compare_findings(c, _load(bd / "diagnosis.json", check_diagnosis_dict),
@@ -348,7 +351,8 @@ def compare(results: str | Path, baseline: str | Path,
 def format_table(rows: list[Diff], *, failures_only: bool = False) -> str:
     """Format the diff table as aligned text."""
     shown = [r for r in rows if not failures_only or r.status != OK]
-    head = ("recording", "quantity", "baseline", "result", "diff", "tolerance", "status")
+    head: tuple[str, ...] = ("recording", "quantity", "baseline", "result", "diff",
+                             "tolerance", "status")
     cells = [head] + [(r.recording, r.quantity, r.baseline, r.result, r.diff, r.tolerance,
                        r.status) for r in shown]
     cells = [tuple(c if len(c) <= 48 else c[:45] + "..." for c in row) for row in cells]

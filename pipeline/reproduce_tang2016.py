@@ -23,6 +23,7 @@ import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -122,7 +123,7 @@ def _scenario_or_memory() -> tuple[TiltedTurntable, str]:
     """Load the tilted turntable from the simulator's scenario when available, else in memory."""
     scen = Path(__file__).resolve().parent / "scenarios" / "turntable_tilt3.toml"
     try:
-        from . import simulate as sim_mod  # type: ignore[attr-defined]
+        from . import simulate as sim_mod
 
         if scen.exists():
             sim = sim_mod.simulate(sim_mod.load_scenario(scen), seed=0)
@@ -170,7 +171,8 @@ def _figure(grid: dict, path: Path) -> None:
     om_g, al_g = np.meshgrid(om, al)
     eta = np.asarray(grid["eta_deg"])
     fig = plt.figure(figsize=(7, 5))
-    ax = fig.add_subplot(projection="3d")
+    # 3D axes (mpl_toolkits is untyped; older matplotlib types the result as plain Axes)
+    ax: Any = fig.add_subplot(projection="3d")
     ax.plot_surface(om_g, al_g, eta, cmap="viridis", linewidth=0)
     ax.set_xlabel("Omega (deg)")
     ax.set_ylabel("alpha (deg)")
@@ -199,7 +201,7 @@ def reproduce(out_dir: str | Path) -> int:
 
     sim, source = _scenario_or_memory()
     fits = {}
-    cases = {
+    cases: dict[str, dict[str, Any]] = {
         "field_unknown": {},
         "field_known": {"reference_field_enu_nT": sim.B_enu_nT},
         "field_and_mounting_known": {

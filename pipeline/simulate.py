@@ -40,6 +40,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from schemas import MessageRole, types_of
+
 from .config import TomlDoc
 from .errors import ConfigError
 from .geometry import (
@@ -67,16 +69,10 @@ from .recording import (
 
 F64 = NDArray[np.float64]
 
-MAG_TYPES = frozenset({"sensor_msgs/msg/MagneticField", "magalign.Magnetometer"})
-ATTITUDE_TYPES = frozenset({
-    "sensor_msgs/msg/Imu",
-    "geometry_msgs/msg/PoseStamped",
-    "geometry_msgs/msg/QuaternionStamped",
-    "novatel_oem7_msgs/msg/INSPVA",
-    "magalign.AttitudeQuaternion",
-    "magalign.AttitudeEuler",
-})
-TURNTABLE_TYPES = frozenset({"std_msgs/msg/Float64", "magalign.Turntable"})
+# the types a scenario may ask for: those magalign writes (schemas' table)
+MAG_TYPES = frozenset(types_of(MessageRole.MAGNETOMETER, written=True))
+ATTITUDE_TYPES = frozenset(types_of(MessageRole.ATTITUDE, written=True))
+TURNTABLE_TYPES = frozenset(types_of(MessageRole.TURNTABLE, written=True))
 
 DEFAULT_START = "2026-01-01T00:00:00Z"
 _EDDY_STEP_S = 1e-4  # central-difference step for d/dt(y_mag)

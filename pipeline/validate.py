@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 
@@ -71,6 +71,15 @@ class _Checker:
         if lo is not None and v < lo:
             raise self.fail(field, f"must be at least {lo:g}, not {v!r}")
         return float(v)
+
+    @overload
+    def array(self, d: Mapping, key: str, shape: tuple[int, ...], *,
+              nullable: Literal[False] = False, null_items: bool = False,
+              lo: float | None = None) -> np.ndarray: ...
+
+    @overload
+    def array(self, d: Mapping, key: str, shape: tuple[int, ...], *, nullable: bool,
+              null_items: bool = False, lo: float | None = None) -> np.ndarray | None: ...
 
     def array(self, d: Mapping, key: str, shape: tuple[int, ...], *, nullable: bool = False,
               null_items: bool = False, lo: float | None = None) -> np.ndarray | None:

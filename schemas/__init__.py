@@ -17,40 +17,112 @@ NovAtel header (strings, float32 and float64 fields that shift every later offse
 
 from __future__ import annotations
 
+import enum
 import functools
 import json
+from dataclasses import dataclass
 from importlib import resources
 from typing import Any
 
 from pipeline.errors import SchemaError
 
+
+class MessageRole(str, enum.Enum):
+    """What a message type carries for magalign."""
+
+    MAGNETOMETER = "magnetometer"
+    ATTITUDE = "attitude"
+    TURNTABLE = "turntable"
+    OUTPUT = "output"  # written into the corrected MCAP only, never read as input
+
+
+@dataclass(frozen=True)
+class MessageType:
+    """One supported message type: the single table every reader, writer and check uses.
+
+    Attributes
+    ----------
+    name : str
+        Full name as stored in an MCAP schema (``pkg/msg/Type``, or ``magalign.Name`` for
+        magalign's JSON channels).
+    role : MessageRole
+    encoding : str
+        ``"ros2"`` (CDR, schema ``ros2msg``) or ``"json"`` (schema ``jsonschema``).
+    columns : tuple of str
+        Columns the encoder (:func:`pipeline.messages.encode`) needs, with their units in the
+        name (``mag_T``, ``q_xyzw``, ``roll_deg``...).
+    quaternion, position : str or None
+        Dotted CDR paths of the orientation and of a position the reader takes.
+    variants : tuple of (str or None)
+        Layout variants with a stored definition (``None`` is the default layout).
+    written : bool
+        Whether magalign writes it (a stored schema ships in this package); read-only types
+        (``nav_msgs/msg/Odometry``) are decoded from the definition stored in the file.
+
+    """
+
+    name: str
+    role: MessageRole
+    encoding: str
+    columns: tuple[str, ...] = ()
+    quaternion: str | None = None
+    position: str | None = None
+    variants: tuple[str | None, ...] = (None,)
+    written: bool = True
+
+    @property
+    def short_name(self) -> str:
+        """``pkg/Type`` (the ``/msg/`` dropped), the form the reader matches schema names in."""
+        return self.name.replace("/msg/", "/")
+
+
+_R = MessageRole
+#: Every message type magalign reads or writes, by name.
+MESSAGE_TYPES: dict[str, MessageType] = {t.name: t for t in (
+    MessageType("sensor_msgs/msg/MagneticField", _R.MAGNETOMETER, "ros2", ("mag_T",)),
+    MessageType("magalign.Magnetometer", _R.MAGNETOMETER, "json", ("mag_nT",)),
+    MessageType("sensor_msgs/msg/Imu", _R.ATTITUDE, "ros2", ("q_xyzw",),
+                quaternion="orientation"),
+    MessageType("geometry_msgs/msg/PoseStamped", _R.ATTITUDE, "ros2", ("q_xyzw",),
+                quaternion="pose.orientation", position="pose.position"),
+    MessageType("geometry_msgs/msg/QuaternionStamped", _R.ATTITUDE, "ros2", ("q_xyzw",),
+                quaternion="quaternion"),
+    MessageType("novatel_oem7_msgs/msg/INSPVA", _R.ATTITUDE, "ros2",
+                ("roll_deg", "pitch_deg", "azimuth_deg"),
+                variants=(None, "no_nov_header", "novatel_header")),
+    MessageType("nav_msgs/msg/Odometry", _R.ATTITUDE, "ros2", quaternion="pose.pose.orientation",
+                position="pose.pose.position", written=False),
+    MessageType("magalign.AttitudeQuaternion", _R.ATTITUDE, "json", ("q_xyzw",)),
+    MessageType("magalign.AttitudeEuler", _R.ATTITUDE, "json",
+                ("heading_deg", "pitch_deg", "roll_deg")),
+    MessageType("std_msgs/msg/Float64", _R.TURNTABLE, "ros2", ("value",)),
+    MessageType("magalign.Turntable", _R.TURNTABLE, "json", ("angle_deg",)),
+    MessageType("tf2_msgs/msg/TFMessage", _R.OUTPUT, "ros2"),
+    MessageType("magalign.FieldMagnitude", _R.OUTPUT, "json"),
+)}
+
+
+def types_of(role: MessageRole, encoding: str | None = None, *,
+             written: bool | None = None) -> tuple[str, ...]:
+    """Names of the message types of ``role`` (optionally of one encoding, written or not)."""
+    return tuple(t.name for t in MESSAGE_TYPES.values()
+                 if t.role is role and encoding in (None, t.encoding)
+                 and written in (None, t.written))
+
+
+_INPUT_ROLES = (_R.MAGNETOMETER, _R.ATTITUDE, _R.TURNTABLE)
 #: JSON message types of magalign's own channels.
-JSON_TYPES: tuple[str, ...] = (
-    "magalign.Magnetometer",
-    "magalign.AttitudeQuaternion",
-    "magalign.AttitudeEuler",
-    "magalign.Turntable",
-)
-
+JSON_TYPES: tuple[str, ...] = tuple(n for r in _INPUT_ROLES for n in types_of(r, "json"))
 #: ROS 2 message types magalign writes (and reads).
-ROS2_TYPES: tuple[str, ...] = (
-    "sensor_msgs/msg/MagneticField",
-    "sensor_msgs/msg/Imu",
-    "geometry_msgs/msg/PoseStamped",
-    "geometry_msgs/msg/QuaternionStamped",
-    "std_msgs/msg/Float64",
-    "novatel_oem7_msgs/msg/INSPVA",
-)
-
+ROS2_TYPES: tuple[str, ...] = tuple(n for r in _INPUT_ROLES
+                                    for n in types_of(r, "ros2", written=True))
 #: Types only magalign's outputs carry (the corrected MCAP), never read as input: the static
 #: transform body -> mag (ROS 2) and the field magnitude of JSON recordings.
-OUTPUT_ROS2_TYPES: tuple[str, ...] = ("tf2_msgs/msg/TFMessage",)
-OUTPUT_JSON_TYPES: tuple[str, ...] = ("magalign.FieldMagnitude",)
-
+OUTPUT_ROS2_TYPES: tuple[str, ...] = types_of(_R.OUTPUT, "ros2")
+OUTPUT_JSON_TYPES: tuple[str, ...] = types_of(_R.OUTPUT, "json")
 #: Layout variants per ROS 2 type (``None`` is the default layout).
 VARIANTS: dict[str, tuple[str | None, ...]] = {
-    "novatel_oem7_msgs/msg/INSPVA": (None, "no_nov_header", "novatel_header"),
-}
+    t.name: t.variants for t in MESSAGE_TYPES.values() if t.variants != (None,)}
 
 
 def _resource_name(msg_type: str, variant: str | None) -> str:

@@ -20,6 +20,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from pipeline import progress
 from pipeline.calibration import Calibration
 from pipeline.effects import (
     CONFOUND_RATIO,
@@ -31,6 +32,7 @@ from pipeline.effects import (
     FitResult,
     ModelState,
     Term,
+    estimate_noise_model,
     evaluate,
     explanation,
     fit,
@@ -347,7 +349,8 @@ def gradient_candidate(cur: FitResult, data: FitData, sigma: float) -> ScoreTest
     cols = []
     for yaw in (0.0, np.pi / 2, np.pi):
         ev = evaluate(cur.state.with_term(Term(EffectKind.FIELD_GRADIENT, yaw_rad=yaw)), data)
-        cols.append(ev.J.reshape(-1, ev.J.shape[-1]))
+        J = ev.J if ev.sqrt_w is None else ev.J * ev.sqrt_w[:, None, None]
+        cols.append(J.reshape(-1, J.shape[-1]))
     Jb = cols[0][:, :p0]
     C = 0.5 * (cols[0][:, p0:] + cols[2][:, p0:])
     A = 0.5 * (cols[0][:, p0:] - cols[2][:, p0:])
@@ -374,7 +377,8 @@ def score_test(cur: FitResult, term: Term, data: FitData, sigma: float) -> Score
     """Score test of adding ``term`` to the model of ``cur`` (no refit)."""
     st = cur.state.with_term(term)
     ev = evaluate(st, data)
-    return _score_from_J(cur, term, ev.J.reshape(-1, ev.J.shape[-1]), data, sigma)
+    J = ev.J if ev.sqrt_w is None else ev.J * ev.sqrt_w[:, None, None]
+    return _score_from_J(cur, term, J.reshape(-1, J.shape[-1]), data, sigma)
 
 
 def _score_from_J(
@@ -614,6 +618,10 @@ def _to_enu(v_mag: np.ndarray, state: ModelState, data: FitData) -> np.ndarray:
     return np.einsum("nij,nj->ni", C, v)
 
 
+#: search rounds the progress line expects (most recordings need two or three)
+_ROUNDS_SHOWN = 3
+
+
 def diagnose_data(
     data: FitData,
     init: ModelState | None = None,
@@ -654,9 +662,17 @@ def diagnose_data(
         if alt.rss < cur.rss:
             cur = alt
     stats = motion_stats(data)
+    # the baseline residual as calibrate reports it (equal weights); then the likelihood's
+    # weights for what the attitude noise does between attitude samples
+    # (effects.sample_weights)
+    base_rms = cur.rms_nT
+    nm = estimate_noise_model(cur.residual_nT, data)
+    if nm is not None:
+        data = dataclasses.replace(data, noise_model=nm)
+        cur = fit(cur.state, data)
     cv_cur = heldout_rms(cur.state, data, cfg)
+    baseline = {"effects": [], "residual_rms_nT": base_rms, "heldout_rms_nT": cv_cur}
     base_fit, cv_base = cur, cv_cur
-    baseline = {"effects": [], "residual_rms_nT": cur.rms_nT, "heldout_rms_nT": cv_cur}
     findings: list[Finding] = []
     not_ident: dict[str, str] = {}
     kinds = list(GLOBAL_KINDS)
@@ -686,7 +702,9 @@ def diagnose_data(
             cands.append(Term(EffectKind.HARD_IRON_STEP, (ws,)))
         tests = []
         replace_trial = None
-        for term in cands:
+        for j, term in enumerate(cands):
+            progress.detail(f"search {len(findings) + 1}, candidate {j + 1}/{len(cands)}",
+                            len(findings) + 0.5 * j / len(cands), _ROUNDS_SHOWN)
             if (term.kind, term.windows_s) in rejected | dropped:
                 continue
             if term.kind is EffectKind.FIELD_DRIFT and EffectKind.HEADING_DRIFT in present:
@@ -732,9 +750,11 @@ def diagnose_data(
         # with the lowest BIC is the strongest (a score statistic far from the null is only
         # a local approximation when much is still unmodelled)
         fits = []
-        for st in tests[: cfg.n_refit]:
+        for r, st in enumerate(tests[: cfg.n_refit]):
             if -st.statistic + st.k * np.log(n) > 0:
                 break
+            progress.detail(f"search {len(findings) + 1}, refit {r + 1}/{cfg.n_refit}",
+                            len(findings) + 0.5 + 0.5 * r / cfg.n_refit, _ROUNDS_SHOWN)
             fr = _refit(cur, st.term, data, cfg)
             if fr is None:
                 rejected.add((st.term.kind, st.term.windows_s))
@@ -789,6 +809,14 @@ def diagnose_data(
             break
         if not accepted:
             break
+        if data.noise_model is None:
+            # the attitude noise may only now stand out of what the model leaves
+            nm = estimate_noise_model(
+                cur.residual_nT if cur.raw_residual_nT is None else cur.raw_residual_nT, data)
+            if nm is not None:
+                data = dataclasses.replace(data, noise_model=nm)
+                cur = fit(cur.state, data)
+                cv_cur = heldout_rms(cur.state, data, cfg)
         # backward step: a term chosen earlier, while more was unmodelled, may have stood in
         # for what a later term explains properly; drop it if it no longer earns its margin
         i = 0
@@ -1236,8 +1264,9 @@ def fit_data_from(
     t_s = (np.asarray(aligned.t_ns, dtype=np.int64) - t0) * 1e-9
     if recording.attitude is not None and len(recording.attitude) >= 2:
         ta = (np.asarray(recording.attitude.t_ns, dtype=np.int64) - t0) * 1e-9
+        # THE interpolator, as calibrate and restore: the same recording and model
+        # give the same prediction
         track = AttitudeTrack(ta, np.asarray(recording.attitude.q_enu_body, dtype=float))
-        track = track.denoised()
     else:
         track = AttitudeTrack(t_s - aligned.time_offset_s, np.asarray(aligned.q_enu_body))
     y = np.asarray(aligned.mag_nT, dtype=float)
@@ -1258,13 +1287,14 @@ def fit_data_from(
         t_s, y, p = t_s[ok], y[ok], p[ok]
         pos = {"p_m": p, "p_ref_m": p.mean(axis=0),
                "position_frame": recording.position.frame.value}  # type: ignore[union-attr]
+    n_avail, stride = len(t_s), 1
     if max_samples is not None and len(t_s) > max_samples:
         stride = int(np.ceil(len(t_s) / max_samples))
         t_s, y = t_s[::stride], y[::stride]
         if pos:
             pos["p_m"] = pos["p_m"][::stride]
     B = None if reference_field_enu_nT is None else np.asarray(reference_field_enu_nT, float)
-    return FitData(t_s, y, track, B_known_enu_nT=B, **pos)
+    return FitData(t_s, y, track, B_known_enu_nT=B, stride=stride, n_available=n_avail, **pos)
 
 
 #: Positions are used only when at least this fraction of the samples has one.
@@ -1415,6 +1445,33 @@ def sample_hold_finding(
             train)
 
 
+def _model_values(term: Term, value: np.ndarray, data: FitData) -> dict[str, Any]:
+    """Return the fitted values of a ``disturbance`` / ``field_drift`` / ``heading_drift`` term.
+
+    The CONVENTIONS params of these terms (``peak_nT``, ``peak_to_peak_nT``) describe them
+    but cannot reproduce them; the calibration also carries the fitted values so that
+    :meth:`pipeline.calibration.Calibration.predict` includes them (the residual of the
+    final model is then the same number everywhere).
+    """
+    if term.kind is EffectKind.DISTURBANCE:
+        knots = term.knots()
+        v = np.asarray(value, dtype=float).reshape(-1, 3)
+        out, i = [], 0
+        for kn in knots:
+            out.append(v[i:i + len(kn)].tolist())
+            i += len(kn)
+        return {"knots_s": [k.tolist() for k in knots], "knot_field_nT": out}
+    if term.kind is EffectKind.FIELD_DRIFT:
+        span = float(data.track.t_s[-1]) if data.track.t_s[-1] > 0 else 1.0
+        return {"legendre_nT": np.asarray(value, dtype=float).reshape(-1, 3).tolist(),
+                "span_s": span}
+    if term.kind is EffectKind.HEADING_DRIFT:
+        span = float(data.track.t_s[-1]) if data.track.t_s[-1] > 0 else 1.0
+        return {"legendre_rad": np.asarray(value, dtype=float).reshape(-1).tolist(),
+                "span_s": span}
+    return {}
+
+
 def calibration_from(res: FitResult, data: FitData, findings: tuple[Finding, ...]) -> Calibration:
     """Return the final model as a Calibration; terms beyond D, o, tau go to ``effects``."""
     st = res.state
@@ -1435,7 +1492,9 @@ def calibration_from(res: FitResult, data: FitData, findings: tuple[Finding, ...
         elif t.kind is EffectKind.TIME_OFFSET:
             sig["tau"] = float(sd[blk][0])
         else:
-            extra.setdefault(t.kind.value, []).append(term_params(t, st.values[i], st, data))
+            params = term_params(t, st.values[i], st, data)
+            params.update(_model_values(t, st.values[i], data))
+            extra.setdefault(t.kind.value, []).append(params)
     effects = {k: (v[0] if len(v) == 1 else v) for k, v in extra.items()}
     return Calibration(
         R_body_mag=st.R_body_mag,
@@ -1502,14 +1561,23 @@ class Diagnose:
     reference_field_enu_nT : tuple of 3 floats, optional
         Known background field (ENU, nT); the field is then not estimated (and ``axis_tilt``
         becomes identifiable on a turntable).
+    max_gap_s : float or None
+        Attitude gap rule of the final model's residual over the whole recording (as the
+        Restore stage); None: the automatic rule.
+
+    The final residual (``diagnosis.final.residual_rms_nT`` and the final calibration's
+    ``residual_rms_nT``) is that of the final model over every sample of the recording with
+    a usable attitude (:func:`stages.restore.restore_samples`): the number the restored
+    ``<mag>/residual`` channel, the residual figure and the report show.
 
     """
 
     config: DiagnoseConfig = field(default_factory=DiagnoseConfig)
     reference_field_enu_nT: tuple[float, float, float] | None = None
+    max_gap_s: float | None = None
 
     requires: ClassVar[frozenset[str]] = frozenset({"recording", "aligned", "calibration"})
-    provides: ClassVar[frozenset[str]] = frozenset({"diagnosis", "calibration"})
+    provides: ClassVar[frozenset[str]] = frozenset({"diagnosis", "calibration", "restored"})
 
     def run(self, ctx: Context) -> Context:
         """Diagnose ``ctx.recording``; the final model replaces ``ctx.calibration``."""
@@ -1523,6 +1591,7 @@ class Diagnose:
         if cal is not None:
             init = ModelState(np.asarray(cal.R_body_mag), np.asarray(cal.B_enu_nT))
         diag, res = diagnose_data(data, init, self.config, turntable=rec.turntable is not None)
+        data = dataclasses.replace(data, noise_model=res.noise_model)
         sh = detect_sample_hold(rec.mag.t_ns, rec.mag.values)
         extra: dict[str, Any] = {}
         if sh is not None:
@@ -1554,18 +1623,34 @@ class Diagnose:
             )
             final = final.replace(checks={**final.checks, "doubts": list(
                 final.checks.get("doubts", ())) + [doubt]})
-        return ctx.replace(diagnosis=diag, calibration=final)
+        fit_samples: dict[str, Any] = {"n": len(data), "stride": int(data.stride),
+                                       "of": int(data.n_available or len(data))}
+        if "sample_hold" in extra:
+            fit_samples["note"] = ", sample-and-hold repeats left out"
+        final = final.replace(checks={**final.checks, "fit_samples": fit_samples})
+        restored = None
+        if rec.attitude is not None and len(rec.attitude) >= 2:
+            from stages.restore import restore_samples
+
+            restored = restore_samples(rec, final, max_gap_s=self.max_gap_s)
+            rms = restored.residual_rms_nT
+            if np.isfinite(rms):
+                final = final.replace(residual_rms_nT=rms)
+                diag = dataclasses.replace(diag, final={**diag.final, "residual_rms_nT": rms})
+        # the restore result of the final model goes along: Restore keeps it (same model)
+        return ctx.replace(diagnosis=diag, calibration=final, restored=restored)
 
 
 # ----------------------------------------------------------------------------- figures
 
 
-def finding_figures(diagnosis: Diagnosis, dpi: int = 90) -> list[tuple[str, bytes]]:
+def finding_figures(diagnosis: Diagnosis, dpi: int = 100) -> list[tuple[str, bytes]]:
     """One PNG per finding showing its signature in the residual.
 
     Time offset / eddy currents: residual before against the reading's rate of change.
     Local effects: residual norm against time with the located windows shaded.
-    Others: residual before and the fitted contribution against time, per axis.
+    Others: residual before and the fitted contribution against time, per axis. Colours
+    and fonts are the report's (:mod:`pipeline.style`).
 
     Returns
     -------
@@ -1576,44 +1661,52 @@ def finding_figures(diagnosis: Diagnosis, dpi: int = 90) -> list[tuple[str, byte
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    from pipeline import style
 
     out = []
     for f in diagnosis.findings:
         s = f.signature
         if s is None:
             continue
-        fig, ax = plt.subplots(figsize=(7, 3.6), dpi=dpi)
-        frame = f.where["frame"]
-        if s.regressor is not None:
-            for i, c in enumerate("xyz"):
-                ax.plot(s.regressor[:, i], s.residual_before_nT[:, i], ".", ms=2, alpha=0.4,
-                        label=f"{c}")
-            ax.set_xlabel("rate of change of the reading (mag frame), nT/s")
-            ax.set_ylabel("residual before, nT")
-            ax.legend(markerscale=4)
-        elif f.effect in ("disturbance", "hard_iron_step"):
-            ax.plot(s.t_s, np.linalg.norm(s.residual_before_nT, axis=1), lw=0.6,
-                    label="|residual| before")
-            ax.plot(s.t_s, np.linalg.norm(s.contribution_nT, axis=1), lw=1.2,
-                    label="|fitted term|")
-            for a, b in f.where["windows_s"]:
-                ax.axvspan(a, b, color="tab:red", alpha=0.15)
-            ax.set_xlabel("time from first sample, s")
-            ax.set_ylabel("nT")
-            ax.legend()
-        else:
-            for i, c in enumerate("xyz"):
-                ax.plot(s.t_s, s.residual_before_nT[:, i], lw=0.5, alpha=0.6,
-                        label=f"residual {c}")
-                ax.plot(s.t_s, s.contribution_nT[:, i], lw=1.2, label=f"term {c}")
-            ax.set_xlabel("time from first sample, s")
-            ax.set_ylabel(f"nT ({frame} frame)")
-            ax.legend(ncol=3, fontsize=7)
-        title = f"{f.effect}: {_estimate_text(f)}"
-        ax.set_title(title, fontsize=9)
-        fig.tight_layout()
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png")
-        plt.close(fig)
+        with plt.rc_context(style.rc() | {"savefig.dpi": dpi, "figure.dpi": dpi}):
+            fig, ax = plt.subplots(figsize=(12, 3.8))
+            frame = f.where["frame"]
+            if s.regressor is not None:
+                for i, c in enumerate("xyz"):
+                    ax.plot(s.regressor[:, i], s.residual_before_nT[:, i], ".", ms=2,
+                            alpha=0.4, color=style.AXIS[i], label=f"{frame} {c}")
+                ax.set_xlabel(f"rate of change of the reading ({frame} frame, nT/s)")
+                ax.set_ylabel("residual before (nT)")
+                ax.legend(markerscale=5, ncol=3, loc="upper right")
+            elif f.effect in ("disturbance", "hard_iron_step"):
+                ax.plot(s.t_s, np.linalg.norm(s.residual_before_nT, axis=1), lw=0.7,
+                        color=style.BEFORE, label="|residual| before this term")
+                ax.plot(s.t_s, np.linalg.norm(s.contribution_nT, axis=1), lw=1.6,
+                        color=style.AFTER, label="|fitted term|")
+                for a, b in f.where["windows_s"]:
+                    ax.axvspan(a, b, color=style.EVENT, alpha=0.5, lw=0, zorder=0)
+                h, lab = ax.get_legend_handles_labels()
+                ax.legend(h + [Patch(color=style.EVENT, alpha=0.5)],
+                          lab + ["window found"], loc="upper left", ncol=3)
+                ax.margins(y=0.25)  # room for the key above the curves
+                ax.set_xlabel("time from the first sample (s)")
+                ax.set_ylabel("nT")
+            else:
+                for i, c in enumerate("xyz"):
+                    ax.plot(s.t_s, s.residual_before_nT[:, i], lw=0.5, alpha=0.35,
+                            color=style.AXIS[i], label=f"residual {c}")
+                    ax.plot(s.t_s, s.contribution_nT[:, i], lw=1.6, color=style.AXIS[i],
+                            label=f"fitted term {c}")
+                ax.set_xlabel("time from the first sample (s)")
+                ax.set_ylabel(f"nT ({frame} frame)")
+                ax.legend(ncol=3, loc="upper right")
+            title = style.minus(f"{f.effect}: {_estimate_text(f)}").replace(" uT/m", " \u00b5T/m")
+            ax.set_title(title)
+            fig.tight_layout()
+            buf = io.BytesIO()
+            fig.savefig(buf, format="png")
+            plt.close(fig)
         out.append((title, buf.getvalue()))
     return out

@@ -149,6 +149,18 @@ def fit_calibration(
     hold = detect_sample_hold(al.t_ns, al.mag_nT) if drop_repeats else None
     if hold is not None:
         al = al.select(hold.first)
+    if Term.TIME_OFFSET in _terms(terms) and recording is not None and (
+            recording.attitude is not None and len(recording.attitude) >= 2):
+        # tau is estimated within +-MAX_TIME_OFFSET_S (pipeline.model.forward): a sample
+        # closer than that to either end of the attitude may be sensed outside it, where the
+        # attitude would be a held end sample, not the attitude at t - tau
+        from pipeline.model.forward import MAX_TIME_OFFSET_S
+
+        margin = int(round(MAX_TIME_OFFSET_S * 1e9))
+        ta = recording.attitude.t_ns
+        inner = (al.t_ns >= int(ta.min()) + margin) & (al.t_ns <= int(ta.max()) - margin)
+        if inner.sum() >= 0.5 * len(al):
+            al = al.select(inner)
     problem = Problem(
         t_ns=al.t_ns,
         mag_nT=al.mag_nT,

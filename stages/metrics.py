@@ -26,7 +26,7 @@ Files (``Metrics(out_dir=...)``):
 
 ``metrics.json`` (format ``magalign.metrics/1``)::
 
-    {"format", "n_samples", "n_without_attitude", "n_used",
+    {"format", "n_samples", "n_without_attitude", "n_used", "n_without_attitude_at_stamp",
      "scopes": [{"scope", "kind", "start_s", "end_s", "n_samples",
                  "components": {"x": {"calibrated": {stat: v}, "uncalibrated": {stat: v},
                                       "ratio_pct": {stat: v}}, "y": ..., "z": ...}}],
@@ -46,14 +46,17 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
 from pipeline.atomic import atomic_path, write_text_atomic
 from pipeline.errors import InputError
 from pipeline.geometry import quat_rotate
-from pipeline.recording import Context, Recording, Segment, VectorSeries
+from pipeline.recording import Context, Recording, Segment
+
+if TYPE_CHECKING:
+    from stages.restore import RestoreResult
 
 FORMAT = "magalign.metrics/1"
 COMPONENTS = ("x", "y", "z")
@@ -168,6 +171,9 @@ class MetricsResult:
     scopes: tuple[ScopeMetrics, ...]
     heading_error: dict | None = None
     extra: dict = field(default_factory=dict)
+    #: restored (attitude at ``t - tau``) but without an attitude at the stamp itself, so not
+    #: compared with the uncalibrated field: ``n_used + n_without_attitude + this = n_samples``
+    n_without_attitude_at_stamp: int = 0
 
     @property
     def whole(self) -> ScopeMetrics:
@@ -186,6 +192,7 @@ class MetricsResult:
                 "n_samples": self.n_samples,
                 "n_without_attitude": self.n_without_attitude,
                 "n_used": self.n_used,
+                "n_without_attitude_at_stamp": self.n_without_attitude_at_stamp,
                 "scopes": [s.to_dict() for s in self.scopes],
                 "heading_error": self.heading_error,
             }
@@ -247,7 +254,7 @@ class MetricsResult:
 
 def compute_metrics(
     recording: Recording,
-    restored: VectorSeries,
+    restored: RestoreResult,
     segments: tuple[Segment, ...] | None = None,
     B_enu_nT: np.ndarray | None = None,
     *,
@@ -259,38 +266,33 @@ def compute_metrics(
     ----------
     recording : Recording
         With ``attitude`` filled.
-    restored : VectorSeries
-        Frame ENU, a subset of the magnetometer stamps (what :class:`stages.restore.Restore`
-        provides).
+    restored : RestoreResult
+        Every magnetometer sample restored (what :class:`stages.restore.Restore` provides);
+        its attitude masks give the counts.
     segments : tuple of Segment, optional
         Windows for the per-segment scopes.
     B_enu_nT : ndarray (3,), optional
         Reference field for the heading errors.
     max_gap_s : float
-        Attitude gap bridged when rotating the raw magnetometer.
+        Not used (the restore result carries its gap rule); kept for callers.
 
     Returns
     -------
     MetricsResult
 
     """
-    from stages.restore import attitude_at_mag
-
+    rs = restored
     t_all = recording.mag.t_ns
     n = len(t_all)
-    idx = np.searchsorted(t_all, restored.t_ns, side="left")
-    idx = np.clip(idx, 0, max(n - 1, 0))
-    if len(restored) and not np.array_equal(t_all[idx], restored.t_ns):
+    if rs.n_total != n or (n and not np.array_equal(rs.t_ns, t_all)):
         raise InputError(
             "restored stamps are not magnetometer stamps of this recording", path=recording.path
         )
-    q0, valid0 = attitude_at_mag(recording, 0.0, max_gap_s)
-    keep = valid0[idx]
-    idx = idx[keep]
-    cal_enu = np.asarray(restored.values)[keep]
+    used = rs.used
+    cal_enu = np.asarray(rs.enu_nT)[used]
     # Uncalibrated: attitude only, C_enu_body(t) @ y_mag (Li 2020, Table 4 "before").
-    raw_enu = quat_rotate(q0[idx], recording.mag.values[idx])
-    t = t_all[idx]
+    raw_enu = quat_rotate(rs.q0_enu_body[used], recording.mag.values[used])
+    t = t_all[used]
     t0 = int(t_all[0]) if n else 0
     end_all = float((t_all[-1] - t0) * 1e-9) if n else 0.0
     scopes = [ScopeMetrics("all", "all", 0.0, end_all, len(t), scope_components(cal_enu, raw_enu))]
@@ -315,8 +317,9 @@ def compute_metrics(
         }
     return MetricsResult(
         n_samples=n,
-        n_without_attitude=n - len(restored),
+        n_without_attitude=rs.n_without_attitude,
         n_used=len(t),
+        n_without_attitude_at_stamp=rs.n_without_attitude_at_stamp,
         scopes=tuple(scopes),
         heading_error=heading,
     )

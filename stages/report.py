@@ -22,20 +22,18 @@ from __future__ import annotations
 import base64
 import html
 import io
-import json
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 
+from pipeline import style
 from pipeline.atomic import atomic_path, write_text_atomic
 from pipeline.recording import Context, Recording, Segment
+from pipeline.style import minus
 
-BEFORE = "#e6781e"
-AFTER = "#1e6edc"
-IDEAL = "#28aa3c"
-AXIS_COLORS = ("#dc3232", "#32b432", "#3c5ae6")
 ENU_LABELS = ("east", "north", "up")
 
 
@@ -55,30 +53,157 @@ def _png(fig: Any) -> bytes:
     return buf.getvalue()
 
 
-def _shade(ax: Any, segments: tuple[Segment, ...] | None, t0_ns: int) -> None:
-    for i, s in enumerate(segments or ()):
-        ax.axvspan((s.start_ns - t0_ns) * 1e-9, (s.end_ns - t0_ns) * 1e-9,
-                   color="0.85" if i % 2 == 0 else "0.92", zorder=0, lw=0)
+def utc_text(t_ns: int, with_date: bool = False) -> str:
+    """Return the UTC time of ``t_ns`` (ns since the epoch), ``HH:MM:SS[.s]`` (with the date)."""
+    import datetime as dt
+
+    sec, frac = divmod(int(t_ns), 1_000_000_000)
+    d = dt.datetime.fromtimestamp(sec, tz=dt.timezone.utc)
+    text = d.strftime("%Y-%m-%d %H:%M:%S" if with_date else "%H:%M:%S")
+    tenth = frac // 100_000_000
+    return f"{text}.{tenth}" if tenth else text
+
+
+def _time_scale(duration_s: float) -> tuple[float, str]:
+    """Divisor and unit for a time axis: seconds, minutes beyond 15 min, hours beyond 3 h."""
+    if duration_s > 3 * 3600:
+        return 3600.0, "h"
+    if duration_s > 900:
+        return 60.0, "min"
+    return 1.0, "s"
+
+
+def _time_label(t0_ns: int, unit: str) -> str:
+    return f"time from {utc_text(t0_ns)} UTC ({unit})"
+
+
+def _shade(ax: Any, segments: tuple[Segment, ...] | None, t0_ns: int, scale: float = 1.0
+           ) -> dict[str, Any]:
+    """Shade the segments by kind; return kind -> patch for a key."""
+    from matplotlib.patches import Patch
+
+    handles: dict[str, Any] = {}
+    for s in segments or ():
+        kind = str(getattr(s.kind, "value", s.kind))
+        colour = style.segment_colour(kind)
+        ax.axvspan((s.start_ns - t0_ns) * 1e-9 / scale, (s.end_ns - t0_ns) * 1e-9 / scale,
+                   color=colour, zorder=0, lw=0)
+        handles.setdefault(kind, Patch(color=colour, label=f"{kind} segment"))
+    return handles
+
+
+def _segment_key(fig: Any, handles: dict[str, Any]) -> float:
+    """Add a key for the segment shading at the bottom left; return its height (figure units)."""
+    if not handles:
+        return 0.0
+    fig.legend(handles=list(handles.values()), loc="lower left", ncol=len(handles),
+               frameon=False, bbox_to_anchor=(0.01, 0.0), title=None)
+    return 0.32 / fig.get_figheight()
 
 
 def _decimate(n: int, max_points: int) -> np.ndarray:
     return np.arange(0, n, max(1, int(np.ceil(n / max_points))))
 
 
-def _envelope(t: np.ndarray, v: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:
-    """Min/max per bin, interleaved, so a decimated line keeps the series' full range."""
+def bins(t: np.ndarray, v: np.ndarray, max_bins: int
+         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """Bin a series into at most ``max_bins`` consecutive bins of equal sample count.
+
+    Returns
+    -------
+    t_mid, lo, hi, mean : ndarray
+        Mean time, minimum, maximum and mean of each bin (NaN samples ignored; a bin with
+        none is NaN).
+    k : int
+        Samples per bin (1: the series as it is).
+
+    """
     n = len(t)
-    if n <= max_points:
-        return t, v
-    nb = max_points // 2
-    edges = np.linspace(0, n, nb + 1).astype(int)
-    starts = edges[:-1]
-    with np.errstate(invalid="ignore"):
-        lo = np.fmin.reduceat(v, starts)
-        hi = np.fmax.reduceat(v, starts)
-    tt = np.repeat(t[starts], 2)
-    vv = np.stack([lo, hi], -1).ravel()
-    return tt, vv
+    k = max(1, int(np.ceil(n / max(1, max_bins))))
+    if k == 1:
+        return t.astype(float), v, v, v, 1
+    m = -(-n // k) * k
+    tp = np.full(m, np.nan)
+    tp[:n] = t
+    vp = np.full(m, np.nan)
+    vp[:n] = v
+    tp, vp = tp.reshape(-1, k), vp.reshape(-1, k)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # bins without any valid sample
+        return (np.nanmean(tp, axis=1), np.nanmin(vp, axis=1), np.nanmax(vp, axis=1),
+                np.nanmean(vp, axis=1), k)
+
+
+def band(ax: Any, t: np.ndarray, v: np.ndarray, colour: str, label: str, *,
+         max_bins: int = 1500, alpha: float = 0.3, lw: float = 1.2) -> tuple[Any, int]:
+    """Draw a long series as its min-max band per bin and the bin means as a line.
+
+    At 285 Hz over hours a line of every sample is a solid block; the band keeps the full
+    range (the noise) visible and the line the signal. A short series is drawn as it is.
+
+    Returns
+    -------
+    handle : matplotlib artist or tuple of them
+        For a legend entry (band and line together).
+    k : int
+        Samples per bin (1: every sample drawn).
+
+    """
+    tm, lo, hi, mean, k = bins(t, v, max_bins)
+    if k == 1:
+        (line,) = ax.plot(t, v, color=colour, lw=lw, label=label)
+        return line, 1
+    patch = ax.fill_between(tm, lo, hi, color=colour, alpha=alpha, lw=0)
+    (line,) = ax.plot(tm, mean, color=colour, lw=lw)
+    return (patch, line), k
+
+
+def _legend(fig: Any, entries: list[tuple[Any, str]], k: int, **kw: Any) -> None:
+    """One legend under the figure; a band and its line share an entry."""
+    from matplotlib.legend_handler import HandlerTuple
+
+    title = None if k <= 1 else f"lines: mean of {k} samples; bands: their min to max"
+    fig.legend([h for h, _ in entries], [lab for _, lab in entries], frameon=False,
+               handler_map={tuple: HandlerTuple(ndivide=None, pad=0)}, title=title,
+               title_fontsize=10, alignment="left", **kw)
+
+
+def _finite_range(*arrays: np.ndarray) -> float:
+    vals = [a[np.isfinite(a)] for a in arrays]
+    vals = [a for a in vals if a.size]
+    if not vals:
+        return 0.0
+    allv = np.concatenate(vals)
+    return float(np.percentile(allv, 99.5) - np.percentile(allv, 0.5))
+
+
+def needs_own_scale(before: np.ndarray, after: np.ndarray) -> bool:
+    """Whether "after" needs a panel at its own scale: "before" spans over 3 times more.
+
+    Otherwise the second panel would repeat the first and is left out.
+    """
+    return _finite_range(before) > 3 * max(_finite_range(after), 1e-9)
+
+
+def residual_figure_data(vd: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Return the arrays the residual figure is drawn from: time (s) and residual (nT, mag frame).
+
+    Parameters
+    ----------
+    vd : ViewData
+        :func:`stages.restore.view_data` of the context's restore result.
+
+    Returns
+    -------
+    t_s : ndarray (M,)
+        Seconds from the first magnetometer sample, samples with a usable attitude only.
+    residual_nT : ndarray (M, 3)
+        Measured minus predicted by the final model (every diagnosed effect included): the
+        same numbers as the ``<mag>/residual`` channel of the corrected MCAP.
+
+    """
+    v = np.asarray(vd.valid, dtype=bool)
+    return np.asarray(vd.t_s)[v], np.asarray(vd.residual_nT)[v]
 
 
 def make_figures(
@@ -87,8 +212,9 @@ def make_figures(
     segments: tuple[Segment, ...] | None = None,
     *,
     max_gap_s: float | None = None,
-    dpi: int = 90,
-    max_points: int = 8000,
+    dpi: int = 100,
+    max_points: int = 1500,
+    restored: Any = None,
 ) -> dict[str, bytes]:
     """Render the report's figures.
 
@@ -99,116 +225,229 @@ def make_figures(
     calibration : Calibration
         The model to restore with.
     segments : tuple of Segment, optional
-        Shaded in the time plots.
+        Shaded in the time plots (a key names their kinds).
     max_gap_s : float or None
         Attitude gap bridged by interpolation.
     dpi : int
-        Resolution of the PNGs.
+        Resolution of the PNGs (the report shows them at about their size in inches).
     max_points : int
-        Most points drawn per series (longer series: min/max envelope per bin, so the
-        plotted range is the true fluctuation range).
+        Most bins per time series: a longer series is drawn as a min-max band per bin (the
+        plotted range is the true fluctuation range) and the bin means as a line.
+    restored : RestoreResult, optional
+        ``ctx.restored``; computed when not given.
 
     Returns
     -------
     dict of str to bytes
-        File name (``fig_*.png``) -> PNG bytes.
+        File name (``fig_*.png``) -> PNG bytes: ``fig_enu.png``, ``fig_residual.png``,
+        ``fig_sphere.png``, ``fig_attitude.png``.
 
     """
     from pipeline.geometry import quat_to_li2020_euler
-    from stages.restore import view_data
+    from stages.restore import restore_samples, view_data
 
     plt = _plt()
-    vd = view_data(recording, calibration, max_gap_s=max_gap_s)
-    sel = _decimate(len(vd.t_s), max_points)
-    t = vd.t_s[sel]
+    if restored is None:
+        restored = restore_samples(recording, calibration, max_gap_s=max_gap_s)
+    vd = view_data(restored, calibration.R_body_mag)
     t0 = int(vd.t_ns[0]) if len(vd.t_ns) else 0
+    scale, unit = _time_scale(float(vd.t_s[-1]) if len(vd.t_s) else 0.0)
+    ts = vd.t_s / scale
     out: dict[str, bytes] = {}
+    with plt.rc_context(style.rc() | {"savefig.dpi": dpi, "figure.dpi": dpi}):
+        out["fig_enu.png"] = _fig_enu(plt, vd, ts, t0, scale, unit, segments, max_points)
+        out["fig_residual.png"] = _fig_residual(plt, vd, ts, t0, scale, unit, segments,
+                                                max_points, quat_to_li2020_euler)
+        out["fig_sphere.png"] = _fig_sphere(plt, vd, calibration)
+        out["fig_attitude.png"] = _fig_attitude(plt, vd, ts, t0, scale, unit, segments,
+                                                max_points, quat_to_li2020_euler)
+    return out
 
-    # Li 2020 Figs. 5 and 8: ENU components before and after calibration.
-    fig, axes = plt.subplots(3, 2, figsize=(12, 7.5), dpi=dpi, sharex=True,
-                             gridspec_kw={"width_ratios": [3, 2]})
-    for k, name in enumerate(ENU_LABELS):
-        a, b = axes[k]
-        tu, unc = _envelope(vd.t_s, vd.uncalibrated_enu_nT[:, k], max_points)
-        tc, cal = _envelope(vd.t_s, vd.calibrated_enu_nT[:, k], max_points)
-        _shade(a, segments, t0)
-        a.plot(tu, unc, color=BEFORE, lw=0.7, label="uncalibrated (attitude only)")
-        a.plot(tc, cal, color=AFTER, lw=0.9, alpha=0.85, label="calibrated")
-        a.set_ylabel(f"{name} (nT)")
-        a.grid(alpha=0.3)
-        _shade(b, segments, t0)
-        b.plot(tc, cal, color=AFTER, lw=0.6)
-        b.axhline(vd.B_enu_nT[k], color=IDEAL, lw=1.0, ls="--", label="reference B")
-        b.grid(alpha=0.3)
+
+def _fig_enu(plt: Any, vd: Any, ts: np.ndarray, t0: int, scale: float, unit: str,
+             segments: Any, max_points: int) -> bytes:
+    """Li 2020 Figs. 5 and 8: east, north, up and |B|, before and after calibration.
+
+    A second column shows "after" at its own scale only when "before" spans far more (the
+    calibrated series would otherwise be a flat line); otherwise it would repeat the first.
+    """
+    unc, cal = vd.uncalibrated_enu_nT, vd.calibrated_enu_nT
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mag_before = np.linalg.norm(vd.raw_mag_nT, axis=1)
+        mag_before = np.where(np.isfinite(unc).all(axis=1), mag_before, np.nan)
+        mag_after = np.linalg.norm(cal, axis=1)
+    B = np.asarray(vd.B_enu_nT, dtype=float)
+    rows = [(f"{name} (nT)", unc[:, k], cal[:, k], B[k]) for k, name in enumerate(ENU_LABELS)]
+    rows.append(("|B| (nT)", mag_before, mag_after, float(np.linalg.norm(B))))
+    # "after" at its own scale where "before" spans far more; elsewhere it would repeat
+    own_rows = [needs_own_scale(b, a) for _, b, a, _ in rows]
+    own = any(own_rows)
+    fig, axes = plt.subplots(4, 2 if own else 1, figsize=(12, 10), sharex=True, squeeze=False,
+                             gridspec_kw={"width_ratios": [3, 2] if own else [1]})
+    keys: dict[str, Any] = {}
+    entries: list[tuple[Any, str]] = []
+    k_bin = 1
+    for k, (ylabel, before, after, ref) in enumerate(rows):
+        a = axes[k, 0]
+        keys.update(_shade(a, segments, t0, scale))
+        # "before" broader underneath: where both agree (|B| without offsets) both show
+        hb, k_bin = band(a, ts, before, style.BEFORE, "before", max_bins=max_points, lw=2.4)
+        ha, _ = band(a, ts, after, style.AFTER, "after", max_bins=max_points)
+        hr = a.axhline(ref, color=style.REFERENCE, lw=1.0, ls="--")
+        a.set_ylabel(ylabel)
         if k == 0:
-            a.legend(loc="upper right", fontsize=8)
-            b.legend(loc="upper right", fontsize=8)
-            a.set_title("field in ENU: before and after calibration")
-            b.set_title("after calibration (own scale)")
-    axes[2, 0].set_xlabel("time (s)")
-    axes[2, 1].set_xlabel("time (s)")
-    fig.subplots_adjust(left=0.08, right=0.99, bottom=0.08, top=0.95, wspace=0.17, hspace=0.12)
-    out["fig_enu.png"] = _png(fig)
+            entries = [(hb, "before calibration (attitude only)"), (ha, "after calibration"),
+                       (hr, "reference field (estimated or given)")]
+        if own:
+            b = axes[k, 1]
+            if own_rows[k]:
+                _shade(b, segments, t0, scale)
+                band(b, ts, after, style.AFTER, "after", max_bins=max_points)
+                b.axhline(ref, color=style.REFERENCE, lw=1.0, ls="--")
+            else:
+                b.set_visible(False)
+    axes[0, 0].set_title("field in ENU and its magnitude |B|, before and after calibration")
+    if own:
+        first = own_rows.index(True)
+        axes[first, 1].set_title("after calibration alone, closer scale")
+        last = max(i for i, o in enumerate(own_rows) if o)
+        axes[last, 1].xaxis.set_tick_params(labelbottom=True)
+        axes[last, 1].set_xlabel(_time_label(t0, unit))
+    axes[-1, 0].set_xlabel(_time_label(t0, unit))
+    y = _segment_key(fig, keys)
+    _legend(fig, entries, k_bin, loc="lower left", ncol=3, bbox_to_anchor=(0.01, y))
+    fig.subplots_adjust(left=0.08, right=0.99, bottom=0.12 + y, top=0.96, wspace=0.2,
+                        hspace=0.12)
+    return _png(fig)
 
-    # Residuals per mag axis.
-    fig, ax = plt.subplots(figsize=(12, 3.5), dpi=dpi)
-    _shade(ax, segments, t0)
+
+def _fig_residual(plt: Any, vd: Any, ts: np.ndarray, t0: int, scale: float, unit: str,
+                  segments: Any, max_points: int, euler: Any) -> bytes:
+    """Residual per mag axis against time (bands) and against heading (mean and spread)."""
+    fig, (ax, axh) = plt.subplots(1, 2, figsize=(12, 4.6),
+                                  gridspec_kw={"width_ratios": [3, 2]})
+    keys = _shade(ax, segments, t0, scale)
+    # drawn from residual_figure_data: the numbers of the <mag>/residual channel
+    t_res_s, r_res = residual_figure_data(vd)
+    r = vd.residual_nT
+    entries = []
+    k_bin = 1
     for k, c in enumerate("xyz"):
-        ax.plot(*_envelope(vd.t_s, vd.residual_nT[:, k], max_points), color=AXIS_COLORS[k],
-                lw=0.6, label=f"{c}")
-    ax.set_xlabel("time (s)")
+        hk, k_bin = band(ax, t_res_s / scale, r_res[:, k], style.AXIS[k], c,
+                         max_bins=max_points, alpha=0.2)
+        entries.append((hk, f"mag {c}"))
+    ax.set_xlabel(_time_label(t0, unit))
     ax.set_ylabel("residual, mag frame (nT)")
     ax.set_title("measured minus predicted by the fitted model")
-    ax.legend(loc="upper right", fontsize=8, ncol=3)
-    ax.grid(alpha=0.3)
-    fig.subplots_adjust(left=0.08, right=0.99, bottom=0.15, top=0.9)
-    out["fig_residual.png"] = _png(fig)
+    v = vd.valid & np.isfinite(r).all(axis=1)
+    if np.count_nonzero(v) > 10:
+        h = np.degrees(euler(vd.q_enu_body[v])[0])
+        edges = np.linspace(-180, 180, 37)
+        idx = np.clip(np.digitize(h, edges) - 1, 0, 35)
+        mid = 0.5 * (edges[:-1] + edges[1:])
+        cnt = np.bincount(idx, minlength=36)
+        has = cnt > 0
+        for k, c in enumerate("xyz"):
+            x = r[v, k]
+            s1 = np.bincount(idx, x, minlength=36)
+            s2 = np.bincount(idx, x * x, minlength=36)
+            mean = np.where(has, s1 / np.maximum(cnt, 1), np.nan)
+            sd = np.sqrt(np.maximum(np.where(has, s2 / np.maximum(cnt, 1), np.nan) - mean**2,
+                                    0))
+            axh.fill_between(mid, mean - sd, mean + sd, color=style.AXIS[k], alpha=0.2, lw=0)
+            axh.plot(mid, mean, "o-", ms=3, color=style.AXIS[k], lw=1.2, label=c)
+        axh.set_xlim(-180, 180)
+        axh.set_xticks(np.arange(-180, 181, 90))
+    axh.set_xlabel("heading (deg)")
+    axh.set_ylabel("residual (nT)")
+    axh.set_title("against heading: mean and \u00b11 sd per 10\u00b0")
+    y = _segment_key(fig, keys)
+    _legend(fig, entries, k_bin, loc="lower left", ncol=3, bbox_to_anchor=(0.01, y))
+    fig.subplots_adjust(left=0.07, right=0.98, bottom=0.25 + y, top=0.92, wspace=0.22)
+    return _png(fig)
 
-    # Li 2020 Fig. 7: the field in the body frame, before / after / ideal.
-    fig = plt.figure(figsize=(7, 6), dpi=dpi)
-    ax3 = fig.add_subplot(projection="3d")
-    sel3 = _decimate(len(vd.t_s), min(max_points, 4000))
-    # The ideal goes first, broad and pale, so that "after" (on top of it when the
-    # calibration is right) stays visible.
-    for arr, color, label, ms, alpha in (
-        (vd.body_ideal_nT, IDEAL, "ideal (C_body_enu B)", 5.0, 0.25),
-        (vd.body_before_nT, BEFORE, "before (raw, axes taken as aligned)", 1.5, 0.8),
-        (vd.body_after_nT, AFTER, "after calibration", 1.0, 0.9),
-    ):
-        p = arr[sel3]
-        p = p[np.isfinite(p).all(axis=1)]
-        ax3.plot(p[:, 0], p[:, 1], p[:, 2], ".", ms=ms, color=color, alpha=alpha, label=label)
-    ax3.set_xlabel("x (nT)")
-    ax3.set_ylabel("y (nT)")
-    ax3.set_zlabel("z (nT)")
-    ax3.set_title("field in the body frame")
-    ax3.legend(loc="upper left", fontsize=8)
-    fig.subplots_adjust(left=0.0, right=0.95, bottom=0.03, top=0.95)
-    out["fig_trajectory.png"] = _png(fig)
 
-    # Attitude.
-    fig, ax = plt.subplots(figsize=(12, 3.5), dpi=dpi)
-    _shade(ax, segments, t0)
+def _fig_sphere(plt: Any, vd: Any, calibration: Any, max_points: int = 3000) -> bytes:
+    """Plot the readings in the mag frame, raw and corrected, in three projections.
+
+    Rotated through all attitudes a perfect sensor's readings lie on a sphere of radius
+    |B| about the origin; hard iron moves the centre, soft iron makes it an ellipsoid.
+    Equal axes, so that a sphere looks round.
+    """
+    raw = np.asarray(vd.raw_mag_nT, dtype=float)
+    # the corrected reading in the mag frame: body_after = R_body_mag @ corrected
+    corr = np.asarray(vd.body_after_nT, dtype=float) @ np.asarray(calibration.R_body_mag)
+    good = np.isfinite(raw).all(axis=1) & np.isfinite(corr).all(axis=1)
+    sel = np.flatnonzero(good)[_decimate(int(np.count_nonzero(good)), max_points)]
+    radius = float(np.linalg.norm(vd.B_enu_nT))
+    fig, axes = plt.subplots(1, 4, figsize=(12, 4.2),
+                             gridspec_kw={"width_ratios": [1, 1, 1, 1.1]})
+    th = np.linspace(0, 2 * np.pi, 361)
+    for ax, (i, j) in zip(axes[:3], ((0, 1), (0, 2), (1, 2)), strict=True):
+        ax.plot(raw[sel, i], raw[sel, j], ".", ms=5, color=style.BEFORE, alpha=0.4,
+                label="raw reading")
+        ax.plot(corr[sel, i], corr[sel, j], ".", ms=1.5, color=style.AFTER, alpha=0.6,
+                label="corrected (model's offset and soft iron removed)")
+        ax.plot(radius * np.cos(th), radius * np.sin(th), "--", color=style.REFERENCE, lw=1,
+                label=f"|B| = {radius:,.0f} nT".replace(",", "\u2009"))
+        ax.plot([0], [0], "+", color=style.REFERENCE, ms=10)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_xlabel(f"{'xyz'[i]} (nT)")
+        ax.set_ylabel(f"{'xyz'[j]} (nT)")
+        ax.set_title(f"{'xyz'[i]}{'xyz'[j]} plane")
+        ax.xaxis.set_major_locator(plt.MaxNLocator(4))
+        ax.yaxis.set_major_locator(plt.MaxNLocator(5))
+    # distance from the sphere: what an offset of a few hundred nT does, invisible above
+    ax = axes[3]
+    d_raw = np.linalg.norm(raw[good], axis=1) - radius
+    d_cor = np.linalg.norm(corr[good], axis=1) - radius
+    lim = float(np.percentile(np.abs(np.concatenate([d_raw, d_cor])), 99.5)) if good.any() \
+        else 1.0
+    edges = np.linspace(-lim, lim, 61)
+    ax.hist(d_raw, bins=edges, color=style.BEFORE, alpha=0.5, label="raw")
+    ax.hist(d_cor, bins=edges, histtype="step", color=style.AFTER, lw=1.6, label="corrected")
+    ax.axvline(0, color=style.REFERENCE, ls="--", lw=1)
+    ax.set_xlabel("|reading| \u2212 |B| (nT)")
+    ax.set_ylabel("samples")
+    ax.set_title("distance from the sphere")
+    ax.xaxis.set_major_locator(plt.MaxNLocator(4))
+    h, lab = axes[0].get_legend_handles_labels()
+    fig.legend(h, lab, loc="lower center", ncol=3, frameon=False, markerscale=4)
+    fig.suptitle("readings in the magnetometer frame: a sphere of radius |B| about the origin "
+                 "when the sensor is calibrated", fontsize=12)
+    fig.subplots_adjust(left=0.085, right=0.99, bottom=0.22, top=0.85, wspace=0.55)
+    return _png(fig)
+
+
+def _fig_attitude(plt: Any, vd: Any, ts: np.ndarray, t0: int, scale: float, unit: str,
+                  segments: Any, max_points: int, euler: Any) -> bytes:
+    """Heading, pitch and roll (Li 2020 Euler angles) with the segments shaded."""
+    fig, ax = plt.subplots(figsize=(12, 4.2))
+    keys = _shade(ax, segments, t0, scale)
+    sel = _decimate(len(vd.t_s), 6 * max_points)
     v = vd.valid[sel]
-    h, p, r = quat_to_li2020_euler(vd.q_enu_body[sel])
-    for ang, name, color in ((h, "heading", AXIS_COLORS[2]), (p, "pitch", AXIS_COLORS[0]),
-                             (r, "roll", AXIS_COLORS[1])):
-        ax.plot(t[v], np.degrees(ang[v]), ".", ms=1, color=color, label=name)
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel("deg")
-    ax.set_title("attitude (Li 2020 Euler angles); segments shaded")
-    ax.legend(loc="upper right", fontsize=8, ncol=3, markerscale=6)
-    ax.grid(alpha=0.3)
-    fig.subplots_adjust(left=0.08, right=0.99, bottom=0.15, top=0.9)
-    out["fig_attitude.png"] = _png(fig)
-    return out
+    h, p, r = euler(vd.q_enu_body[sel])
+    for ang, name in ((h, "heading"), (p, "pitch"), (r, "roll")):
+        ax.plot(ts[sel][v], np.degrees(ang[v]), ".", ms=1.5, color=style.ANGLE[name],
+                label=name)
+    ax.set_xlabel(_time_label(t0, unit))
+    ax.set_ylabel("angle (deg)")
+    ax.set_yticks(np.arange(-180, 181, 90))
+    ax.set_title("attitude (Li 2020 Euler angles) and motion segments")
+    h_, lab = ax.get_legend_handles_labels()
+    y = _segment_key(fig, keys)
+    fig.legend(h_, lab, loc="lower left", ncol=3, frameon=False, markerscale=8,
+               bbox_to_anchor=(0.01, y))
+    fig.subplots_adjust(left=0.07, right=0.99, bottom=0.2 + y, top=0.92)
+    return _png(fig)
 
 
 def _fmt(x: Any, nd: int = 3) -> str:
     if x is None:
         return "&ndash;"
     if isinstance(x, float | np.floating):
-        return "&infin;" if not np.isfinite(x) else f"{x:.{nd}f}"
+        return "&infin;" if not np.isfinite(x) else minus(f"{x:.{nd}f}")
     return html.escape(str(x))
 
 
@@ -218,52 +457,92 @@ def _vec(a: Any, nd: int = 3) -> str:
     return "[" + ", ".join(_fmt(float(x), nd) for x in np.asarray(a, dtype=float).ravel()) + "]"
 
 
-def _short(x: Any) -> str:
-    """Compact JSON of finding params / windows: floats to 4 significant digits."""
-    def r(v: Any) -> Any:
-        if isinstance(v, dict):
-            return {k: r(w) for k, w in v.items()}
-        if isinstance(v, list | tuple):
-            return [r(w) for w in v]
-        if isinstance(v, float):
-            return float(f"{v:.4g}") if np.isfinite(v) else None
-        return v
-
-    return html.escape(json.dumps(r(x)))
-
-
-def _img(data: bytes, alt: str) -> str:
+def _img(data: bytes, alt: str, key: str = "") -> str:
+    """Return a figure that zooms to its full resolution when clicked (CSS only, works offline)."""
     b64 = base64.b64encode(data).decode("ascii")
-    return f'<figure><img alt="{html.escape(alt)}" src="data:image/png;base64,{b64}"></figure>'
+    key = html.escape(key or alt.replace(".", "-").replace(" ", "-"))
+    return (f'<figure><input type=checkbox class=zoom id="zoom-{key}">'
+            f'<label for="zoom-{key}" title="click to zoom in or out">'
+            f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{b64}"></label>'
+            "</figure>")
 
 
-def _metrics_html(metrics: Any) -> str:
+def counts_text(metrics: Any) -> str:
+    """Where every magnetometer sample went, in words; the named counts add up to the total.
+
+    Used + without a usable attitude at ``t - tau`` + without an attitude at the stamp itself
+    (restored but not compared with the uncalibrated field) = every sample. No sample is
+    dropped otherwise (sample-and-hold repeats are restored like the others).
+    """
+    n_stamp = int(getattr(metrics, "n_without_attitude_at_stamp", 0))
+    text = (f"{metrics.n_used} of {metrics.n_samples} samples used; "
+            f"{metrics.n_without_attitude} without a usable attitude")
+    if n_stamp:
+        text += (f"; {n_stamp} with an attitude at the sensing time t - tau but none at their "
+                 "own stamp (restored, not compared with the uncalibrated field)")
+    return text
+
+
+def samples_text(cal: Any) -> str:
+    """Return the calibration's ``n_samples`` with what it counts (the samples fitted)."""
+    n = int(cal.n_samples)
+    fs = (getattr(cal, "checks", None) or {}).get("fit_samples")
+    if isinstance(fs, dict) and fs.get("stride", 1) and int(fs.get("stride", 1)) > 1:
+        k = int(fs["stride"])
+        nth = {2: "2nd", 3: "3rd"}.get(k, f"{k}th")
+        return (f"{n} (every {nth} of {int(fs.get('of', 0))} samples with an attitude, "
+                f"decimated for the diagnosis fit{fs.get('note', '')})")
+    if isinstance(fs, dict):
+        return f"{n} (every sample with an attitude{fs.get('note', '')})"
+    held = getattr(cal, "sample_hold", None)
+    if held:
+        return f"{n} (samples with an attitude, sample-and-hold repeats left out)"
+    return f"{n} (samples with an attitude fitted by the estimator)"
+
+
+def _t(t0_ns: int, t_s: float) -> str:
+    """Relative time in seconds with the UTC time beside it."""
+    from stages.report_text import utc
+
+    return f"{t_s:.1f} s <small>{utc(t0_ns, t_s)}</small>"
+
+
+def _metrics_html(metrics: Any, t0_ns: int = 0) -> str:
     if metrics is None:
         return "<p>No metrics.</p>"
     rows = []
     for s in metrics.scopes:
-        for c in ("x", "y", "z"):
+        for i, c in enumerate(("x", "y", "z")):
             comp = s.components[c]
             cal, unc, r = comp["calibrated"], comp["uncalibrated"], comp["ratio_pct"]
+            head = ""
+            if i == 0:
+                name = "whole recording" if s.scope == "all" else html.escape(s.scope)
+                head = (f"<td rowspan=3 class=l>{name}</td>"
+                        f"<td rowspan=3 class=l>{html.escape(s.kind)}</td>"
+                        f"<td rowspan=3>{_t(t0_ns, s.start_s)}</td>"
+                        f"<td rowspan=3>{_t(t0_ns, s.end_s)}</td>"
+                        f"<td rowspan=3>{s.n_samples}</td>")
             rows.append(
-                "<tr>"
-                f"<td>{html.escape(s.scope)}</td><td>{html.escape(s.kind)}</td>"
-                f"<td>{c}</td><td>{s.n_samples}</td>"
+                f"<tr class={'first' if i == 0 else 'next'}>{head}"
+                f"<td>{ENU_LABELS[i]}</td>"
                 + "".join(
-                    f"<td>{_fmt(unc[k], 1)}</td><td>{_fmt(cal[k], 2)}</td><td>{_fmt(r[k], 2)}</td>"
+                    f"<td>{_fmt(unc[k], 1)}</td><td>{_fmt(cal[k], 1)}</td>"
+                    f"<td>{_fmt(r[k], 1)}</td>"
                     for k in ("fluctuation_range_nT", "absolute_deviation_nT", "std_nT")
                 )
                 + "</tr>"
             )
     head = (
-        "<tr><th rowspan=2>scope</th><th rowspan=2>kind</th><th rowspan=2>ENU</th>"
-        "<th rowspan=2>n</th><th colspan=3>fluctuation range (nT)</th>"
+        "<tr><th rowspan=2>scope</th><th rowspan=2>kind</th><th rowspan=2>start</th>"
+        "<th rowspan=2>end</th><th rowspan=2>samples</th><th rowspan=2>ENU</th>"
+        "<th colspan=3>fluctuation range (nT)</th>"
         "<th colspan=3>absolute deviation (nT)</th><th colspan=3>standard deviation (nT)</th>"
         "</tr><tr>" + "<th>before</th><th>after</th><th>ratio %</th>" * 3 + "</tr>"
     )
     extra = (
-        f"<p>{metrics.n_used} of {metrics.n_samples} samples used; "
-        f"{metrics.n_without_attitude} without a usable attitude.</p>"
+        f"<p>{html.escape(counts_text(metrics))}. Ratio: after / before "
+        "&times; 100 (smaller is better). Segments end before the next starts: [start, end).</p>"
     )
     if metrics.heading_error:
         he = metrics.heading_error
@@ -276,38 +555,72 @@ def _metrics_html(metrics: Any) -> str:
                 + "</tr>" for w in ("uncalibrated", "calibrated")
             ) + "</table>"
         )
-    return f"<table>{head}{''.join(rows)}</table>{extra}"
+    return f"<table class=metrics>{head}{''.join(rows)}</table>{extra}"
 
 
-def _calibration_html(cal: Any) -> str:
+def _pm(a: Any, sg: Any, nd: int) -> str:
+    from stages.report_text import pm_vec
+
+    return "&ndash;" if a is None else html.escape(pm_vec(a, sg, nd))
+
+
+def estimator_text(cal: Any, options: Any = None) -> str:
+    """Say which estimator made the rotation, in words (not the stage's internal name)."""
+    from stages.estimators.registry import DESCRIPTIONS
+
+    chosen = getattr(options, "estimator", None)
+    name = str(getattr(chosen, "value", chosen) or "ml")
+    if getattr(options, "calibration_path", None):
+        return f"loaded from {Path(options.calibration_path).name} (not estimated here)"
+    est = str(cal.estimator)
+    base = f"{name}: {DESCRIPTIONS.get(name, '')}".rstrip(": ")
+    if est == "diagnose" or cal.effects:
+        return base + "; then refitted by the diagnosis with its final model (the terms it " \
+            "found, above)"
+    if est != name:
+        return f"{est}"
+    return base
+
+
+def _calibration_html(cal: Any, options: Any = None) -> str:
+    rv = np.asarray(cal.rotvec_body_mag_deg, float)
     rows = [
-        ("estimator", html.escape(str(cal.estimator))),
-        ("rotation vector R_body_mag (deg)", _vec(cal.rotvec_body_mag_deg, 4)),
-        ("1-sigma (deg)", _vec(cal.sigma_rotvec_deg, 4)),
-        ("|rotation| (deg)", _fmt(float(np.linalg.norm(cal.rotvec_body_mag_deg)), 4)),
+        ("estimator", html.escape(estimator_text(cal, options))),
+        ("rotation vector of R_body_mag (deg, body x, y, z)",
+         _pm(rv, cal.sigma_rotvec_deg, 3)),
+        ("misalignment angle |rotation| (deg)", _fmt(float(np.linalg.norm(rv)), 3)),
     ]
     if cal.rotvec_from_nominal_deg is not None:
-        rows.append(("from nominal (deg)", _vec(cal.rotvec_from_nominal_deg, 4)))
+        rows.append(("from nominal (deg)", _pm(cal.rotvec_from_nominal_deg, None, 3)))
     rows += [
-        ("offset o (nT)", _vec(cal.offset_nT, 2)),
-        ("1-sigma offset (nT)", _vec(cal.sigma_offset_nT, 2)),
-        ("D", _vec(cal.D, 5)),
-        ("time offset tau (s)", _fmt(cal.time_offset_s, 5)),
-        ("1-sigma tau (s)", _fmt(cal.sigma_time_offset_s, 5)),
-        ("B_enu (nT)", _vec(cal.B_enu_nT, 1)),
-        ("1-sigma B_enu (nT)", _vec(cal.sigma_B_enu_nT, 2)),
-        ("residual rms (nT)", _fmt(float(cal.residual_rms_nT), 3)),
-        ("samples", str(int(cal.n_samples))),
-        ("unobservable axes (body)",
+        ("offset o (nT, mag x, y, z)", _pm(cal.offset_nT, cal.sigma_offset_nT, 1)),
+        ("soft iron D", "&ndash;" if cal.D is None else
+         "<br>".join(_pm(r, None, 4) for r in np.asarray(cal.D, float))),
+        ("time offset &tau; (ms)", "&ndash;" if cal.time_offset_s is None else
+         html.escape(minus(f"{1e3 * cal.time_offset_s:.2f}")
+                     + ("" if cal.sigma_time_offset_s is None
+                        else f" \u00b1 {1e3 * cal.sigma_time_offset_s:.2f}"))),
+        ("background field B (nT, east, north, up)", _pm(cal.B_enu_nT, cal.sigma_B_enu_nT, 1)),
+        ("|B| (nT)", _fmt(float(np.linalg.norm(cal.B_enu_nT)), 1)),
+        ("residual rms (nT)", _fmt(float(cal.residual_rms_nT), 2)),
+        ("samples", html.escape(samples_text(cal))),
+        ("rotation axes not determined (body)",
          ", ".join(_vec(a, 3) for a in cal.unobservable_axes_body) or "none"),
     ]
-    if cal.effects:
-        rows.append(("further effects", html.escape(", ".join(sorted(cal.effects)))))
     body = "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in rows)
     return f"<table class=kv>{body}</table>"
 
 
 _VERDICT_COLOUR = {"OK": "#d4edda", "QUESTIONABLE": "#fff3cd", "REFUSED": "#f8d7da"}
+
+
+def _residual_html(restored: Any) -> str:
+    if restored is None:
+        return ""
+    rms = f"<span id=residual_rms_nT>{restored.residual_rms_nT:.7g}</span>"
+    return (f"<p>Residual of the final model (every term of the calibration, diagnosed effects "
+            f"included): {rms} nT RMS over {int(np.count_nonzero(restored.valid))} samples "
+            "with a usable attitude.</p>")
 
 
 def _verdict_html(cal: Any) -> str:
@@ -317,59 +630,49 @@ def _verdict_html(cal: Any) -> str:
     v = getattr(cal, "verdict", None)
     status = "not judged" if v is None else v.status.value
     colour = _VERDICT_COLOUR.get(status, "#eee")
-    reason = "" if v is None else f"<p>{html.escape(v.reason)}</p>"
+    reason = "" if v is None else f"<p>{html.escape(minus(v.reason))}</p>"
     ne = "".join(f"<li>{html.escape(d['term'])}: {html.escape(d['reason'])}</li>"
                  for d in getattr(cal, "not_estimated", ()))
     ne = f"<p>Not estimated:</p><ul>{ne}</ul>" if ne else ""
     neff = getattr(cal, "n_eff", None)
     neff_html = "" if neff is None else (
-        f"<p>Sigmas from {neff:.0f} effective independent samples of {int(cal.n_samples)} "
-        "(residuals correlated in time; block sandwich and split-half check).</p>")
-    return (f"<div class=verdict style='background:{colour};border:1px solid #999;"
-            f"padding:.5em 1em;font-size:15px'><b>Verdict: {html.escape(status)}</b> &mdash; "
-            f"{html.escape(verdict_line(cal))}{reason}{ne}{neff_html}</div>")
+        f"<p>Uncertainties (\u00b1, 1 sigma) from {neff:.0f} effective independent samples of "
+        f"{int(cal.n_samples)} (the residuals are correlated in time).</p>")
+    line = minus(verdict_line(cal).replace("+-", "\u00b1"))
+    return (f"<div class=verdict id=verdict style='background:{colour}'>"
+            f"<b>Verdict: {html.escape(status)}</b> &mdash; "
+            f"{html.escape(line)}{reason}{ne}{neff_html}</div>")
 
 
-def _diagnosis_html(diagnosis: Any) -> tuple[str, list[tuple[str, bytes]]]:
+def _diagnosis_html(diagnosis: Any, t0_ns: int = 0, options: Any = None
+                    ) -> tuple[str, list[tuple[str, bytes]]]:
+    from stages.report_text import rows_html
+
     if diagnosis is None:
+        given = getattr(options, "calibration_path", None)
+        if given:
+            return ("<p>Not diagnosed: this recording was restored with the calibration from "
+                    f"{html.escape(Path(given).name)} (of "
+                    f"{html.escape(Path(given).parent.name)}); the diagnosis is in the report "
+                    "of the recording that calibration was estimated from.</p>"), []
         return "<p>Not diagnosed.</p>", []
     d = diagnosis.to_dict() if hasattr(diagnosis, "to_dict") else dict(diagnosis)
-    parts = []
-    for key in ("baseline", "final"):
-        b = d.get(key) or {}
-        parts.append(
-            f"<p><b>{key}</b>: effects {html.escape(', '.join(b.get('effects', [])) or 'none')}; "
-            f"residual rms {_fmt(b.get('residual_rms_nT'), 3)} nT; held-out rms "
-            f"{_fmt(b.get('heldout_rms_nT'), 3)} nT</p>"
-        )
-    rows = []
-    for f in d.get("findings", []):
-        ev = f.get("evidence") or {}
-        where = f.get("where") or {}
-        rows.append(
-            f"<tr><td>{html.escape(str(f.get('effect')))}</td>"
-            f"<td>{_short(f.get('params'))}</td>"
-            f"<td>{_fmt(ev.get('delta_bic'), 1)}</td>"
-            f"<td>{_fmt(ev.get('rms_before_nT'), 3)} &rarr; {_fmt(ev.get('rms_after_nT'), 3)}</td>"
-            f"<td>{_fmt(ev.get('heldout_rms_before_nT'), 3)} &rarr; "
-            f"{_fmt(ev.get('heldout_rms_after_nT'), 3)}</td>"
-            f"<td>{_short(where.get('windows_s') or [])}</td>"
-            f"<td>{html.escape(str(f.get('explanation', '')))}</td></tr>"
-        )
-    if rows:
-        parts.append(
-            "<table><tr><th>effect</th><th>params</th><th>&Delta;BIC</th><th>rms (nT)</th>"
-            "<th>held-out rms (nT)</th><th>windows (s)</th><th>explanation</th></tr>"
-            + "".join(rows) + "</table>"
-        )
-    else:
-        parts.append("<p>No finding: the model explains the data.</p>")
+    parts = [rows_html(d, t0_ns)]
+    b, f = d.get("baseline") or {}, d.get("final") or {}
+    parts.append(
+        "<p>Without these terms the model leaves "
+        f"{_fmt(b.get('residual_rms_nT'), 1)} nT rms ({_fmt(b.get('heldout_rms_nT'), 1)} nT on "
+        f"held-out data); with them {_fmt(f.get('residual_rms_nT'), 1)} nT "
+        f"({_fmt(f.get('heldout_rms_nT'), 1)} nT held-out). Held-out: data the model was not "
+        "fitted to, so an improvement there is not overfitting. Evidence: how strongly the "
+        "data ask for the term (Bayesian information criterion).</p>")
     ni = d.get("not_identifiable") or []
     if ni:
         parts.append(
-            "<p>Not identifiable from this motion: "
-            + "; ".join(html.escape(f"{x.get('effect')}: {x.get('reason')}") for x in ni)
-            + "</p>"
+            "<p>Cannot be told from this motion:</p><ul>"
+            + "".join(f"<li>{html.escape(str(x.get('effect')).replace('_', ' '))}: "
+                      f"{html.escape(str(x.get('reason')))}</li>" for x in ni)
+            + "</ul>"
         )
     figs: list[tuple[str, bytes]] = []
     try:
@@ -382,13 +685,56 @@ def _diagnosis_html(diagnosis: Any) -> tuple[str, list[tuple[str, bytes]]]:
 
 
 CSS = """
-body{font-family:sans-serif;margin:1.5em;max-width:1250px;color:#222}
-table{border-collapse:collapse;margin:.5em 0;font-size:13px}
-td,th{border:1px solid #bbb;padding:2px 6px;text-align:right}
-th{background:#eee} table.kv th{text-align:left}
-figure{margin:.5em 0} img{max-width:100%}
+body{font-family:sans-serif;margin:1.5em auto;max-width:1250px;color:#222;padding:0 1em;
+ font-size:15px;line-height:1.4}
+table{border-collapse:collapse;margin:.5em 0;font-size:14px}
+td,th{border:1px solid #bbb;padding:3px 7px;text-align:right;vertical-align:top}
+th{background:#eee} table.kv th{text-align:left;font-weight:normal} td.l{text-align:left}
+table.kv td{text-align:left} table.findings th{text-align:left}
+table.findings td{text-align:left} table.metrics tr.first td{border-top:2px solid #888}
+td small{color:#555}
+figure{margin:.5em 0;overflow:auto} img{max-width:100%;cursor:zoom-in;display:block}
+input.zoom{display:none} input.zoom:checked+label img{max-width:none;width:200%;
+ cursor:zoom-out}
+.verdict{border:1px solid #999;padding:.5em 1em;font-size:16px}
 .warn{background:#fff3cd;border:1px solid #e0c36c;padding:.4em .8em}
+.caption{color:#444;font-size:14px;margin-top:0}
+dl.prov dt{float:left;clear:left;width:9em;color:#555} dl.prov dd{margin-left:10em}
 """
+
+
+def provenance(recording: Recording, *, command: str | None = None) -> dict[str, str]:
+    """Return what made this report: magalign version, command line, input sha256, date.
+
+    Parameters
+    ----------
+    recording : Recording
+        Its file is hashed.
+    command : str, optional
+        The command line; the ``MAGALIGN_COMMAND`` environment variable (set by the
+        ``magalign`` program) or this process's arguments otherwise.
+
+    """
+    import datetime as dt
+    import os
+    import shlex
+    import sys
+
+    from pipeline.campaign import sha256_file
+    from pipeline.cli import package_version
+
+    cmd = command or os.environ.get("MAGALIGN_COMMAND") or shlex.join(sys.argv)
+    try:
+        digest = sha256_file(recording.path)
+    except OSError:
+        digest = "unreadable"
+    return {
+        "magalign": package_version(),
+        "command": cmd,
+        "input": Path(recording.path).name,
+        "input sha256": digest,
+        "written": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC"),
+    }
 
 
 def render_html(
@@ -397,10 +743,23 @@ def render_html(
     metrics: Any,
     diagnosis: Any,
     figures: dict[str, bytes],
+    restored: Any = None,
+    *,
+    options: Any = None,
+    prov: dict[str, str] | None = None,
 ) -> str:
-    """Return the self-contained report text (figures inline as base64)."""
+    """Return the self-contained report text (figures inline as base64).
+
+    ``restored``: the restore result; its final-model residual RMS is quoted by the residual
+    figure (the same number as ``diagnosis.json``'s final residual when diagnosed).
+
+    Order: the verdict and the headline first, then what the diagnosis found (one row per
+    physical event, in sentences with units and UTC times), the field before and after,
+    the metrics, the calibration, the remaining figures, the recording and provenance.
+    """
     stem = Path(recording.path).stem
-    warn = "".join(f"<li>{html.escape(w)}</li>" for w in calibration.warnings)
+    t0 = int(recording.mag.t_ns[0]) if len(recording.mag.t_ns) else 0
+    warn = "".join(f"<li>{html.escape(minus(w))}</li>" for w in calibration.warnings)
     if calibration.unobservable_axes_body:
         warn += "<li>rotation about " + ", ".join(
             _vec(a, 3) for a in calibration.unobservable_axes_body
@@ -408,44 +767,96 @@ def render_html(
     probs = "".join(
         f"<li>{html.escape(p.code)}: {html.escape(p.message)}</li>" for p in recording.problems
     )
-    diag_html, diag_figs = _diagnosis_html(diagnosis)
+    diag_html, diag_figs = _diagnosis_html(diagnosis, t0, options)
     channels = "".join(
-        f"<tr><td>{html.escape(c.topic)}</td><td>{html.escape(c.type)}</td>"
-        f"<td>{html.escape(str(getattr(c.role, 'value', c.role)))}</td><td>{c.count}</td>"
-        f"<td>{_fmt(c.rate_hz, 2)}</td></tr>"
+        f"<tr><td class=l>{html.escape(c.topic)}</td><td class=l>{html.escape(c.type)}</td>"
+        f"<td class=l>{html.escape(str(getattr(c.role, 'value', c.role)))}</td>"
+        f"<td>{c.count}</td><td>{_fmt(c.rate_hz, 2)}</td></tr>"
         for c in recording.channels
     )
     fig_html = {k: _img(v, k) for k, v in figures.items()}
+    prov = prov if prov is not None else provenance(recording)
+    prov_html = "".join(f"<dt>{html.escape(k)}</dt><dd><code>{html.escape(v)}</code></dd>"
+                        for k, v in prov.items())
+    from stages.report_text import utc
+
+    start = utc(t0, 0.0)
+    import datetime as dt
+
+    day = dt.datetime.fromtimestamp(t0 / 1e9, tz=dt.timezone.utc).strftime("%Y-%m-%d")
+    headline = _headline(calibration, metrics, diagnosis)
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>magalign: {html.escape(stem)}</title>
 <style>{CSS}</style></head><body>
 <h1>magalign report: {html.escape(stem)}</h1>
 {_verdict_html(calibration)}
-<p>Recording <code>{html.escape(Path(recording.path).name)}</code>,
-{recording.duration_s:.1f} s, {len(recording.mag)} magnetometer samples on
-<code>{html.escape(recording.mag_topic)}</code>, attitude on
-<code>{html.escape(str(recording.attitude_topic))}</code>.</p>
+<p class=headline id=headline>{headline}</p>
+<p>Recording <code>{html.escape(Path(recording.path).name)}</code> of {day}, from {start} UTC,
+{recording.duration_s:.1f} s, {len(recording.mag)} magnetometer samples. Times below count
+from its first magnetometer sample, with the UTC time beside them. Click a figure to zoom.</p>
+<h2>What the diagnosis found</h2>
+{diag_html}
+<h2>Field before and after calibration</h2>
+{fig_html.get('fig_enu.png', '')}
+<p class=caption>Amber: the reading turned into east, north, up by the attitude alone
+(axes taken as aligned); purple: after calibration; dashed: the reference field. A flat purple
+line means the calibration explains the rotation. The bottom row, |B|, does not depend on
+the heading or the misalignment: a flat |B| after calibration means offsets and soft iron are
+right (the check of MATLAB magcal and ArduPilot MagFit). Shading: motion segments (key under
+the figure).</p>
+<h2>Metrics (Li et al. 2020, Table 4)</h2>
+{_metrics_html(metrics, t0)}
+<h2>Calibration</h2>
+{_calibration_html(calibration, options)}
+{f'<div class=warn><b>Warnings</b><ul>{warn}</ul></div>' if warn else '<p>No warning.</p>'}
+<h2>Residuals</h2>
+{_residual_html(restored)}
+{fig_html.get('fig_residual.png', '')}
+<p class=caption>What the fitted model leaves unexplained, per magnetometer axis. Against
+heading (right): a residual that repeats with the heading is a calibration term the model
+lacks (a once-per-turn wave: an offset; twice per turn: soft iron).</p>
+<h2>Readings in the magnetometer frame</h2>
+{fig_html.get('fig_sphere.png', '')}
+<h2>Attitude and segments</h2>
+{fig_html.get('fig_attitude.png', '')}
+{'<h2>Diagnosis: each finding in the residual</h2>' if diag_figs else ''}
+{''.join(f'<h3>{html.escape(t.split(":")[0].replace("_", " "))}</h3>'
+         + _img(b, t, f'finding-{i}') for i, (t, b) in enumerate(diag_figs))}
+<h2>Recording</h2>
 <table><tr><th>topic</th><th>type</th><th>role</th><th>count</th><th>rate (Hz)</th></tr>
 {channels}</table>
 {f'<div class=warn><b>Problems handled while reading</b><ul>{probs}</ul></div>' if probs else ''}
-<h2>Field before and after calibration</h2>
-{fig_html.get('fig_enu.png', '')}
-<h2>Metrics (Li et al. 2020, Table 4)</h2>
-{_metrics_html(metrics)}
-<h2>Calibration</h2>
-{_calibration_html(calibration)}
-{f'<div class=warn><b>Warnings</b><ul>{warn}</ul></div>' if warn else '<p>No warning.</p>'}
-<h2>Residuals</h2>
-{fig_html.get('fig_residual.png', '')}
-<h2>Field in the body frame (Li 2020, Fig. 7)</h2>
-{fig_html.get('fig_trajectory.png', '')}
-<h2>Attitude and segments</h2>
-{fig_html.get('fig_attitude.png', '')}
-<h2>Diagnosis</h2>
-{diag_html}
-{''.join(f'<h3>{html.escape(t)}</h3>' + _img(b, t) for t, b in diag_figs)}
+<h2>Provenance</h2>
+<dl class=prov>{prov_html}</dl>
 </body></html>
 """
+
+
+def _headline(cal: Any, metrics: Any, diagnosis: Any) -> str:
+    """Return the result in two sentences: the misalignment, what calibration did to the field."""
+    from stages.report_text import rows
+
+    rv = np.asarray(cal.rotvec_body_mag_deg, float)
+    ang = float(np.linalg.norm(rv))
+    parts = [f"The magnetometer is turned by <b>{ang:.2f}\u00b0</b> against the attitude "
+             "source's axes."]
+    if metrics is not None:
+        try:
+            r = metrics.ratio_pct()
+            vals = [f"{ENU_LABELS[i]} {r[c]:.0f} %" for i, c in enumerate("xyz")
+                    if r.get(c) is not None and np.isfinite(r[c])]
+        except (AttributeError, KeyError, TypeError):
+            vals = []
+        if vals:
+            parts.append("Calibration shrinks the field's fluctuation to "
+                         + ", ".join(vals) + " of what it was.")
+    if diagnosis is not None:
+        d = diagnosis.to_dict() if hasattr(diagnosis, "to_dict") else dict(diagnosis)
+        n = len(rows(d, 0))
+        parts.append("The diagnosis found nothing the model leaves out." if n == 0 else
+                     f"The diagnosis found {n} effect{'s' if n > 1 else ''} beyond the "
+                     "misalignment (below).")
+    return " ".join(parts)
 
 
 def write_report(
@@ -457,14 +868,26 @@ def write_report(
     segments: tuple[Segment, ...] | None = None,
     *,
     max_gap_s: float | None = None,
+    restored: Any = None,
+    options: Any = None,
 ) -> Path:
-    """Write the figures and ``report.html`` into ``out_dir``; returns the report's path."""
+    """Write the figures and ``report.html`` into ``out_dir``; returns the report's path.
+
+    ``restored``: the :class:`stages.restore.RestoreResult` (``ctx.restored``); computed when
+    not given.
+    """
+    from stages.restore import restore_samples
+
     out = Path(out_dir)
-    figures = make_figures(recording, calibration, segments, max_gap_s=max_gap_s)
+    if restored is None:
+        restored = restore_samples(recording, calibration, max_gap_s=max_gap_s)
+    figures = make_figures(recording, calibration, segments, max_gap_s=max_gap_s,
+                           restored=restored)
     for name, data in figures.items():
         with atomic_path(out / name, (recording.path,)) as tmp:
             tmp.write_bytes(data)
-    text = render_html(recording, calibration, metrics, diagnosis, figures)
+    text = render_html(recording, calibration, metrics, diagnosis, figures, restored=restored,
+                       options=options)
     return write_text_atomic(out / "report.html", text)
 
 
@@ -489,5 +912,6 @@ class Report:
     def run(self, ctx: Context) -> Context:
         """Write the report and list it in ``ctx.outputs``."""
         p = write_report(self.out_dir, ctx.recording, ctx.calibration, ctx.metrics,
-                         ctx.diagnosis, ctx.segments, max_gap_s=self.max_gap_s)
+                         ctx.diagnosis, ctx.segments, max_gap_s=self.max_gap_s,
+                         restored=ctx.restored, options=ctx.options)
         return ctx.replace(outputs=ctx.outputs + (("report.html", str(p)),))

@@ -1,4 +1,4 @@
-"""Resample stage: the attitude interpolated onto the magnetometer stamps by SLERP.
+"""Resample stage: the attitude onto the magnetometer stamps (THE interpolator).
 
 Time offset (CONVENTIONS): ``tau > 0`` means the magnetometer stamps are late, i.e. the
 sample stamped ``t`` was sensed at ``t - tau``; the attitude is therefore taken at
@@ -8,7 +8,7 @@ Gaps: the attitude is not bridged across an interval between two consecutive att
 samples longer than ``max_gap_s`` (motion capture loses the markers, an INS drops out).
 The default of :class:`Resample` is ``max(0.05 s, 5 x the median attitude interval)``: five
 missed samples of a fast source, and never less than 50 ms, which at the rotation rates of a
-calibration manoeuvre (tens of deg/s) keeps the SLERP error of a bridged gap well under a
+calibration manoeuvre (tens of deg/s) keeps the interpolation error of a bridged gap well under a
 degree only for short gaps.
 """
 
@@ -18,96 +18,24 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from numpy.typing import NDArray
 
 from pipeline.errors import InputError
-from pipeline.geometry import quat_normalize, quat_slerp
+from pipeline.model.attitude import AUTO_GAP_INTERVALS, MIN_AUTO_GAP_S, interpolate_attitude
+from pipeline.model.attitude import auto_max_gap_s as _auto_max_gap_s
 from pipeline.recording import AlignedSeries, AttitudeSeries, Context
 
-#: lower bound of the automatic gap threshold, s
-MIN_AUTO_GAP_S = 0.05
-#: automatic gap threshold in median attitude intervals
-AUTO_GAP_INTERVALS = 5.0
+__all__ = ["AUTO_GAP_INTERVALS", "MIN_AUTO_GAP_S", "Resample", "auto_max_gap_s",
+           "interpolate_attitude"]
 
 
 def auto_max_gap_s(attitude: AttitudeSeries) -> float:
-    """Default gap threshold: ``max(0.05 s, 5 x median attitude interval)``."""
-    t = np.asarray(attitude.t_ns)
-    d = np.diff(t)
-    if not bool(np.all(d > 0)):  # sorted without duplicates (what ingest gives) skips the sort
-        t = np.unique(t)
-        d = np.diff(t)
-    if len(t) < 2:
-        return MIN_AUTO_GAP_S
-    return max(MIN_AUTO_GAP_S, AUTO_GAP_INTERVALS * float(np.median(d)) * 1e-9)
-
-
-def interpolate_attitude(
-    attitude: AttitudeSeries,
-    t_ns: NDArray[np.int64],
-    *,
-    time_offset_s: float = 0.0,
-    max_gap_s: float = 0.1,
-) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """SLERP of ``q_enu_body`` at ``t - time_offset_s``.
-
-    Parameters
-    ----------
-    attitude : AttitudeSeries
-        Need not be sorted; duplicated stamps keep their first sample.
-    t_ns : ndarray of int64, shape (N,)
-        Query stamps (magnetometer), ns.
-    time_offset_s : float
-        ``tau`` of CONVENTIONS: the attitude is taken at ``t - tau``.
-    max_gap_s : float
-        Bracketing attitude samples further apart than this are not interpolated between.
-
-    Returns
-    -------
-    q_enu_body : ndarray, shape (N, 4)
-        Unit quaternions, scalar-last (NaN where not valid).
-    valid : ndarray of bool, shape (N,)
-        False outside the attitude span or inside a gap.
-
-    """
-    t_q = np.asarray(t_ns, dtype=np.int64)
-    ta = np.asarray(attitude.t_ns, dtype=np.int64)
-    qa = np.asarray(attitude.q_enu_body, dtype=float)
-    if len(ta) and np.any(np.diff(ta) <= 0):
-        order = np.argsort(ta, kind="stable")
-        ta, qa = ta[order], qa[order]
-        keep = np.concatenate([[True], np.diff(ta) > 0])
-        ta, qa = ta[keep], qa[keep]
-    n = len(t_q)
-    out = np.full((n, 4), np.nan)
-    if len(ta) == 0 or n == 0:
-        return out, np.zeros(n, dtype=bool)
-    # query time relative to the first attitude stamp, in s: keeps float precision (epoch
-    # ns do not fit a float64 exactly) and handles sub-ns offsets
-    tq = (t_q - ta[0]).astype(float) * 1e-9 - float(time_offset_s)
-    tr = (ta - ta[0]).astype(float) * 1e-9
-    i = np.searchsorted(tr, tq, side="right") - 1  # tr[i] <= tq < tr[i + 1]
-    exact_end = tq == tr[-1]
-    i = np.where(exact_end, len(tr) - 2, i)
-    inside = (i >= 0) & (i < len(tr) - 1)
-    if len(tr) == 1:
-        inside = tq == tr[0]
-        out[inside] = quat_normalize(qa[0])
-        return out, inside
-    j = np.clip(i, 0, len(tr) - 2)
-    dt = tr[j + 1] - tr[j]
-    # a sample that falls exactly on an attitude stamp needs no bridging, even beside a gap
-    on_sample = (tq == tr[j]) | (tq == tr[j + 1])
-    valid = inside & ((dt <= max_gap_s + 1e-12) | on_sample)
-    s = np.clip((tq - tr[j]) / dt, 0.0, 1.0)
-    q = quat_slerp(qa[j[valid]], qa[j[valid] + 1], s[valid])
-    out[valid] = q
-    return out, valid
+    """Default gap threshold: ``max(0.05 s, 5 x median attitude interval)`` (the model's rule)."""
+    return _auto_max_gap_s(attitude.t_ns)
 
 
 @dataclass(frozen=True)
 class Resample:
-    """Attitude onto magnetometer stamps (SLERP at ``t - time_offset_s``).
+    """Attitude onto magnetometer stamps (THE interpolator at ``t - time_offset_s``).
 
     Parameters
     ----------

@@ -37,7 +37,7 @@ from __future__ import annotations
 import enum
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -416,7 +416,7 @@ class SegmentMotion:
         rotation (its axis is refitted over the longer window), two rotations never fuse.
         """
         c = np.concatenate([[0.0], np.cumsum(dt)])
-        ps = [list(p) for p in pieces]
+        ps: list[list[Any]] = [list(p) for p in pieces]
 
         def fuse(ps: list[list]) -> list[list]:
             out: list[list] = []
@@ -445,6 +445,7 @@ class SegmentMotion:
                 del ps[i]  # isolated between gaps: too short to describe
                 continue
             j = left if right is None or (left is not None and dur[left] >= dur[right]) else right
+            assert j is not None  # left and right are not both None
             lo, hi = min(ps[i][0], ps[j][0]), max(ps[i][1], ps[j][1])
             ps[j] = [lo, hi, ps[j][2]]
             del ps[i]

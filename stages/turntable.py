@@ -433,12 +433,14 @@ def fit_axis_tilt(
     def b_body(q: F64, B: F64) -> F64:
         return quat_rotate(quat_conj(q), np.broadcast_to(B, (q.shape[0], 3)))
 
-    R, B = R0.copy(), (B0.copy() if B_known else None)
+    R, B = R0.copy(), (B0.copy() if B0 is not None else None)
     for _ in range(1 if (B_known and R_known) else 30):
         if not B_known:
             B = np.mean(quat_rotate(q_nom, yk @ R.T), axis=0)
         if not R_known:
+            assert B is not None  # given, or set just above
             R = _kabsch_R(yk, b_body(q_nom, B))
+    assert B is not None  # given, or set in the loop (which runs when it is not given)
 
     n_r = 0 if R_known else 3
     n_b = 0 if B_known else 3
@@ -497,9 +499,10 @@ def fit_axis_tilt(
     az = float(np.degrees(np.arctan2(lean[0], lean[1])) % 360.0)
 
     def sig(g: F64) -> float:
-        if any(abs(float(g @ u)) > 1e-6 * max(np.linalg.norm(g), 1e-300) for u in unobs):
+        if any(abs(float(g @ u)) > 1e-6 * max(float(np.linalg.norm(g)), 1e-300)
+               for u in unobs):
             return float("inf")
-        return float(np.sqrt(max(g @ cov @ g, 0.0)))
+        return float(np.sqrt(max(float(g @ cov @ g), 0.0)))
 
     g_tilt = lean / tilt if tilt > 0 else np.array([1.0, 0.0])
     g_az = np.array([lean[1], -lean[0]]) / max(tilt**2, 1e-300)
@@ -581,6 +584,7 @@ class AxisTiltNote:
     def run(self, ctx: Context) -> Context:
         """Return ``ctx`` with ``axis_tilt`` in the calibration's effects and warnings."""
         cal = ctx.calibration
+        assert cal is not None  # required: the pipeline checks it at build time
         effects = dict(cal.effects or {})
         warnings = tuple(cal.warnings)
         if self.params:

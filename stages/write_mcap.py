@@ -66,7 +66,8 @@ def corrected_path(out_dir: str | Path, recording_path: str | Path) -> Path:
 
 
 def write_corrected_mcap(
-    recording: Recording, calibration: Any, dest: str | Path, *, max_gap_s: float | None = None
+    recording: Recording, calibration: Any, dest: str | Path, *, max_gap_s: float | None = None,
+    restored: Any = None,
 ) -> Path:
     """Write the corrected MCAP of ``recording`` (module docstring for the contents).
 
@@ -80,6 +81,9 @@ def write_corrected_mcap(
         Output file; must not be the input.
     max_gap_s : float
         Attitude gap bridged by interpolation when restoring.
+    restored : RestoreResult, optional
+        The restore result of ``recording`` and ``calibration`` (``ctx.restored``); computed
+        when not given.
 
     Returns
     -------
@@ -97,7 +101,8 @@ def write_corrected_mcap(
     src = Path(recording.path)
     if src.exists() and dest.resolve() == src.resolve():
         raise OutputError("refusing to write over an input file", path=dest)
-    rs = restore_samples(recording, calibration, max_gap_s=max_gap_s)
+    rs = restored if restored is not None else restore_samples(recording, calibration,
+                                                                max_gap_s=max_gap_s)
     ros2 = recording.encoding == EncodingFamily.ROS2
     msg_type = "sensor_msgs/msg/MagneticField" if ros2 else "magalign.Magnetometer"
     profile = "ros2" if ros2 else ""
@@ -196,5 +201,6 @@ class WriteCorrectedMcap:
     def run(self, ctx: Context) -> Context:
         """Write the file and list it in ``ctx.outputs``."""
         dest = corrected_path(self.out_dir, ctx.recording.path)
-        write_corrected_mcap(ctx.recording, ctx.calibration, dest, max_gap_s=self.max_gap_s)
+        write_corrected_mcap(ctx.recording, ctx.calibration, dest, max_gap_s=self.max_gap_s,
+                             restored=ctx.restored)
         return ctx.replace(outputs=ctx.outputs + (("corrected_mcap", str(dest)),))

@@ -10,14 +10,22 @@ call). Timeline ``time`` (timestamps, the magnetometer stamps). Entities:
 - ``mag/raw/{x,y,z}`` (Scalars): one row per magnetometer sample, mag frame, nT;
 - ``attitude/{heading,pitch,roll}_deg`` (Scalars): Li 2020 Euler angles at ``t - tau``;
 - ``world/body`` (Transform3D): the attitude rotating the body axes ``world/body/axes``
-  (static arrows);
+  (static arrows, x y z in red green blue); ``world/enu_axes`` (east, north, up);
+- ``world/field/reference`` (Arrows3D, static): the reference field direction in ENU;
+  ``world/body/field_before`` and ``world/body/field_after`` (Arrows3D over time): the
+  measured field in the body frame before and after calibration, carried by the body (they
+  lie on the reference arrow when the calibration is right); unit length x 1.5;
 - ``trajectory/{before,after,ideal}`` (Points3D, static): the field in the body frame (Li 2020
   Fig. 7 circles), at most ``max_points`` points each;
-- ``segments/index`` (Scalars): the segment number at each sample (-1 outside segments);
+- ``segments/spans``, ``diagnosis/events`` (StateChange, with a StateConfiguration of
+  colours): each segment and each diagnosed event in time (a disturbance, a magnet near the
+  sensor) as a labelled span in the state timeline;
 - ``segments/log``, ``diagnosis/log`` (TextLog): one row per segment / diagnosis window start.
 
-The blueprint puts the three ENU components (before and after) in a row of plots on top,
-residuals, attitude and segments below, and the 3D views (trajectories, attitude) beside.
+Colours are the report's (:mod:`pipeline.style`). The blueprint puts the three ENU
+components (before and after) in a row of plots on top, residuals, attitude and the
+segment / event lanes below, and the 3D views (body and field in ENU, body-frame
+trajectories) beside.
 The file is saved to a temporary name and renamed when complete.
 """
 
@@ -30,16 +38,21 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from pipeline import style
 from pipeline.atomic import atomic_path
 from pipeline.errors import OutputError
 from pipeline.recording import Context, Recording, Segment
 
 ENU_NAMES = ("east", "north", "up")
 AXES = ("x", "y", "z")
-BEFORE_RGB = (230, 120, 30)
-AFTER_RGB = (30, 110, 220)
-IDEAL_RGB = (40, 170, 60)
-AXIS_RGB = ((220, 50, 50), (50, 180, 50), (60, 90, 230))
+# the report's colours (pipeline.style): one scheme for every figure and view
+BEFORE_RGB = style.rgb(style.BEFORE)
+AFTER_RGB = style.rgb(style.AFTER)
+IDEAL_RGB = style.rgb(style.REFERENCE)
+AXIS_RGB = tuple(style.rgb(c) for c in style.AXIS)
+ANGLE_RGB = {k: style.rgb(c) for k, c in style.ANGLE.items()}
+#: length of the unit field arrows against the body axes (length 1) in the 3D view
+FIELD_ARROW = 1.5
 
 
 def rrd_path(out_dir: str | Path, recording_path: str | Path) -> Path:
@@ -70,15 +83,17 @@ def blueprint() -> Any:
         rrb.TimeSeriesView(name="residual, mag frame (nT)", origin="/residual"),
         rrb.TimeSeriesView(name="attitude (deg)", origin="/attitude"),
         rrb.Vertical(
-            rrb.TimeSeriesView(name="segments", origin="/segments"),
-            rrb.TextLogView(name="segments and diagnosis", contents=["/segments/**",
-                                                                     "/diagnosis/**"]),
+            rrb.StateTimelineView(name="segments and diagnosis events",
+                                  contents=["/segments/spans", "/diagnosis/events"]),
+            rrb.TextLogView(name="segments and diagnosis", contents=["/segments/log",
+                                                                     "/diagnosis/log"]),
         ),
     )
     spatial = rrb.Vertical(
+        rrb.Spatial3DView(name="body and field (ENU): field before / after / reference",
+                          origin="/world"),
         rrb.Spatial3DView(name="field in body frame: before / after / ideal (nT)",
                           origin="/trajectory"),
-        rrb.Spatial3DView(name="attitude", origin="/world"),
     )
     return rrb.Blueprint(
         rrb.Horizontal(rrb.Vertical(enu_row, lower, row_shares=[3, 2]), spatial,
@@ -87,11 +102,43 @@ def blueprint() -> Any:
     )
 
 
-def _segment_index(t_ns: np.ndarray, segments: tuple[Segment, ...] | None) -> np.ndarray:
-    idx = np.full(len(t_ns), -1.0)
-    for i, s in enumerate(segments or ()):
-        idx[s.contains(t_ns)] = i
-    return idx
+def spans(items: list[tuple[int, int, str]]) -> list[tuple[int, str | None]]:
+    """Return the state changes of labelled spans ``(start_ns, end_ns, label)``.
+
+    ``(t_ns, label)`` at each start, ``(t_ns, None)`` at an end where no other span starts
+    (a gap in the lane).
+    """
+    out: list[tuple[int, str | None]] = []
+    items = sorted(items)
+    for i, (a, b, lab) in enumerate(items):
+        if out and out[-1][0] == a and out[-1][1] is None:
+            out.pop()  # the previous span ends where this one starts
+        out.append((int(a), lab))
+        nxt = items[i + 1][0] if i + 1 < len(items) else None
+        if nxt is None or nxt > b:
+            out.append((int(b), None))
+    return out
+
+
+def _log_spans(rec: Any, entity: str, items: list[tuple[int, int, str]],
+               colours: dict[str, tuple[int, int, int]]) -> None:
+    """Log labelled spans as state changes (rerun's state timeline shows them as lanes)."""
+    import rerun as rr
+
+    if not items:
+        return
+    labels = sorted({lab for _, _, lab in items})
+    rec.log(entity, rr.StateConfiguration(
+        values=labels, labels=labels,
+        colors=[colours.get(lab.split(": ", 1)[-1].split(" ")[0], (150, 150, 150))
+                for lab in labels]), static=True)
+    for t, lab in spans(items):
+        rec.set_time("time", timestamp=np.datetime64(int(t), "ns"))
+        if lab is None:
+            rec.log(entity, rr.StateChange.cleared())
+        else:
+            rec.log(entity, rr.StateChange(state=lab))
+    rec.reset_time()
 
 
 def write_rrd(
@@ -103,6 +150,7 @@ def write_rrd(
     diagnosis: Any = None,
     max_gap_s: float | None = None,
     max_points: int = 20000,
+    restored: Any = None,
 ) -> Path:
     """Write the rerun recording (module docstring for the entities).
 
@@ -122,6 +170,8 @@ def write_rrd(
         Attitude gap bridged by interpolation.
     max_points : int
         Most points per static 3D trajectory.
+    restored : RestoreResult, optional
+        ``ctx.restored``; computed when not given.
 
     Returns
     -------
@@ -135,9 +185,11 @@ def write_rrd(
     import rerun as rr
 
     from pipeline.geometry import quat_to_li2020_euler
-    from stages.restore import view_data
+    from stages.restore import restore_samples, view_data
 
-    vd = view_data(recording, calibration, max_gap_s=max_gap_s)
+    if restored is None:
+        restored = restore_samples(recording, calibration, max_gap_s=max_gap_s)
+    vd = view_data(restored, calibration.R_body_mag)
     stem = Path(recording.path).stem
     dest = Path(dest)
     t_all = np.asarray(vd.t_ns, dtype="datetime64[ns]")
@@ -174,16 +226,35 @@ def write_rrd(
                              columns=rr.Scalars.columns(scalars=vd.raw_mag_nT[:, k]))
         # --- attitude: Li 2020 Euler angles and a rotating body frame
         h, p, r = quat_to_li2020_euler(vd.q_enu_body[v])
-        for k, (name, ang) in enumerate((("heading", h), ("pitch", p), ("roll", r))):
-            rec.log(f"attitude/{name}_deg", rr.SeriesLines(colors=[AXIS_RGB[k]],
+        for name, ang in (("heading", h), ("pitch", p), ("roll", r)):
+            rec.log(f"attitude/{name}_deg", rr.SeriesLines(colors=[ANGLE_RGB[name]],
                                                            names=[f"{name} (deg)"]), static=True)
             rec.send_columns(f"attitude/{name}_deg", indexes=times(v),
                              columns=rr.Scalars.columns(scalars=np.degrees(ang)))
+        # --- 3D: the body turning in ENU, and the field: the reference (fixed in ENU) and
+        # the measured field before / after calibration, carried by the body frame (they
+        # point along the reference when the calibration is right); unit length x 1.5
+        rec.log("world/enu_axes", rr.Arrows3D(vectors=np.eye(3) * 0.6, colors=list(AXIS_RGB),
+                                              labels=["east", "north", "up"]), static=True)
         rec.log("world/body/axes", rr.Arrows3D(vectors=np.eye(3), colors=list(AXIS_RGB),
                                                labels=["x", "y", "z"]), static=True)
+        B = np.asarray(vd.B_enu_nT, float)
+        scale = FIELD_ARROW / max(float(np.linalg.norm(B)), 1e-9)
+        rec.log("world/field/reference", rr.Arrows3D(vectors=[B * scale], colors=[IDEAL_RGB],
+                                                     labels=["reference field"]), static=True)
         dec = np.flatnonzero(v)[_decimate(int(np.count_nonzero(v)), max_points)]
         rec.send_columns("world/body", indexes=times(dec),
                          columns=rr.Transform3D.columns(quaternion=vd.q_enu_body[dec]))
+        for name, arr, rgb in (("before", vd.body_before_nT, BEFORE_RGB),
+                               ("after", vd.body_after_nT, AFTER_RGB)):
+            ok = dec[np.isfinite(arr[dec]).all(axis=1)]
+            if len(ok) == 0:
+                continue
+            ent = f"world/body/field_{name}"
+            rec.log(ent, rr.Arrows3D.from_fields(colors=[rgb], labels=[f"field {name}"]),
+                    static=True)
+            rec.send_columns(ent, indexes=times(ok),
+                             columns=rr.Arrows3D.columns(vectors=arr[ok] * scale))
         # --- Li 2020 Fig. 7: field in the body frame before / after / ideal (static clouds)
         for name, arr, rgb in (
             ("before", vd.body_before_nT, BEFORE_RGB),
@@ -194,9 +265,14 @@ def write_rrd(
             sel = good[_decimate(len(good), max_points)]
             rec.log(f"trajectory/{name}", rr.Points3D(arr[sel], colors=[rgb], radii=[50.0]),
                     static=True)
-        # --- segments and diagnosis windows
-        rec.send_columns("segments/index", indexes=times(),
-                         columns=rr.Scalars.columns(scalars=_segment_index(vd.t_ns, segments)))
+        # --- segments and diagnosis events: labelled spans (state timeline) and text logs
+        seg_items = [
+            (int(sg.start_ns), int(sg.end_ns),
+             f"{i}: {getattr(sg.kind, 'value', sg.kind)} {(sg.end_ns - sg.start_ns) * 1e-9:.1f} s")
+            for i, sg in enumerate(segments or ())
+        ]
+        kinds = {k: style.rgb(c) for k, c in style.SEGMENT.items()}
+        _log_spans(rec, "segments/spans", seg_items, kinds)
         if segments:
             st = np.array([s.start_ns for s in segments], dtype="datetime64[ns]")
             texts = [
@@ -211,10 +287,17 @@ def write_rrd(
             d = diagnosis.to_dict() if hasattr(diagnosis, "to_dict") else dict(diagnosis)
             t0 = int(vd.t_ns[0]) if len(vd.t_ns) else 0
             stamps, texts = [], []
+            events: list[tuple[int, int, str]] = []
             for f in d.get("findings", []):
+                eff = str(f.get("effect"))
                 for w in (f.get("where") or {}).get("windows_s") or []:
                     stamps.append(t0 + int(float(w[0]) * 1e9))
-                    texts.append(f"{f.get('effect')}: {float(w[0]):.1f}-{float(w[1]):.1f} s")
+                    texts.append(f"{eff}: {float(w[0]):.1f}-{float(w[1]):.1f} s")
+                    if eff in ("disturbance", "hard_iron_step"):
+                        events.append((t0 + int(float(w[0]) * 1e9),
+                                       t0 + int(float(w[1]) * 1e9), eff.replace("_", " ")))
+            _log_spans(rec, "diagnosis/events", events,
+                       {"disturbance": style.rgb(style.EVENT), "hard": style.rgb(style.EVENT)})
             if stamps:
                 rec.send_columns(
                     "diagnosis/log",
@@ -263,5 +346,6 @@ class WriteRerun:
             diagnosis=ctx.diagnosis,
             max_gap_s=self.max_gap_s,
             max_points=self.max_points,
+            restored=ctx.restored,
         )
         return ctx.replace(outputs=ctx.outputs + (("rrd", str(dest)),))

@@ -18,7 +18,7 @@ from pipeline.atomic import atomic_path, safe_join, write_text_atomic
 from pipeline.calibration import Calibration
 from pipeline.config import TomlDoc
 from pipeline.errors import ConfigError, InputError, OutputError, PipelineBuildError
-from pipeline.recording import Context, VectorSeries
+from pipeline.recording import AttitudeSeries, Context, VectorSeries
 from pipeline.stage import Pipeline
 
 quats = st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(
@@ -163,11 +163,17 @@ def test_calibration_rejects_other_formats():
         Calibration.from_dict({"format": "other/1"}, path="x.json")
 
 
-def test_apply_inverts_predict():
+def test_restore_inverts_predict():
     c = _cal()
     q = g.rotvec_to_quat(np.random.default_rng(0).normal(size=(50, 3)))
-    y = c.predict(q)
-    np.testing.assert_allclose(c.apply(y, q), np.broadcast_to(c.B_enu_nT, (50, 3)), atol=1e-8)
+    t = np.arange(50, dtype=np.int64) * 10_000_000
+    att = AttitudeSeries(t, q)
+    y = c.predict(t, att)
+    rs = c.restore(y, t, att)
+    # tau = 10 ms, one attitude interval: the first sample was sensed before the attitude began
+    assert rs.valid[1:].all() and not rs.valid[0] and np.isnan(y[0]).all()
+    np.testing.assert_allclose(rs.enu_nT[1:], np.broadcast_to(c.B_enu_nT, (49, 3)), atol=1e-8)
+    np.testing.assert_allclose(rs.residual_nT[1:], 0.0, atol=1e-8)
 
 
 # ---------------------------------------------------------------- config and outputs

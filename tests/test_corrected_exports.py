@@ -13,6 +13,7 @@ from pipeline.calibration import Calibration
 from pipeline.geometry import quat_to_matrix
 from pipeline.mcap_read import read_recording
 from pipeline.mcap_write import write_recording
+from pipeline.recording import AttitudeSeries
 from stages.write_mcap import write_corrected_mcap
 
 B_ENU = np.array([1300.0, 15000.0, -49000.0])
@@ -39,7 +40,7 @@ def _recording(tmp_path, cal: Calibration, *, json_family: bool, frame: str):
     t = T0 + np.arange(n, dtype=np.int64) * 10_000_000  # 100 Hz
     rng = np.random.default_rng(3)
     q = Rotation.from_rotvec(rng.normal(0, 1.0, (n, 3))).as_quat()  # scalar last
-    y = cal.predict(q)  # noise-free raw magnetometer, mag frame, nT
+    y = cal.predict(t, AttitudeSeries(t, q))  # noise-free raw magnetometer, mag frame, nT
     kw = {}
     if json_family:
         kw = {"mag_type": "magalign.Magnetometer", "attitude_type": "magalign.AttitudeQuaternion"}
@@ -113,7 +114,8 @@ def test_pose_attitude_has_no_body_frame_name(tmp_path):
     n = 50
     t = T0 + np.arange(n, dtype=np.int64) * 10_000_000
     q = Rotation.from_rotvec(np.random.default_rng(0).normal(0, 1, (n, 3))).as_quat()
-    p = write_recording(tmp_path / "p.mcap", mag_t_ns=t, mag_nT=cal.predict(q), attitude_t_ns=t,
+    y = cal.predict(t, AttitudeSeries(t, q))
+    p = write_recording(tmp_path / "p.mcap", mag_t_ns=t, mag_nT=y, attitude_t_ns=t,
                         q_enu_body=q, attitude_type="geometry_msgs/msg/PoseStamped",
                         attitude_frame_id="world")
     rec = read_recording(p)

@@ -46,11 +46,11 @@ def test_section41_noise_free_restores_field(section41, est):
     B = sim.truth.B_enu_nT
     # Without a reference: the restored field is constant (deviation from its mean).
     cal = fit_calibration(sim.recording, al, estimator=est)
-    rest = cal.apply(al.mag_nT, al.q_enu_body)
+    rest = cal.restore(al.mag_nT, al.t_ns, sim.recording.attitude).enu_nT
     assert np.abs(rest - rest.mean(0)).max() <= 1e-3
     # With the preset field as reference: deviation from the preset itself.
     cal = fit_calibration(sim.recording, al, estimator=est, reference_field_enu_nT=B)
-    rest = cal.apply(al.mag_nT, al.q_enu_body)
+    rest = cal.restore(al.mag_nT, al.t_ns, sim.recording.attitude).enu_nT
     assert np.abs(rest - B).max() <= 1e-3
     assert angle_between_deg(cal.R_body_mag, sim.truth.R_body_mag) < 1e-4
     assert cal.unobservable_axes_body == ()
@@ -427,15 +427,10 @@ def test_real_lab_calibration_lowers_restored_std(name):
     rec = read_recording(path)
     al = Resample().run(Context(recording=rec)).aligned
     cal = fit_calibration(rec, al, terms={Term.OFFSET, Term.SOFT_IRON, Term.TIME_OFFSET})
-    from stages.resample import interpolate_attitude
-
-    q, ok = interpolate_attitude(
-        rec.attitude, al.t_ns, time_offset_s=cal.time_offset_s, max_gap_s=0.1
-    )
-    al = al.select(ok)
-    q = q[ok]
+    rs = cal.restore(al.mag_nT, al.t_ns, rec.attitude, max_gap_s=0.1)
+    al = al.select(rs.valid)
     before = quat_rotate(al.q_enu_body, al.mag_nT).std(0)
-    after = cal.apply(al.mag_nT, q).std(0)
+    after = rs.enu_nT[rs.valid].std(0)
     print(
         name,
         cal.rotvec_body_mag_deg,

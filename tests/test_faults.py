@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 import resource
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -17,7 +16,7 @@ from pathlib import Path
 import corpus
 import pyarrow.parquet as pq
 import pytest
-from _pause import wait_paused
+from _pause import kill_paused_worker
 from test_kill_rerun import check_no_partial_output
 
 from pipeline.atomic import PAUSE_AT_ENV, PAUSE_DIR_ENV
@@ -126,16 +125,7 @@ def test_worker_dies_in_a_local_pool_campaign(tmp_path):
                           str(out), "--jobs", "2", "--no-progress"], cwd=HERE.parent,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          env={**os.environ, **env}, start_new_session=True)
-    try:
-        wait_paused(p, hook)
-        worker = int((hook / "pid").read_text())
-        assert worker != p.pid  # a worker, not the command
-        os.kill(worker, signal.SIGKILL)
-        _, err = p.communicate(timeout=600)
-    finally:
-        if p.poll() is None:
-            os.killpg(p.pid, signal.SIGKILL)
-            p.wait()
+    err = kill_paused_worker(p, hook, lambda pid: pid != p.pid, timeout_s=600)
     assert p.returncode == 0, err
     rows = {row["name"]: row["status"] for row in pq.read_table(out / "summary.parquet")
             .to_pylist()}

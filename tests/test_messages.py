@@ -19,7 +19,7 @@ from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer as Ros2Writer
 
 from pipeline.errors import SchemaError
-from pipeline.messages import MESSAGE_TYPES, encode, schema_for
+from pipeline.messages import WRITTEN_TYPES, encode, schema_for
 from schemas import JSON_TYPES, ROS2_TYPES, VARIANTS, json_schema
 
 T0 = 1_700_000_000_123_456_789
@@ -238,7 +238,7 @@ def test_json_non_finite_and_frame_id_escaping():
 
 
 def test_schema_for_every_type_and_errors():
-    for t in MESSAGE_TYPES:
+    for t in WRITTEN_TYPES:
         name, s_enc, s_data, m_enc = schema_for(t)
         assert name == t and s_data
         assert (s_enc, m_enc) == (("jsonschema", "json") if t in JSON_TYPES
@@ -325,3 +325,32 @@ def test_property_json_round_trip_exact(t_ns, data, frame_id):
         d = json.loads(r)
         assert d["t_ns"] == t_ns[i] and d["frame_id"] == frame_id
         np.testing.assert_array_equal(d["q_enu_body"], q[i])
+
+
+def test_one_table_of_message_types():
+    """schemas.MESSAGE_TYPES is the only list: reader, writer, simulator and schemas follow it."""
+    import pipeline.mcap_read as reader
+    import pipeline.simulate as simulate
+    from pipeline import messages
+    from schemas import MESSAGE_TYPES, MessageRole, schema_text
+
+    by_role = {MessageRole.MAGNETOMETER: (reader.MAG_TYPES, simulate.MAG_TYPES),
+               MessageRole.ATTITUDE: (reader.ATTITUDE_TYPES, simulate.ATTITUDE_TYPES),
+               MessageRole.TURNTABLE: (reader.TURNTABLE_TYPES, simulate.TURNTABLE_TYPES)}
+    for t in MESSAGE_TYPES.values():
+        if t.role is MessageRole.OUTPUT:
+            assert all(t.short_name not in r for r, _ in by_role.values())
+            assert schema_text(t.name)
+            continue
+        read, simulated = by_role[t.role]
+        assert t.short_name in read, t.name
+        assert (t.name in simulated) == t.written, t.name
+        if t.written:  # a stored schema, an encoder and its columns for every layout variant
+            for v in t.variants:
+                assert schema_text(t.name, v)
+            assert t.name in messages.WRITTEN_TYPES and t.columns
+            assert (t.name in messages._CDR_LAYOUTS) == (t.encoding == "ros2")
+        if t.quaternion:
+            assert reader._CDR_QUAT[t.short_name] == t.quaternion
+    n_input = sum(t.role is not MessageRole.OUTPUT for t in MESSAGE_TYPES.values())
+    assert sum(len(r) for r, _ in by_role.values()) == n_input

@@ -57,7 +57,7 @@ def _case(n: int = 400, rv=(0.02, -0.015, 0.03), noise_nT: float = 0.0, seed: in
         [0.4 * np.sin(0.5 * ts), 0.3 * np.sin(0.8 * ts), 0.5 * ts], -1)))
     cal = Calibration(R_body_mag=so3_exp(np.array(rv)), sigma_rotvec_deg=[0.01] * 3,
                       B_enu_nT=B_ENU, estimator="truth", residual_rms_nT=0.0, n_samples=n)
-    y = cal.predict(q) + noise_nT * rng.standard_normal((n, 3))
+    y = cal.predict(t, AttitudeSeries(t, q)) + noise_nT * rng.standard_normal((n, 3))
     rec = Recording(path="mem.mcap", channels=(), mag=VectorSeries(t, y), mag_topic="/mag",
                     attitude=AttitudeSeries(t, q), attitude_topic="/att")
     return rec, cal, q, y, t

@@ -18,7 +18,7 @@ from mcap_ros2.decoder import DecoderFactory
 from pipeline.calibration import Calibration
 from pipeline.errors import OutputError
 from pipeline.process_one import ProcessOptions, process_recording
-from pipeline.recording import Context
+from pipeline.recording import Context, Segment, SegmentKind
 from pipeline.simulate import scenario_from_dict, simulate, write_simulated
 from stages.ingest import Ingest
 from stages.write_mcap import write_corrected_mcap
@@ -156,8 +156,13 @@ def test_rrd_read_back(tmp_path):
     src, sim = _write(tmp_path, _scenario("rec", ROTATION, 8.0))
     before = _sha(src)
     rec = Ingest().run(Context(source=str(src))).recording
-    ctx = WriteRerun(str(tmp_path / "out")).run(Context(recording=rec,
-                                                        calibration=_truth_cal(sim)))
+    t = rec.mag.t_ns
+    segs = (Segment(int(t[0]), int(t[len(t) // 2]), SegmentKind.ROTATION),
+            Segment(int(t[len(t) // 2]), int(t[-1]), SegmentKind.STATIC))
+    diag = {"findings": [{"effect": "disturbance", "params": {}, "where": {
+        "windows_s": [[1.0, 2.0]], "axes": ["x"], "frame": "enu"}}]}
+    ctx = WriteRerun(str(tmp_path / "out")).run(Context(
+        recording=rec, calibration=_truth_cal(sim), segments=segs, diagnosis=diag))
     rrd = Path(dict(ctx.outputs)["rrd"])
     assert rrd.name == "rec.rrd" and _sha(src) == before
     assert not list(rrd.parent.glob(".*.tmp"))  # the temporary name is gone
@@ -169,8 +174,46 @@ def test_rrd_read_back(tmp_path):
     for a in "xyz":
         assert rows[f"/mag/raw/{a}"] == n + 1  # + the static SeriesLines row
     assert rows["/trajectory/after"] == 1 and rows["/world/body"] > 0
-    assert rows["/segments/index"] == n
+    # the body and the field in 3D: the field arrows move with the body
+    assert rows["/world/body/field_after"] == rows["/world/body"] + 1  # + static style row
+    assert rows["/world/field/reference"] == 1 and rows["/world/enu_axes"] == 1
+    # segments and the diagnosed event as labelled spans: a start per span, an end where
+    # no other starts (the two segments touch), plus the static colour configuration
+    assert rows["/segments/spans"] == 3 + 1
+    assert rows["/diagnosis/events"] == 2 + 1
+    assert "/segments/index" not in rows
     assert any(e.startswith("/view/") for e in rows)  # the default blueprint is stored
+    # the values, read back with rerun's own reader: labelled spans, the report's colours
+    from rerun.chunk import RrdReader
+
+    from pipeline import style
+
+    cols: dict[str, dict[str, list]] = {}
+    for ch in RrdReader(str(rrd)).stream():
+        batch = ch.to_record_batch()
+        for name in batch.schema.names:
+            cols.setdefault(str(ch.entity_path), {}).setdefault(name, []).extend(
+                batch.column(name).to_pylist())
+    states = cols["/segments/spans"]["StateChange:state"]
+    assert states == [["0: rotation 4.0 s"], ["1: static 4.0 s"], []]
+    assert cols["/diagnosis/events"]["StateChange:state"] == [["disturbance"], []]
+
+    def rgba(hex_colour: str) -> int:
+        r, g, b = style.rgb(hex_colour)
+        return (r << 24) | (g << 16) | (b << 8) | 0xFF
+
+    assert cols["/segments/spans"]["StateConfiguration:colors"] == [
+        [rgba(style.SEGMENT["rotation"]), rgba(style.SEGMENT["static"])]]
+    assert cols["/world/body/field_after"]["Arrows3D:colors"][0] == [rgba(style.AFTER)]
+    assert cols["/attitude/heading_deg"]["SeriesLines:colors"][0] == [
+        rgba(style.ANGLE["heading"])]
+
+
+def test_spans_end_where_nothing_follows():
+    from stages.write_rerun import spans
+
+    assert spans([(10, 20, "b"), (0, 10, "a"), (30, 40, "c")]) == [
+        (0, "a"), (10, "b"), (20, None), (30, "c"), (40, None)]
 
 
 def test_simulated_survey_ratio_below_two_percent(tmp_path):

@@ -56,11 +56,12 @@ def test_restore_inverts_the_forward_model(rv, d, o, seed):
     n = 80
     t = T0 + np.arange(n, dtype=np.int64) * 50_000_000
     q = _attitudes(n, seed)
-    y = cal.predict(q)
+    y = cal.predict(t, AttitudeSeries(t, q))
     ctx = Restore().run(Context(recording=_recording(t, y, t, q), calibration=cal))
-    assert ctx.restored.frame is Frame.ENU
-    assert len(ctx.restored) == n
-    np.testing.assert_allclose(ctx.restored.values, np.broadcast_to(B_ENU, (n, 3)), atol=1e-6)
+    series = ctx.restored.series
+    assert series.frame is Frame.ENU
+    assert len(series) == n
+    np.testing.assert_allclose(series.values, np.broadcast_to(B_ENU, (n, 3)), atol=1e-6)
 
 
 def test_attitude_gap_samples_are_left_out_and_counted():
@@ -69,14 +70,16 @@ def test_attitude_gap_samples_are_left_out_and_counted():
     q = _attitudes(n, 3)
     cal = _cal(np.eye(3))
     keep = (np.arange(n) < 60) | (np.arange(n) >= 100)  # a 2 s gap in the attitude
-    rec = _recording(t, cal.predict(q), t[keep], q[keep])
+    rec = _recording(t, cal.predict(t, AttitudeSeries(t, q)), t[keep], q[keep])
     ctx = Restore(max_gap_s=0.2).run(Context(recording=rec, calibration=cal))
     rs = restore_samples(rec, cal, max_gap_s=0.2)
     # the 40 samples with stamps 60..99 lie between attitude samples 59 and 100, 2.05 s apart
     assert rs.n_without_attitude == 40
-    assert len(ctx.restored) == n - 40
+    assert rs.n_used + rs.n_without_attitude + rs.n_without_attitude_at_stamp == n
+    assert len(ctx.restored.series) == n - 40
     assert np.isnan(rs.enu_nT[~rs.valid]).all() and np.isnan(rs.residual_nT[~rs.valid]).all()
-    np.testing.assert_allclose(ctx.restored.values, np.broadcast_to(B_ENU, (n - 40, 3)), atol=1e-6)
+    np.testing.assert_allclose(ctx.restored.series.values, np.broadcast_to(B_ENU, (n - 40, 3)),
+                               atol=1e-6)
 
 
 def test_hard_iron_step_windows_are_removed():
@@ -85,7 +88,7 @@ def test_hard_iron_step_windows_are_removed():
     q = _attitudes(n, 5)
     step = {"windows_s": [[2.0, 4.0]], "offset_nT": [300.0, -200.0, 100.0]}
     base = _cal(so3_exp([0.01, -0.02, 0.03]))
-    y = base.predict(q)
+    y = base.predict(t, AttitudeSeries(t, q))
     t_rel = (t - t[0]) * 1e-9
     inside = (t_rel >= 2.0) & (t_rel < 4.0)  # half-open windows
     y[inside] += step["offset_nT"]
@@ -146,6 +149,7 @@ def test_stage_contract():
     t = T0 + np.arange(n, dtype=np.int64) * 50_000_000
     q = _attitudes(n, 1)
     cal = _cal(np.eye(3))
-    ctx = Context(recording=_recording(t, cal.predict(q), t, q), calibration=cal)
+    ctx = Context(recording=_recording(t, cal.predict(t, AttitudeSeries(t, q)), t, q),
+                  calibration=cal)
     out = Restore().run(ctx)
     assert out is not ctx and ctx.restored is None and out.restored is not None

@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError, NotMcapError, UsageError
+from ..errors import UsageError
+from ..mcap_format import MAGIC
 
 #: The first 8 bytes of every MCAP file (https://mcap.dev/spec).
-MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 MAG_HELP = ("magnetometer topic; needed only when the recording has more than one "
             "magnetometer channel")
@@ -102,22 +102,12 @@ def check_mcap_file(path: str | Path) -> None:
         Empty, or not starting with the MCAP magic bytes.
 
     """
+    from ..mcap_read import check_magic, open_error  # the reader's own words
+
     p = Path(path)
     try:
         with open(p, "rb") as fh:
-            head = fh.read(len(MCAP_MAGIC))
-    except FileNotFoundError:
-        raise InputError("no such file", path=p) from None
-    except IsADirectoryError:
-        raise InputError("is a folder, not an MCAP file", path=p) from None
+            head = fh.read(len(MAGIC))
     except OSError as exc:
-        raise InputError(f"cannot read: {exc.strerror}", path=p) from None
-    if not head:
-        raise NotMcapError("empty file (0 bytes)", path=p,
-                           hint="the logger may have crashed before writing anything")
-    if head != MCAP_MAGIC[: len(head)]:
-        raise NotMcapError("not an MCAP file (bad magic bytes)", path=p,
-                           hint="pass a .mcap recording")
-    if len(head) < len(MCAP_MAGIC):
-        raise NotMcapError(f"cut inside the MCAP header ({len(head)} bytes)", path=p,
-                           hint="nothing can be recovered from this file")
+        raise open_error(p, exc) from None
+    check_magic(head, p)

@@ -8,16 +8,21 @@ Options (CONVENTIONS): ``--estimator ml|li2020|ellipsoid|dpi``, ``--reference-fi
 from __future__ import annotations
 
 import argparse
+import logging
+import sys
 from pathlib import Path
 
 import numpy as np
 
+from pipeline import progress
 from pipeline.atomic import atomic_path
 from pipeline.commands._options import add_field_options, add_topic_options, field_from_args
 from pipeline.errors import NotObservableError, RefusedError, UsageError
 from pipeline.mcap_read import read_recording_warning
 from pipeline.verdict import Status
 from stages.estimators.registry import DESCRIPTIONS, ESTIMATORS
+
+log = logging.getLogger("magalign")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -69,17 +74,27 @@ def run(args: argparse.Namespace) -> int:
             f"--estimate takes offset, soft_iron, time_offset; got {args.estimate!r}"
         ) from exc
     ref = reference_from_args(args)
-    rec = read_recording_warning(args.recording, mag_topic=args.mag,
-                                 attitude_topic=args.attitude)
-    ctx = Resample().run(Context(source=str(args.recording), recording=rec))
-    cal = fit_calibration(
-        rec,
-        ctx.aligned,
-        estimator=EstimatorKind(args.estimator),
-        terms=terms,
-        reference_field_enu_nT=ref,
-        robust=RobustLoss(args.robust),
-    )
+    steps = ["Ingest", "Resample", "Estimate"]
+    display = progress.ProgressDisplay(1, "magalign calibrate",
+                                       enabled=progress.enabled_for(sys.stderr))
+    sink = progress.DirectSink(Path(args.recording).stem, display.update)
+    with display, progress.use_sink(sink):
+        progress.stage("Ingest", 0, len(steps), steps)
+        rec = read_recording_warning(args.recording, mag_topic=args.mag,
+                                     attitude_topic=args.attitude)
+        progress.stage("Resample", 1, len(steps), steps)
+        ctx = Resample().run(Context(source=str(args.recording), recording=rec))
+        assert ctx.aligned is not None  # Resample sets it
+        progress.stage("Estimate", 2, len(steps), steps)
+        cal = fit_calibration(
+            rec,
+            ctx.aligned,
+            estimator=EstimatorKind(args.estimator),
+            terms=terms,
+            reference_field_enu_nT=ref,
+            robust=RobustLoss(args.robust),
+        )
+    log.info("%s: %s", Path(args.recording).stem, progress.timings_text(sink.state.timings))
     if len(cal.unobservable_axes_body) >= 3:
         # A calibration.json whose rotation is arbitrary must not be written: a later run
         # (or a survey line restored with it) would take it for a result.

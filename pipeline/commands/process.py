@@ -12,13 +12,18 @@ from __future__ import annotations
 import argparse
 import builtins
 import dataclasses
+import logging
+import os
 import sys
+import tempfile
 import warnings
 from pathlib import Path
 
 from .. import errors
 from ..errors import CampaignPartialFailure, InputError, UsageError
 from ._options import add_field_options, add_topic_options, check_mcap_file, field_from_args
+
+log = logging.getLogger("magalign")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -44,7 +49,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="comma-separated extra terms: " + ", ".join(t.value for t in TermName))
     add_field_options(p)
     add_topic_options(p)
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--no-progress", action="store_true",
+                   help="no progress line (shown only on a terminal anyway; "
+                   "MAGALIGN_PROGRESS=always|never overrides)")
     p.set_defaults(func=run)
 
 
@@ -95,9 +102,44 @@ def issue_warnings(results: list[dict]) -> None:
             warnings.warn(str(msg), _category(str(cat)), stacklevel=2)
 
 
+def _run_with_progress(camp, out: Path, executor, args: argparse.Namespace) -> list[dict]:
+    """Run the campaign with a per-stage progress line on a terminal (``pipeline.progress``).
+
+    The workers write their stage into small files in a temporary folder the line reads;
+    with ``-v`` the time of each stage of each recording is logged when it finishes.
+    """
+    from .. import progress as pg
+    from ..campaign import run_campaign
+
+    enabled = pg.enabled_for(sys.stderr, disable=args.no_progress)
+    old_env = os.environ.get(pg.ENV_DIR)
+    with tempfile.TemporaryDirectory(prefix="magalign-progress-") as folder:
+        if enabled:
+            os.environ[pg.ENV_DIR] = folder
+        display = pg.ProgressDisplay(len(camp.recordings), "magalign process", enabled=enabled,
+                                     folder=folder)
+
+        def progress(res: dict) -> None:
+            display.run_done(res["name"])
+            timings = (res.get("row") or {}).get("timings_s")
+            if timings and res.get("status") == "ok":
+                log.info("%s: %s", res["name"], pg.timings_text(timings))
+
+        try:
+            with display:
+                return run_campaign(camp, out, executor, calibration_path=args.calibration,
+                                    progress=progress)
+        finally:
+            executor.close()
+            if old_env is None:
+                os.environ.pop(pg.ENV_DIR, None)
+            else:
+                os.environ[pg.ENV_DIR] = old_env
+
+
 def run(args: argparse.Namespace) -> int:
     """Process; print where the results are; exit 3 when some recordings failed."""
-    from ..campaign import RecordingOptions, campaign_for_input, run_campaign
+    from ..campaign import RecordingOptions, campaign_for_input
     from ..executors import make_executor
     from ..summary import row_for, write_summary
 
@@ -118,23 +160,7 @@ def run(args: argparse.Namespace) -> int:
             for r in camp.recordings))
     executor = make_executor(jobs=args.jobs, dask_local=args.dask_local,
                              scheduler=args.scheduler)
-    bar = None
-    try:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(camp.recordings), file=sys.stderr, unit="rec",
-                   desc="magalign process", disable=True if args.no_progress else None)
-
-        def progress(res: dict) -> None:
-            bar.set_postfix_str(f"{res['name']}: {res['status']}", refresh=False)
-            bar.update(1)
-
-        results = run_campaign(camp, out, executor, calibration_path=args.calibration,
-                               progress=progress)
-    finally:
-        if bar is not None:
-            bar.close()
-        executor.close()
+    results = _run_with_progress(camp, out, executor, args)
     issue_warnings(results)
     out_r = out.resolve()
     rows = [row_for(out_r, r) for r in results]

@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 
 from pipeline.calibration import Calibration
 from pipeline.errors import EstimationError
-from pipeline.geometry import quat_slerp, quat_to_matrix, skew
+from pipeline.geometry import quat_to_matrix, skew
 from pipeline.recording import AttitudeSeries
 
 from .registry import ESTIMATORS
@@ -170,20 +170,15 @@ class Estimator(Protocol):
 
 # ------------------------------------------------------------------------------- helpers
 def interpolate_q(attitude: AttitudeSeries, t_ns: NDArray[np.int64], offset_s: float) -> F64:
-    """SLERP of ``attitude`` at ``t - offset_s`` (clamped at the ends), shape (N, 4).
+    """Interpolate the attitude at ``t - offset_s`` (clamped at the ends), shape (N, 4).
 
-    Used while iterating on ``tau``; the READER's ``stages.resample.interpolate_attitude`` does
-    the same with gap checks for the initial alignment.
+    THE interpolator (:class:`pipeline.model.attitude.AttitudeInterpolator`), every gap
+    bridged: used while iterating on ``tau`` over samples already known to have an attitude.
     """
-    ta = attitude.t_ns
-    t = t_ns.astype(np.float64) - offset_s * 1e9
-    rel = t - float(ta[0])
-    tar = (ta - ta[0]).astype(np.float64)
-    j = np.clip(np.searchsorted(tar, rel, side="right") - 1, 0, len(ta) - 2)
-    dt = tar[j + 1] - tar[j]
-    s = np.clip((rel - tar[j]) / np.where(dt > 0, dt, 1.0), 0.0, 1.0)
-    q = attitude.q_enu_body
-    return quat_slerp(q[j], q[j + 1], s)
+    from pipeline.model.attitude import AttitudeInterpolator
+
+    it = AttitudeInterpolator.of(attitude, max_gap_s=np.inf, clamp=True)
+    return it.at(t_ns, offset_s).q_enu_body
 
 
 def wahba(a: F64, b: F64, w: F64 | None = None) -> F64:

@@ -71,7 +71,6 @@ _SYM5 = np.concatenate(
         _SYM6[3:],
     ]
 )
-_TAU_STEP_S = 1e-3  # finite-difference step for db/dt (attitude is smooth on this scale)
 
 
 @dataclass
@@ -124,6 +123,7 @@ class Model:
                 n += size
         self.n_params = n
         self._C_cache: tuple[float, F64] | None = None
+        self._interp = None  # THE attitude interpolator, built on first use
         self._C0 = problem.C_enu_body  # computed once: the property converts every call
 
     # ------------------------------------------------------------------ attitude
@@ -139,14 +139,23 @@ class Model:
         self._C_cache = (tau, C)
         return C
 
+    def omega_body(self, tau: float) -> F64:
+        """Angular velocity of THE attitude interpolation at ``t - tau``, body, rad/s."""
+        from pipeline.model.attitude import AttitudeInterpolator
+
+        if self._interp is None:
+            self._interp = AttitudeInterpolator.of(self.attitude, max_gap_s=np.inf, clamp=True)
+        return self._interp.at(self.p.t_ns, tau).omega_body_rad_s
+
     def b_body(self, s: State, tau: float | None = None) -> F64:
         """Predicted body field ``C.T @ B``, (N, 3)."""
         return _rows_Ct_B(self.C(s.tau if tau is None else tau), s.B)
 
     def predict(self, s: State) -> F64:
         """Predicted magnetometer readings, (N, 3)."""
-        m = self.b_body(s) @ s.R  # rows R.T @ b
-        return m @ s.D.T + s.o
+        from pipeline.model.forward import sensor_reading
+
+        return sensor_reading(self.b_body(s), s.R, s.D, s.o)  # (M3)-(M4) + o
 
     def jacobian(self, s: State) -> F64:
         """dy/dparams, (N, 3, P), in the order of ``blocks``."""
@@ -169,11 +178,11 @@ class Model:
             m = b @ s.R
             J[:, :, self.blocks["D"]] = np.einsum("kij,nj->nik", self.basis, m)
         if "tau" in self.blocks:
-            h = _TAU_STEP_S
-            bp = self.b_body(s, s.tau + h)
-            bm = self.b_body(s, s.tau - h)
-            # y depends on b(t - tau): dy/dtau = D R.T (b(t-(tau+h)) - b(t-(tau-h))) / 2h
-            J[:, :, self.blocks["tau"].start] = (bp - bm) @ DRt.T / (2 * h)
+            # y depends on b(t - tau) with the attitude re-interpolated at t - tau:
+            # db/dtau = omega x b, omega the exact interpolated rate at t - tau (body frame;
+            # pipeline.model.forward, (J5))
+            w = self.omega_body(s.tau)
+            J[:, :, self.blocks["tau"].start] = np.cross(w, b) @ DRt.T
         return J
 
     def weights(self, s: State) -> F64 | None:

@@ -432,7 +432,7 @@ def iter_aligned_chunks(
         (AttitudeSeries or None), such as :func:`pipeline.mcap_read.iter_recording_chunks`.
         Within a chunk samples need not be sorted; across chunks stamps must advance.
     max_gap_s : float
-        Attitude gap bridged by SLERP (:func:`stages.resample.interpolate_attitude`).
+        Attitude gap bridged by THE interpolator (:func:`stages.resample.interpolate_attitude`).
 
     Yields
     ------
@@ -442,8 +442,8 @@ def iter_aligned_chunks(
         of a chunk is kept to bracket the first magnetometer samples of the next.
 
     """
+    from pipeline.model.attitude import interpolate_attitude
     from pipeline.recording import AttitudeSeries
-    from stages.resample import interpolate_attitude
 
     att_t = np.zeros(0, np.int64)
     att_q = np.zeros((0, 4))

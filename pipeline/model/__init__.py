@@ -1,0 +1,23 @@
+"""The one measurement model of magalign (CONVENTIONS, "Measurement model").
+
+- :mod:`pipeline.model.attitude`: THE attitude interpolator (SLERP with the gap rule).
+- :mod:`pipeline.model.forward`: prediction, Jacobian and restore (inverse).
+- :mod:`pipeline.model.solve`: THE damped Gauss-Newton core.
+"""
+
+from .attitude import AttitudeInterpolator, auto_max_gap_s, interpolate_attitude
+from .forward import ForwardModel, Restoration, evaluate, jacobian, predict, restore
+from .solve import levenberg_marquardt
+
+__all__ = [
+    "AttitudeInterpolator",
+    "ForwardModel",
+    "Restoration",
+    "auto_max_gap_s",
+    "evaluate",
+    "interpolate_attitude",
+    "jacobian",
+    "levenberg_marquardt",
+    "predict",
+    "restore",
+]

@@ -1,0 +1,540 @@
+"""THE measurement model: prediction, Jacobian and restore (inverse), written once.
+
+One magnetometer sample stamped ``t`` (CONVENTIONS, "Measurement model"; the rotation is
+``R_body_mag`` of Li et al. 2020, Eq. (1), ``v_body = R_body_mag @ v_mag``)::
+
+    (M1)  B(t)   = B_enu + F(t)                                   ENU field, nT
+    (M1h) B'(t)  = Rz(h(t)) @ B(t)                                heading_drift, nT
+    (M2)  b(t)   = C_enu_body(t - tau).T @ B'(t)                  body frame, nT
+    (M3)  m(t)   = R_body_mag.T @ b(t)                            mag frame, nT
+    (M4)  y0(t)  = D @ m(t)
+    (M5)  y(t)   = y0(t) + o + o_step 1[t in windows] + E_s @ ydot0(t)
+
+``F(t)`` is the sum of the diagnosed external-field terms (``field_drift``: Legendre
+P1..P4 in time; ``disturbance``: linear B-splines in its windows; ``field_gradient``:
+``G (p(t) - p_ref)`` with the attitude source's position ``p``). ``h(t)`` is the attitude
+source's heading error (``heading_drift``: Legendre P1..P2 in time, rad): the source reports
+``Rz(h) C_true``, so the field it sees is turned about Up by ``h``. ``C_enu_body(t - tau)`` is
+the attitude re-interpolated at the sensing time ``t - tau`` (C1 cubic on SO(3),
+:mod:`pipeline.model.attitude`): the time offset is exact, not a first-order equivalent.
+``ydot0`` is the rotation-induced rate of the undisturbed reading,
+``D R.T (C(s + h).T - C(s - h).T) / (2 h) B(t)`` with ``s = t - tau`` and ``h`` three
+attitude intervals (the regressor of the ``eddy_current`` term; sharing no attitude sample
+with the reading's own interpolation, it cannot fit attitude noise).
+
+Restoring (CONVENTIONS) inverts (M2)-(M5) for the sensor terms and leaves ``F(t)`` in the
+restored field (the series is meant to show the external field); the heading error is an
+attitude term and is taken out::
+
+    (M6)  b_enu(t) = Rz(-h(t)) C_enu_body(t - tau) R_body_mag inv(D) (y - o - o_step - E_s ydot0)
+
+Jacobian (:func:`jacobian`) with respect to the calibration parameters, at the current
+values; the rotation is perturbed on the right, ``R_body_mag <- R_body_mag Exp([d]x)``
+(Sola, Deray & Atchuthan 2018, "A micro Lie theory for state estimation in robotics",
+Sect. III, right plus; the Jacobian of the action ``R.T v`` follows from
+``Exp(d).T ~ I - [d]x``)::
+
+    (J1)  dy/dd     = D [m]x + E_s D [mdot]x          mdot = R.T (C'.T B)
+    (J2)  dy/dB     = D R.T C.T + E_s D R.T C'.T
+    (J3)  dy/do     = I
+    (J4)  dy/dD_kl  = S_kl m + E_s S_kl mdot          (S_kl: symmetric unit basis, k <= l)
+    (J5)  dy/dtau   = D R.T (omega_body x b) - E_s D R.T C''.T B
+
+where ``omega_body`` is the angular velocity of the interpolated attitude at ``t - tau`` (exact,
+(A6) there): ``d/dt C.T B = -omega x (C.T B)``, so ``d b(t - tau)/dtau = omega x b``. The
+columns are checked against finite differences in ``tests/test_model.py``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .attitude import AttitudeInterpolator
+
+if TYPE_CHECKING:
+    from pipeline.calibration import Calibration
+    from pipeline.recording import AttitudeSeries, PositionSeries
+
+F64 = NDArray[np.float64]
+
+#: The time offset model (the attitude re-interpolated at ``t - tau``, (J5)) is checked for
+#: lags up to this (s) at rotation rates up to 5 rad/s (``tests/test_model.py``); estimators
+#: fit ``tau`` on the samples at least this far inside the attitude's span.
+MAX_TIME_OFFSET_S = 0.1
+#: Order of the Legendre polynomials of ``field_drift`` (P1..P4; the constant is ``B_enu``).
+DRIFT_DEGREE = 4
+#: Order of the Legendre polynomials of ``heading_drift`` (P1..P2; a constant heading error
+#: is a fixed turn of ``B_enu`` about Up, absorbed by the field).
+HEADING_DEGREE = 2
+#: Half-width of the central difference of the eddy-current regressor, in attitude intervals.
+RATE_STEP_INTERVALS = 3.0
+#: Parameter names of :func:`jacobian`'s columns.
+PARAM_NAMES = ("rot_x", "rot_y", "rot_z", "B_e", "B_n", "B_u", "o_x", "o_y", "o_z",
+               "D_xx", "D_yy", "D_zz", "D_xy", "D_xz", "D_yz", "tau")
+
+_SYM6 = np.zeros((6, 3, 3))
+for _k, (_i, _j) in enumerate([(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]):
+    _SYM6[_k, _i, _j] = _SYM6[_k, _j, _i] = 1.0
+
+
+def skew_rows(v: F64) -> F64:
+    """``[v]x`` for each row of ``v`` (N, 3) -> (N, 3, 3)."""
+    z = np.zeros(len(v))
+    x, y, w = v[:, 0], v[:, 1], v[:, 2]
+    return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1),
+                     np.stack([-y, x, z], -1)], -2)
+
+
+def drift_basis(t_s: F64, span_s: float) -> F64:
+    """Legendre P1..P4 of the time scaled to [-1, 1] over ``[0, span_s]``, (N, 4)."""
+    x = 2.0 * np.asarray(t_s, dtype=float) / max(span_s, 1e-9) - 1.0
+    return np.polynomial.legendre.legvander(x, DRIFT_DEGREE)[:, 1:]
+
+
+def heading_basis(t_s: F64, span_s: float) -> F64:
+    """Legendre P1..P2 of the time scaled to [-1, 1] over ``[0, span_s]``, (N, 2)."""
+    x = 2.0 * np.asarray(t_s, dtype=float) / max(span_s, 1e-9) - 1.0
+    return np.polynomial.legendre.legvander(x, HEADING_DEGREE)[:, 1:]
+
+
+def rotate_about_up(v_enu: F64, h_rad: F64) -> F64:
+    """Rows of ``v_enu`` (N, 3) turned about Up by ``h_rad`` (N,): ``Rz(h) v`` (ENU yaw)."""
+    c, s = np.cos(h_rad), np.sin(h_rad)
+    v = np.asarray(v_enu, dtype=float)
+    out = v.copy()
+    out[:, 0] = c * v[:, 0] - s * v[:, 1]
+    out[:, 1] = s * v[:, 0] + c * v[:, 1]
+    return out
+
+
+def hat_basis(t_s: F64, knots_s: F64) -> F64:
+    """Linear B-splines on ``knots_s``, zero outside ``[knots[0], knots[-1])``, (N, K)."""
+    t = np.asarray(t_s, dtype=float)[:, None]
+    k = np.asarray(knots_s, dtype=float)
+    h = np.diff(k)
+    left = np.concatenate([[np.inf], h])
+    right = np.concatenate([h, [np.inf]])
+    d = t - k[None, :]
+    phi = np.clip(np.where(d < 0, 1.0 + d / left, 1.0 - d / right), 0.0, 1.0)
+    return phi * ((t >= k[0]) & (t < k[-1]))
+
+
+def in_windows(t_s: F64, windows_s: Any) -> np.ndarray:
+    """Half-open window membership, (N,) bool."""
+    t = np.asarray(t_s, dtype=float)
+    out = np.zeros(t.shape, dtype=bool)
+    for a, b in windows_s or ():
+        out |= (t >= float(a)) & (t < float(b))
+    return out
+
+
+def sensor_reading(b_body_nT: F64, R_body_mag: F64, D: F64 | None = None,
+                   offset_nT: F64 | None = None) -> F64:
+    """(M3)-(M4) and the offset: ``D @ R_body_mag.T @ b + o`` for each row of ``b`` (N, 3), nT.
+
+    The one place the sensor terms act on the body-frame field: :func:`evaluate` and the ML
+    estimator's inner loop (:class:`stages.estimators.ml.Model`) both call it.
+    """
+    y = np.asarray(b_body_nT, dtype=float) @ np.asarray(R_body_mag)  # rows R.T @ b
+    if D is not None:
+        y = y @ np.asarray(D).T
+    if offset_nT is not None:
+        y = y + offset_nT
+    return y
+
+
+def _as_list(p: Any) -> list[dict]:
+    if p is None:
+        return []
+    return [x for x in (p if isinstance(p, list) else [p]) if isinstance(x, dict)]
+
+
+@dataclass(frozen=True)
+class ForwardModel:
+    """Every term of (M1)-(M5) with its value; absent terms are ``None`` / empty.
+
+    Attributes
+    ----------
+    R_body_mag : ndarray (3, 3)
+    B_enu_nT : ndarray (3,)
+    D : ndarray (3, 3) or None
+        Symmetric positive-definite (identity when None).
+    offset_nT : ndarray (3,) or None
+        ``o``, mag frame.
+    time_offset_s : float
+        ``tau``, s (CONVENTIONS sign).
+    E_s : ndarray (3, 3) or None
+        ``eddy_current``, s.
+    steps : tuple of (windows_s, offset_nT (3,))
+        ``hard_iron_step`` terms.
+    disturbances : tuple of (knots_s (K,), field_nT (K, 3))
+        ``disturbance`` fields at their knots, ENU.
+    drift : (coef_nT (4, 3), span_s) or None
+        ``field_drift`` Legendre coefficients, ENU.
+    gradient : (M_nT_per_m (3, 3), p_ref_m (3,)) or None
+        ``field_gradient``: ``F = M (p - p_ref)``.
+    heading : (coef_rad (2,), span_s) or None
+        ``heading_drift`` Legendre coefficients of ``h(t)``.
+
+    """
+
+    R_body_mag: F64
+    B_enu_nT: F64
+    D: F64 | None = None
+    offset_nT: F64 | None = None
+    time_offset_s: float = 0.0
+    E_s: F64 | None = None
+    steps: tuple = ()
+    disturbances: tuple = ()
+    drift: tuple | None = None
+    gradient: tuple | None = None
+    heading: tuple | None = None
+    unmodelled: tuple[str, ...] = field(default=())
+
+    @classmethod
+    def from_calibration(cls, cal: Calibration) -> ForwardModel:
+        """Return the model a calibration carries: its fields, and its ``effects``.
+
+        ``offset_nT`` / ``D`` / ``time_offset_s`` fall back on the ``hard_iron`` /
+        ``soft_iron`` / ``time_offset`` effects. ``disturbance`` and ``field_drift`` need
+        the fitted field (``knots_s`` + ``knot_field_nT``, ``legendre_nT`` + ``span_s``,
+        written by ``diagnose``); without it they are listed in ``unmodelled``.
+        """
+        eff = dict(getattr(cal, "effects", None) or {})
+
+        def first(name: str) -> dict | None:
+            lst = _as_list(eff.get(name))
+            return lst[0] if lst else None
+
+        o = cal.offset_nT
+        if o is None and first("hard_iron") is not None:
+            o = np.asarray(first("hard_iron")["offset_nT"], dtype=float).reshape(3)
+        D = cal.D
+        if D is None and first("soft_iron") is not None:
+            D = np.asarray(first("soft_iron")["D"], dtype=float).reshape(3, 3)
+        tau = cal.time_offset_s
+        if tau is None:
+            p = first("time_offset")
+            tau = float(p["time_offset_s"]) if p and p.get("time_offset_s") is not None else 0.0
+        E = first("eddy_current")
+        steps = tuple((tuple(tuple(w) for w in p.get("windows_s") or ()),
+                       np.asarray(p["offset_nT"], dtype=float).reshape(3))
+                      for p in _as_list(eff.get("hard_iron_step")))
+        unmodelled: list[str] = []
+        dist = []
+        for p in _as_list(eff.get("disturbance")):
+            if "knots_s" not in p or "knot_field_nT" not in p:
+                unmodelled.append("disturbance")
+                continue
+            for kn, fv in zip(p["knots_s"], p["knot_field_nT"], strict=True):
+                dist.append((np.asarray(kn, dtype=float),
+                             np.asarray(fv, dtype=float).reshape(-1, 3)))
+        drift = None
+        p = first("field_drift")
+        if p is not None:
+            if "legendre_nT" in p and "span_s" in p:
+                drift = (np.asarray(p["legendre_nT"], dtype=float).reshape(-1, 3),
+                         float(p["span_s"]))
+            else:
+                unmodelled.append("field_drift")
+        grad = None
+        p = first("field_gradient")
+        if p is not None:
+            grad = (np.asarray(p["G_nT_per_m"], dtype=float).reshape(3, 3),
+                    np.asarray(p.get("reference_position_m") or [0, 0, 0], dtype=float))
+        heading = None
+        p = first("heading_drift")
+        if p is not None:
+            if "legendre_rad" in p and "span_s" in p:
+                heading = (np.asarray(p["legendre_rad"], dtype=float).reshape(-1),
+                           float(p["span_s"]))
+            else:
+                unmodelled.append("heading_drift")
+        return cls(
+            R_body_mag=np.asarray(cal.R_body_mag, dtype=float),
+            B_enu_nT=np.asarray(cal.B_enu_nT, dtype=float),
+            D=None if D is None else np.asarray(D, dtype=float),
+            offset_nT=None if o is None else np.asarray(o, dtype=float),
+            time_offset_s=float(tau),
+            E_s=None if E is None else np.asarray(E["E_s"], dtype=float).reshape(3, 3),
+            steps=steps,
+            disturbances=tuple(dist),
+            drift=drift,
+            gradient=grad,
+            heading=heading,
+            unmodelled=tuple(unmodelled),
+        )
+
+    # ------------------------------------------------------------------ pieces
+    @property
+    def D_or_I(self) -> F64:
+        """``D`` (identity when not estimated)."""
+        return np.eye(3) if self.D is None else self.D
+
+    def external_field_nT(self, t_s: F64, p_m: F64 | None = None) -> F64:
+        """``F(t)`` of (M1), ENU, (N, 3); ``t_s`` from the first magnetometer sample.
+
+        ``p_m``: positions (N, 3), m, for ``field_gradient`` (NaN rows or None: no
+        contribution).
+        """
+        t = np.asarray(t_s, dtype=float)
+        F = np.zeros((len(t), 3))
+        if self.drift is not None:
+            coef, span = self.drift
+            F += drift_basis(t, span) @ coef
+        for knots, values in self.disturbances:
+            F += hat_basis(t, knots) @ values
+        if self.gradient is not None and p_m is not None:
+            M, ref = self.gradient
+            dp = np.asarray(p_m, dtype=float) - ref
+            F += np.where(np.isfinite(dp).all(axis=1)[:, None], np.nan_to_num(dp) @ M.T, 0.0)
+        return F
+
+    def heading_rad(self, t_s: F64) -> F64 | None:
+        """``h(t)`` of (M1h), rad, (N,); None without ``heading_drift``."""
+        if self.heading is None:
+            return None
+        coef, span = self.heading
+        return heading_basis(np.asarray(t_s, dtype=float), span) @ coef
+
+    def step_offset_nT(self, t_s: F64) -> F64:
+        """``o_step 1[t in windows]`` of (M5), mag frame, (N, 3)."""
+        out = np.zeros((len(t_s), 3))
+        for windows, off in self.steps:
+            out[in_windows(t_s, windows)] += off
+        return out
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """The model at the magnetometer stamps.
+
+    Attributes
+    ----------
+    y_nT : ndarray (N, 3)
+        Predicted reading (M5), mag frame; NaN where not ``valid``.
+    valid : ndarray of bool (N,)
+        An attitude was available at ``t - tau`` (gap rule).
+    q_enu_body : ndarray (N, 4)
+        Attitude at ``t - tau`` (NaN where not valid).
+    omega_body_rad_s : ndarray (N, 3)
+        Angular velocity of the interpolated attitude at ``t - tau``, body frame.
+    field_enu_nT : ndarray (N, 3)
+        The field the attitude source sees, ``Rz(h) (B_enu + F(t))`` (M1)-(M1h).
+    heading_rad : ndarray (N,) or None
+        ``h(t)`` (M1h); None without ``heading_drift``.
+    b_body_nT, m_nT, ydot0_nT_s : ndarray (N, 3)
+        (M2), (M3) and the eddy regressor (zeros without ``eddy_current``).
+    sensor_nT : ndarray (N, 3)
+        ``o + o_step + E_s ydot0``: the additive mag-frame terms of (M5).
+    interp_position : ndarray (N,)
+        Where ``t - tau`` falls between its two attitude samples, 0..1.
+
+    """
+
+    y_nT: F64
+    valid: np.ndarray
+    q_enu_body: F64
+    omega_body_rad_s: F64
+    field_enu_nT: F64
+    b_body_nT: F64
+    m_nT: F64
+    ydot0_nT_s: F64
+    sensor_nT: F64
+    interp_position: F64
+    heading_rad: F64 | None = None
+
+
+def _interp(attitude: AttitudeSeries | AttitudeInterpolator, max_gap_s: float | None
+            ) -> AttitudeInterpolator:
+    if isinstance(attitude, AttitudeInterpolator):
+        return attitude
+    return AttitudeInterpolator.of(attitude, max_gap_s=max_gap_s)
+
+
+def _Ct(q: F64) -> F64:
+    from pipeline.geometry import quat_to_matrix
+
+    return np.swapaxes(quat_to_matrix(q), -1, -2)
+
+
+def evaluate(
+    model: ForwardModel,
+    t_ns: NDArray[np.int64],
+    attitude: AttitudeSeries | AttitudeInterpolator,
+    *,
+    t0_ns: int | None = None,
+    max_gap_s: float | None = None,
+    position: PositionSeries | None = None,
+) -> Evaluation:
+    """Evaluate (M1)-(M5) at the magnetometer stamps ``t_ns`` (int64 ns, sorted).
+
+    ``t0_ns``: the first magnetometer stamp of the recording (effect windows count from it;
+    default ``t_ns[0]``). ``max_gap_s``: attitude gap rule (default the automatic one).
+    """
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    n = len(t_ns)
+    it = _interp(attitude, max_gap_s)
+    t0 = int(t_ns[0]) if (t0_ns is None and n) else int(t0_ns or 0)
+    t_s = (t_ns - t0).astype(float) * 1e-9
+    tau = model.time_offset_s
+    at = it.at(t_ns, tau)
+    valid = at.valid
+    ident = np.array([0.0, 0.0, 0.0, 1.0])
+    q = np.where(valid[:, None], at.q_enu_body, ident)
+    p_m = None
+    if model.gradient is not None and position is not None:
+        p_m = position.at(t_ns)
+    Bt = model.B_enu_nT[None, :] + model.external_field_nT(t_s, p_m)
+    h_rad = model.heading_rad(t_s)
+    if h_rad is not None:
+        Bt = rotate_about_up(Bt, h_rad)  # (M1h)
+    Ct = _Ct(q)
+    b = np.matmul(Ct, Bt[:, :, None])[:, :, 0]
+    m = b @ model.R_body_mag
+    y0 = sensor_reading(b, model.R_body_mag, model.D)
+    sensor = model.step_offset_nT(t_s)
+    if model.offset_nT is not None:
+        sensor = sensor + model.offset_nT
+    ydot0 = np.zeros((n, 3))
+    if model.E_s is not None:
+        ydot0 = _rate(model, it, t_ns, tau, Bt, valid)[0]
+        sensor = sensor + ydot0 @ model.E_s.T
+    y = y0 + sensor
+    w = np.where(valid[:, None], at.omega_body_rad_s, 0.0)
+    nanv = ~valid
+    y[nanv] = np.nan
+    return Evaluation(y, valid, at.q_enu_body, w, Bt, b, m, ydot0, sensor, at.position, h_rad)
+
+
+def _rate(model: ForwardModel, it: AttitudeInterpolator, t_ns: NDArray[np.int64], tau: float,
+          Bt: F64, valid: np.ndarray) -> tuple[F64, F64, F64]:
+    """Eddy regressor ``ydot0`` (N, 3), ``C'.T`` and ``C''.T`` (N, 3, 3) by central differences."""
+    h = max(RATE_STEP_INTERVALS * it.step_s, 1e-3)
+    ident = np.array([0.0, 0.0, 0.0, 1.0])
+    # clamped: the neighbours of a valid sample may fall just outside the span
+    qs = [it.at(t_ns, tau + d, clamp=True).q_enu_body for d in (-h, 0.0, h)]  # s+h, s, s-h
+    Cp, C0, Cm = (_Ct(np.where(np.isfinite(x).all(axis=1)[:, None], x, ident)) for x in qs)
+    Cdot = (Cp - Cm) / (2.0 * h)
+    Cddot = (Cp - 2.0 * C0 + Cm) / (h * h)
+    mdot = np.matmul(Cdot, Bt[:, :, None])[:, :, 0] @ model.R_body_mag
+    ydot0 = mdot @ model.D_or_I.T
+    ydot0[~valid] = 0.0
+    return ydot0, Cdot, Cddot
+
+
+def predict(model: ForwardModel, t_ns: NDArray[np.int64],
+            attitude: AttitudeSeries | AttitudeInterpolator, **kw: Any) -> F64:
+    """Predicted readings (M5), mag frame, nT, (N, 3); NaN without an attitude."""
+    return evaluate(model, t_ns, attitude, **kw).y_nT
+
+
+@dataclass(frozen=True)
+class Restoration:
+    """Restored samples (M6) and the final model's residual.
+
+    Attributes
+    ----------
+    t_ns : ndarray int64 (N,)
+    calibrated_mag_nT : ndarray (N, 3)
+        ``inv(D) (y - o - o_step - E_s ydot0)``, mag frame.
+    enu_nT : ndarray (N, 3)
+        (M6), ENU; NaN where not ``valid``.
+    residual_nT : ndarray (N, 3)
+        Measured minus predicted by (M1)-(M5), every term included; NaN where not valid.
+    predicted_nT : ndarray (N, 3)
+    q_enu_body : ndarray (N, 4)
+        Attitude at ``t - tau`` (NaN where not valid).
+    valid : ndarray bool (N,)
+
+    """
+
+    t_ns: NDArray[np.int64]
+    calibrated_mag_nT: F64
+    enu_nT: F64
+    residual_nT: F64
+    predicted_nT: F64
+    q_enu_body: F64
+    valid: np.ndarray
+
+
+def restore(model: ForwardModel, mag_nT: F64, t_ns: NDArray[np.int64],
+            attitude: AttitudeSeries | AttitudeInterpolator, **kw: Any) -> Restoration:
+    """Invert the model (M6) and compute the residual of (M1)-(M5); keywords as :func:`evaluate`."""
+    from pipeline.geometry import quat_rotate
+
+    y = np.asarray(mag_nT, dtype=float)
+    ev = evaluate(model, t_ns, attitude, **kw)
+    c = y - ev.sensor_nT
+    if model.D is not None:
+        c = np.linalg.solve(model.D, c.T).T
+    q = np.where(ev.valid[:, None], ev.q_enu_body, np.array([0.0, 0.0, 0.0, 1.0]))
+    enu = quat_rotate(q, c @ model.R_body_mag.T)
+    if ev.heading_rad is not None:
+        enu = rotate_about_up(enu, -ev.heading_rad)  # (M6): the heading error taken out
+    enu[~ev.valid] = np.nan
+    resid = y - ev.y_nT
+    return Restoration(np.asarray(t_ns, dtype=np.int64), c, enu, resid, ev.y_nT,
+                       ev.q_enu_body, ev.valid)
+
+
+def jacobian(model: ForwardModel, t_ns: NDArray[np.int64],
+             attitude: AttitudeSeries | AttitudeInterpolator, **kw: Any) -> F64:
+    """``dy/dparams`` (N, 3, 16) in the order of :data:`PARAM_NAMES`, (J1)-(J5).
+
+    Rows without an attitude are zero. The rotation column block is the right perturbation
+    ``R <- R Exp(d)``; ``D`` is perturbed by its six symmetric entries; ``tau`` in s.
+    """
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    it = _interp(attitude, kw.get("max_gap_s"))
+    ev = evaluate(model, t_ns, it, **kw)
+    n = len(t_ns)
+    D = model.D_or_I
+    R = model.R_body_mag
+    valid = ev.valid
+    ident = np.array([0.0, 0.0, 0.0, 1.0])
+    Ct = _Ct(np.where(valid[:, None], ev.q_enu_body, ident))
+    DRt = D @ R.T
+    E = np.zeros((3, 3)) if model.E_s is None else model.E_s
+    m = ev.m_nT
+    J = np.zeros((n, 3, len(PARAM_NAMES)))
+    if model.E_s is not None:
+        _, Cdot, Cddot = _rate(model, it, t_ns, model.time_offset_s, ev.field_enu_nT, valid)
+    else:
+        Cdot = Cddot = np.zeros((n, 3, 3))
+    mdot = np.matmul(Cdot, ev.field_enu_nT[:, :, None])[:, :, 0] @ R
+    J[:, :, 0:3] = D @ skew_rows(m) + E @ D @ skew_rows(mdot)  # (J1)
+    J[:, :, 3:6] = np.matmul(DRt, Ct) + np.matmul(E @ DRt, Cdot)  # (J2)
+    if ev.heading_rad is not None:  # (J2) through (M1h): d B'/d B_enu = Rz(h)
+        c, s_ = np.cos(ev.heading_rad), np.sin(ev.heading_rad)
+        Rz = np.zeros((n, 3, 3))
+        Rz[:, 0, 0] = Rz[:, 1, 1] = c
+        Rz[:, 0, 1], Rz[:, 1, 0] = -s_, s_
+        Rz[:, 2, 2] = 1.0
+        J[:, :, 3:6] = np.matmul(J[:, :, 3:6], Rz)
+    J[:, :, 6:9] = np.eye(3)  # (J3)
+    J[:, :, 9:15] = (np.einsum("kij,nj->nik", _SYM6, m)
+                     + np.einsum("ab,kbj,nj->nak", E, _SYM6, mdot))  # (J4)
+    wxb = np.cross(ev.omega_body_rad_s, ev.b_body_nT)
+    bddot = np.matmul(Cddot, ev.field_enu_nT[:, :, None])[:, :, 0]
+    J[:, :, 15] = wxb @ DRt.T - (bddot @ DRt.T) @ E.T  # (J5)
+    J[~valid] = 0.0
+    return J
+
+
+def perturbed(model: ForwardModel, dx: F64) -> ForwardModel:
+    """Apply a perturbation in the order of :data:`PARAM_NAMES` (right perturbation on R)."""
+    from dataclasses import replace
+
+    from pipeline.geometry import so3_exp
+
+    dx = np.asarray(dx, dtype=float)
+    D = model.D_or_I + np.tensordot(dx[9:15], _SYM6, axes=1)
+    o = (np.zeros(3) if model.offset_nT is None else model.offset_nT) + dx[6:9]
+    return replace(model, R_body_mag=model.R_body_mag @ so3_exp(dx[0:3]),
+                   B_enu_nT=model.B_enu_nT + dx[3:6], D=D, offset_nT=o,
+                   time_offset_s=model.time_offset_s + float(dx[15]))

@@ -1,0 +1,436 @@
+"""Progress of long work: per stage, with an estimate of the time left.
+
+Two halves, joined by small JSON files so that they work across processes:
+
+- the **worker side** (:func:`use_sink`, :func:`stage`, :func:`detail`): the code doing the
+  work says which stage it is in and, inside a long stage, how far it got (diagnose's
+  candidate search). Without a sink installed these calls do nothing, so library code may
+  call them freely. :class:`FileSink` writes the state to one file in a folder named by
+  the environment variable :data:`ENV_DIR` (set by the command that started the worker);
+  :class:`DirectSink` hands it to a display in the same process.
+- the **display side** (:class:`ProgressDisplay`): one line on stderr, redrawn a few times
+  a second, ``[done/total] name  stage k/n (detail)  elapsed m:ss  left ~m:ss``. It is shown
+  only when stderr is a terminal, unless the environment variable :data:`ENV_MODE` says
+  ``always`` (or ``never``); nothing at all goes to a stderr that is not a terminal.
+
+The time left is estimated from typical relative costs of the stages (:data:`STAGE_WEIGHTS`)
+scaled by the time the finished work took; it is an estimate, shown with ``~``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, TextIO
+
+#: folder where worker processes write their progress files (set by the parent command)
+ENV_DIR = "MAGALIGN_PROGRESS_DIR"
+#: ``auto`` (default: only when stderr is a terminal), ``always`` or ``never``
+ENV_MODE = "MAGALIGN_PROGRESS"
+
+#: Typical relative wall time of each stage (class names; measured on the demo campaign and
+#: the lab recordings). Stages not listed weigh 1.
+STAGE_WEIGHTS: dict[str, float] = {
+    "Ingest": 4.0,
+    "TurntableAttitude": 1.0,
+    "Resample": 1.0,
+    "SegmentMotion": 1.0,
+    "Estimate": 4.0,
+    "StreamingEstimate": 4.0,
+    "OnDecimated": 4.0,
+    "LoadCalibration": 0.2,
+    "RequireObservable": 0.1,
+    "Diagnose": 40.0,
+    "Judge": 2.0,
+    "Restore": 2.0,
+    "Metrics": 2.0,
+    "WriteResults": 0.3,
+    "WriteCorrectedMcap": 6.0,
+    "WriteRerun": 4.0,
+    "Report": 8.0,
+}
+
+#: plain names of the stages, as the user reads them on the progress line
+STAGE_LABELS: dict[str, str] = {
+    "Ingest": "reading",
+    "TurntableAttitude": "turntable attitude",
+    "Resample": "aligning",
+    "SegmentMotion": "segmenting",
+    "Estimate": "estimating",
+    "StreamingEstimate": "estimating",
+    "LoadCalibration": "loading calibration",
+    "RequireObservable": "checking",
+    "Diagnose": "diagnosing",
+    "Judge": "judging",
+    "Restore": "restoring",
+    "Metrics": "metrics",
+    "WriteResults": "writing results",
+    "WriteCorrectedMcap": "writing corrected MCAP",
+    "WriteRerun": "writing rerun recording",
+    "Report": "writing report",
+}
+
+
+def weight(name: str) -> float:
+    """Relative cost of the stage ``name`` (1 when unknown)."""
+    return STAGE_WEIGHTS.get(name, 1.0)
+
+
+def label(name: str) -> str:
+    """Plain name of the stage ``name``."""
+    return STAGE_LABELS.get(name, name)
+
+
+# ----------------------------------------------------------------------------- worker side
+
+class _State:
+    """What one recording's run has done so far (plain JSON)."""
+
+    def __init__(self, name: str, stages: list[str] | None = None):
+        self.name = name
+        self.stages: list[str] = list(stages or [])
+        self.index = -1
+        self.detail = ""
+        self.fraction = 0.0  # inside the current stage
+        self.started = time.time()
+        self.stage_started = self.started
+        self.timings: dict[str, float] = {}
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "stages": self.stages, "index": self.index,
+                "detail": self.detail, "fraction": self.fraction, "started": self.started,
+                "stage_started": self.stage_started, "timings": self.timings}
+
+
+class _Sink:
+    """Receives a run's progress; subclasses publish it."""
+
+    def __init__(self, name: str):
+        self.state = _State(name)
+
+    def publish(self, force: bool) -> None:  # pragma: no cover - overridden
+        """Make the state visible to the display."""
+
+    def stage(self, name: str, index: int, total: int, stages: list[str] | None = None) -> None:
+        """Start stage ``name`` (``index`` of ``total``)."""
+        st = self.state
+        now = time.time()
+        if 0 <= st.index < len(st.stages):
+            prev = st.stages[st.index]
+            st.timings[prev] = st.timings.get(prev, 0.0) + now - st.stage_started
+        if stages is not None:
+            st.stages = list(stages)
+        elif len(st.stages) != total:
+            st.stages = (st.stages + [""] * total)[:total]
+        if 0 <= index < len(st.stages):
+            st.stages[index] = name
+        st.index, st.detail, st.fraction, st.stage_started = index, "", 0.0, now
+        self.publish(True)
+
+    def finish(self) -> None:
+        """End the run."""
+        self.stage("", len(self.state.stages), len(self.state.stages))
+
+    def detail(self, text: str, done: float, total: float | None) -> None:
+        """Progress inside the current stage."""
+        self.state.detail = text
+        if total:
+            self.state.fraction = max(0.0, min(1.0, done / total))
+        self.publish(False)
+
+
+class FileSink(_Sink):
+    """Writes the state to ``folder/<pid>-<name>.json`` (atomically, at most 5 times a second).
+
+    Parameters
+    ----------
+    folder : path
+        The folder the display polls.
+    name : str
+        The recording's name.
+
+    """
+
+    def __init__(self, folder: str | Path, name: str):
+        super().__init__(name)
+        self.path = Path(folder) / f"{os.getpid()}-{abs(hash(name)) % 10**8}.json"
+        self._last = 0.0
+
+    def publish(self, force: bool) -> None:
+        """Write the state file (never raises: progress must not break the work)."""
+        now = time.monotonic()
+        if not force and now - self._last < 0.2:
+            return
+        self._last = now
+        try:
+            tmp = self.path.with_suffix(".tmp")
+            tmp.write_text(json.dumps(self.state.to_dict()))
+            os.replace(tmp, self.path)
+        except OSError:
+            pass
+
+
+class DirectSink(_Sink):
+    """Hands the state to ``callback(state_dict)`` in this process."""
+
+    def __init__(self, name: str, callback: Callable[[dict[str, Any]], None]):
+        super().__init__(name)
+        self.callback = callback
+
+    def publish(self, force: bool) -> None:
+        """Call the callback with a copy of the state."""
+        self.callback(self.state.to_dict())
+
+
+_local = threading.local()
+
+
+def current() -> _Sink | None:
+    """Return the sink of this thread, or None."""
+    return getattr(_local, "sink", None)
+
+
+@contextmanager
+def use_sink(sink: _Sink | None) -> Iterator[_Sink | None]:
+    """Install ``sink`` for the calls to :func:`stage` and :func:`detail` inside the block."""
+    old = current()
+    _local.sink = sink
+    try:
+        yield sink
+    finally:
+        if sink is not None:
+            sink.finish()
+        _local.sink = old
+
+
+def sink_from_env(name: str) -> _Sink | None:
+    """Return a :class:`FileSink` when the parent asked for progress files (:data:`ENV_DIR`)."""
+    folder = os.environ.get(ENV_DIR)
+    if not folder or not Path(folder).is_dir():
+        return None
+    return FileSink(folder, name)
+
+
+def stage(name: str, index: int, total: int, stages: list[str] | None = None) -> None:
+    """Tell the current sink (if any) that stage ``name`` starts (``index`` of ``total``).
+
+    ``stages``, when given, names every stage of the run (for the estimate of time left).
+    """
+    s = current()
+    if s is not None:
+        s.stage(name, index, total, stages)
+
+
+def detail(text: str, done: float = 0.0, total: float | None = None) -> None:
+    """Tell the current sink (if any) how far the current stage is (``done`` of ``total``)."""
+    s = current()
+    if s is not None:
+        s.detail(text, done, total)
+
+
+# ----------------------------------------------------------------------------- display side
+
+def enabled_for(stream: TextIO, disable: bool = False) -> bool:
+    """Whether to draw progress on ``stream``: a terminal, unless :data:`ENV_MODE` says else."""
+    if disable:
+        return False
+    mode = os.environ.get(ENV_MODE, "auto").strip().lower()
+    if mode in ("never", "0", "off", "no"):
+        return False
+    if mode in ("always", "1", "on", "yes"):
+        return True
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):
+        return False
+
+
+def fmt_duration(s: float) -> str:
+    """``m:ss`` (or ``h:mm:ss``) of ``s`` seconds."""
+    s = max(0, int(round(s)))
+    h, rem = divmod(s, 3600)
+    m, sec = divmod(rem, 60)
+    return f"{h}:{m:02d}:{sec:02d}" if h else f"{m}:{sec:02d}"
+
+
+def run_fraction(state: dict[str, Any]) -> float:
+    """Fraction of one run done, from the stage weights (0..1)."""
+    stages = state.get("stages") or []
+    if not stages:
+        return 0.0
+    w = [weight(s) if s else 1.0 for s in stages]
+    i = int(state.get("index", -1))
+    if i >= len(stages):
+        return 1.0
+    if i < 0:
+        return 0.0
+    done = sum(w[:i]) + w[i] * float(state.get("fraction") or 0.0)
+    return max(0.0, min(1.0, done / sum(w)))
+
+
+class ProgressDisplay:
+    """One redrawn line on a terminal: recordings done, the current stage, elapsed, left.
+
+    Parameters
+    ----------
+    total : int
+        Recordings (or runs) to do.
+    title : str
+        First word of the line.
+    stream : text stream
+        Where to draw (stderr).
+    enabled : bool
+        Draw at all (see :func:`enabled_for`).
+    folder : path, optional
+        Poll the progress files of worker processes here.
+    interval_s : float
+        Redraw period.
+
+    """
+
+    def __init__(self, total: int, title: str = "magalign", *, stream: TextIO | None = None,
+                 enabled: bool = True, folder: str | Path | None = None,
+                 interval_s: float = 0.25):
+        self.total = max(1, int(total))
+        self.title = title
+        self.stream = stream if stream is not None else sys.stderr
+        self.enabled = enabled
+        self.folder = Path(folder) if folder is not None else None
+        self.interval_s = interval_s
+        self.done = 0
+        self.started = time.time()
+        self._direct: dict[str, dict[str, Any]] = {}
+        self._lock = threading.Lock()
+        self._draw_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._width = 0
+
+    def __enter__(self) -> ProgressDisplay:
+        if self.enabled:
+            self.draw()  # at once: the user sees that work started
+            self._thread = threading.Thread(target=self._loop, daemon=True)
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def update(self, state: dict[str, Any]) -> None:
+        """Take the state of an in-process run (:class:`DirectSink` callback).
+
+        A new stage is drawn at once (not only at the next redraw), so that even a short
+        stage shows.
+        """
+        with self._lock:
+            old = self._direct.get(state["name"])
+            self._direct[state["name"]] = state
+        if self.enabled and (old is None or old.get("index") != state.get("index")):
+            try:
+                self.draw()
+            except (OSError, ValueError):
+                pass
+
+    def run_done(self, name: str) -> None:
+        """One recording (run) finished, whatever its status."""
+        with self._lock:
+            self.done += 1
+            self._direct.pop(name, None)
+
+    def _states(self) -> list[dict[str, Any]]:
+        with self._lock:
+            states = list(self._direct.values())
+        if self.folder is not None and self.folder.is_dir():
+            for f in sorted(self.folder.glob("*.json")):
+                try:
+                    states.append(json.loads(f.read_text()))
+                except (OSError, ValueError):
+                    continue
+        return [s for s in states if run_fraction(s) < 1.0]
+
+    def line(self, now: float | None = None) -> str:
+        """Return the progress line as it would be drawn now."""
+        now = time.time() if now is None else now
+        states = self._states()
+        with self._lock:
+            done = self.done
+        frac = min(1.0, (done + sum(run_fraction(s) for s in states)) / self.total)
+        elapsed = now - self.started
+        parts = [self.title]
+        if self.total > 1:
+            parts.append(f"[{done}/{self.total}]")
+        if states:
+            s = max(states, key=lambda x: x.get("stage_started", 0))
+            stages = s.get("stages") or []
+            i = int(s.get("index", -1))
+            where = s.get("name", "")
+            if 0 <= i < len(stages):
+                what = f"{label(stages[i])} ({i + 1}/{len(stages)})"
+                if s.get("detail"):
+                    what += f": {s['detail']}"
+                where = f"{where}: {what}"
+            if len(states) > 1:
+                where += f" (+{len(states) - 1} more)"
+            parts.append(where)
+        parts.append(f"{100 * frac:3.0f}%")
+        parts.append(f"elapsed {fmt_duration(elapsed)}")
+        if frac > 0.02 and elapsed > 1.0:
+            parts.append(f"left ~{fmt_duration(elapsed * (1 - frac) / frac)}")
+        return "  ".join(parts)
+
+    def draw(self) -> None:
+        """Redraw the line (nothing when disabled)."""
+        if not self.enabled:
+            return
+        with self._draw_lock:
+            self._draw()
+
+    def _draw(self) -> None:
+        text = self.line()
+        try:
+            cols = os.get_terminal_size(self.stream.fileno()).columns
+        except (OSError, AttributeError, ValueError):
+            cols = 0
+        cols = cols if cols > 20 else 100  # a pseudo-terminal may report 0 columns
+        text = text[: cols - 1]
+        pad = max(0, self._width - len(text))
+        self.stream.write("\r" + text + " " * pad)
+        self.stream.flush()
+        self._width = len(text)
+
+    def _loop(self) -> None:
+        while not self._stop.wait(self.interval_s):
+            try:
+                self.draw()
+            except (OSError, ValueError):
+                return
+
+    def close(self) -> None:
+        """Stop redrawing and clear the line."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2)
+            self._thread = None
+        with self._draw_lock:
+            self._clear()
+
+    def _clear(self) -> None:
+        if self.enabled and self._width:
+            try:
+                self.stream.write("\r" + " " * self._width + "\r")
+                self.stream.flush()
+            except (OSError, ValueError):
+                pass
+            self._width = 0
+        self.enabled = False
+
+
+def timings_text(timings: dict[str, float]) -> str:
+    """Return ``reading 1.2 s, aligning 0.3 s, ...`` of stage name -> seconds."""
+    return ", ".join(f"{label(k)} {v:.1f} s" for k, v in timings.items())

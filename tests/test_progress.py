@@ -1,0 +1,159 @@
+"""Progress per stage with the time left: on a terminal only, -v prints each stage's time."""
+
+from __future__ import annotations
+
+import io
+import os
+import pty
+import re
+import select
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from pipeline import progress as pg
+from tests import corpus
+
+MAGALIGN = [sys.executable, "-c", "import sys; from pipeline.cli import main; sys.exit(main())"]
+
+
+def _env(**kw: str) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k not in (pg.ENV_MODE, pg.ENV_DIR)}
+    env.update(kw)
+    return env
+
+
+def _run_on_pty(argv: list[str], cwd: Path, env: dict[str, str]) -> tuple[int, str]:
+    """Run with stderr on a pseudo-terminal; return the exit status and what it showed."""
+    master, slave = pty.openpty()
+    proc = subprocess.Popen(argv, cwd=cwd, env=env, stdout=subprocess.DEVNULL, stderr=slave,
+                            stdin=subprocess.DEVNULL)
+    os.close(slave)
+    chunks: list[bytes] = []
+    deadline = time.monotonic() + 600
+    while time.monotonic() < deadline:
+        r, _, _ = select.select([master], [], [], 0.5)
+        if r:
+            try:
+                data = os.read(master, 65536)
+            except OSError:  # the child closed the terminal
+                break
+            if not data:
+                break
+            chunks.append(data)
+        elif proc.poll() is not None:
+            break
+    rc = proc.wait(timeout=60)
+    os.close(master)
+    return rc, b"".join(chunks).decode("utf-8", "replace")
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> Path:
+    return corpus.valid(tmp_path_factory.mktemp("progress"))
+
+
+def test_line_names_stage_and_time_left():
+    disp = pg.ProgressDisplay(2, "magalign process", enabled=False)
+    disp.started -= 10.0
+    sink = pg.DirectSink("line_04", disp.update)
+    with pg.use_sink(sink):
+        pg.stage("Ingest", 0, 3, ["Ingest", "Diagnose", "Report"])
+        pg.stage("Diagnose", 1, 3)
+        pg.detail("search 1, candidate 3/9", 0.5, 1.0)
+        line = disp.line()
+        assert "[0/2]" in line and "line_04: diagnosing (2/3): search 1, candidate 3/9" in line
+        assert "left ~" in line and "elapsed 0:10" in line
+        # the stage weights decide the fraction: half of the diagnosis is most of this run
+        w = pg.STAGE_WEIGHTS
+        expect = (w["Ingest"] + 0.5 * w["Diagnose"]) / (w["Ingest"] + w["Diagnose"] + w["Report"])
+        assert f"{100 * expect / 2:3.0f}%" in line
+    disp.run_done("line_04")
+    assert "[1/2]" in disp.line() and "line_04" not in disp.line()
+
+
+def test_library_calls_without_sink_do_nothing():
+    assert pg.current() is None
+    pg.stage("Ingest", 0, 1)
+    pg.detail("nothing listens")
+
+
+def test_quiet_unless_terminal(monkeypatch):
+    monkeypatch.delenv(pg.ENV_MODE, raising=False)
+    assert not pg.enabled_for(io.StringIO())
+    monkeypatch.setenv(pg.ENV_MODE, "always")
+    assert pg.enabled_for(io.StringIO())
+    monkeypatch.setenv(pg.ENV_MODE, "never")
+    assert not pg.enabled_for(io.StringIO())
+    monkeypatch.setenv(pg.ENV_MODE, "always")
+    assert not pg.enabled_for(io.StringIO(), disable=True)  # --no-progress wins
+
+
+def test_drawn_line_is_cleared():
+    buf = io.StringIO()
+    disp = pg.ProgressDisplay(1, "magalign", stream=buf, enabled=True)
+    disp.update({"name": "r", "stages": ["Ingest"], "index": 0, "detail": "",
+                 "fraction": 0.0, "stage_started": time.time()})
+    disp.draw()  # what the display's thread does a few times a second
+    disp.close()
+    out = buf.getvalue()
+    assert "r: reading (1/1)" in out
+    assert out.endswith("\r")  # the line is blanked when done: the results print cleanly
+
+
+def test_process_single_recording_on_terminal(recording, tmp_path):
+    """One recording: the line goes through its stages (not a bar sitting at 0/1)."""
+    rc, shown = _run_on_pty(MAGALIGN + ["-v", "process", str(recording), "--out",
+                                        str(tmp_path / "out")], tmp_path, _env())
+    assert rc == 0, shown
+    frames = [f for f in shown.replace("\n", "\r").split("\r") if "magalign process" in f]
+    assert frames and all("elapsed" in f for f in frames), shown
+    # the recording's stage is on the line (the worker's progress file reached it), not a
+    # bar of recordings sitting at 0/1 (the line is redrawn 4 times a second; a run with a
+    # report takes seconds)
+    assert any(re.search(r"valid: [a-z ]+ \(\d+/\d+\)", f) for f in frames), frames
+    # -v: the time of each stage once the recording is done
+    assert "valid: reading" in shown and " s, " in shown
+
+
+def test_nothing_on_stderr_that_is_not_a_terminal(recording, tmp_path):
+    res = subprocess.run(MAGALIGN + ["process", str(recording), "--out", str(tmp_path / "o")],
+                         cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+    assert "\r" not in res.stderr and "elapsed" not in res.stderr
+    assert "left ~" not in res.stdout
+
+
+def test_diagnose_reports_candidate_search(recording):
+    """diagnose's steps and its candidate search reach the sink (the line shows them)."""
+    from pipeline.commands.diagnose import diagnose_file
+
+    seen: list[dict] = []
+    with pg.use_sink(pg.DirectSink("valid", seen.append)) as sink:
+        diagnose_file(recording)
+    names = [s["stages"][s["index"]] for s in seen if 0 <= s["index"] < len(s["stages"])]
+    assert names[:4] == ["Ingest", "Resample", "Estimate", "Diagnose"]
+    assert any(s["detail"].startswith("search 1, candidate 1/") for s in seen)
+    assert set(sink.state.timings) >= {"Ingest", "Diagnose"}
+
+
+def test_diagnose_on_terminal(recording, tmp_path):
+    rc, shown = _run_on_pty(MAGALIGN + ["diagnose", str(recording), "--out",
+                                        str(tmp_path / "d")], tmp_path,
+                            _env(**{pg.ENV_MODE: "always"}))
+    assert rc == 0, shown
+    # each stage is drawn as it starts, however short
+    for label in ("reading (1/5)", "aligning (2/5)", "estimating (3/5)", "diagnosing (4/5)"):
+        assert f"magalign diagnose  valid: {label}" in shown, shown
+
+
+def test_calibrate_on_terminal(recording, tmp_path):
+    rc, shown = _run_on_pty(MAGALIGN + ["-v", "calibrate", str(recording), "--out",
+                                        str(tmp_path / "c")], tmp_path,
+                            _env(**{pg.ENV_MODE: "always"}))
+    assert rc == 0, shown
+    assert "magalign calibrate  valid: estimating (3/3)" in shown, shown
+    assert "valid: reading" in shown and " s, estimating " in shown  # -v timings
