@@ -66,7 +66,7 @@ def test_one_interpolator_gap_rule_and_resample_agree():
     assert not v1[t_sense < 0].any() and v1[(t_sense > 0) & (t_sense < 1.5)].all()
 
 
-def test_slerp_rate_is_the_exact_derivative():
+def test_interpolated_rate_is_the_exact_derivative():
     # omega_body: C(t + h) = C(t) Exp(omega h) inside a segment; checked at 5 rad/s
     att = _fast_attitude(300, 100.0, 5.0)
     it = AttitudeInterpolator.of(att)
@@ -111,10 +111,47 @@ def test_jacobian_matches_finite_differences(tau, eddy):
             assert np.percentile(err, 95) < 0.05 * scale, (name, err.max(), scale)
             continue
         # analytic: 1e-5 of the column's scale (nT/rad ~ 5e4, nT/s ~ 2.5e5 at 5 rad/s)
-        # except samples whose +-h straddle an attitude knot (the SLERP rate jumps there)
+        # except samples whose +-h straddle an attitude knot
         err = np.max(np.abs(fd - J[:, :, k]), axis=1)
         bad = err > 1e-5 * scale + 1e-7
         assert bad.mean() < 0.01, (name, err.max(), scale)
+
+
+def test_heading_drift_in_the_model_jacobian_and_restore():
+    # (M1h): the attitude source's heading error turns the field about Up; (J2) carries
+    # Rz(h); restoring takes the heading error out, leaving B_enu (noise-free)
+    from pipeline.model.forward import restore
+
+    att = _fast_attitude(400, 100.0, 2.0, seed=4)
+    t = T0 + np.arange(150_000_000, 3_850_000_000, 20_000_000, dtype=np.int64)
+    span = 3.7
+    m = dataclasses.replace(_model(0.01, False),
+                            heading=(np.radians([0.5, -0.2]), span))
+    it = AttitudeInterpolator.of(att)
+    ev = evaluate(m, t, it)
+    h = m.heading_rad((t - t[0]) * 1e-9)
+    assert ev.heading_rad is not None and np.degrees(np.ptp(h)) > 0.9
+    J = jacobian(m, t, it)
+    for k in (3, 4, 5):
+        dx = np.zeros(len(PARAM_NAMES))
+        dx[k] = 1e-2
+        fd = (evaluate(perturbed(m, dx), t, it).y_nT
+              - evaluate(perturbed(m, -dx), t, it).y_nT) / 2e-2
+        np.testing.assert_allclose(fd, J[:, :, k], atol=1e-6)
+    # without the heading term the prediction differs by |B_h| * h (hundreds of nT)
+    no_h = evaluate(dataclasses.replace(m, heading=None), t, it).y_nT
+    assert np.max(np.linalg.norm(ev.y_nT - no_h, axis=1)) > 100.0
+    rs = restore(m, ev.y_nT, t, it)
+    np.testing.assert_allclose(rs.enu_nT, np.broadcast_to(B_ENU, rs.enu_nT.shape), atol=1e-6)
+    np.testing.assert_allclose(rs.residual_nT, 0.0, atol=1e-6)
+    # a calibration carries it as the heading_drift effect's legendre_rad / span_s
+    cal = Calibration(R_body_mag=m.R_body_mag, sigma_rotvec_deg=np.zeros(3), B_enu_nT=B_ENU,
+                      estimator="test", residual_rms_nT=0.0, n_samples=len(t), D=m.D,
+                      offset_nT=m.offset_nT, time_offset_s=m.time_offset_s,
+                      effects={"heading_drift": {"rate_deg_per_h": 0.0, "peak_to_peak_deg": 0.0,
+                                                 "legendre_rad": np.radians([0.5, -0.2]).tolist(),
+                                                 "span_s": span}})
+    np.testing.assert_allclose(cal.predict(t, att, t0_ns=int(t[0])), ev.y_nT, atol=1e-6)
 
 
 def test_time_offset_jacobian_uses_rate_at_sensing_time():
