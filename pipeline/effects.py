@@ -123,6 +123,15 @@ class AttitudeTrack:
         tq = np.asarray(t_s, dtype=float) - float(self.t_s[0])
         return self._interp.at_rel_s(tq).omega_body_rad_s
 
+    def noise_factor(self, t_s: F64) -> F64:
+        """Interpolation noise factor at ``t_s`` (:meth:`AttitudeInterpolator.noise_factor`)."""
+        return self._interp.noise_factor(self.position(t_s))
+
+    @property
+    def cubic_weight(self) -> float:
+        """``lam`` of the interpolator (:mod:`pipeline.model.attitude`, (A7))."""
+        return float(self._interp.cubic_weight)
+
     @property
     def step_s(self) -> float:
         """Median sample spacing, s."""
@@ -422,7 +431,7 @@ def sample_weights(data: FitData, tau_s: float) -> F64 | None:
     ``s`` the position of ``t - tau`` between its two samples. Each residual component then
     has the variance ``v = sigma_mag2 + c_att f(s)`` (``FitData.noise_model``); the weight is
     ``w = v_mean / v`` with ``v_mean = sigma_mag2 + f_mean c_att``
-    (``f_mean = 57/70``, the average over ``s``), a
+    (``f_mean`` the average over ``s``, 2/3 to 57/70), a
     constant: ``sum w r^2`` then has the same expectation whatever ``tau`` (an unweighted fit
     would drift ``tau`` and the eddy terms towards the low-noise mid-points).
 
@@ -434,11 +443,11 @@ def sample_weights(data: FitData, tau_s: float) -> F64 | None:
     """
     if data.noise_model is None:
         return None
-    from .model.attitude import MEAN_INTERPOLATION_NOISE_FACTOR, interpolation_noise_factor
+    from .model.attitude import mean_interpolation_noise_factor
 
     s2, c = data.noise_model
-    f = interpolation_noise_factor(data.track.position(data.t_s - tau_s))
-    return (s2 + MEAN_INTERPOLATION_NOISE_FACTOR * c) / (s2 + c * f)
+    f = data.track.noise_factor(data.t_s - tau_s)
+    return (s2 + mean_interpolation_noise_factor(data.track.cubic_weight) * c) / (s2 + c * f)
 
 
 def estimate_noise_model(residual_nT: F64, data: FitData) -> tuple[float, float] | None:
@@ -450,7 +459,7 @@ def estimate_noise_model(residual_nT: F64, data: FitData) -> tuple[float, float]
     variance; ``sigma_mag2`` is what the residual variance leaves (at least 5 % of it).
     None when the attitude noise is negligible (below 0.1 % of the residual variance).
     """
-    from .model.attitude import attitude_noise_rad, interpolation_noise_factor
+    from .model.attitude import attitude_noise_rad
 
     var = float(np.mean(np.asarray(residual_nT) ** 2))
     if not np.isfinite(var) or var <= 0:
@@ -460,7 +469,7 @@ def estimate_noise_model(residual_nT: F64, data: FitData) -> tuple[float, float]
     c = 2.0 / 9.0 * float(np.mean(np.sum(y * y, axis=1))) * sig * sig
     if c < 1e-3 * var:
         return None
-    f = interpolation_noise_factor(data.track.position(data.t_s))
+    f = data.track.noise_factor(data.t_s)
     s2 = max(var - c * float(np.mean(f)), 0.05 * var)
     return (s2, c)
 

@@ -73,7 +73,10 @@ def test_cubic_beats_slerp_on_smooth_motion_and_its_rate_is_its_derivative():
     h = 20_000  # 20 us
     qp, qm = it.at(tq + h).q_enu_body, it.at(tq - h).q_enu_body
     w_fd = (Rotation.from_quat(qm).inv() * Rotation.from_quat(qp)).as_rotvec() / (2 * h * 1e-9)
-    np.testing.assert_allclose(got.omega_body_rad_s, w_fd, atol=2e-3)  # rad/s, of up to ~5
+    # (lam < 1 blends in SLERP's tangents: the rate may jump at a knot, left out here)
+    off_knot = np.abs(((tq - T0) % 20_000_000) - 10_000_000) < 10_000_000 - h
+    np.testing.assert_allclose(got.omega_body_rad_s[off_knot], w_fd[off_knot],
+                               atol=2e-3)  # rad/s, of up to ~5
 
 
 def test_time_offset_sign():
@@ -146,3 +149,22 @@ def test_stage_contract_and_auto_gap():
     # attitude taken at t - tau = stamp - 1 ms: the first sample falls before the span
     np.testing.assert_array_equal(al.index, np.arange(1, 100))
     np.testing.assert_array_equal(al.mag_nT, mag.values[1:])
+
+
+def test_cubic_weight_follows_motion_against_noise():
+    # (A7): a fast motion sampled slowly gets the cubic; a slow motion with a noisy attitude
+    # gets SLERP (the cubic's tangents would only add the neighbours' noise)
+    from pipeline.model.attitude import AttitudeInterpolator, estimate_cubic_weight
+
+    t = T0 + np.arange(0, 20_000_000_000, 20_000_000, dtype=np.int64)
+    t_s = (t - T0) * 1e-9
+    fast = _wobble(t_s).as_quat()
+    assert estimate_cubic_weight(t, fast) > 0.95
+    rng = np.random.default_rng(5)
+    noise = Rotation.from_rotvec(rng.normal(0, np.radians(0.01), (len(t), 3)))
+    slow = (noise * Rotation.from_rotvec(np.outer(np.sin(0.3 * t_s), [0, 0, 0.1]))).as_quat()
+    assert estimate_cubic_weight(t, slow) < 0.05
+    # the same samples give the same weight whatever the gap rule
+    it1 = AttitudeInterpolator(t, fast, max_gap_s=0.05)
+    it2 = AttitudeInterpolator(t, fast, max_gap_s=np.inf, clamp=True)
+    assert it1.cubic_weight == it2.cubic_weight

@@ -34,6 +34,28 @@ Exp(r) [Jr(r) r']x``::
 (rad/s, body frame), which is what the time-offset Jacobian of :mod:`pipeline.model.forward`
 uses.
 
+The cubic's tangents carry the noise of the neighbouring samples: white attitude noise of
+variance ``sigma^2`` reaches the interpolated attitude with ``2/3 sigma^2`` through SLERP and
+``57/70 sigma^2`` through the cubic (averages over ``s``). The tangents are therefore blended,
+``a = lam a_cubic + (1 - lam) phi`` (and ``b``; ``lam = 0`` is SLERP exactly). SLERP's error
+``s (1 - s) alpha dt^2 / 2`` is systematic (it follows the motion, and its mean square over an
+interval is ``M / 120`` with ``M = E|alpha dt^2|^2``): it biases every fitted parameter, while
+the interpolated noise only adds to their variance, ``/ N`` over ``N`` samples. ``lam``
+minimises the resulting error of a fitted parameter::
+
+    MSE(lam) = (1 - lam)^2 M / 120 + (2/3 + 2 lam / 15 + lam^2 / 70) sigma^2 / N       (A7)
+    lam      = clip((M / 120 - sigma^2 / (15 N)) / (M / 120 + sigma^2 / (70 N)), 0, 1)
+
+(the noise terms are the integrals of the squared interpolation weights). In practice
+``lam`` is 1 whenever the motion bends between samples at all and 0 for a still or
+uniformly turning attitude. ``M`` and
+``sigma^2`` come from the track itself: second differences of the rotation at lags 1 and 2
+have ``E|d1|^2 = 6 sigma^2 + M`` and ``E|d2|^2 = 6 sigma^2 + 16 M`` (white noise does not
+grow with the lag, the motion's curvature grows with its square; ``M`` counts only beyond three
+standard errors of its estimate). A fast motion sampled
+slowly gets the cubic, a slow motion with a noisy attitude gets SLERP; every user of the same
+attitude series gets the same ``lam``.
+
 Gap rule: two consecutive attitude samples further apart than ``max_gap_s`` are not
 interpolated between; a query inside such a gap, or outside the span of the samples, is not
 valid (a query that falls exactly on a sample is valid even beside a gap).
@@ -65,6 +87,49 @@ AUTO_GAP_INTERVALS = 5.0
 #: mean over ``s`` of :func:`interpolation_noise_factor` (the integral of the sum of the
 #: squared Catmull-Rom weights over one interval)
 MEAN_INTERPOLATION_NOISE_FACTOR = 57.0 / 70.0
+
+
+def estimate_cubic_weight(t_ns: I64, q_enu_body: F64) -> float:
+    """``lam`` of (A7) from the track's second differences at lags 1 and 2 (0..1).
+
+    Only runs of evenly spaced samples (each interval within 10 % of the median) count, so
+    gaps and the gap rule do not change it.
+    """
+    t = np.asarray(t_ns, dtype=np.int64)
+    q = np.asarray(q_enu_body, dtype=float)
+    if len(t) < 12:
+        return 0.0
+    dq = quat_mul(quat_conj(q[:-1]), q[1:])
+    dq = np.where(dq[:, 3:4] < 0, -dq, dq)
+    phi = quat_to_rotvec(dq)  # (M-1, 3)
+    dt = np.diff(t).astype(float)
+    med = float(np.median(dt))
+    if med <= 0:
+        return 0.0
+    even = np.abs(dt - med) <= 0.1 * med
+    # lag 1: phi_k - phi_{k-1}; lag 2: (phi_{k+2} + phi_{k+3}) - (phi_k + phi_{k+1})
+    ok1 = even[1:] & even[:-1]
+    d1 = (phi[1:] - phi[:-1])[ok1]
+    ok2 = even[:-3] & even[1:-2] & even[2:-1] & even[3:]
+    d2 = ((phi[2:-1] + phi[3:]) - (phi[:-3] + phi[1:-2]))[ok2]
+    if len(d1) < 10 or len(d2) < 10:
+        return 0.0
+    n1, n2 = np.sum(d1 * d1, axis=1), np.sum(d2 * d2, axis=1)
+    e1, e2 = float(np.mean(n1)), float(np.mean(n2))
+    # the curvature only where it stands out of the noise of its own estimate (3 sigma)
+    se = float(np.sqrt(np.var(n1) / len(n1) + np.var(n2) / len(n2))) / 15.0
+    M = max((e2 - e1) / 15.0 - 3.0 * se, 0.0)
+    s2 = max((e1 - M) / 6.0, 0.0) / len(d1)  # the noise's share of a parameter's error
+    den = M / 120.0 + s2 / 70.0
+    if den <= 0:
+        return 0.0
+    return float(np.clip((M / 120.0 - s2 / 15.0) / den, 0.0, 1.0))
+
+
+def mean_interpolation_noise_factor(cubic_weight: float = 1.0) -> float:
+    """Mean over ``s`` of :func:`interpolation_noise_factor`: ``2/3 + 2 lam/15 + lam^2/70``."""
+    lam = float(cubic_weight)
+    return 2.0 / 3.0 + 2.0 * lam / 15.0 + lam * lam / 70.0
 
 
 def _skew(v: F64) -> F64:
@@ -154,11 +219,13 @@ class AttitudeInterpolator:
     clamp : bool
         Hold the first / last sample outside the span (and count those queries valid)
         instead of marking them invalid.
+    cubic_weight : float or None
+        ``lam`` of (A7); ``None``: :func:`estimate_cubic_weight` from the samples.
 
     """
 
     def __init__(self, t_ns: I64, q_enu_body: F64, max_gap_s: float | None = None,
-                 clamp: bool = False):
+                 clamp: bool = False, cubic_weight: float | None = None):
         ta = np.asarray(t_ns, dtype=np.int64)
         qa = np.asarray(q_enu_body, dtype=float).reshape(-1, 4)
         if len(ta) and np.any(np.diff(ta) <= 0):
@@ -178,11 +245,14 @@ class AttitudeInterpolator:
             dq = np.where(dq[:, 3:4] < 0, -dq, dq)  # short way round, as quat_slerp
             self._phi = quat_to_rotvec(dq)  # (M-1, 3) rad, body frame, (A3)
             self._dt = np.diff(self._tr)
+            self.cubic_weight = (estimate_cubic_weight(ta, qa) if cubic_weight is None
+                                 else float(cubic_weight))
             self._a, self._b = self._tangents()
         else:
             self._phi = np.zeros((0, 3))
             self._dt = np.zeros(0)
             self._a = self._b = np.zeros((0, 3))
+            self.cubic_weight = 0.0
 
     def _tangents(self) -> tuple[F64, F64]:
         """Hermite tangents ``a_i``, ``b_i`` (M-1, 3) of every segment, (A4)-(A5)."""
@@ -206,13 +276,18 @@ class AttitudeInterpolator:
         w[only_l] = rate[np.flatnonzero(only_l) - 1]
         a = dt[:, None] * w[:-1]
         b = dt[:, None] * np.matmul(right_jacobian_inv(self._phi), w[1:, :, None])[:, :, 0]
-        return a, b
+        lam = self.cubic_weight  # (A7): lam = 0 is SLERP
+        return lam * a + (1.0 - lam) * self._phi, lam * b + (1.0 - lam) * self._phi
 
     @classmethod
     def of(cls, attitude, max_gap_s: float | None = None, clamp: bool = False
            ) -> AttitudeInterpolator:
         """Build from a :class:`pipeline.recording.AttitudeSeries`."""
         return cls(attitude.t_ns, attitude.q_enu_body, max_gap_s=max_gap_s, clamp=clamp)
+
+    def noise_factor(self, position: F64) -> F64:
+        """:func:`interpolation_noise_factor` at this interpolator's ``lam``, (N,)."""
+        return interpolation_noise_factor(position, self.cubic_weight)
 
     def __len__(self) -> int:
         return int(self.t_ns.shape[0])
@@ -280,21 +355,24 @@ class AttitudeInterpolator:
         return self.at_rel_s(tq, clamp=clamp)
 
 
-def interpolation_noise_factor(position: F64) -> F64:
+def interpolation_noise_factor(position: F64, cubic_weight: float = 1.0) -> F64:
     """Variance of interpolated white attitude noise relative to one sample's, (N,).
 
     To first order, with evenly spaced samples, the cubic (A1)-(A5) weighs the samples
     ``i - 1 .. i + 2`` with the Catmull-Rom weights ``(-s^3 + 2 s^2 - s) / 2``,
-    ``(3 s^3 - 5 s^2 + 2) / 2``, ``(-3 s^3 + 4 s^2 + s) / 2``, ``(s^3 - s^2) / 2``; independent
-    errors of variance ``sigma^2`` reach the interpolated attitude with the variance
-    ``sum(w^2) sigma^2``: 1 on a sample, 0.64 midway, 57/70 on average over ``s``
-    (:data:`MEAN_INTERPOLATION_NOISE_FACTOR`).
+    ``(3 s^3 - 5 s^2 + 2) / 2``, ``(-3 s^3 + 4 s^2 + s) / 2``, ``(s^3 - s^2) / 2`` and SLERP
+    with ``(0, 1 - s, s, 0)``; the blend (A7) with ``lam * CR + (1 - lam) * SLERP``.
+    Independent errors of variance ``sigma^2`` reach the interpolated attitude with the
+    variance ``sum(w^2) sigma^2``: 1 on a sample; on average over ``s`` 2/3 (SLERP) to 57/70
+    (the cubic), :func:`mean_interpolation_noise_factor`.
     """
     s = np.asarray(position, dtype=float)
+    lam = float(cubic_weight)
     s2, s3 = s * s, s * s * s
-    w = ((-s3 + 2 * s2 - s) / 2, (3 * s3 - 5 * s2 + 2) / 2, (-3 * s3 + 4 * s2 + s) / 2,
-         (s3 - s2) / 2)
-    return sum(x * x for x in w)
+    cr = ((-s3 + 2 * s2 - s) / 2, (3 * s3 - 5 * s2 + 2) / 2, (-3 * s3 + 4 * s2 + s) / 2,
+          (s3 - s2) / 2)
+    sl = (0.0 * s, 1.0 - s, s, 0.0 * s)
+    return sum((b + lam * (a - b)) ** 2 for a, b in zip(cr, sl, strict=True))
 
 
 def attitude_noise_rad(q_enu_body: F64) -> float:
