@@ -4,7 +4,7 @@ Usage: ``python bench/diagnose.py [N] [SEED] [WORKDIR] [SECTION ...]`` with sect
 ``long``, ``challenge``, ``independent``, ``semireal[=lab_01,...[:SECONDS]]``,
 ``rescore=DIR``, ``agree[=lab_01,...]`` (default: the first four). Corpora:
 
-- ``challenge``: ``pipeline.challenge`` (magalign's simulator), N recordings and N/2 nulls;
+- ``challenge``: ``pipeline.app.challenge`` (magalign's simulator), N recordings and N/2 nulls;
 - ``independent``: ``tests/indep_gen.py`` (no magalign model code): >= 60 nulls sweeping
   rates, phases, jitter, message types, motion and noise, and every effect at 2x, 6x and 20x
   its detection threshold;
@@ -34,9 +34,9 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.atomic import write_text_atomic
-from pipeline.challenge import confusion_text, generate, score
-from pipeline.commands.diagnose import diagnose_file
+from pipeline.app.challenge import confusion_text, generate, score
+from pipeline.app.commands.diagnose import diagnose_file
+from pipeline.core.atomic import write_text_atomic
 
 
 def run_challenge(n: int, seed: int, work: Path, null_fraction: float = 0.3,
@@ -255,9 +255,9 @@ def calibrate_vs_diagnose(names: list[str] | None = None) -> list[dict]:
     diagnosis uses (it leaves out the 100 ms at each end of the attitude); the diagnosis
     baseline over those; and their relative difference (target: within 0.1 %).
     """
-    from pipeline.mcap_read import read_recording
-    from pipeline.recording import Context
-    from stages.diagnose import DiagnoseConfig, diagnose_data, fit_data_from
+    from pipeline.core.recording import Context
+    from pipeline.io.mcap_read import read_recording
+    from stages.diagnose.stage import DiagnoseConfig, diagnose_data, fit_data_from
     from stages.estimate import fit_calibration
     from stages.resample import Resample
 
@@ -292,8 +292,8 @@ def calibrate_vs_diagnose(names: list[str] | None = None) -> list[dict]:
 def time_long(work: Path) -> float:
     import numpy as np
 
-    from pipeline.challenge import _scenario
-    from pipeline.simulate import scenario_from_dict, simulate, write_simulated
+    from pipeline.app.challenge import _scenario
+    from pipeline.app.simulate import scenario_from_dict, simulate, write_simulated
 
     scen = _scenario(np.random.default_rng(5), {"hard_iron": {"offset_nT": [40.0, -20.0, 10.0]},
                                                  "time_offset": {"time_offset_s": 0.003}}, 0)
@@ -319,7 +319,7 @@ def main() -> int:
             if sec == "long":
                 time_long(work)
             elif sec == "challenge":
-                print("\n== challenge (pipeline.challenge)")
+                print("\n== challenge (pipeline.app.challenge)")
                 run_challenge(n, seed, work)
                 # extra null recordings: the false-alarm rate needs more than the challenge's
                 print("\nnull-only challenge (false alarms):")

@@ -20,8 +20,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mcap_ros2.writer import Writer as Ros2Writer  # noqa: E402
 
-from pipeline.mcap_write import McapColumnWriter  # noqa: E402
-from pipeline.messages import encode, schema_for  # noqa: E402
+from pipeline.io.mcap_write import McapColumnWriter  # noqa: E402
+from pipeline.io.messages import encode, schema_for  # noqa: E402
 
 N = 200_000
 TYPE = "sensor_msgs/msg/MagneticField"

@@ -13,11 +13,10 @@ from typing import ClassVar
 
 import numpy as np
 
-from pipeline.calibration import Calibration
-from pipeline.errors import EstimationError
-from pipeline.recording import AlignedSeries, Context, Recording
-
-from .estimators.base import (
+from pipeline.core.errors import EstimationError
+from pipeline.core.recording import AlignedSeries, Context, Recording
+from pipeline.model.calibration import Calibration
+from stages.estimators.base import (
     Estimator,
     EstimatorKind,
     NoiseModel,
@@ -52,9 +51,8 @@ def make_estimator(kind: EstimatorKind | str) -> Estimator:
     """
     import importlib
 
-    from pipeline.errors import UsageError
-
-    from .estimators.registry import ESTIMATORS
+    from pipeline.core.errors import UsageError
+    from stages.estimators.registry import ESTIMATORS
 
     name = getattr(kind, "value", kind)
     if name not in ESTIMATORS:
@@ -112,7 +110,7 @@ def fit_calibration(
         Sensor figures for the weighting; ``None`` means unknown isotropic noise (the
         covariance is then scaled by the residual variance).
     drop_repeats : bool
-        Leave out repeated sample-and-hold messages (:mod:`pipeline.sample_hold`) when the
+        Leave out repeated sample-and-hold messages (:mod:`pipeline.model.sample_hold`) when the
         recording has them.
 
     Returns
@@ -123,7 +121,7 @@ def fit_calibration(
     ------
     EstimationError
         Too few samples, NaN data, or an estimator that cannot work on this motion
-        (:class:`~pipeline.errors.NotObservableError`).
+        (:class:`~pipeline.core.errors.NotObservableError`).
 
     """
     al = aligned
@@ -142,7 +140,7 @@ def fit_calibration(
         R_nom = R_nom.reshape(3, 3)
         if not np.allclose(R_nom @ R_nom.T, np.eye(3), atol=1e-6) or np.linalg.det(R_nom) < 0:
             raise EstimationError("the nominal mounting R_nominal_body_mag is not a rotation")
-    from pipeline.sample_hold import detect_sample_hold
+    from pipeline.model.sample_hold import detect_sample_hold
 
     # Sample-and-hold (CONVENTIONS effect sample_hold): a repeated message carries no new
     # conversion and was sensed up to one native period before its stamp; left out.
@@ -187,14 +185,14 @@ def fit_calibration(
 
 def with_verdict(cal: Calibration, aligned: AlignedSeries,
                  residual_rms_nT: float | None = None) -> Calibration:
-    """Return ``cal`` with its verdict (:mod:`pipeline.verdict`) from the aligned samples.
+    """Return ``cal`` with its verdict (:mod:`pipeline.core.verdict`) from the aligned samples.
 
     The sensor noise is measured in the still windows of ``aligned`` (repeated
     sample-and-hold messages left out); the fit's checks (``cal.checks``) give the refusals
     and doubts. ``residual_rms_nT`` overrides the calibration's own (a later, fuller model).
     """
-    from pipeline.sample_hold import repeated
-    from pipeline.verdict import judge, sensor_noise_nT
+    from pipeline.core.verdict import judge, sensor_noise_nT
+    from pipeline.model.sample_hold import repeated
 
     keep = ~repeated(aligned.mag_nT)
     noise = sensor_noise_nT(aligned.t_ns, aligned.mag_nT, aligned.q_enu_body, keep)

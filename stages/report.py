@@ -9,7 +9,7 @@ Figures, written beside the report:
 - ``fig_trajectory.png`` (Li 2020 Fig. 7): the field in the body frame before and after
   calibration beside the ideal one (circles for rotations about one axis);
 - ``fig_attitude.png``: heading, pitch and roll (Li 2020 Euler angles), segments shaded;
-- one figure per diagnosis finding, when DIAGNOSE's ``stages.diagnose.finding_figures``
+- one figure per diagnosis finding, when DIAGNOSE's ``stages.diagnose.stage.finding_figures``
   exists (hook: ``finding_figures(diagnosis) -> list[(title, png bytes)]``).
 
 ``report.html`` embeds every figure as a base64 ``data:`` URI and carries no external
@@ -29,10 +29,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pipeline import style
-from pipeline.atomic import atomic_path, write_text_atomic
-from pipeline.recording import Context, Recording, Segment
-from pipeline.style import minus
+from pipeline.core import style
+from pipeline.core.atomic import atomic_path, write_text_atomic
+from pipeline.core.recording import Context, Recording, Segment
+from pipeline.core.style import minus
 
 ENU_LABELS = ("east", "north", "up")
 
@@ -243,7 +243,7 @@ def make_figures(
         ``fig_sphere.png``, ``fig_attitude.png``.
 
     """
-    from pipeline.geometry import quat_to_li2020_euler
+    from pipeline.core.geometry import quat_to_li2020_euler
     from stages.restore import restore_samples, view_data
 
     plt = _plt()
@@ -676,7 +676,7 @@ def _diagnosis_html(diagnosis: Any, t0_ns: int = 0, options: Any = None
         )
     figs: list[tuple[str, bytes]] = []
     try:
-        from stages.diagnose import finding_figures
+        from stages.diagnose.stage import finding_figures
     except ImportError:
         finding_figures = None
     if finding_figures is not None and not isinstance(diagnosis, dict):
@@ -720,8 +720,8 @@ def provenance(recording: Recording, *, command: str | None = None) -> dict[str,
     import shlex
     import sys
 
-    from pipeline.campaign import sha256_file
-    from pipeline.cli import package_version
+    from pipeline.app.campaign import sha256_file
+    from pipeline.app.cli import package_version
 
     cmd = command or os.environ.get("MAGALIGN_COMMAND") or shlex.join(sys.argv)
     try:

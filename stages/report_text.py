@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.style import minus
+from pipeline.core.style import minus
 
 #: the effects that live in time windows (one row per event)
 LOCAL = ("disturbance", "hard_iron_step")

@@ -47,8 +47,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pipeline.errors import OutputError
-from pipeline.recording import Context, EncodingFamily, Recording
+from pipeline.core.errors import OutputError
+from pipeline.core.recording import Context, EncodingFamily, Recording
 
 METADATA_NAME = "magalign.calibration"
 ATTACHMENT_NAME = "calibration.json"
@@ -91,10 +91,15 @@ def write_corrected_mcap(
         ``dest``.
 
     """
-    from pipeline.geometry import matrix_to_quat
-    from pipeline.mcap_read import iter_raw_channels
-    from pipeline.mcap_write import McapColumnWriter
-    from pipeline.messages import encode, encode_field_magnitude_json, encode_tf_static, schema_for
+    from pipeline.core.geometry import matrix_to_quat
+    from pipeline.io.mcap_read import iter_raw_channels
+    from pipeline.io.mcap_write import McapColumnWriter
+    from pipeline.io.messages import (
+        encode,
+        encode_field_magnitude_json,
+        encode_tf_static,
+        schema_for,
+    )
     from stages.restore import restore_samples
 
     dest = Path(dest)

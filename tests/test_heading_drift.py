@@ -9,8 +9,8 @@ import pytest
 from _diag_sim import make_data
 from indep_gen import Spec, sized, write
 
-from pipeline.commands.diagnose import diagnose_file
-from pipeline.effects import (
+from pipeline.app.commands.diagnose import diagnose_file
+from stages.diagnose.model import (
     EffectKind,
     FitData,
     ModelState,
@@ -22,7 +22,7 @@ from pipeline.effects import (
     identifiability_reason,
     motion_stats,
 )
-from stages.diagnose import diagnose_data
+from stages.diagnose.stage import diagnose_data
 
 
 def test_heading_jacobian_matches_finite_differences():

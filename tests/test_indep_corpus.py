@@ -11,9 +11,9 @@ import pytest
 from indep_gen import ATTITUDE_TYPES, Spec, null_specs, sized, strength, write
 from scipy.spatial.transform import Rotation
 
-from pipeline.commands.diagnose import diagnose_file
-from pipeline.mcap_read import read_recording
-from pipeline.recording import Context
+from pipeline.app.commands.diagnose import diagnose_file
+from pipeline.core.recording import Context
+from pipeline.io.mcap_read import read_recording
 from stages.estimate import fit_calibration
 from stages.resample import Resample
 

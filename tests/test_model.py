@@ -9,8 +9,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from pipeline.calibration import Calibration
-from pipeline.geometry import (
+from pipeline.app.simulate import scenario_from_dict, simulate
+from pipeline.core.geometry import (
     quat_conj,
     quat_mul,
     quat_normalize,
@@ -18,10 +18,10 @@ from pipeline.geometry import (
     rotvec_to_quat,
     so3_exp,
 )
+from pipeline.core.recording import AttitudeSeries, Context
 from pipeline.model.attitude import AttitudeInterpolator, interpolate_attitude
+from pipeline.model.calibration import Calibration
 from pipeline.model.forward import PARAM_NAMES, ForwardModel, evaluate, jacobian, perturbed
-from pipeline.recording import AttitudeSeries, Context
-from pipeline.simulate import scenario_from_dict, simulate
 
 T0 = 1_767_225_600_000_000_000
 B_ENU = np.array([1300.0, 15000.0, -49000.0])
@@ -199,7 +199,7 @@ def _truth_cal(tr) -> Calibration:
 
 @pytest.mark.parametrize("tau", [0.06, -0.06])
 def test_simulator_oracle_and_model_agree_without_noise(tau):
-    # pipeline.simulate evaluates the continuous motion at t - tau (its own implementation);
+    # pipeline.app.simulate evaluates the continuous motion at t - tau (its own implementation);
     # the model re-interpolates the 200 Hz attitude samples at t - tau by SLERP. SLERP's
     # error at 200 Hz and these rates (<= 1.2 rad/s): s(1-s) dt^2/2 |alpha| ~ 1e-5 rad, i.e.
     # < 0.5 nT of a 51 uT field.
@@ -251,10 +251,10 @@ def _diag_recording():
 
 
 def test_diagnose_prediction_is_the_calibration_prediction():
-    # The diagnosis fit (pipeline.effects.evaluate) and Calibration.predict of the final
+    # The diagnosis fit (stages.diagnose.model.evaluate) and Calibration.predict of the final
     # calibration it writes are the same function of time: every term, the disturbance
     # included, to round-off.
-    from stages.diagnose import DiagnoseConfig, calibration_from, diagnose_data, fit_data_from
+    from stages.diagnose.stage import DiagnoseConfig, calibration_from, diagnose_data, fit_data_from
     from stages.resample import Resample
 
     sim = _diag_recording()
@@ -264,7 +264,7 @@ def test_diagnose_prediction_is_the_calibration_prediction():
     diag, res = diagnose_data(data, None, DiagnoseConfig())
     assert {"hard_iron", "disturbance"} <= {f.effect for f in diag.findings}
     cal = calibration_from(res, data, diag.findings)
-    from pipeline.effects import evaluate as effects_evaluate
+    from stages.diagnose.model import evaluate as effects_evaluate
 
     y_fit = effects_evaluate(res.state, data, jacobian=False).y_nT
     t_ns = int(rec.mag.t_ns[0]) + np.round(data.t_s * 1e9).astype(np.int64)
@@ -280,7 +280,7 @@ def test_diagnose_prediction_is_the_calibration_prediction():
 def test_diagnose_baseline_equals_calibrate_residual():
     # Same recording, same model (R_body_mag and B_enu): calibrate's residual and the
     # diagnosis baseline agree within 0.1 % (one attitude interpolation, one prediction).
-    from stages.diagnose import DiagnoseConfig, diagnose_data, fit_data_from
+    from stages.diagnose.stage import DiagnoseConfig, diagnose_data, fit_data_from
     from stages.estimate import fit_calibration
     from stages.resample import Resample
 
@@ -310,7 +310,7 @@ def test_diagnose_baseline_equals_calibrate_residual():
 
 
 def _line_with_passing_vehicle(tmp_path):
-    from pipeline.simulate import write_simulated
+    from pipeline.app.simulate import write_simulated
 
     d = {
         "name": "line_vehicle",
@@ -343,8 +343,8 @@ def test_final_residual_is_one_number_everywhere(tmp_path):
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
 
-    from pipeline.mcap_read import read_recording
-    from pipeline.process_one import ProcessOptions, process_recording
+    from pipeline.app.process_one import ProcessOptions, process_recording
+    from pipeline.io.mcap_read import read_recording
     from stages.report import residual_figure_data
     from stages.restore import restore_samples, view_data
 
@@ -402,7 +402,7 @@ def test_restore_runs_once_after_diagnose():
     # Diagnose restores the recording with its final model (for the final residual); the
     # Restore stage keeps that result instead of computing it again, and computes it anew
     # when the model differs.
-    from stages.diagnose import Diagnose
+    from stages.diagnose.stage import Diagnose
     from stages.resample import Resample
     from stages.restore import Restore
 

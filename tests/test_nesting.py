@@ -14,10 +14,10 @@ import pytest
 from _diag_sim import make_data
 from indep_gen import Spec, write
 
-from pipeline.commands.diagnose import diagnose_file
-from pipeline.effects import EffectKind as K
-from pipeline.effects import Term
-from stages.diagnose import diagnose_data
+from pipeline.app.commands.diagnose import diagnose_file
+from stages.diagnose.model import EffectKind as K
+from stages.diagnose.model import Term
+from stages.diagnose.stage import diagnose_data
 
 
 def _close(est, true, sig, rel=0.1):

@@ -8,8 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation, Slerp
 
-from pipeline.geometry import quat_mul, rotvec_to_quat
-from pipeline.recording import AttitudeSeries, Context, Recording, VectorSeries
+from pipeline.core.geometry import quat_mul, rotvec_to_quat
+from pipeline.core.recording import AttitudeSeries, Context, Recording, VectorSeries
 from stages.resample import Resample, auto_max_gap_s, interpolate_attitude
 
 T0 = 1_700_000_000 * 1_000_000_000

@@ -8,15 +8,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import pipeline.mcap_read as mcap_read
-from pipeline.geometry import li2020_euler_to_quat, quat_conj, quat_rotate, so3_exp, so3_log
-from pipeline.mcap_read import (
+import pipeline.io.mcap_read as mcap_read
+from pipeline.core.geometry import li2020_euler_to_quat, quat_conj, quat_rotate, so3_exp, so3_log
+from pipeline.io.mcap_read import (
     iter_raw_channels,
     iter_recording_chunks,
     read_raw_channels,
     read_recording,
 )
-from pipeline.mcap_write import write_recording
+from pipeline.io.mcap_write import write_recording
 
 B_ENU = np.array([12_000.0, 28_000.0, -25_000.0])
 ROTVEC_DEG = np.array([-1.5, 0.5, 2.0])
@@ -125,8 +125,8 @@ def test_corrected_mcap_written_range_by_range(tmp_path, monkeypatch):
 
 
 def test_process_scale_path_matches_the_normal_path(tmp_path, monkeypatch):
-    import pipeline.process_one as process_one
-    from pipeline.process_one import ProcessOptions, process_recording
+    import pipeline.app.process_one as process_one
+    from pipeline.app.process_one import ProcessOptions, process_recording
 
     monkeypatch.setattr(process_one, "DECIMATED_SAMPLES", 2_000)  # every 4th sample
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from semireal import REAL_DIR, inject, new_findings, read_real, write_real
 
-from pipeline.commands.diagnose import diagnose_file
+from pipeline.app.commands.diagnose import diagnose_file
 
 LAB = REAL_DIR / "lab_01.mcap"
 pytestmark = [pytest.mark.real,

@@ -5,9 +5,9 @@
 - :mod:`pipeline.model.solve`: THE damped Gauss-Newton core.
 """
 
-from .attitude import AttitudeInterpolator, auto_max_gap_s, interpolate_attitude
-from .forward import ForwardModel, Restoration, evaluate, jacobian, predict, restore
-from .solve import levenberg_marquardt
+from pipeline.model.attitude import AttitudeInterpolator, auto_max_gap_s, interpolate_attitude
+from pipeline.model.forward import ForwardModel, Restoration, evaluate, jacobian, predict, restore
+from pipeline.model.solve import levenberg_marquardt
 
 __all__ = [
     "AttitudeInterpolator",

@@ -68,7 +68,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.geometry import (
+from pipeline.core.geometry import (
     quat_conj,
     quat_mul,
     quat_normalize,
@@ -282,7 +282,7 @@ class AttitudeInterpolator:
     @classmethod
     def of(cls, attitude, max_gap_s: float | None = None, clamp: bool = False
            ) -> AttitudeInterpolator:
-        """Build from a :class:`pipeline.recording.AttitudeSeries`."""
+        """Build from a :class:`pipeline.core.recording.AttitudeSeries`."""
         return cls(attitude.t_ns, attitude.q_enu_body, max_gap_s=max_gap_s, clamp=clamp)
 
     def noise_factor(self, position: F64) -> F64:

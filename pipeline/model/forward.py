@@ -53,11 +53,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .attitude import AttitudeInterpolator
+from pipeline.model.attitude import AttitudeInterpolator
 
 if TYPE_CHECKING:
-    from pipeline.calibration import Calibration
-    from pipeline.recording import AttitudeSeries, PositionSeries
+    from pipeline.core.recording import AttitudeSeries, PositionSeries
+    from pipeline.model.calibration import Calibration
 
 F64 = NDArray[np.float64]
 
@@ -357,7 +357,7 @@ def _interp(attitude: AttitudeSeries | AttitudeInterpolator, max_gap_s: float | 
 
 
 def _Ct(q: F64) -> F64:
-    from pipeline.geometry import quat_to_matrix
+    from pipeline.core.geometry import quat_to_matrix
 
     return np.swapaxes(quat_to_matrix(q), -1, -2)
 
@@ -465,7 +465,7 @@ class Restoration:
 def restore(model: ForwardModel, mag_nT: F64, t_ns: NDArray[np.int64],
             attitude: AttitudeSeries | AttitudeInterpolator, **kw: Any) -> Restoration:
     """Invert the model (M6) and compute the residual of (M1)-(M5); keywords as :func:`evaluate`."""
-    from pipeline.geometry import quat_rotate
+    from pipeline.core.geometry import quat_rotate
 
     y = np.asarray(mag_nT, dtype=float)
     ev = evaluate(model, t_ns, attitude, **kw)
@@ -530,7 +530,7 @@ def perturbed(model: ForwardModel, dx: F64) -> ForwardModel:
     """Apply a perturbation in the order of :data:`PARAM_NAMES` (right perturbation on R)."""
     from dataclasses import replace
 
-    from pipeline.geometry import so3_exp
+    from pipeline.core.geometry import so3_exp
 
     dx = np.asarray(dx, dtype=float)
     D = model.D_or_I + np.tensordot(dx[9:15], _SYM6, axes=1)

@@ -22,10 +22,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.calibration import Calibration
-from pipeline.geometry import so3_exp
-
-from .base import (
+from pipeline.core.geometry import so3_exp
+from pipeline.model.calibration import Calibration
+from stages.estimators.base import (
     Problem,
     analyse,
     canonical_axis,

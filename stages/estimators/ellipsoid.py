@@ -18,10 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.calibration import Calibration
-from pipeline.errors import NotObservableError
-
-from .base import (
+from pipeline.core.errors import NotObservableError
+from pipeline.model.calibration import Calibration
+from stages.estimators.base import (
     F64,
     Problem,
     analyse,
@@ -116,7 +115,7 @@ class EllipsoidEstimator:
         R, B = init_rotation(m, C, B_ref, iterations=30)
         # Rotation-only information of the Wahba step (isotropic noise, scaled by residuals).
         b = np.einsum("nji,j->ni", C, B)
-        from pipeline.geometry import skew
+        from pipeline.core.geometry import skew
 
         J = R.T @ skew(b)  # d(R.T b)/dphi for m = R.T b
         blocks = {"rot": slice(0, 3)}

@@ -63,10 +63,9 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import savgol_filter
 
-from pipeline.calibration import Calibration
-from pipeline.geometry import skew
-
-from .base import (
+from pipeline.core.geometry import skew
+from pipeline.model.calibration import Calibration
+from stages.estimators.base import (
     F64,
     Problem,
     analyse,
