@@ -15,21 +15,25 @@ plain JSON values) for the campaign summary.
 from __future__ import annotations
 
 import importlib
-import json
 import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 
 from pipeline.core import progress
-from pipeline.core.atomic import safe_join, write_text_atomic
-from pipeline.core.errors import NotObservableError, RecoveredDataWarning
+from pipeline.core.atomic import safe_join
+from pipeline.core.errors import RecoveredDataWarning
 from pipeline.core.recording import Context
 from pipeline.core.stage import Pipeline
 from pipeline.model.calibration import Calibration
+from stages.decimate import OnDecimated
+from stages.load_calibration import LoadCalibration
+from stages.require_observable import RequireObservable
+from stages.streaming_estimate import StreamingEstimate
+from stages.write_results import WriteResults
 
 
 @dataclass(frozen=True)
@@ -82,160 +86,6 @@ class ProcessOptions:
 
 #: analysis stages of a long recording see at most this many magnetometer samples
 DECIMATED_SAMPLES = 150_000
-#: aligned samples reduced at once by :class:`StreamingEstimate` (bounds its temporaries)
-STREAM_BLOCK = 200_000
-
-
-@dataclass(frozen=True)
-class StreamingEstimate:
-    """Stage: ML rotation (and offset) of a long recording from chunked sufficient statistics.
-
-    :mod:`stages.estimators.streaming`: the aligned samples are reduced block by block to a
-    fixed set of sums and Gauss-Newton runs on the sums, so estimation costs one pass over
-    the data and no per-sample matrices.
-    """
-
-    estimate_offset: bool = False
-    reference_field_enu_nT: tuple[float, float, float] | None = None
-
-    requires: ClassVar[frozenset[str]] = frozenset({"aligned"})
-    provides: ClassVar[frozenset[str]] = frozenset({"calibration"})
-
-    def run(self, ctx: Context) -> Context:
-        """Fit ``calibration`` from ``ctx.aligned``."""
-        from stages.estimators.streaming import SufficientStats, fit_stats
-
-        al = ctx.aligned
-        blocks = (
-            SufficientStats.from_samples(al.q_enu_body[i : i + STREAM_BLOCK],
-                                         al.mag_nT[i : i + STREAM_BLOCK],
-                                         al.t_ns[i : i + STREAM_BLOCK])
-            for i in range(0, len(al), STREAM_BLOCK)
-        )
-        st = sum(blocks, SufficientStats())
-        ref = None if self.reference_field_enu_nT is None else np.asarray(
-            self.reference_field_enu_nT, dtype=float)
-        fit = fit_stats(st, estimate_offset=self.estimate_offset, reference_field_enu_nT=ref)
-        return ctx.replace(calibration=fit.to_calibration())
-
-
-@dataclass(frozen=True)
-class OnDecimated:
-    """Stage: run ``inner`` on every ``step``-th magnetometer sample of a long recording.
-
-    Segmentation and diagnosis of hours of data need not see every sample (their windows
-    are seconds long); the fields ``inner`` provides are taken over into the full context.
-    The attitude is kept whole so the decimated samples are aligned as before.
-    """
-
-    inner: Any
-    step: int
-
-    @property
-    def requires(self) -> frozenset[str]:  # type: ignore[override]
-        """The inner stage's requirements."""
-        return self.inner.requires
-
-    @property
-    def provides(self) -> frozenset[str]:  # type: ignore[override]
-        """The inner stage's results."""
-        return self.inner.provides
-
-    def run(self, ctx: Context) -> Context:
-        """Run ``inner`` on the decimated context; return ``ctx`` with its results."""
-        small = decimate_context(ctx, self.step)
-        out = self.inner.run(small)
-        return ctx.replace(**{k: getattr(out, k) for k in self.inner.provides})
-
-
-def decimate_context(ctx: Context, step: int) -> Context:
-    """``ctx`` with every ``step``-th magnetometer sample (recording.mag and aligned)."""
-    import dataclasses
-
-    from pipeline.core.recording import AlignedSeries, VectorSeries
-
-    rec, al = ctx.recording, ctx.aligned
-    changes: dict[str, Any] = {}
-    if rec is not None:
-        m = rec.mag
-        changes["recording"] = dataclasses.replace(
-            rec, mag=VectorSeries(m.t_ns[::step], m.values[::step], m.frame, m.unit))
-    if al is not None:
-        if al.index is not None:
-            keep = np.flatnonzero(al.index % step == 0)
-            index = al.index[keep] // step
-        else:
-            keep, index = np.arange(0, len(al), step), None
-        changes["aligned"] = AlignedSeries(al.t_ns[keep], al.mag_nT[keep], al.q_enu_body[keep],
-                                           al.time_offset_s, index)
-    return ctx.replace(**changes)
-
-
-@dataclass(frozen=True)
-class LoadCalibration:
-    """Stage: take the calibration from a calibration.json file instead of estimating it."""
-
-    path: str
-
-    requires: ClassVar[frozenset[str]] = frozenset()
-    provides: ClassVar[frozenset[str]] = frozenset({"calibration"})
-
-    def run(self, ctx: Context) -> Context:
-        """Load ``path``."""
-        return ctx.replace(calibration=Calibration.load(self.path))
-
-
-@dataclass(frozen=True)
-class RequireObservable:
-    """Stage: refuse an estimate that no rotation axis of the recording's motion determines.
-
-    A platform that did not rotate gives an arbitrary rotation; every output written from it
-    (and every survey line restored with it) would look like a result. The ``calibrate``
-    command refuses the same case. Not used when a calibration file is given: a survey line
-    that never turns is restored with the calibration run's result.
-    """
-
-    requires: ClassVar[frozenset[str]] = frozenset({"recording", "calibration"})
-    provides: ClassVar[frozenset[str]] = frozenset()
-
-    def run(self, ctx: Context) -> Context:
-        """Return ``ctx`` as it is, or raise when nothing about the rotation is observable.
-
-        Raises
-        ------
-        NotObservableError
-            All three rotation axes unobservable.
-
-        """
-        if len(ctx.calibration.unobservable_axes_body) >= 3:
-            raise NotObservableError(
-                "the platform did not rotate: nothing about the misalignment is observable",
-                path=ctx.recording.path,
-                hint="record rotations about at least two different axes, or restore this "
-                "recording with a calibration run's result (--calibration FILE)")
-        return ctx.replace()  # a new Context, as every stage returns
-
-
-@dataclass(frozen=True)
-class WriteResults:
-    """Stage: write calibration.json (and diagnosis.json when diagnosed) into ``out_dir``."""
-
-    out_dir: str
-
-    requires: ClassVar[frozenset[str]] = frozenset({"calibration"})
-    provides: ClassVar[frozenset[str]] = frozenset({"outputs"})
-
-    def run(self, ctx: Context) -> Context:
-        """Write the JSON results atomically."""
-        out = Path(self.out_dir)
-        outputs = ctx.outputs
-        p = write_text_atomic(out / "calibration.json", ctx.calibration.to_json())
-        outputs += (("calibration.json", str(p)),)
-        if ctx.diagnosis is not None:
-            d = ctx.diagnosis.to_dict() if hasattr(ctx.diagnosis, "to_dict") else ctx.diagnosis
-            p = write_text_atomic(out / "diagnosis.json", json.dumps(d, indent=2))
-            outputs += (("diagnosis.json", str(p)),)
-        return ctx.replace(outputs=outputs)
 
 
 def _optional(module: str, name: str) -> Any:
