@@ -257,7 +257,9 @@ def calibrate_vs_diagnose(names: list[str] | None = None) -> list[dict]:
     """
     from pipeline.core.recording import Context
     from pipeline.io.mcap_read import read_recording
-    from stages.diagnose.stage import DiagnoseConfig, diagnose_data, fit_data_from
+    from stages.diagnose.result import DiagnoseConfig
+    from stages.diagnose.search import diagnose_data
+    from stages.diagnose.stage import fit_data_from
     from stages.estimate import fit_calibration
     from stages.resample import Resample
 

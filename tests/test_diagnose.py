@@ -8,7 +8,9 @@ from pipeline.core.recording import AlignedSeries, AttitudeSeries, Context, Reco
 from pipeline.core.stage import Pipeline
 from stages.diagnose.model import EffectKind as K
 from stages.diagnose.model import Term
-from stages.diagnose.stage import Diagnose, DiagnoseConfig, diagnose_data, finding_figures
+from stages.diagnose.result import DiagnoseConfig
+from stages.diagnose.search import diagnose_data
+from stages.diagnose.stage import Diagnose, finding_figures
 
 CFG = DiagnoseConfig()
 
@@ -132,8 +134,9 @@ def test_chain_evidence_rebuilds_a_swapped_history():
     # re-adds a term produces): the stale numbers must be re-measured in the final order
     import dataclasses
 
-    from stages.diagnose.model import fit
-    from stages.diagnose.stage import _chain_evidence, heldout_rms
+    from stages.diagnose.fit import fit
+    from stages.diagnose.search import _chain_evidence
+    from stages.diagnose.statistics import heldout_rms
 
     data, _ = make_data((Term(K.HARD_IRON), Term(K.TIME_OFFSET)),
                         (np.array([60.0, -40.0, 20.0]), np.array([0.004])), seed=9)

@@ -20,7 +20,8 @@ pytestmark = pytest.mark.real
 def test_real_recording_findings_improve_heldout(path):
     from pipeline.core.recording import Context
     from pipeline.io.mcap_read import read_recording
-    from stages.diagnose.stage import Diagnose, DiagnoseConfig
+    from stages.diagnose.result import DiagnoseConfig
+    from stages.diagnose.stage import Diagnose
     from stages.resample import Resample
 
     rec = read_recording(path)
@@ -62,7 +63,8 @@ def test_real_recording_gradient_and_sample_hold_findings():
     ~202 Hz with ~29 % repeats; a field_gradient finding, if any, lowers the held-out error."""
     from pipeline.core.recording import Context
     from pipeline.io.mcap_read import read_recording
-    from stages.diagnose.stage import Diagnose, DiagnoseConfig
+    from stages.diagnose.result import DiagnoseConfig
+    from stages.diagnose.stage import Diagnose
     from stages.resample import Resample
 
     rec = read_recording(LAB_03)

@@ -3,18 +3,9 @@ import pytest
 from _diag_sim import all_terms, lissajous_m, make_data
 
 from pipeline.core.geometry import so3_exp
-from stages.diagnose.model import (
-    EFFECTS,
-    EffectKind,
-    FitData,
-    ModelState,
-    Term,
-    evaluate,
-    fit,
-    hat_basis,
-    motion_stats,
-    wahba_init,
-)
+from stages.diagnose.catalogue import EFFECTS, motion_stats
+from stages.diagnose.fit import fit, wahba_init
+from stages.diagnose.model import EffectKind, FitData, ModelState, Term, evaluate, hat_basis
 
 
 def _numeric_jacobian(state: ModelState, data: FitData, eps: np.ndarray) -> np.ndarray:
@@ -127,7 +118,7 @@ def test_every_effect_has_words():
 
 
 def test_field_drift_explanation_names_both_causes_and_the_gradient_limit():
-    from stages.diagnose.model import explanation
+    from stages.diagnose.catalogue import explanation
 
     # 20 nT over an hour: geomagnetic; 1700 nT over 3 minutes: the sensor moved through a
     # non-uniform field
@@ -197,7 +188,8 @@ def test_gradient_noise_off_is_recovered_to_numerical_precision():
 
 
 def test_gradient_yaw_is_read_back_from_the_matrix():
-    from stages.diagnose.model import rot_z, yaw_of_gradient
+    from stages.diagnose.catalogue import yaw_of_gradient
+    from stages.diagnose.model import rot_z
 
     for deg in (0.0, 35.0, 120.0, -70.0):
         got = np.degrees(yaw_of_gradient(G_TRUE @ rot_z(np.radians(deg))))
@@ -205,7 +197,7 @@ def test_gradient_yaw_is_read_back_from_the_matrix():
 
 
 def test_gradient_identifiability_needs_positions_that_are_not_time():
-    from stages.diagnose.model import identifiability_reason
+    from stages.diagnose.catalogue import identifiability_reason
 
     st = None
     # no positions
@@ -229,7 +221,7 @@ def test_gradient_identifiability_needs_positions_that_are_not_time():
 
 
 def test_field_drift_explanation_with_positions_says_what_the_gradient_test_found():
-    from stages.diagnose.model import explanation
+    from stages.diagnose.catalogue import explanation
 
     note = "with the positions, a spatial gradient was tested: not found"
     text = explanation(EffectKind.FIELD_DRIFT, {"peak_to_peak_nT": [300.0, 1700.0, 900.0]},

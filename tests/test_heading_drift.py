@@ -10,19 +10,17 @@ from _diag_sim import make_data
 from indep_gen import Spec, sized, write
 
 from pipeline.app.commands.diagnose import diagnose_file
+from stages.diagnose.catalogue import explanation, identifiability_reason, motion_stats
 from stages.diagnose.model import (
     EffectKind,
     FitData,
     ModelState,
     Term,
     evaluate,
-    explanation,
     heading_drift_params,
     heading_signature_fraction,
-    identifiability_reason,
-    motion_stats,
 )
-from stages.diagnose.stage import diagnose_data
+from stages.diagnose.search import diagnose_data
 
 
 def test_heading_jacobian_matches_finite_differences():

@@ -254,7 +254,9 @@ def test_diagnose_prediction_is_the_calibration_prediction():
     # The diagnosis fit (stages.diagnose.model.evaluate) and Calibration.predict of the final
     # calibration it writes are the same function of time: every term, the disturbance
     # included, to round-off.
-    from stages.diagnose.stage import DiagnoseConfig, calibration_from, diagnose_data, fit_data_from
+    from stages.diagnose.result import DiagnoseConfig
+    from stages.diagnose.search import diagnose_data
+    from stages.diagnose.stage import calibration_from, fit_data_from
     from stages.resample import Resample
 
     sim = _diag_recording()
@@ -280,7 +282,9 @@ def test_diagnose_prediction_is_the_calibration_prediction():
 def test_diagnose_baseline_equals_calibrate_residual():
     # Same recording, same model (R_body_mag and B_enu): calibrate's residual and the
     # diagnosis baseline agree within 0.1 % (one attitude interpolation, one prediction).
-    from stages.diagnose.stage import DiagnoseConfig, diagnose_data, fit_data_from
+    from stages.diagnose.result import DiagnoseConfig
+    from stages.diagnose.search import diagnose_data
+    from stages.diagnose.stage import fit_data_from
     from stages.estimate import fit_calibration
     from stages.resample import Resample
 

@@ -17,7 +17,7 @@ from indep_gen import Spec, write
 from pipeline.app.commands.diagnose import diagnose_file
 from stages.diagnose.model import EffectKind as K
 from stages.diagnose.model import Term
-from stages.diagnose.stage import diagnose_data
+from stages.diagnose.search import diagnose_data
 
 
 def _close(est, true, sig, rel=0.1):

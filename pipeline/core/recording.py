@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 if TYPE_CHECKING:
     from pipeline.model.calibration import Calibration
-    from stages.diagnose.stage import Diagnosis
+    from stages.diagnose.result import Diagnosis
     from stages.metrics import MetricsResult
     from stages.restore import RestoreResult
 
