@@ -58,7 +58,8 @@ def outcomes() -> Counter:
 
 
 def test_bases_are_valid_and_cover_the_reader_paths(tmp_path):
-    from pipeline.io.mcap_read import _prepare, _scan, read_recording
+    from pipeline.io.mcap_read import read_recording
+    from pipeline.io.mcap_scan import _prepare, _scan
 
     layouts = {}
     for name, make in fz.BASES.items():

@@ -330,7 +330,7 @@ def test_property_json_round_trip_exact(t_ns, data, frame_id):
 def test_one_table_of_message_types():
     """schemas.MESSAGE_TYPES is the only list: reader, writer, simulator and schemas follow it."""
     import pipeline.app.simulate as simulate
-    import pipeline.io.mcap_read as reader
+    import pipeline.io.mcap_decode as reader
     from pipeline.io import messages
     from schemas import MESSAGE_TYPES, MessageRole, schema_text
 

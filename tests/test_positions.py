@@ -5,7 +5,8 @@ import pytest
 from _reader_fixtures import DEFS, T0, motion, write_ros2
 
 from pipeline.core.recording import PositionFrame, PositionSeries
-from pipeline.io.mcap_read import geodetic_to_local_enu, read_recording
+from pipeline.io.mcap_decode import geodetic_to_local_enu
+from pipeline.io.mcap_read import read_recording
 
 
 def test_odometry_positions_and_orientation_are_read(tmp_path):

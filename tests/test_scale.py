@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import pipeline.io.mcap_read as mcap_read
+import pipeline.io.mcap_scan as mcap_scan
 from pipeline.core.geometry import li2020_euler_to_quat, quat_conj, quat_rotate, so3_exp, so3_log
 from pipeline.io.mcap_read import (
     iter_raw_channels,
@@ -70,7 +70,7 @@ def test_raw_ranges_concatenate_and_bound_later_log_times(tmp_path):
 def test_memory_mapped_reading_equals_reading(tmp_path, monkeypatch):
     path, _ = make(tmp_path / "c.mcap", n=2_000)
     a = read_recording(path)
-    monkeypatch.setattr(mcap_read, "MMAP_MIN_BYTES", 0)
+    monkeypatch.setattr(mcap_scan, "MMAP_MIN_BYTES", 0)
     b = read_recording(path)
     np.testing.assert_array_equal(a.mag.values, b.mag.values)
     np.testing.assert_array_equal(a.attitude.q_enu_body, b.attitude.q_enu_body)
@@ -91,10 +91,10 @@ def test_copy_ranges_equals_slicing(spans):
         pos += ln
     start_a, length_a = np.array(start), np.array(length)
     want = np.concatenate([buf[a:a + n] for a, n in zip(start, length, strict=True)])
-    np.testing.assert_array_equal(mcap_read._copy_ranges(buf, start_a, length_a), want)
+    np.testing.assert_array_equal(mcap_scan._copy_ranges(buf, start_a, length_a), want)
     rev = np.concatenate([buf[a:a + n] for a, n in zip(start[::-1], length[::-1], strict=True)])
     np.testing.assert_array_equal(
-        mcap_read._copy_ranges(buf, start_a[::-1].copy(), length_a[::-1].copy()), rev)
+        mcap_scan._copy_ranges(buf, start_a[::-1].copy(), length_a[::-1].copy()), rev)
 
 
 def test_corrected_mcap_written_range_by_range(tmp_path, monkeypatch):

@@ -1151,7 +1151,7 @@ def _written_position(sc: Scenario, t_att: F64, att_t_ns: NDArray) -> PositionSe
         return PositionSeries(att_t_ns, p_enu @ tr.Q_enu_local(),
                               PositionFrame.ATTITUDE_SOURCE_LOCAL)
     if sc.output.attitude_type == "novatel_oem7_msgs/msg/INSPVA":
-        from pipeline.io.mcap_read import geodetic_to_local_enu
+        from pipeline.io.mcap_decode import geodetic_to_local_enu
 
         lat, lon, h = _geodetic(tr, p_enu)
         return PositionSeries(att_t_ns, geodetic_to_local_enu(lat, lon, h), PositionFrame.ENU)
@@ -1165,7 +1165,7 @@ def _geodetic(tr: Trajectory, p_enu: F64) -> tuple[F64, F64, F64]:
     geodetic_to_local_enu` (exact for it), origin at the trajectory's origin latitude and
     longitude and height 0 m at ENU ``z = 0``.
     """
-    from pipeline.io.mcap_read import _WGS84_A_M, _WGS84_E2
+    from pipeline.io.mcap_decode import _WGS84_A_M, _WGS84_E2
 
     lat0, lon0 = (math.radians(x) for x in tr.origin_lat_lon_deg)
     w = math.sqrt(1.0 - _WGS84_E2 * math.sin(lat0) ** 2)

@@ -42,7 +42,7 @@ from pipeline.core.atomic import atomic_path
 from pipeline.core.errors import OutputError, SchemaError
 from pipeline.io import messages
 from pipeline.io.mcap_format import MAGIC, Opcode
-from pipeline.io.mcap_read import ranges_mask
+from pipeline.io.mcap_scan import ranges_mask
 from schemas import MESSAGE_TYPES, MessageRole
 
 if TYPE_CHECKING:

@@ -102,7 +102,7 @@ def check_mcap_file(path: str | Path) -> None:
         Empty, or not starting with the MCAP magic bytes.
 
     """
-    from pipeline.io.mcap_read import check_magic, open_error  # the reader's own words
+    from pipeline.io.mcap_scan import check_magic, open_error  # the reader's own words
 
     p = Path(path)
     try:
