@@ -720,8 +720,8 @@ def provenance(recording: Recording, *, command: str | None = None) -> dict[str,
     import shlex
     import sys
 
-    from pipeline.app.campaign import sha256_file
-    from pipeline.app.cli import package_version
+    from pipeline import package_version
+    from pipeline.core.atomic import sha256_file
 
     cmd = command or os.environ.get("MAGALIGN_COMMAND") or shlex.join(sys.argv)
     try:

@@ -32,7 +32,7 @@ from typing import Any, cast
 import numpy as np
 
 from pipeline import __version__
-from pipeline.core.atomic import safe_join, write_text_atomic
+from pipeline.core.atomic import safe_join, sha256_file, write_text_atomic
 from pipeline.core.config import TomlDoc
 from pipeline.core.errors import ConfigError, InputError, MagalignError, UsageError
 
@@ -547,18 +547,6 @@ class RecordingTask:
     scenario: str | None
     seed: int | None
     config_sha256: str
-
-
-def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
-    """SHA-256 (hex) of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while True:
-            b = fh.read(chunk)
-            if not b:
-                break
-            h.update(b)
-    return h.hexdigest()
 
 
 def config_sha256(spec: RecordingSpec, calibration_sha256: str | None) -> str:

@@ -18,6 +18,7 @@ import traceback
 import warnings
 from typing import NoReturn
 
+from pipeline import package_version
 from pipeline.core.errors import MagalignError, UsageError
 
 COMMANDS = (
@@ -45,16 +46,6 @@ class _Parser(argparse.ArgumentParser):
 
 DESCRIPTION = ("Calibrate the misalignment between a magnetometer and its attitude source "
                "from MCAP recordings.")
-
-
-def package_version() -> str:
-    """Return the installed magalign version (package metadata), or "unknown"."""
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version("magalign")
-    except PackageNotFoundError:  # running from a source tree that was never installed
-        return "unknown"
 
 
 def build_parser() -> argparse.ArgumentParser:
