@@ -23,12 +23,12 @@ class OnDecimated:
     step: int
 
     @property
-    def requires(self) -> frozenset[str]:  # type: ignore[override]
+    def requires(self) -> frozenset[str]:
         """The inner stage's requirements."""
         return self.inner.requires
 
     @property
-    def provides(self) -> frozenset[str]:  # type: ignore[override]
+    def provides(self) -> frozenset[str]:
         """The inner stage's results."""
         return self.inner.provides
 

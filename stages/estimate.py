@@ -40,6 +40,10 @@ __all__ = [
 ]
 
 
+#: the estimator used when none is named
+DEFAULT_ESTIMATOR: EstimatorKind = EstimatorKind("ml")
+
+
 def make_estimator(kind: EstimatorKind | str) -> Estimator:
     """Return the estimator object for ``kind`` from the registry (default hyperparameters).
 
@@ -75,7 +79,7 @@ def fit_calibration(
     recording: Recording | None,
     aligned: AlignedSeries,
     *,
-    estimator: EstimatorKind = EstimatorKind.ML,
+    estimator: EstimatorKind = DEFAULT_ESTIMATOR,
     terms: Iterable[Term | str] = frozenset(),
     reference_field_enu_nT: Sequence[float] | np.ndarray | None = None,
     R_nominal_body_mag: np.ndarray | None = None,
@@ -269,14 +273,14 @@ class Judge:
 
     def run(self, ctx: Context) -> Context:
         """Return ``ctx`` with ``calibration.verdict`` for its final model."""
-        return ctx.replace(calibration=with_verdict(ctx.calibration, ctx.aligned))
+        return ctx.replace(calibration=with_verdict(ctx.need_calibration(), ctx.need_aligned()))
 
 
 @dataclass(frozen=True)
 class Estimate:
     """Stage: fit the calibration (see :func:`fit_calibration` for the parameters)."""
 
-    estimator: EstimatorKind = EstimatorKind.ML
+    estimator: EstimatorKind = DEFAULT_ESTIMATOR
     terms: frozenset = frozenset()
     reference_field_enu_nT: tuple[float, float, float] | None = None
     R_nominal_body_mag: tuple | None = None
@@ -297,7 +301,7 @@ class Estimate:
             windows = [(s.start_ns, s.end_ns) for s in ctx.segments]
         cal = fit_calibration(
             ctx.recording,
-            ctx.aligned,
+            ctx.need_aligned(),
             estimator=self.estimator,
             terms=self.terms,
             reference_field_enu_nT=self.reference_field_enu_nT,

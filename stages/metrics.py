@@ -198,7 +198,7 @@ class MetricsResult:
             }
         )
 
-    def to_table(self):  # -> pyarrow.Table
+    def to_table(self) -> Any:  # a pyarrow.Table
         """metrics.parquet as a pyarrow Table (module docstring for the columns)."""
         import pyarrow as pa
 
@@ -348,15 +348,16 @@ class Metrics:
     def run(self, ctx: Context) -> Context:
         """Compute (and write) the metrics."""
         cal = ctx.calibration
+        rec = ctx.need_recording()
         res = compute_metrics(
-            ctx.recording,
-            ctx.restored,
+            rec,
+            ctx.need_restored(),
             ctx.segments,
             None if cal is None else cal.B_enu_nT,
             max_gap_s=self.max_gap_s,
         )
         outputs = ctx.outputs
         if self.out_dir is not None:
-            j, p = res.write(self.out_dir, (ctx.recording.path,))
+            j, p = res.write(self.out_dir, (rec.path,))
             outputs = outputs + (("metrics.json", str(j)), ("metrics.parquet", str(p)))
         return ctx.replace(metrics=res, outputs=outputs)

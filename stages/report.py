@@ -23,6 +23,7 @@ import base64
 import html
 import io
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -123,9 +124,9 @@ def bins(t: np.ndarray, v: np.ndarray, max_bins: int
     if k == 1:
         return t.astype(float), v, v, v, 1
     m = -(-n // k) * k
-    tp = np.full(m, np.nan)
+    tp: np.ndarray = np.full(m, np.nan)
     tp[:n] = t
-    vp = np.full(m, np.nan)
+    vp: np.ndarray = np.full(m, np.nan)
     vp[:n] = v
     tp, vp = tp.reshape(-1, k), vp.reshape(-1, k)
     with warnings.catch_warnings():
@@ -675,12 +676,13 @@ def _diagnosis_html(diagnosis: Any, t0_ns: int = 0, options: Any = None
             + "</ul>"
         )
     figs: list[tuple[str, bytes]] = []
+    figures_of: Callable[..., list[tuple[str, bytes]]] | None
     try:
-        from stages.diagnose.stage import finding_figures
+        from stages.diagnose.stage import finding_figures as figures_of
     except ImportError:
-        finding_figures = None
-    if finding_figures is not None and not isinstance(diagnosis, dict):
-        figs = list(finding_figures(diagnosis))
+        figures_of = None
+    if figures_of is not None and not isinstance(diagnosis, dict):
+        figs = list(figures_of(diagnosis))
     return "".join(parts), figs
 
 
@@ -911,7 +913,7 @@ class Report:
 
     def run(self, ctx: Context) -> Context:
         """Write the report and list it in ``ctx.outputs``."""
-        p = write_report(self.out_dir, ctx.recording, ctx.calibration, ctx.metrics,
+        p = write_report(self.out_dir, ctx.need_recording(), ctx.calibration, ctx.metrics,
                          ctx.diagnosis, ctx.segments, max_gap_s=self.max_gap_s,
                          restored=ctx.restored, options=ctx.options)
         return ctx.replace(outputs=ctx.outputs + (("report.html", str(p)),))

@@ -31,10 +31,10 @@ class RequireObservable:
             All three rotation axes unobservable.
 
         """
-        if len(ctx.calibration.unobservable_axes_body) >= 3:
+        if len(ctx.need_calibration().unobservable_axes_body) >= 3:
             raise NotObservableError(
                 "the platform did not rotate: nothing about the misalignment is observable",
-                path=ctx.recording.path,
+                path=ctx.need_recording().path,
                 hint="record rotations about at least two different axes, or restore this "
                 "recording with a calibration run's result (--calibration FILE)")
         return ctx.replace()  # a new Context, as every stage returns

@@ -218,9 +218,10 @@ class Restore:
     def run(self, ctx: Context) -> Context:
         """Restore ``ctx.recording.mag`` with ``ctx.calibration``."""
         old = ctx.restored
-        if old is not None and old.model_key == model_key_of(ctx.calibration, self.max_gap_s):
+        cal = ctx.need_calibration()
+        if old is not None and old.model_key == model_key_of(cal, self.max_gap_s):
             return ctx.replace(restored=old)
-        rs = restore_samples(ctx.recording, ctx.calibration, max_gap_s=self.max_gap_s)
+        rs = restore_samples(ctx.need_recording(), cal, max_gap_s=self.max_gap_s)
         return ctx.replace(restored=rs)
 
 

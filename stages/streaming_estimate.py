@@ -32,7 +32,7 @@ class StreamingEstimate:
         """Fit ``calibration`` from ``ctx.aligned``."""
         from stages.estimators.streaming import SufficientStats, fit_stats
 
-        al = ctx.aligned
+        al = ctx.need_aligned()
         blocks = (
             SufficientStats.from_samples(al.q_enu_body[i : i + STREAM_BLOCK],
                                          al.mag_nT[i : i + STREAM_BLOCK],

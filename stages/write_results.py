@@ -24,7 +24,7 @@ class WriteResults:
         """Write the JSON results atomically."""
         out = Path(self.out_dir)
         outputs = ctx.outputs
-        p = write_text_atomic(out / "calibration.json", ctx.calibration.to_json())
+        p = write_text_atomic(out / "calibration.json", ctx.need_calibration().to_json())
         outputs += (("calibration.json", str(p)),)
         if ctx.diagnosis is not None:
             d = ctx.diagnosis.to_dict() if hasattr(ctx.diagnosis, "to_dict") else ctx.diagnosis

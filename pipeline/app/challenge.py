@@ -165,7 +165,7 @@ def _strength_of(d: np.ndarray, sim_full: Any, kind: str, noise: dict[str, float
     track = AttitudeTrack(t_s, np.asarray(tr.q_enu_body_true))
     data = FitData(t_s, np.zeros((len(t_s), 3)), track)
     st = ModelState(np.asarray(tr.R_body_mag), np.asarray(tr.B_enu_nT))
-    J = evaluate(st, data).J.reshape(-1, 6)
+    J = evaluate(st, data).jac.reshape(-1, 6)
     dv = d.reshape(-1)
     coef, *_ = np.linalg.lstsq(J, dv, rcond=None)
     rem = dv - J @ coef

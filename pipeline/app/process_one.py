@@ -19,7 +19,7 @@ import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -106,7 +106,7 @@ def build_stages(ctx: Context, out_dir: Path, options: ProcessOptions) -> list:
     from stages.restore import Restore
     from stages.write_mcap import WriteCorrectedMcap
 
-    rec = ctx.recording
+    rec = ctx.need_recording()
     stages: list = []
     n = len(rec.mag)
     large = options.scale_samples is not None and n > options.scale_samples
@@ -139,7 +139,7 @@ def build_stages(ctx: Context, out_dir: Path, options: ProcessOptions) -> list:
         if options.reference_field_enu_nT is not None:
             kw["reference_field_enu_nT"] = tuple(float(x) for x in options.reference_field_enu_nT)
         terms = {Term(t) for t in options.terms}
-        ml = options.estimator is None or EstimatorKind(options.estimator) is EstimatorKind.ML
+        ml = options.estimator is None or EstimatorKind(options.estimator) is EstimatorKind("ml")
         if large and ml and terms <= {Term.OFFSET}:
             # every sample, in bounded memory: chunked sufficient statistics
             stages.append(StreamingEstimate(Term.OFFSET in terms,
@@ -193,19 +193,21 @@ def _verdict_line(cal: Calibration) -> str:
 
 def summary_row(ctx: Context, stem: str, out_dir: Path) -> dict[str, Any]:
     """One summary row of a processed recording (plain JSON values)."""
-    cal = ctx.calibration
+    cal = ctx.need_calibration()
+    rec = ctx.need_recording()
     m = ctx.metrics
     findings: list[str] = []
     if ctx.diagnosis is not None:
-        d = ctx.diagnosis.to_dict() if hasattr(ctx.diagnosis, "to_dict") else ctx.diagnosis
+        d = cast(dict[str, Any], ctx.diagnosis.to_dict() if hasattr(ctx.diagnosis, "to_dict")
+                 else ctx.diagnosis)
         findings = [f.get("effect") for f in d.get("findings", [])]
     ratios = m.ratio_pct() if m is not None else {}
     row: dict[str, Any] = {
         "stem": stem,
         "status": "ok",
-        "path": str(ctx.recording.path),
-        "duration_s": float(ctx.recording.duration_s),
-        "n_samples": int(len(ctx.recording.mag)),
+        "path": str(rec.path),
+        "duration_s": float(rec.duration_s),
+        "n_samples": int(len(rec.mag)),
         "estimator": cal.estimator,
         "rotvec_body_mag_deg": _finite_list(cal.rotvec_body_mag_deg),
         "sigma_rotvec_deg": _finite_list(cal.sigma_rotvec_deg),
@@ -271,7 +273,7 @@ def process_recording(
         turntable_topic=options.turntable_topic,
     )
     timings: dict[str, float] = {}
-    clock = {"name": None, "t": time.perf_counter()}
+    clock: dict[str, Any] = {"name": None, "t": time.perf_counter()}
     shown: list[str] = ["Ingest"]  # stage names for the progress line (known after ingest)
 
     def tick(name: str | None, index: int = 0, total: int = 0) -> None:
@@ -296,7 +298,7 @@ def process_recording(
     tick(None)
     row = summary_row(ctx, stem, rec_dir)
     row["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
-    row["run_warnings"] = run_warnings(str(path), caught, ctx.recording.problems)
+    row["run_warnings"] = run_warnings(str(path), caught, ctx.need_recording().problems)
     return row
 
 

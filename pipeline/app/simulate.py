@@ -33,9 +33,9 @@ import datetime as _dt
 import enum
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -67,6 +67,8 @@ from pipeline.core.recording import (
 from schemas import MessageRole, types_of
 
 F64 = NDArray[np.float64]
+#: three components, as TOML vectors are checked to have
+_Vec3 = tuple[float, float, float]
 
 # the types a scenario may ask for: those magalign writes (schemas' table)
 MAG_TYPES = frozenset(types_of(MessageRole.MAGNETOMETER, written=True))
@@ -556,10 +558,10 @@ class Scenario:
     motion: Motion
     timing: Timing
     field: FieldSpec
-    sensor: Sensor = field(default_factory=Sensor)
-    effects: Effects = field(default_factory=Effects)
-    noise: Noise = field(default_factory=Noise)
-    output: Output = field(default_factory=Output)
+    sensor: Sensor = dataclasses.field(default_factory=Sensor)
+    effects: Effects = dataclasses.field(default_factory=Effects)
+    noise: Noise = dataclasses.field(default_factory=Noise)
+    output: Output = dataclasses.field(default_factory=Output)
     seed: int = 0
     description: str = ""
     path: str = "<dict>"
@@ -686,7 +688,7 @@ def _parse_effects(doc: TomlDoc) -> Effects:
         sub = _table(doc, p)
         doc.check_keys(sub, _EFFECT_KEYS[name], p)
         if name == "hard_iron":
-            kw[name] = HardIron(tuple(doc.vector(f"{p}.offset_nT")))
+            kw[name] = HardIron(cast(_Vec3, tuple(doc.vector(f"{p}.offset_nT"))))
         elif name == "soft_iron":
             D = _matrix(doc, f"{p}.D")
             Da = np.array(D)
@@ -706,7 +708,7 @@ def _parse_effects(doc: TomlDoc) -> Effects:
             kind = doc.choice(f"{p}.kind", DriftKind, DriftKind.SINUSOID)
             per = doc.get(f"{p}.period_s", None)
             per = None if per is None else doc.number(f"{p}.period_s", lo=1e-3)
-            kw[name] = FieldDrift(tuple(ptp), kind, per)
+            kw[name] = FieldDrift(cast(_Vec3, tuple(ptp)), kind, per)
         elif name == "disturbance":
             dirn = doc.vector(f"{p}.direction_enu", default=[0.0, 0.0, 1.0])
             if np.linalg.norm(dirn) < 1e-9:
@@ -720,7 +722,7 @@ def _parse_effects(doc: TomlDoc) -> Effects:
             edge = doc.number(f"{p}.edge_s", 0.0, lo=0.0)
             if any(2 * edge > e - s for s, e in wins):
                 raise doc.error(f"{p}.edge_s", "must be at most half of the shortest window")
-            kw[name] = HardIronStep(wins, tuple(doc.vector(f"{p}.offset_nT")), edge)
+            kw[name] = HardIronStep(wins, cast(_Vec3, tuple(doc.vector(f"{p}.offset_nT"))), edge)
         elif name == "axis_tilt":
             kw[name] = AxisTilt(
                 doc.number(f"{p}.tilt_deg", lo=0.0, hi=90.0), doc.number(f"{p}.azimuth_deg")
@@ -1280,6 +1282,7 @@ def simulate(scenario: Scenario, *, seed: int | None = None) -> Simulated:
     )
     axis_tilt = None
     if sc.effects.axis_tilt is not None and isinstance(sc.motion, Turntable):
+        assert model.tilt is not None  # the model of a scenario with an axis tilt has one
         axis_tilt = {
             "tilt_deg": sc.effects.axis_tilt.tilt_deg,
             "azimuth_deg": sc.effects.axis_tilt.azimuth_deg,

@@ -96,7 +96,8 @@ def row_for(out_dir: Path, result: Mapping[str, Any]) -> dict[str, Any]:
     row["verdict"] = verdict.get("status") if isinstance(verdict, Mapping) else None
     # ratio_pct (fluctuation range, whole recording) as the per-recording pipeline reports it;
     # else the first ratio_pct of metrics.json for that component.
-    prow = result.get("row") if isinstance(result.get("row"), Mapping) else {}
+    row_ = result.get("row")
+    prow: Mapping[str, Any] = row_ if isinstance(row_, Mapping) else {}
     flat = None
     for a in AXES:
         v = _f(prow.get(f"ratio_pct_{a}"))
@@ -182,7 +183,8 @@ def _groups() -> list[tuple[str, list[tuple[str, Any]]]]:
 
     def angle(r: Mapping[str, Any]) -> str:
         v = [_f(r.get(f"rotvec_deg_{a}")) for a in AXES]
-        return "" if None in v else f"{math.sqrt(sum(x * x for x in v)):.3f}"
+        xs = [x for x in v if x is not None]
+        return "" if len(xs) < len(v) else f"{math.sqrt(sum(x * x for x in xs)):.3f}"
 
     def tau(r: Mapping[str, Any]) -> str:
         t = _f(r.get("time_offset_s"))

@@ -10,10 +10,12 @@ from __future__ import annotations
 import dataclasses
 import enum
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
+
+from pipeline.core.errors import MagalignError
 
 if TYPE_CHECKING:
     from pipeline.model.calibration import Calibration
@@ -23,6 +25,7 @@ if TYPE_CHECKING:
 
 I64 = NDArray[np.int64]
 F64 = NDArray[np.float64]
+_T = TypeVar("_T")
 
 
 class Frame(str, enum.Enum):
@@ -177,7 +180,7 @@ class PositionSeries:
     @property
     def valid(self) -> np.ndarray:
         """Rows with a finite position, (N,) bool."""
-        return np.isfinite(self.p_m).all(axis=1)
+        return np.all(np.isfinite(self.p_m), axis=1)
 
     def at(self, t_ns: np.ndarray, max_gap_s: float = 0.1) -> F64:
         """Positions at ``t_ns`` by linear interpolation between valid rows, (M, 3), m.
@@ -419,6 +422,22 @@ class Context:
     outputs: tuple[tuple[str, str], ...] = ()
     options: Any = field(default=None)
 
+    def need_recording(self) -> Recording:
+        """Return ``recording``, which the calling stage requires (raises when absent)."""
+        return _needed(self.recording, "recording")
+
+    def need_aligned(self) -> AlignedSeries:
+        """Return ``aligned``, which the calling stage requires (raises when absent)."""
+        return _needed(self.aligned, "aligned")
+
+    def need_calibration(self) -> Calibration:
+        """Return ``calibration``, which the calling stage requires (raises when absent)."""
+        return _needed(self.calibration, "calibration")
+
+    def need_restored(self) -> RestoreResult:
+        """Return ``restored``, which the calling stage requires (raises when absent)."""
+        return _needed(self.restored, "restored")
+
     def replace(self, **changes: Any) -> Context:
         """Return a new context with ``changes`` applied."""
         return dataclasses.replace(self, **changes)
@@ -428,3 +447,10 @@ class Context:
         return frozenset(
             f.name for f in dataclasses.fields(self) if getattr(self, f.name) not in (None, ())
         )
+
+
+def _needed(value: _T | None, name: str) -> _T:
+    """``value``, or an error naming the missing context field (a stage run out of order)."""
+    if value is None:
+        raise MagalignError(f"the context has no {name!r}: a stage that provides it must run first")
+    return value

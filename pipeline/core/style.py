@@ -51,7 +51,7 @@ def segment_colour(kind: Any) -> str:
     return SEGMENT.get(str(getattr(kind, "value", kind)), SEGMENT_OTHER)
 
 
-def rc() -> dict[str, Any]:
+def rc() -> dict[Any, Any]:
     """Return matplotlib rc settings for every magalign figure.
 
     Fonts of 10 pt and more (figures are embedded at about their size in inches at 100 %

@@ -306,7 +306,7 @@ class Calibration:
             sig = [np.inf if s is None else s for s in d["sigma_rotvec_deg"]]
             return cls(
                 R_body_mag=d["R_body_mag"],
-                sigma_rotvec_deg=sig,
+                sigma_rotvec_deg=np.asarray(sig, dtype=float),
                 B_enu_nT=d["B_enu_nT"],
                 estimator=d["estimator"],
                 residual_rms_nT=d["residual_rms_nT"],

@@ -48,7 +48,7 @@ columns are checked against finite differences in ``tests/test_model.py``.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -92,13 +92,13 @@ def skew_rows(v: F64) -> F64:
 def drift_basis(t_s: F64, span_s: float) -> F64:
     """Legendre P1..P4 of the time scaled to [-1, 1] over ``[0, span_s]``, (N, 4)."""
     x = 2.0 * np.asarray(t_s, dtype=float) / max(span_s, 1e-9) - 1.0
-    return np.polynomial.legendre.legvander(x, DRIFT_DEGREE)[:, 1:]
+    return cast(F64, np.polynomial.legendre.legvander(x, DRIFT_DEGREE)[:, 1:])
 
 
 def heading_basis(t_s: F64, span_s: float) -> F64:
     """Legendre P1..P2 of the time scaled to [-1, 1] over ``[0, span_s]``, (N, 2)."""
     x = 2.0 * np.asarray(t_s, dtype=float) / max(span_s, 1e-9) - 1.0
-    return np.polynomial.legendre.legvander(x, HEADING_DEGREE)[:, 1:]
+    return cast(F64, np.polynomial.legendre.legvander(x, HEADING_DEGREE)[:, 1:])
 
 
 def rotate_about_up(v_enu: F64, h_rad: F64) -> F64:
@@ -211,11 +211,13 @@ class ForwardModel:
             return lst[0] if lst else None
 
         o = cal.offset_nT
-        if o is None and first("hard_iron") is not None:
-            o = np.asarray(first("hard_iron")["offset_nT"], dtype=float).reshape(3)
+        hard = first("hard_iron")
+        if o is None and hard is not None:
+            o = np.asarray(hard["offset_nT"], dtype=np.float64).reshape(3)
         D = cal.D
-        if D is None and first("soft_iron") is not None:
-            D = np.asarray(first("soft_iron")["D"], dtype=float).reshape(3, 3)
+        soft = first("soft_iron")
+        if D is None and soft is not None:
+            D = np.asarray(soft["D"], dtype=np.float64).reshape(3, 3)
         tau = cal.time_offset_s
         if tau is None:
             p = first("time_offset")
@@ -418,7 +420,7 @@ def _rate(model: ForwardModel, it: AttitudeInterpolator, t_ns: NDArray[np.int64]
     ident = np.array([0.0, 0.0, 0.0, 1.0])
     # clamped: the neighbours of a valid sample may fall just outside the span
     qs = [it.at(t_ns, tau + d, clamp=True).q_enu_body for d in (-h, 0.0, h)]  # s+h, s, s-h
-    Cp, C0, Cm = (_Ct(np.where(np.isfinite(x).all(axis=1)[:, None], x, ident)) for x in qs)
+    Cp, C0, Cm = (_Ct(np.where(np.all(np.isfinite(x), axis=1)[:, None], x, ident)) for x in qs)
     Cdot = (Cp - Cm) / (2.0 * h)
     Cddot = (Cp - 2.0 * C0 + Cm) / (h * h)
     mdot = np.matmul(Cdot, Bt[:, :, None])[:, :, 0] @ model.R_body_mag
@@ -471,7 +473,7 @@ def restore(model: ForwardModel, mag_nT: F64, t_ns: NDArray[np.int64],
     ev = evaluate(model, t_ns, attitude, **kw)
     c = y - ev.sensor_nT
     if model.D is not None:
-        c = np.linalg.solve(model.D, c.T).T
+        c = cast(F64, np.linalg.solve(model.D, c.T).T)
     q = np.where(ev.valid[:, None], ev.q_enu_body, np.array([0.0, 0.0, 0.0, 1.0]))
     enu = quat_rotate(q, c @ model.R_body_mag.T)
     if ev.heading_rad is not None:

@@ -114,12 +114,14 @@ def wahba_init(data: FitData, n_iter: int = 10) -> ModelState:
         for _ in range(n_iter):
             if data.B_known_enu_nT is None:
                 B = np.mean(_mv(C, y @ R.T), axis=0)
+            assert B is not None  # known, or the mean just computed
             b = B @ C  # rows C.T @ B
             # Wahba: R = argmin sum |b - R y|^2 (Kabsch)
             Hm = b.T @ y
             U, _, Vt = np.linalg.svd(Hm)
             Sd = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
             R = U @ Sd @ Vt
+        assert B is not None, "wahba_init needs n_iter >= 1 without a known field"
         b = B @ C
         cost = float(np.sum((y - b @ R) ** 2))
         if best is None or cost < best[0]:

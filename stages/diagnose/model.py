@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -98,6 +98,7 @@ class AttitudeTrack:
 
     t_s: F64
     q_enu_body: F64
+    _interp: AttitudeInterpolator = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         t_s = np.asarray(self.t_s, dtype=float)
@@ -291,7 +292,7 @@ def drift_basis(t_s: F64, t0_s: float, t1_s: float) -> F64:
     smooth: a few Legendre polynomials per ENU axis carry it; the constant is ``B_enu``.
     """
     x = (2.0 * (np.asarray(t_s) - t0_s) / max(t1_s - t0_s, 1e-9)) - 1.0
-    return np.polynomial.legendre.legvander(x, DRIFT_DEGREE)[:, 1:]
+    return cast(F64, np.polynomial.legendre.legvander(x, DRIFT_DEGREE)[:, 1:])
 
 
 def hat_basis(t_s: F64, knots: F64) -> F64:
@@ -411,6 +412,13 @@ class Evaluation:
     ydot0_nT_s: F64
     G: F64
     sqrt_w: F64 | None = None
+
+    @property
+    def jac(self) -> F64:
+        """``J`` of an evaluation made with the Jacobian (raises for one made without)."""
+        if self.J is None:
+            raise ValueError("the model was evaluated without its Jacobian")
+        return self.J
 
 
 def sample_weights(data: FitData, tau_s: float) -> F64 | None:
@@ -627,6 +635,7 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             J[:, :, i : i + 5] = np.matmul(G, dB)
         elif k is EffectKind.HEADING_DRIFT:
             # d(Rz(h) B)/dh = Rz(h + pi/2) B with the vertical part removed; h = P v
+            assert h_rad is not None  # computed above: the model has the heading_drift term
             dB = rotate_about_up(Bt_unturned, h_rad + 0.5 * np.pi)
             dB[:, 2] = 0.0
             P = heading_basis(t, _span(data))

@@ -8,6 +8,7 @@ in time are located first by a scan of the robust residual norm (``scan_windows`
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 
@@ -290,7 +291,7 @@ def diagnose_data(
             Bc = cur.state.B_enu_nT
             reason = identifiability_reason(
                 term.kind, stats, data, st.efficiency,
-                horizontal_fraction=float(np.linalg.norm(Bc[:2]) / max(np.linalg.norm(Bc),
+                horizontal_fraction=float(np.linalg.norm(Bc[:2]) / max(float(np.linalg.norm(Bc)),
                                                                         1e-9)))
             if reason is None and st.rot_efficiency < CONFOUND_RATIO \
                     and term.kind not in LOCAL_KINDS:
@@ -337,26 +338,27 @@ def diagnose_data(
         by_kind = {f[1].term.kind: f for f in fits}
         if fits:
             best = fits[0]
-            simpler = {**NESTED_SIMPLER,
+            simpler_kind = {**NESTED_SIMPLER,
                        EffectKind.DISTURBANCE: EffectKind.HARD_IRON_STEP}.get(best[1].term.kind)
-            if simpler is not None:
-                alt = by_kind.get(simpler)
-                if alt is None and simpler in NESTED_SIMPLER.values() and simpler not in present:
-                    fr = _refit(cur, Term(simpler), data, cfg)
-                    alt = None if fr is None else (fr[1], best[1], fr[0])
-                elif alt is None and simpler is EffectKind.HARD_IRON_STEP:
-                    fr = _refit(cur, Term(simpler, best[1].term.windows_s), data, cfg)
-                    alt = None if fr is None else (fr[1], best[1], fr[0])
+            if simpler_kind is not None:
+                alt_fit = by_kind.get(simpler_kind)
+                if (alt_fit is None and simpler_kind in NESTED_SIMPLER.values()
+                        and simpler_kind not in present):
+                    fr = _refit(cur, Term(simpler_kind), data, cfg)
+                    alt_fit = None if fr is None else (fr[1], best[1], fr[0])
+                elif alt_fit is None and simpler_kind is EffectKind.HARD_IRON_STEP:
+                    fr = _refit(cur, Term(simpler_kind, best[1].term.windows_s), data, cfg)
+                    alt_fit = None if fr is None else (fr[1], best[1], fr[0])
                 # the pairs of NESTED_SIMPLER are compared with one effective sample count:
                 # with each its own, a time offset lost to eddy currents by the texture of
                 # the residuals alone (issue 15); the window pair keeps its calibrated rule
-                if alt is not None and simpler in NESTED_SIMPLER.values():
-                    prefer = _bic_between(alt[2], best[2], data) <= cfg.bic_margin
+                if alt_fit is not None and simpler_kind in NESTED_SIMPLER.values():
+                    prefer = _bic_between(alt_fit[2], best[2], data) <= cfg.bic_margin
                 else:
-                    prefer = alt is not None and alt[0] <= best[0] + cfg.bic_margin
-                if alt is not None and prefer:
+                    prefer = alt_fit is not None and alt_fit[0] <= best[0] + cfg.bic_margin
+                if alt_fit is not None and prefer:
                     fits.remove(best) if best in fits else None
-                    fits.insert(0, alt)
+                    fits.insert(0, alt_fit)
         accepted = False
         for dbic, st, res in fits:
             cv_new = _heldout_ok(cur, res, data, cfg, cv_cur)
@@ -400,18 +402,18 @@ def diagnose_data(
                 cur = res_wo
                 cv_cur = heldout_rms(cur.state, data, cfg)
                 continue
-            simpler = _simpler(t_i)
-            if simpler is not None and simpler.kind not in {t.kind for t in st_wo.terms}:
-                res_s = fit(res_wo.state.with_term(simpler), data)
+            simpler_term = _simpler(t_i)
+            if simpler_term is not None and simpler_term.kind not in {t.kind for t in st_wo.terms}:
+                res_s = fit(res_wo.state.with_term(simpler_term), data)
                 if _bic(res_s.rss, n_eff, res_s.state.n_params()) - bic_cur < cfg.bic_margin:
                     # the simpler nested term explains the data as well: it replaces the other
                     cv_s = heldout_rms(res_s.state, data, cfg)
-                    st_s = score_test(res_wo, simpler, data, robust_sigma(res_wo.residual_nT))
+                    st_s = score_test(res_wo, simpler_term, data, robust_sigma(res_wo.residual_nT))
                     dbic_s = _bic(res_s.rss, n_eff, res_s.state.n_params()) - _bic(
                         res_wo.rss, n_eff, res_wo.state.n_params())
                     cv_wo = heldout_rms(res_wo.state, data, cfg)
                     findings.pop(i)
-                    findings.append(_finding(res_wo, res_s, simpler, st_s, dbic_s, cv_wo, cv_s,
+                    findings.append(_finding(res_wo, res_s, simpler_term, st_s, dbic_s, cv_wo, cv_s,
                                              data))
                     dropped.add((t_i.kind, t_i.windows_s))
                     cur, cv_cur = res_s, cv_s
@@ -436,7 +438,7 @@ def diagnose_data(
         )
         for i, f in enumerate(findings)
     ]
-    final = {
+    final: dict[str, Any] = {
         "effects": [f.effect for f in findings],
         "residual_rms_nT": cur.rms_nT,
         "heldout_rms_nT": cv_cur,
@@ -606,7 +608,7 @@ def canonical_rate_terms(res: FitResult, data: FitData) -> FitResult:
     n = max(res.residual_nT.size, 2)
     if not np.isfinite(rss) or rss - res.rss > np.log(n) * res.rss / n:
         return res
-    H, _ = normal_equations(ev.J, r)
+    H, _ = normal_equations(ev.jac, r)
     return FitResult(st, r, rss, H, res.n_iter)
 
 

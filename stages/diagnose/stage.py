@@ -15,8 +15,9 @@ from __future__ import annotations
 
 import dataclasses
 import io
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, cast
 
 import numpy as np
 
@@ -26,6 +27,7 @@ from pipeline.model.sample_hold import SampleHold, detect_sample_hold
 from stages.diagnose.catalogue import EFFECTS
 from stages.diagnose.fit import FitResult, fit
 from stages.diagnose.model import (
+    F64,
     LOCAL_KINDS,
     AttitudeTrack,
     EffectKind,
@@ -45,7 +47,7 @@ def fit_data_from(
     recording: Recording,
     aligned: AlignedSeries,
     *,
-    reference_field_enu_nT: np.ndarray | None = None,
+    reference_field_enu_nT: Sequence[float] | np.ndarray | None = None,
     max_samples: int | None = None,
 ) -> FitData:
     """Build the fitting data: stamps in s from the first magnetometer sample.
@@ -60,9 +62,11 @@ def fit_data_from(
         ta = (np.asarray(recording.attitude.t_ns, dtype=np.int64) - t0) * 1e-9
         # THE interpolator, as calibrate and restore: the same recording and model
         # give the same prediction
-        track = AttitudeTrack(ta, np.asarray(recording.attitude.q_enu_body, dtype=float))
+        track = AttitudeTrack(cast(F64, ta),
+                              np.asarray(recording.attitude.q_enu_body, dtype=np.float64))
     else:
-        track = AttitudeTrack(t_s - aligned.time_offset_s, np.asarray(aligned.q_enu_body))
+        track = AttitudeTrack(cast(F64, t_s - aligned.time_offset_s),
+                              np.asarray(aligned.q_enu_body, dtype=np.float64))
     y = np.asarray(aligned.mag_nT, dtype=float)
     # a sample whose sensing time t - tau falls outside the attitude track cannot be
     # predicted (the track is held at its ends): for lags up to MAX_LAG_S the samples that
@@ -88,7 +92,8 @@ def fit_data_from(
         if pos:
             pos["p_m"] = pos["p_m"][::stride]
     B = None if reference_field_enu_nT is None else np.asarray(reference_field_enu_nT, float)
-    return FitData(t_s, y, track, B_known_enu_nT=B, stride=stride, n_available=n_avail, **pos)
+    return FitData(cast(F64, t_s), y, track, B_known_enu_nT=B, stride=stride,
+                   n_available=n_avail, **pos)
 
 
 #: Positions are used only when at least this fraction of the samples has one.
@@ -186,7 +191,7 @@ def sample_hold_finding(
                                aligned.q_enu_body[keep], aligned.time_offset_s, al_idx[keep])
         train = fit_data_from(recording, al_new, reference_field_enu_nT=reference_field_enu_nT,
                               max_samples=cfg.max_samples)
-        test = dataclasses.replace(data, t_s=(t_new[idx] - t0) * 1e-9)
+        test = dataclasses.replace(data, t_s=cast(F64, (t_new[idx] - t0) * 1e-9))
         if len(train) < 30:
             continue
         cv = _heldout_split(res.state, train, test, cfg, float(data.t_s[0]))
@@ -322,7 +327,7 @@ def final_split(res: FitResult, data: FitData):
     if len(data) < 200:
         return None
     ev = evaluate(res.state, data)
-    Jr = ev.J[:, :, 0:3]
+    Jr = ev.jac[:, :, 0:3]
     first = info_halves(np.einsum("nip,nip->n", Jr, Jr))
     out = []
     for m in (first, ~first):
@@ -375,7 +380,7 @@ class Diagnose:
 
     def run(self, ctx: Context) -> Context:
         """Diagnose ``ctx.recording``; the final model replaces ``ctx.calibration``."""
-        rec, al = ctx.recording, ctx.aligned
+        rec, al = ctx.need_recording(), ctx.need_aligned()
         data = fit_data_from(
             rec, al, reference_field_enu_nT=self.reference_field_enu_nT,
             max_samples=self.config.max_samples,

@@ -102,7 +102,7 @@ def gradient_candidate(cur: FitResult, data: FitData, sigma: float) -> ScoreTest
     cols = []
     for yaw in (0.0, np.pi / 2, np.pi):
         ev = evaluate(cur.state.with_term(Term(EffectKind.FIELD_GRADIENT, yaw_rad=yaw)), data)
-        J = ev.J if ev.sqrt_w is None else ev.J * ev.sqrt_w[:, None, None]
+        J = ev.jac if ev.sqrt_w is None else ev.jac * ev.sqrt_w[:, None, None]
         cols.append(J.reshape(-1, J.shape[-1]))
     Jb = cols[0][:, :p0]
     C = 0.5 * (cols[0][:, p0:] + cols[2][:, p0:])
@@ -130,7 +130,7 @@ def score_test(cur: FitResult, term: Term, data: FitData, sigma: float) -> Score
     """Score test of adding ``term`` to the model of ``cur`` (no refit)."""
     st = cur.state.with_term(term)
     ev = evaluate(st, data)
-    J = ev.J if ev.sqrt_w is None else ev.J * ev.sqrt_w[:, None, None]
+    J = ev.jac if ev.sqrt_w is None else ev.jac * ev.sqrt_w[:, None, None]
     return _score_from_J(cur, term, J.reshape(-1, J.shape[-1]), data, sigma)
 
 
@@ -270,7 +270,7 @@ def anisotropic_eddy_test(cur: FitResult, data: FitData, sigma: float) -> ScoreT
     """
     term = Term(EffectKind.EDDY_CURRENT)
     ev = evaluate(cur.state.with_term(term), data)
-    J = ev.J.reshape(-1, ev.J.shape[-1])
+    J = ev.jac.reshape(-1, ev.jac.shape[-1])
     p0 = cur.state.n_params()
     Jt = np.concatenate([J[:, :p0], J[:, p0:] @ _TRACELESS.T], axis=1)
     return _score_from_J(cur, term, Jt, data, sigma)

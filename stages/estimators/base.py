@@ -369,7 +369,7 @@ def analyse(
         # Directions with no information at all (H v = 0 inside the block) make the
         # generalised problem 0 = lambda * 0; take them from the null space of the full H.
         Vs = V[:, ~keep]
-        for j in range(Vs.shape[1]):
+        for j in range(Vs.shape[1]):  # type: ignore[assignment]  # j: an index, as above
             part = Vs[b, j]
             if np.linalg.norm(part) > 0.1:
                 nul_list.append(part / d[b])

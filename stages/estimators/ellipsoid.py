@@ -15,6 +15,7 @@ field is given). Its sigmas come from the rotation-only information of that seco
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -110,7 +111,7 @@ class EllipsoidEstimator:
             # With a known |B| the scale of D is observable: corrected norm = |B_ref|.
             m0 = np.linalg.solve(D, (p.mag_nT - o).T).T
             D = D * float(np.mean(np.linalg.norm(m0, axis=1))) / float(np.linalg.norm(B_ref))
-        m = np.linalg.solve(D, (p.mag_nT - o).T).T
+        m = cast(F64, np.linalg.solve(D, (p.mag_nT - o).T).T)
         C = p.C_enu_body
         R, B = init_rotation(m, C, B_ref, iterations=30)
         # Rotation-only information of the Wahba step (isotropic noise, scaled by residuals).

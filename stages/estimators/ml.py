@@ -27,12 +27,14 @@ changes the predicted body field by ``b x delta``; at 50,000 nT, 0.015 deg of pi
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
 from pipeline.core.errors import EstimationError
 from pipeline.core.geometry import quat_to_matrix, skew, so3_exp
 from pipeline.core.recording import AttitudeSeries
+from pipeline.model.attitude import AttitudeInterpolator
 from pipeline.model.calibration import Calibration
 from stages.estimators.base import (
     F64,
@@ -122,7 +124,7 @@ class Model:
                 n += size
         self.n_params = n
         self._C_cache: tuple[float, F64] | None = None
-        self._interp = None  # THE attitude interpolator, built on first use
+        self._interp: AttitudeInterpolator | None = None  # THE interpolator, built on first use
         self._C0 = problem.C_enu_body  # computed once: the property converts every call
 
     # ------------------------------------------------------------------ attitude
@@ -140,8 +142,6 @@ class Model:
 
     def omega_body(self, tau: float) -> F64:
         """Angular velocity of THE attitude interpolation at ``t - tau``, body, rad/s."""
-        from pipeline.model.attitude import AttitudeInterpolator
-
         if self._interp is None:
             self._interp = AttitudeInterpolator.of(self.attitude, max_gap_s=np.inf, clamp=True)
         return self._interp.at(self.p.t_ns, tau).omega_body_rad_s
@@ -370,7 +370,7 @@ class MLEstimator:
                     D = D_e * 3.0 / np.trace(D_e)
             except EstimationError:
                 pass  # single-axis data: start from o = 0, D = I; GN finds what is observable
-        yc = np.linalg.solve(D, (y - o).T).T
+        yc = cast(F64, np.linalg.solve(D, (y - o).T).T)
         B_ref = p.reference_field_enu_nT
         cands = None
         if p.R_nominal_body_mag is not None:

@@ -100,7 +100,7 @@ class SufficientStats:
         if len(q) != len(y):
             raise EstimationError(f"{len(q)} attitudes for {len(y)} magnetometer samples")
         C = quat_to_matrix(q).reshape(-1, 9)  # (N, 9): C_enu_body row-major
-        span = (None, None)
+        span: tuple[int, int] | tuple[None, None] = (None, None)
         if t_ns is not None and len(t_ns):
             span = (int(np.min(t_ns)), int(np.max(t_ns)))
         return cls(
@@ -158,7 +158,7 @@ def cost(st: SufficientStats, R: F64, B: F64, o: F64) -> float:
     SRo = st.S @ R @ o
     c = (st.sum_yy - 2.0 * o @ st.sum_y + st.n * o @ o
          - 2.0 * B @ (_T(st, R) - SRo) + st.n * B @ B)
-    return float(max(c, 0.0))
+    return max(float(c), 0.0)
 
 
 def normal_equations(st: SufficientStats, s: _State) -> tuple[F64, F64]:

@@ -66,7 +66,7 @@ def draw(
     n: int = 2000,
     rate_hz: float = 50.0,
     R_body_mag: F64 | None = None,
-    B_enu_nT: F64 = (10000.0, 30000.0, 20000.0),
+    B_enu_nT: F64 | tuple[float, float, float] = (10000.0, 30000.0, 20000.0),
     D: F64 | None = None,
     offset_nT: F64 | None = None,
     time_offset_s: float = 0.0,

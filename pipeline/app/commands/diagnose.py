@@ -57,7 +57,7 @@ def diagnose_file(path: str | Path, *, mag_topic: str | None = None,
     try:
         from stages.estimate import fit_calibration
 
-        cal = fit_calibration(ctx.recording, ctx.aligned)
+        cal = fit_calibration(ctx.recording, ctx.need_aligned())
     except (ImportError, MagalignError):
         cal = None  # the diagnosis starts from its own Wahba solution then
     ctx = ctx.replace(calibration=cal)
@@ -78,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     with display, progress.use_sink(sink):
         ctx = diagnose_file(args.recording, mag_topic=args.mag, attitude_topic=args.attitude,
                             reference_field_enu_nT=None if ref is None
-                            else tuple(float(x) for x in ref))
+                            else (float(ref[0]), float(ref[1]), float(ref[2])))
         from stages.estimate import verdict_line, with_verdict
 
         progress.stage("Judge", STEPS.index("Judge"), len(STEPS), list(STEPS))

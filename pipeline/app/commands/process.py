@@ -77,7 +77,7 @@ def _overrides(args: argparse.Namespace):
     ref = field_from_args(args)
     if ref is not None:
         ov["reference_field"] = ReferenceField(ReferenceFieldMode.FIXED,
-                                               enu_nT=tuple(float(x) for x in ref))
+                                               enu_nT=(float(ref[0]), float(ref[1]), float(ref[2])))
     if args.mag is not None:
         ov["mag_topic"] = args.mag
     if args.attitude is not None:
