@@ -1,1 +1,4 @@
-"""io layer."""
+"""The file layer: MCAP reading and writing, CDR layouts, message encoders.
+
+Imports ``pipeline.core`` and ``schemas`` only (docs/architecture.md, ``tests/test_layers.py``).
+"""
