@@ -168,3 +168,24 @@ def test_cubic_weight_follows_motion_against_noise():
     it1 = AttitudeInterpolator(t, fast, max_gap_s=0.05)
     it2 = AttitudeInterpolator(t, fast, max_gap_s=np.inf, clamp=True)
     assert it1.cubic_weight == it2.cubic_weight
+
+
+def test_interpolation_error_is_measured_from_the_track_without_the_noise():
+    # the curve through every 2nd and every 4th sample against the samples midway: the
+    # attitude noise cancels in the difference, the interpolation error does not
+    from pipeline.model.attitude import AttitudeInterpolator, interpolation_error_rad
+
+    t = T0 + np.arange(0, 60_000_000_000, 80_000_000, dtype=np.int64)  # 12.5 Hz
+    t_s = (t - T0) * 1e-9
+    it = AttitudeInterpolator(t, _wobble(t_s).as_quat(), max_gap_s=1.0)
+    # truth: the curve's own error midway between its samples
+    mid = t[:-1] + 40_000_000
+    got = it.at(mid[5:-5])
+    true_err = (Rotation.from_quat(got.q_enu_body) * _wobble((mid[5:-5] - T0) * 1e-9).inv())
+    rms_true = float(np.sqrt(np.mean(true_err.magnitude() ** 2)))
+    est = interpolation_error_rad(it)
+    assert rms_true / 3 < est < rms_true * 3, (est, rms_true)
+    # a still attitude with 0.03 deg of white noise has none
+    rng = np.random.default_rng(9)
+    still = Rotation.from_rotvec(rng.normal(0, np.radians(0.03), (len(t), 3))).as_quat()
+    assert interpolation_error_rad(AttitudeInterpolator(t, still, max_gap_s=1.0)) == 0.0

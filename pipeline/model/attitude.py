@@ -375,14 +375,76 @@ def interpolation_noise_factor(position: F64, cubic_weight: float = 1.0) -> F64:
     return sum((b + lam * (a - b)) ** 2 for a, b in zip(cr, sl, strict=True))
 
 
+def interpolation_error_shape(position: F64) -> F64:
+    """Shape of the interpolation error's variance between two samples, (N,), mean 8/15.
+
+    The error of an interpolating curve vanishes on the samples and peaks midway; its
+    variance goes as ``(s (1 - s))^2``, scaled here to 1 at ``s = 1/2``.
+    """
+    s = np.asarray(position, dtype=float)
+    return 16.0 * (s * (1.0 - s)) ** 2
+
+
+#: mean over ``s`` of :func:`interpolation_error_shape`
+MEAN_INTERPOLATION_ERROR_SHAPE = 8.0 / 15.0
+
+
+def _midway_error2(it: AttitudeInterpolator, m: int) -> F64:
+    """Return the squared angles (rad^2) of the curve through every ``m``-th sample.
+
+    Taken at the samples midway (the same ``lam``), against those samples.
+    """
+    t, q = it.t_ns, it.q_enu_body
+    base = AttitudeInterpolator(t[0::m], q[0::m], max_gap_s=it.max_gap_s * m,
+                                cubic_weight=it.cubic_weight)
+    h = m // 2
+    mid_t, mid_q = t[h::m], q[h::m]
+    got = base.at(mid_t)
+    ok = got.valid
+    dq = quat_mul(quat_conj(mid_q[ok]), got.q_enu_body[ok])
+    dq = np.where(dq[:, 3:4] < 0, -dq, dq)
+    e2 = np.sum(quat_to_rotvec(dq) ** 2, axis=1)
+    return e2[e2 <= 100.0 * max(float(np.median(e2)), 1e-30)] if len(e2) else e2  # gaps
+
+
+def interpolation_error_rad(it: AttitudeInterpolator) -> float:
+    """RMS angle (rad) of the interpolator's own error midway between samples, from the track.
+
+    The curve through every second sample is compared with the samples midway, and so is
+    the curve through every fourth: the mean squared differences are ``E_2 = N + 2^(2p) e^2``
+    and ``E_4 = N + 2^(4p) e^2``, ``N`` the attitude noise's share (the same at both spacings,
+    so it need not be known), ``e`` the error midway at the track's own spacing and ``p`` its
+    order (4 for the cubic's midway error on evenly spaced samples, 2 for SLERP, blended by
+    ``lam``). ``e^2 = (E_4 - E_2) / (2^(4p) - 2^(2p))``, counted beyond three standard errors
+    of the difference. Gaps and glitches (errors over 100 times the median) are left out.
+    """
+    if len(it) < 40:
+        return 0.0
+    e2, e4 = _midway_error2(it, 2), _midway_error2(it, 4)
+    if len(e2) < 10 or len(e4) < 10:
+        return 0.0
+    p = 2.0 + 2.0 * it.cubic_weight
+    se = float(np.sqrt(np.var(e2) / len(e2) + np.var(e4) / len(e4)))
+    d = float(np.mean(e4) - np.mean(e2)) - 3.0 * se
+    if d <= 0:
+        return 0.0
+    return float(np.sqrt(d / (2.0 ** (4 * p) - 2.0 ** (2 * p))))
+
+
 def attitude_noise_rad(q_enu_body: F64) -> float:
     """Robust estimate of the white attitude noise of a sampled track (RMS angle, rad).
 
-    From the second differences of the sign-aligned quaternions (the motion of a few Hz at
-    most barely contributes at attitude rates of 50 Hz and more): a small error ``delta``
-    (rad, any axes) moves the vector part by ``delta / 2``, so for white noise
-    ``E |d2|^2 = 6/4 E |delta|^2``; second differences over ten times their median (motion
-    spikes) are left out.
+    The smaller of two estimates, each of which a motion can only inflate:
+
+    - from the second differences of the sign-aligned quaternions: a small error ``delta``
+      (rad, any axes) moves the vector part by ``delta / 2``, so for white noise
+      ``E |d2|^2 = 6/4 E |delta|^2``; second differences over ten times their median (motion
+      spikes) are left out. At attitude rates of 50 Hz and more a motion of a few Hz barely
+      contributes;
+    - from the top quarter of the spectrum of the rotation increments (0.75 to 1 times the
+      Nyquist frequency): white noise differenced has the periodogram ``2 v (1 - cos w)``
+      per component there, while a hand-held or vehicle motion stays well below it. This
+      one holds at slow attitude rates, where the motion fills the second differences.
     """
     q = np.array(q_enu_body, dtype=float)
     if len(q) < 30:
@@ -394,7 +456,18 @@ def attitude_noise_rad(q_enu_body: F64) -> float:
     med = float(np.median(e2))
     if med <= 0:
         return 0.0
-    return float(np.sqrt(np.mean(e2[e2 <= 10.0 * med]) / 1.5))
+    second = float(np.sqrt(np.mean(e2[e2 <= 10.0 * med]) / 1.5))
+    dq = quat_mul(quat_conj(q[:-1]), q[1:])
+    phi = quat_to_rotvec(np.where(dq[:, 3:4] < 0, -dq, dq))
+    phi = phi - phi.mean(axis=0)
+    m = len(phi)
+    P = np.abs(np.fft.rfft(phi, axis=0)) ** 2 / m  # (m // 2 + 1, 3)
+    w = 2.0 * np.pi * np.arange(P.shape[0]) / m
+    band = w >= 0.75 * np.pi
+    if band.sum() < 5:
+        return second
+    v = float(np.mean(np.sum(P[band], axis=1) / (2.0 * (1.0 - np.cos(w[band])))))
+    return min(second, float(np.sqrt(max(v, 0.0))))
 
 
 def interpolate_attitude(

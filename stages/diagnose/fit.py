@@ -32,7 +32,7 @@ class FitResult:
     n_iter : int
     raw_residual_nT : ndarray (N, 3) or None
         ``y - prediction`` unweighted (None: the same as ``residual_nT``).
-    noise_model : (float, float) or None
+    noise_model : (float, float, float) or None
         ``FitData.noise_model`` the fit was weighted with.
 
     """
@@ -43,7 +43,7 @@ class FitResult:
     info: F64
     n_iter: int
     raw_residual_nT: F64 | None = None
-    noise_model: tuple[float, float] | None = None
+    noise_model: tuple[float, float, float] | None = None
 
     @property
     def rms_nT(self) -> float:

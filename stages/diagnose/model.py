@@ -93,18 +93,23 @@ class AttitudeTrack:
         Stamps in seconds from the first magnetometer sample, increasing.
     q_enu_body : ndarray (M, 4)
         Scalar-last unit quaternions.
+    lam : float or None
+        The interpolator's cubic weight ((A7) of :mod:`pipeline.model.attitude`); None: from
+        the samples (:attr:`cubic_weight`).
 
     """
 
     t_s: F64
     q_enu_body: F64
+    lam: float | None = None
     _interp: AttitudeInterpolator = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         t_s = np.asarray(self.t_s, dtype=float)
         # ns relative to the first sample keep the spacing exact to 1 ns
         t_ns = np.round((t_s - t_s[0]) * 1e9).astype(np.int64) if len(t_s) else t_s
-        interp = AttitudeInterpolator(t_ns, self.q_enu_body, max_gap_s=np.inf, clamp=True)
+        interp = AttitudeInterpolator(t_ns, self.q_enu_body, max_gap_s=np.inf, clamp=True,
+                                      cubic_weight=self.lam)
         object.__setattr__(self, "_interp", interp)
 
     def at(self, t_s: F64) -> F64:
@@ -122,14 +127,20 @@ class AttitudeTrack:
         tq = np.asarray(t_s, dtype=float) - float(self.t_s[0])
         return self._interp.at_rel_s(tq).omega_body_rad_s
 
-    def noise_factor(self, t_s: F64) -> F64:
-        """Interpolation noise factor at ``t_s`` (:meth:`AttitudeInterpolator.noise_factor`)."""
-        return self._interp.noise_factor(self.position(t_s))
-
     @property
     def cubic_weight(self) -> float:
         """``lam`` of the interpolator (:mod:`pipeline.model.attitude`, (A7))."""
         return float(self._interp.cubic_weight)
+
+    @property
+    def interpolator(self) -> AttitudeInterpolator:
+        """THE interpolator of this track."""
+        return self._interp
+
+    def noise_factor(self, t_s: F64) -> F64:
+        """Interpolation noise factor at ``t_s`` (:meth:`AttitudeInterpolator.noise_factor`)."""
+        return self._interp.noise_factor(self.position(t_s))
+
 
     @property
     def step_s(self) -> float:
@@ -161,15 +172,18 @@ class FitData:
     position_frame : str or None
         ``enu`` or ``attitude_source_local`` (third axis up, horizontal axes rotated about Up
         by an unknown angle).
-    noise_model : (float, float) or None
-        ``(sigma_mag2, c_att)``, nT^2: the variance of a residual component is modelled as
-        ``sigma_mag2 + c_att f(s)``, ``f`` the interpolated attitude noise factor of where the
-        sample falls between two attitude samples (:func:`sample_weights`). None: equal
-        weights.
+    noise_model : (float, float, float) or None
+        ``(sigma_mag2, c_att, c_int)``, nT^2: the variance of a residual component is
+        modelled as ``sigma_mag2 + c_att f(s) + c_int g(s)``, ``f`` the interpolated attitude
+        noise factor and ``g`` the interpolation error's shape at where the sample falls
+        between two attitude samples (:func:`sample_weights`). None: equal weights.
     stride : int
         Every ``stride``-th usable sample was kept (decimated to a sample budget).
     n_available : int or None
         Usable samples before the decimation.
+    interp_error_nT : ndarray (N, 3) or None
+        What the attitude's interpolation error alone would leave in the residual
+        (:func:`interpolation_error_proxy`); terms it could produce are not named.
 
     """
 
@@ -183,7 +197,8 @@ class FitData:
     position_frame: str | None = None
     stride: int = 1
     n_available: int | None = None
-    noise_model: tuple[float, float] | None = None
+    noise_model: tuple[float, float, float] | None = None
+    interp_error_nT: F64 | None = None
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
@@ -191,7 +206,8 @@ class FitData:
     def subset(self, mask: np.ndarray) -> FitData:
         """Return the samples where ``mask`` is true (same attitude track)."""
         p = None if self.p_m is None else self.p_m[mask]
-        return replace(self, t_s=self.t_s[mask], y_nT=self.y_nT[mask], p_m=p)
+        e = None if self.interp_error_nT is None else self.interp_error_nT[mask]
+        return replace(self, t_s=self.t_s[mask], y_nT=self.y_nT[mask], p_m=p, interp_error_nT=e)
 
     @property
     def dp_m(self) -> F64:
@@ -424,15 +440,16 @@ class Evaluation:
 def sample_weights(data: FitData, tau_s: float) -> F64 | None:
     """Likelihood weights of the samples from where they fall between attitude samples.
 
-    The prediction is THE one (:mod:`pipeline.model.attitude`); the white noise of
-    the attitude samples reaches the interpolated attitude with the variance factor
-    ``f(s)`` (:func:`pipeline.model.attitude.interpolation_noise_factor`),
-    ``s`` the position of ``t - tau`` between its two samples. Each residual component then
-    has the variance ``v = sigma_mag2 + c_att f(s)`` (``FitData.noise_model``); the weight is
-    ``w = v_mean / v`` with ``v_mean = sigma_mag2 + f_mean c_att``
-    (``f_mean`` the average over ``s``, 2/3 to 57/70), a
-    constant: ``sum w r^2`` then has the same expectation whatever ``tau`` (an unweighted fit
-    would drift ``tau`` and the eddy terms towards the low-noise mid-points).
+    The prediction is THE one (:mod:`pipeline.model.attitude`); what it cannot know about
+    the attitude between two samples goes into the likelihood. The white noise of the
+    attitude samples reaches the interpolated attitude with the variance factor ``f(s)``
+    (:func:`pipeline.model.attitude.interpolation_noise_factor`), the interpolation's own
+    error with ``g(s)`` (:func:`pipeline.model.attitude.interpolation_error_shape`: none on a
+    sample, most midway), ``s`` the position of ``t - tau`` between its two samples. Each
+    residual component then has the variance ``v = sigma_mag2 + c_att f(s) + c_int g(s)``
+    (``FitData.noise_model``); the weight is ``w = v_mean / v`` with ``v_mean`` its average
+    over ``s``, a constant: ``sum w r^2`` then has the same expectation whatever ``tau`` (an
+    unweighted fit would drift ``tau`` and the eddy terms towards the low-noise mid-points).
 
     Returns
     -------
@@ -442,35 +459,82 @@ def sample_weights(data: FitData, tau_s: float) -> F64 | None:
     """
     if data.noise_model is None:
         return None
-    from pipeline.model.attitude import mean_interpolation_noise_factor
+    from pipeline.model.attitude import (
+        MEAN_INTERPOLATION_ERROR_SHAPE,
+        interpolation_error_shape,
+        mean_interpolation_noise_factor,
+    )
 
-    s2, c = data.noise_model
+    s2, c, c_int = data.noise_model
+    pos = data.track.position(data.t_s - tau_s)
     f = data.track.noise_factor(data.t_s - tau_s)
-    return (s2 + mean_interpolation_noise_factor(data.track.cubic_weight) * c) / (s2 + c * f)
+    g = interpolation_error_shape(pos)
+    v_mean = (s2 + mean_interpolation_noise_factor(data.track.cubic_weight) * c
+              + MEAN_INTERPOLATION_ERROR_SHAPE * c_int)
+    return v_mean / (s2 + c * f + c_int * g)
 
 
-def estimate_noise_model(residual_nT: F64, data: FitData) -> tuple[float, float] | None:
-    """``(sigma_mag2, c_att)`` (nT^2) of :func:`sample_weights` from a baseline fit.
+def estimate_noise_model(residual_nT: F64, data: FitData
+                         ) -> tuple[float, float, float] | None:
+    """``(sigma_mag2, c_att, c_int)`` (nT^2) of :func:`sample_weights` from a baseline fit.
 
     ``c_att = 2/9 |B|^2 sigma_att^2``: an isotropic attitude error of RMS angle
     ``sigma_att`` (:func:`pipeline.model.attitude.attitude_noise_rad`, from the track's
     second differences) moves each component of ``C.T B`` by ``2/9 |B|^2 sigma_att^2`` in
-    variance; ``sigma_mag2`` is what the residual variance leaves (at least 5 % of it).
-    None when the attitude noise is negligible (below 0.1 % of the residual variance).
+    variance; ``c_int`` the same for the interpolation's own error midway
+    (:func:`interpolation_error_nT`, from the track interpolated at two and four times its
+    spacing); ``sigma_mag2`` is what the residual variance leaves (at least 5 % of
+    it). None when both are negligible (below 0.1 % of the residual variance).
     """
-    from pipeline.model.attitude import attitude_noise_rad
+    from pipeline.model.attitude import MEAN_INTERPOLATION_ERROR_SHAPE, attitude_noise_rad
 
     var = float(np.mean(np.asarray(residual_nT) ** 2))
     if not np.isfinite(var) or var <= 0:
         return None
     sig = attitude_noise_rad(data.track.q_enu_body)
     y = np.asarray(data.y_nT, dtype=float)
-    c = 2.0 / 9.0 * float(np.mean(np.sum(y * y, axis=1))) * sig * sig
-    if c < 1e-3 * var:
+    yy = 2.0 / 9.0 * float(np.mean(np.sum(y * y, axis=1)))
+    c = yy * sig * sig
+    c_int = interpolation_error_nT(data) ** 2 / MEAN_INTERPOLATION_ERROR_SHAPE  # midway
+    if c + c_int < 1e-3 * var:
         return None
     f = data.track.noise_factor(data.t_s)
-    s2 = max(var - c * float(np.mean(f)), 0.05 * var)
-    return (s2, c)
+    s2 = max(var - c * float(np.mean(f)) - c_int * MEAN_INTERPOLATION_ERROR_SHAPE, 0.05 * var)
+    return (s2, c, c_int)
+
+
+def interpolation_error_nT(data: FitData) -> float:
+    """RMS of the interpolation error at the magnetometer, nT (noise taken out).
+
+    :func:`pipeline.model.attitude.interpolation_error_rad` midway, averaged over the
+    interval (``8/15`` of the midway variance), as a component of ``C.T B`` (``2/9 |B|^2``
+    per unit squared angle, as the attitude noise of :func:`estimate_noise_model`).
+    """
+    from pipeline.model.attitude import MEAN_INTERPOLATION_ERROR_SHAPE, interpolation_error_rad
+
+    e = interpolation_error_rad(data.track.interpolator)
+    y = np.asarray(data.y_nT, dtype=float)
+    yy = 2.0 / 9.0 * float(np.mean(np.sum(y * y, axis=1)))
+    return float(np.sqrt(yy * MEAN_INTERPOLATION_ERROR_SHAPE) * e)
+
+
+def interpolation_error_proxy(state: ModelState, data: FitData) -> F64:
+    """Return the interpolation error's imprint on the readings, (N, 3), nT, from the track.
+
+    The model is evaluated with every other attitude sample (the same curve, ``lam`` and
+    stamps at twice the spacing) and with all of them: the difference is the error at twice
+    the spacing less the error at the spacing, ``(2^p - 1)`` times the latter (``p = 4`` for
+    the cubic's midway error on evenly spaced samples, ``2`` for SLERP, blended by ``lam``;
+    :func:`pipeline.model.attitude.interpolation_error_rad`). A proxy of the error's size and
+    of the way it projects on the model's terms, not of its sign at each sample.
+    """
+    tr = data.track
+    lam = tr.cubic_weight
+    half = AttitudeTrack(tr.t_s[0::2], tr.q_enu_body[0::2], lam=lam)
+    y_full = evaluate(state, data, jacobian=False).y_nT
+    y_half = evaluate(state, replace(data, track=half), jacobian=False).y_nT
+    p = 2.0 + 2.0 * lam
+    return (y_half - y_full) / (2.0**p - 1.0)
 
 
 _CT_CACHE: dict[tuple, tuple[Any, F64]] = {}

@@ -27,11 +27,14 @@ from stages.diagnose.model import (
     estimate_noise_model,
     evaluate,
     gradient_matrix,
+    interpolation_error_nT,
+    interpolation_error_proxy,
     term_params,
 )
 from stages.diagnose.result import DiagnoseConfig, Diagnosis, Finding, Signature
 from stages.diagnose.statistics import (
     _ISO,
+    INTERP_MARGIN,
     ScoreTest,
     _bic,
     _bic_between,
@@ -41,6 +44,7 @@ from stages.diagnose.statistics import (
     anisotropic_eddy_test,
     gradient_candidate,
     heldout_rms,
+    interp_reason,
     robust_sigma,
     score_test,
 )
@@ -232,12 +236,18 @@ def diagnose_data(
     stats = motion_stats(data)
     # the baseline residual as calibrate reports it (equal weights); then the likelihood's
     # weights for what the attitude noise does between attitude samples
-    # (effects.sample_weights)
+    # (stages.diagnose.model.sample_weights)
     base_rms = cur.rms_nT
     nm = estimate_noise_model(cur.residual_nT, data)
     if nm is not None:
         data = dataclasses.replace(data, noise_model=nm)
         cur = fit(cur.state, data)
+    e_int_nT = interpolation_error_nT(data)
+    if e_int_nT > 0.05 * robust_sigma(cur.residual_nT):
+        # the attitude's own interpolation error stands out of the noise: what it could
+        # produce is not named (ScoreTest.interp_statistic)
+        data = dataclasses.replace(data,
+                                   interp_error_nT=interpolation_error_proxy(cur.state, data))
     cv_cur = heldout_rms(cur.state, data, cfg)
     baseline = {"effects": [], "residual_rms_nT": base_rms, "heldout_rms_nT": cv_cur}
     base_fit, cv_base = cur, cv_cur
@@ -300,6 +310,10 @@ def diagnose_data(
                     f"{st.rot_efficiency:.1e} of its weakest combination stays determined): it "
                     "would trade against the misalignment; rotate through more attitudes"
                 )
+            if (reason is None and st.statistic < INTERP_MARGIN**2 * st.interp_statistic
+                    and st.statistic > st.k * np.log(cur.residual_nT.size)):
+                # it would have been tried, but the interpolation error could produce it
+                reason = interp_reason(data)
             if reason is not None:
                 if term.kind in LOCAL_KINDS:
                     continue

@@ -23,6 +23,7 @@ from stages.diagnose.model import (
     ModelState,
     Term,
     evaluate,
+    sample_weights,
     term_sigma,
 )
 from stages.diagnose.result import DiagnoseConfig
@@ -76,6 +77,10 @@ class ScoreTest:
         The same fraction for the rotation ``R_body_mag`` once the term is in the model, when
         the term at least halves it (else 1): a term that leaves the rotation confounded
         (below ``CONFOUND_RATIO``) is not admitted, however well it fits.
+    interp_statistic : float
+        The same statistic for the attitude's interpolation error alone
+        (``FitData.interp_error_nT``): a term whose statistic is not well beyond it
+        (``INTERP_MARGIN``) could be the interpolation error and is not named.
 
     """
 
@@ -84,6 +89,7 @@ class ScoreTest:
     efficiency: float
     k: int
     rot_efficiency: float = 1.0
+    interp_statistic: float = 0.0
 
 
 def gradient_candidate(cur: FitResult, data: FitData, sigma: float) -> ScoreTest:
@@ -176,12 +182,37 @@ def _score_from_J(
     good = w > 1e-8 * max(float(w[-1]), 1e-30)
     z = V.T @ (geff / sc)
     stat = float(np.sum(z[good] ** 2 / w[good])) / sigma**2
+    stat_int = 0.0
+    if data.interp_error_nT is not None:
+        # the same statistic for what the interpolation error alone leaves (weighted as r)
+        sw = sample_weights(data, cur.state.tau_s())
+        e = data.interp_error_nT if sw is None else data.interp_error_nT * np.sqrt(sw)[:, None]
+        e = e.reshape(-1)
+        ge = gram(Jc, e[:, None])[:, 0]
+        gbe = gram(Jb, e[:, None])[:, 0]
+        xbe = np.linalg.lstsq(Hbb_n + 1e-12 * np.eye(len(sb)), gbe / sb, rcond=None)[0]
+        ze = V.T @ ((ge - (Hbc / sb[:, None]).T @ xbe) / sc)
+        stat_int = float(np.sum(ze[good] ** 2 / w[good])) / sigma**2
     k = int(np.count_nonzero(good)) if partial else term.n_params()
     rot_with = _rot_efficiency(np.concatenate([Jb, Jc], 1))
     rot_base = _rot_efficiency(Jb)
     # what the term itself costs the rotation: below 1 when it trades against R
     rot_eff = rot_with if rot_with < 0.5 * rot_base else 1.0
-    return ScoreTest(term, stat, max(eff, 0.0), max(k, 1), rot_eff)
+    return ScoreTest(term, stat, max(eff, 0.0), max(k, 1), rot_eff, stat_int)
+
+
+#: A term is named only when its score statistic exceeds this factor squared times the one
+#: of the attitude's interpolation error alone (its amplitude three times that error's).
+INTERP_MARGIN = 3.0
+
+
+def interp_reason(data: FitData) -> str:
+    """Why a term the interpolation error could produce is not named, in words."""
+    rate = 1.0 / max(data.track.step_s, 1e-9)
+    rms = float(np.sqrt(np.mean(np.asarray(data.interp_error_nT) ** 2)))
+    return (f"the attitude at {rate:.3g} Hz is too slow for this motion: its own "
+            f"interpolation error (about {rms:.3g} nT RMS at the magnetometer) could produce "
+            "this term; record the attitude faster or move more slowly")
 
 
 def _rot_efficiency(J: np.ndarray) -> float:
