@@ -75,6 +75,17 @@ NESTED_SIMPLER = {
 MAX_LAG_S = 0.1
 
 
+def _excess_runs(s: np.ndarray, med: float, level: float) -> list[tuple[int, int]]:
+    """Index runs where ``s`` stays above half-way to ``level`` and crosses ``level``."""
+    above = s > level
+    if not above.any():
+        return []
+    low_mask = s > med + 0.5 * (level - med)
+    idx = np.flatnonzero(np.diff(np.concatenate([[0], low_mask.astype(int), [0]])))
+    return [(int(a), int(b)) for a, b in zip(idx[0::2], idx[1::2], strict=True)
+            if above[a:b].any()]
+
+
 def scan_windows(
     residual_nT: np.ndarray, t_s: np.ndarray, cfg: DiagnoseConfig
 ) -> list[tuple[float, float]]:
@@ -112,32 +123,51 @@ def scan_windows(
     level = med + cfg.scan_sigma * mad
     # a window needs a real excess, not just a little above a very quiet median
     level = max(level, med + 2.0)
-    above = s > level
-    if not above.any():
-        return []
-    lower = med + 0.5 * (level - med)
-    low_mask = s > lower
-    out: list[tuple[int, int]] = []
-    idx = np.flatnonzero(np.diff(np.concatenate([[0], low_mask.astype(int), [0]])))
-    for a, b in zip(idx[0::2], idx[1::2], strict=True):
-        if above[a:b].any():
-            out.append((a, b))
-    merged: list[list[int]] = []
-    for a, b in out:
-        if merged and a - merged[-1][1] < w:
-            merged[-1][1] = b
-        else:
-            merged.append([a, b])
-    wins = []
-    for a, b in merged:
-        start = float(t_s[a])
-        end = float(t_s[min(b, n - 1)])
-        if end - start < 2 * dt:
-            continue
-        if end - start > 0.5 * (t_s[-1] - t_s[0]):
-            continue  # not local: a global term's job
-        wins.append((start, end))
+    scans = [_excess_runs(s, med, level)]
+    # a weak offset held for seconds (a hard-iron step) barely lifts the squared norm but
+    # moves the mean of the residual vector: the same scan on the moving mean, in units of
+    # its own white-noise spread, at four times the smoothing width (used when the
+    # squared norm opens no window)
+    cr = np.concatenate([np.zeros((1, 3)), np.cumsum(residual_nT, axis=0)])
+    for k in (4,):
+        wk = min(n, k * w)
+        lo_k = np.clip(np.arange(n) - wk // 2, 0, n)
+        hi_k = np.clip(np.arange(n) + wk // 2 + 1, 0, n)
+        m = (cr[hi_k] - cr[lo_k]) / (hi_k - lo_k)[:, None]
+        sv = np.sum(m * m, axis=1) * (hi_k - lo_k) / (3 * sig * sig)
+        med_v = float(np.median(sv))
+        mad_v = float(1.4826 * np.median(np.abs(sv - med_v))) + 1e-12
+        scans.append(_excess_runs(sv, med_v, max(med_v + cfg.scan_sigma * mad_v, med_v + 2.0)))
+    wins: list[tuple[float, float]] = []
+    for runs in scans:  # merged within each scan; a window another scan gave is not repeated
+        if wins:
+            # the moving-mean scans only when the squared norm shows nothing: their
+            # windows would otherwise crowd the few refits of each round
+            break
+        merged: list[list[int]] = []
+        for a, b in runs:
+            if merged and a - merged[-1][1] < w:
+                merged[-1][1] = max(merged[-1][1], b)
+            else:
+                merged.append([a, b])
+        for a, b in merged:
+            start = float(t_s[a])
+            end = float(t_s[min(b, n - 1)])
+            if end - start < 2 * dt:
+                continue
+            if end - start > 0.5 * (t_s[-1] - t_s[0]):
+                continue  # not local: a global term's job
+            if any(_overlap(start, end, x, y) > 0.8 for x, y in wins):
+                continue
+            wins.append((start, end))
     return wins
+
+
+def _overlap(a0: float, a1: float, b0: float, b1: float) -> float:
+    """Intersection over union of two intervals."""
+    inter = max(0.0, min(a1, b1) - max(a0, b0))
+    union = max(a1, b1) - min(a0, b0)
+    return inter / union if union > 0 else 0.0
 
 
 def refine_step(
