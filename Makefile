@@ -73,8 +73,8 @@ golden: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check pipeline stages tests bench
 
-# mypy on the modules listed in pyproject.toml ([tool.mypy] files: the clean ones); `make test`
-# runs it after ruff. See docs/testing.md.
+# mypy on every module of pipeline/, stages/ and schemas/ (pyproject.toml, [tool.mypy]);
+# `make test` runs it after ruff. See docs/testing.md.
 typecheck: $(STAMP)
 	$(BIN)/mypy
 

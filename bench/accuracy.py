@@ -3,7 +3,7 @@
 Multi-axis manoeuvre (two heading turns with +-30 deg pitch and roll swings), 2000 samples at
 50 Hz, field [10000, 30000, 20000] nT unknown to the estimators, misalignment rotation vector
 [1, -2, 3] deg, the paper's sensor figures (magnetometer 0.1 nT; INS heading 0.06 deg, pitch
-and roll 0.015 deg, applied as ``pipeline.simulate`` applies them: heading about ENU up,
+and roll 0.015 deg, applied as ``pipeline.app.simulate`` applies them: heading about ENU up,
 pitch and roll about body x and y). For each misalignment angle (rotation about body x, y, z):
 RMS error of li2020, dpi and ml; the Cramer-Rao bound (Fisher information at the truth with
 the generator's noise model, marginalised over the unknown field); ml's mean reported sigma
@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from pipeline.geometry import so3_log
+from pipeline.core.geometry import so3_log
 from stages.estimate import EstimatorKind, NoiseModel, fit_calibration
 from stages.estimators.base import Problem
 from stages.estimators.ml import fisher_rotation_crb_deg

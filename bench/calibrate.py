@@ -56,7 +56,7 @@ def main() -> int:
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--ros2-runs", type=int, default=1)
     args = ap.parse_args()
-    cli = [str(MAGALIGN)] if MAGALIGN.exists() else [sys.executable, "-m", "pipeline.cli"]
+    cli = [str(MAGALIGN)] if MAGALIGN.exists() else [sys.executable, "-m", "pipeline.app.cli"]
     with tempfile.TemporaryDirectory() as tmp:
         rec = make_recording(Path(tmp) / "cal.mcap", args.n)
         size = rec.stat().st_size / 1e6

@@ -42,8 +42,8 @@ def scenario_text(minutes: float, rate_hz: float, seed: int, name: str) -> str:
 
 def generate(job: tuple[str, str]) -> str:
     """Simulate one scenario text into an MCAP file (runs in a worker)."""
-    from pipeline.config import TomlDoc
-    from pipeline.simulate import scenario_from_doc, simulate, write_simulated
+    from pipeline.app.simulate import scenario_from_doc, simulate, write_simulated
+    from pipeline.core.config import TomlDoc
 
     text, dest = job
     sim = simulate(scenario_from_doc(TomlDoc.parse(text, dest)))
@@ -71,7 +71,7 @@ glob = "rec_*.mcap"
 
 def run_config(camp: Path, out: Path, args: list[str]) -> float:
     """Wall time (s) of one ``magalign process`` run."""
-    from pipeline.cli import main
+    from pipeline.app.cli import main
 
     if out.exists():
         shutil.rmtree(out)
@@ -97,7 +97,7 @@ def main() -> int:
     scratch = Path(a.keep) if a.keep else Path(tempfile.mkdtemp(prefix="magalign-bench-"))
     data = scratch / "data"
     data.mkdir(parents=True, exist_ok=True)
-    from pipeline.executors import LocalExecutor
+    from pipeline.app.executors import LocalExecutor
 
     jobs = [(scenario_text(minutes, a.rate_hz, 1000 + i, f"rec_{i:03d}"),
              str(data / f"rec_{i:03d}.mcap")) for i in range(n)]

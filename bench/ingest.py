@@ -2,7 +2,7 @@
 
 Writes, in a temporary folder, 1M sensor_msgs/MagneticField and 1M sensor_msgs/Imu messages
 interleaved by log time as a logger writes them (zstd chunks, message indexes, summary),
-then reads the same file with ``pipeline.mcap_read.read_recording`` (median of 3 runs), with
+then reads the same file with ``pipeline.io.mcap_read.read_recording`` (median of 3 runs), with
 mcap's ``iter_decoded_messages`` using mcap_ros2's decoder (one run), and the ceiling: reading
 the file and zstd-decompressing every chunk, nothing decoded (median of 3). Prints messages/s,
 the ratio to mcap_ros2 (target, issue 8: at least 30x) and our speed as a fraction of the
@@ -35,7 +35,7 @@ def make_file(path: Path, n: int) -> None:
     yaw = np.linspace(0, 40 * np.pi, n)
     q = np.stack([np.zeros(n), np.zeros(n), np.sin(yaw / 2), np.cos(yaw / 2)], -1)
     try:
-        from pipeline.mcap_write import write_recording
+        from pipeline.io.mcap_write import write_recording
     except ImportError:
         write_recording = None
     if write_recording is not None:
@@ -45,7 +45,7 @@ def make_file(path: Path, n: int) -> None:
     # fallback: the WRITER's encoders and mcap's own writer, one message at a time
     from mcap.writer import CompressionType, Writer
 
-    from pipeline.messages import encode, schema_for
+    from pipeline.io.messages import encode, schema_for
 
     d_mag, o_mag = encode("sensor_msgs/msg/MagneticField", t_mag, {"mag_T": mag_T}, "mag")
     d_att, o_att = encode("sensor_msgs/msg/Imu", t_att, {"q_xyzw": q}, "body")
@@ -96,7 +96,7 @@ def main() -> int:
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
 
-    from pipeline.mcap_read import read_recording
+    from pipeline.io.mcap_read import read_recording
 
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "bench.mcap"
@@ -129,7 +129,7 @@ def main() -> int:
     print(f"file: {N} magnetometer + {N} attitude messages, {size_mb:.0f} MB "
           f"(generated in {t_gen:.1f} s)")
     print(f"{'reader':<40} {'time_s':>8} {'msgs/s':>12}")
-    print(f"{'pipeline.mcap_read.read_recording':<40} {t_ours:8.2f} {total / t_ours:12,.0f}")
+    print(f"{'pipeline.io.mcap_read.read_recording':<40} {t_ours:8.2f} {total / t_ours:12,.0f}")
     print(f"{'mcap_ros2 iter_decoded_messages':<40} {theirs:8.2f} {total / theirs:12,.0f}")
     print(f"{'ceiling: read + zstd-decompress':<40} {t_ceiling:8.2f} {total / t_ceiling:12,.0f}")
     print(f"ours at {t_ceiling / t_ours:.0%} of the ceiling (target >= 50 %)")

@@ -89,7 +89,7 @@ def main() -> int:
     ap.add_argument("--keep", default=None, help="folder to keep the recording in")
     args = ap.parse_args()
     n = int(args.minutes * 60 * RATE_HZ)
-    cli = [str(MAGALIGN)] if MAGALIGN.exists() else [sys.executable, "-m", "pipeline.cli"]
+    cli = [str(MAGALIGN)] if MAGALIGN.exists() else [sys.executable, "-m", "pipeline.app.cli"]
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.keep or tmp)
         work.mkdir(parents=True, exist_ok=True)

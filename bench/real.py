@@ -24,9 +24,9 @@ ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT.parent / "shared" / "data" / "real"
 sys.path.insert(0, str(ROOT))
 
-from pipeline.geometry import matrix_to_quat, quat_to_rotvec  # noqa: E402
-from pipeline.mcap_read import read_recording  # noqa: E402
-from pipeline.recording import Context  # noqa: E402
+from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec  # noqa: E402
+from pipeline.core.recording import Context  # noqa: E402
+from pipeline.io.mcap_read import read_recording  # noqa: E402
 from stages.estimate import Term, fit_calibration  # noqa: E402
 from stages.resample import Resample  # noqa: E402
 
@@ -65,7 +65,7 @@ def one(name: str) -> None:
     print(f"split halves: first {_vec(a.rotvec_body_mag_deg)} +- {_vec(a.sigma_rotvec_deg)}, "
           f"second {_vec(b.rotvec_body_mag_deg)} +- {_vec(b.sigma_rotvec_deg)}; "
           f"z {_vec(z, 1)} (max {np.max(z):.1f})")
-    from stages.diagnose import Diagnose
+    from stages.diagnose.stage import Diagnose
 
     ctx = Context(source=str(path), recording=rec, aligned=al, calibration=cal)
     t0 = time.perf_counter()

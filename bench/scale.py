@@ -50,7 +50,7 @@ RESTORED_BYTES = 113
 
 def synthetic_arrays(n: int, seed: int = 1) -> dict[str, np.ndarray]:
     """Stamps, field and attitude of ``n`` samples at 200 Hz (vectorised, seconds per 1M)."""
-    from pipeline.geometry import li2020_euler_to_quat, quat_conj, quat_rotate, rotvec_to_quat
+    from pipeline.core.geometry import li2020_euler_to_quat, quat_conj, quat_rotate, rotvec_to_quat
 
     rng = np.random.default_rng(seed)
     t0 = 1_700_000_000 * 1_000_000_000
@@ -68,7 +68,7 @@ def synthetic_arrays(n: int, seed: int = 1) -> dict[str, np.ndarray]:
 
 def make_recording(path: Path, n: int) -> Path:
     """Write ``n`` magnetometer + ``n`` attitude messages (ROS 2 CDR, zstd) to ``path``."""
-    from pipeline.mcap_write import write_recording
+    from pipeline.io.mcap_write import write_recording
 
     a = synthetic_arrays(n)
     return write_recording(path, mag_t_ns=a["t_ns"], mag_nT=a["mag_nT"],
@@ -133,8 +133,8 @@ def child(step: str, path: str, work: str) -> None:
     """Run one step in this process and print one JSON line."""
     import warnings
 
-    from pipeline.calibration import Calibration
-    from pipeline.mcap_read import read_recording
+    from pipeline.io.mcap_read import read_recording
+    from pipeline.model.calibration import Calibration
     from stages.estimators.streaming import calibrate_streaming
     from stages.restore import restore_samples
     from stages.write_mcap import write_corrected_mcap

@@ -50,8 +50,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from results import record  # noqa: E402
 from scale import RATE_HZ, make_recording  # noqa: E402
 
-from pipeline.mcap_write import McapColumnWriter  # noqa: E402
-from pipeline.messages import encode, schema_for  # noqa: E402
+from pipeline.io.mcap_write import McapColumnWriter  # noqa: E402
+from pipeline.io.messages import encode, schema_for  # noqa: E402
 
 N = 200_000
 TYPE = "sensor_msgs/msg/MagneticField"
@@ -204,7 +204,7 @@ class SendCapture:
 def part_outputs(minutes: float, repeat: int, keep: str | None) -> None:
     """Part 2: corrected MCAP and .rrd writing against their zstd ceilings."""
     os.environ.setdefault("RUST_LOG", "off")
-    from pipeline.mcap_read import read_recording
+    from pipeline.io.mcap_read import read_recording
     from stages.estimators.streaming import calibrate_streaming
     from stages.restore import restore_samples
     from stages.write_mcap import write_corrected_mcap

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from importlib import resources
 from typing import Any
 
-from pipeline.errors import SchemaError
+from pipeline.core.errors import SchemaError
 
 
 class MessageRole(str, enum.Enum):
@@ -49,7 +49,7 @@ class MessageType:
     encoding : str
         ``"ros2"`` (CDR, schema ``ros2msg``) or ``"json"`` (schema ``jsonschema``).
     columns : tuple of str
-        Columns the encoder (:func:`pipeline.messages.encode`) needs, with their units in the
+        Columns the encoder (:func:`pipeline.io.messages.encode`) needs, with their units in the
         name (``mag_T``, ``q_xyzw``, ``roll_deg``...).
     quaternion, position : str or None
         Dotted CDR paths of the orientation and of a position the reader takes.

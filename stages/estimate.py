@@ -13,11 +13,10 @@ from typing import ClassVar
 
 import numpy as np
 
-from pipeline.calibration import Calibration
-from pipeline.errors import EstimationError
-from pipeline.recording import AlignedSeries, Context, Recording
-
-from .estimators.base import (
+from pipeline.core.errors import EstimationError
+from pipeline.core.recording import AlignedSeries, Context, Recording
+from pipeline.model.calibration import Calibration
+from stages.estimators.base import (
     Estimator,
     EstimatorKind,
     NoiseModel,
@@ -41,6 +40,10 @@ __all__ = [
 ]
 
 
+#: the estimator used when none is named
+DEFAULT_ESTIMATOR: EstimatorKind = EstimatorKind("ml")
+
+
 def make_estimator(kind: EstimatorKind | str) -> Estimator:
     """Return the estimator object for ``kind`` from the registry (default hyperparameters).
 
@@ -52,9 +55,8 @@ def make_estimator(kind: EstimatorKind | str) -> Estimator:
     """
     import importlib
 
-    from pipeline.errors import UsageError
-
-    from .estimators.registry import ESTIMATORS
+    from pipeline.core.errors import UsageError
+    from stages.estimators.registry import ESTIMATORS
 
     name = getattr(kind, "value", kind)
     if name not in ESTIMATORS:
@@ -77,7 +79,7 @@ def fit_calibration(
     recording: Recording | None,
     aligned: AlignedSeries,
     *,
-    estimator: EstimatorKind = EstimatorKind.ML,
+    estimator: EstimatorKind = DEFAULT_ESTIMATOR,
     terms: Iterable[Term | str] = frozenset(),
     reference_field_enu_nT: Sequence[float] | np.ndarray | None = None,
     R_nominal_body_mag: np.ndarray | None = None,
@@ -112,7 +114,7 @@ def fit_calibration(
         Sensor figures for the weighting; ``None`` means unknown isotropic noise (the
         covariance is then scaled by the residual variance).
     drop_repeats : bool
-        Leave out repeated sample-and-hold messages (:mod:`pipeline.sample_hold`) when the
+        Leave out repeated sample-and-hold messages (:mod:`pipeline.model.sample_hold`) when the
         recording has them.
 
     Returns
@@ -123,7 +125,7 @@ def fit_calibration(
     ------
     EstimationError
         Too few samples, NaN data, or an estimator that cannot work on this motion
-        (:class:`~pipeline.errors.NotObservableError`).
+        (:class:`~pipeline.core.errors.NotObservableError`).
 
     """
     al = aligned
@@ -142,7 +144,7 @@ def fit_calibration(
         R_nom = R_nom.reshape(3, 3)
         if not np.allclose(R_nom @ R_nom.T, np.eye(3), atol=1e-6) or np.linalg.det(R_nom) < 0:
             raise EstimationError("the nominal mounting R_nominal_body_mag is not a rotation")
-    from pipeline.sample_hold import detect_sample_hold
+    from pipeline.model.sample_hold import detect_sample_hold
 
     # Sample-and-hold (CONVENTIONS effect sample_hold): a repeated message carries no new
     # conversion and was sensed up to one native period before its stamp; left out.
@@ -187,14 +189,14 @@ def fit_calibration(
 
 def with_verdict(cal: Calibration, aligned: AlignedSeries,
                  residual_rms_nT: float | None = None) -> Calibration:
-    """Return ``cal`` with its verdict (:mod:`pipeline.verdict`) from the aligned samples.
+    """Return ``cal`` with its verdict (:mod:`pipeline.core.verdict`) from the aligned samples.
 
     The sensor noise is measured in the still windows of ``aligned`` (repeated
     sample-and-hold messages left out); the fit's checks (``cal.checks``) give the refusals
     and doubts. ``residual_rms_nT`` overrides the calibration's own (a later, fuller model).
     """
-    from pipeline.sample_hold import repeated
-    from pipeline.verdict import judge, sensor_noise_nT
+    from pipeline.core.verdict import judge, sensor_noise_nT
+    from pipeline.model.sample_hold import repeated
 
     keep = ~repeated(aligned.mag_nT)
     noise = sensor_noise_nT(aligned.t_ns, aligned.mag_nT, aligned.q_enu_body, keep)
@@ -271,14 +273,14 @@ class Judge:
 
     def run(self, ctx: Context) -> Context:
         """Return ``ctx`` with ``calibration.verdict`` for its final model."""
-        return ctx.replace(calibration=with_verdict(ctx.calibration, ctx.aligned))
+        return ctx.replace(calibration=with_verdict(ctx.need_calibration(), ctx.need_aligned()))
 
 
 @dataclass(frozen=True)
 class Estimate:
     """Stage: fit the calibration (see :func:`fit_calibration` for the parameters)."""
 
-    estimator: EstimatorKind = EstimatorKind.ML
+    estimator: EstimatorKind = DEFAULT_ESTIMATOR
     terms: frozenset = frozenset()
     reference_field_enu_nT: tuple[float, float, float] | None = None
     R_nominal_body_mag: tuple | None = None
@@ -299,7 +301,7 @@ class Estimate:
             windows = [(s.start_ns, s.end_ns) for s in ctx.segments]
         cal = fit_calibration(
             ctx.recording,
-            ctx.aligned,
+            ctx.need_aligned(),
             estimator=self.estimator,
             terms=self.terms,
             reference_field_enu_nT=self.reference_field_enu_nT,

@@ -5,19 +5,19 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-from pipeline.errors import InputError
-from pipeline.mcap_read import read_recording
-from pipeline.recording import Context
+from pipeline.core.errors import InputError
+from pipeline.core.recording import Context
+from pipeline.io.mcap_read import read_recording
 
 
 @dataclass(frozen=True)
 class Ingest:
-    """Read ``ctx.source`` into a :class:`~pipeline.recording.Recording`.
+    """Read ``ctx.source`` into a :class:`~pipeline.core.recording.Recording`.
 
     Channels are found by message type when there is exactly one candidate per role
     (CONVENTIONS); the topics given here override that. The data checks (NaN/Inf, zero and
     non-unit quaternions, stamps backwards/duplicated/jumping, wrong field unit, stuck or
-    saturated sensor, too few samples) are those of :func:`pipeline.mcap_read.read_recording`.
+    saturated sensor, too few samples) are those of :func:`pipeline.io.mcap_read.read_recording`.
 
     Parameters
     ----------

@@ -50,10 +50,10 @@ from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
-from pipeline.atomic import atomic_path, write_text_atomic
-from pipeline.errors import InputError
-from pipeline.geometry import quat_rotate
-from pipeline.recording import Context, Recording, Segment
+from pipeline.core.atomic import atomic_path, write_text_atomic
+from pipeline.core.errors import InputError
+from pipeline.core.geometry import quat_rotate
+from pipeline.core.recording import Context, Recording, Segment
 
 if TYPE_CHECKING:
     from stages.restore import RestoreResult
@@ -99,11 +99,11 @@ def heading_error_stats(enu_nT: np.ndarray, B_enu_nT: np.ndarray) -> dict[str, f
 
     The heading of a horizontal field vector is ``atan2(east, north)``; the error is the
     restored heading minus the reference heading, wrapped to (-180, 180]. The statistics are
-    those of :func:`pipeline.tang.heading_error_stats`, of which this file keeps
+    those of :func:`pipeline.model.tang.heading_error_stats`, of which this file keeps
     ``max_abs_deg``, ``mean_deg``, ``std_deg``, ``rms_deg`` and ``peak_to_peak_deg``.
     """
-    from pipeline.tang import heading_error_stats as tang_stats
-    from pipeline.tang import wrap_angle
+    from pipeline.model.tang import heading_error_stats as tang_stats
+    from pipeline.model.tang import wrap_angle
 
     ref = np.arctan2(B_enu_nT[0], B_enu_nT[1])
     h = np.arctan2(enu_nT[:, 0], enu_nT[:, 1])
@@ -198,7 +198,7 @@ class MetricsResult:
             }
         )
 
-    def to_table(self):  # -> pyarrow.Table
+    def to_table(self) -> Any:  # a pyarrow.Table
         """metrics.parquet as a pyarrow Table (module docstring for the columns)."""
         import pyarrow as pa
 
@@ -348,15 +348,16 @@ class Metrics:
     def run(self, ctx: Context) -> Context:
         """Compute (and write) the metrics."""
         cal = ctx.calibration
+        rec = ctx.need_recording()
         res = compute_metrics(
-            ctx.recording,
-            ctx.restored,
+            rec,
+            ctx.need_restored(),
             ctx.segments,
             None if cal is None else cal.B_enu_nT,
             max_gap_s=self.max_gap_s,
         )
         outputs = ctx.outputs
         if self.out_dir is not None:
-            j, p = res.write(self.out_dir, (ctx.recording.path,))
+            j, p = res.write(self.out_dir, (rec.path,))
             outputs = outputs + (("metrics.json", str(j)), ("metrics.parquet", str(p)))
         return ctx.replace(metrics=res, outputs=outputs)

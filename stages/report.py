@@ -9,7 +9,7 @@ Figures, written beside the report:
 - ``fig_trajectory.png`` (Li 2020 Fig. 7): the field in the body frame before and after
   calibration beside the ideal one (circles for rotations about one axis);
 - ``fig_attitude.png``: heading, pitch and roll (Li 2020 Euler angles), segments shaded;
-- one figure per diagnosis finding, when DIAGNOSE's ``stages.diagnose.finding_figures``
+- one figure per diagnosis finding, when DIAGNOSE's ``stages.diagnose.stage.finding_figures``
   exists (hook: ``finding_figures(diagnosis) -> list[(title, png bytes)]``).
 
 ``report.html`` embeds every figure as a base64 ``data:`` URI and carries no external
@@ -23,16 +23,17 @@ import base64
 import html
 import io
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 
-from pipeline import style
-from pipeline.atomic import atomic_path, write_text_atomic
-from pipeline.recording import Context, Recording, Segment
-from pipeline.style import minus
+from pipeline.core import style
+from pipeline.core.atomic import atomic_path, write_text_atomic
+from pipeline.core.recording import Context, Recording, Segment
+from pipeline.core.style import minus
 
 ENU_LABELS = ("east", "north", "up")
 
@@ -123,9 +124,9 @@ def bins(t: np.ndarray, v: np.ndarray, max_bins: int
     if k == 1:
         return t.astype(float), v, v, v, 1
     m = -(-n // k) * k
-    tp = np.full(m, np.nan)
+    tp: np.ndarray = np.full(m, np.nan)
     tp[:n] = t
-    vp = np.full(m, np.nan)
+    vp: np.ndarray = np.full(m, np.nan)
     vp[:n] = v
     tp, vp = tp.reshape(-1, k), vp.reshape(-1, k)
     with warnings.catch_warnings():
@@ -243,7 +244,7 @@ def make_figures(
         ``fig_sphere.png``, ``fig_attitude.png``.
 
     """
-    from pipeline.geometry import quat_to_li2020_euler
+    from pipeline.core.geometry import quat_to_li2020_euler
     from stages.restore import restore_samples, view_data
 
     plt = _plt()
@@ -675,12 +676,13 @@ def _diagnosis_html(diagnosis: Any, t0_ns: int = 0, options: Any = None
             + "</ul>"
         )
     figs: list[tuple[str, bytes]] = []
+    figures_of: Callable[..., list[tuple[str, bytes]]] | None
     try:
-        from stages.diagnose import finding_figures
+        from stages.diagnose.stage import finding_figures as figures_of
     except ImportError:
-        finding_figures = None
-    if finding_figures is not None and not isinstance(diagnosis, dict):
-        figs = list(finding_figures(diagnosis))
+        figures_of = None
+    if figures_of is not None and not isinstance(diagnosis, dict):
+        figs = list(figures_of(diagnosis))
     return "".join(parts), figs
 
 
@@ -720,8 +722,8 @@ def provenance(recording: Recording, *, command: str | None = None) -> dict[str,
     import shlex
     import sys
 
-    from pipeline.campaign import sha256_file
-    from pipeline.cli import package_version
+    from pipeline import package_version
+    from pipeline.core.atomic import sha256_file
 
     cmd = command or os.environ.get("MAGALIGN_COMMAND") or shlex.join(sys.argv)
     try:
@@ -911,7 +913,7 @@ class Report:
 
     def run(self, ctx: Context) -> Context:
         """Write the report and list it in ``ctx.outputs``."""
-        p = write_report(self.out_dir, ctx.recording, ctx.calibration, ctx.metrics,
+        p = write_report(self.out_dir, ctx.need_recording(), ctx.calibration, ctx.metrics,
                          ctx.diagnosis, ctx.segments, max_gap_s=self.max_gap_s,
                          restored=ctx.restored, options=ctx.options)
         return ctx.replace(outputs=ctx.outputs + (("report.html", str(p)),))

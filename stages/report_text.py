@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.style import minus
+from pipeline.core.style import minus
 
 #: the effects that live in time windows (one row per event)
 LOCAL = ("disturbance", "hard_iron_step")
@@ -197,8 +197,8 @@ def rows(diagnosis: dict[str, Any], t0_ns: int) -> list[Row]:
         when = span(t0_ns, a, b) + (f"; edges {edges}" if edges else "")
         first = min(fs, key=findings.index)
         last = max(fs, key=findings.index)
-        bics = [(f.get("evidence") or {}).get("delta_bic") for f in fs]
-        bics = [x for x in bics if x is not None]
+        bics = [x for x in ((f.get("evidence") or {}).get("delta_bic") for f in fs)
+                if x is not None]
         out.append(Row(f"{head} between {a:.1f} s and {b:.1f} s.", when,
                        _fit_text(first, last), evidence_words(sum(bics) if bics else None),
                        kinds, str(fs[0].get("explanation", ""))))

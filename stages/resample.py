@@ -1,4 +1,4 @@
-"""Resample stage: the attitude interpolated onto the magnetometer stamps by SLERP.
+"""Resample stage: the attitude onto the magnetometer stamps (THE interpolator).
 
 Time offset (CONVENTIONS): ``tau > 0`` means the magnetometer stamps are late, i.e. the
 sample stamped ``t`` was sensed at ``t - tau``; the attitude is therefore taken at
@@ -8,7 +8,7 @@ Gaps: the attitude is not bridged across an interval between two consecutive att
 samples longer than ``max_gap_s`` (motion capture loses the markers, an INS drops out).
 The default of :class:`Resample` is ``max(0.05 s, 5 x the median attitude interval)``: five
 missed samples of a fast source, and never less than 50 ms, which at the rotation rates of a
-calibration manoeuvre (tens of deg/s) keeps the SLERP error of a bridged gap well under a
+calibration manoeuvre (tens of deg/s) keeps the interpolation error of a bridged gap well under a
 degree only for short gaps.
 """
 
@@ -19,10 +19,10 @@ from typing import ClassVar
 
 import numpy as np
 
-from pipeline.errors import InputError
+from pipeline.core.errors import InputError
+from pipeline.core.recording import AlignedSeries, AttitudeSeries, Context
 from pipeline.model.attitude import AUTO_GAP_INTERVALS, MIN_AUTO_GAP_S, interpolate_attitude
 from pipeline.model.attitude import auto_max_gap_s as _auto_max_gap_s
-from pipeline.recording import AlignedSeries, AttitudeSeries, Context
 
 __all__ = ["AUTO_GAP_INTERVALS", "MIN_AUTO_GAP_S", "Resample", "auto_max_gap_s",
            "interpolate_attitude"]
@@ -35,7 +35,7 @@ def auto_max_gap_s(attitude: AttitudeSeries) -> float:
 
 @dataclass(frozen=True)
 class Resample:
-    """Attitude onto magnetometer stamps (SLERP at ``t - time_offset_s``).
+    """Attitude onto magnetometer stamps (THE interpolator at ``t - time_offset_s``).
 
     Parameters
     ----------

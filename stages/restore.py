@@ -6,8 +6,8 @@ The model of one sample stamped ``t`` (CONVENTIONS, "Measurement model") and its
     y_mag(t) = D @ R_body_mag.T @ C_enu_body(t - tau).T @ (B_enu + F(t)) + o + e(t) + noise
     b_enu    = C_enu_body(t - tau) @ R_body_mag @ inv(D) @ (y_mag - o - e(t))
 
-Every term the calibration carries is used (:meth:`pipeline.calibration.Calibration.restore`):
-``o``, ``D`` and ``tau`` (the attitude re-interpolated at ``t - tau`` by SLERP,
+Every term the calibration carries is used (:meth:`pipeline.model.calibration.Calibration.restore`):
+``o``, ``D`` and ``tau`` (the attitude re-interpolated at ``t - tau``,
 :mod:`pipeline.model.attitude`), from the calibration's fields or else its ``hard_iron``,
 ``soft_iron`` and ``time_offset`` effects; ``eddy_current`` and ``hard_iron_step`` are removed
 from the reading. The external-field terms ``field_drift``, ``disturbance`` and
@@ -32,13 +32,13 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from pipeline.errors import InputError
+from pipeline.core.errors import InputError
+from pipeline.core.recording import Context, Frame, Recording, VectorSeries
 from pipeline.model.attitude import AttitudeInterpolator
 from pipeline.model.forward import restore as model_restore
-from pipeline.recording import Context, Frame, Recording, VectorSeries
 
 if TYPE_CHECKING:
-    from pipeline.calibration import Calibration
+    from pipeline.model.calibration import Calibration
 
 
 def _readonly(*arrays: np.ndarray) -> None:
@@ -218,10 +218,11 @@ class Restore:
     def run(self, ctx: Context) -> Context:
         """Restore ``ctx.recording.mag`` with ``ctx.calibration``."""
         old = ctx.restored
-        if (old is not None and old.model_key == model_key_of(ctx.calibration, self.max_gap_s)
-                and old.n_total == len(ctx.recording.mag)):
+        cal = ctx.need_calibration()
+        if (old is not None and old.model_key == model_key_of(cal, self.max_gap_s)
+                and old.n_total == len(ctx.need_recording().mag)):
             return ctx.replace(restored=old)
-        rs = restore_samples(ctx.recording, ctx.calibration, max_gap_s=self.max_gap_s)
+        rs = restore_samples(ctx.need_recording(), cal, max_gap_s=self.max_gap_s)
         return ctx.replace(restored=rs)
 
 
@@ -273,7 +274,7 @@ def view_data(restored: RestoreResult, R_body_mag: np.ndarray) -> ViewData:
 
     ``R_body_mag``: the calibration's rotation (for the body-frame "after" series).
     """
-    from pipeline.geometry import quat_conj, quat_rotate
+    from pipeline.core.geometry import quat_conj, quat_rotate
 
     rs = restored
     y = np.asarray(rs.raw_mag_nT, dtype=float)

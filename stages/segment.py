@@ -29,7 +29,7 @@ recordings (turntables, hand-held manoeuvres) and surveys (lines and turns) alik
    wins); a short piece between gaps is dropped, so no segment is shorter than the minimum
    and segments need not cover the whole recording (gaps break them).
 
-Each segment carries the descriptors of :func:`pipeline.tang.fit_rotation`.
+Each segment carries the descriptors of :func:`pipeline.model.tang.fit_rotation`.
 """
 
 from __future__ import annotations
@@ -42,10 +42,10 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.errors import DataQualityError
-from pipeline.geometry import quat_conj, quat_mul
-from pipeline.recording import AlignedSeries, Context, Segment, SegmentKind
-from pipeline.tang import (
+from pipeline.core.errors import DataQualityError
+from pipeline.core.geometry import quat_conj, quat_mul
+from pipeline.core.recording import AlignedSeries, Context, Segment, SegmentKind
+from pipeline.model.tang import (
     RotationFit,
     TwistSide,
     angular_rate,

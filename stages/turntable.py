@@ -7,7 +7,7 @@ A turntable reports only an angle ``Omega(t)`` about its nominal axis. The nomin
 with ``q_align`` the smallest rotation taking the nominal body axis ``a_body`` onto the nominal
 ENU axis ``n_enu`` (so at ``Omega = 0`` the body frame is the ENU frame when both are up).
 
-Tilt model (the same as ``pipeline.effects``, CONVENTIONS ``axis_tilt``): the true attitude is
+Tilt model (the same as ``stages.diagnose.model``, CONVENTIONS ``axis_tilt``): the true attitude is
 ``q_true(t) = T * q_nom(t)`` with ``T`` the pure tilt (no rotation about the nominal axis) that
 takes ``n_enu`` onto the true axis. The platform then rotates about the tilted axis ``T n_enu``:
 ``q_true(t) q_true(0)^-1 = exp((Omega(t) - Omega(0)) T n_enu / 2)``, Tang et al. 2016's
@@ -40,22 +40,22 @@ from typing import ClassVar
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from pipeline.errors import ChannelError, EstimationError
-from pipeline.geometry import (
+from pipeline.core.errors import ChannelError, EstimationError
+from pipeline.core.geometry import (
     quat_conj,
     quat_mul,
     quat_rotate,
     rotvec_to_quat,
     so3_exp,
 )
-from pipeline.recording import (
+from pipeline.core.recording import (
     AlignedSeries,
     AttitudeSeries,
     Context,
     Recording,
     Role,
 )
-from pipeline.tang import (
+from pipeline.model.tang import (
     axis_angle_quat,
     heading_error_stats,
     min_rotation_quat,
@@ -191,7 +191,7 @@ class HeadingStats:
     extra: tuple[tuple[str, float], ...] = ()
 
     def to_dict(self) -> dict[str, float]:
-        """JSON-ready dict (the keys of :func:`pipeline.tang.heading_error_stats`)."""
+        """JSON-ready dict (the keys of :func:`pipeline.model.tang.heading_error_stats`)."""
         return {
             "mean_deg": self.mean_deg,
             "var_deg2": self.var_deg2,
@@ -205,7 +205,7 @@ class HeadingStats:
 def heading_stats(eta_rad: ArrayLike) -> HeadingStats:
     """Mean, variance, maximum and minimum of a heading error (rad in, degrees out).
 
-    A typed view of :func:`pipeline.tang.heading_error_stats` (Tang 2016, Table 2).
+    A typed view of :func:`pipeline.model.tang.heading_error_stats` (Tang 2016, Table 2).
     """
     d = heading_error_stats(eta_rad)
     main = ("mean_deg", "var_deg2", "max_deg", "min_deg", "n")

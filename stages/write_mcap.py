@@ -3,7 +3,7 @@
 Contents of the output file:
 
 - every channel of the input, schemas, metadata, log/publish times, sequence numbers and
-  payload bytes copied unchanged (READER's :func:`pipeline.mcap_read.read_raw_channels`);
+  payload bytes copied unchanged (READER's :func:`pipeline.io.mcap_read.read_raw_channels`);
 - ``<mag topic>/calibrated``: ``inv(D) @ (y - o - e)``, mag frame (offset, ``D`` and the
   additive effects of the calibration removed), frame_id = the input's magnetometer frame_id;
 - ``<mag topic>/enu``: the restored field (:mod:`stages.restore`), frame_id ``"enu"``;
@@ -35,14 +35,14 @@ The calibration is stored twice: as an MCAP metadata record named ``magalign.cal
 with one key ``"json"`` holding the calibration.json text, and as an attachment
 ``calibration.json`` (media type ``application/json``).
 
-How the input is copied: when it is an intact indexed MCAP (:func:`pipeline.mcap_read.
+How the input is copied: when it is an intact indexed MCAP (:func:`pipeline.io.mcap_read.
 pass_through`), its Chunk and MessageIndex records are copied as they are, with its schema and
 channel ids, nothing decompressed or re-encoded; the new channels go into chunks of their own
 beside them (chunks may overlap in time). Otherwise (a damaged or unindexed input) the
 messages that can be read are copied range by range into new chunks.
 
 The file is written to a temporary name and renamed when complete (WRITER's
-:class:`pipeline.mcap_write.McapColumnWriter`); writing over an input is refused.
+:class:`pipeline.io.mcap_write.McapColumnWriter`); writing over an input is refused.
 """
 
 from __future__ import annotations
@@ -53,8 +53,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pipeline.errors import OutputError
-from pipeline.recording import Context, EncodingFamily, Recording
+from pipeline.core.errors import OutputError
+from pipeline.core.recording import Context, EncodingFamily, Recording
 
 METADATA_NAME = "magalign.calibration"
 ATTACHMENT_NAME = "calibration.json"
@@ -97,10 +97,15 @@ def write_corrected_mcap(
         ``dest``.
 
     """
-    from pipeline.geometry import matrix_to_quat
-    from pipeline.mcap_read import iter_raw_channels, pass_through
-    from pipeline.mcap_write import McapColumnWriter
-    from pipeline.messages import encode, encode_field_magnitude_json, encode_tf_static, schema_for
+    from pipeline.core.geometry import matrix_to_quat
+    from pipeline.io.mcap_read import iter_raw_channels, pass_through
+    from pipeline.io.mcap_write import McapColumnWriter
+    from pipeline.io.messages import (
+        encode,
+        encode_field_magnitude_json,
+        encode_tf_static,
+        schema_for,
+    )
     from stages.restore import restore_samples
 
     dest = Path(dest)
@@ -240,7 +245,8 @@ class WriteCorrectedMcap:
 
     def run(self, ctx: Context) -> Context:
         """Write the file and list it in ``ctx.outputs``."""
-        dest = corrected_path(self.out_dir, ctx.recording.path)
-        write_corrected_mcap(ctx.recording, ctx.calibration, dest, max_gap_s=self.max_gap_s,
+        rec = ctx.need_recording()
+        dest = corrected_path(self.out_dir, rec.path)
+        write_corrected_mcap(rec, ctx.calibration, dest, max_gap_s=self.max_gap_s,
                              restored=ctx.restored)
         return ctx.replace(outputs=ctx.outputs + (("corrected_mcap", str(dest)),))

@@ -38,10 +38,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pipeline import style
-from pipeline.atomic import atomic_path
-from pipeline.errors import OutputError
-from pipeline.recording import Context, Recording, Segment
+from pipeline.core import style
+from pipeline.core.atomic import atomic_path
+from pipeline.core.errors import OutputError
+from pipeline.core.recording import Context, Recording, Segment
 
 ENU_NAMES = ("east", "north", "up")
 AXES = ("x", "y", "z")
@@ -188,7 +188,7 @@ def write_rrd(
     os.environ.setdefault("RUST_LOG", "off")
     import rerun as rr
 
-    from pipeline.geometry import quat_to_li2020_euler
+    from pipeline.core.geometry import quat_to_li2020_euler
     from stages.restore import restore_samples, view_data
 
     if restored is None:
@@ -352,9 +352,10 @@ class WriteRerun:
 
     def run(self, ctx: Context) -> Context:
         """Write the .rrd and list it in ``ctx.outputs``."""
-        dest = rrd_path(self.out_dir, ctx.recording.path)
+        rec = ctx.need_recording()
+        dest = rrd_path(self.out_dir, rec.path)
         write_rrd(
-            ctx.recording,
+            rec,
             ctx.calibration,
             dest,
             segments=ctx.segments,

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.effects import AttitudeTrack, EffectKind, FitData, ModelState, Term, evaluate
-from pipeline.geometry import quat_mul, quat_normalize, rotvec_to_quat, so3_exp
+from pipeline.core.geometry import quat_mul, quat_normalize, rotvec_to_quat, so3_exp
+from stages.diagnose.model import AttitudeTrack, EffectKind, FitData, ModelState, Term, evaluate
 
 B_ENU = np.array([1500.0, 21000.0, -43000.0])
 

@@ -1,4 +1,4 @@
-"""Waiting for a run paused at the test hook of ``pipeline.atomic`` (kill tests)."""
+"""Waiting for a run paused at the test hook of ``pipeline.core.atomic`` (kill tests)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 
 
 def wait_paused(p: subprocess.Popen, hook: Path, limit_s: float = 600) -> str:
-    """Wait until the run pauses at its test hook (pipeline.atomic); return the event.
+    """Wait until the run pauses at its test hook (pipeline.core.atomic); return the event.
 
     The limit is only a guard against a hang: the run pauses at a point of its work, never
     at a moment of the clock, so the test does not depend on the speed of the machine.

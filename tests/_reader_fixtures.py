@@ -209,7 +209,7 @@ def motion(n: int = 400, rate_hz: float = 100.0, seed: int = 0):
     t = T0 + np.round(np.arange(n) * 1e9 / rate_hz).astype(np.int64)
     yaw = np.linspace(0, 2 * np.pi, n)
     pitch = 0.3 * np.sin(np.linspace(0, 6, n))
-    from pipeline.geometry import quat_mul
+    from pipeline.core.geometry import quat_mul
     qz = np.stack([np.zeros(n), np.zeros(n), np.sin(yaw / 2), np.cos(yaw / 2)], -1)
     qx = np.stack([np.sin(pitch / 2), np.zeros(n), np.zeros(n), np.cos(pitch / 2)], -1)
     q = quat_mul(qz, qx)

@@ -1,13 +1,13 @@
 """A corpus of bad inputs for the whole-program robustness tests (issue 9).
 
 Every generator writes one damaged or wrong input into a folder and returns its path. They
-start from one small valid simulated recording (``pipeline.simulate``, 20 s of the
+start from one small valid simulated recording (``pipeline.app.simulate``, 20 s of the
 multi-axis calibration manoeuvre at 20 Hz) and damage it the way survey loggers, disks and
 people do: files cut short, bytes flipped, channels missing or doubled, values in the wrong
 unit, stamps out of order, a sensor stuck or clipped, a platform that never turned.
 
-Hand-made variants are written with the project's own writer (``pipeline.mcap_write``,
-``pipeline.messages``); byte-level damage is done on a file whose records are located with
+Hand-made variants are written with the project's own writer (``pipeline.io.mcap_write``,
+``pipeline.io.messages``); byte-level damage is done on a file whose records are located with
 :func:`records` (the MCAP record framing: opcode u8, length u64, content).
 
 The module is imported by tests as ``corpus`` (pytest puts ``tests/`` on ``sys.path``
@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import messages
-from pipeline.mcap_write import McapColumnWriter, write_recording
-from pipeline.simulate import Simulated, scenario_from_dict, simulate, write_simulated
+from pipeline.app.simulate import Simulated, scenario_from_dict, simulate, write_simulated
+from pipeline.io import messages
+from pipeline.io.mcap_write import McapColumnWriter, write_recording
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_CHUNK, OP_DATA_END = 0x01, 0x02, 0x06, 0x0F

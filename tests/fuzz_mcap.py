@@ -6,7 +6,7 @@ a piece of the file copied over another place or inserted into it, and the lengt
 of a record replaced by a random value. Every damaged file is a pure function of
 ``(base, seed)``, so a failing case is reproduced from its name alone.
 
-Reader paths covered by the bases (see ``pipeline/mcap_read.py``):
+Reader paths covered by the bases (see ``pipeline/io/mcap_read.py``):
 
 - ``indexed``: the project's writer, zstd chunks of 4 KiB with message indexes;
 - ``unindexed_lz4``: mcap's writer, lz4 chunks without message indexes (the reader walks
@@ -84,7 +84,7 @@ def base_unchunked(folder: Path) -> Path:
 @_base
 def base_json(folder: Path) -> Path:
     """JSON channels (``magalign.Magnetometer``, ``magalign.AttitudeQuaternion``)."""
-    from pipeline.mcap_write import write_recording
+    from pipeline.io.mcap_write import write_recording
 
     s = _streams()
     return write_recording(folder / "json.mcap", mag_t_ns=s.mag_t_ns, mag_nT=s.mag_nT,
@@ -270,8 +270,8 @@ def run_cli(argv: list[str], timeout_s: float = 30.0) -> tuple[int | str, str, s
     import signal
     import traceback
 
-    import pipeline.executors as ex
-    from pipeline.cli import main
+    import pipeline.app.executors as ex
+    from pipeline.app.cli import main
 
     out, err = io.StringIO(), io.StringIO()
 

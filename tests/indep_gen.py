@@ -2,9 +2,9 @@
 
 Every recording is made here from first principles with ``scipy.spatial.transform``
 (``Rotation``) and written with the ``mcap_ros2`` writer from hand-written message
-definitions; nothing of ``pipeline.simulate``, ``pipeline.effects``, ``pipeline.messages`` or
-``pipeline.mcap_write`` is used, so a shared mistake in magalign's model or writer cannot hide
-here.
+definitions; nothing of ``pipeline.app.simulate``, ``stages.diagnose.model``,
+``pipeline.io.messages`` or ``pipeline.io.mcap_write`` is used, so a shared mistake in
+magalign's model or writer cannot hide here.
 
 The physics (CONVENTIONS, "Measurement model"), for a magnetometer sample stamped ``t``::
 
@@ -18,7 +18,7 @@ with ``C_true`` the true attitude; the attitude source reports ``Rz(h(t)) C_true
 continuous motion (step 0.1 ms), not of the samples.
 
 Sizes are multiples of the detection threshold, computed here independently (the same
-definition as ``pipeline.challenge``): the noise-free signature ``d`` of the effect, with the
+definition as ``pipeline.app.challenge``): the noise-free signature ``d`` of the effect, with the
 part that a change of ``R_body_mag`` and ``B_enu`` absorbs removed by least squares (their
 Jacobian by finite differences of this module's own model), gives ``lambda = |d_perp|^2 /
 var``; the threshold is ``lambda_thr = k ln(3N) + 20`` (the BIC gate) and the strength
@@ -619,7 +619,7 @@ def effect_specs(seed: int, targets=(2.0, 6.0, 20.0), cases=EFFECT_CASES,
 
 def write_corpus(out_dir: Path, nulls: list[Spec],
                  effects: list[tuple[Spec, str, dict, float]]) -> Path:
-    """Write recordings and the key (``pipeline.challenge`` key format) beside the folder.
+    """Write recordings and the key (``pipeline.app.challenge`` key format) beside the folder.
 
     Returns the key path ``<out_dir>_key/key.json``.
     """

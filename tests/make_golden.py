@@ -125,7 +125,7 @@ def small_scenarios() -> dict[str, dict[str, Any]]:
 
 def write_scenario_recording(d: dict[str, Any], dest: Path) -> Path:
     """Simulate a scenario dict and write it as ``dest`` (an MCAP file)."""
-    from pipeline.simulate import scenario_from_dict, simulate, write_simulated
+    from pipeline.app.simulate import scenario_from_dict, simulate, write_simulated
 
     sim = simulate(scenario_from_dict(d, path=str(d.get("name", "<dict>"))))
     return write_simulated(sim, dest)
@@ -150,7 +150,7 @@ def reduce_metrics(d: dict[str, Any]) -> dict[str, Any]:
 
 def store_baseline(results: Path, dest: Path) -> list[str]:
     """Copy the small JSON results of every finished recording into ``dest/<name>/``."""
-    from pipeline.regress import recordings_in
+    from pipeline.app.regress import recordings_in
 
     if dest.exists():
         shutil.rmtree(dest)
@@ -170,7 +170,7 @@ def store_baseline(results: Path, dest: Path) -> list[str]:
 
 def process(campaign: Path, out: Path, jobs: int = 2) -> int:
     """Run ``magalign process`` on ``campaign``; returns its exit status."""
-    from pipeline.cli import main
+    from pipeline.app.cli import main
 
     return main(["process", str(campaign), "--out", str(out), "--jobs", str(jobs),
                  "--no-progress"])

@@ -1,6 +1,6 @@
 """The whole ``magalign`` program against a corpus of bad inputs (issue 9, CONVENTIONS).
 
-Every case of :mod:`corpus` is run through the real program (``python -m pipeline.cli`` in
+Every case of :mod:`corpus` is run through the real program (``python -m pipeline.app.cli`` in
 a subprocess) with ``info``, ``calibrate``, ``simulate`` or ``process`` as fits, and must get
 its intended answer:
 
@@ -30,7 +30,7 @@ import corpus
 import numpy as np
 import pytest
 
-from pipeline.calibration import Calibration
+from pipeline.model.calibration import Calibration
 
 #: Rotation vector of R_body_mag in the corpus scenario, deg (corpus.BASE_SCENARIO).
 TRUE_ROTVEC_DEG = np.array(corpus.BASE_SCENARIO["sensor"]["misalignment_rotvec_deg"])
@@ -159,7 +159,7 @@ def _argv(cmd: str, inp: Path, out: Path, valid: Path, truth_cal: Path) -> list[
 
 def magalign(argv: list[str], cwd: Path) -> subprocess.CompletedProcess:
     """Run the real program."""
-    return subprocess.run([sys.executable, "-m", "pipeline.cli", *argv], cwd=cwd,
+    return subprocess.run([sys.executable, "-m", "pipeline.app.cli", *argv], cwd=cwd,
                           capture_output=True, text=True, timeout=600)
 
 

@@ -73,7 +73,7 @@ calibration = "rotation"
 path = "{DATA / 'line_disturbed.mcap'}"
 """, encoding="utf-8")
     out = tmp / "out"
-    res = subprocess.run([sys.executable, "-m", "pipeline.cli", "process", str(toml), "--out",
+    res = subprocess.run([sys.executable, "-m", "pipeline.app.cli", "process", str(toml), "--out",
                           str(out)], capture_output=True, text=True, timeout=900,
                          cwd=HERE.parent)
     assert res.returncode == 0, res.stderr

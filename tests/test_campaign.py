@@ -14,7 +14,7 @@ import pyarrow.parquet as pq
 import pytest
 from _pause import wait_paused
 
-from pipeline.campaign import (
+from pipeline.app.campaign import (
     DONE_MARKER,
     RecordingRole,
     campaign_for_input,
@@ -23,10 +23,10 @@ from pipeline.campaign import (
     output_dir,
     run_campaign,
 )
-from pipeline.config import TomlDoc
-from pipeline.errors import ConfigError
-from pipeline.executors import LocalExecutor, SerialExecutor
-from pipeline.regress import recordings_in
+from pipeline.app.executors import LocalExecutor, SerialExecutor
+from pipeline.app.regress import recordings_in
+from pipeline.core.config import TomlDoc
+from pipeline.core.errors import ConfigError
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE / "data"
@@ -35,7 +35,7 @@ sys.path.insert(0, str(HERE))  # make_golden holds the archived scenarios
 
 
 def _cli(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "pipeline.cli", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "pipeline.app.cli", *args], capture_output=True,
                           text=True, timeout=timeout, cwd=HERE.parent)
 
 
@@ -316,11 +316,11 @@ def _check_finished_outputs_complete(out: Path) -> None:
 
 
 def test_killed_run_resumes_without_redoing_or_trusting_partial_output(tmp_path):
-    from pipeline.atomic import PAUSE_AT_ENV, PAUSE_DIR_ENV
+    from pipeline.core.atomic import PAUSE_AT_ENV, PAUSE_DIR_ENV
 
     camp = _tiny_campaign(tmp_path)
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "pipeline.cli", "process", str(camp), "--out", str(out),
+    cmd = [sys.executable, "-m", "pipeline.app.cli", "process", str(camp), "--out", str(out),
            "--jobs", "1", "--no-progress"]
     # Kill points chosen by the test (the atomic-write hook), each with the markers that
     # must exist then: every output of rotation written but not its done-marker; rotation
@@ -364,8 +364,8 @@ def test_killed_run_resumes_without_redoing_or_trusting_partial_output(tmp_path)
 
 
 def test_calibration_file_restores_survey_recording(tmp_path):
-    from pipeline.calibration import Calibration
-    from pipeline.campaign import RecordingOptions
+    from pipeline.app.campaign import RecordingOptions
+    from pipeline.model.calibration import Calibration
 
     rot = tmp_path / "rot_out"
     opts = RecordingOptions(outputs=(("diagnose", False), ("report", False), ("rerun", False)))

@@ -1,7 +1,7 @@
 import json
 
-from pipeline.challenge import confusion_text, generate, key_path, score
-from pipeline.cli import main
+from pipeline.app.challenge import confusion_text, generate, key_path, score
+from pipeline.app.cli import main
 
 
 def test_generate_hides_the_key_and_score_counts(tmp_path):

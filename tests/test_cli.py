@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.cli import build_parser, main
+from pipeline.app.cli import build_parser, main
 
 #: Markup that must not reach a user's terminal: rst roles, double backticks, and references
 #: to the project's internal conventions file.
@@ -49,7 +49,7 @@ def test_every_help_text_is_plain_words():
 
 
 def test_help_through_the_program_exits_zero_with_plain_text():
-    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "process", "--help"],
+    r = subprocess.run([sys.executable, "-m", "pipeline.app.cli", "process", "--help"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and "--reference-field" in r.stdout
     assert MARKUP.search(r.stdout) is None
@@ -87,8 +87,8 @@ def test_usage_error_names_the_subcommand(capsys):
 
 
 def test_field_options_parse_and_refuse():
-    from pipeline.commands._options import field_from_args
-    from pipeline.errors import UsageError
+    from pipeline.app.commands._options import field_from_args
+    from pipeline.core.errors import UsageError
 
     ns = argparse.Namespace
     assert field_from_args(ns(reference_field=None, igrf=None)) is None
@@ -107,7 +107,7 @@ def test_field_options_parse_and_refuse():
 # ------------------------------------------------------------------ inputs that are not MCAP
 
 def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "pipeline.cli", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "pipeline.app.cli", *args], capture_output=True,
                           text=True, timeout=300, cwd=cwd)
 
 

@@ -13,13 +13,13 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from pipeline import geometry as g
-from pipeline.atomic import atomic_path, safe_join, write_text_atomic
-from pipeline.calibration import Calibration
-from pipeline.config import TomlDoc
-from pipeline.errors import ConfigError, InputError, OutputError, PipelineBuildError
-from pipeline.recording import AttitudeSeries, Context, VectorSeries
-from pipeline.stage import Pipeline
+from pipeline.core import geometry as g
+from pipeline.core.atomic import atomic_path, safe_join, write_text_atomic
+from pipeline.core.config import TomlDoc
+from pipeline.core.errors import ConfigError, InputError, OutputError, PipelineBuildError
+from pipeline.core.recording import AttitudeSeries, Context, VectorSeries
+from pipeline.core.stage import Pipeline
+from pipeline.model.calibration import Calibration
 
 quats = st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(
     lambda v: np.linalg.norm(v) > 0.1

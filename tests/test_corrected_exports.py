@@ -9,11 +9,11 @@ import pytest
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from pipeline.calibration import Calibration
-from pipeline.geometry import quat_to_matrix
-from pipeline.mcap_read import read_recording
-from pipeline.mcap_write import write_recording
-from pipeline.recording import AttitudeSeries
+from pipeline.core.geometry import quat_to_matrix
+from pipeline.core.recording import AttitudeSeries
+from pipeline.io.mcap_read import read_recording
+from pipeline.io.mcap_write import write_recording
+from pipeline.model.calibration import Calibration
 from stages.write_mcap import write_corrected_mcap
 
 B_ENU = np.array([1300.0, 15000.0, -49000.0])

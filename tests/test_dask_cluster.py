@@ -27,8 +27,8 @@ from _pause import kill_paused_worker
 from test_campaign import _tiny_campaign
 from test_kill_rerun import check_no_partial_output
 
-from pipeline.atomic import PAUSE_AT_ENV, PAUSE_DIR_ENV
-from pipeline.calibration import Calibration
+from pipeline.core.atomic import PAUSE_AT_ENV, PAUSE_DIR_ENV
+from pipeline.model.calibration import Calibration
 
 HERE = Path(__file__).resolve().parent
 pytest.importorskip("distributed")
@@ -92,7 +92,7 @@ def dask_cluster(folder: Path, env: dict[str, str] | None = None,
 
 
 def _cli(*argv: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "pipeline.cli", *argv], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "pipeline.app.cli", *argv], capture_output=True,
                           text=True, cwd=HERE.parent, timeout=900,
                           env={**os.environ, **(env or {})})
 
@@ -162,7 +162,7 @@ def test_worker_dies_in_a_dask_campaign(tmp_path):
     env = {PAUSE_DIR_ENV: str(hook), PAUSE_AT_ENV: "written line_restored/calibration.json"}
     with dask_cluster(tmp_path, env=env) as (address, workers):
         out = tmp_path / "out"
-        p = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "process", str(camp),
+        p = subprocess.Popen([sys.executable, "-m", "pipeline.app.cli", "process", str(camp),
                               "--out", str(out), "--scheduler", address, "--no-progress"],
                              cwd=HERE.parent, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                              text=True, start_new_session=True)

@@ -4,11 +4,13 @@ import numpy as np
 import pytest
 from _diag_sim import make_data
 
-from pipeline.effects import EffectKind as K
-from pipeline.effects import Term
-from pipeline.recording import AlignedSeries, AttitudeSeries, Context, Recording, VectorSeries
-from pipeline.stage import Pipeline
-from stages.diagnose import Diagnose, DiagnoseConfig, diagnose_data, finding_figures
+from pipeline.core.recording import AlignedSeries, AttitudeSeries, Context, Recording, VectorSeries
+from pipeline.core.stage import Pipeline
+from stages.diagnose.model import EffectKind as K
+from stages.diagnose.model import Term
+from stages.diagnose.result import DiagnoseConfig
+from stages.diagnose.search import diagnose_data
+from stages.diagnose.stage import Diagnose, finding_figures
 
 CFG = DiagnoseConfig()
 
@@ -132,8 +134,9 @@ def test_chain_evidence_rebuilds_a_swapped_history():
     # re-adds a term produces): the stale numbers must be re-measured in the final order
     import dataclasses
 
-    from pipeline.effects import fit
-    from stages.diagnose import _chain_evidence, heldout_rms
+    from stages.diagnose.fit import fit
+    from stages.diagnose.search import _chain_evidence
+    from stages.diagnose.statistics import heldout_rms
 
     data, _ = make_data((Term(K.HARD_IRON), Term(K.TIME_OFFSET)),
                         (np.array([60.0, -40.0, 20.0]), np.array([0.004])), seed=9)
@@ -168,8 +171,8 @@ def test_tilted_turntable_axis_found_with_a_reference_field(tmp_path):
     the held-out error falls to the noise."""
     from importlib import resources
 
-    from pipeline.commands.diagnose import diagnose_file
-    from pipeline.simulate import load_scenario, simulate, write_simulated
+    from pipeline.app.commands.diagnose import diagnose_file
+    from pipeline.app.simulate import load_scenario, simulate, write_simulated
 
     sc = load_scenario(resources.files("pipeline") / "scenarios" / "turntable_tilt3.toml")
     sim = simulate(sc, seed=5)
@@ -205,7 +208,7 @@ G_ENU = np.array([[1200.0, -800.0, 1500.0], [-800.0, -3000.0, 600.0], [1500.0, 6
 
 
 def _grad_value(G):
-    from pipeline.effects import _SOFT_BASIS
+    from stages.diagnose.model import _SOFT_BASIS
 
     v, *_ = np.linalg.lstsq(_SOFT_BASIS.reshape(5, 9).T, G.ravel(), rcond=None)
     return v
@@ -216,7 +219,7 @@ def test_field_gradient_found_with_positions(frame, yaw_deg):
     """A gradient of a few uT/m along a path (0.3 m): found, G within 3 sigma or 10 %."""
     from _diag_sim import lissajous_m
 
-    from pipeline.effects import rot_z
+    from stages.diagnose.model import rot_z
 
     yaw = np.radians(yaw_deg)
     term = Term(K.FIELD_GRADIENT, yaw_rad=yaw)
@@ -256,7 +259,7 @@ def test_field_gradient_null_and_without_positions():
 
 
 def _sim(effects, seconds=40.0, noise=2.0, trajectory=None, motion="multiaxis"):
-    from pipeline.simulate import scenario_from_dict, simulate
+    from pipeline.app.simulate import scenario_from_dict, simulate
 
     timing = {"mag_rate_hz": 100.0, "attitude_rate_hz": 100.0}
     if isinstance(motion, str):
@@ -292,7 +295,7 @@ def test_sample_hold_found_with_its_native_rate():
 
 
 def test_sample_hold_never_fires_without_repeats():
-    from pipeline.sample_hold import detect_sample_hold
+    from pipeline.model.sample_hold import detect_sample_hold
 
     # noise-free and static: consecutive samples are identical, but nothing changes
     # noise-free dwells at 8 headings (100 Hz, 2 s each): every sample in a dwell repeats

@@ -18,9 +18,10 @@ pytestmark = pytest.mark.real
 @pytest.mark.skipif(not FILES, reason="real recordings absent: ../shared/data/real not found")
 @pytest.mark.parametrize("path", FILES, ids=[p.stem for p in FILES])
 def test_real_recording_findings_improve_heldout(path):
-    from pipeline.mcap_read import read_recording
-    from pipeline.recording import Context
-    from stages.diagnose import Diagnose, DiagnoseConfig
+    from pipeline.core.recording import Context
+    from pipeline.io.mcap_read import read_recording
+    from stages.diagnose.result import DiagnoseConfig
+    from stages.diagnose.stage import Diagnose
     from stages.resample import Resample
 
     rec = read_recording(path)
@@ -44,8 +45,8 @@ LAB_03 = REAL / "lab_03.mcap"
 @pytest.mark.skipif(not FILES, reason="real recordings absent: ../shared/data/real not found")
 def test_real_recordings_sample_hold_rate_and_repeats():
     """The lab magnetometer converts at about 202 Hz; 29 % of its 285.7 Hz messages repeat."""
-    from pipeline.mcap_read import read_recording
-    from pipeline.sample_hold import detect_sample_hold
+    from pipeline.io.mcap_read import read_recording
+    from pipeline.model.sample_hold import detect_sample_hold
 
     for path in FILES:
         rec = read_recording(path)
@@ -60,9 +61,10 @@ def test_real_recordings_sample_hold_rate_and_repeats():
 def test_real_recording_gradient_and_sample_hold_findings():
     """lab_03 (positions in the motion-capture room frame): diagnose reports sample_hold at
     ~202 Hz with ~29 % repeats; a field_gradient finding, if any, lowers the held-out error."""
-    from pipeline.mcap_read import read_recording
-    from pipeline.recording import Context
-    from stages.diagnose import Diagnose, DiagnoseConfig
+    from pipeline.core.recording import Context
+    from pipeline.io.mcap_read import read_recording
+    from stages.diagnose.result import DiagnoseConfig
+    from stages.diagnose.stage import Diagnose
     from stages.resample import Resample
 
     rec = read_recording(LAB_03)

@@ -2,19 +2,10 @@ import numpy as np
 import pytest
 from _diag_sim import all_terms, lissajous_m, make_data
 
-from pipeline.effects import (
-    EFFECTS,
-    EffectKind,
-    FitData,
-    ModelState,
-    Term,
-    evaluate,
-    fit,
-    hat_basis,
-    motion_stats,
-    wahba_init,
-)
-from pipeline.geometry import so3_exp
+from pipeline.core.geometry import so3_exp
+from stages.diagnose.catalogue import EFFECTS, motion_stats
+from stages.diagnose.fit import fit, wahba_init
+from stages.diagnose.model import EffectKind, FitData, ModelState, Term, evaluate, hat_basis
 
 
 def _numeric_jacobian(state: ModelState, data: FitData, eps: np.ndarray) -> np.ndarray:
@@ -127,7 +118,7 @@ def test_every_effect_has_words():
 
 
 def test_field_drift_explanation_names_both_causes_and_the_gradient_limit():
-    from pipeline.effects import explanation
+    from stages.diagnose.catalogue import explanation
 
     # 20 nT over an hour: geomagnetic; 1700 nT over 3 minutes: the sensor moved through a
     # non-uniform field
@@ -150,7 +141,7 @@ G_TRUE = np.array([[1200.0, -800.0, 1500.0], [-800.0, -3000.0, 600.0], [1500.0, 
 
 def _gradient_value(G: np.ndarray) -> np.ndarray:
     """Coefficients of G on the symmetric traceless basis."""
-    from pipeline.effects import _SOFT_BASIS
+    from stages.diagnose.model import _SOFT_BASIS
 
     A = _SOFT_BASIS.reshape(5, 9).T
     v, *_ = np.linalg.lstsq(A, G.ravel(), rcond=None)
@@ -179,7 +170,7 @@ def test_gradient_jacobian_matches_finite_differences(yaw_deg):
 
 def test_gradient_noise_off_is_recovered_to_numerical_precision():
     """Noise off: a gradient along a path (positions in a frame yawed 35 deg) is recovered."""
-    from pipeline.effects import term_params
+    from stages.diagnose.model import term_params
 
     yaw = np.radians(35.0)
     term = Term(EffectKind.FIELD_GRADIENT, yaw_rad=yaw)
@@ -188,7 +179,7 @@ def test_gradient_noise_off_is_recovered_to_numerical_precision():
     res = fit(ModelState(np.eye(3), np.zeros(3)).with_term(term), data)
     assert res.rms_nT < 1e-6
     M = np.asarray(term_params(term, res.state.values[0], res.state, data)["G_nT_per_m"])
-    from pipeline.effects import rot_z
+    from stages.diagnose.model import rot_z
 
     assert np.max(np.abs(M - G_TRUE @ rot_z(yaw))) < 1e-6  # nT/m
     p = term_params(term, res.state.values[0], res.state, data)
@@ -197,7 +188,8 @@ def test_gradient_noise_off_is_recovered_to_numerical_precision():
 
 
 def test_gradient_yaw_is_read_back_from_the_matrix():
-    from pipeline.effects import rot_z, yaw_of_gradient
+    from stages.diagnose.catalogue import yaw_of_gradient
+    from stages.diagnose.model import rot_z
 
     for deg in (0.0, 35.0, 120.0, -70.0):
         got = np.degrees(yaw_of_gradient(G_TRUE @ rot_z(np.radians(deg))))
@@ -205,7 +197,7 @@ def test_gradient_yaw_is_read_back_from_the_matrix():
 
 
 def test_gradient_identifiability_needs_positions_that_are_not_time():
-    from pipeline.effects import identifiability_reason
+    from stages.diagnose.catalogue import identifiability_reason
 
     st = None
     # no positions
@@ -229,7 +221,7 @@ def test_gradient_identifiability_needs_positions_that_are_not_time():
 
 
 def test_field_drift_explanation_with_positions_says_what_the_gradient_test_found():
-    from pipeline.effects import explanation
+    from stages.diagnose.catalogue import explanation
 
     note = "with the positions, a spatial gradient was tested: not found"
     text = explanation(EffectKind.FIELD_DRIFT, {"peak_to_peak_nT": [300.0, 1700.0, 900.0]},

@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.errors import NotObservableError
-from pipeline.geometry import quat_conj, quat_rotate, so3_exp, so3_log
-from pipeline.recording import AlignedSeries, Context
+from pipeline.core.errors import NotObservableError
+from pipeline.core.geometry import quat_conj, quat_rotate, so3_exp, so3_log
+from pipeline.core.recording import AlignedSeries, Context
 from stages.estimate import Estimate, EstimatorKind, NoiseModel, Term, fit_calibration
 from stages.estimators import ml
 from stages.estimators.base import Problem
@@ -31,7 +31,7 @@ def angle_between_deg(A, B):
 
 @pytest.fixture(scope="module")
 def section41():
-    from pipeline.simulate import load_scenario, simulate
+    from pipeline.app.simulate import load_scenario, simulate
     from stages.resample import Resample
 
     sim = simulate(load_scenario(SCEN / "li2020_section41.toml"))
@@ -135,7 +135,7 @@ def test_rotation_jacobian_is_left_perturbation_formula():
         yp = D @ (so3_exp(phi + e) @ R_SMALL).T @ b
         ym = D @ (so3_exp(phi - e) @ R_SMALL).T @ b
         J[:, k] = (yp - ym) / 2e-7
-    from pipeline.geometry import skew
+    from pipeline.core.geometry import skew
 
     np.testing.assert_allclose(J, D @ R_SMALL.T @ skew(b), rtol=1e-6, atol=1e-6)
 
@@ -150,7 +150,7 @@ def test_rotating_world_frame_gives_same_R(rv):
     s = draw(
         kind="multi", n=300, R_body_mag=R_SMALL, noise=NoiseModel(0.5), rng=np.random.default_rng(5)
     )
-    from pipeline.geometry import matrix_to_quat, quat_mul
+    from pipeline.core.geometry import matrix_to_quat, quat_mul
 
     G = so3_exp(np.array(rv))
     qG = matrix_to_quat(G)
@@ -222,8 +222,8 @@ def test_attitude_noise_model_matches_the_generators(source):
     # pitch about the Euler pitch axis differ by 10x along body z.
     import tomllib
 
-    from pipeline.geometry import quat_to_matrix
-    from pipeline.simulate import scenario_from_dict, simulate
+    from pipeline.app.simulate import scenario_from_dict, simulate
+    from pipeline.core.geometry import quat_to_matrix
 
     noise = NoiseModel(0.0, np.radians(0.005), np.radians(0.05), np.radians(0.05))
     if source == "simulate":
@@ -399,8 +399,8 @@ def test_stage_and_nominal_mounting():
 
 
 def test_calibrate_command_writes_json(tmp_path, section41):
-    from pipeline.cli import main
-    from pipeline.simulate import write_simulated
+    from pipeline.app.cli import main
+    from pipeline.app.simulate import write_simulated
 
     sim, _ = section41
     rec = write_simulated(sim, tmp_path / "s41.mcap")
@@ -421,7 +421,7 @@ def test_real_lab_calibration_lowers_restored_std(name):
     path = REAL / f"{name}.mcap"
     if not path.exists():
         pytest.skip(f"real data folder {REAL.name} is absent (../shared/data/real)")
-    from pipeline.mcap_read import read_recording
+    from pipeline.io.mcap_read import read_recording
     from stages.resample import Resample
 
     rec = read_recording(path)

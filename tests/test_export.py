@@ -12,8 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.calibration import Calibration
-from pipeline.exports import (
+from pipeline.app.exports import (
     ardupilot_correct,
     ardupilot_params,
     matrix_from_rpy,
@@ -23,8 +22,9 @@ from pipeline.exports import (
     to_ros_tf,
     to_yaml,
 )
-from pipeline.geometry import quat_to_matrix
-from pipeline.verdict import Status, Verdict
+from pipeline.core.geometry import quat_to_matrix
+from pipeline.core.verdict import Status, Verdict
+from pipeline.model.calibration import Calibration
 
 R_TRUE = Rotation.from_rotvec(np.radians([2.0, -3.5, 25.0])).as_matrix()
 D_TRUE = np.array([[1.03, 0.012, -0.006], [0.012, 0.97, 0.004], [-0.006, 0.004, 1.01]])
@@ -160,7 +160,7 @@ def test_yaml_reads_back_with_a_yaml_parser():
 # ------------------------------------------------------------------ the command
 
 def _run(*args: str, cwd) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "pipeline.cli", "export", *args], cwd=cwd,
+    return subprocess.run([sys.executable, "-m", "pipeline.app.cli", "export", *args], cwd=cwd,
                           capture_output=True, text=True, timeout=120)
 
 

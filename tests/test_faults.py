@@ -19,8 +19,8 @@ import pytest
 from _pause import kill_paused_worker
 from test_kill_rerun import check_no_partial_output
 
-from pipeline.atomic import PAUSE_AT_ENV, PAUSE_DIR_ENV
-from pipeline.calibration import Calibration
+from pipeline.core.atomic import PAUSE_AT_ENV, PAUSE_DIR_ENV
+from pipeline.model.calibration import Calibration
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE / "data"
@@ -34,7 +34,7 @@ def magalign(argv: list[str], *, fsize: int | None = None, env: dict | None = No
         if fsize is not None:
             resource.setrlimit(resource.RLIMIT_FSIZE, (fsize, fsize))
 
-    return subprocess.run([sys.executable, "-m", "pipeline.cli", *argv], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "pipeline.app.cli", *argv], capture_output=True,
                           text=True, timeout=timeout, cwd=HERE.parent, preexec_fn=limit,
                           env={**os.environ, **(env or {})})
 
@@ -121,7 +121,7 @@ def test_worker_dies_in_a_local_pool_campaign(tmp_path):
     hook = tmp_path / "hook"
     hook.mkdir()
     env = {PAUSE_DIR_ENV: str(hook), PAUSE_AT_ENV: "written line_restored/calibration.json"}
-    p = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "process", str(camp), "--out",
+    p = subprocess.Popen([sys.executable, "-m", "pipeline.app.cli", "process", str(camp), "--out",
                           str(out), "--jobs", "2", "--no-progress"], cwd=HERE.parent,
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          env={**os.environ, **env}, start_new_session=True)
@@ -144,7 +144,7 @@ def test_read_only_file_system_in_process(tmp_path, recording, monkeypatch, caps
     import errno
     import tempfile
 
-    from pipeline.cli import main
+    from pipeline.app.cli import main
 
     def refuse(*_a, **_k):
         raise OSError(errno.EROFS, "Read-only file system")

@@ -28,7 +28,7 @@ from pathlib import Path
 import fuzz_mcap as fz
 import pytest
 
-from pipeline.errors import MagalignError
+from pipeline.core.errors import MagalignError
 
 N_FILES = int(os.environ.get("MAGALIGN_FUZZ_N", "60"))
 SEED = int(os.environ.get("MAGALIGN_FUZZ_SEED", "16"))
@@ -58,7 +58,8 @@ def outcomes() -> Counter:
 
 
 def test_bases_are_valid_and_cover_the_reader_paths(tmp_path):
-    from pipeline.mcap_read import _prepare, _scan, read_recording
+    from pipeline.io.mcap_read import read_recording
+    from pipeline.io.mcap_scan import _prepare, _scan
 
     layouts = {}
     for name, make in fz.BASES.items():
@@ -114,7 +115,7 @@ def _check_outputs(out: Path, status: int, finals: tuple[str, ...]) -> None:
         assert name in names, f"{name} missing from {out}"
     for f in files:
         if f.name == "calibration.json":
-            from pipeline.calibration import Calibration
+            from pipeline.model.calibration import Calibration
 
             Calibration.load(f)
         elif f.suffix == ".json":
@@ -123,7 +124,7 @@ def _check_outputs(out: Path, status: int, finals: tuple[str, ...]) -> None:
 
 def test_reader_entry_points(damaged):
     """Every reader function answers a damaged file or raises a MagalignError."""
-    from pipeline import mcap_read as mr
+    from pipeline.io import mcap_read as mr
 
     readers = {
         "read_recording": mr.read_recording,
@@ -172,7 +173,7 @@ def test_command_answers_every_damaged_file(damaged, outcomes, tmp_path, command
 
 
 def test_view_loader_answers_every_damaged_file(damaged, outcomes):
-    from pipeline.commands.view import files_to_view
+    from pipeline.app.commands.view import files_to_view
 
     for p in damaged:
         try:
@@ -193,7 +194,7 @@ def test_real_program_on_damaged_files(damaged, tmp_path):
         out = tmp_path / p.stem
         argv = [cmd, str(p), "--out", str(out)] + (["--no-progress"] if k % 2 else [])
         try:
-            r = subprocess.run([sys.executable, "-m", "pipeline.cli", *argv],
+            r = subprocess.run([sys.executable, "-m", "pipeline.app.cli", *argv],
                                capture_output=True, text=True, timeout=HANG_S)
         except subprocess.TimeoutExpired:
             pytest.fail(f"{cmd} {p.name} ran longer than {HANG_S} s")
@@ -204,8 +205,8 @@ def test_damaged_campaign_toml_is_refused_or_read(tmp_path):
     """A damaged campaign file is read or refused with a ConfigError naming it; never a crash."""
     import shutil
 
-    from pipeline.campaign import load_campaign
-    from pipeline.errors import ConfigError, InputError, UsageError
+    from pipeline.app.campaign import load_campaign
+    from pipeline.core.errors import ConfigError, InputError, UsageError
 
     data = Path(__file__).resolve().parent / "data"
     for f in data.glob("*.mcap"):

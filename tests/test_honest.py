@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.calibration import Calibration
-from pipeline.geometry import matrix_to_quat, quat_to_rotvec
-from pipeline.recording import AlignedSeries, AttitudeSeries
-from pipeline.sample_hold import detect_sample_hold
-from pipeline.verdict import Status, judge, sensor_noise_nT
+from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
+from pipeline.core.recording import AlignedSeries, AttitudeSeries
+from pipeline.core.verdict import Status, judge, sensor_noise_nT
+from pipeline.model.calibration import Calibration
+from pipeline.model.sample_hold import detect_sample_hold
 from stages.estimate import Term, fit_calibration
 from stages.estimators.base import NoiseModel, Problem
 from stages.estimators.checks import block_index, info_halves
@@ -89,12 +89,12 @@ def test_confounded_terms_are_not_estimated_and_said_so():
     # is kept at its start with an infinite sigma); they must be left out, and said so.
     s = draw(kind="single", n=3000, R_body_mag=R_SMALL, noise=NoiseModel(2.0),
              rng=np.random.default_rng(5))
-    from pipeline.geometry import quat_mul, rotvec_to_quat
+    from pipeline.core.geometry import quat_mul, rotvec_to_quat
 
     t = (s.aligned.t_ns - s.aligned.t_ns[0]) * 1e-9
     wob = np.radians(0.3) * np.stack([np.sin(0.7 * t), np.cos(0.5 * t), 0 * t], 1)
     q = quat_mul(s.aligned.q_enu_body, rotvec_to_quat(wob))
-    from pipeline.geometry import quat_conj, quat_rotate
+    from pipeline.core.geometry import quat_conj, quat_rotate
 
     y = quat_rotate(quat_conj(q), np.broadcast_to(s.B_enu_nT, (len(q), 3))) @ R_SMALL
     y = y + np.random.default_rng(1).normal(0, 2.0, y.shape)
@@ -211,8 +211,8 @@ def _real(name: str):
     path = REAL / f"{name}.mcap"
     if not path.exists():
         pytest.skip(f"real data folder {REAL.name} is absent (../shared/data/real)")
-    from pipeline.mcap_read import read_recording
-    from pipeline.recording import Context
+    from pipeline.core.recording import Context
+    from pipeline.io.mcap_read import read_recording
     from stages.resample import Resample
 
     rec = read_recording(path)
@@ -251,7 +251,7 @@ def test_real_lab_02_magnet_is_refused_by_calibrate(tmp_path, capsys):
     path = REAL / "lab_02.mcap"
     if not path.exists():
         pytest.skip(f"real data folder {REAL.name} is absent (../shared/data/real)")
-    from pipeline.cli import main
+    from pipeline.app.cli import main
 
     code = main(["calibrate", str(path), "--out", str(tmp_path / "o"),
                  "--estimate", "offset,soft_iron,time_offset"])
@@ -277,7 +277,7 @@ def test_real_verdict_compares_residual_with_still_window_noise(name):
 
 
 def test_diagnose_command_lines_fit_100_columns_and_say_where_it_wrote(tmp_path, capsys):
-    from pipeline.cli import main
+    from pipeline.app.cli import main
 
     src = Path(__file__).resolve().parent / "data" / "line_disturbed.mcap"
     out = tmp_path / "d"

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from _reader_fixtures import DEFS, motion, write_ros2
 
-from pipeline.cli import main
-from pipeline.mcap_read import read_recording
+from pipeline.app.cli import main
+from pipeline.io.mcap_read import read_recording
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 MAG = "sensor_msgs/msg/MagneticField"

@@ -11,10 +11,10 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType
 from mcap_ros2.decoder import DecoderFactory
 
-from pipeline.errors import ChannelError, SchemaError
-from pipeline.geometry import li2020_euler_to_quat, novatel_to_quat, quat_rotate
-from pipeline.mcap_read import read_raw_channels, read_recording
-from pipeline.recording import Context, EncodingFamily, Role
+from pipeline.core.errors import ChannelError, SchemaError
+from pipeline.core.geometry import li2020_euler_to_quat, novatel_to_quat, quat_rotate
+from pipeline.core.recording import Context, EncodingFamily, Role
+from pipeline.io.mcap_read import read_raw_channels, read_recording
 from stages.ingest import Ingest
 
 MAG = "sensor_msgs/msg/MagneticField"
@@ -278,7 +278,7 @@ def test_samples_pinned_at_a_rail_are_dropped(tmp_path):
 
 def test_rails_on_two_axes_pinning_most_samples_are_refused(tmp_path):
     """Each rail holds fewer than half of the samples, both together more: refused."""
-    from pipeline.errors import DataQualityError
+    from pipeline.core.errors import DataQualityError
 
     _, mag_T, _ = motion(300)
     lo = float(np.quantile(mag_T[:, 0], 0.4))

@@ -10,9 +10,9 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline.geometry import quat_normalize
-from pipeline.mcap_read import read_recording
-from pipeline.mcap_write import write_recording
+from pipeline.core.geometry import quat_normalize
+from pipeline.io.mcap_read import read_recording
+from pipeline.io.mcap_write import write_recording
 
 MAG_TYPES = ["sensor_msgs/msg/MagneticField", "magalign.Magnetometer"]
 ATT_TYPES = [

@@ -9,7 +9,7 @@ leftover temporaries named ``.*.tmp``. A rerun then completes.
 Issue 16: the kill points are chosen by the test, not by the clock, so the test holds on a
 slow or loaded machine. A reference run lists the events of every atomic write
 (``created``, ``written``, ``renamed`` of each output: the test hook of
-``pipeline.atomic``); each iteration pauses a run at one of them (seeded choice), kills it
+``pipeline.core.atomic``); each iteration pauses a run at one of them (seeded choice), kills it
 there and checks what is left. A few more runs are killed at seeded random moments, which
 reach other points (reading, estimating); whether those ended before the kill does not
 matter to the test.
@@ -36,7 +36,7 @@ import pytest
 from _pause import wait_paused
 from mcap.reader import make_reader
 
-from pipeline.calibration import Calibration
+from pipeline.model.calibration import Calibration
 
 N_ITERATIONS = 20
 N_RANDOM = 3
@@ -45,7 +45,7 @@ TEMP_NAME = re.compile(r"\..+\.tmp")
 
 
 def _start(argv: list[str], cwd: Path, env: dict[str, str] | None = None) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "pipeline.cli", *argv], cwd=cwd,
+    return subprocess.Popen([sys.executable, "-m", "pipeline.app.cli", *argv], cwd=cwd,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             start_new_session=True, env={**os.environ, **(env or {})})
 
@@ -74,9 +74,9 @@ def run_and_kill(argv: list[str], cwd: Path, after_s: float) -> bool:
 def run_and_kill_at(argv: list[str], cwd: Path, hook: Path, at: int) -> str:
     """Start the program paused at atomic-write event number ``at``; SIGKILL it there.
 
-    Returns the event it was killed at (``pipeline.atomic``'s hook).
+    Returns the event it was killed at (``pipeline.core.atomic``'s hook).
     """
-    from pipeline.atomic import PAUSE_AT_ENV, PAUSE_DIR_ENV
+    from pipeline.core.atomic import PAUSE_AT_ENV, PAUSE_DIR_ENV
 
     hook.mkdir()
     p = _start(argv, cwd, {PAUSE_DIR_ENV: str(hook), PAUSE_AT_ENV: str(at)})
@@ -149,7 +149,7 @@ def _event(line: str) -> tuple[str, str]:
 
 
 def _loop(tmp_path: Path, recording: Path, argv_for, finished) -> None:
-    from pipeline.atomic import PAUSE_DIR_ENV
+    from pipeline.core.atomic import PAUSE_DIR_ENV
 
     rng = np.random.default_rng(SEED)
     ref_hook = tmp_path / "reference_events"

@@ -1,4 +1,4 @@
-"""Message encoders (pipeline.messages) and schemas, checked against mcap_ros2 and jsonschema."""
+"""Message encoders (pipeline.io.messages) and schemas, checked against mcap_ros2 and jsonschema."""
 
 from __future__ import annotations
 
@@ -18,8 +18,8 @@ from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer as Ros2Writer
 
-from pipeline.errors import SchemaError
-from pipeline.messages import WRITTEN_TYPES, encode, schema_for
+from pipeline.core.errors import SchemaError
+from pipeline.io.messages import WRITTEN_TYPES, encode, schema_for
 from schemas import JSON_TYPES, ROS2_TYPES, VARIANTS, json_schema
 
 T0 = 1_700_000_000_123_456_789
@@ -329,9 +329,9 @@ def test_property_json_round_trip_exact(t_ns, data, frame_id):
 
 def test_one_table_of_message_types():
     """schemas.MESSAGE_TYPES is the only list: reader, writer, simulator and schemas follow it."""
-    import pipeline.mcap_read as reader
-    import pipeline.simulate as simulate
-    from pipeline import messages
+    import pipeline.app.simulate as simulate
+    import pipeline.io.mcap_decode as reader
+    from pipeline.io import messages
     from schemas import MESSAGE_TYPES, MessageRole, schema_text
 
     by_role = {MessageRole.MAGNETOMETER: (reader.MAG_TYPES, simulate.MAG_TYPES),

@@ -10,9 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.calibration import Calibration
-from pipeline.geometry import quat_normalize, quat_rotate, rotvec_to_quat, so3_exp
-from pipeline.recording import (
+from pipeline.core.geometry import quat_normalize, quat_rotate, rotvec_to_quat, so3_exp
+from pipeline.core.recording import (
     AngleSeries,
     AttitudeSeries,
     Context,
@@ -21,6 +20,7 @@ from pipeline.recording import (
     SegmentKind,
     VectorSeries,
 )
+from pipeline.model.calibration import Calibration
 from stages.metrics import Metrics, component_stats, heading_error_stats
 from stages.restore import Restore
 

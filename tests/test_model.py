@@ -9,8 +9,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from pipeline.calibration import Calibration
-from pipeline.geometry import (
+from pipeline.app.simulate import scenario_from_dict, simulate
+from pipeline.core.geometry import (
     quat_conj,
     quat_mul,
     quat_normalize,
@@ -18,10 +18,10 @@ from pipeline.geometry import (
     rotvec_to_quat,
     so3_exp,
 )
+from pipeline.core.recording import AttitudeSeries, Context
 from pipeline.model.attitude import AttitudeInterpolator, interpolate_attitude
+from pipeline.model.calibration import Calibration
 from pipeline.model.forward import PARAM_NAMES, ForwardModel, evaluate, jacobian, perturbed
-from pipeline.recording import AttitudeSeries, Context
-from pipeline.simulate import scenario_from_dict, simulate
 
 T0 = 1_767_225_600_000_000_000
 B_ENU = np.array([1300.0, 15000.0, -49000.0])
@@ -66,7 +66,7 @@ def test_one_interpolator_gap_rule_and_resample_agree():
     assert not v1[t_sense < 0].any() and v1[(t_sense > 0) & (t_sense < 1.5)].all()
 
 
-def test_slerp_rate_is_the_exact_derivative():
+def test_interpolated_rate_is_the_exact_derivative():
     # omega_body: C(t + h) = C(t) Exp(omega h) inside a segment; checked at 5 rad/s
     att = _fast_attitude(300, 100.0, 5.0)
     it = AttitudeInterpolator.of(att)
@@ -111,10 +111,47 @@ def test_jacobian_matches_finite_differences(tau, eddy):
             assert np.percentile(err, 95) < 0.05 * scale, (name, err.max(), scale)
             continue
         # analytic: 1e-5 of the column's scale (nT/rad ~ 5e4, nT/s ~ 2.5e5 at 5 rad/s)
-        # except samples whose +-h straddle an attitude knot (the SLERP rate jumps there)
+        # except samples whose +-h straddle an attitude knot
         err = np.max(np.abs(fd - J[:, :, k]), axis=1)
         bad = err > 1e-5 * scale + 1e-7
         assert bad.mean() < 0.01, (name, err.max(), scale)
+
+
+def test_heading_drift_in_the_model_jacobian_and_restore():
+    # (M1h): the attitude source's heading error turns the field about Up; (J2) carries
+    # Rz(h); restoring takes the heading error out, leaving B_enu (noise-free)
+    from pipeline.model.forward import restore
+
+    att = _fast_attitude(400, 100.0, 2.0, seed=4)
+    t = T0 + np.arange(150_000_000, 3_850_000_000, 20_000_000, dtype=np.int64)
+    span = 3.7
+    m = dataclasses.replace(_model(0.01, False),
+                            heading=(np.radians([0.5, -0.2]), span))
+    it = AttitudeInterpolator.of(att)
+    ev = evaluate(m, t, it)
+    h = m.heading_rad((t - t[0]) * 1e-9)
+    assert ev.heading_rad is not None and np.degrees(np.ptp(h)) > 0.9
+    J = jacobian(m, t, it)
+    for k in (3, 4, 5):
+        dx = np.zeros(len(PARAM_NAMES))
+        dx[k] = 1e-2
+        fd = (evaluate(perturbed(m, dx), t, it).y_nT
+              - evaluate(perturbed(m, -dx), t, it).y_nT) / 2e-2
+        np.testing.assert_allclose(fd, J[:, :, k], atol=1e-6)
+    # without the heading term the prediction differs by |B_h| * h (hundreds of nT)
+    no_h = evaluate(dataclasses.replace(m, heading=None), t, it).y_nT
+    assert np.max(np.linalg.norm(ev.y_nT - no_h, axis=1)) > 100.0
+    rs = restore(m, ev.y_nT, t, it)
+    np.testing.assert_allclose(rs.enu_nT, np.broadcast_to(B_ENU, rs.enu_nT.shape), atol=1e-6)
+    np.testing.assert_allclose(rs.residual_nT, 0.0, atol=1e-6)
+    # a calibration carries it as the heading_drift effect's legendre_rad / span_s
+    cal = Calibration(R_body_mag=m.R_body_mag, sigma_rotvec_deg=np.zeros(3), B_enu_nT=B_ENU,
+                      estimator="test", residual_rms_nT=0.0, n_samples=len(t), D=m.D,
+                      offset_nT=m.offset_nT, time_offset_s=m.time_offset_s,
+                      effects={"heading_drift": {"rate_deg_per_h": 0.0, "peak_to_peak_deg": 0.0,
+                                                 "legendre_rad": np.radians([0.5, -0.2]).tolist(),
+                                                 "span_s": span}})
+    np.testing.assert_allclose(cal.predict(t, att, t0_ns=int(t[0])), ev.y_nT, atol=1e-6)
 
 
 def test_time_offset_jacobian_uses_rate_at_sensing_time():
@@ -162,7 +199,7 @@ def _truth_cal(tr) -> Calibration:
 
 @pytest.mark.parametrize("tau", [0.06, -0.06])
 def test_simulator_oracle_and_model_agree_without_noise(tau):
-    # pipeline.simulate evaluates the continuous motion at t - tau (its own implementation);
+    # pipeline.app.simulate evaluates the continuous motion at t - tau (its own implementation);
     # the model re-interpolates the 200 Hz attitude samples at t - tau by SLERP. SLERP's
     # error at 200 Hz and these rates (<= 1.2 rad/s): s(1-s) dt^2/2 |alpha| ~ 1e-5 rad, i.e.
     # < 0.5 nT of a 51 uT field.
@@ -214,10 +251,12 @@ def _diag_recording():
 
 
 def test_diagnose_prediction_is_the_calibration_prediction():
-    # The diagnosis fit (pipeline.effects.evaluate) and Calibration.predict of the final
+    # The diagnosis fit (stages.diagnose.model.evaluate) and Calibration.predict of the final
     # calibration it writes are the same function of time: every term, the disturbance
     # included, to round-off.
-    from stages.diagnose import DiagnoseConfig, calibration_from, diagnose_data, fit_data_from
+    from stages.diagnose.result import DiagnoseConfig
+    from stages.diagnose.search import diagnose_data
+    from stages.diagnose.stage import calibration_from, fit_data_from
     from stages.resample import Resample
 
     sim = _diag_recording()
@@ -227,7 +266,7 @@ def test_diagnose_prediction_is_the_calibration_prediction():
     diag, res = diagnose_data(data, None, DiagnoseConfig())
     assert {"hard_iron", "disturbance"} <= {f.effect for f in diag.findings}
     cal = calibration_from(res, data, diag.findings)
-    from pipeline.effects import evaluate as effects_evaluate
+    from stages.diagnose.model import evaluate as effects_evaluate
 
     y_fit = effects_evaluate(res.state, data, jacobian=False).y_nT
     t_ns = int(rec.mag.t_ns[0]) + np.round(data.t_s * 1e9).astype(np.int64)
@@ -243,7 +282,9 @@ def test_diagnose_prediction_is_the_calibration_prediction():
 def test_diagnose_baseline_equals_calibrate_residual():
     # Same recording, same model (R_body_mag and B_enu): calibrate's residual and the
     # diagnosis baseline agree within 0.1 % (one attitude interpolation, one prediction).
-    from stages.diagnose import DiagnoseConfig, diagnose_data, fit_data_from
+    from stages.diagnose.result import DiagnoseConfig
+    from stages.diagnose.search import diagnose_data
+    from stages.diagnose.stage import fit_data_from
     from stages.estimate import fit_calibration
     from stages.resample import Resample
 
@@ -252,21 +293,28 @@ def test_diagnose_baseline_equals_calibrate_residual():
     al = Resample().run(Context(recording=rec)).aligned
     cal = fit_calibration(rec, al)
     data = fit_data_from(rec, al, max_samples=DiagnoseConfig().max_samples)
-    assert len(data) == len(al)  # no decimation: the same samples
+    # no decimation; the diagnosis leaves out the 100 ms at each end of the attitude track
+    assert len(al) - 12 <= len(data) < len(al)
     diag, _ = diagnose_data(data, None, DiagnoseConfig())
-    assert diag.baseline["residual_rms_nT"] == pytest.approx(cal.residual_rms_nT, rel=1e-3)
-    # and Calibration.predict on those samples gives calibrate's number too
-    rs = cal.restore(al.mag_nT, al.t_ns, rec.attitude, t0_ns=int(rec.mag.t_ns[0]))
+    # Calibration.restore over every sample gives calibrate's number ...
+    t0 = int(rec.mag.t_ns[0])
+    rs = cal.restore(al.mag_nT, al.t_ns, rec.attitude, t0_ns=t0)
     assert rs.valid.all()
     rms = float(np.sqrt(np.mean(rs.residual_nT**2)))
     assert rms == pytest.approx(cal.residual_rms_nT, rel=1e-3)
+    # ... and over the diagnosis's samples the diagnosis baseline
+    t_data = t0 + np.round(np.asarray(data.t_s) * 1e9).astype(np.int64)
+    keep = np.isin(np.asarray(al.t_ns), t_data)
+    assert keep.sum() == len(data)
+    rms_same = float(np.sqrt(np.mean(rs.residual_nT[keep] ** 2)))
+    assert diag.baseline["residual_rms_nT"] == pytest.approx(rms_same, rel=1e-3)
 
 
 # ----------------------------------------------------------------------------- one number
 
 
 def _line_with_passing_vehicle(tmp_path):
-    from pipeline.simulate import write_simulated
+    from pipeline.app.simulate import write_simulated
 
     d = {
         "name": "line_vehicle",
@@ -299,8 +347,8 @@ def test_final_residual_is_one_number_everywhere(tmp_path):
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
 
-    from pipeline.mcap_read import read_recording
-    from pipeline.process_one import ProcessOptions, process_recording
+    from pipeline.app.process_one import ProcessOptions, process_recording
+    from pipeline.io.mcap_read import read_recording
     from stages.report import residual_figure_data
     from stages.restore import restore_samples, view_data
 
@@ -358,7 +406,7 @@ def test_restore_runs_once_after_diagnose():
     # Diagnose restores the recording with its final model (for the final residual); the
     # Restore stage keeps that result instead of computing it again, and computes it anew
     # when the model differs.
-    from stages.diagnose import Diagnose
+    from stages.diagnose.stage import Diagnose
     from stages.resample import Resample
     from stages.restore import Restore
 

@@ -13,9 +13,9 @@ import pytest
 from indep_gen import Spec, write
 from scipy.spatial.transform import Rotation
 
-from pipeline.geometry import angle_between_deg
-from pipeline.mcap_read import read_recording
-from pipeline.recording import Context
+from pipeline.core.geometry import angle_between_deg
+from pipeline.core.recording import Context
+from pipeline.io.mcap_read import read_recording
 from stages.estimate import Term, fit_calibration
 from stages.resample import Resample
 

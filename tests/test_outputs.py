@@ -15,11 +15,11 @@ import pytest
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from pipeline.calibration import Calibration
-from pipeline.errors import OutputError
-from pipeline.process_one import ProcessOptions, process_recording
-from pipeline.recording import Context, Segment, SegmentKind
-from pipeline.simulate import scenario_from_dict, simulate, write_simulated
+from pipeline.app.process_one import ProcessOptions, process_recording
+from pipeline.app.simulate import scenario_from_dict, simulate, write_simulated
+from pipeline.core.errors import OutputError
+from pipeline.core.recording import Context, Segment, SegmentKind
+from pipeline.model.calibration import Calibration
 from stages.ingest import Ingest
 from stages.write_mcap import write_corrected_mcap
 from stages.write_rerun import WriteRerun
@@ -186,7 +186,7 @@ def test_rrd_read_back(tmp_path):
     # the values, read back with rerun's own reader: labelled spans, the report's colours
     from rerun.chunk import RrdReader
 
-    from pipeline import style
+    from pipeline.core import style
 
     cols: dict[str, dict[str, list]] = {}
     for ch in RrdReader(str(rrd)).stream():
@@ -240,10 +240,10 @@ def test_simulated_survey_ratio_below_two_percent(tmp_path):
 def test_view_without_display_says_so(tmp_path):
     (tmp_path / "x.rrd").write_bytes(b"")
     env = {"PATH": "/usr/bin:/bin"}
-    p = subprocess.run([sys.executable, "-m", "pipeline.cli", "view", str(tmp_path)],
+    p = subprocess.run([sys.executable, "-m", "pipeline.app.cli", "view", str(tmp_path)],
                        capture_output=True, text=True, env=env, timeout=60)
     assert p.returncode == 2
     assert p.stderr.count("\n") == 1 and "no display" in p.stderr
-    p = subprocess.run([sys.executable, "-m", "pipeline.cli", "view", str(tmp_path / "nope")],
+    p = subprocess.run([sys.executable, "-m", "pipeline.app.cli", "view", str(tmp_path / "nope")],
                        capture_output=True, text=True, env=env, timeout=60)
     assert p.returncode == 2 and "no such file" in p.stderr

@@ -14,10 +14,10 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import progress as pg
+from pipeline.core import progress as pg
 from tests import corpus
 
-MAGALIGN = [sys.executable, "-c", "import sys; from pipeline.cli import main; sys.exit(main())"]
+MAGALIGN = [sys.executable, "-c", "import sys; from pipeline.app.cli import main; sys.exit(main())"]
 
 
 def _env(**kw: str) -> dict[str, str]:
@@ -129,7 +129,7 @@ def test_nothing_on_stderr_that_is_not_a_terminal(recording, tmp_path):
 
 def test_diagnose_reports_candidate_search(recording):
     """diagnose's steps and its candidate search reach the sink (the line shows them)."""
-    from pipeline.commands.diagnose import diagnose_file
+    from pipeline.app.commands.diagnose import diagnose_file
 
     seen: list[dict] = []
     with pg.use_sink(pg.DirectSink("valid", seen.append)) as sink:

@@ -11,15 +11,15 @@ from _reader_fixtures import DEFS, motion, write_ros2, write_ros2_raw
 from mcap.reader import make_reader
 from mcap.writer import CompressionType
 
-from pipeline.cli import main
-from pipeline.errors import (
+from pipeline.app.cli import main
+from pipeline.core.errors import (
     CorruptRecordingError,
     DataQualityError,
     NotMcapError,
     RecoveredDataWarning,
 )
-from pipeline.mcap_read import read_raw_channels, read_recording
-from pipeline.recording import Context
+from pipeline.core.recording import Context
+from pipeline.io.mcap_read import read_raw_channels, read_recording
 from stages.resample import Resample
 
 MAG = "sensor_msgs/msg/MagneticField"

@@ -6,7 +6,7 @@ import argparse
 
 import pytest
 
-from pipeline.errors import UsageError
+from pipeline.core.errors import UsageError
 from stages.estimate import EstimatorKind, make_estimator
 from stages.estimators.base import Estimator
 from stages.estimators.registry import DESCRIPTIONS, ESTIMATORS
@@ -27,8 +27,8 @@ def test_unknown_kind_is_an_error_not_a_fall_back():
 
 
 def test_cli_and_campaign_choices_come_from_the_registry():
-    from pipeline import campaign
-    from pipeline.commands import calibrate
+    from pipeline.app import campaign
+    from pipeline.app.commands import calibrate
 
     ap = argparse.ArgumentParser()
     sub = ap.add_subparsers()

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError
-from pipeline.geometry import quat_to_matrix, rotvec_to_quat
-from pipeline.regress import REGRESSION, Tolerances, compare, format_table
+from pipeline.app.regress import REGRESSION, Tolerances, compare, format_table
+from pipeline.core.errors import InputError
+from pipeline.core.geometry import quat_to_matrix, rotvec_to_quat
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE / "data"
@@ -23,7 +23,7 @@ sys.path.insert(0, str(HERE))  # make_golden
 
 
 def _cli(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "pipeline.cli", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "pipeline.app.cli", *args], capture_output=True,
                           text=True, timeout=timeout, cwd=HERE.parent)
 
 
@@ -48,7 +48,7 @@ REPRO_STAMP_S = 1e-6
 
 
 def _decoded(path: Path) -> dict:
-    from pipeline.mcap_read import read_raw_channels, read_recording
+    from pipeline.io.mcap_read import read_raw_channels, read_recording
 
     rec = read_recording(path)
     raw = read_raw_channels(path)
@@ -59,7 +59,7 @@ def _decoded(path: Path) -> dict:
 def test_archived_logs_are_small_and_deterministic(tmp_path):
     from make_golden import write_data
 
-    from pipeline.geometry import quat_conj, quat_mul, quat_to_rotvec
+    from pipeline.core.geometry import quat_conj, quat_mul, quat_to_rotvec
 
     stored = sorted(DATA.glob("*.mcap"))
     assert 2 <= len(stored) <= 3
@@ -97,7 +97,7 @@ def test_archived_logs_match_golden(archived_results):
 def _move_rotation(cal_file: Path, deg: float, axis=(0.0, 0.0, 1.0), *,
                    keep_rotvec: bool = False) -> None:
     """Turn a calibration's R_body_mag by ``deg``; its rotation vector follows unless kept."""
-    from pipeline.geometry import matrix_to_quat, quat_to_rotvec
+    from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
 
     d = json.loads(cal_file.read_text())
     dR = quat_to_matrix(rotvec_to_quat(np.radians(deg) * np.asarray(axis)))
@@ -240,7 +240,7 @@ def test_tolerances_file_overrides(tmp_path):
     (tmp_path / "base" / "tolerances.toml").write_text("[tolerances]\nrotation_deg = 0.5\n")
     assert not any(r.status == REGRESSION for r in compare(tmp_path / "res", tmp_path / "base"))
     (tmp_path / "base" / "tolerances.toml").write_text("[tolerances]\nrotaton_deg = 0.5\n")
-    from pipeline.errors import ConfigError
+    from pipeline.core.errors import ConfigError
 
     with pytest.raises(ConfigError) as ei:
         compare(tmp_path / "res", tmp_path / "base")

@@ -6,9 +6,8 @@ import re
 
 import numpy as np
 
-from pipeline.calibration import Calibration
-from pipeline.geometry import quat_normalize, rotvec_to_quat, so3_exp
-from pipeline.recording import (
+from pipeline.core.geometry import quat_normalize, rotvec_to_quat, so3_exp
+from pipeline.core.recording import (
     AttitudeSeries,
     Context,
     Recording,
@@ -16,6 +15,7 @@ from pipeline.recording import (
     SegmentKind,
     VectorSeries,
 )
+from pipeline.model.calibration import Calibration
 from stages.metrics import Metrics
 from stages.report import Report, make_figures
 from stages.restore import Restore

@@ -7,12 +7,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.calibration import Calibration
-from pipeline.errors import PipelineBuildError
-from pipeline.geometry import quat_normalize, rotvec_to_quat, so3_exp
-from pipeline.recording import AttitudeSeries, Context, Frame, Recording, VectorSeries
-from pipeline.simulate import scenario_from_dict, simulate
-from pipeline.stage import Pipeline
+from pipeline.app.simulate import scenario_from_dict, simulate
+from pipeline.core.errors import PipelineBuildError
+from pipeline.core.geometry import quat_normalize, rotvec_to_quat, so3_exp
+from pipeline.core.recording import AttitudeSeries, Context, Frame, Recording, VectorSeries
+from pipeline.core.stage import Pipeline
+from pipeline.model.calibration import Calibration
 from stages.restore import Restore, restore_samples
 
 B_ENU = np.array([1300.0, 15000.0, -49000.0])

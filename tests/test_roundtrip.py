@@ -11,11 +11,11 @@ import pytest
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from pipeline.cli import main
-from pipeline.geometry import quat_rotate
-from pipeline.mcap_read import read_recording
-from pipeline.recording import EncodingFamily, Role
-from pipeline.simulate import load_scenario, scenario_from_dict, simulate, write_simulated
+from pipeline.app.cli import main
+from pipeline.app.simulate import load_scenario, scenario_from_dict, simulate, write_simulated
+from pipeline.core.geometry import quat_rotate
+from pipeline.core.recording import EncodingFamily, Role
+from pipeline.io.mcap_read import read_recording
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -207,7 +207,7 @@ def test_cli_simulate_bad_scenario(tmp_path, capsys):
 
 
 def test_cli_simulate_challenge(tmp_path):
-    # --challenge hands over to pipeline.challenge.generate (DIAGNOSE's generator).
+    # --challenge hands over to pipeline.app.challenge.generate (DIAGNOSE's generator).
     out = tmp_path / "chal"
     assert main(["simulate", "--challenge", "1", "--seed", "4", "--out", str(out)]) == 0
     recs = sorted(out.glob("*.mcap"))

@@ -8,15 +8,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import pipeline.mcap_read as mcap_read
-from pipeline.geometry import li2020_euler_to_quat, quat_conj, quat_rotate, so3_exp, so3_log
-from pipeline.mcap_read import (
+import pipeline.io.mcap_scan as mcap_scan
+from pipeline.core.geometry import li2020_euler_to_quat, quat_conj, quat_rotate, so3_exp, so3_log
+from pipeline.io.mcap_read import (
     iter_raw_channels,
     iter_recording_chunks,
     read_raw_channels,
     read_recording,
 )
-from pipeline.mcap_write import write_recording
+from pipeline.io.mcap_write import write_recording
 
 B_ENU = np.array([12_000.0, 28_000.0, -25_000.0])
 ROTVEC_DEG = np.array([-1.5, 0.5, 2.0])
@@ -70,7 +70,7 @@ def test_raw_ranges_concatenate_and_bound_later_log_times(tmp_path):
 def test_memory_mapped_reading_equals_reading(tmp_path, monkeypatch):
     path, _ = make(tmp_path / "c.mcap", n=2_000)
     a = read_recording(path)
-    monkeypatch.setattr(mcap_read, "MMAP_MIN_BYTES", 0)
+    monkeypatch.setattr(mcap_scan, "MMAP_MIN_BYTES", 0)
     b = read_recording(path)
     np.testing.assert_array_equal(a.mag.values, b.mag.values)
     np.testing.assert_array_equal(a.attitude.q_enu_body, b.attitude.q_enu_body)
@@ -91,10 +91,10 @@ def test_copy_ranges_equals_slicing(spans):
         pos += ln
     start_a, length_a = np.array(start), np.array(length)
     want = np.concatenate([buf[a:a + n] for a, n in zip(start, length, strict=True)])
-    np.testing.assert_array_equal(mcap_read._copy_ranges(buf, start_a, length_a), want)
+    np.testing.assert_array_equal(mcap_scan._copy_ranges(buf, start_a, length_a), want)
     rev = np.concatenate([buf[a:a + n] for a, n in zip(start[::-1], length[::-1], strict=True)])
     np.testing.assert_array_equal(
-        mcap_read._copy_ranges(buf, start_a[::-1].copy(), length_a[::-1].copy()), rev)
+        mcap_scan._copy_ranges(buf, start_a[::-1].copy(), length_a[::-1].copy()), rev)
 
 
 def test_corrected_mcap_written_range_by_range(tmp_path, monkeypatch):
@@ -116,7 +116,7 @@ def test_corrected_mcap_written_range_by_range(tmp_path, monkeypatch):
     rec = read_recording(path)
     cal = calibrate_streaming(str(path))
     monkeypatch.setattr(write_mcap, "COPY_RANGE_MESSAGES", 1_000)
-    import pipeline.mcap_read as mcap_read
+    import pipeline.io.mcap_read as mcap_read
 
     for copy in ("chunks", "messages"):
         if copy == "messages":
@@ -147,8 +147,8 @@ def test_decimated_stage_does_not_leak_its_restore_result():
     from dataclasses import dataclass
     from typing import ClassVar
 
-    from pipeline.process_one import OnDecimated
-    from pipeline.recording import Context, Recording, VectorSeries
+    from pipeline.core.recording import Context, Recording, VectorSeries
+    from stages.decimate import OnDecimated
 
     @dataclass(frozen=True)
     class Restoring:
@@ -166,8 +166,8 @@ def test_decimated_stage_does_not_leak_its_restore_result():
 
 
 def test_process_scale_path_matches_the_normal_path(tmp_path, monkeypatch):
-    import pipeline.process_one as process_one
-    from pipeline.process_one import ProcessOptions, process_recording
+    import pipeline.app.process_one as process_one
+    from pipeline.app.process_one import ProcessOptions, process_recording
 
     monkeypatch.setattr(process_one, "DECIMATED_SAMPLES", 2_000)  # every 4th sample
 

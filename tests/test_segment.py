@@ -9,10 +9,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline.geometry import quat_conj, quat_mul, quat_rotate, rotvec_to_quat
-from pipeline.recording import AlignedSeries, Context, Segment, SegmentKind
-from pipeline.stage import Pipeline
-from pipeline.tang import axis_angle_quat
+from pipeline.core.geometry import quat_conj, quat_mul, quat_rotate, rotvec_to_quat
+from pipeline.core.recording import AlignedSeries, Context, Segment, SegmentKind
+from pipeline.core.stage import Pipeline
+from pipeline.model.tang import axis_angle_quat
 from stages.segment import (
     MotionContext,
     SegmentMotion,
@@ -132,7 +132,7 @@ def test_gaps_split_segments():
 
 
 def _aligned_from_scenario(name: str):
-    from pipeline.simulate import load_scenario, simulate
+    from pipeline.app.simulate import load_scenario, simulate
     from stages.resample import Resample
     from stages.turntable import TurntableAttitude
 
@@ -179,7 +179,7 @@ def test_simulated_survey_lines_and_turns():
 
 
 def _demo_aligned(name: str):
-    from pipeline.simulate import load_scenario, simulate
+    from pipeline.app.simulate import load_scenario, simulate
     from stages.resample import Resample
 
     sim = simulate(load_scenario(DEMO / f"{name}.toml"), seed=3)
@@ -296,7 +296,7 @@ def test_simulated_multiaxis_is_a_manoeuvre():
 
 @pytest.mark.skipif(not REAL.is_dir(), reason=f"real recordings not present ({REAL})")
 def test_real_recordings_get_sensible_segments():
-    from pipeline.mcap_read import read_recording
+    from pipeline.io.mcap_read import read_recording
     from stages.resample import Resample
 
     files = sorted(REAL.glob("*.mcap"))

@@ -12,16 +12,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.errors import ConfigError
-from pipeline.geometry import quat_to_matrix, so3_exp, so3_log
-from pipeline.igrf import igrf_enu_nT
-from pipeline.simulate import (
+from pipeline.app.simulate import (
     Profile,
     Turntable,
     load_scenario,
     scenario_from_dict,
     simulate,
 )
+from pipeline.core.errors import ConfigError
+from pipeline.core.geometry import quat_to_matrix, so3_exp, so3_log
+from pipeline.model.igrf import igrf_enu_nT
 
 START_NS = 1_767_225_600 * 1_000_000_000  # 2026-01-01T00:00:00Z
 B = [1000.0, 20000.0, -40000.0]

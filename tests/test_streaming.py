@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.geometry import (
+from pipeline.core.geometry import (
     li2020_euler_to_quat,
     quat_conj,
     quat_rotate,
@@ -131,7 +131,7 @@ def test_heading_only_motion_leaves_the_vertical_axis_unobservable():
 
 
 def test_too_few_samples_is_an_estimation_error():
-    from pipeline.errors import EstimationError
+    from pipeline.core.errors import EstimationError
 
     q, y, t, _ = synthetic(5)
     with pytest.raises(EstimationError):
@@ -140,8 +140,8 @@ def test_too_few_samples_is_an_estimation_error():
 
 def test_streaming_from_file_equals_in_memory(tmp_path):
     """Chunked reading + aligning + sums give the same answer as the whole recording."""
-    from pipeline.mcap_read import iter_recording_chunks, read_recording
-    from pipeline.mcap_write import write_recording
+    from pipeline.io.mcap_read import iter_recording_chunks, read_recording
+    from pipeline.io.mcap_write import write_recording
     from stages.resample import Resample
 
     n = 12_000
@@ -153,7 +153,7 @@ def test_streaming_from_file_equals_in_memory(tmp_path):
     assert len(chunks) > 5
     aligned = list(iter_aligned_chunks(iter(chunks), max_gap_s=0.1))
     t_stream = np.concatenate([a[2] for a in aligned])
-    from pipeline.recording import Context
+    from pipeline.core.recording import Context
 
     ctx = Resample(max_gap_s=0.1).run(Context(recording=read_recording(path)))
     np.testing.assert_array_equal(t_stream, ctx.aligned.t_ns)
@@ -168,7 +168,7 @@ def test_streaming_from_file_equals_in_memory(tmp_path):
 
 def test_agrees_with_the_in_memory_ml_estimator():
     """Same data, the ESTIMATE engineer's ML estimator and the streaming one agree."""
-    from pipeline.recording import AlignedSeries
+    from pipeline.core.recording import AlignedSeries
     from stages.estimate import EstimatorKind, fit_calibration
 
     q, y, t, R = synthetic(4_000, noise_nT=0.5, seed=11)

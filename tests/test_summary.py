@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import re
 
-from pipeline.summary import campaign_figure, render_html
+from pipeline.app.summary import campaign_figure, render_html
 
 PNG = b"\x89PNG\r\n\x1a\n"
 

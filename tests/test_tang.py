@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.geometry import quat_conj, quat_mul, quat_normalize, quat_rotate
-from pipeline.tang import (
+from pipeline.core.geometry import quat_conj, quat_mul, quat_normalize, quat_rotate
+from pipeline.model.tang import (
     TwistSide,
     axis_angle_quat,
     direction_coverage,
@@ -102,7 +102,7 @@ def test_eq34_against_exact_geometry_within_the_stated_bound():
     om, al = np.meshgrid(np.radians(np.linspace(-40, 40, 81)), np.radians(np.linspace(-20, 20, 41)))
     diff = np.degrees(np.abs(tang_eta(om, al) - exact_eta(om, al)))
     b = minor_spin_bound()
-    # the docstring of pipeline.tang states 0.27 deg and 4.31 deg
+    # the docstring of pipeline.model.tang states 0.27 deg and 4.31 deg
     assert diff.max() <= b.max_eta_eq34_minus_exact_deg + 1e-9
     assert 0.25 < b.max_eta_eq34_minus_exact_deg < 0.28
     assert 4.30 < b.max_minor_spin_deg < 4.32
@@ -242,7 +242,7 @@ def test_direction_coverage():
 
 
 def test_reproduce_writes_json_and_figure(tmp_path, capsys):
-    from pipeline.reproduce_tang2016 import reproduce
+    from pipeline.app.reproduce_tang2016 import reproduce
 
     assert reproduce(tmp_path) == 0
     doc = json.loads((tmp_path / "tang2016.json").read_text())
@@ -275,7 +275,7 @@ def test_relative_rotation_helper_consistency():
 
 
 def test_heading_error_stats_table2_known_answer():
-    from pipeline.tang import heading_error_stats
+    from pipeline.model.tang import heading_error_stats
     from stages.metrics import heading_error_stats as metrics_stats
 
     eta = np.radians([1.0, -2.0, 4.0, 1.0])

@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.errors import ChannelError
-from pipeline.geometry import quat_conj, quat_mul
-from pipeline.recording import Context
-from pipeline.stage import Pipeline
-from pipeline.tang import exact_eta, rotation_angle
+from pipeline.core.errors import ChannelError
+from pipeline.core.geometry import quat_conj, quat_mul
+from pipeline.core.recording import Context
+from pipeline.core.stage import Pipeline
+from pipeline.model.tang import exact_eta, rotation_angle
 from stages.turntable import (
     TurntableAttitude,
     fit_axis_tilt,
@@ -27,7 +27,7 @@ SCEN = Path(__file__).resolve().parents[1] / "pipeline" / "scenarios" / "turntab
 
 @pytest.fixture(scope="module")
 def sim():
-    from pipeline.simulate import load_scenario, simulate
+    from pipeline.app.simulate import load_scenario, simulate
 
     return simulate(load_scenario(SCEN), seed=4)
 
@@ -95,7 +95,7 @@ def test_heading_error_is_tangs_exact_azimuth_error():
     assert st.max_deg == pytest.approx(np.degrees(np.radians(5.0) ** 2 / 2), rel=0.01)
     assert st.min_deg == pytest.approx(-st.max_deg, rel=1e-3)
     # the true axis is where the tilt says: azimuth clockwise from north
-    from pipeline.geometry import quat_rotate
+    from pipeline.core.geometry import quat_rotate
 
     ax = quat_rotate(T, np.array([0.0, 0.0, 1.0]))
     t, az = np.radians(5.0), np.radians(120.0)
@@ -162,7 +162,7 @@ def test_field_unknown_tilt_is_not_observable(sim):
 
 
 def test_in_memory_simulation_with_noise_and_uncertainty():
-    from pipeline.reproduce_tang2016 import simulate_tilted_turntable
+    from pipeline.app.reproduce_tang2016 import simulate_tilted_turntable
 
     s = simulate_tilted_turntable(3.0, 250.0, noise_nT=30.0, seed=2)
     res = fit_axis_tilt(s.recording, reference_field_enu_nT=s.B_enu_nT,
@@ -182,8 +182,8 @@ def test_in_memory_simulation_with_noise_and_uncertainty():
 def _processed_tilt3(tmp_path, reference: bool):
     import json
 
-    from pipeline.process_one import ProcessOptions, process_recording
-    from pipeline.simulate import load_scenario, simulate, write_simulated
+    from pipeline.app.process_one import ProcessOptions, process_recording
+    from pipeline.app.simulate import load_scenario, simulate, write_simulated
 
     scen = Path(__file__).resolve().parents[1] / "pipeline" / "scenarios" / "turntable_tilt3.toml"
     sim = simulate(load_scenario(scen), seed=1)
@@ -201,7 +201,7 @@ def _processed_tilt3(tmp_path, reference: bool):
 
 def test_process_recording_fits_and_compensates_axis_tilt(tmp_path):
     """turntable_tilt3 (3 deg towards 30 deg) end to end with a reference field."""
-    from pipeline.tang import heading_error_stats
+    from pipeline.model.tang import heading_error_stats
 
     sim, cal = _processed_tilt3(tmp_path, reference=True)
     tilt = cal["effects"]["axis_tilt"]

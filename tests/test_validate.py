@@ -11,14 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.calibration import Calibration
-from pipeline.errors import InputError
-from pipeline.geometry import quat_to_matrix, rotvec_to_quat
-from pipeline.validate import (
+from pipeline.core.errors import InputError
+from pipeline.core.geometry import quat_to_matrix, rotvec_to_quat
+from pipeline.core.validate import (
     check_calibration_dict,
     check_diagnosis_dict,
     check_metrics_dict,
 )
+from pipeline.model.calibration import Calibration
 
 HERE = Path(__file__).resolve().parent
 
@@ -134,7 +134,7 @@ def test_process_refuses_an_edited_calibration(tmp_path):
     d["rotvec_body_mag_deg"] = [1.2, -1.0, 1.5]  # edited by hand, the matrix not
     cal = tmp_path / "calibration.json"
     cal.write_text(json.dumps(d))
-    r = subprocess.run([sys.executable, "-m", "pipeline.cli", "process", str(rec), "--out",
+    r = subprocess.run([sys.executable, "-m", "pipeline.app.cli", "process", str(rec), "--out",
                         str(tmp_path / "out"), "--calibration", str(cal), "--no-progress"],
                        capture_output=True, text=True, timeout=600, cwd=HERE.parent)
     assert r.returncode == 2, r.stderr

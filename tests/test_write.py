@@ -1,4 +1,4 @@
-"""MCAP writing (pipeline.mcap_write), checked with mcap's and mcap_ros2's own readers."""
+"""MCAP writing (pipeline.io.mcap_write), checked with mcap's and mcap_ros2's own readers."""
 
 from __future__ import annotations
 
@@ -18,10 +18,10 @@ from mcap.records import Chunk, DataEnd, Footer, MessageIndex
 from mcap.stream_reader import StreamReader, get_chunk_data_stream
 from mcap_ros2.decoder import DecoderFactory
 
-from pipeline import geometry
-from pipeline.errors import OutputError
-from pipeline.mcap_write import McapColumnWriter, copy_channels, write_recording
-from pipeline.messages import encode, schema_for
+from pipeline.core import geometry
+from pipeline.core.errors import OutputError
+from pipeline.io.mcap_write import McapColumnWriter, copy_channels, write_recording
+from pipeline.io.messages import encode, schema_for
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 T0 = 1_700_000_000_000_000_000
@@ -412,9 +412,9 @@ def test_copy_channels_with_reader_on_real_recording(tmp_path):
     lab = REAL / "lab_03.mcap"
     if not lab.exists():
         pytest.skip(f"real recordings not available ({REAL} is absent)")
-    mcap_read = pytest.importorskip("pipeline.mcap_read")
+    mcap_read = pytest.importorskip("pipeline.io.mcap_read")
     if not hasattr(mcap_read, "read_raw_channels"):
-        pytest.skip("pipeline.mcap_read.read_raw_channels not available yet")
+        pytest.skip("pipeline.io.mcap_read.read_raw_channels not available yet")
     before = lab.read_bytes()
     dst = tmp_path / "copy.mcap"
     raw = mcap_read.read_raw_channels(lab)
@@ -484,9 +484,9 @@ def test_corrected_mcap_pass_through_equals_message_copy(tmp_path, monkeypatch):
     Per channel: log and publish times, sequence numbers and payloads, in order; the same
     statistics; every CRC valid; and the input chunks' compressed bytes appear in the output.
     """
-    import pipeline.mcap_read as mcap_read
-    from pipeline.calibration import Calibration
-    from pipeline.mcap_read import pass_through, read_recording
+    import pipeline.io.mcap_read as mcap_read
+    from pipeline.io.mcap_read import pass_through, read_recording
+    from pipeline.model.calibration import Calibration
     from stages.write_mcap import write_corrected_mcap
 
     t_mag, mag, t_att, q = _sim(3000, 1500, seed=11)
@@ -518,7 +518,7 @@ def test_corrected_mcap_pass_through_equals_message_copy(tmp_path, monkeypatch):
 
 
 def test_pass_through_refuses_unchunked_and_cut_files(tmp_path):
-    from pipeline.mcap_read import pass_through
+    from pipeline.io.mcap_read import pass_through
 
     t_mag, mag, t_att, q = _sim(600, 300, seed=2)
     src = write_recording(tmp_path / "in.mcap", mag_t_ns=t_mag, mag_nT=mag, attitude_t_ns=t_att,

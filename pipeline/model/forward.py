@@ -4,25 +4,29 @@ One magnetometer sample stamped ``t`` (CONVENTIONS, "Measurement model"; the rot
 ``R_body_mag`` of Li et al. 2020, Eq. (1), ``v_body = R_body_mag @ v_mag``)::
 
     (M1)  B(t)   = B_enu + F(t)                                   ENU field, nT
-    (M2)  b(t)   = C_enu_body(t - tau).T @ B(t)                   body frame, nT
+    (M1h) B'(t)  = Rz(h(t)) @ B(t)                                heading_drift, nT
+    (M2)  b(t)   = C_enu_body(t - tau).T @ B'(t)                  body frame, nT
     (M3)  m(t)   = R_body_mag.T @ b(t)                            mag frame, nT
     (M4)  y0(t)  = D @ m(t)
     (M5)  y(t)   = y0(t) + o + o_step 1[t in windows] + E_s @ ydot0(t)
 
 ``F(t)`` is the sum of the diagnosed external-field terms (``field_drift``: Legendre
 P1..P4 in time; ``disturbance``: linear B-splines in its windows; ``field_gradient``:
-``G (p(t) - p_ref)`` with the attitude source's position ``p``). ``C_enu_body(t - tau)`` is
-the attitude re-interpolated at the sensing time ``t - tau`` by SLERP
-(:mod:`pipeline.model.attitude`): the time offset is exact, not a first-order equivalent.
+``G (p(t) - p_ref)`` with the attitude source's position ``p``). ``h(t)`` is the attitude
+source's heading error (``heading_drift``: Legendre P1..P2 in time, rad): the source reports
+``Rz(h) C_true``, so the field it sees is turned about Up by ``h``. ``C_enu_body(t - tau)`` is
+the attitude re-interpolated at the sensing time ``t - tau`` (C1 cubic on SO(3),
+:mod:`pipeline.model.attitude`): the time offset is exact, not a first-order equivalent.
 ``ydot0`` is the rotation-induced rate of the undisturbed reading,
 ``D R.T (C(s + h).T - C(s - h).T) / (2 h) B(t)`` with ``s = t - tau`` and ``h`` three
 attitude intervals (the regressor of the ``eddy_current`` term; sharing no attitude sample
 with the reading's own interpolation, it cannot fit attitude noise).
 
 Restoring (CONVENTIONS) inverts (M2)-(M5) for the sensor terms and leaves ``F(t)`` in the
-restored field (the series is meant to show the external field)::
+restored field (the series is meant to show the external field); the heading error is an
+attitude term and is taken out::
 
-    (M6)  b_enu(t) = C_enu_body(t - tau) @ R_body_mag @ inv(D) @ (y - o - o_step - E_s ydot0)
+    (M6)  b_enu(t) = Rz(-h(t)) C_enu_body(t - tau) R_body_mag inv(D) (y - o - o_step - E_s ydot0)
 
 Jacobian (:func:`jacobian`) with respect to the calibration parameters, at the current
 values; the rotation is perturbed on the right, ``R_body_mag <- R_body_mag Exp([d]x)``
@@ -36,24 +40,24 @@ Sect. III, right plus; the Jacobian of the action ``R.T v`` follows from
     (J4)  dy/dD_kl  = S_kl m + E_s S_kl mdot          (S_kl: symmetric unit basis, k <= l)
     (J5)  dy/dtau   = D R.T (omega_body x b) - E_s D R.T C''.T B
 
-where ``omega_body`` is the angular velocity of the SLERP at ``t - tau`` (exact, piecewise
-constant): ``d/dt C.T B = -omega x (C.T B)``, so ``d b(t - tau)/dtau = omega x b``. The
+where ``omega_body`` is the angular velocity of the interpolated attitude at ``t - tau`` (exact,
+(A6) there): ``d/dt C.T B = -omega x (C.T B)``, so ``d b(t - tau)/dtau = omega x b``. The
 columns are checked against finite differences in ``tests/test_model.py``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .attitude import AttitudeInterpolator
+from pipeline.model.attitude import AttitudeInterpolator
 
 if TYPE_CHECKING:
-    from pipeline.calibration import Calibration
-    from pipeline.recording import AttitudeSeries, PositionSeries
+    from pipeline.core.recording import AttitudeSeries, PositionSeries
+    from pipeline.model.calibration import Calibration
 
 F64 = NDArray[np.float64]
 
@@ -63,6 +67,9 @@ F64 = NDArray[np.float64]
 MAX_TIME_OFFSET_S = 0.1
 #: Order of the Legendre polynomials of ``field_drift`` (P1..P4; the constant is ``B_enu``).
 DRIFT_DEGREE = 4
+#: Order of the Legendre polynomials of ``heading_drift`` (P1..P2; a constant heading error
+#: is a fixed turn of ``B_enu`` about Up, absorbed by the field).
+HEADING_DEGREE = 2
 #: Half-width of the central difference of the eddy-current regressor, in attitude intervals.
 RATE_STEP_INTERVALS = 3.0
 #: Parameter names of :func:`jacobian`'s columns.
@@ -85,7 +92,23 @@ def skew_rows(v: F64) -> F64:
 def drift_basis(t_s: F64, span_s: float) -> F64:
     """Legendre P1..P4 of the time scaled to [-1, 1] over ``[0, span_s]``, (N, 4)."""
     x = 2.0 * np.asarray(t_s, dtype=float) / max(span_s, 1e-9) - 1.0
-    return np.polynomial.legendre.legvander(x, DRIFT_DEGREE)[:, 1:]
+    return cast(F64, np.polynomial.legendre.legvander(x, DRIFT_DEGREE)[:, 1:])
+
+
+def heading_basis(t_s: F64, span_s: float) -> F64:
+    """Legendre P1..P2 of the time scaled to [-1, 1] over ``[0, span_s]``, (N, 2)."""
+    x = 2.0 * np.asarray(t_s, dtype=float) / max(span_s, 1e-9) - 1.0
+    return cast(F64, np.polynomial.legendre.legvander(x, HEADING_DEGREE)[:, 1:])
+
+
+def rotate_about_up(v_enu: F64, h_rad: F64) -> F64:
+    """Rows of ``v_enu`` (N, 3) turned about Up by ``h_rad`` (N,): ``Rz(h) v`` (ENU yaw)."""
+    c, s = np.cos(h_rad), np.sin(h_rad)
+    v = np.asarray(v_enu, dtype=float)
+    out = v.copy()
+    out[:, 0] = c * v[:, 0] - s * v[:, 1]
+    out[:, 1] = s * v[:, 0] + c * v[:, 1]
+    return out
 
 
 def hat_basis(t_s: F64, knots_s: F64) -> F64:
@@ -154,6 +177,8 @@ class ForwardModel:
         ``field_drift`` Legendre coefficients, ENU.
     gradient : (M_nT_per_m (3, 3), p_ref_m (3,)) or None
         ``field_gradient``: ``F = M (p - p_ref)``.
+    heading : (coef_rad (2,), span_s) or None
+        ``heading_drift`` Legendre coefficients of ``h(t)``.
 
     """
 
@@ -167,6 +192,7 @@ class ForwardModel:
     disturbances: tuple = ()
     drift: tuple | None = None
     gradient: tuple | None = None
+    heading: tuple | None = None
     unmodelled: tuple[str, ...] = field(default=())
 
     @classmethod
@@ -185,11 +211,13 @@ class ForwardModel:
             return lst[0] if lst else None
 
         o = cal.offset_nT
-        if o is None and first("hard_iron") is not None:
-            o = np.asarray(first("hard_iron")["offset_nT"], dtype=float).reshape(3)
+        hard = first("hard_iron")
+        if o is None and hard is not None:
+            o = np.asarray(hard["offset_nT"], dtype=np.float64).reshape(3)
         D = cal.D
-        if D is None and first("soft_iron") is not None:
-            D = np.asarray(first("soft_iron")["D"], dtype=float).reshape(3, 3)
+        soft = first("soft_iron")
+        if D is None and soft is not None:
+            D = np.asarray(soft["D"], dtype=np.float64).reshape(3, 3)
         tau = cal.time_offset_s
         if tau is None:
             p = first("time_offset")
@@ -220,6 +248,14 @@ class ForwardModel:
         if p is not None:
             grad = (np.asarray(p["G_nT_per_m"], dtype=float).reshape(3, 3),
                     np.asarray(p.get("reference_position_m") or [0, 0, 0], dtype=float))
+        heading = None
+        p = first("heading_drift")
+        if p is not None:
+            if "legendre_rad" in p and "span_s" in p:
+                heading = (np.asarray(p["legendre_rad"], dtype=float).reshape(-1),
+                           float(p["span_s"]))
+            else:
+                unmodelled.append("heading_drift")
         return cls(
             R_body_mag=np.asarray(cal.R_body_mag, dtype=float),
             B_enu_nT=np.asarray(cal.B_enu_nT, dtype=float),
@@ -231,6 +267,7 @@ class ForwardModel:
             disturbances=tuple(dist),
             drift=drift,
             gradient=grad,
+            heading=heading,
             unmodelled=tuple(unmodelled),
         )
 
@@ -259,6 +296,13 @@ class ForwardModel:
             F += np.where(np.isfinite(dp).all(axis=1)[:, None], np.nan_to_num(dp) @ M.T, 0.0)
         return F
 
+    def heading_rad(self, t_s: F64) -> F64 | None:
+        """``h(t)`` of (M1h), rad, (N,); None without ``heading_drift``."""
+        if self.heading is None:
+            return None
+        coef, span = self.heading
+        return heading_basis(np.asarray(t_s, dtype=float), span) @ coef
+
     def step_offset_nT(self, t_s: F64) -> F64:
         """``o_step 1[t in windows]`` of (M5), mag frame, (N, 3)."""
         out = np.zeros((len(t_s), 3))
@@ -280,9 +324,11 @@ class Evaluation:
     q_enu_body : ndarray (N, 4)
         Attitude at ``t - tau`` (NaN where not valid).
     omega_body_rad_s : ndarray (N, 3)
-        SLERP angular velocity at ``t - tau``, body frame.
+        Angular velocity of the interpolated attitude at ``t - tau``, body frame.
     field_enu_nT : ndarray (N, 3)
-        ``B(t) = B_enu + F(t)`` (M1).
+        The field the attitude source sees, ``Rz(h) (B_enu + F(t))`` (M1)-(M1h).
+    heading_rad : ndarray (N,) or None
+        ``h(t)`` (M1h); None without ``heading_drift``.
     b_body_nT, m_nT, ydot0_nT_s : ndarray (N, 3)
         (M2), (M3) and the eddy regressor (zeros without ``eddy_current``).
     sensor_nT : ndarray (N, 3)
@@ -302,6 +348,7 @@ class Evaluation:
     ydot0_nT_s: F64
     sensor_nT: F64
     interp_position: F64
+    heading_rad: F64 | None = None
 
 
 def _interp(attitude: AttitudeSeries | AttitudeInterpolator, max_gap_s: float | None
@@ -312,7 +359,7 @@ def _interp(attitude: AttitudeSeries | AttitudeInterpolator, max_gap_s: float | 
 
 
 def _Ct(q: F64) -> F64:
-    from pipeline.geometry import quat_to_matrix
+    from pipeline.core.geometry import quat_to_matrix
 
     return np.swapaxes(quat_to_matrix(q), -1, -2)
 
@@ -345,6 +392,9 @@ def evaluate(
     if model.gradient is not None and position is not None:
         p_m = position.at(t_ns)
     Bt = model.B_enu_nT[None, :] + model.external_field_nT(t_s, p_m)
+    h_rad = model.heading_rad(t_s)
+    if h_rad is not None:
+        Bt = rotate_about_up(Bt, h_rad)  # (M1h)
     Ct = _Ct(q)
     b = np.matmul(Ct, Bt[:, :, None])[:, :, 0]
     m = b @ model.R_body_mag
@@ -360,7 +410,7 @@ def evaluate(
     w = np.where(valid[:, None], at.omega_body_rad_s, 0.0)
     nanv = ~valid
     y[nanv] = np.nan
-    return Evaluation(y, valid, at.q_enu_body, w, Bt, b, m, ydot0, sensor, at.position)
+    return Evaluation(y, valid, at.q_enu_body, w, Bt, b, m, ydot0, sensor, at.position, h_rad)
 
 
 def _rate(model: ForwardModel, it: AttitudeInterpolator, t_ns: NDArray[np.int64], tau: float,
@@ -370,7 +420,7 @@ def _rate(model: ForwardModel, it: AttitudeInterpolator, t_ns: NDArray[np.int64]
     ident = np.array([0.0, 0.0, 0.0, 1.0])
     # clamped: the neighbours of a valid sample may fall just outside the span
     qs = [it.at(t_ns, tau + d, clamp=True).q_enu_body for d in (-h, 0.0, h)]  # s+h, s, s-h
-    Cp, C0, Cm = (_Ct(np.where(np.isfinite(x).all(axis=1)[:, None], x, ident)) for x in qs)
+    Cp, C0, Cm = (_Ct(np.where(np.all(np.isfinite(x), axis=1)[:, None], x, ident)) for x in qs)
     Cdot = (Cp - Cm) / (2.0 * h)
     Cddot = (Cp - 2.0 * C0 + Cm) / (h * h)
     mdot = np.matmul(Cdot, Bt[:, :, None])[:, :, 0] @ model.R_body_mag
@@ -417,15 +467,17 @@ class Restoration:
 def restore(model: ForwardModel, mag_nT: F64, t_ns: NDArray[np.int64],
             attitude: AttitudeSeries | AttitudeInterpolator, **kw: Any) -> Restoration:
     """Invert the model (M6) and compute the residual of (M1)-(M5); keywords as :func:`evaluate`."""
-    from pipeline.geometry import quat_rotate
+    from pipeline.core.geometry import quat_rotate
 
     y = np.asarray(mag_nT, dtype=float)
     ev = evaluate(model, t_ns, attitude, **kw)
     c = y - ev.sensor_nT
     if model.D is not None:
-        c = np.linalg.solve(model.D, c.T).T
+        c = cast(F64, np.linalg.solve(model.D, c.T).T)
     q = np.where(ev.valid[:, None], ev.q_enu_body, np.array([0.0, 0.0, 0.0, 1.0]))
     enu = quat_rotate(q, c @ model.R_body_mag.T)
+    if ev.heading_rad is not None:
+        enu = rotate_about_up(enu, -ev.heading_rad)  # (M6): the heading error taken out
     enu[~ev.valid] = np.nan
     resid = y - ev.y_nT
     return Restoration(np.asarray(t_ns, dtype=np.int64), c, enu, resid, ev.y_nT,
@@ -459,6 +511,13 @@ def jacobian(model: ForwardModel, t_ns: NDArray[np.int64],
     mdot = np.matmul(Cdot, ev.field_enu_nT[:, :, None])[:, :, 0] @ R
     J[:, :, 0:3] = D @ skew_rows(m) + E @ D @ skew_rows(mdot)  # (J1)
     J[:, :, 3:6] = np.matmul(DRt, Ct) + np.matmul(E @ DRt, Cdot)  # (J2)
+    if ev.heading_rad is not None:  # (J2) through (M1h): d B'/d B_enu = Rz(h)
+        c, s_ = np.cos(ev.heading_rad), np.sin(ev.heading_rad)
+        Rz = np.zeros((n, 3, 3))
+        Rz[:, 0, 0] = Rz[:, 1, 1] = c
+        Rz[:, 0, 1], Rz[:, 1, 0] = -s_, s_
+        Rz[:, 2, 2] = 1.0
+        J[:, :, 3:6] = np.matmul(J[:, :, 3:6], Rz)
     J[:, :, 6:9] = np.eye(3)  # (J3)
     J[:, :, 9:15] = (np.einsum("kij,nj->nik", _SYM6, m)
                      + np.einsum("ab,kbj,nj->nak", E, _SYM6, mdot))  # (J4)
@@ -473,7 +532,7 @@ def perturbed(model: ForwardModel, dx: F64) -> ForwardModel:
     """Apply a perturbation in the order of :data:`PARAM_NAMES` (right perturbation on R)."""
     from dataclasses import replace
 
-    from pipeline.geometry import so3_exp
+    from pipeline.core.geometry import so3_exp
 
     dx = np.asarray(dx, dtype=float)
     D = model.D_or_I + np.tensordot(dx[9:15], _SYM6, axes=1)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -96,7 +96,7 @@ def levenberg_marquardt(
     Solution
 
     """
-    r, J = residual_and_jacobian(state, True)
+    r, J = _with_jacobian(residual_and_jacobian, state)
     rss = float(np.sum(r * r))
     lam = lam0
     it = 0
@@ -107,7 +107,7 @@ def levenberg_marquardt(
         step_ok = False
         for _ in range(12):
             try:
-                dx = np.linalg.solve(H + lam * np.diag(scale), g)
+                dx = cast(F64, np.linalg.solve(H + lam * np.diag(scale), g))
             except np.linalg.LinAlgError:
                 lam *= 10.0
                 continue
@@ -123,8 +123,18 @@ def levenberg_marquardt(
         rel = (rss - rss_c) / max(rss, 1e-30)
         state, rss = cand, rss_c
         lam = max(lam / 4.0, 1e-9)
-        r, J = residual_and_jacobian(state, True)
+        r, J = _with_jacobian(residual_and_jacobian, state)
         H, g = normal_equations(J, r)
         if rel < rtol:
             break
     return Solution(state, r, rss, H, it)
+
+
+def _with_jacobian(
+    residual_and_jacobian: Callable[[Any, bool], tuple[F64, F64 | None]], state: Any
+) -> tuple[F64, F64]:
+    """Residual and Jacobian at ``state`` (the Jacobian asked for must be there)."""
+    r, J = residual_and_jacobian(state, True)
+    if J is None:
+        raise ValueError("residual_and_jacobian(state, True) returned no Jacobian")
+    return r, J

@@ -6,7 +6,7 @@
 - :mod:`.dpi`: dot-product invariance with the vertical implied by the attitude.
 """
 
-from .base import (
+from stages.estimators.base import (
     RELATIVE_INFO_THRESHOLD,
     Estimator,
     EstimatorKind,

@@ -18,12 +18,11 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.calibration import Calibration
-from pipeline.errors import EstimationError
-from pipeline.geometry import quat_to_matrix, skew
-from pipeline.recording import AttitudeSeries
-
-from .registry import ESTIMATORS
+from pipeline.core.errors import EstimationError
+from pipeline.core.geometry import quat_to_matrix, skew
+from pipeline.core.recording import AttitudeSeries
+from pipeline.model.calibration import Calibration
+from stages.estimators.registry import ESTIMATORS
 
 F64 = NDArray[np.float64]
 
@@ -86,7 +85,7 @@ class NoiseModel:
     def attitude_cov_body(self, C_enu_body: F64) -> F64:
         """Covariance of the small attitude error expressed in the body frame, (N, 3, 3), rad^2.
 
-        The error model of the generator (``pipeline.simulate``, and
+        The error model of the generator (``pipeline.app.simulate``, and
         :func:`stages.estimators.synthetic.draw`): the reported attitude is
         ``C_meas = exp([dh e_up]x) @ C_enu_body @ exp([(dp, dr, 0)]x)``, i.e. a heading error
         ``dh`` about ENU up (``C.T @ e_up`` in body) and pitch and roll errors ``dp``, ``dr``
@@ -170,7 +169,7 @@ class Estimator(Protocol):
 
 # ------------------------------------------------------------------------------- helpers
 def interpolate_q(attitude: AttitudeSeries, t_ns: NDArray[np.int64], offset_s: float) -> F64:
-    """SLERP of ``attitude`` at ``t - offset_s`` (clamped at the ends), shape (N, 4).
+    """Interpolate the attitude at ``t - offset_s`` (clamped at the ends), shape (N, 4).
 
     THE interpolator (:class:`pipeline.model.attitude.AttitudeInterpolator`), every gap
     bridged: used while iterating on ``tau`` over samples already known to have an attitude.
@@ -370,7 +369,7 @@ def analyse(
         # Directions with no information at all (H v = 0 inside the block) make the
         # generalised problem 0 = lambda * 0; take them from the null space of the full H.
         Vs = V[:, ~keep]
-        for j in range(Vs.shape[1]):
+        for j in range(Vs.shape[1]):  # type: ignore[assignment]  # j: an index, as above
             part = Vs[b, j]
             if np.linalg.norm(part) > 0.1:
                 nul_list.append(part / d[b])

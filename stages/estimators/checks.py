@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.effects import CONFOUND_RATIO
+from stages.diagnose.model import CONFOUND_RATIO
 
 F64 = NDArray[np.float64]
 
@@ -197,7 +197,7 @@ def confounded(ratios: dict[str, F64], names: list[str]) -> dict[str, float]:
         Block name -> its smallest non-null ratio, for the confounded blocks.
 
     """
-    from .base import RELATIVE_INFO_THRESHOLD
+    from stages.estimators.base import RELATIVE_INFO_THRESHOLD
 
     out = {}
     for n in names:

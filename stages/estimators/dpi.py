@@ -22,10 +22,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.calibration import Calibration
-from pipeline.geometry import so3_exp
-
-from .base import (
+from pipeline.core.geometry import so3_exp
+from pipeline.model.calibration import Calibration
+from stages.estimators.base import (
     Problem,
     analyse,
     canonical_axis,
@@ -52,7 +51,7 @@ class DpiEstimator:
         # solutions far from the truth); the result is then DPI's own optimum.
         R, B = init_rotation(m, C, ref)
         fix_c = ref is not None
-        c = float(ref[2]) if fix_c else float(B[2])
+        c = float(ref[2]) if ref is not None else float(B[2])  # fix_c
 
         def residual(R: np.ndarray, c: float) -> np.ndarray:
             return np.sum((m @ R.T) * u, 1) - c

@@ -15,13 +15,13 @@ field is given). Its sigmas come from the rotation-only information of that seco
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
-from pipeline.calibration import Calibration
-from pipeline.errors import NotObservableError
-
-from .base import (
+from pipeline.core.errors import NotObservableError
+from pipeline.model.calibration import Calibration
+from stages.estimators.base import (
     F64,
     Problem,
     analyse,
@@ -111,12 +111,12 @@ class EllipsoidEstimator:
             # With a known |B| the scale of D is observable: corrected norm = |B_ref|.
             m0 = np.linalg.solve(D, (p.mag_nT - o).T).T
             D = D * float(np.mean(np.linalg.norm(m0, axis=1))) / float(np.linalg.norm(B_ref))
-        m = np.linalg.solve(D, (p.mag_nT - o).T).T
+        m = cast(F64, np.linalg.solve(D, (p.mag_nT - o).T).T)
         C = p.C_enu_body
         R, B = init_rotation(m, C, B_ref, iterations=30)
         # Rotation-only information of the Wahba step (isotropic noise, scaled by residuals).
         b = np.einsum("nji,j->ni", C, B)
-        from pipeline.geometry import skew
+        from pipeline.core.geometry import skew
 
         J = R.T @ skew(b)  # d(R.T b)/dphi for m = R.T b
         blocks = {"rot": slice(0, 3)}

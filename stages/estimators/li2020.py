@@ -58,15 +58,15 @@ from __future__ import annotations
 import enum
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import savgol_filter
 
-from pipeline.calibration import Calibration
-from pipeline.geometry import skew
-
-from .base import (
+from pipeline.core.geometry import skew
+from pipeline.model.calibration import Calibration
+from stages.estimators.base import (
     F64,
     Problem,
     analyse,
@@ -94,7 +94,7 @@ def cayley(s: F64) -> F64:
     """``R = (I - S)^-1 (I + S)`` with ``S = [s]x`` (Li 2020, Eq. 3)."""
     S = skew(s)
     eye = np.eye(3)
-    return np.linalg.solve(eye - S, eye + S)
+    return cast(F64, np.linalg.solve(eye - S, eye + S))
 
 
 def cayley_derivatives(s: F64) -> F64:
@@ -233,7 +233,7 @@ class Li2020Estimator:
         # Li 2020, Eqs. 14-16: the rotation bringing the measured normals and tangents onto the
         # virtual ones (least squares over all pairs).
         _, _, _, tv0, nv0, okv0 = virtual(V0)
-        ok0 = ok_m & okv0
+        ok0 = np.logical_and(ok_m, okv0)
         R0 = wahba(np.concatenate([tm, nm[ok0]]), np.concatenate([tv0, nv0[ok0]]))
         if _cost_simple(R0, m, E, V0) > _cost_simple(R_w, m, E, V0):
             R0 = R_w  # the closed form is only a start; keep the better of the two

@@ -27,15 +27,16 @@ changes the predicted body field by ``b x delta``; at 50,000 nT, 0.015 deg of pi
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
-from pipeline.calibration import Calibration
-from pipeline.errors import EstimationError
-from pipeline.geometry import quat_to_matrix, skew, so3_exp
-from pipeline.recording import AttitudeSeries
-
-from .base import (
+from pipeline.core.errors import EstimationError
+from pipeline.core.geometry import quat_to_matrix, skew, so3_exp
+from pipeline.core.recording import AttitudeSeries
+from pipeline.model.attitude import AttitudeInterpolator
+from pipeline.model.calibration import Calibration
+from stages.estimators.base import (
     F64,
     RELATIVE_INFO_THRESHOLD,
     Problem,
@@ -49,7 +50,7 @@ from .base import (
     sigma_with_null,
     solve_many_truncated,
 )
-from .checks import (
+from stages.estimators.checks import (
     SplitCheck,
     apply_split,
     confounded,
@@ -57,7 +58,7 @@ from .checks import (
     per_sample_rot_info,
     sandwich_cov,
 )
-from .ellipsoid import fit_ellipsoid
+from stages.estimators.ellipsoid import fit_ellipsoid
 
 # Symmetric basis of D: three diagonal then three off-diagonal elements.
 _SYM6 = np.zeros((6, 3, 3))
@@ -123,7 +124,7 @@ class Model:
                 n += size
         self.n_params = n
         self._C_cache: tuple[float, F64] | None = None
-        self._interp = None  # THE attitude interpolator, built on first use
+        self._interp: AttitudeInterpolator | None = None  # THE interpolator, built on first use
         self._C0 = problem.C_enu_body  # computed once: the property converts every call
 
     # ------------------------------------------------------------------ attitude
@@ -133,16 +134,14 @@ class Model:
             return self._C0
         if self._C_cache is not None and self._C_cache[0] == tau:
             return self._C_cache[1]
-        from .base import interpolate_q
+        from stages.estimators.base import interpolate_q
 
         C = quat_to_matrix(interpolate_q(self.attitude, self.p.t_ns, tau))
         self._C_cache = (tau, C)
         return C
 
     def omega_body(self, tau: float) -> F64:
-        """Angular velocity of THE attitude interpolation (SLERP) at ``t - tau``, body, rad/s."""
-        from pipeline.model.attitude import AttitudeInterpolator
-
+        """Angular velocity of THE attitude interpolation at ``t - tau``, body, rad/s."""
         if self._interp is None:
             self._interp = AttitudeInterpolator.of(self.attitude, max_gap_s=np.inf, clamp=True)
         return self._interp.at(self.p.t_ns, tau).omega_body_rad_s
@@ -178,8 +177,8 @@ class Model:
             m = b @ s.R
             J[:, :, self.blocks["D"]] = np.einsum("kij,nj->nik", self.basis, m)
         if "tau" in self.blocks:
-            # y depends on b(t - tau) with the attitude re-interpolated at t - tau (SLERP):
-            # db/dtau = omega x b, omega the exact SLERP rate at t - tau (body frame;
+            # y depends on b(t - tau) with the attitude re-interpolated at t - tau:
+            # db/dtau = omega x b, omega the exact interpolated rate at t - tau (body frame;
             # pipeline.model.forward, (J5))
             w = self.omega_body(s.tau)
             J[:, :, self.blocks["tau"].start] = np.cross(w, b) @ DRt.T
@@ -371,11 +370,11 @@ class MLEstimator:
                     D = D_e * 3.0 / np.trace(D_e)
             except EstimationError:
                 pass  # single-axis data: start from o = 0, D = I; GN finds what is observable
-        yc = np.linalg.solve(D, (y - o).T).T
+        yc = cast(F64, np.linalg.solve(D, (y - o).T).T)
         B_ref = p.reference_field_enu_nT
         cands = None
         if p.R_nominal_body_mag is not None:
-            from .base import cube_rotations
+            from stages.estimators.base import cube_rotations
 
             cands = np.concatenate([cube_rotations(), p.R_nominal_body_mag[None]])
         R, B = init_rotation(yc, C, B_ref, cands)
@@ -780,7 +779,7 @@ def _decimated(p: Problem, n_max: int) -> Problem:
     The time-offset term re-interpolates the attitude at ``t - tau``; that needs the whole
     series, so when the aligned samples are the only attitude they are kept as the series.
     """
-    from pipeline.recording import AttitudeSeries
+    from pipeline.core.recording import AttitudeSeries
 
     k = int(np.ceil(p.n / n_max))
     att = p.attitude
@@ -799,7 +798,7 @@ def _decimated(p: Problem, n_max: int) -> Problem:
 
 def _subset(p: Problem, mask: np.ndarray) -> Problem:
     """Return the samples of ``p`` where ``mask`` is true, with the whole attitude series."""
-    from pipeline.recording import AttitudeSeries
+    from pipeline.core.recording import AttitudeSeries
 
     att = p.attitude
     if att is None:
@@ -810,7 +809,7 @@ def _subset(p: Problem, mask: np.ndarray) -> Problem:
 
 def _log(R: F64) -> F64:
     """Return the rotation vector (rad) of a rotation matrix."""
-    from pipeline.geometry import matrix_to_quat, quat_to_rotvec
+    from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
 
     return quat_to_rotvec(matrix_to_quat(R))
 
@@ -825,7 +824,7 @@ def _inside_attitude_span(p: Problem) -> Problem:
     keep = (p.t_ns >= t_att[0] + margin) & (p.t_ns <= t_att[-1] - margin)
     if att is None:
         # The aligned samples are the attitude series itself: keep it whole for interpolation.
-        from pipeline.recording import AttitudeSeries
+        from pipeline.core.recording import AttitudeSeries
 
         att = AttitudeSeries(t_att, p.q_enu_body)
     return Problem(

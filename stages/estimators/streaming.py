@@ -1,7 +1,7 @@
 """Streaming calibration: the misalignment from fixed-size sufficient statistics.
 
 For a recording too large for memory, the magnetometer and the attitude are read a chunk at
-a time (:func:`pipeline.mcap_read.iter_recording_chunks`), brought onto common stamps
+a time (:func:`pipeline.io.mcap_read.iter_recording_chunks`), brought onto common stamps
 (:func:`iter_aligned_chunks`) and reduced to a fixed set of sums (:class:`SufficientStats`,
 122 numbers whatever the length of the recording). The model is the rotation part of the ML
 model of :mod:`stages.estimators.ml` with isotropic magnetometer noise (CONVENTIONS,
@@ -32,9 +32,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.calibration import Calibration
-from pipeline.errors import EstimationError
-from pipeline.geometry import quat_to_matrix, skew, so3_exp
+from pipeline.core.errors import EstimationError
+from pipeline.core.geometry import quat_to_matrix, skew, so3_exp
+from pipeline.model.calibration import Calibration
 
 F64 = NDArray[np.float64]
 
@@ -100,7 +100,7 @@ class SufficientStats:
         if len(q) != len(y):
             raise EstimationError(f"{len(q)} attitudes for {len(y)} magnetometer samples")
         C = quat_to_matrix(q).reshape(-1, 9)  # (N, 9): C_enu_body row-major
-        span = (None, None)
+        span: tuple[int, int] | tuple[None, None] = (None, None)
         if t_ns is not None and len(t_ns):
             span = (int(np.min(t_ns)), int(np.max(t_ns)))
         return cls(
@@ -158,7 +158,7 @@ def cost(st: SufficientStats, R: F64, B: F64, o: F64) -> float:
     SRo = st.S @ R @ o
     c = (st.sum_yy - 2.0 * o @ st.sum_y + st.n * o @ o
          - 2.0 * B @ (_T(st, R) - SRo) + st.n * B @ B)
-    return float(max(c, 0.0))
+    return max(float(c), 0.0)
 
 
 def normal_equations(st: SufficientStats, s: _State) -> tuple[F64, F64]:
@@ -269,7 +269,7 @@ class StreamingFit:
         return sig
 
     def to_calibration(self) -> Calibration:
-        """Return the fit as a :class:`~pipeline.calibration.Calibration` (``ml-streaming``)."""
+        """Return the fit as a :class:`Calibration` (``ml-streaming``)."""
         sig_o = None
         if self.offset_nT is not None:
             sig_o = np.sqrt(np.clip(np.diag(self.cov[6:, 6:]), 0.0, None))
@@ -429,10 +429,10 @@ def iter_aligned_chunks(
     Parameters
     ----------
     chunks : iterable of objects with ``mag`` (VectorSeries) and ``attitude``
-        (AttitudeSeries or None), such as :func:`pipeline.mcap_read.iter_recording_chunks`.
+        (AttitudeSeries or None), such as :func:`pipeline.io.mcap_read.iter_recording_chunks`.
         Within a chunk samples need not be sorted; across chunks stamps must advance.
     max_gap_s : float
-        Attitude gap bridged by SLERP (:func:`stages.resample.interpolate_attitude`).
+        Attitude gap bridged by THE interpolator (:func:`stages.resample.interpolate_attitude`).
 
     Yields
     ------
@@ -442,8 +442,8 @@ def iter_aligned_chunks(
         of a chunk is kept to bracket the first magnetometer samples of the next.
 
     """
+    from pipeline.core.recording import AttitudeSeries
     from pipeline.model.attitude import interpolate_attitude
-    from pipeline.recording import AttitudeSeries
 
     att_t = np.zeros(0, np.int64)
     att_q = np.zeros((0, 4))
@@ -499,10 +499,10 @@ def calibrate_streaming(
     max_gap_s : float
         Attitude gap bridged by interpolation.
     mag_topic, attitude_topic : str, optional
-        Channels, as for :func:`pipeline.mcap_read.read_recording`.
+        Channels, as for :func:`pipeline.io.mcap_read.read_recording`.
 
     """
-    from pipeline.mcap_read import iter_recording_chunks
+    from pipeline.io.mcap_read import iter_recording_chunks
 
     chunks = iter_recording_chunks(path, max_messages=max_messages, mag_topic=mag_topic,
                                    attitude_topic=attitude_topic)

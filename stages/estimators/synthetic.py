@@ -1,6 +1,6 @@
 """Small in-memory synthetic problems for tests and the accuracy benchmark.
 
-The full simulator (``pipeline.simulate``) writes recordings with every effect; this module
+The full simulator (``pipeline.app.simulate``) writes recordings with every effect; this module
 only draws the CONVENTIONS model quickly, vectorised, so that a Monte Carlo of hundreds of runs
 stays fast.
 """
@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.geometry import (
+from pipeline.core.geometry import (
     li2020_euler_to_quat,
     quat_conj,
     quat_mul,
@@ -19,9 +19,8 @@ from pipeline.geometry import (
     quat_rotate,
     rotvec_to_quat,
 )
-from pipeline.recording import AlignedSeries, AttitudeSeries
-
-from .base import F64, NoiseModel
+from pipeline.core.recording import AlignedSeries, AttitudeSeries
+from stages.estimators.base import F64, NoiseModel
 
 
 @dataclass(frozen=True)
@@ -67,7 +66,7 @@ def draw(
     n: int = 2000,
     rate_hz: float = 50.0,
     R_body_mag: F64 | None = None,
-    B_enu_nT: F64 = (10000.0, 30000.0, 20000.0),
+    B_enu_nT: F64 | tuple[float, float, float] = (10000.0, 30000.0, 20000.0),
     D: F64 | None = None,
     offset_nT: F64 | None = None,
     time_offset_s: float = 0.0,
@@ -79,7 +78,7 @@ def draw(
     """Draw one synthetic data set of the CONVENTIONS model.
 
     The magnetometer sample stamped ``t`` senses the field at ``t - tau``; the attitude series
-    is stamped at the true times, with attitude noise added as ``pipeline.simulate`` adds it
+    is stamped at the true times, with attitude noise added as ``pipeline.app.simulate`` adds it
     (heading error about ENU up, pitch and roll errors about body x and body y).
     """
     rng = np.random.default_rng(0) if rng is None else rng
@@ -104,7 +103,7 @@ def draw(
     if noise is not None:
         y = y + noise.sigma_mag_nT * rng.standard_normal((n, 3))
         if noise.sigma_heading_rad or noise.sigma_pitch_rad or noise.sigma_roll_rad:
-            # As pipeline.simulate applies it (and NoiseModel.attitude_cov_body models it):
+            # As pipeline.app.simulate applies it (and NoiseModel.attitude_cov_body models it):
             # heading error about ENU up, pitch and roll errors about body x and body y.
             dh = noise.sigma_heading_rad * rng.standard_normal(n)
             dp = noise.sigma_pitch_rad * rng.standard_normal(n)
@@ -134,7 +133,7 @@ def _profile_at(kind: str, n: int, rate_hz: float, t_s: F64, varying_rate: bool)
 
 def small_rotation(deg_xyz: F64) -> F64:
     """Rotation matrix of a rotation vector given in degrees."""
-    from pipeline.geometry import quat_to_matrix
+    from pipeline.core.geometry import quat_to_matrix
 
     return quat_to_matrix(rotvec_to_quat(np.radians(np.asarray(deg_xyz, float))))
 

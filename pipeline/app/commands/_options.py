@@ -1,0 +1,113 @@
+"""Options shared by several subcommands: one spelling, metavar and help text each.
+
+``--mag TOPIC`` / ``--attitude TOPIC`` choose channels; ``--reference-field E,N,U`` /
+``--igrf LAT,LON,ALT_M,DATE`` give the background field (CONVENTIONS, "Command line").
+:func:`check_mcap_file` refuses a file that is not an MCAP recording before a command
+creates any output.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.core.errors import UsageError
+from pipeline.io.mcap_format import MAGIC
+
+#: The first 8 bytes of every MCAP file (https://mcap.dev/spec).
+
+MAG_HELP = ("magnetometer topic; needed only when the recording has more than one "
+            "magnetometer channel")
+ATTITUDE_HELP = ("attitude topic; needed only when the recording has more than one "
+                 "attitude channel")
+REFERENCE_FIELD_HELP = ("known background field in nT, east, north, up; it is then not "
+                        "estimated")
+IGRF_HELP = ("background field from the IGRF model at this place and date: latitude and "
+             "longitude in degrees, altitude in metres, date as YYYY-MM-DD")
+
+
+def add_topic_options(p: argparse.ArgumentParser) -> None:
+    """Add ``--mag TOPIC`` and ``--attitude TOPIC`` (defaults None: found by message type)."""
+    p.add_argument("--mag", default=None, metavar="TOPIC", help=MAG_HELP)
+    p.add_argument("--attitude", default=None, metavar="TOPIC", help=ATTITUDE_HELP)
+
+
+def add_field_options(p: argparse.ArgumentParser) -> None:
+    """Add ``--reference-field E,N,U`` and ``--igrf LAT,LON,ALT_M,DATE`` (exclusive)."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--reference-field", default=None, metavar="E,N,U",
+                   help=REFERENCE_FIELD_HELP)
+    g.add_argument("--igrf", default=None, metavar="LAT,LON,ALT_M,DATE", help=IGRF_HELP)
+
+
+def _floats(text: str, n: int, what: str) -> list[float]:
+    """Parse ``n`` comma-separated finite numbers, or raise UsageError naming the option."""
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        vals = [float(p) for p in parts]
+    except ValueError as exc:
+        raise UsageError(f"{what} must be {n} comma-separated numbers, got {text!r}") from exc
+    if len(vals) != n or not all(np.isfinite(vals)):
+        raise UsageError(f"{what} must be {n} comma-separated finite numbers, got {text!r}")
+    return vals
+
+
+def field_from_args(args: argparse.Namespace) -> np.ndarray | None:
+    """Return the background field (ENU, nT) asked for on the command line, or None.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        With ``reference_field`` and/or ``igrf`` (either may be missing or None).
+
+    Returns
+    -------
+    ndarray, shape (3,), or None
+        ``--reference-field`` as given, or the IGRF field at ``--igrf``'s place and date;
+        None when neither was given (the field is estimated).
+
+    Raises
+    ------
+    UsageError
+        A malformed option.
+    ConfigError
+        An IGRF date or place outside the model.
+
+    """
+    if getattr(args, "reference_field", None):
+        return np.array(_floats(args.reference_field, 3, "--reference-field"))
+    if getattr(args, "igrf", None):
+        parts = args.igrf.split(",")
+        if len(parts) != 4:
+            raise UsageError(f"--igrf must be LAT,LON,ALT_M,DATE, got {args.igrf!r}")
+        lat, lon, alt = _floats(",".join(parts[:3]), 3, "--igrf LAT,LON,ALT_M")
+        from pipeline.model.igrf import igrf_enu_nT
+
+        return np.asarray(igrf_enu_nT(lat, lon, alt, parts[3].strip()), float).reshape(3)
+    return None
+
+
+def check_mcap_file(path: str | Path) -> None:
+    """Refuse, before any output is made, a path that is not an MCAP file.
+
+    Only the first bytes are read (the full reader says the same, later and at more cost).
+
+    Raises
+    ------
+    InputError
+        No such file, a folder, or unreadable.
+    NotMcapError
+        Empty, or not starting with the MCAP magic bytes.
+
+    """
+    from pipeline.io.mcap_scan import check_magic, open_error  # the reader's own words
+
+    p = Path(path)
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(len(MAGIC))
+    except OSError as exc:
+        raise open_error(p, exc) from None
+    check_magic(head, p)

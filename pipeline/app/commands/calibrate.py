@@ -1,0 +1,150 @@
+"""``magalign calibrate REC.mcap --out DIR``: estimate the misalignment, write calibration.json.
+
+Options (CONVENTIONS): ``--estimator ml|li2020|ellipsoid|dpi``, ``--reference-field E,N,U``,
+``--igrf LAT,LON,ALT_M,DATE``, ``--estimate offset,soft_iron,time_offset``, ``--mag TOPIC``,
+``--attitude TOPIC``, ``--robust huber|cauchy``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.app.commands._options import add_field_options, add_topic_options, field_from_args
+from pipeline.core import progress
+from pipeline.core.atomic import atomic_path
+from pipeline.core.errors import NotObservableError, RefusedError, UsageError
+from pipeline.core.verdict import Status
+from pipeline.io.mcap_read import read_recording_warning
+from stages.estimators.registry import DESCRIPTIONS, ESTIMATORS
+
+log = logging.getLogger("magalign")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register the subcommand."""
+    p = sub.add_parser("calibrate", help="estimate the magnetometer misalignment",
+                       description="Estimate the misalignment between the magnetometer and "
+                       "the attitude source of one recording; writes DIR/calibration.json.")
+    p.add_argument("recording", help="MCAP recording")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="output folder (gets calibration.json)")
+    p.add_argument(
+        "--estimator",
+        default="ml",
+        choices=list(ESTIMATORS),
+        help="estimation method (default ml): "
+        + "; ".join(f"{k}: {v}" for k, v in DESCRIPTIONS.items()),
+    )
+    add_field_options(p)
+    p.add_argument(
+        "--estimate",
+        default="",
+        metavar="TERMS",
+        help="comma-separated extra terms: offset, soft_iron, time_offset",
+    )
+    p.add_argument(
+        "--robust",
+        default="none",
+        choices=["none", "huber", "cauchy"],
+        help="robust loss against outliers (default none)",
+    )
+    add_topic_options(p)
+    p.set_defaults(func=run)
+
+
+#: Kept for callers of the former name (the option parsing lives in ``_options``).
+reference_from_args = field_from_args
+
+
+def run(args: argparse.Namespace) -> int:
+    """Read, resample, estimate, write DIR/calibration.json and print a summary."""
+    from pipeline.core.recording import Context
+    from stages.estimate import EstimatorKind, RobustLoss, Term, fit_calibration
+    from stages.resample import Resample
+
+    try:
+        terms = frozenset(Term(t.strip()) for t in args.estimate.split(",") if t.strip())
+    except ValueError as exc:
+        raise UsageError(
+            f"--estimate takes offset, soft_iron, time_offset; got {args.estimate!r}"
+        ) from exc
+    ref = reference_from_args(args)
+    steps = ["Ingest", "Resample", "Estimate"]
+    display = progress.ProgressDisplay(1, "magalign calibrate",
+                                       enabled=progress.enabled_for(sys.stderr))
+    sink = progress.DirectSink(Path(args.recording).stem, display.update)
+    with display, progress.use_sink(sink):
+        progress.stage("Ingest", 0, len(steps), steps)
+        rec = read_recording_warning(args.recording, mag_topic=args.mag,
+                                     attitude_topic=args.attitude)
+        progress.stage("Resample", 1, len(steps), steps)
+        ctx = Resample().run(Context(source=str(args.recording), recording=rec))
+        assert ctx.aligned is not None  # Resample sets it
+        progress.stage("Estimate", 2, len(steps), steps)
+        cal = fit_calibration(
+            rec,
+            ctx.aligned,
+            estimator=EstimatorKind(args.estimator),
+            terms=terms,
+            reference_field_enu_nT=ref,
+            robust=RobustLoss(args.robust),
+        )
+    log.info("%s: %s", Path(args.recording).stem, progress.timings_text(sink.state.timings))
+    if len(cal.unobservable_axes_body) >= 3:
+        # A calibration.json whose rotation is arbitrary must not be written: a later run
+        # (or a survey line restored with it) would take it for a result.
+        raise NotObservableError(
+            "the platform did not rotate: nothing about the misalignment is observable",
+            path=args.recording, hint="record rotations about at least two different axes")
+    if cal.verdict is not None and cal.verdict.status is Status.REFUSED:
+        # Same reason: a refused fit is not written where a later run would find it.
+        raise RefusedError(f"calibration refused: {cal.verdict.reason}", path=args.recording)
+    out = Path(args.out) / "calibration.json"
+    with atomic_path(out, inputs=(args.recording,)) as tmp:
+        tmp.write_text(cal.to_json() + "\n")
+    print(summary(cal))
+    print(f"wrote {out}")
+    return 0
+
+
+def summary(cal) -> str:
+    """Format a few lines: rotation vector with sigmas, residual RMS, terms, warnings."""
+    rv = cal.rotvec_body_mag_deg
+    sg = cal.sigma_rotvec_deg
+    lines = [
+        f"estimator {cal.estimator}, {cal.n_samples} samples, residual RMS "
+        f"{cal.residual_rms_nT:.3f} nT",
+        "rotation vector body<-mag [deg]: "
+        + ", ".join(
+            f"{v:+.4f} +- {s:.4f}" if np.isfinite(s) else f"{v:+.4f} +- inf"
+            for v, s in zip(rv, sg, strict=True)
+        ),
+        "B_enu [nT]: " + ", ".join(f"{b:.1f}" for b in cal.B_enu_nT),
+    ]
+    if cal.rotvec_from_nominal_deg is not None:
+        lines.append(
+            "from nominal [deg]: " + ", ".join(f"{v:+.4f}" for v in cal.rotvec_from_nominal_deg)
+        )
+    if cal.offset_nT is not None:
+        lines.append("offset [nT]: " + ", ".join(f"{v:.2f}" for v in cal.offset_nT))
+    if cal.time_offset_s is not None:
+        lines.append(
+            f"time offset: {cal.time_offset_s * 1e3:.3f} ms +- "
+            f"{(cal.sigma_time_offset_s or 0) * 1e3:.3f} ms"
+        )
+    lines += [f"warning: {w}" for w in cal.warnings]
+    lines += [f"not estimated: {d['term']}: {d['reason']}" for d in cal.not_estimated]
+    if cal.n_eff is not None:
+        lines.append(f"effective independent samples behind the sigmas: {cal.n_eff:.0f} of "
+                     f"{cal.n_samples} (correlated residuals)")
+    from stages.estimate import verdict_line
+
+    lines.append(verdict_line(cal))
+    if cal.verdict is not None:
+        lines.append(f"verdict {cal.verdict.line()}")
+    return "\n".join(lines)

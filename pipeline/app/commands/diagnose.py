@@ -1,0 +1,97 @@
+"""``magalign diagnose REC.mcap --out DIR``: find, name, model and verify what the model leaves out.
+
+Writes ``DIR/diagnosis.json`` and ``DIR/calibration.json`` (the final model, CONVENTIONS) and
+prints the findings table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from pipeline.app.commands._options import add_field_options, add_topic_options, field_from_args
+from pipeline.core import progress
+from pipeline.core.atomic import write_text_atomic
+
+log = logging.getLogger("magalign")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register the subcommand."""
+    p = sub.add_parser("diagnose", help="find and model the physics the calibration left out",
+                       description="Find, name, model and verify what the calibration model "
+                       "leaves out; writes DIR/diagnosis.json and DIR/calibration.json.")
+    p.add_argument("recording", help="MCAP recording")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    add_topic_options(p)
+    add_field_options(p)
+    p.set_defaults(func=run)
+
+
+def diagnose_file(path: str | Path, *, mag_topic: str | None = None,
+                  attitude_topic: str | None = None,
+                  reference_field_enu_nT: tuple[float, float, float] | None = None):
+    """Read, align, calibrate and diagnose one recording; returns the final Context."""
+    from pipeline.core.errors import MagalignError
+    from pipeline.core.recording import Context
+    from pipeline.io.mcap_read import read_recording
+    from stages.diagnose.stage import Diagnose
+    from stages.resample import Resample
+
+    def step(name: str) -> None:
+        progress.stage(name, STEPS.index(name), len(STEPS), list(STEPS))
+
+    step("Ingest")
+    rec = read_recording(path, mag_topic=mag_topic, attitude_topic=attitude_topic)
+    ctx = Context(source=str(path), recording=rec)
+    if rec.attitude is None and rec.turntable is not None:
+        from stages.turntable import TurntableAttitude
+
+        ctx = TurntableAttitude().run(ctx)
+    step("Resample")
+    ctx = Resample().run(ctx)
+    step("Estimate")
+    try:
+        from stages.estimate import fit_calibration
+
+        cal = fit_calibration(ctx.recording, ctx.need_aligned())
+    except (ImportError, MagalignError):
+        cal = None  # the diagnosis starts from its own Wahba solution then
+    ctx = ctx.replace(calibration=cal)
+    step("Diagnose")
+    return Diagnose(reference_field_enu_nT=reference_field_enu_nT).run(ctx)
+
+
+#: the steps of ``diagnose`` as the progress line names them (pipeline.core.progress)
+STEPS = ("Ingest", "Resample", "Estimate", "Diagnose", "Judge")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Diagnose and write the outputs; returns the exit status."""
+    ref = field_from_args(args)
+    display = progress.ProgressDisplay(1, "magalign diagnose",
+                                       enabled=progress.enabled_for(sys.stderr))
+    sink = progress.DirectSink(Path(args.recording).stem, display.update)
+    with display, progress.use_sink(sink):
+        ctx = diagnose_file(args.recording, mag_topic=args.mag, attitude_topic=args.attitude,
+                            reference_field_enu_nT=None if ref is None
+                            else (float(ref[0]), float(ref[1]), float(ref[2])))
+        from stages.estimate import verdict_line, with_verdict
+
+        progress.stage("Judge", STEPS.index("Judge"), len(STEPS), list(STEPS))
+        cal = with_verdict(ctx.calibration, ctx.aligned)
+    log.info("%s: %s", Path(args.recording).stem, progress.timings_text(sink.state.timings))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out / "diagnosis.json",
+                      json.dumps(ctx.diagnosis.to_dict(), indent=2, allow_nan=False))
+    write_text_atomic(out / "calibration.json", cal.to_json())
+    print(ctx.diagnosis.table())
+    print(verdict_line(cal))
+    print("explanations and the verdict's reason are in the files:")
+    print(f"wrote {out / 'diagnosis.json'}")
+    print(f"wrote {out / 'calibration.json'}")
+    return 0

@@ -1,0 +1,82 @@
+"""``magalign info REC.mcap [--json]``: channels, roles, counts, rates, duration, problems.
+
+With ``--json`` one object is printed (CONVENTIONS)::
+
+    {"channels": [{"topic", "type", "role", "count", "rate_hz"}, ...],
+     "duration_s": float, "problems": [{"code", "message", "count"}, ...]}
+
+``role`` is ``magnetometer``, ``attitude``, ``turntable`` or ``other``; ``rate_hz`` is
+``1 / median stamp interval`` (header stamps; log times for channels of other types) or
+null with fewer than two messages; ``duration_s`` spans the magnetometer stamps (all
+channels when there is no magnetometer). ``problems`` lists what was found wrong and
+handled (a cut file, chunks skipped for a bad CRC or compression, stamps backwards or
+duplicated, gaps) and what reading would repair or refuse in the values (the same checks as
+``calibrate`` and ``process``: NaN/Inf samples, zero or non-unit quaternions, clock jumps,
+samples pinned at a rail; code ``unusable`` for what they would refuse): ``code`` is a short
+fixed identifier, ``message`` says it in words, ``count`` how many samples or bytes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from pipeline.io.mcap_read import inspect_recording
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register the subcommand."""
+    p = sub.add_parser("info", help="channels, roles, counts, rates and problems of a recording")
+    p.add_argument("recording", help="MCAP file")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=run)
+
+
+def to_json(info: dict) -> dict:
+    """Build the CONVENTIONS object of ``magalign info --json``."""
+    return {
+        "channels": [
+            {k: c[k] for k in ("topic", "type", "role", "count", "rate_hz")}
+            for c in info["channels"]
+        ],
+        "duration_s": info["duration_s"],
+        "problems": info["problems"],
+    }
+
+
+def format_table(info: dict) -> str:
+    """Format the human-readable form: a channel table, then duration and problems."""
+    head = ("topic", "type", "role", "count", "rate_hz")
+    rows = [head] + [
+        (c["topic"], c["type"], c["role"], str(c["count"]),
+         "-" if c["rate_hz"] is None else f"{c['rate_hz']:.3f}")
+        for c in info["channels"]
+    ]
+    widths = [max(len(r[i]) for r in rows) for i in range(len(head))]
+    lines = [f"{info['path']}  (profile {info['profile'] or '-'})"]
+    for k, r in enumerate(rows):
+        lines.append("  ".join(
+            (s.rjust(w) if i >= 3 else s.ljust(w))
+            for i, (s, w) in enumerate(zip(r, widths, strict=True))
+        ).rstrip())
+        if k == 0:
+            lines.append("  ".join("-" * w for w in widths))
+    lines.append(f"duration: {info['duration_s']:.3f} s")
+    if info["problems"]:
+        lines.append(f"problems ({len(info['problems'])}):")
+        lines += [f"  - [{p['code']}] {p['message']}" for p in info["problems"]]
+    else:
+        lines.append("problems: none")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Print the description of one recording."""
+    info = inspect_recording(args.recording)
+    if args.json:
+        json.dump(to_json(info), sys.stdout, indent=2)
+        sys.stdout.write("\n")
+    else:
+        print(format_table(info))
+    return 0

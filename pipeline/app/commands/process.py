@@ -1,0 +1,199 @@
+"""``magalign process INPUT --out DIR``: the whole pipeline on a recording, folder or campaign.
+
+INPUT is one ``.mcap`` recording, a folder of them, or a campaign ``.toml``
+(``docs/campaigns.md``). Calibration runs are processed first; survey lines that name one are
+restored with its result. One failing recording does not stop the others (exit status 3,
+each failure listed). Finished outputs whose input bytes and configuration are unchanged are
+reused, so an interrupted run resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import builtins
+import dataclasses
+import logging
+import os
+import sys
+import tempfile
+import warnings
+from pathlib import Path
+
+from pipeline.app.commands._options import (
+    add_field_options,
+    add_topic_options,
+    check_mcap_file,
+    field_from_args,
+)
+from pipeline.core import errors
+from pipeline.core.errors import CampaignPartialFailure, InputError, UsageError
+
+log = logging.getLogger("magalign")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    """Register the subcommand."""
+    from pipeline.app.campaign import EstimatorName, TermName
+
+    p = sub.add_parser("process", help="process a recording, a folder or a campaign TOML",
+                       description="The whole pipeline on one recording, a folder of "
+                       "recordings or a campaign TOML file.")
+    p.add_argument("input", help="recording (.mcap), folder of recordings, or campaign (.toml)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--calibration", help="calibration.json to restore survey recordings with "
+                   "(those that do not name a calibration run)")
+    p.add_argument("--jobs", type=int, default=None, help="local worker processes (default 1)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--dask-local", type=int, default=None, metavar="N",
+                   help="start a Dask LocalCluster of N workers")
+    g.add_argument("--scheduler", default=None, metavar="ADDR",
+                   help="join a Dask scheduler tcp://host:port (trust it like a shell)")
+    p.add_argument("--estimator", choices=[e.value for e in EstimatorName], default=None,
+                   help="estimator (default: the campaign's, else ml)")
+    p.add_argument("--estimate", default=None, metavar="TERMS",
+                   help="comma-separated extra terms: " + ", ".join(t.value for t in TermName))
+    add_field_options(p)
+    add_topic_options(p)
+    p.add_argument("--no-progress", action="store_true",
+                   help="no progress line (shown only on a terminal anyway; "
+                   "MAGALIGN_PROGRESS=always|never overrides)")
+    p.set_defaults(func=run)
+
+
+def _overrides(args: argparse.Namespace):
+    """Options given explicitly on the command line (they win over a campaign file's)."""
+    from pipeline.app.campaign import EstimatorName, ReferenceField, ReferenceFieldMode, TermName
+
+    ov: dict = {}
+    if args.estimator is not None:
+        ov["estimator"] = EstimatorName(args.estimator)
+    if args.estimate is not None:
+        try:
+            ov["terms"] = tuple(sorted({TermName(t.strip()) for t in args.estimate.split(",")
+                                        if t.strip()}, key=lambda t: t.value))
+        except ValueError:
+            raise UsageError(f"--estimate {args.estimate!r}: terms are "
+                             + ", ".join(t.value for t in TermName)) from None
+    ref = field_from_args(args)
+    if ref is not None:
+        ov["reference_field"] = ReferenceField(ReferenceFieldMode.FIXED,
+                                               enu_nT=(float(ref[0]), float(ref[1]), float(ref[2])))
+    if args.mag is not None:
+        ov["mag_topic"] = args.mag
+    if args.attitude is not None:
+        ov["attitude_topic"] = args.attitude
+    return ov
+
+
+def _category(name: str) -> type[Warning]:
+    """Return the warning class named ``name`` (magalign's or built-in), else UserWarning."""
+    cls = getattr(errors, name, None) or getattr(builtins, name, None)
+    return cls if isinstance(cls, type) and issubclass(cls, Warning) else UserWarning
+
+
+def issue_warnings(results: list[dict]) -> None:
+    """Issue, in this process, the warnings each recording's run collected.
+
+    The recordings are processed in worker processes (or on Dask workers), whose warnings
+    would otherwise be lost or printed there in Python's two-line format; the rows carry
+    them back (``run_warnings``, :func:`pipeline.app.process_one.process_recording`) and each is
+    warned here once, as one ``magalign: warning: ...`` line. A reused result repeats its
+    warnings: its outputs were made from the same damaged input.
+    """
+    for res in results:
+        row = res.get("row") or {}
+        for pair in row.get("run_warnings") or ():
+            cat, msg = pair
+            warnings.warn(str(msg), _category(str(cat)), stacklevel=2)
+
+
+def _run_with_progress(camp, out: Path, executor, args: argparse.Namespace) -> list[dict]:
+    """Run the campaign with a per-stage progress line on a terminal (``pipeline.core.progress``).
+
+    The workers write their stage into small files in a temporary folder the line reads;
+    with ``-v`` the time of each stage of each recording is logged when it finishes.
+    """
+    from pipeline.app.campaign import run_campaign
+    from pipeline.core import progress as pg
+
+    enabled = pg.enabled_for(sys.stderr, disable=args.no_progress)
+    old_env = os.environ.get(pg.ENV_DIR)
+    with tempfile.TemporaryDirectory(prefix="magalign-progress-") as folder:
+        if enabled:
+            os.environ[pg.ENV_DIR] = folder
+        display = pg.ProgressDisplay(len(camp.recordings), "magalign process", enabled=enabled,
+                                     folder=folder)
+
+        def progress(res: dict) -> None:
+            display.run_done(res["name"])
+            timings = (res.get("row") or {}).get("timings_s")
+            if timings and res.get("status") == "ok":
+                log.info("%s: %s", res["name"], pg.timings_text(timings))
+
+        try:
+            with display:
+                return run_campaign(camp, out, executor, calibration_path=args.calibration,
+                                    progress=progress)
+        finally:
+            executor.close()
+            if old_env is None:
+                os.environ.pop(pg.ENV_DIR, None)
+            else:
+                os.environ[pg.ENV_DIR] = old_env
+
+
+def run(args: argparse.Namespace) -> int:
+    """Process; print where the results are; exit 3 when some recordings failed."""
+    from pipeline.app.campaign import RecordingOptions, campaign_for_input
+    from pipeline.app.executors import make_executor
+    from pipeline.app.summary import row_for, write_summary
+
+    if args.jobs is not None and (args.dask_local is not None or args.scheduler is not None):
+        raise UsageError("--jobs is for the local pool; with Dask give --dask-local N only")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out} exists and is not a folder")
+    inp = Path(args.input)
+    single = inp.is_file() and inp.suffix.lower() != ".toml"
+    if single:
+        check_mcap_file(inp)  # not a recording: one line, exit 2, no output folder
+    ov = _overrides(args)
+    camp = campaign_for_input(args.input, options=RecordingOptions(**ov), out_dir=out)
+    if ov:
+        camp = dataclasses.replace(camp, recordings=tuple(
+            dataclasses.replace(r, options=dataclasses.replace(r.options, **ov))
+            for r in camp.recordings))
+    executor = make_executor(jobs=args.jobs, dask_local=args.dask_local,
+                             scheduler=args.scheduler)
+    results = _run_with_progress(camp, out, executor, args)
+    issue_warnings(results)
+    out_r = out.resolve()
+    rows = [row_for(out_r, r) for r in results]
+    pq_path, html_path = write_summary(out_r, rows, title=f"magalign: {camp.name}")
+    n_ok = sum(r["status"] == "ok" for r in results)
+    n_re = sum(r["status"] == "reused" for r in results)
+    failures = [(r["name"], r["error"] or "unknown error") for r in results
+                if r["status"] == "failed"]
+    print(f"{len(results)} recording(s): {n_ok} processed, {n_re} reused (unchanged), "
+          f"{len(failures)} failed ({executor.describe()})")
+    for r in results:
+        line = (r.get("row") or {}).get("verdict_line")
+        if line:
+            print(f"{r['name']}: {line}")
+    print(f"results in {out}:")
+    print(f"  summary  {out / html_path.name}   (open in a browser)")
+    print(f"  table    {out / pq_path.name}")
+    for r in rows:
+        if r["rrd"]:
+            print(f"  {r['name']}: magalign view {out / r['rrd']}")
+        if r["report"]:
+            print(f"  {' ' * len(r['name'])}  report {out / r['report']}")
+    if failures and len(results) == 1 and single:
+        # One recording given: its failure is bad input (exit 2, one line), not a campaign
+        # that partly failed (CONVENTIONS, "Exit status").
+        raise InputError(failures[0][1], path="")  # the line names its file already
+    if failures:
+        for name, why in failures:
+            print(f"magalign: FAILED {name}: {why}", file=sys.stderr)
+        raise CampaignPartialFailure(failures)
+    return 0

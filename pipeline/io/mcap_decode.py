@@ -1,0 +1,373 @@
+"""MCAP message decoding.
+
+The supported message types by role (``MAG_TYPES``, ``ATTITUDE_TYPES``, ``TURNTABLE_TYPES``,
+from ``schemas.MESSAGE_TYPES``), message records decoded in batches straight into numpy
+(CDR layouts from the stored definitions, JSON), and the channel of each role chosen.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from typing import Any, Literal, overload
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.core.errors import (
+    ChannelError,
+    SchemaError,
+)
+from pipeline.core.geometry import li2020_euler_to_quat, novatel_to_quat
+from pipeline.core.recording import (
+    Role,
+)
+from pipeline.io.cdr import CdrLayout, normalise_type, stamp_ns
+from pipeline.io.mcap_scan import (
+    BATCH_BYTES,
+    _Channel,
+    _compact_records,
+    _copy_ranges,
+    _iter_blocks,
+    _record_columns,
+    _Scan,
+)
+from schemas import MESSAGE_TYPES, MessageRole, types_of
+
+#: message types by role, as normalised schema names (``pkg/Type`` or magalign.*), from the one
+#: table of supported types (``schemas.MESSAGE_TYPES``)
+MAG_TYPES = tuple(MESSAGE_TYPES[n].short_name for n in types_of(MessageRole.MAGNETOMETER))
+
+
+ATTITUDE_TYPES = tuple(MESSAGE_TYPES[n].short_name for n in types_of(MessageRole.ATTITUDE))
+
+
+TURNTABLE_TYPES = tuple(MESSAGE_TYPES[n].short_name for n in types_of(MessageRole.TURNTABLE))
+
+
+# CDR field paths of the orientation and of the position an attitude message carries (the
+# position is read when the stored definition has it); INSPVA's geodetic fix is converted to
+# local ENU after sorting (first fix origin)
+_CDR_QUAT = {t.short_name: t.quaternion for t in MESSAGE_TYPES.values() if t.quaternion}
+
+
+_CDR_POSITION = {t.short_name: t.position for t in MESSAGE_TYPES.values() if t.position}
+
+
+_INSPVA_FIX = ("latitude", "longitude", "height")
+
+
+#: WGS84 semi-major axis (m) and first eccentricity squared
+_WGS84_A_M = 6378137.0
+
+
+_WGS84_E2 = 6.69437999014e-3
+
+
+# --------------------------------------------------------------------------- decoding
+@dataclass
+class _Decoded:
+    """Decoded columns of one channel (stamps in file order)."""
+
+    t_ns: np.ndarray
+    values: np.ndarray  # (N,3) nT | (N,4) q_enu_body | (N,) turntable deg
+    log_time_ns: np.ndarray
+    frame_id: str = ""
+    position: np.ndarray | None = None  # (N, 3): metres, or lat deg, lon deg, height m
+    position_kind: str = ""  # "local" (metres, the source's frame) or "geodetic"
+
+    def take(self, idx: np.ndarray, values: np.ndarray | None = None) -> _Decoded:
+        """Rows ``idx`` (mask or indices) of every column; ``values`` replaces the values."""
+        v = self.values[idx] if values is None else values
+        pos = None if self.position is None else self.position[idx]
+        return _Decoded(self.t_ns[idx], v, self.log_time_ns[idx], self.frame_id, pos,
+                        self.position_kind)
+
+
+def geodetic_to_local_enu(lat_deg: np.ndarray, lon_deg: np.ndarray, h_m: np.ndarray
+                          ) -> np.ndarray:
+    """Local ENU positions (N, 3), m, of geodetic fixes: flat-earth tangent plane.
+
+    The origin is the first finite fix; east and north are the longitude and latitude
+    differences times the WGS84 prime-vertical and meridian radii of curvature at the origin
+    (plus its height), up is the height difference. Over a survey of a few kilometres the
+    error of the plane is below a metre per ten kilometres (curvature ``d^2 / (2 R)``), far
+    below what a field gradient needs.
+    """
+    lat, lon, h = (np.asarray(a, dtype=float) for a in (lat_deg, lon_deg, h_m))
+    out = np.full((lat.shape[0], 3), np.nan)
+    ok = np.isfinite(lat) & np.isfinite(lon) & np.isfinite(h)
+    if not ok.any():
+        return out
+    i0 = int(np.argmax(ok))
+    phi0 = np.radians(lat[i0])
+    w = np.sqrt(1.0 - _WGS84_E2 * np.sin(phi0) ** 2)
+    r_n = _WGS84_A_M / w  # prime vertical
+    r_m = _WGS84_A_M * (1.0 - _WGS84_E2) / w**3  # meridian
+    dlon = (lon - lon[i0] + 180.0) % 360.0 - 180.0
+    out[:, 0] = np.radians(dlon) * (r_n + h[i0]) * np.cos(phi0)
+    out[:, 1] = np.radians(lat - lat[i0]) * (r_m + h[i0])
+    out[:, 2] = h - h[i0]
+    out[~ok] = np.nan
+    return out
+
+
+class _Decoder:
+    """Decoder of one channel's payloads, built from the schema stored in the file."""
+
+    def __init__(self, scan: _Scan, ch: _Channel):
+        self.path = scan.path
+        self.topic = ch.topic
+        sch = scan.schemas.get(ch.schema_id)
+        if sch is None:
+            raise SchemaError(f"channel {ch.topic} refers to schema id {ch.schema_id}, which "
+                              "the file does not define", path=scan.path)
+        self.type = normalise_type(sch.name)
+        self.encoding = ch.message_encoding
+        self.layout: CdrLayout | None = None
+        self.validator: Any = None
+        if ch.message_encoding == "cdr":
+            if sch.encoding != "ros2msg":
+                raise SchemaError(f"channel {ch.topic}: schema encoding {sch.encoding!r} is "
+                                  "not supported (only ros2msg)", path=scan.path)
+            try:
+                self.layout = CdrLayout(sch.name, sch.data.decode("utf-8"))
+            except SchemaError as exc:
+                raise SchemaError(exc.message, path=scan.path) from None
+            except UnicodeDecodeError:
+                raise SchemaError(f"channel {ch.topic}: schema text is not UTF-8",
+                                  path=scan.path) from None
+            self.paths = self._cdr_paths()
+        elif ch.message_encoding == "json":
+            if sch.encoding == "jsonschema" and sch.data:
+                import jsonschema
+
+                try:
+                    schema_doc = json.loads(sch.data)
+                    cls = jsonschema.validators.validator_for(schema_doc)
+                    self.validator = cls(schema_doc)
+                except (ValueError, jsonschema.SchemaError) as exc:
+                    raise SchemaError(f"channel {ch.topic}: stored JSON Schema is invalid "
+                                      f"({exc})", path=scan.path) from None
+        else:
+            raise SchemaError(f"channel {ch.topic}: message encoding {ch.message_encoding!r}"
+                              " is not supported (cdr or json)", path=scan.path)
+
+    def _cdr_paths(self) -> list[str]:
+        assert self.layout is not None  # called for CDR channels, once the layout is built
+        t = self.type
+        if t == "sensor_msgs/MagneticField":
+            return ["header.stamp.sec", "header.stamp.nanosec", "header.frame_id",
+                    "magnetic_field.x", "magnetic_field.y", "magnetic_field.z"]
+        if t == "sensor_msgs/Imu":
+            return ["header.stamp.sec", "header.stamp.nanosec", "header.frame_id"] + [
+                f"orientation.{k}" for k in "xyzw"]
+        if t in _CDR_QUAT:
+            q = _CDR_QUAT[t]
+            out = ["header.stamp.sec", "header.stamp.nanosec"] + [f"{q}.{k}" for k in "xyzw"]
+            pp = _CDR_POSITION.get(t)
+            if pp is not None and self.layout.has_field(f"{pp}.x"):
+                out += [f"{pp}.{k}" for k in "xyz"]
+            return out
+        if t == "novatel_oem7_msgs/INSPVA":
+            out = ["header.stamp.sec", "header.stamp.nanosec", "roll", "pitch", "azimuth"]
+            if all(self.layout.has_field(k) for k in _INSPVA_FIX):
+                out += list(_INSPVA_FIX)
+            return out
+        if t == "std_msgs/Float64":
+            return ["data"]
+        raise SchemaError(f"channel {self.topic}: message type {self.type} is not supported",
+                          path=self.path, hint=_SUPPORTED_HINT)
+
+    def decode(self, buf: NDArray[np.uint8], rec: np.ndarray) -> _Decoded:
+        buf, rec = _compact_records(buf, rec)
+        cols = _record_columns(buf, rec)
+        log = cols["log_time_ns"]
+        if self.layout is not None:
+            try:
+                f = self.layout.decode(buf, cols["start"], cols["length"], self.paths)
+            except SchemaError as exc:
+                raise SchemaError(f"channel {self.topic}: {exc.message}",
+                                  path=self.path) from None
+            return self._from_cdr(f, log, buf)
+        return self._from_json(buf, cols, log)
+
+    def _from_cdr(self, f: dict[str, np.ndarray], log: np.ndarray, buf: np.ndarray
+                  ) -> _Decoded:
+        t = self.type
+        if t == "std_msgs/Float64":
+            return _Decoded(log, f["data"].astype(float), log)  # no header: log time
+        t_ns = stamp_ns(f["header.stamp.sec"], f["header.stamp.nanosec"])
+        if t == "sensor_msgs/MagneticField":
+            v = np.stack([f[f"magnetic_field.{k}"] for k in "xyz"], axis=-1) * 1e9
+            s0, n0 = f["header.frame_id"][0]
+            frame = bytes(buf[s0 : s0 + max(n0 - 1, 0)]).decode("utf-8", "replace")
+            return _Decoded(t_ns, v, log, frame)
+        if t == "sensor_msgs/Imu":  # its frame_id names the IMU's own (body) frame
+            s0, n0 = f["header.frame_id"][0]
+            frame = bytes(buf[s0 : s0 + max(n0 - 1, 0)]).decode("utf-8", "replace")
+            return _Decoded(t_ns, np.stack([f[f"orientation.{k}"] for k in "xyzw"], axis=-1),
+                            log, frame)
+        if t in _CDR_QUAT:
+            qp = _CDR_QUAT[t]
+            pp = _CDR_POSITION.get(t)
+            pos = (np.stack([f[f"{pp}.{k}"] for k in "xyz"], axis=-1)
+                   if pp is not None and f"{pp}.x" in f else None)
+            return _Decoded(t_ns, np.stack([f[f"{qp}.{k}"] for k in "xyzw"], axis=-1), log,
+                            position=pos, position_kind="local" if pos is not None else "")
+        q = novatel_to_quat(f["roll"], f["pitch"], f["azimuth"])
+        if "latitude" in f:
+            fix = np.stack([f[k] for k in _INSPVA_FIX], axis=-1).astype(float)
+            return _Decoded(t_ns, q, log, position=fix, position_kind="geodetic")
+        return _Decoded(t_ns, q, log)
+
+    def _from_json(self, buf: np.ndarray, cols: dict, log: np.ndarray) -> _Decoded:
+        joined = _copy_ranges(buf, cols["start"], cols["length"], sep=ord(","))
+        try:
+            text = b"[" + joined[:-1].tobytes() + b"]"
+            objs = json.loads(text)
+        except ValueError as exc:
+            raise SchemaError(f"channel {self.topic}: messages are not valid JSON ({exc})",
+                              path=self.path) from None
+        if self.validator is not None and objs:
+            # a sample (first, middle, last) is validated: enough to catch a wrong layout
+            for o in (objs[0], objs[len(objs) // 2], objs[-1]):
+                err = next(iter(self.validator.iter_errors(o)), None)
+                if err is not None:
+                    raise SchemaError(f"channel {self.topic}: message does not match the "
+                                      f"stored JSON Schema: {err.message}", path=self.path)
+        t = self.type
+        try:
+            t_ns = (np.array([o["t_ns"] for o in objs], dtype=np.int64)
+                    if objs and "t_ns" in objs[0] else log)
+            if t == "magalign.Magnetometer":
+                v = np.array([o["mag_nT"] for o in objs], dtype=float).reshape(-1, 3)
+                frame = str(objs[0].get("frame_id", "")) if objs else ""
+                return _Decoded(t_ns, v, log, frame)
+            if t == "magalign.AttitudeQuaternion":
+                q = np.array([o["q_enu_body"] for o in objs], dtype=float).reshape(-1, 4)
+                return _Decoded(t_ns, q, log)
+            if t == "magalign.AttitudeEuler":
+                hpr = np.array([[o["heading_deg"], o["pitch_deg"], o["roll_deg"]]
+                                for o in objs], dtype=float).reshape(-1, 3)
+                r = np.radians(hpr)
+                return _Decoded(t_ns, li2020_euler_to_quat(r[:, 0], r[:, 1], r[:, 2]), log)
+            if t == "magalign.Turntable":
+                return _Decoded(t_ns, np.array([o["angle_deg"] for o in objs], dtype=float),
+                                log)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise SchemaError(f"channel {self.topic}: message lacks field {exc}",
+                              path=self.path) from None
+        raise SchemaError(f"channel {self.topic}: message type {t} is not supported",
+                          path=self.path, hint=_SUPPORTED_HINT)
+
+
+_SUPPORTED_HINT = "supported: " + ", ".join(MAG_TYPES + ATTITUDE_TYPES + TURNTABLE_TYPES)
+
+
+def _decode_channels(scan: _Scan, cids: list[int]) -> dict[int, _Decoded]:
+    decoders = {cid: _Decoder(scan, scan.channels[cid]) for cid in cids}
+    # Upper bound of each channel's message count, from the message indexes: the columns are
+    # filled chunk by chunk into arrays of that size (one copy of the data, where collecting
+    # the chunks' columns and concatenating them held two).
+    cap = {cid: len(scan.top_messages.get(cid, ())) + sum(
+        len(ch.index.get(cid, ())) for ch in scan.chunks if not ch.bad and ch.index)
+        for cid in cids}
+    cols: dict[int, list[np.ndarray]] = {}
+    fill = dict.fromkeys(cids, 0)
+    frames = dict.fromkeys(cids, "")
+    kinds = dict.fromkeys(cids, "")
+    for buf, sel in _iter_blocks(scan, set(cids), BATCH_BYTES):
+        for cid, rec in sel.items():
+            d = decoders[cid].decode(buf, rec)
+            k, i = len(d.t_ns), fill[cid]
+            parts: tuple[np.ndarray, ...] = (d.t_ns, d.values, d.log_time_ns)
+            if d.position is not None:
+                parts += (d.position,)
+                kinds[cid] = d.position_kind
+            if cid not in cols:
+                cols[cid] = [np.empty((max(cap[cid], k),) + a.shape[1:], dtype=a.dtype)
+                             for a in parts]
+            elif i + k > cols[cid][0].shape[0]:  # more than indexed: grow
+                cols[cid] = [np.concatenate([c[:i], np.empty((k,) + c.shape[1:], c.dtype)])
+                             for c in cols[cid]]
+            for c, a in zip(cols[cid], parts, strict=True):
+                c[i : i + k] = a
+            fill[cid] = i + k
+            frames[cid] = frames[cid] or d.frame_id
+    out = {}
+    for cid in cids:
+        if cid not in cols:
+            width = {"sensor_msgs/MagneticField": 3, "magalign.Magnetometer": 3}.get(
+                decoders[cid].type, 4)
+            shape = (0,) if decoders[cid].type in TURNTABLE_TYPES else (0, width)
+            out[cid] = _Decoded(np.zeros(0, np.int64), np.zeros(shape), np.zeros(0, np.int64))
+            continue
+        n = fill[cid]
+        t, v, log, *pos = (c if n == c.shape[0] else c[:n].copy() for c in cols[cid])
+        out[cid] = _Decoded(t, v, log, frames[cid], pos[0] if pos else None, kinds[cid])
+    return out
+
+
+# --------------------------------------------------------------------------- roles
+def _role_of(scan: _Scan, ch: _Channel) -> Role:
+    sch = scan.schemas.get(ch.schema_id)
+    t = normalise_type(sch.name) if sch else ""
+    if t in MAG_TYPES:
+        return Role.MAGNETOMETER
+    if t in ATTITUDE_TYPES:
+        return Role.ATTITUDE
+    if t in TURNTABLE_TYPES:
+        return Role.TURNTABLE
+    return Role.OTHER
+
+
+def _type_of(scan: _Scan, ch: _Channel) -> str:
+    sch = scan.schemas.get(ch.schema_id)
+    return sch.name if sch else "?"
+
+
+_OPTION = {Role.MAGNETOMETER: ("mag_topic", "--mag"),
+           Role.ATTITUDE: ("attitude_topic", "--attitude"),
+           Role.TURNTABLE: ("turntable_topic", "--turntable")}
+
+
+@overload
+def _pick(scan: _Scan, role: Role, topic: str | None, required: Literal[True]) -> int: ...
+
+
+@overload
+def _pick(scan: _Scan, role: Role, topic: str | None, required: bool) -> int | None: ...
+
+
+def _pick(scan: _Scan, role: Role, topic: str | None, required: bool) -> int | None:
+    """Channel id for a role: by explicit topic, else the single channel of a matching type."""
+    opt, flag = _OPTION[role]
+    if topic is not None:
+        hits = [c for c in scan.channels.values() if c.topic == topic]
+        if not hits:
+            topics = ", ".join(sorted({c.topic for c in scan.channels.values()})) or "none"
+            raise ChannelError(f"no channel with topic {topic} (topics: {topics})",
+                               role=role.value, path=scan.path)
+        c = hits[0]
+        ok = (MAG_TYPES if role is Role.MAGNETOMETER else ATTITUDE_TYPES
+              if role is Role.ATTITUDE else TURNTABLE_TYPES)
+        if normalise_type(_type_of(scan, c)) not in ok:
+            raise SchemaError(f"channel {topic} has type {_type_of(scan, c)}, which is not a "
+                              f"supported {role.value} type", path=scan.path,
+                              hint=_SUPPORTED_HINT)
+        return c.id
+    cands = [c for c in scan.channels.values() if _role_of(scan, c) is role]
+    if len(cands) > 1:
+        names = " and ".join(sorted(c.topic for c in cands))
+        raise ChannelError(f"two or more candidate {role.value} channels: {names}",
+                           role=role.value, path=scan.path,
+                           hint=f"choose one with {flag} TOPIC ({opt}=...)")
+    if not cands:
+        if not required:
+            return None
+        listing = ", ".join(f"{c.topic} ({_type_of(scan, c)})"
+                            for c in scan.channels.values()) or "no channels"
+        raise ChannelError(f"no {role.value} channel found (channels: {listing})",
+                           role=role.value, path=scan.path, hint=_SUPPORTED_HINT)
+    return cands[0].id

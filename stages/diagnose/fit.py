@@ -1,0 +1,130 @@
+"""The diagnosis fit.
+
+A model state fitted to the data by THE damped Gauss-Newton core
+(``fit``, ``FitResult``) from a closed-form start (``wahba_init``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from pipeline.core.geometry import quat_to_matrix, so3_exp
+from pipeline.model.solve import levenberg_marquardt
+from stages.diagnose.model import F64, FitData, ModelState, _mv, evaluate
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """A Levenberg-Marquardt fit.
+
+    Attributes
+    ----------
+    state : ModelState
+    residual_nT : ndarray (N, 3)
+        ``sqrt(w) (y - prediction)`` on the fitted samples (``w``: :func:`sample_weights`,
+        1 without a noise model).
+    rss : float
+        Weighted residual sum of squares, nT^2.
+    info : ndarray (P, P)
+        ``J.T W J`` at the solution (unscaled information).
+    n_iter : int
+    raw_residual_nT : ndarray (N, 3) or None
+        ``y - prediction`` unweighted (None: the same as ``residual_nT``).
+    noise_model : (float, float, float) or None
+        ``FitData.noise_model`` the fit was weighted with.
+
+    """
+
+    state: ModelState
+    residual_nT: F64
+    rss: float
+    info: F64
+    n_iter: int
+    raw_residual_nT: F64 | None = None
+    noise_model: tuple[float, float, float] | None = None
+
+    @property
+    def rms_nT(self) -> float:
+        """RMS of the (unweighted) residual over all components, nT."""
+        r = self.residual_nT if self.raw_residual_nT is None else self.raw_residual_nT
+        return float(np.sqrt(np.sum(r * r) / max(r.size, 1)))
+
+
+def fit(
+    state: ModelState, data: FitData, *, max_iter: int = 40, rtol: float = 1e-10
+) -> FitResult:
+    """Levenberg-Marquardt over every parameter of ``state`` (rotations on SO(3)).
+
+    Parameters
+    ----------
+    state : ModelState
+        Starting values; also fixes which terms are in the model.
+    data : FitData
+        What to fit.
+    max_iter : int
+        Iteration limit.
+    rtol : float
+        Stop when the relative decrease of the RSS falls below this.
+
+    Returns
+    -------
+    FitResult
+
+    """
+    fixed_B = data.B_known_enu_nT is not None
+    if fixed_B:
+        state = replace(state, B_enu_nT=np.asarray(data.B_known_enu_nT, dtype=float))
+
+    def resid(st: ModelState, with_jacobian: bool) -> tuple[F64, F64 | None]:
+        ev = evaluate(st, data, jacobian=with_jacobian)
+        r, J = data.y_nT - ev.y_nT, ev.J
+        if ev.sqrt_w is not None:  # the likelihood's weights (sample_weights)
+            r = r * ev.sqrt_w[:, None]
+            J = None if J is None else J * ev.sqrt_w[:, None, None]
+        return r, J
+
+    sol = levenberg_marquardt(state, resid, lambda st, dx: st.update(dx, fixed_B=fixed_B),
+                              max_iter=max_iter, rtol=rtol)
+    raw = None
+    if data.noise_model is not None:
+        raw = data.y_nT - evaluate(sol.state, data, jacobian=False).y_nT
+    return FitResult(sol.state, sol.residual, sol.rss, sol.info, sol.n_iter, raw,
+                     data.noise_model)
+
+
+def wahba_init(data: FitData, n_iter: int = 10) -> ModelState:
+    """Baseline ``R_body_mag`` and ``B_enu`` without any prior: alternating Wahba / mean field.
+
+    ``C_enu_body(t) R y(t) = B`` for every sample when the model holds, so for a given ``R``
+    the field is the mean of the rotated readings, and for a given field ``R`` solves
+    Wahba's problem between the readings (mag) and the field in the body frame. Several
+    starting rotations guard against a poor local minimum.
+    """
+    q = data.track.at(data.t_s)
+    C = quat_to_matrix(q)
+    y = data.y_nT - np.mean(data.y_nT, axis=0) * 0.0
+    best: tuple[float, F64, F64] | None = None
+    starts = [np.eye(3)] + [so3_exp(np.array(v) * np.pi / 2) for v in
+                            ([1, 0, 0], [0, 1, 0], [0, 0, 1], [-1, 0, 0], [0, -1, 0], [0, 0, -1])]
+    starts += [so3_exp(np.array([np.pi, 0, 0])), so3_exp(np.array([0, np.pi, 0]))]
+    for R in starts:
+        B = data.B_known_enu_nT
+        for _ in range(n_iter):
+            if data.B_known_enu_nT is None:
+                B = np.mean(_mv(C, y @ R.T), axis=0)
+            assert B is not None  # known, or the mean just computed
+            b = B @ C  # rows C.T @ B
+            # Wahba: R = argmin sum |b - R y|^2 (Kabsch)
+            Hm = b.T @ y
+            U, _, Vt = np.linalg.svd(Hm)
+            Sd = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+            R = U @ Sd @ Vt
+        assert B is not None, "wahba_init needs n_iter >= 1 without a known field"
+        b = B @ C
+        cost = float(np.sum((y - b @ R) ** 2))
+        if best is None or cost < best[0]:
+            best = (cost, R, np.asarray(B, dtype=float))
+    assert best is not None
+    return ModelState(R_body_mag=best[1], B_enu_nT=best[2])

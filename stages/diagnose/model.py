@@ -1,0 +1,828 @@
+"""The effect library: every physical effect ``diagnose`` can add to the forward model.
+
+Forward model (CONVENTIONS, "Measurement model"), one magnetometer sample stamped ``t``::
+
+    b(t)   = C_enu_body(t - tau).T @ T.T @ (B_enu + F(t))      body frame, nT
+    m(t)   = R_body_mag.T @ b(t)                               mag frame, nT
+    y0(t)  = D @ m(t)
+    y(t)   = y0(t) + o + o_step * 1[t in windows] + E_s @ dy0/dt
+
+with ``F(t)`` the ENU field terms (``field_drift``, ``disturbance``, ``field_gradient``:
+``G (p(t) - p_ref)`` with ``p`` the attitude source's position), ``T`` the turntable-axis
+tilt (``axis_tilt``), ``D = I + S`` (``soft_iron``, ``S`` symmetric and traceless because the
+isotropic scale of ``D`` is the field magnitude when ``B_enu`` is estimated), ``o``
+(``hard_iron``), ``o_step`` (``hard_iron_step``), ``E_s`` (``eddy_current``). ``dy0/dt`` is the
+rate of change of the undisturbed reading caused by the rotation of the platform (the field
+the airframe sees changing), so that a time offset is exactly the isotropic special case
+``E_s = -tau I`` to first order.
+
+The baseline model is ``R_body_mag`` and ``B_enu`` only. Every other term is an
+:class:`Effect`; each has its parameters, its contribution to the predicted reading, its
+analytic Jacobian (checked numerically in ``tests/test_effects.py``), a physical explanation
+and an identifiability condition computed from the data.
+
+Parameter vector layout: ``[dR (3), B (3), term_1 (k_1), term_2 (k_2), ...]``. ``dR`` and the
+tilt of ``axis_tilt`` are left perturbations on SO(3) (``R <- exp([dR]x) R``), so the Jacobian
+columns are evaluated at zero perturbation and the state stores the rotation matrices.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field, replace
+from typing import Any, cast
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.core.geometry import quat_to_matrix, skew, so3_exp
+from pipeline.model.attitude import AttitudeInterpolator
+from pipeline.model.forward import HEADING_DEGREE, heading_basis, rotate_about_up
+
+F64 = NDArray[np.float64]
+
+
+class EffectKind(str, enum.Enum):
+    """CONVENTIONS effect names."""
+
+    HARD_IRON = "hard_iron"
+    SOFT_IRON = "soft_iron"
+    TIME_OFFSET = "time_offset"
+    EDDY_CURRENT = "eddy_current"
+    FIELD_DRIFT = "field_drift"
+    DISTURBANCE = "disturbance"
+    HARD_IRON_STEP = "hard_iron_step"
+    AXIS_TILT = "axis_tilt"
+    FIELD_GRADIENT = "field_gradient"
+    SAMPLE_HOLD = "sample_hold"  # a timing effect handled on the data, not a model term
+    HEADING_DRIFT = "heading_drift"
+
+
+LOCAL_KINDS = frozenset({EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP})
+
+
+#: A term (or the rotation) keeping less than this fraction of the information of its weakest
+#: parameter combination once the other parameters are free is confounded by the motion: its
+#: sigma is over 10 times what it would be alone, and a model error of a tenth of the noise
+#: moves it by a sigma. Not estimated, by calibrate (``stages.estimators.checks``) and by
+#: diagnose alike.
+CONFOUND_RATIO = 1e-2
+
+
+# Symmetric traceless basis of the soft-iron deviation S (5 matrices): the trace of D is the
+# field magnitude's job when B_enu is free (D = s I and B/s predict the same readings).
+_SOFT_BASIS = np.zeros((5, 3, 3))
+_SOFT_BASIS[0] = np.diag([1.0, -1.0, 0.0])
+_SOFT_BASIS[1] = np.diag([1.0, 1.0, -2.0]) / np.sqrt(3.0)
+for _k, (_i, _j) in enumerate([(0, 1), (0, 2), (1, 2)]):
+    _SOFT_BASIS[2 + _k, _i, _j] = _SOFT_BASIS[2 + _k, _j, _i] = 1.0
+
+
+@dataclass(frozen=True)
+class AttitudeTrack:
+    """Attitude samples evaluated at any time by THE interpolator (C1 cubic on SO(3)).
+
+    The prediction of the diagnosis is the one of calibrate and restore
+    (:mod:`pipeline.model.attitude`): the C1 cubic between the samples, held constant outside
+    their span, no smoothing. (Attitude noise and interpolation error belong in the
+    weights of the likelihood, not in the prediction.)
+
+    Attributes
+    ----------
+    t_s : ndarray (M,)
+        Stamps in seconds from the first magnetometer sample, increasing.
+    q_enu_body : ndarray (M, 4)
+        Scalar-last unit quaternions.
+    lam : float or None
+        The interpolator's cubic weight ((A7) of :mod:`pipeline.model.attitude`); None: from
+        the samples (:attr:`cubic_weight`).
+
+    """
+
+    t_s: F64
+    q_enu_body: F64
+    lam: float | None = None
+    _interp: AttitudeInterpolator = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        t_s = np.asarray(self.t_s, dtype=float)
+        # ns relative to the first sample keep the spacing exact to 1 ns
+        t_ns = np.round((t_s - t_s[0]) * 1e9).astype(np.int64) if len(t_s) else t_s
+        interp = AttitudeInterpolator(t_ns, self.q_enu_body, max_gap_s=np.inf, clamp=True,
+                                      cubic_weight=self.lam)
+        object.__setattr__(self, "_interp", interp)
+
+    def at(self, t_s: F64) -> F64:
+        """Quaternions ``q_enu_body`` at ``t_s`` (held constant outside the span), (N, 4)."""
+        tq = np.asarray(t_s, dtype=float) - float(self.t_s[0])
+        return self._interp.at_rel_s(tq).q_enu_body
+
+    def position(self, t_s: F64) -> F64:
+        """Where each ``t_s`` falls between its two attitude samples, 0..1, (N,)."""
+        tq = np.asarray(t_s, dtype=float) - float(self.t_s[0])
+        return self._interp.at_rel_s(tq).position
+
+    def omega_body(self, t_s: F64) -> F64:
+        """Angular velocity of the attitude at ``t_s``, body frame, rad/s, (N, 3) (exact)."""
+        tq = np.asarray(t_s, dtype=float) - float(self.t_s[0])
+        return self._interp.at_rel_s(tq).omega_body_rad_s
+
+    @property
+    def cubic_weight(self) -> float:
+        """``lam`` of the interpolator (:mod:`pipeline.model.attitude`, (A7))."""
+        return float(self._interp.cubic_weight)
+
+    @property
+    def interpolator(self) -> AttitudeInterpolator:
+        """THE interpolator of this track."""
+        return self._interp
+
+    def noise_factor(self, t_s: F64) -> F64:
+        """Interpolation noise factor at ``t_s`` (:meth:`AttitudeInterpolator.noise_factor`)."""
+        return self._interp.noise_factor(self.position(t_s))
+
+
+    @property
+    def step_s(self) -> float:
+        """Median sample spacing, s."""
+        return float(np.median(np.diff(self.t_s))) if len(self.t_s) > 1 else 0.01
+
+
+@dataclass(frozen=True)
+class FitData:
+    """What the model is fitted to.
+
+    Attributes
+    ----------
+    t_s : ndarray (N,)
+        Magnetometer stamps, seconds from the first magnetometer sample of the recording.
+    y_nT : ndarray (N, 3)
+        Magnetometer readings, mag frame, nT.
+    track : AttitudeTrack
+        Attitude ``q_enu_body`` on the same time axis (sensing time = stamp - tau).
+    B_known_enu_nT : ndarray (3,) or None
+        A reference field; when given, ``B_enu`` is held at it (not estimated).
+    turntable_axis_body : ndarray (3,) or None
+        Nominal rotation axis of a single-axis attitude source (turntable), body frame.
+    p_m : ndarray (N, 3) or None
+        Position of the attitude source at each sample, m, in ``position_frame`` (finite:
+        samples without a position are not in the data when positions are used).
+    p_ref_m : ndarray (3,) or None
+        Reference position ``p_ref`` of ``field_gradient`` (the mean position), m.
+    position_frame : str or None
+        ``enu`` or ``attitude_source_local`` (third axis up, horizontal axes rotated about Up
+        by an unknown angle).
+    noise_model : (float, float, float) or None
+        ``(sigma_mag2, c_att, c_int)``, nT^2: the variance of a residual component is
+        modelled as ``sigma_mag2 + c_att f(s) + c_int g(s)``, ``f`` the interpolated attitude
+        noise factor and ``g`` the interpolation error's shape at where the sample falls
+        between two attitude samples (:func:`sample_weights`). None: equal weights.
+    stride : int
+        Every ``stride``-th usable sample was kept (decimated to a sample budget).
+    n_available : int or None
+        Usable samples before the decimation.
+    interp_error_nT : ndarray (N, 3) or None
+        What the attitude's interpolation error alone would leave in the residual
+        (:func:`interpolation_error_proxy`); terms it could produce are not named.
+
+    """
+
+    t_s: F64
+    y_nT: F64
+    track: AttitudeTrack
+    B_known_enu_nT: F64 | None = None
+    turntable_axis_body: F64 | None = None
+    p_m: F64 | None = None
+    p_ref_m: F64 | None = None
+    position_frame: str | None = None
+    stride: int = 1
+    n_available: int | None = None
+    noise_model: tuple[float, float, float] | None = None
+    interp_error_nT: F64 | None = None
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
+
+    def subset(self, mask: np.ndarray) -> FitData:
+        """Return the samples where ``mask`` is true (same attitude track)."""
+        p = None if self.p_m is None else self.p_m[mask]
+        e = None if self.interp_error_nT is None else self.interp_error_nT[mask]
+        return replace(self, t_s=self.t_s[mask], y_nT=self.y_nT[mask], p_m=p, interp_error_nT=e)
+
+    @property
+    def dp_m(self) -> F64:
+        """Positions relative to the reference, (N, 3), m (zeros without positions)."""
+        if self.p_m is None:
+            return np.zeros((len(self), 3))
+        ref = np.zeros(3) if self.p_ref_m is None else self.p_ref_m
+        return self.p_m - ref
+
+    @property
+    def duration_s(self) -> float:
+        """Span of the samples, s."""
+        return float(self.t_s[-1] - self.t_s[0]) if len(self) > 1 else 0.0
+
+
+@dataclass(frozen=True)
+class Term:
+    """One effect as a model term.
+
+    Attributes
+    ----------
+    kind : EffectKind
+    windows_s : tuple of (start, end)
+        Half-open windows, s from the first magnetometer sample (local effects only).
+    knot_step_s : float
+        Spacing of the linear B-spline (hat) knots of a ``disturbance`` field.
+    yaw_rad : float
+        ``field_gradient`` in a position frame rotated about Up: the rotation ``Q = Rz(yaw)``
+        from that frame to ENU, located by a search (like a window), not fitted.
+
+    """
+
+    kind: EffectKind
+    windows_s: tuple[tuple[float, float], ...] = ()
+    knot_step_s: float = 1.0
+    yaw_rad: float = 0.0
+
+    def knots(self) -> list[F64]:
+        """Knot times of each disturbance window (hat functions, both ends included)."""
+        out = []
+        for a, b in self.windows_s:
+            n = max(2, int(np.ceil((b - a) / self.knot_step_s)) + 1)
+            out.append(np.linspace(a, b, n))
+        return out
+
+    def n_params(self) -> int:
+        """Return the number of parameters of the term."""
+        k = self.kind
+        if k in (EffectKind.HARD_IRON, EffectKind.HARD_IRON_STEP):
+            return 3
+        if k in (EffectKind.SOFT_IRON, EffectKind.FIELD_GRADIENT):
+            return 5
+        if k is EffectKind.TIME_OFFSET:
+            return 1
+        if k is EffectKind.EDDY_CURRENT:
+            return 9
+        if k is EffectKind.FIELD_DRIFT:
+            return 3 * DRIFT_DEGREE
+        if k is EffectKind.AXIS_TILT:
+            return 2
+        if k is EffectKind.DISTURBANCE:
+            return 3 * sum(len(kn) for kn in self.knots())
+        if k is EffectKind.HEADING_DRIFT:
+            return HEADING_DEGREE
+        raise ValueError(k)
+
+    def indicator(self, t_s: F64) -> F64:
+        """1 inside any window, else 0, shape (N,)."""
+        ind = np.zeros(np.shape(t_s))
+        for a, b in self.windows_s:
+            ind[(t_s >= a) & (t_s < b)] = 1.0
+        return ind
+
+
+DRIFT_DEGREE = 4
+
+
+def rot_z(yaw_rad: float) -> F64:
+    """Return the rotation about Up by ``yaw_rad``, (3, 3): ``p_enu = Q @ p_local``."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def gradient_matrix(value: F64, yaw_rad: float = 0.0) -> F64:
+    """``G_enu @ Q`` (3, 3), nT/m: ENU field change per metre along the position axes.
+
+    ``G_enu = sum_k value_k S_k`` with ``S_k`` the symmetric traceless basis (a field in free
+    space is curl-free, ``G = G.T``, and divergence-free, ``trace G = 0``: 5 parameters),
+    ``Q = rot_z(yaw_rad)`` the rotation from the position frame to ENU.
+    """
+    return np.tensordot(value, _SOFT_BASIS, axes=1) @ rot_z(yaw_rad)
+
+
+def drift_basis(t_s: F64, t0_s: float, t1_s: float) -> F64:
+    """Legendre P1..P4 of the time scaled to [-1, 1] over the recording, shape (N, 4).
+
+    A slow field variation (diurnal, drift, up to about one period over the recording) is
+    smooth: a few Legendre polynomials per ENU axis carry it; the constant is ``B_enu``.
+    """
+    x = (2.0 * (np.asarray(t_s) - t0_s) / max(t1_s - t0_s, 1e-9)) - 1.0
+    return cast(F64, np.polynomial.legendre.legvander(x, DRIFT_DEGREE)[:, 1:])
+
+
+def hat_basis(t_s: F64, knots: F64) -> F64:
+    """Linear B-splines (hat functions) on ``knots``, zero outside [knots[0], knots[-1]), (N, K)."""
+    t = np.asarray(t_s, dtype=float)[:, None]
+    k = np.asarray(knots, dtype=float)
+    h = np.diff(k)
+    left = np.concatenate([[np.inf], h])  # width to the previous knot
+    right = np.concatenate([h, [np.inf]])
+    d = t - k[None, :]
+    phi = np.where(d < 0, 1.0 + d / left, 1.0 - d / right)
+    phi = np.clip(phi, 0.0, 1.0)
+    inside = (t >= k[0]) & (t < k[-1])
+    return phi * inside
+
+
+@dataclass(frozen=True)
+class ModelState:
+    """Current values of every model parameter.
+
+    Attributes
+    ----------
+    R_body_mag : ndarray (3, 3)
+    B_enu_nT : ndarray (3,)
+    terms : tuple of Term
+    values : tuple of ndarray
+        One parameter vector per term (axis_tilt stores its rotation in ``T_enu``).
+    T_enu : ndarray (3, 3)
+        Tilt of the turntable axis (identity without ``axis_tilt``).
+
+    """
+
+    R_body_mag: F64
+    B_enu_nT: F64
+    terms: tuple[Term, ...] = ()
+    values: tuple[F64, ...] = ()
+    T_enu: F64 = field(default_factory=lambda: np.eye(3))
+
+    def n_params(self) -> int:
+        """Length of the parameter (perturbation) vector."""
+        return 6 + sum(t.n_params() for t in self.terms)
+
+    def with_term(self, term: Term) -> ModelState:
+        """Return the state with ``term`` appended at zero (no effect)."""
+        zero = np.zeros(term.n_params())
+        return replace(self, terms=self.terms + (term,), values=self.values + (zero,))
+
+    def value(self, kind: EffectKind) -> F64 | None:
+        """Parameter vector of the first term of ``kind``, or None."""
+        for t, v in zip(self.terms, self.values, strict=True):
+            if t.kind is kind:
+                return v
+        return None
+
+    def offsets(self) -> list[int]:
+        """Start index of each term's block in the parameter vector."""
+        out, i = [], 6
+        for t in self.terms:
+            out.append(i)
+            i += t.n_params()
+        return out
+
+    def D(self) -> F64:
+        """Soft-iron matrix ``I + S`` (identity without ``soft_iron``)."""
+        s = self.value(EffectKind.SOFT_IRON)
+        return np.eye(3) if s is None else np.eye(3) + np.tensordot(s, _SOFT_BASIS, axes=1)
+
+    def tau_s(self) -> float:
+        """Time offset, s (0 without ``time_offset``)."""
+        v = self.value(EffectKind.TIME_OFFSET)
+        return 0.0 if v is None else float(v[0])
+
+    def update(self, dx: F64, fixed_B: bool = False) -> ModelState:
+        """Apply a perturbation ``dx`` (left perturbation for rotations)."""
+        R = so3_exp(dx[0:3]) @ self.R_body_mag
+        B = self.B_enu_nT if fixed_B else self.B_enu_nT + dx[3:6]
+        vals, T = [], self.T_enu
+        for t, v, i in zip(self.terms, self.values, self.offsets(), strict=True):
+            # for axis_tilt the values are bookkeeping only; the rotation lives in T_enu
+            vals.append(v + dx[i : i + t.n_params()])
+        for t, i in zip(self.terms, self.offsets(), strict=True):
+            if t.kind is EffectKind.AXIS_TILT:
+                P = _tilt_basis(self)
+                T = so3_exp(P @ dx[i : i + 2]) @ T
+        return replace(self, R_body_mag=R, B_enu_nT=B, values=tuple(vals), T_enu=T)
+
+
+def _tilt_basis(state: ModelState, axis_enu: F64 | None = None) -> F64:
+    """Two unit vectors (3, 2) perpendicular to the nominal turntable axis in ENU (up)."""
+    n = np.array([0.0, 0.0, 1.0]) if axis_enu is None else axis_enu / np.linalg.norm(axis_enu)
+    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(n, a)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    return np.stack([e1, e2], axis=-1)
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """Prediction and Jacobian of the model at a state.
+
+    Attributes
+    ----------
+    y_nT : ndarray (N, 3)
+        Predicted reading, mag frame.
+    J : ndarray (N, 3, P) or None
+        d y / d (perturbation vector).
+    ydot0_nT_s : ndarray (N, 3)
+        Rotation-induced rate of change of the undisturbed reading ``D R.T db/dt``.
+    G : ndarray (N, 3, 3)
+        d y / d B_enu (per sample).
+
+    """
+
+    y_nT: F64
+    J: F64 | None
+    ydot0_nT_s: F64
+    G: F64
+    sqrt_w: F64 | None = None
+
+    @property
+    def jac(self) -> F64:
+        """``J`` of an evaluation made with the Jacobian (raises for one made without)."""
+        if self.J is None:
+            raise ValueError("the model was evaluated without its Jacobian")
+        return self.J
+
+
+def sample_weights(data: FitData, tau_s: float) -> F64 | None:
+    """Likelihood weights of the samples from where they fall between attitude samples.
+
+    The prediction is THE one (:mod:`pipeline.model.attitude`); what it cannot know about
+    the attitude between two samples goes into the likelihood. The white noise of the
+    attitude samples reaches the interpolated attitude with the variance factor ``f(s)``
+    (:func:`pipeline.model.attitude.interpolation_noise_factor`), the interpolation's own
+    error with ``g(s)`` (:func:`pipeline.model.attitude.interpolation_error_shape`: none on a
+    sample, most midway), ``s`` the position of ``t - tau`` between its two samples. Each
+    residual component then has the variance ``v = sigma_mag2 + c_att f(s) + c_int g(s)``
+    (``FitData.noise_model``); the weight is ``w = v_mean / v`` with ``v_mean`` its average
+    over ``s``, a constant: ``sum w r^2`` then has the same expectation whatever ``tau`` (an
+    unweighted fit would drift ``tau`` and the eddy terms towards the low-noise mid-points).
+
+    Returns
+    -------
+    ndarray (N,) or None
+        None without a noise model.
+
+    """
+    if data.noise_model is None:
+        return None
+    from pipeline.model.attitude import (
+        MEAN_INTERPOLATION_ERROR_SHAPE,
+        interpolation_error_shape,
+        mean_interpolation_noise_factor,
+    )
+
+    s2, c, c_int = data.noise_model
+    pos = data.track.position(data.t_s - tau_s)
+    f = data.track.noise_factor(data.t_s - tau_s)
+    g = interpolation_error_shape(pos)
+    v_mean = (s2 + mean_interpolation_noise_factor(data.track.cubic_weight) * c
+              + MEAN_INTERPOLATION_ERROR_SHAPE * c_int)
+    return v_mean / (s2 + c * f + c_int * g)
+
+
+def estimate_noise_model(residual_nT: F64, data: FitData
+                         ) -> tuple[float, float, float] | None:
+    """``(sigma_mag2, c_att, c_int)`` (nT^2) of :func:`sample_weights` from a baseline fit.
+
+    ``c_att = 2/9 |B|^2 sigma_att^2``: an isotropic attitude error of RMS angle
+    ``sigma_att`` (:func:`pipeline.model.attitude.attitude_noise_rad`, from the track's
+    second differences) moves each component of ``C.T B`` by ``2/9 |B|^2 sigma_att^2`` in
+    variance; ``c_int`` the same for the interpolation's own error midway
+    (:func:`interpolation_error_nT`, from the track interpolated at two and four times its
+    spacing); ``sigma_mag2`` is what the residual variance leaves (at least 5 % of
+    it). None when both are negligible (below 0.1 % of the residual variance).
+    """
+    from pipeline.model.attitude import MEAN_INTERPOLATION_ERROR_SHAPE, attitude_noise_rad
+
+    var = float(np.mean(np.asarray(residual_nT) ** 2))
+    if not np.isfinite(var) or var <= 0:
+        return None
+    sig = attitude_noise_rad(data.track.q_enu_body)
+    y = np.asarray(data.y_nT, dtype=float)
+    yy = 2.0 / 9.0 * float(np.mean(np.sum(y * y, axis=1)))
+    c = yy * sig * sig
+    c_int = interpolation_error_nT(data) ** 2 / MEAN_INTERPOLATION_ERROR_SHAPE  # midway
+    if c + c_int < 1e-3 * var:
+        return None
+    f = data.track.noise_factor(data.t_s)
+    s2 = max(var - c * float(np.mean(f)) - c_int * MEAN_INTERPOLATION_ERROR_SHAPE, 0.05 * var)
+    return (s2, c, c_int)
+
+
+def interpolation_error_nT(data: FitData) -> float:
+    """RMS of the interpolation error at the magnetometer, nT (noise taken out).
+
+    :func:`pipeline.model.attitude.interpolation_error_rad` midway, averaged over the
+    interval (``8/15`` of the midway variance), as a component of ``C.T B`` (``2/9 |B|^2``
+    per unit squared angle, as the attitude noise of :func:`estimate_noise_model`).
+    """
+    from pipeline.model.attitude import MEAN_INTERPOLATION_ERROR_SHAPE, interpolation_error_rad
+
+    e = interpolation_error_rad(data.track.interpolator)
+    y = np.asarray(data.y_nT, dtype=float)
+    yy = 2.0 / 9.0 * float(np.mean(np.sum(y * y, axis=1)))
+    return float(np.sqrt(yy * MEAN_INTERPOLATION_ERROR_SHAPE) * e)
+
+
+def interpolation_error_proxy(state: ModelState, data: FitData) -> F64:
+    """Return the interpolation error's imprint on the readings, (N, 3), nT, from the track.
+
+    The model is evaluated with every other attitude sample (the same curve, ``lam`` and
+    stamps at twice the spacing) and with all of them: the difference is the error at twice
+    the spacing less the error at the spacing, ``(2^p - 1)`` times the latter (``p = 4`` for
+    the cubic's midway error on evenly spaced samples, ``2`` for SLERP, blended by ``lam``;
+    :func:`pipeline.model.attitude.interpolation_error_rad`). A proxy of the error's size and
+    of the way it projects on the model's terms, not of its sign at each sample.
+    """
+    tr = data.track
+    lam = tr.cubic_weight
+    half = AttitudeTrack(tr.t_s[0::2], tr.q_enu_body[0::2], lam=lam)
+    y_full = evaluate(state, data, jacobian=False).y_nT
+    y_half = evaluate(state, replace(data, track=half), jacobian=False).y_nT
+    p = 2.0 + 2.0 * lam
+    return (y_half - y_full) / (2.0**p - 1.0)
+
+
+_CT_CACHE: dict[tuple, tuple[Any, F64]] = {}
+
+
+def _CT(track: AttitudeTrack, t_s: F64, key: tuple | None = None, owners: Any = None) -> F64:
+    """``C_enu_body(t).T`` (N, 3, 3); cached per (track, stamps, shift) during a fit.
+
+    The cache keeps a reference to the objects whose ids form the key (``owners``), so an id
+    cannot be reused by another array while its entry lives.
+    """
+    if key is not None:
+        hit = _CT_CACHE.get(key)
+        if hit is not None and all(a is b for a, b in zip(hit[0], owners, strict=True)):
+            return hit[1]
+    out = np.ascontiguousarray(np.swapaxes(quat_to_matrix(track.at(t_s)), -1, -2))
+    if key is not None:
+        if len(_CT_CACHE) > 48:
+            _CT_CACHE.clear()  # bounded: the cache only spans the iterations of one fit
+        _CT_CACHE[key] = (owners, out)
+    return out
+
+
+def _mv(M: F64, v: F64) -> F64:
+    """Per-sample matrix-vector product (N,3,3) x (N,3) -> (N,3)."""
+    return np.matmul(M, v[:, :, None])[:, :, 0]
+
+
+def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluation:
+    """Predicted magnetometer reading and its Jacobian (vectorised over samples).
+
+    Parameters
+    ----------
+    state : ModelState
+        Parameter values and terms.
+    data : FitData
+        Stamps, readings and attitude track.
+    jacobian : bool
+        Also return the Jacobian with respect to the perturbation vector.
+
+    Returns
+    -------
+    Evaluation
+
+    """
+    t = data.t_s
+    n = t.shape[0]
+    tau = state.tau_s()
+    # 3 samples: the rate regressor then shares no attitude sample with the reading's own
+    # interpolation, so it cannot fit attitude noise
+    h = max(3.0 * data.track.step_s, 1e-3)
+    s = t - tau  # sensing time (CONVENTIONS: tau > 0 means stamps are late)
+    base = (id(data.track), id(t), n, tau, h)
+    own = (data.track, t)
+    Ct = _CT(data.track, s, base + (0,), own)
+    Cp = _CT(data.track, s + h, base + (1,), own)
+    Cm = _CT(data.track, s - h, base + (-1,), own)
+    Cdot = (Cp - Cm) / (2.0 * h)  # d/dt C.T, central difference of the interpolated track
+    Cddot = (Cp - 2.0 * Ct + Cm) / (h * h)
+
+    # --- ENU field at each sample: B + drift + disturbances
+    Bt = np.broadcast_to(state.B_enu_nT, (n, 3)).copy()
+    for term, v in zip(state.terms, state.values, strict=True):
+        if term.kind is EffectKind.FIELD_DRIFT:
+            P = drift_basis(t, 0.0, _span(data))
+            Bt += P @ v.reshape(-1, 3)
+        elif term.kind is EffectKind.DISTURBANCE:
+            Phi = np.concatenate([hat_basis(t, k) for k in term.knots()], axis=1)
+            Bt += Phi @ v.reshape(-1, 3)
+        elif term.kind is EffectKind.FIELD_GRADIENT:
+            # B(p) = B_enu + G_enu Q (p - p_ref)  (CONVENTIONS field_gradient)
+            Bt += data.dp_m @ gradient_matrix(v, term.yaw_rad).T
+    # heading_drift: the attitude source reports Rz(h(t)) C_true(t), so the reading is
+    # R.T C_rep.T Rz(h) B (CONVENTIONS heading_drift): the ENU field turned about Up by h(t)
+    h_rad = None
+    for term, v in zip(state.terms, state.values, strict=True):
+        if term.kind is EffectKind.HEADING_DRIFT:
+            h_rad = heading_basis(t, _span(data)) @ v
+            Bt_unturned = Bt
+            Bt = rotate_about_up(Bt, h_rad)
+    TT = state.T_enu.T
+    Bp = Bt @ TT.T  # T.T @ B_t per row
+
+    b = _mv(Ct, Bp)
+    bdot = _mv(Cdot, Bp)
+    R = state.R_body_mag
+    D = state.D()
+    m = b @ R  # R.T @ b per row
+    mdot = bdot @ R
+    y0 = m @ D.T
+    ydot0 = mdot @ D.T
+
+    E = np.zeros((3, 3))
+    y = y0.copy()
+    for term, v in zip(state.terms, state.values, strict=True):
+        if term.kind is EffectKind.HARD_IRON:
+            y += v
+        elif term.kind is EffectKind.HARD_IRON_STEP:
+            y += term.indicator(t)[:, None] * v
+        elif term.kind is EffectKind.EDDY_CURRENT:
+            E = v.reshape(3, 3)
+    y += ydot0 @ E.T
+
+    DRt = D @ R.T
+    Gp = np.matmul(DRt, Ct) + np.matmul(E @ DRt, Cdot)
+    G = Gp @ TT
+    w = sample_weights(data, tau)
+    sqrt_w = None if w is None else np.sqrt(w)
+    if not jacobian:
+        return Evaluation(y, None, ydot0, G, sqrt_w)
+
+    J = np.zeros((n, 3, state.n_params()))
+    # R: left perturbation, R.T <- R.T exp(-[d]x): dm/dd = R.T [b]x
+    J[:, :, 0:3] = np.matmul(DRt, skew(b)) + np.matmul(E @ DRt, skew(bdot))
+    if data.B_known_enu_nT is None:
+        J[:, :, 3:6] = G
+        if h_rad is not None:  # dB_t/dB = Rz(h)
+            Rz = np.zeros((n, 3, 3))
+            Rz[:, 0, 0] = Rz[:, 1, 1] = np.cos(h_rad)
+            Rz[:, 1, 0] = np.sin(h_rad)
+            Rz[:, 0, 1] = -np.sin(h_rad)
+            Rz[:, 2, 2] = 1.0
+            J[:, :, 3:6] = np.matmul(G, Rz)
+    bddot = _mv(Cddot, Bp)
+    for term, i in zip(state.terms, state.offsets(), strict=True):
+        k = term.kind
+        if k is EffectKind.HARD_IRON:
+            J[:, :, i : i + 3] = np.eye(3)
+        elif k is EffectKind.HARD_IRON_STEP:
+            J[:, :, i : i + 3] = term.indicator(t)[:, None, None] * np.eye(3)
+        elif k is EffectKind.SOFT_IRON:
+            # dy/ds_k = S_k m + E S_k mdot
+            J[:, :, i : i + 5] = np.einsum("kij,nj->nik", _SOFT_BASIS, m) + np.einsum(
+                "kij,nj->nik", np.matmul(E, _SOFT_BASIS), mdot
+            )
+        elif k is EffectKind.TIME_OFFSET:
+            # b(t - tau) with the attitude re-interpolated at t - tau: db/dtau = omega x b with
+            # omega the exact interpolated rate at t - tau (pipeline.model.forward, (J5));
+            # dbdot/dtau = -bddot for the eddy regressor
+            w = data.track.omega_body(s)
+            J[:, :, i] = np.cross(w, b) @ DRt.T - (bddot @ DRt.T) @ E.T
+        elif k is EffectKind.EDDY_CURRENT:
+            # y_i += E_ij ydot0_j (row-major E)
+            for r_ in range(3):
+                J[:, r_, i + 3 * r_ : i + 3 * r_ + 3] = ydot0
+        elif k is EffectKind.FIELD_DRIFT:
+            P = drift_basis(t, 0.0, _span(data))
+            kk = 3 * P.shape[1]
+            J[:, :, i : i + kk] = (P[:, :, None, None] * G[:, None, :, :]).transpose(
+                0, 2, 1, 3
+            ).reshape(n, 3, kk)
+        elif k is EffectKind.DISTURBANCE:
+            Phi = np.concatenate([hat_basis(t, kn) for kn in term.knots()], axis=1)
+            K = Phi.shape[1]
+            J[:, :, i : i + 3 * K] = (Phi[:, :, None, None] * G[:, None, :, :]).transpose(
+                0, 2, 1, 3
+            ).reshape(n, 3, 3 * K)
+        elif k is EffectKind.FIELD_GRADIENT:
+            # dB/dg_k = S_k Q (p - p_ref); dy/dg_k = G (N,3,3) @ that
+            dpq = data.dp_m @ rot_z(term.yaw_rad).T  # Q (p - p_ref) per row
+            dB = np.einsum("kij,nj->nik", _SOFT_BASIS, dpq)  # (N, 3, 5)
+            J[:, :, i : i + 5] = np.matmul(G, dB)
+        elif k is EffectKind.HEADING_DRIFT:
+            # d(Rz(h) B)/dh = Rz(h + pi/2) B with the vertical part removed; h = P v
+            assert h_rad is not None  # computed above: the model has the heading_drift term
+            dB = rotate_about_up(Bt_unturned, h_rad + 0.5 * np.pi)
+            dB[:, 2] = 0.0
+            P = heading_basis(t, _span(data))
+            J[:, :, i : i + P.shape[1]] = _mv(G, dB)[:, :, None] * P[:, None, :]
+        elif k is EffectKind.AXIS_TILT:
+            # T.T <- T.T exp(-[d]x): d(T.T B)/dd = T.T [B]x, d = basis @ (2 params)
+            Pb = _tilt_basis(state)
+            J[:, :, i : i + 2] = np.matmul(np.matmul(Gp, TT), skew(Bt)) @ Pb
+    return Evaluation(y, J, ydot0, G, sqrt_w)
+
+
+def _span(data: FitData) -> float:
+    """Time span used to scale the drift basis (fixed per recording, not per subset)."""
+    return float(data.track.t_s[-1]) if data.track.t_s[-1] > 0 else 1.0
+
+
+def heading_drift_params(value: F64, data: FitData) -> dict[str, Any]:
+    """CONVENTIONS params of ``heading_drift``: mean rate and range of ``h(t)``.
+
+    ``h(t) = sum_k v_k P_k(x(t))`` (rad) is the heading error of the attitude source, positive
+    counter-clockwise seen from above (the reported heading ahead of the true one, ENU yaw):
+    ``rate_deg_per_h = (h(end) - h(start)) / T``, ``peak_to_peak_deg = max h - min h``.
+    """
+    span = _span(data)
+    tt = np.linspace(0.0, span, 512)
+    h = np.degrees(heading_basis(tt, span) @ value)
+    return {"rate_deg_per_h": float((h[-1] - h[0]) / max(span / 3600.0, 1e-12)),
+            "peak_to_peak_deg": float(h.max() - h.min())}
+
+
+def heading_signature_fraction(v_enu_nT: F64, B_enu_nT: F64) -> float:
+    """Fraction of an ENU field change that a heading drift can produce (0..1).
+
+    A heading error ``h`` turns the field about Up: ``dB = h (-B_N, B_E, 0)``. East and North
+    change in the ratio ``-B_N : B_E``; Up and ``|B|`` do not change. The fraction is the
+    energy of ``v_enu_nT`` (N, 3) along that direction over its total energy.
+    """
+    d = np.array([-B_enu_nT[1], B_enu_nT[0], 0.0])
+    nd = float(np.linalg.norm(d))
+    tot = float(np.sum(np.asarray(v_enu_nT) ** 2))
+    if nd <= 0 or tot <= 0:
+        return 0.0
+    return float(np.sum((np.asarray(v_enu_nT) @ (d / nd)) ** 2) / tot)
+
+
+#: A heading drift needs a horizontal field: below this fraction of |B| a rotation about Up
+#: changes the field by too little (near the magnetic poles).
+MIN_HORIZONTAL_FRACTION = 0.05
+
+
+def term_params(term: Term, value: F64, state: ModelState, data: FitData) -> dict[str, Any]:
+    """CONVENTIONS ``params`` of a fitted term (arrays as lists)."""
+    k = term.kind
+    if k is EffectKind.HARD_IRON:
+        return {"offset_nT": value.tolist()}
+    if k is EffectKind.SOFT_IRON:
+        return {"D": state.D().tolist()}
+    if k is EffectKind.TIME_OFFSET:
+        return {"time_offset_s": float(value[0])}
+    if k is EffectKind.EDDY_CURRENT:
+        return {"E_s": value.reshape(3, 3).tolist()}
+    if k is EffectKind.FIELD_DRIFT:
+        tt = np.linspace(0.0, _span(data), 512)
+        f = drift_basis(tt, 0.0, _span(data)) @ value.reshape(-1, 3)
+        return {"peak_to_peak_nT": (f.max(axis=0) - f.min(axis=0)).tolist()}
+    if k is EffectKind.DISTURBANCE:
+        tt = np.concatenate([np.linspace(a, b, 200, endpoint=False) for a, b in term.windows_s])
+        Phi = np.concatenate([hat_basis(tt, kn) for kn in term.knots()], axis=1)
+        f = Phi @ value.reshape(-1, 3)
+        return {
+            "windows_s": [[float(a), float(b)] for a, b in term.windows_s],
+            "peak_nT": float(np.max(np.linalg.norm(f, axis=1))),
+        }
+    if k is EffectKind.HARD_IRON_STEP:
+        return {"windows_s": [[float(a), float(b)] for a, b in term.windows_s],
+                "offset_nT": value.tolist()}
+    if k is EffectKind.FIELD_GRADIENT:
+        ref = np.zeros(3) if data.p_ref_m is None else np.asarray(data.p_ref_m, dtype=float)
+        return {"G_nT_per_m": gradient_matrix(value, term.yaw_rad).tolist(),
+                "position_frame": data.position_frame or "enu",
+                "reference_position_m": ref.tolist()}
+    if k is EffectKind.HEADING_DRIFT:
+        return heading_drift_params(value, data)
+    if k is EffectKind.AXIS_TILT:
+        axis_true = state.T_enu @ np.array([0.0, 0.0, 1.0])
+        tilt = float(np.degrees(np.arccos(np.clip(axis_true[2], -1.0, 1.0))))
+        az = float(np.degrees(np.arctan2(axis_true[0], axis_true[1])) % 360.0)
+        return {"tilt_deg": tilt, "azimuth_deg": az}
+    raise ValueError(k)
+
+
+def term_sigma(term: Term, cov: F64, state: ModelState, data: FitData) -> dict[str, Any]:
+    """1-sigma of the CONVENTIONS params from the term's block of the covariance."""
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    k = term.kind
+    if k in (EffectKind.HARD_IRON, EffectKind.HARD_IRON_STEP):
+        return {"offset_nT": sd.tolist()}
+    if k is EffectKind.SOFT_IRON:
+        # Var(D_ij) = sum_kl B_k,ij B_l,ij cov_kl
+        var = np.einsum("kij,kl,lij->ij", _SOFT_BASIS, cov, _SOFT_BASIS)
+        return {"D": np.sqrt(np.clip(var, 0, None)).tolist()}
+    if k is EffectKind.TIME_OFFSET:
+        return {"time_offset_s": float(sd[0])}
+    if k is EffectKind.EDDY_CURRENT:
+        return {"E_s": sd.reshape(3, 3).tolist()}
+    if k is EffectKind.FIELD_DRIFT:
+        # first-order sigma of the range: max - min of the fitted curve differs by the
+        # coefficients' errors times the basis swing (2 for each Legendre polynomial)
+        s = sd.reshape(-1, 3)
+        return {"peak_to_peak_nT": (2.0 * np.sqrt(np.sum(s**2, axis=0))).tolist()}
+    if k is EffectKind.DISTURBANCE:
+        return {"peak_nT": float(np.sqrt(np.max(np.sum(sd.reshape(-1, 3) ** 2, axis=1))))}
+    if k is EffectKind.AXIS_TILT:
+        return {"tilt_deg": float(np.degrees(np.max(sd)))}
+    if k is EffectKind.HEADING_DRIFT:
+        # rate: h(end) - h(start) = 2 v1 (P1 runs from -1 to 1, P2 is 1 at both ends);
+        # range: first order, as for field_drift (each polynomial swings by at most 2)
+        T_h = max(_span(data), 1e-9) / 3600.0
+        return {"rate_deg_per_h": float(np.degrees(2.0 * sd[0]) / T_h),
+                "peak_to_peak_deg": float(np.degrees(2.0 * np.sqrt(np.sum(sd**2))))}
+    if k is EffectKind.FIELD_GRADIENT:
+        # M = sum_k g_k S_k Q: Var(M_ij) = sum_kl (S_k Q)_ij cov_kl (S_l Q)_ij
+        SQ = _SOFT_BASIS @ rot_z(term.yaw_rad)
+        var = np.einsum("kij,kl,lij->ij", SQ, cov, SQ)
+        return {"G_nT_per_m": np.sqrt(np.clip(var, 0, None)).tolist()}
+    raise ValueError(k)

@@ -1,0 +1,803 @@
+"""The diagnosis search.
+
+From the baseline model, the strongest candidate term is refitted and kept when it lowers
+the BIC and the held-out error, until nothing qualifies (``diagnose_data``); effects local
+in time are located first by a scan of the robust residual norm (``scan_windows``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from pipeline.core import progress
+from pipeline.core.errors import EstimationError
+from pipeline.core.geometry import quat_to_matrix
+from stages.diagnose.catalogue import EFFECTS, explanation, identifiability_reason, motion_stats
+from stages.diagnose.fit import FitResult, fit, wahba_init
+from stages.diagnose.model import (
+    CONFOUND_RATIO,
+    LOCAL_KINDS,
+    EffectKind,
+    FitData,
+    ModelState,
+    Term,
+    estimate_noise_model,
+    evaluate,
+    gradient_matrix,
+    interpolation_error_nT,
+    interpolation_error_proxy,
+    term_params,
+)
+from stages.diagnose.result import DiagnoseConfig, Diagnosis, Finding, Signature
+from stages.diagnose.statistics import (
+    _ISO,
+    INTERP_MARGIN,
+    ScoreTest,
+    _bic,
+    _bic_between,
+    _covariance,
+    _n_eff,
+    _sigma_for,
+    anisotropic_eddy_test,
+    gradient_candidate,
+    heldout_rms,
+    interp_reason,
+    robust_sigma,
+    score_test,
+)
+
+GLOBAL_KINDS = (
+    EffectKind.HARD_IRON,
+    EffectKind.SOFT_IRON,
+    EffectKind.TIME_OFFSET,
+    EffectKind.EDDY_CURRENT,
+    EffectKind.FIELD_DRIFT,
+    EffectKind.AXIS_TILT,
+    EffectKind.FIELD_GRADIENT,
+    EffectKind.HEADING_DRIFT,
+)
+
+
+#: Nested pairs: the simpler term (value) is a special case of the other (key) and is
+#: reported when it explains the data as well (within the BIC margin). A heading drift is a
+#: field drift along ``(-B_N, B_E, 0)`` (the field turned about Up); a time offset is the
+#: isotropic eddy term ``E_s = -tau I``.
+NESTED_SIMPLER = {
+    EffectKind.EDDY_CURRENT: EffectKind.TIME_OFFSET,
+    EffectKind.FIELD_DRIFT: EffectKind.HEADING_DRIFT,
+}
+
+
+#: Largest time offset the search is built for, s (issue 15: lags up to +-100 ms).
+MAX_LAG_S = 0.1
+
+
+def _excess_runs(s: np.ndarray, med: float, level: float) -> list[tuple[int, int]]:
+    """Index runs where ``s`` stays above half-way to ``level`` and crosses ``level``."""
+    above = s > level
+    if not above.any():
+        return []
+    low_mask = s > med + 0.5 * (level - med)
+    idx = np.flatnonzero(np.diff(np.concatenate([[0], low_mask.astype(int), [0]])))
+    return [(int(a), int(b)) for a, b in zip(idx[0::2], idx[1::2], strict=True)
+            if above[a:b].any()]
+
+
+def scan_windows(
+    residual_nT: np.ndarray, t_s: np.ndarray, cfg: DiagnoseConfig
+) -> list[tuple[float, float]]:
+    """Windows where the robust residual norm stands out (likelihood-ratio-style scan).
+
+    The squared residual norm is normalised by a robust noise scale, smoothed over
+    ``scan_smooth_s``, and compared with its own median plus ``scan_sigma`` robust sigmas of
+    the smoothed series (so correlated noise raises the bar). A window opens where the
+    smoothed statistic crosses that level and is widened to where it falls back to the
+    half-way level; windows closer than one smoothing width are merged.
+
+    Returns
+    -------
+    list of (start_s, end_s)
+        Half-open windows, s from the first magnetometer sample.
+
+    """
+    n = len(t_s)
+    if n < 50:
+        return []
+    dt = float(np.median(np.diff(t_s)))
+    w = max(3, int(round(cfg.scan_smooth_s / dt)))
+    sig = robust_sigma(residual_nT)
+    z = np.sum(residual_nT**2, axis=1) / (3 * sig * sig)
+    # robust to single spikes: moving median would be ideal; a trimmed value keeps it cheap
+    z = np.minimum(z, np.percentile(z, 99.9) * 4)
+    c = np.cumsum(np.concatenate([[0.0], z]))
+    s = np.empty(n)
+    half = w // 2
+    lo = np.clip(np.arange(n) - half, 0, n)
+    hi = np.clip(np.arange(n) + half + 1, 0, n)
+    s = (c[hi] - c[lo]) / (hi - lo)
+    med = float(np.median(s))
+    mad = float(1.4826 * np.median(np.abs(s - med))) + 1e-12
+    level = med + cfg.scan_sigma * mad
+    # a window needs a real excess, not just a little above a very quiet median
+    level = max(level, med + 2.0)
+    scans = [_excess_runs(s, med, level)]
+    # a weak offset held for seconds (a hard-iron step) barely lifts the squared norm but
+    # moves the mean of the residual vector: the same scan on the moving mean, in units of
+    # its own white-noise spread, at four times the smoothing width (used when the
+    # squared norm opens no window)
+    cr = np.concatenate([np.zeros((1, 3)), np.cumsum(residual_nT, axis=0)])
+    for k in (4,):
+        wk = min(n, k * w)
+        lo_k = np.clip(np.arange(n) - wk // 2, 0, n)
+        hi_k = np.clip(np.arange(n) + wk // 2 + 1, 0, n)
+        m = (cr[hi_k] - cr[lo_k]) / (hi_k - lo_k)[:, None]
+        sv = np.sum(m * m, axis=1) * (hi_k - lo_k) / (3 * sig * sig)
+        med_v = float(np.median(sv))
+        mad_v = float(1.4826 * np.median(np.abs(sv - med_v))) + 1e-12
+        scans.append(_excess_runs(sv, med_v, max(med_v + cfg.scan_sigma * mad_v, med_v + 2.0)))
+    wins: list[tuple[float, float]] = []
+    for runs in scans:  # merged within each scan; a window another scan gave is not repeated
+        if wins:
+            # the moving-mean scans only when the squared norm shows nothing: their
+            # windows would otherwise crowd the few refits of each round
+            break
+        merged: list[list[int]] = []
+        for a, b in runs:
+            if merged and a - merged[-1][1] < w:
+                merged[-1][1] = max(merged[-1][1], b)
+            else:
+                merged.append([a, b])
+        for a, b in merged:
+            start = float(t_s[a])
+            end = float(t_s[min(b, n - 1)])
+            if end - start < 2 * dt:
+                continue
+            if end - start > 0.5 * (t_s[-1] - t_s[0]):
+                continue  # not local: a global term's job
+            if any(_overlap(start, end, x, y) > 0.8 for x, y in wins):
+                continue
+            wins.append((start, end))
+    return wins
+
+
+def _overlap(a0: float, a1: float, b0: float, b1: float) -> float:
+    """Intersection over union of two intervals."""
+    inter = max(0.0, min(a1, b1) - max(a0, b0))
+    union = max(a1, b1) - min(a0, b0)
+    return inter / union if union > 0 else 0.0
+
+
+def refine_step(
+    w: tuple[float, float], residual_nT: np.ndarray, t_s: np.ndarray, reach_s: float = 1.0
+) -> tuple[float, float]:
+    """Change-point refinement of an offset window: maximise the explained residual energy.
+
+    For a constant offset in ``[a, b)`` the least-squares gain is ``|sum r|^2 / n``; both
+    edges are searched within ``reach_s`` of the scan's window using cumulative sums.
+    """
+    n = len(t_s)
+    c = np.vstack([np.zeros(3), np.cumsum(residual_nT, axis=0)])
+    ia = np.flatnonzero((t_s >= w[0] - reach_s) & (t_s <= w[0] + reach_s))
+    ib = np.flatnonzero((t_s >= w[1] - reach_s) & (t_s <= w[1] + reach_s)) + 1
+    if ia.size == 0 or ib.size == 0:
+        return w
+    ia = ia[:: max(1, ia.size // 150)]
+    ib = ib[:: max(1, ib.size // 150)]
+    S = c[ib][None, :, :] - c[ia][:, None, :]
+    cnt = (ib[None, :] - ia[:, None]).astype(float)
+    gain = np.where(cnt > 0, np.sum(S * S, axis=-1) / np.maximum(cnt, 1.0), -np.inf)
+    i, j = np.unravel_index(int(np.argmax(gain)), gain.shape)
+    a = float(t_s[ia[i]])
+    b = float(t_s[ib[j]]) if ib[j] < n else float(t_s[-1]) + 1e-6
+    return (a, b) if b > a else w
+
+
+def _axes(x: np.ndarray) -> list[str]:
+    rms = np.sqrt(np.mean(np.asarray(x) ** 2, axis=0))
+    if not np.any(rms > 0):
+        return []
+    return [a for a, v in zip("xyz", rms, strict=True) if v >= 0.3 * rms.max()]
+
+
+def _contribution(before: ModelState, after: ModelState, data: FitData) -> np.ndarray:
+    """Prediction difference (mag frame) made by the last term at the fitted values."""
+    without = dataclasses.replace(
+        after, terms=after.terms[:-1], values=after.values[:-1],
+        T_enu=np.eye(3) if after.terms[-1].kind is EffectKind.AXIS_TILT else after.T_enu,
+    )
+    return (
+        evaluate(after, data, jacobian=False).y_nT - evaluate(without, data, jacobian=False).y_nT
+    )
+
+
+def _to_enu(v_mag: np.ndarray, state: ModelState, data: FitData) -> np.ndarray:
+    """Map mag-frame vectors to ENU with the fitted rotation and attitude (inverse model)."""
+    C = quat_to_matrix(data.track.at(data.t_s - state.tau_s()))
+    v = np.linalg.solve(state.D(), v_mag.T).T @ state.R_body_mag.T
+    return np.einsum("nij,nj->ni", C, v)
+
+
+#: search rounds the progress line expects (most recordings need two or three)
+_ROUNDS_SHOWN = 3
+
+
+def diagnose_data(
+    data: FitData,
+    init: ModelState | None = None,
+    cfg: DiagnoseConfig | None = None,
+    *,
+    turntable: bool = False,
+) -> tuple[Diagnosis, FitResult]:
+    """Run detection, selection and location on prepared data.
+
+    Parameters
+    ----------
+    data : FitData
+        Stamps, readings and attitude track.
+    init : ModelState, optional
+        Baseline starting values (``R_body_mag``, ``B_enu``); Wahba initialisation otherwise.
+    cfg : DiagnoseConfig, optional
+        Thresholds (defaults when omitted).
+    turntable : bool
+        The attitude comes from a single-axis turntable (``axis_tilt`` is then a candidate).
+
+    Returns
+    -------
+    (Diagnosis, FitResult)
+        The diagnosis and the final fit.
+
+    """
+    cfg = cfg or DiagnoseConfig()
+    if len(data) < 30:
+        raise EstimationError("too few magnetometer samples with an attitude to diagnose")
+    from_wahba = init is None
+    if init is None:
+        init = wahba_init(data)
+    cur = fit(ModelState(init.R_body_mag, init.B_enu_nT), data)
+    if not from_wahba:
+        # a poor starting point (e.g. an estimator that assumed a clean sensor) must not
+        # decide the baseline: keep the better of it and Wahba's start
+        alt = fit(wahba_init(data), data)
+        if alt.rss < cur.rss:
+            cur = alt
+    stats = motion_stats(data)
+    # the baseline residual as calibrate reports it (equal weights); then the likelihood's
+    # weights for what the attitude noise does between attitude samples
+    # (stages.diagnose.model.sample_weights)
+    base_rms = cur.rms_nT
+    nm = estimate_noise_model(cur.residual_nT, data)
+    if nm is not None:
+        data = dataclasses.replace(data, noise_model=nm)
+        cur = fit(cur.state, data)
+    e_int_nT = interpolation_error_nT(data)
+    if e_int_nT > 0.05 * robust_sigma(cur.residual_nT):
+        # the attitude's own interpolation error stands out of the noise: what it could
+        # produce is not named (ScoreTest.interp_statistic)
+        data = dataclasses.replace(data,
+                                   interp_error_nT=interpolation_error_proxy(cur.state, data))
+    cv_cur = heldout_rms(cur.state, data, cfg)
+    baseline = {"effects": [], "residual_rms_nT": base_rms, "heldout_rms_nT": cv_cur}
+    base_fit, cv_base = cur, cv_cur
+    findings: list[Finding] = []
+    not_ident: dict[str, str] = {}
+    kinds = list(GLOBAL_KINDS)
+    if not (turntable or data.B_known_enu_nT is not None):
+        kinds.remove(EffectKind.AXIS_TILT)
+    if turntable and data.B_known_enu_nT is None:
+        why = identifiability_reason(EffectKind.AXIS_TILT, stats, data, 0.0)
+        not_ident["axis_tilt"] = why or ""
+    rejected: set[tuple] = set()  # failed in this round; retried once the model changes
+    dropped: set[tuple] = set()  # removed by the backward step; never re-added
+    cov_final = None
+    while len(findings) < cfg.max_findings:
+        sig = robust_sigma(cur.residual_nT)
+        present = {t.kind for t in cur.state.terms}
+        cands: list[Term] = [Term(k) for k in kinds if k not in present]
+        taken = [w for t in cur.state.terms if t.kind in LOCAL_KINDS for w in t.windows_s]
+        for w in scan_windows(cur.residual_nT, data.t_s, cfg):
+            if any(w[0] >= a and w[1] <= b for a, b in taken):
+                continue  # inside a window already modelled, not a new event
+            # the scan sees where the excess is large; a bell-shaped transient starts and
+            # ends earlier and later than that
+            pad = max(0.5, 0.25 * (w[1] - w[0]))
+            wd = (max(float(data.t_s[0]), w[0] - pad), min(float(data.t_s[-1]), w[1] + pad))
+            ks = min(2.0, max(0.75, (wd[1] - wd[0]) / 6))
+            cands.append(Term(EffectKind.DISTURBANCE, (wd,), knot_step_s=ks))
+            ws = refine_step(w, cur.residual_nT, data.t_s)
+            cands.append(Term(EffectKind.HARD_IRON_STEP, (ws,)))
+        tests = []
+        replace_trial = None
+        for j, term in enumerate(cands):
+            progress.detail(f"search {len(findings) + 1}, candidate {j + 1}/{len(cands)}",
+                            len(findings) + 0.5 * j / len(cands), _ROUNDS_SHOWN)
+            if (term.kind, term.windows_s) in rejected | dropped:
+                continue
+            if term.kind is EffectKind.FIELD_DRIFT and EffectKind.HEADING_DRIFT in present:
+                # the heading drift spans part of the field drift: the field drift can only
+                # replace it (tried below), not be added to it
+                replace_trial = term
+                continue
+            if term.kind is EffectKind.FIELD_GRADIENT and data.p_m is not None:
+                st = gradient_candidate(cur, data, sig)
+                term = st.term
+            elif term.kind is EffectKind.EDDY_CURRENT and EffectKind.TIME_OFFSET in present:
+                # only what a time offset cannot explain: the anisotropic part of E_s
+                st = anisotropic_eddy_test(cur, data, sig)
+            else:
+                st = score_test(cur, term, data, sig)
+            Bc = cur.state.B_enu_nT
+            reason = identifiability_reason(
+                term.kind, stats, data, st.efficiency,
+                horizontal_fraction=float(np.linalg.norm(Bc[:2]) / max(float(np.linalg.norm(Bc)),
+                                                                        1e-9)))
+            if reason is None and st.rot_efficiency < CONFOUND_RATIO \
+                    and term.kind not in LOCAL_KINDS:
+                reason = (
+                    f"with it the motion leaves the rotation R_body_mag confounded (only "
+                    f"{st.rot_efficiency:.1e} of its weakest combination stays determined): it "
+                    "would trade against the misalignment; rotate through more attitudes"
+                )
+            if (reason is None and st.statistic < INTERP_MARGIN**2 * st.interp_statistic
+                    and st.statistic > st.k * np.log(cur.residual_nT.size)):
+                # it would have been tried, but the interpolation error could produce it
+                reason = interp_reason(data)
+            if reason is not None:
+                if term.kind in LOCAL_KINDS:
+                    continue
+                if not findings:
+                    not_ident.setdefault(term.kind.value, reason)
+                elif term.kind is EffectKind.TIME_OFFSET and EffectKind.EDDY_CURRENT in present:
+                    not_ident.setdefault(term.kind.value, (
+                        "a time offset is the isotropic part of the eddy-current term already "
+                        "in the model (E_s = -tau I to first order): the two cannot be told "
+                        "apart"))
+                continue
+            tests.append(st)
+        n = cur.residual_nT.size
+        tests.sort(key=lambda s: -s.statistic + s.k * np.log(n))
+        # the score test ranks the candidates; the few strongest are refitted and the one
+        # with the lowest BIC is the strongest (a score statistic far from the null is only
+        # a local approximation when much is still unmodelled)
+        fits = []
+        for r, st in enumerate(tests[: cfg.n_refit]):
+            if -st.statistic + st.k * np.log(n) > 0:
+                break
+            progress.detail(f"search {len(findings) + 1}, refit {r + 1}/{cfg.n_refit}",
+                            len(findings) + 0.5 + 0.5 * r / cfg.n_refit, _ROUNDS_SHOWN)
+            fr = _refit(cur, st.term, data, cfg)
+            if fr is None:
+                rejected.add((st.term.kind, st.term.windows_s))
+                continue
+            fits.append((fr[1], st, fr[0]))
+        if replace_trial is not None:
+            rt = _replacement_fit(cur, EffectKind.HEADING_DRIFT, replace_trial, data, cfg)
+            if rt is not None:
+                fits.append(rt)
+        fits.sort(key=lambda x: x[0])
+        # nested terms resolve to the simplest that explains the data as well (time offset
+        # inside eddy currents, a mag-frame step inside a free ENU disturbance)
+        by_kind = {f[1].term.kind: f for f in fits}
+        if fits:
+            best = fits[0]
+            simpler_kind = {**NESTED_SIMPLER,
+                       EffectKind.DISTURBANCE: EffectKind.HARD_IRON_STEP}.get(best[1].term.kind)
+            if simpler_kind is not None:
+                alt_fit = by_kind.get(simpler_kind)
+                if (alt_fit is None and simpler_kind in NESTED_SIMPLER.values()
+                        and simpler_kind not in present):
+                    fr = _refit(cur, Term(simpler_kind), data, cfg)
+                    alt_fit = None if fr is None else (fr[1], best[1], fr[0])
+                elif alt_fit is None and simpler_kind is EffectKind.HARD_IRON_STEP:
+                    fr = _refit(cur, Term(simpler_kind, best[1].term.windows_s), data, cfg)
+                    alt_fit = None if fr is None else (fr[1], best[1], fr[0])
+                # the pairs of NESTED_SIMPLER are compared with one effective sample count:
+                # with each its own, a time offset lost to eddy currents by the texture of
+                # the residuals alone (issue 15); the window pair keeps its calibrated rule
+                if alt_fit is not None and simpler_kind in NESTED_SIMPLER.values():
+                    prefer = _bic_between(alt_fit[2], best[2], data) <= cfg.bic_margin
+                else:
+                    prefer = alt_fit is not None and alt_fit[0] <= best[0] + cfg.bic_margin
+                if alt_fit is not None and prefer:
+                    fits.remove(best) if best in fits else None
+                    fits.insert(0, alt_fit)
+        accepted = False
+        for dbic, st, res in fits:
+            cv_new = _heldout_ok(cur, res, data, cfg, cv_cur)
+            if cv_new is None:
+                rejected.add((st.term.kind, st.term.windows_s))
+                continue
+            term = res.state.terms[-1]
+            gone = {t.kind for t in cur.state.terms} - {t.kind for t in res.state.terms}
+            if gone:  # a replacement: the nested term it contains leaves the model
+                findings = [f for f in findings if EffectKind(f.effect) not in gone]
+                cur = fit(dataclasses.replace(res.state, terms=res.state.terms[:-1],
+                                              values=res.state.values[:-1]), data)
+            findings.append(_finding(cur, res, term, st, dbic, cv_cur, cv_new, data))
+            cur, cv_cur = res, cv_new
+            accepted = True
+            rejected.clear()
+            break
+        if not accepted:
+            break
+        if data.noise_model is None:
+            # the attitude noise may only now stand out of what the model leaves
+            nm = estimate_noise_model(
+                cur.residual_nT if cur.raw_residual_nT is None else cur.raw_residual_nT, data)
+            if nm is not None:
+                data = dataclasses.replace(data, noise_model=nm)
+                cur = fit(cur.state, data)
+                cv_cur = heldout_rms(cur.state, data, cfg)
+        # backward step: a term chosen earlier, while more was unmodelled, may have stood in
+        # for what a later term explains properly; drop it if it no longer earns its margin
+        i = 0
+        while i < len(cur.state.terms) - 1:
+            st_wo = _without(cur.state, i)
+            res_wo = fit(st_wo, data)
+            n_eff = _n_eff(cur, data)
+            bic_cur = _bic(cur.rss, n_eff, cur.state.n_params())
+            keep = bic_cur - _bic(res_wo.rss, n_eff, res_wo.state.n_params())
+            t_i = cur.state.terms[i]
+            if keep > -cfg.bic_margin:
+                dropped.add((t_i.kind, t_i.windows_s))
+                findings.pop(i)
+                cur = res_wo
+                cv_cur = heldout_rms(cur.state, data, cfg)
+                continue
+            simpler_term = _simpler(t_i)
+            if simpler_term is not None and simpler_term.kind not in {t.kind for t in st_wo.terms}:
+                res_s = fit(res_wo.state.with_term(simpler_term), data)
+                if _bic(res_s.rss, n_eff, res_s.state.n_params()) - bic_cur < cfg.bic_margin:
+                    # the simpler nested term explains the data as well: it replaces the other
+                    cv_s = heldout_rms(res_s.state, data, cfg)
+                    st_s = score_test(res_wo, simpler_term, data, robust_sigma(res_wo.residual_nT))
+                    dbic_s = _bic(res_s.rss, n_eff, res_s.state.n_params()) - _bic(
+                        res_wo.rss, n_eff, res_wo.state.n_params())
+                    cv_wo = heldout_rms(res_wo.state, data, cfg)
+                    findings.pop(i)
+                    findings.append(_finding(res_wo, res_s, simpler_term, st_s, dbic_s, cv_wo, cv_s,
+                                             data))
+                    dropped.add((t_i.kind, t_i.windows_s))
+                    cur, cv_cur = res_s, cv_s
+                    continue
+            i += 1
+    # the evidence of each finding was measured against the model of the moment it was added;
+    # later rounds may have dropped or replaced terms before it. Re-measure it as a build-up in
+    # the final order so that the numbers chain from the baseline to the final model.
+    canon = canonical_rate_terms(cur, data)
+    if canon is not cur:
+        cur, cv_cur = canon, heldout_rms(canon.state, data, cfg)
+    findings, cur, cv_cur = split_isotropic_eddy(findings, cur, cv_cur, data, cfg)
+    findings = _chain_evidence(findings, cur, base_fit, cv_base, cv_cur, data, cfg)
+    cov_final = _covariance(cur, data)
+    note = _gradient_note(cur, data, not_ident)
+    findings = [
+        dataclasses.replace(
+            f,
+            params=(p := term_params(cur.state.terms[i], cur.state.values[i], cur.state, data)),
+            sigma=_sigma_for(cur, i, cov_final, data),
+            explanation=explanation(cur.state.terms[i].kind, p, data.duration_s, note=note),
+        )
+        for i, f in enumerate(findings)
+    ]
+    final: dict[str, Any] = {
+        "effects": [f.effect for f in findings],
+        "residual_rms_nT": cur.rms_nT,
+        "heldout_rms_nT": cv_cur,
+    }
+    diag = Diagnosis(
+        baseline=baseline,
+        final=final,
+        findings=tuple(findings),
+        not_identifiable=tuple(
+            (k, v) for k, v in not_ident.items() if k not in final["effects"]
+        ),
+        duration_s=data.duration_s,
+    )
+    return diag, cur
+
+
+def _gradient_note(cur: FitResult, data: FitData, not_ident: dict[str, str]) -> str | None:
+    """Return what the test of a spatial gradient found, for the drift explanation.
+
+    None without positions (the drift explanation then says that drift and gradient cannot
+    be separated).
+    """
+    if data.p_m is None:
+        return None
+    for t, v in zip(cur.state.terms, cur.state.values, strict=True):
+        if t.kind is EffectKind.FIELD_GRADIENT:
+            g = float(np.linalg.norm(gradient_matrix(v, t.yaw_rad))) / 1e3
+            return (
+                "The recording carries positions: a spatial field gradient was tested and is "
+                f"in the model (field_gradient, {g:.2f} uT/m); this drift is the change left "
+                "in time once the field's variation along the path is modelled"
+            )
+    why = not_ident.get(EffectKind.FIELD_GRADIENT.value)
+    if why:
+        return (
+            "The recording carries positions, but a spatial field gradient could not be "
+            f"tested: {why}; the term may still stand for both"
+        )
+    return (
+        "The recording carries positions: a spatial field gradient was tested and did not "
+        "lower both the BIC and the held-out error, so this is a change in time rather than "
+        "the field varying along the sensor's path"
+    )
+
+
+def _prefix(state: ModelState, k: int) -> ModelState:
+    """``state`` with only its first ``k`` terms (values as fitted in ``state``)."""
+    has_tilt = any(t.kind is EffectKind.AXIS_TILT for t in state.terms[:k])
+    return dataclasses.replace(
+        state, terms=state.terms[:k], values=state.values[:k],
+        T_enu=state.T_enu if has_tilt else np.eye(3),
+    )
+
+
+def _chain_evidence(
+    findings: list[Finding],
+    final: FitResult,
+    base: FitResult,
+    cv_base: float,
+    cv_final: float,
+    data: FitData,
+    cfg: DiagnoseConfig,
+) -> list[Finding]:
+    """Recompute each finding's evidence as a sequential build-up in the final order.
+
+    Finding ``k`` is measured between the model with the findings before it and the model
+    that adds it, so ``rms_after`` of finding ``k`` is ``rms_before`` of finding ``k + 1``,
+    the first ``rms_before`` is the baseline's and the last ``rms_after`` the final model's
+    (the same for the held-out RMS). Intermediate models are refitted from the final values.
+
+    Parameters
+    ----------
+    findings : list of Finding
+        In the order of ``final.state.terms``.
+    final, base : FitResult
+        The final and the baseline fit.
+    cv_base, cv_final : float
+        Their held-out RMS, nT.
+    data : FitData
+        The fitted samples.
+    cfg : DiagnoseConfig
+        Cross-validation settings.
+
+    Returns
+    -------
+    list of Finding
+        Same effects and order; evidence, ``where`` and signature re-measured.
+
+    """
+    K = len(findings)
+    if K == 0:
+        return findings
+    fits = [base] + [fit(_prefix(final.state, k), data) for k in range(1, K)] + [final]
+    cvs = [cv_base] + [heldout_rms(f.state, data, cfg) for f in fits[1:K]] + [cv_final]
+    out = []
+    for k, fd in enumerate(findings):
+        before, after = fits[k], fits[k + 1]
+        term = after.state.terms[-1]
+        st = score_test(before, term, data, robust_sigma(before.residual_nT))
+        n_eff = _n_eff(after, data)
+        dbic = _bic(after.rss, n_eff, after.state.n_params()) - _bic(
+            before.rss, n_eff, before.state.n_params())
+        new = _finding(before, after, term, st, float(dbic), cvs[k], cvs[k + 1], data)
+        out.append(dataclasses.replace(new, params=fd.params, sigma=fd.sigma))
+    return out
+
+
+def _simpler(term: Term) -> Term | None:
+    """Return the simplest nested special case of ``term``, or None.
+
+    A time offset inside eddy currents, a mag-frame step inside a free ENU disturbance.
+    """
+    if term.kind in NESTED_SIMPLER:
+        return Term(NESTED_SIMPLER[term.kind])
+    if term.kind is EffectKind.DISTURBANCE:
+        return Term(EffectKind.HARD_IRON_STEP, term.windows_s)
+    return None
+
+
+def _replacement_fit(
+    cur: FitResult, simple: EffectKind, term: Term, data: FitData, cfg: DiagnoseConfig
+) -> tuple[float, ScoreTest, FitResult] | None:
+    """Replace the nested ``simple`` term of the model by ``term``, which contains it.
+
+    Returns ``(delta BIC against the current model, score test, fit)`` when the replacement
+    lowers the BIC by ``bic_margin`` (the extra parameters counted), else None. The score test
+    is made against the model without ``simple``.
+    """
+    i = next(k for k, t in enumerate(cur.state.terms) if t.kind is simple)
+    wo = fit(_without(cur.state, i), data)
+    res = fit(wo.state.with_term(term), data)
+    if not res.rss < cur.rss:
+        return None
+    n_eff = _n_eff(res, data)
+    dbic = _bic(res.rss, n_eff, res.state.n_params()) - _bic(cur.rss, n_eff, cur.state.n_params())
+    if dbic > -cfg.bic_margin:
+        return None
+    st = score_test(wo, term, data, robust_sigma(wo.residual_nT))
+    return float(dbic), st, res
+
+
+def canonical_rate_terms(res: FitResult, data: FitData) -> FitResult:
+    """With ``time_offset`` and ``eddy_current`` both in the model, move ``tr(E_s)/3`` to tau.
+
+    The two share one direction (``E_s = -tau I`` to first order): the fit leaves it where the
+    iterations stopped. The canonical split gives the time offset the isotropic part, ``tau <-
+    tau - tr(E_s)/3`` and ``E_s <- E_s - tr(E_s)/3 I`` (no refit: a refit drifts back along the
+    shared direction). It is taken unless it worsens the fit by more than one parameter's BIC
+    (``ln N`` noise variances), which the second-order difference of the two terms stays far
+    below.
+    """
+    from pipeline.model.solve import normal_equations
+
+    kinds = [t.kind for t in res.state.terms]
+    if EffectKind.TIME_OFFSET not in kinds or EffectKind.EDDY_CURRENT not in kinds:
+        return res
+    it, ie = kinds.index(EffectKind.TIME_OFFSET), kinds.index(EffectKind.EDDY_CURRENT)
+    vals = list(res.state.values)
+    E = vals[ie].reshape(3, 3)
+    iso = float(np.trace(E)) / 3.0
+    vals[it] = vals[it] - iso
+    vals[ie] = (E - iso * np.eye(3)).ravel()
+    st = dataclasses.replace(res.state, values=tuple(vals))
+    ev = evaluate(st, data)
+    r = data.y_nT - ev.y_nT
+    rss = float(np.sum(r * r))
+    n = max(res.residual_nT.size, 2)
+    if not np.isfinite(rss) or rss - res.rss > np.log(n) * res.rss / n:
+        return res
+    H, _ = normal_equations(ev.jac, r)
+    return FitResult(st, r, rss, H, res.n_iter)
+
+
+def split_isotropic_eddy(
+    findings: list[Finding], cur: FitResult, cv_cur: float, data: FitData,
+    cfg: DiagnoseConfig,
+) -> tuple[list[Finding], FitResult, float]:
+    """Turn an eddy term with a significant isotropic part into a time offset and the rest.
+
+    The simpler nested term is reported for what it explains: when the final model has
+    ``eddy_current`` but no ``time_offset`` and ``tr(E_s)/3`` differs from zero by more than
+    the BIC gate of one parameter (``z^2 > ln n_eff + bic_margin``), the model is refitted with
+    ``time_offset`` (tau = -tr(E_s)/3) and the traceless remainder of ``E_s``; the remainder is
+    kept only if it still lowers the BIC by ``bic_margin`` and the held-out error.
+    """
+    kinds = [t.kind for t in cur.state.terms]
+    if EffectKind.EDDY_CURRENT not in kinds or EffectKind.TIME_OFFSET in kinds:
+        return findings, cur, cv_cur
+    ie = kinds.index(EffectKind.EDDY_CURRENT)
+    o = cur.state.offsets()[ie]
+    cov = _covariance(cur, data)[o : o + 9, o : o + 9]
+    E = cur.state.values[ie]
+    iso = float(_ISO @ E)
+    var = float(_ISO @ cov @ _ISO)
+    n_eff = _n_eff(cur, data)
+    if var <= 0 or iso * iso / var <= np.log(n_eff) + cfg.bic_margin:
+        return findings, cur, cv_cur
+    tau = -iso / np.sqrt(3.0)  # E_iso = (iso / sqrt 3) I = -tau I
+    st = dataclasses.replace(
+        cur.state,
+        terms=cur.state.terms[:ie] + (Term(EffectKind.TIME_OFFSET),) + cur.state.terms[ie:],
+        values=cur.state.values[:ie] + (np.array([tau]),) + (
+            (E.reshape(3, 3) + tau * np.eye(3)).ravel(),) + cur.state.values[ie + 1:],
+    )
+    split = canonical_rate_terms(fit(st, data), data)
+    Es = split.state.values[ie + 1]
+    if abs(float(_ISO @ Es)) > 1e-3 * max(float(np.linalg.norm(Es)), 1e-12):
+        # the canonical split was refused: the data tell the isotropic eddy term from a
+        # time offset (second order, fast motion); the eddy term stays as it is
+        return findings, cur, cv_cur
+    placeholder = dataclasses.replace(findings[ie], effect=EffectKind.TIME_OFFSET.value)
+    new_findings = findings[:ie] + [placeholder] + findings[ie:]
+    # does the anisotropic remainder earn its place?
+    ie2 = ie + 1
+    wo = canonical_rate_terms(fit(_without(split.state, ie2), data), data)
+    n_eff = _n_eff(split, data)
+    keep = _bic(split.rss, n_eff, split.state.n_params()) - _bic(wo.rss, n_eff,
+                                                                   wo.state.n_params())
+    cv_split = heldout_rms(split.state, data, cfg)
+    cv_wo = heldout_rms(wo.state, data, cfg)
+    if keep > -cfg.bic_margin or _heldout_ok(wo, split, data, cfg, cv_wo) is None:
+        return new_findings[:ie2] + new_findings[ie2 + 1:], wo, cv_wo
+    return new_findings, split, cv_split
+
+
+def _without(state: ModelState, i: int) -> ModelState:
+    """``state`` without its ``i``-th term."""
+    t = state.terms[i]
+    return dataclasses.replace(
+        state,
+        terms=state.terms[:i] + state.terms[i + 1:],
+        values=state.values[:i] + state.values[i + 1:],
+        T_enu=np.eye(3) if t.kind is EffectKind.AXIS_TILT else state.T_enu,
+    )
+
+
+def _refit(
+    cur: FitResult, term: Term, data: FitData, cfg: DiagnoseConfig
+) -> tuple[FitResult, float] | None:
+    """Refit with ``term``; return (fit, delta BIC) if the BIC drops by ``bic_margin``."""
+    res = canonical_rate_terms(fit(cur.state.with_term(term), data), data)
+    if not res.rss < cur.rss:
+        return None
+    n_eff = _n_eff(res, data)
+    dbic = _bic(res.rss, n_eff, res.state.n_params()) - _bic(cur.rss, n_eff, cur.state.n_params())
+    if dbic > -cfg.bic_margin:
+        return None
+    return res, float(dbic)
+
+
+def _heldout_ok(
+    cur: FitResult, res: FitResult, data: FitData, cfg: DiagnoseConfig, cv_old: float
+) -> float | None:
+    """Held-out RMS of the model with the new term, or None if it does not improve enough.
+
+    The improvement in chi-square units of the (correlation-discounted) noise must clear the
+    same bar as the BIC: a term that only fits noise does not predict new blocks.
+    """
+    cv_new = heldout_rms(res.state, data, cfg)
+    n_eff = _n_eff(res, data)
+    s2 = res.rss / res.residual_nT.size
+    k = res.state.n_params() - cur.state.n_params()
+    gain = (cv_old**2 - cv_new**2) * n_eff / s2
+    if cv_new < cv_old * (1.0 - cfg.heldout_margin) and gain >= k * np.log(n_eff) + cfg.bic_margin:
+        return cv_new
+    return None
+
+
+def _finding(
+    cur: FitResult,
+    res: FitResult,
+    term: Term,
+    st: ScoreTest,
+    dbic: float,
+    cv_before: float,
+    cv_after: float,
+    data: FitData,
+) -> Finding:
+    info = EFFECTS[term.kind]
+    i = len(res.state.terms) - 1
+    params = term_params(term, res.state.values[i], res.state, data)
+    contrib = _contribution(cur.state, res.state, data)
+    resid = cur.residual_nT
+    frame = info.frame
+    if frame == "enu":
+        contrib_f = _to_enu(contrib, res.state, data)
+        resid_f = _to_enu(resid, res.state, data)
+    else:
+        contrib_f, resid_f = contrib, resid
+    if term.windows_s:
+        windows = [[float(a), float(b)] for a, b in term.windows_s]
+        m = term.indicator(data.t_s) > 0
+        axes = _axes(contrib_f[m]) if m.any() else []
+    else:
+        windows = [[0.0, float(data.t_s[-1])]]
+        axes = _axes(contrib_f)
+    stride = max(1, len(data) // 4000)
+    regressor = None
+    if term.kind in (EffectKind.TIME_OFFSET, EffectKind.EDDY_CURRENT):
+        regressor = evaluate(cur.state, data, jacobian=False).ydot0_nT_s[::stride]
+    sigtr = Signature(data.t_s[::stride], resid_f[::stride], contrib_f[::stride], regressor)
+    expl = explanation(term.kind, params, data.duration_s)
+    return Finding(
+        effect=term.kind.value,
+        params=params,
+        sigma={},
+        evidence={
+            "statistic": float(st.statistic),
+            "delta_bic": float(dbic),
+            "rms_before_nT": cur.rms_nT,
+            "rms_after_nT": res.rms_nT,
+            "heldout_rms_before_nT": float(cv_before),
+            "heldout_rms_after_nT": float(cv_after),
+        },
+        where={"windows_s": windows, "axes": axes, "frame": frame},
+        explanation=expl,
+        signature=sigtr,
+    )

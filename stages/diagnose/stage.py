@@ -1,0 +1,508 @@
+"""Diagnose: find the physics the fitted model left out, name it, model it, verify it.
+
+Starting from the baseline model (misalignment ``R_body_mag`` and field ``B_enu`` only), every
+candidate effect of :mod:`stages.diagnose.model` is tested with a score (Lagrange multiplier) test
+at the current fit: the gradient and the information of the added parameters at zero, with
+the parameters already in the model profiled out (Schur complement), no refit. The strongest
+candidate is refitted and kept only if it lowers the BIC (with the sample count discounted
+for residual correlation) **and** the error on held-out time blocks; then the loop repeats
+until nothing qualifies. Effects local in time (``disturbance``, ``hard_iron_step``) are
+located first by a scan of the robust residual norm; their windows become candidate terms.
+Terms the motion cannot determine go to ``not_identifiable`` with the reason.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, cast
+
+import numpy as np
+
+from pipeline.core.recording import AlignedSeries, Context, Recording
+from pipeline.model.calibration import Calibration
+from pipeline.model.sample_hold import SampleHold, detect_sample_hold
+from stages.diagnose.catalogue import EFFECTS
+from stages.diagnose.fit import FitResult, fit
+from stages.diagnose.model import (
+    F64,
+    LOCAL_KINDS,
+    AttitudeTrack,
+    EffectKind,
+    FitData,
+    ModelState,
+    Term,
+    evaluate,
+    term_params,
+    term_sigma,
+)
+from stages.diagnose.result import DiagnoseConfig, Diagnosis, Finding, _estimate_text
+from stages.diagnose.search import MAX_LAG_S, diagnose_data
+from stages.diagnose.statistics import _covariance, _n_eff
+
+
+def fit_data_from(
+    recording: Recording,
+    aligned: AlignedSeries,
+    *,
+    reference_field_enu_nT: Sequence[float] | np.ndarray | None = None,
+    max_samples: int | None = None,
+) -> FitData:
+    """Build the fitting data: stamps in s from the first magnetometer sample.
+
+    The attitude track is the recording's attitude channel (so a time offset re-interpolates
+    it); without one (turntable), the aligned attitude shifted back by the ``tau`` it was
+    interpolated with.
+    """
+    t0 = int(recording.mag.t_ns[0]) if len(recording.mag) else int(aligned.t_ns[0])
+    t_s = (np.asarray(aligned.t_ns, dtype=np.int64) - t0) * 1e-9
+    if recording.attitude is not None and len(recording.attitude) >= 2:
+        ta = (np.asarray(recording.attitude.t_ns, dtype=np.int64) - t0) * 1e-9
+        # THE interpolator, as calibrate and restore: the same recording and model
+        # give the same prediction
+        track = AttitudeTrack(cast(F64, ta),
+                              np.asarray(recording.attitude.q_enu_body, dtype=np.float64))
+    else:
+        track = AttitudeTrack(cast(F64, t_s - aligned.time_offset_s),
+                              np.asarray(aligned.q_enu_body, dtype=np.float64))
+    y = np.asarray(aligned.mag_nT, dtype=float)
+    # a sample whose sensing time t - tau falls outside the attitude track cannot be
+    # predicted (the track is held at its ends): for lags up to MAX_LAG_S the samples that
+    # close to the track's ends are left out (a lag of 100 ms otherwise shows as a step in
+    # the first 0.1 s)
+    edge = (t_s >= track.t_s[0] + MAX_LAG_S) & (t_s <= track.t_s[-1] - MAX_LAG_S)
+    if np.count_nonzero(edge) >= 0.9 * len(t_s):
+        t_s, y = t_s[edge], y[edge]
+        aligned_t_ns = np.asarray(aligned.t_ns)[edge]
+    else:
+        aligned_t_ns = np.asarray(aligned.t_ns)
+    pos: dict[str, Any] = {}
+    p = _positions_at(recording, aligned_t_ns)
+    if p is not None:
+        ok = np.isfinite(p).all(axis=1)
+        t_s, y, p = t_s[ok], y[ok], p[ok]
+        pos = {"p_m": p, "p_ref_m": p.mean(axis=0),
+               "position_frame": recording.position.frame.value}  # type: ignore[union-attr]
+    n_avail, stride = len(t_s), 1
+    if max_samples is not None and len(t_s) > max_samples:
+        stride = int(np.ceil(len(t_s) / max_samples))
+        t_s, y = t_s[::stride], y[::stride]
+        if pos:
+            pos["p_m"] = pos["p_m"][::stride]
+    B = None if reference_field_enu_nT is None else np.asarray(reference_field_enu_nT, float)
+    return FitData(cast(F64, t_s), y, track, B_known_enu_nT=B, stride=stride,
+                   n_available=n_avail, **pos)
+
+
+#: Positions are used only when at least this fraction of the samples has one.
+MIN_POSITION_COVERAGE = 0.5
+
+
+def _positions_at(recording: Recording, t_ns: np.ndarray) -> np.ndarray | None:
+    """Positions at the magnetometer stamps (N, 3), m, NaN where unknown; None when unused.
+
+    Samples without a position (lost markers: NaN rows, or gaps longer than 0.1 s) are
+    left out of the diagnosis, for every model alike so that the BIC and held-out errors
+    compare the same samples. When fewer than :data:`MIN_POSITION_COVERAGE` of the samples
+    have a position, the positions are not used at all (``field_gradient`` is then not
+    identifiable: no positions).
+    """
+    if recording.position is None or len(t_ns) == 0:
+        return None
+    p = recording.position.at(np.asarray(t_ns, dtype=np.int64))
+    if np.mean(np.isfinite(p).all(axis=1)) < MIN_POSITION_COVERAGE:
+        return None
+    return p
+
+
+def _heldout_split(state: ModelState, train: FitData, test: FitData, cfg: DiagnoseConfig,
+                   t0_s: float) -> float:
+    """Held-out RMS (nT) when the model is fitted on ``train`` and predicts ``test``.
+
+    Like :func:`heldout_rms` (the same time blocks, counted from ``t0_s``: with the first
+    sample of the diagnosis data the folds are exactly those of :func:`heldout_rms`), but the
+    samples fitted and the samples predicted may differ: the repeats of a sample-and-hold
+    sensor are predicted although only the first copies are fitted.
+    """
+    f_tr = np.floor((train.t_s - t0_s) / cfg.block_s).astype(np.int64) % cfg.n_folds
+    f_te = np.floor((test.t_s - t0_s) / cfg.block_s).astype(np.int64) % cfg.n_folds
+    start = dataclasses.replace(state, values=tuple(
+        np.zeros_like(v) if t.kind in LOCAL_KINDS else v
+        for t, v in zip(state.terms, state.values, strict=True)))
+    sq, cnt = 0.0, 0
+    for j in range(cfg.n_folds):
+        te, tr = f_te == j, f_tr != j
+        if te.sum() == 0 or tr.sum() < 10:
+            continue
+        res = fit(start, train.subset(tr), max_iter=6, rtol=1e-6)
+        sub = test.subset(te)
+        e = sub.y_nT - evaluate(res.state, sub, jacobian=False).y_nT
+        sq += float(np.sum(e * e))
+        cnt += e.size
+    return float(np.sqrt(sq / max(cnt, 1)))
+
+
+def sample_hold_finding(
+    diag: Diagnosis,
+    res: FitResult,
+    data: FitData,
+    recording: Recording,
+    aligned: AlignedSeries,
+    sh: SampleHold,
+    cfg: DiagnoseConfig,
+    *,
+    reference_field_enu_nT: Any = None,
+) -> tuple[Diagnosis, FitResult, FitData] | None:
+    """Add the ``sample_hold`` finding: the final model refitted on the handled data.
+
+    Two handlings are compared on the same messages (the diagnosis samples, repeats
+    included) by their held-out RMS: (a) the repeats are left out of the fit and every
+    message is predicted at the stamp of the first copy of its conversion; (b) as (a), with
+    the conversions re-stamped on the sensor's native grid (``SampleHold.t_sensed_ns``). The
+    better one is kept; without it (the messages fitted and predicted at their own stamps)
+    is the final model of ``diag``. The finding is added when the handling lowers
+    the held-out error; its evidence is the change of the in-sample and held-out RMS over the
+    same messages.
+
+    Returns
+    -------
+    (Diagnosis, FitResult, FitData) or None
+        The diagnosis with the finding appended, the fit on the handled data, and that data;
+        None when the handling does not help.
+
+    """
+    mag_t = np.asarray(recording.mag.t_ns, dtype=np.int64)
+    t0 = int(mag_t[0])
+    idx = np.clip(np.searchsorted(mag_t, t0 + np.round(data.t_s * 1e9).astype(np.int64)), 0,
+                  len(mag_t) - 1)
+    first_idx = np.maximum.accumulate(np.where(sh.first, np.arange(len(mag_t)), 0))
+    al_idx = (np.arange(len(aligned)) if aligned.index is None
+              else np.asarray(aligned.index, dtype=np.int64))
+    keep = sh.first[al_idx]
+    variants = {
+        "first_stamp": mag_t[first_idx],
+        "native_grid": np.asarray(sh.t_sensed_ns, dtype=np.int64),
+    }
+    best = None
+    for name, t_new in variants.items():
+        al_new = AlignedSeries(t_new[al_idx][keep], aligned.mag_nT[keep],
+                               aligned.q_enu_body[keep], aligned.time_offset_s, al_idx[keep])
+        train = fit_data_from(recording, al_new, reference_field_enu_nT=reference_field_enu_nT,
+                              max_samples=cfg.max_samples)
+        test = dataclasses.replace(data, t_s=cast(F64, (t_new[idx] - t0) * 1e-9))
+        if len(train) < 30:
+            continue
+        cv = _heldout_split(res.state, train, test, cfg, float(data.t_s[0]))
+        if best is None or cv < best[0]:
+            best = (cv, name, train, test)
+    # the same blocks as the handled variants and as diag.final's held-out error
+    cv_old = _heldout_split(res.state, data, data, cfg, float(data.t_s[0]))
+    if best is None or not best[0] < cv_old:
+        return None
+    cv_new, name, train, test = best
+    res_h = fit(res.state, train)
+    r_new = test.y_nT - evaluate(res_h.state, test, jacobian=False).y_nT
+    rss_new = float(np.sum(r_new * r_new))
+    n_eff = _n_eff(res, data)
+    s2 = res.rss / res.residual_nT.size
+    span = float(mag_t[-1] - mag_t[0]) * 1e-9
+    p = sh.params()
+    restamped = name == "native_grid"
+    expl = EFFECTS[EffectKind.SAMPLE_HOLD].physics + "; signature: " + EFFECTS[
+        EffectKind.SAMPLE_HOLD].signature + ". " + sh.explanation(restamped=restamped) + (
+        f" Compared on the same messages, the held-out error goes from {cv_old:.1f} to "
+        f"{cv_new:.1f} nT. Read the sensor at its native rate (or publish only new "
+        "conversions, stamped when they were sensed)")
+    fd = Finding(
+        effect=EffectKind.SAMPLE_HOLD.value,
+        params=p,
+        sigma={"native_rate_hz": 1.0 / max(span, 1e-9),
+               "repeated_fraction": float(np.sqrt(p["repeated_fraction"] * (
+                   1 - p["repeated_fraction"]) / len(mag_t)))},
+        evidence={
+            # no parameter is added: the in-sample RSS over the messages cannot rise or fall
+            # by fitting, so the statistic and the BIC change are those of the held-out error
+            "statistic": float((cv_old**2 - cv_new**2) * n_eff / s2),
+            "delta_bic": float(n_eff * np.log(max(cv_new, 1e-30) ** 2 / max(cv_old, 1e-30) ** 2)),
+            "rms_before_nT": res.rms_nT,
+            "rms_after_nT": float(np.sqrt(rss_new / max(r_new.size, 1))),
+            "heldout_rms_before_nT": cv_old,
+            "heldout_rms_after_nT": float(cv_new),
+        },
+        where={"windows_s": [[0.0, float(data.t_s[-1])]], "axes": ["x", "y", "z"],
+               "frame": "mag"},
+        explanation=expl,
+    )
+    final = {
+        "effects": list(diag.final["effects"]) + [fd.effect],
+        "residual_rms_nT": fd.evidence["rms_after_nT"],
+        "heldout_rms_nT": float(cv_new),
+    }
+    return (dataclasses.replace(diag, findings=diag.findings + (fd,), final=final), res_h,
+            train)
+
+
+def _model_values(term: Term, value: np.ndarray, data: FitData) -> dict[str, Any]:
+    """Return the fitted values of a ``disturbance`` / ``field_drift`` / ``heading_drift`` term.
+
+    The CONVENTIONS params of these terms (``peak_nT``, ``peak_to_peak_nT``) describe them
+    but cannot reproduce them; the calibration also carries the fitted values so that
+    :meth:`pipeline.model.calibration.Calibration.predict` includes them (the residual of the
+    final model is then the same number everywhere).
+    """
+    if term.kind is EffectKind.DISTURBANCE:
+        knots = term.knots()
+        v = np.asarray(value, dtype=float).reshape(-1, 3)
+        out, i = [], 0
+        for kn in knots:
+            out.append(v[i:i + len(kn)].tolist())
+            i += len(kn)
+        return {"knots_s": [k.tolist() for k in knots], "knot_field_nT": out}
+    if term.kind is EffectKind.FIELD_DRIFT:
+        span = float(data.track.t_s[-1]) if data.track.t_s[-1] > 0 else 1.0
+        return {"legendre_nT": np.asarray(value, dtype=float).reshape(-1, 3).tolist(),
+                "span_s": span}
+    if term.kind is EffectKind.HEADING_DRIFT:
+        span = float(data.track.t_s[-1]) if data.track.t_s[-1] > 0 else 1.0
+        return {"legendre_rad": np.asarray(value, dtype=float).reshape(-1).tolist(),
+                "span_s": span}
+    return {}
+
+
+def calibration_from(res: FitResult, data: FitData, findings: tuple[Finding, ...]) -> Calibration:
+    """Return the final model as a Calibration; terms beyond D, o, tau go to ``effects``."""
+    st = res.state
+    cov = _covariance(res, data)
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    sig_rot = np.degrees(sd[0:3])
+    D = st.D() if st.value(EffectKind.SOFT_IRON) is not None else None
+    o = st.value(EffectKind.HARD_IRON)
+    tau = st.value(EffectKind.TIME_OFFSET)
+    extra: dict[str, Any] = {}
+    sig: dict[str, Any] = {}
+    for i, t in enumerate(st.terms):
+        blk = slice(st.offsets()[i], st.offsets()[i] + t.n_params())
+        if t.kind is EffectKind.HARD_IRON:
+            sig["offset"] = sd[blk]
+        elif t.kind is EffectKind.SOFT_IRON:
+            sig["D"] = np.asarray(term_sigma(t, cov[blk, blk], st, data)["D"])
+        elif t.kind is EffectKind.TIME_OFFSET:
+            sig["tau"] = float(sd[blk][0])
+        else:
+            params = term_params(t, st.values[i], st, data)
+            params.update(_model_values(t, st.values[i], data))
+            extra.setdefault(t.kind.value, []).append(params)
+    effects = {k: (v[0] if len(v) == 1 else v) for k, v in extra.items()}
+    return Calibration(
+        R_body_mag=st.R_body_mag,
+        sigma_rotvec_deg=sig_rot,
+        B_enu_nT=st.B_enu_nT,
+        estimator="diagnose",
+        residual_rms_nT=res.rms_nT,
+        n_samples=len(data),
+        D=D,
+        offset_nT=o,
+        time_offset_s=None if tau is None else float(tau[0]),
+        sigma_D=sig.get("D"),
+        sigma_offset_nT=sig.get("offset"),
+        sigma_time_offset_s=sig.get("tau"),
+        sigma_B_enu_nT=None if data.B_known_enu_nT is not None else sd[3:6],
+        effects=effects,
+    )
+
+
+def final_split(res: FitResult, data: FitData):
+    """Refit the final model on two contiguous halves of equal rotation information.
+
+    Returns a :class:`stages.estimators.checks.SplitCheck` (the halves' rotations, their
+    difference and its chi-square under the halves' covariances), or None when a half is too
+    small. A term that the motion barely determines, or physics the final model still leaves
+    out, shows up as halves that disagree.
+    """
+    from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
+    from stages.estimators.checks import SplitCheck, info_halves
+
+    if len(data) < 200:
+        return None
+    ev = evaluate(res.state, data)
+    Jr = ev.jac[:, :, 0:3]
+    first = info_halves(np.einsum("nip,nip->n", Jr, Jr))
+    out = []
+    for m in (first, ~first):
+        sub = data.subset(m)
+        if len(sub) < 50:
+            return None
+        r = fit(res.state, sub)
+        cov = _covariance(r, sub)
+        out.append((r.state.R_body_mag, np.clip(np.diag(cov)[0:3], 0.0, None)))
+    (Ra, va), (Rb, vb) = out
+
+    def rv(R: np.ndarray) -> np.ndarray:
+        return quat_to_rotvec(matrix_to_quat(R))
+
+    d = rv(Ra @ Rb.T)
+    var = va + vb
+    ok = np.isfinite(var) & (var > 0)
+    chi2 = float(np.sum(d[ok] ** 2 / var[ok]))
+    t_split = float(data.t_s[np.flatnonzero(~first)[0]] - data.t_s[0])
+    return SplitCheck(np.degrees(rv(Ra)), np.degrees(rv(Rb)), np.degrees(d), chi2, t_split)
+
+
+@dataclass(frozen=True)
+class Diagnose:
+    """Stage: find, name, model and verify what the calibration model leaves out.
+
+    Parameters
+    ----------
+    config : DiagnoseConfig
+    reference_field_enu_nT : tuple of 3 floats, optional
+        Known background field (ENU, nT); the field is then not estimated (and ``axis_tilt``
+        becomes identifiable on a turntable).
+    max_gap_s : float or None
+        Attitude gap rule of the final model's residual over the whole recording (as the
+        Restore stage); None: the automatic rule.
+
+    The final residual (``diagnosis.final.residual_rms_nT`` and the final calibration's
+    ``residual_rms_nT``) is that of the final model over every sample of the recording with
+    a usable attitude (:func:`stages.restore.restore_samples`): the number the restored
+    ``<mag>/residual`` channel, the residual figure and the report show.
+
+    """
+
+    config: DiagnoseConfig = field(default_factory=DiagnoseConfig)
+    reference_field_enu_nT: tuple[float, float, float] | None = None
+    max_gap_s: float | None = None
+
+    requires: ClassVar[frozenset[str]] = frozenset({"recording", "aligned", "calibration"})
+    provides: ClassVar[frozenset[str]] = frozenset({"diagnosis", "calibration", "restored"})
+
+    def run(self, ctx: Context) -> Context:
+        """Diagnose ``ctx.recording``; the final model replaces ``ctx.calibration``."""
+        rec, al = ctx.need_recording(), ctx.need_aligned()
+        data = fit_data_from(
+            rec, al, reference_field_enu_nT=self.reference_field_enu_nT,
+            max_samples=self.config.max_samples,
+        )
+        init = None
+        cal = ctx.calibration
+        if cal is not None:
+            init = ModelState(np.asarray(cal.R_body_mag), np.asarray(cal.B_enu_nT))
+        diag, res = diagnose_data(data, init, self.config, turntable=rec.turntable is not None)
+        data = dataclasses.replace(data, noise_model=res.noise_model)
+        sh = detect_sample_hold(rec.mag.t_ns, rec.mag.values)
+        extra: dict[str, Any] = {}
+        if sh is not None:
+            out = sample_hold_finding(diag, res, data, rec, al, sh, self.config,
+                                      reference_field_enu_nT=self.reference_field_enu_nT)
+            if out is not None:
+                diag, res, data = out
+                extra["sample_hold"] = diag.findings[-1].params
+        final = calibration_from(res, data, diag.findings)
+        if extra:
+            final = dataclasses.replace(final, effects={**(final.effects or {}), **extra})
+        from stages.estimators.checks import apply_split
+
+        split = final_split(res, data)
+        if cal is not None:
+            from stages.estimate import carry_checks
+
+            explained = bool(diag.findings) and (split is None or split.consistent)
+            final = carry_checks(cal, final, explained=explained)
+        if split is not None:
+            final = final.replace(checks={**final.checks, "split_final": split.to_dict()})
+            final = apply_split(final, split, " under the final model")
+        iron = [e for e, _ in diag.not_identifiable if e in ("hard_iron", "soft_iron")]
+        if iron and len(final.unobservable_axes_body) == 0:
+            doubt = (
+                f"the motion cannot determine {' or '.join(x.replace('_', ' ') for x in iron)}"
+                ": the misalignment assumes there is none; a magnetised or soft-magnetic part "
+                "near the sensor would bias it (see the diagnosis)"
+            )
+            final = final.replace(checks={**final.checks, "doubts": list(
+                final.checks.get("doubts", ())) + [doubt]})
+        fit_samples: dict[str, Any] = {"n": len(data), "stride": int(data.stride),
+                                       "of": int(data.n_available or len(data))}
+        if "sample_hold" in extra:
+            fit_samples["note"] = ", sample-and-hold repeats left out"
+        final = final.replace(checks={**final.checks, "fit_samples": fit_samples})
+        restored = None
+        if rec.attitude is not None and len(rec.attitude) >= 2:
+            from stages.restore import restore_samples
+
+            restored = restore_samples(rec, final, max_gap_s=self.max_gap_s)
+            rms = restored.residual_rms_nT
+            if np.isfinite(rms):
+                final = final.replace(residual_rms_nT=rms)
+                diag = dataclasses.replace(diag, final={**diag.final, "residual_rms_nT": rms})
+        # the restore result of the final model goes along: Restore keeps it (same model)
+        return ctx.replace(diagnosis=diag, calibration=final, restored=restored)
+
+
+def finding_figures(diagnosis: Diagnosis, dpi: int = 100) -> list[tuple[str, bytes]]:
+    """One PNG per finding showing its signature in the residual.
+
+    Time offset / eddy currents: residual before against the reading's rate of change.
+    Local effects: residual norm against time with the located windows shaded.
+    Others: residual before and the fitted contribution against time, per axis. Colours
+    and fonts are the report's (:mod:`pipeline.core.style`).
+
+    Returns
+    -------
+    list of (title, png bytes)
+
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    from pipeline.core import style
+
+    out = []
+    for f in diagnosis.findings:
+        s = f.signature
+        if s is None:
+            continue
+        with plt.rc_context(style.rc() | {"savefig.dpi": dpi, "figure.dpi": dpi}):
+            fig, ax = plt.subplots(figsize=(12, 3.8))
+            frame = f.where["frame"]
+            if s.regressor is not None:
+                for i, c in enumerate("xyz"):
+                    ax.plot(s.regressor[:, i], s.residual_before_nT[:, i], ".", ms=2,
+                            alpha=0.4, color=style.AXIS[i], label=f"{frame} {c}")
+                ax.set_xlabel(f"rate of change of the reading ({frame} frame, nT/s)")
+                ax.set_ylabel("residual before (nT)")
+                ax.legend(markerscale=5, ncol=3, loc="upper right")
+            elif f.effect in ("disturbance", "hard_iron_step"):
+                ax.plot(s.t_s, np.linalg.norm(s.residual_before_nT, axis=1), lw=0.7,
+                        color=style.BEFORE, label="|residual| before this term")
+                ax.plot(s.t_s, np.linalg.norm(s.contribution_nT, axis=1), lw=1.6,
+                        color=style.AFTER, label="|fitted term|")
+                for a, b in f.where["windows_s"]:
+                    ax.axvspan(a, b, color=style.EVENT, alpha=0.5, lw=0, zorder=0)
+                h, lab = ax.get_legend_handles_labels()
+                ax.legend(h + [Patch(color=style.EVENT, alpha=0.5)],
+                          lab + ["window found"], loc="upper left", ncol=3)
+                ax.margins(y=0.25)  # room for the key above the curves
+                ax.set_xlabel("time from the first sample (s)")
+                ax.set_ylabel("nT")
+            else:
+                for i, c in enumerate("xyz"):
+                    ax.plot(s.t_s, s.residual_before_nT[:, i], lw=0.5, alpha=0.35,
+                            color=style.AXIS[i], label=f"residual {c}")
+                    ax.plot(s.t_s, s.contribution_nT[:, i], lw=1.6, color=style.AXIS[i],
+                            label=f"fitted term {c}")
+                ax.set_xlabel("time from the first sample (s)")
+                ax.set_ylabel(f"nT ({frame} frame)")
+                ax.legend(ncol=3, loc="upper right")
+            title = style.minus(f"{f.effect}: {_estimate_text(f)}").replace(" uT/m", " \u00b5T/m")
+            ax.set_title(title)
+            fig.tight_layout()
+            buf = io.BytesIO()
+            fig.savefig(buf, format="png")
+            plt.close(fig)
+        out.append((title, buf.getvalue()))
+    return out

@@ -1,0 +1,334 @@
+"""The diagnosis statistics.
+
+Score (Lagrange multiplier) tests of candidate terms at the current fit, robust noise and
+its inflation by residual correlation, BIC with effective samples, held-out time blocks,
+the covariance of a fit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from pipeline.model.solve import gram
+from stages.diagnose.catalogue import EFFECTS
+from stages.diagnose.fit import FitResult, fit
+from stages.diagnose.model import (
+    LOCAL_KINDS,
+    EffectKind,
+    FitData,
+    ModelState,
+    Term,
+    evaluate,
+    sample_weights,
+    term_sigma,
+)
+from stages.diagnose.result import DiagnoseConfig
+
+#: Yaw grid of the search for a position frame rotated about Up (``field_gradient``), deg.
+YAW_GRID_DEG = np.arange(0.0, 360.0, 10.0)
+
+
+def robust_sigma(r: np.ndarray) -> float:
+    """Robust noise scale of residual components: 1.4826 MAD, nT."""
+    x = np.asarray(r).ravel()
+    return float(1.4826 * np.median(np.abs(x - np.median(x)))) + 1e-12
+
+
+def inflation(r: np.ndarray, t_s: np.ndarray, block_s: float = 0.5) -> float:
+    """Variance inflation of the mean from residual correlation (>= 1).
+
+    Attitude noise that is correlated in time makes neighbouring residuals alike; the
+    information per sample is then smaller than white-noise theory says. The ratio of the
+    variance of block means to the variance expected for independent samples measures it.
+    """
+    n = len(t_s)
+    if n < 20:
+        return 1.0
+    dt = float(np.median(np.diff(t_s)))
+    L = max(2, int(round(block_s / max(dt, 1e-9))))
+    nb = n // L
+    if nb < 5:
+        return 1.0
+    x = np.asarray(r)[: nb * L].reshape(nb, L, -1)
+    v = np.var(np.asarray(r)[: nb * L], axis=0)
+    vb = np.var(x.mean(axis=1), axis=0)
+    ratio = float(np.sum(vb * L) / max(np.sum(v), 1e-30))
+    return max(1.0, ratio)
+
+
+@dataclass(frozen=True)
+class ScoreTest:
+    """Score (Lagrange multiplier) test of a candidate term at the current fit.
+
+    Attributes
+    ----------
+    term : Term
+    statistic : float
+        ``g' I_eff^-1 g / sigma^2`` (chi-square with ``k`` dof under the null, white noise).
+    efficiency : float
+        Smallest generalised eigenvalue of ``I_eff`` vs the term's own information (0: fully
+        confounded with parameters already in the model).
+    k : int
+    rot_efficiency : float
+        The same fraction for the rotation ``R_body_mag`` once the term is in the model, when
+        the term at least halves it (else 1): a term that leaves the rotation confounded
+        (below ``CONFOUND_RATIO``) is not admitted, however well it fits.
+    interp_statistic : float
+        The same statistic for the attitude's interpolation error alone
+        (``FitData.interp_error_nT``): a term whose statistic is not well beyond it
+        (``INTERP_MARGIN``) could be the interpolation error and is not named.
+
+    """
+
+    term: Term
+    statistic: float
+    efficiency: float
+    k: int
+    rot_efficiency: float = 1.0
+    interp_statistic: float = 0.0
+
+
+def gradient_candidate(cur: FitResult, data: FitData, sigma: float) -> ScoreTest:
+    """Return the ``field_gradient`` term with the best position-frame yaw and its score test.
+
+    Positions in ENU: yaw 0. Positions in the attitude source's frame (rotated about Up by an
+    unknown angle): the Jacobian columns are ``cos(a) A + sin(a) B + C`` in the yaw ``a``, so
+    three evaluations give them for every yaw; the score statistic is maximised over a
+    10-degree grid and refined by a parabola through the best grid point. The yaw is then
+    held (like the window of a local term); the search costs about one degree of freedom,
+    well inside the BIC margin.
+    """
+    if data.position_frame != "attitude_source_local":
+        return score_test(cur, Term(EffectKind.FIELD_GRADIENT), data, sigma)
+    p0 = cur.state.n_params()
+    cols = []
+    for yaw in (0.0, np.pi / 2, np.pi):
+        ev = evaluate(cur.state.with_term(Term(EffectKind.FIELD_GRADIENT, yaw_rad=yaw)), data)
+        J = ev.jac if ev.sqrt_w is None else ev.jac * ev.sqrt_w[:, None, None]
+        cols.append(J.reshape(-1, J.shape[-1]))
+    Jb = cols[0][:, :p0]
+    C = 0.5 * (cols[0][:, p0:] + cols[2][:, p0:])
+    A = 0.5 * (cols[0][:, p0:] - cols[2][:, p0:])
+    Bm = cols[1][:, p0:] - C
+
+    def at(deg: float) -> ScoreTest:
+        a = np.radians(deg)
+        J = np.concatenate([Jb, np.cos(a) * A + np.sin(a) * Bm + C], axis=1)
+        return _score_from_J(cur, Term(EffectKind.FIELD_GRADIENT, yaw_rad=float(a)), J, data,
+                             sigma)
+
+    tests = [at(d) for d in YAW_GRID_DEG]
+    stats = np.array([t.statistic for t in tests])
+    i = int(np.argmax(stats))
+    s_m, s_0, s_p = stats[i - 1], stats[i], stats[(i + 1) % len(stats)]
+    den = s_m - 2 * s_0 + s_p
+    step = float(YAW_GRID_DEG[1] - YAW_GRID_DEG[0])
+    shift = 0.5 * (s_m - s_p) / den * step if den < 0 else 0.0
+    best = at(float(YAW_GRID_DEG[i]) + float(np.clip(shift, -step, step)))
+    return best if best.statistic >= tests[i].statistic else tests[i]
+
+
+def score_test(cur: FitResult, term: Term, data: FitData, sigma: float) -> ScoreTest:
+    """Score test of adding ``term`` to the model of ``cur`` (no refit)."""
+    st = cur.state.with_term(term)
+    ev = evaluate(st, data)
+    J = ev.jac if ev.sqrt_w is None else ev.jac * ev.sqrt_w[:, None, None]
+    return _score_from_J(cur, term, J.reshape(-1, J.shape[-1]), data, sigma)
+
+
+def _score_from_J(
+    cur: FitResult, term: Term, J: np.ndarray, data: FitData, sigma: float
+) -> ScoreTest:
+    """Score test from the Jacobian (3N, P) of the model with ``term`` appended."""
+    r = cur.residual_nT.reshape(-1)
+    p0 = cur.state.n_params()
+    if data.B_known_enu_nT is not None:
+        keep = np.r_[0:3, 6:p0]
+    else:
+        keep = np.arange(p0)
+    Jb, Jc = J[:, keep], J[:, p0:]
+    Hbb, Hbc, Hcc = gram(Jb, Jb), gram(Jb, Jc), gram(Jc, Jc)
+    g = gram(Jc, r[:, None])[:, 0]
+    gb = gram(Jb, r[:, None])[:, 0]  # ~0 at a converged fit; kept for exactness
+    sb = np.sqrt(np.clip(np.diag(Hbb), 1e-30, None))
+    Hbb_n = Hbb / np.outer(sb, sb)
+    try:
+        X = np.linalg.lstsq(Hbb_n + 1e-12 * np.eye(len(sb)), (Hbc / sb[:, None]), rcond=None)[0]
+        xb = np.linalg.lstsq(Hbb_n + 1e-12 * np.eye(len(sb)), gb / sb, rcond=None)[0]
+    except np.linalg.LinAlgError:
+        return ScoreTest(term, 0.0, 0.0, term.n_params())
+    Ieff = Hcc - (Hbc / sb[:, None]).T @ X
+    geff = g - (Hbc / sb[:, None]).T @ xb
+    sc = np.sqrt(np.clip(np.diag(Hcc), 1e-30, None))
+    In = Ieff / np.outer(sc, sc)
+    In = 0.5 * (In + In.T)
+    ev_all = np.linalg.eigvalsh(In)
+    Hn = Hcc / np.outer(sc, sc)
+    try:
+        Lc = np.linalg.cholesky(0.5 * (Hn + Hn.T) + 1e-12 * np.eye(len(sc)))
+        Li = np.linalg.inv(Lc)
+        effs = np.linalg.eigvalsh(Li @ In @ Li.T)
+    except np.linalg.LinAlgError:
+        effs = ev_all
+    # e.g. a tilted turntable axis with a known field (see EffectInfo.identifiable_in_part)
+    partial = EFFECTS[term.kind].identifiable_in_part
+    eff = float(effs[-1] if partial else effs[0])
+    # pseudo-inverse with a relative floor: confounded directions carry no evidence
+    w, V = np.linalg.eigh(In)
+    good = w > 1e-8 * max(float(w[-1]), 1e-30)
+    z = V.T @ (geff / sc)
+    stat = float(np.sum(z[good] ** 2 / w[good])) / sigma**2
+    stat_int = 0.0
+    if data.interp_error_nT is not None:
+        # the same statistic for what the interpolation error alone leaves (weighted as r)
+        sw = sample_weights(data, cur.state.tau_s())
+        e = data.interp_error_nT if sw is None else data.interp_error_nT * np.sqrt(sw)[:, None]
+        e = e.reshape(-1)
+        ge = gram(Jc, e[:, None])[:, 0]
+        gbe = gram(Jb, e[:, None])[:, 0]
+        xbe = np.linalg.lstsq(Hbb_n + 1e-12 * np.eye(len(sb)), gbe / sb, rcond=None)[0]
+        ze = V.T @ ((ge - (Hbc / sb[:, None]).T @ xbe) / sc)
+        stat_int = float(np.sum(ze[good] ** 2 / w[good])) / sigma**2
+    k = int(np.count_nonzero(good)) if partial else term.n_params()
+    rot_with = _rot_efficiency(np.concatenate([Jb, Jc], 1))
+    rot_base = _rot_efficiency(Jb)
+    # what the term itself costs the rotation: below 1 when it trades against R
+    rot_eff = rot_with if rot_with < 0.5 * rot_base else 1.0
+    return ScoreTest(term, stat, max(eff, 0.0), max(k, 1), rot_eff, stat_int)
+
+
+#: A term is named only when its score statistic exceeds this factor squared times the one
+#: of the attitude's interpolation error alone (its amplitude three times that error's).
+INTERP_MARGIN = 3.0
+
+
+def interp_reason(data: FitData) -> str:
+    """Why a term the interpolation error could produce is not named, in words."""
+    rate = 1.0 / max(data.track.step_s, 1e-9)
+    rms = float(np.sqrt(np.mean(np.asarray(data.interp_error_nT) ** 2)))
+    return (f"the attitude at {rate:.3g} Hz is too slow for this motion: its own "
+            f"interpolation error (about {rms:.3g} nT RMS at the magnetometer) could produce "
+            "this term; record the attitude faster or move more slowly")
+
+
+def _rot_efficiency(J: np.ndarray) -> float:
+    """Fraction of the rotation's weakest information left with the other columns free."""
+    from stages.estimators.base import RELATIVE_INFO_THRESHOLD, analyse
+
+    lam = analyse(gram(J, J), {"rot": slice(0, 3)}).block_ratio["rot"]
+    live = lam[lam >= RELATIVE_INFO_THRESHOLD]
+    return float(np.min(live)) if live.size else 1.0
+
+
+def fold_of(t_s: np.ndarray, cfg: DiagnoseConfig) -> np.ndarray:
+    """Fold index of each sample: contiguous blocks of ``block_s`` dealt round-robin."""
+    blocks = np.floor((t_s - t_s[0]) / cfg.block_s).astype(np.int64)
+    return blocks % cfg.n_folds
+
+
+def heldout_rms(state: ModelState, data: FitData, cfg: DiagnoseConfig) -> float:
+    """RMS prediction error on held-out time blocks, nT.
+
+    Each fold is refitted from the current state with the values of local terms reset to
+    zero (so a window's amplitude is learnt only from training samples), then predicts the
+    held-out blocks. Random samples are never held out: neighbouring samples share
+    attitude noise and would leak.
+    """
+    folds = fold_of(data.t_s, cfg)
+    sq, cnt = 0.0, 0
+    start = dataclasses.replace(
+        state,
+        values=tuple(
+            np.zeros_like(v) if t.kind in LOCAL_KINDS else v
+            for t, v in zip(state.terms, state.values, strict=True)
+        ),
+    )
+    for j in range(cfg.n_folds):
+        test = folds == j
+        if test.sum() == 0 or (~test).sum() < 10:
+            continue
+        res = fit(start, data.subset(~test), max_iter=6, rtol=1e-6)
+        pred = evaluate(res.state, data.subset(test), jacobian=False).y_nT
+        e = data.y_nT[test] - pred
+        sq += float(np.sum(e * e))
+        cnt += e.size
+    return float(np.sqrt(sq / max(cnt, 1)))
+
+
+def _bic(rss: float, n_eff: float, k: int) -> float:
+    return n_eff * np.log(rss / n_eff) + k * np.log(n_eff)
+
+
+def _n_eff(res: FitResult, data: FitData) -> float:
+    return res.residual_nT.size / inflation(res.residual_nT, data.t_s)
+
+
+def _bic_between(a: FitResult, b: FitResult, data: FitData) -> float:
+    """BIC of fit ``a`` minus BIC of fit ``b``, both with one effective sample count.
+
+    Each candidate's delta BIC is discounted by the correlation of its own residual; two
+    candidates are compared with the smaller of their two counts (the conservative one), so
+    the difference measures their fits and parameter counts, not their residuals' texture.
+    """
+    n = min(_n_eff(a, data), _n_eff(b, data))
+    return _bic(a.rss, n, a.state.n_params()) - _bic(b.rss, n, b.state.n_params())
+
+
+#: Orthonormal basis (8, 9) of the traceless 3x3 matrices, row-major: the part of ``E_s``
+#: that a time offset (``E_s = -tau I``, CONVENTIONS eddy_current) cannot produce.
+_TRACELESS = np.array(
+    [np.eye(3)[i][:, None] @ np.eye(3)[j][None, :] for i in range(3) for j in range(3)
+     if i != j]
+    + [np.diag([1.0, -1.0, 0.0]) / np.sqrt(2.0), np.diag([1.0, 1.0, -2.0]) / np.sqrt(6.0)]
+).reshape(8, 9)
+
+
+#: The isotropic direction of ``E_s`` (row-major), unit length.
+_ISO = np.eye(3).ravel() / np.sqrt(3.0)
+
+
+def anisotropic_eddy_test(cur: FitResult, data: FitData, sigma: float) -> ScoreTest:
+    """Score test of the anisotropic part of ``eddy_current`` with a time offset in the model.
+
+    The isotropic part of ``E_s`` is the time offset's (``E_s = -tau I`` to first order): with
+    ``time_offset`` in the model the eddy term is tested on the 8 traceless directions only,
+    so the nested simpler term keeps what it explains and the eddy term is admitted only for
+    what it cannot (issue 15). ``k`` stays 9 (conservative).
+    """
+    term = Term(EffectKind.EDDY_CURRENT)
+    ev = evaluate(cur.state.with_term(term), data)
+    J = ev.jac.reshape(-1, ev.jac.shape[-1])
+    p0 = cur.state.n_params()
+    Jt = np.concatenate([J[:, :p0], J[:, p0:] @ _TRACELESS.T], axis=1)
+    return _score_from_J(cur, term, Jt, data, sigma)
+
+
+def _covariance(res: FitResult, data: FitData) -> np.ndarray:
+    """Parameter covariance: ``s^2 (J'J)^-1`` times the residual-correlation inflation."""
+    P = res.info.shape[0]
+    dof = max(res.residual_nT.size - P, 1)
+    s2 = res.rss / dof * inflation(res.residual_nT, data.t_s)
+    H = res.info.copy()
+    if data.B_known_enu_nT is not None:
+        H[3:6, :] = 0.0
+        H[:, 3:6] = 0.0
+        H[3:6, 3:6] = np.eye(3)
+    kinds = [t.kind for t in res.state.terms]
+    if EffectKind.TIME_OFFSET in kinds and EffectKind.EDDY_CURRENT in kinds:
+        # tr(E_s) = 0 (canonical_rate_terms): the shared direction belongs to tau
+        o = res.state.offsets()[kinds.index(EffectKind.EDDY_CURRENT)]
+        a = np.zeros(P)
+        a[o : o + 9] = _ISO
+        H = H + float(np.max(np.diag(H))) * np.outer(a, a)
+    return s2 * np.linalg.pinv(H, rcond=1e-13)
+
+
+def _sigma_for(res: FitResult, i: int, cov: np.ndarray, data: FitData) -> dict[str, Any]:
+    term = res.state.terms[i]
+    o = res.state.offsets()[i]
+    blk = cov[o : o + term.n_params(), o : o + term.n_params()]
+    return term_sigma(term, blk, res.state, data)

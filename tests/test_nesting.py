@@ -1,0 +1,69 @@
+"""Time offset nested in eddy currents (issue 15 E): the simpler term wins.
+
+A time offset is the isotropic eddy term ``E_s = -tau I`` to first order. When a time offset
+explains the data it is reported as ``time_offset``; ``eddy_current`` only for what a time
+offset cannot explain (its anisotropic, traceless part).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from _diag_sim import make_data
+from indep_gen import Spec, write
+
+from pipeline.app.commands.diagnose import diagnose_file
+from stages.diagnose.model import EffectKind as K
+from stages.diagnose.model import Term
+from stages.diagnose.search import diagnose_data
+
+
+def _close(est, true, sig, rel=0.1):
+    est, true, sig = (np.asarray(x, dtype=float) for x in (est, true, sig))
+    return bool(np.all(np.abs(est - true) <= np.maximum(3 * sig, rel * np.max(np.abs(true)))))
+
+
+def test_time_offset_and_anisotropic_eddy_both_reported_split_canonically():
+    E = np.diag([0.003, -0.003, 0.0])
+    data, _ = make_data((Term(K.TIME_OFFSET), Term(K.EDDY_CURRENT)),
+                        (np.array([0.01]), E.ravel()), duration_s=60.0, noise_nT=2.0, seed=11)
+    diag, _ = diagnose_data(data)
+    f = {x.effect: x for x in diag.findings}
+    assert set(f) == {"time_offset", "eddy_current"}
+    assert _close(f["time_offset"].params["time_offset_s"], 0.01,
+                  f["time_offset"].sigma["time_offset_s"])
+    Ef = np.asarray(f["eddy_current"].params["E_s"])
+    assert abs(np.trace(Ef)) < 1e-9  # the isotropic part is the time offset's
+    assert _close(Ef, E, f["eddy_current"].sigma["E_s"])
+
+
+def test_purely_anisotropic_eddy_is_not_a_time_offset():
+    E = np.diag([0.004, -0.004, 0.0])
+    data, _ = make_data((Term(K.EDDY_CURRENT),), (E.ravel(),), duration_s=60.0, noise_nT=2.0,
+                        seed=11)
+    diag, _ = diagnose_data(data)
+    assert [x.effect for x in diag.findings] == ["eddy_current"]
+
+
+@pytest.mark.parametrize("tau_s", [-0.007, 0.04])
+def test_time_offset_alone_is_not_eddy(tau_s):
+    data, _ = make_data((Term(K.TIME_OFFSET),), (np.array([tau_s]),), duration_s=60.0,
+                        noise_nT=2.0, seed=12)
+    diag, _ = diagnose_data(data)
+    assert [x.effect for x in diag.findings] == ["time_offset"]
+
+
+@pytest.mark.parametrize("tau_s", [0.1, -0.1])
+def test_independent_large_lag_fast_rotation(tmp_path: Path, tau_s):
+    # +-100 ms at up to ~5 rad/s (swings of 25 deg at 1.2-1.5 Hz), mag 100 Hz, attitude 50 Hz:
+    # one time_offset, nothing else (no step at the ends where t - tau leaves the track)
+    s = Spec(name="lag", seed=41, duration_s=30.0, mag_rate_hz=100.0, att_rate_hz=50.0,
+             att_phase_s=0.005, freqs_hz=(1.2, 1.5, 1.3), amps_deg=(25.0, 25.0, 25.0),
+             effects={"time_offset": {"time_offset_s": tau_s}})
+    ctx = diagnose_file(write(s, tmp_path / "lag.mcap"))
+    f = {x.effect: x for x in ctx.diagnosis.findings}
+    assert set(f) == {"time_offset"}
+    assert _close(f["time_offset"].params["time_offset_s"], tau_s,
+                  f["time_offset"].sigma["time_offset_s"])
