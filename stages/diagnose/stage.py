@@ -163,7 +163,7 @@ def sample_hold_finding(
     the conversions re-stamped on the sensor's native grid (``SampleHold.t_sensed_ns``). The
     better one is kept; without it (the messages fitted and predicted at their own stamps)
     is the final model of ``diag``. The finding is added when the handling lowers
-    the held-out error; its evidence is the change of the in-sample and held-out RMS over the
+    the held-out error by ``heldout_margin`` (as every finding); its evidence is the change of the in-sample and held-out RMS over the
     same messages.
 
     Returns
@@ -199,7 +199,8 @@ def sample_hold_finding(
             best = (cv, name, train, test)
     # the same blocks as the handled variants and as diag.final's held-out error
     cv_old = _heldout_split(res.state, data, data, cfg, float(data.t_s[0]))
-    if best is None or not best[0] < cv_old:
+    # the same rule as every other finding: the held-out error must fall by heldout_margin
+    if best is None or not best[0] < cv_old * (1.0 - cfg.heldout_margin):
         return None
     cv_new, name, train, test = best
     res_h = fit(res.state, train)
