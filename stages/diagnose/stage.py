@@ -162,9 +162,9 @@ def sample_hold_finding(
     message is predicted at the stamp of the first copy of its conversion; (b) as (a), with
     the conversions re-stamped on the sensor's native grid (``SampleHold.t_sensed_ns``). The
     better one is kept; without it (the messages fitted and predicted at their own stamps)
-    is the final model of ``diag``. The finding is added when the handling lowers
-    the held-out error by ``heldout_margin`` (as every finding); its evidence is the change of the in-sample and held-out RMS over the
-    same messages.
+    is the final model of ``diag``. The finding is added when the handling lowers the
+    held-out error by ``heldout_margin`` (as every finding); its evidence is the change of
+    the in-sample and held-out RMS over the same messages.
 
     Returns
     -------
