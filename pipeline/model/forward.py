@@ -192,9 +192,9 @@ def reading(Ct: F64, field_nT: F64, R_body_mag: F64, D: F64 | None = None,
     ----------
     Ct : ndarray (N, 3, 3)
         ``C_enu_body(t - tau).T``, the attitude at the sensing time.
-    field_nT : ndarray (N, 3)
+    field_nT : ndarray (N, 3) or (3,)
         The field the attitude source sees, ``B'(t)`` of (M1)-(M1h), ENU (the diagnosis'
-        ``axis_tilt`` turns it further).
+        ``axis_tilt`` turns it further); (3,): constant (``B_enu`` alone, the estimators).
     R_body_mag : ndarray (3, 3)
         ``R`` of (M3).
     D : ndarray (3, 3) or None
@@ -208,11 +208,11 @@ def reading(Ct: F64, field_nT: F64, R_body_mag: F64, D: F64 | None = None,
 
     """
     R = np.asarray(R_body_mag)
-    b = _mv(Ct, field_nT)  # (M2)
+    b = _field_in(Ct, field_nT)  # (M2)
     m = b @ R  # (M3): rows R.T @ b
     y0 = m if D is None else m @ np.asarray(D).T  # (M4)
     if Cdot_t is not None:
-        bdot = _mv(Cdot_t, field_nT)
+        bdot = _field_in(Cdot_t, field_nT)
         mdot = bdot @ R
         ydot0 = mdot if D is None else mdot @ np.asarray(D).T
     else:
@@ -225,6 +225,14 @@ def reading(Ct: F64, field_nT: F64, R_body_mag: F64, D: F64 | None = None,
     return Reading(y, y0, b, m, bdot, mdot, ydot0)
 
 
+def _field_in(M: F64, field_nT: F64) -> F64:
+    """Rows ``M_i @ B_i``; a constant field (3,) as three fused column sums (no batched matmul)."""
+    f = np.asarray(field_nT)
+    if f.ndim == 1:
+        return cast(F64, M[:, :, 0] * f[0] + M[:, :, 1] * f[1] + M[:, :, 2] * f[2])
+    return _mv(M, f)
+
+
 def field_jacobian(Ct: F64, R_body_mag: F64, D: F64 | None = None, E_s: F64 | None = None,
                    Cdot_t: F64 | None = None) -> F64:
     """(J2): ``dy/dB' = D R.T C.T + E_s D R.T C'.T`` (N, 3, 3), per sample."""
@@ -235,15 +243,17 @@ def field_jacobian(Ct: F64, R_body_mag: F64, D: F64 | None = None, E_s: F64 | No
     return G
 
 
-def time_offset_jacobian(omega_body_rad_s: F64, b_body_nT: F64, bddot_nT_s2: F64,
+def time_offset_jacobian(omega_body_rad_s: F64, b_body_nT: F64, bddot_nT_s2: F64 | None,
                          R_body_mag: F64, D: F64 | None = None, E_s: F64 | None = None) -> F64:
     """(J5): ``dy/dtau = D R.T (omega_body x b) - E_s D R.T C''.T B'`` (N, 3), per s.
 
-    ``bddot_nT_s2`` is ``C''.T B'`` (:func:`rate_matrices`).
+    ``bddot_nT_s2`` is ``C''.T B'`` (:func:`rate_matrices`; unused without ``E_s``).
     """
     DRt = np.asarray(R_body_mag).T if D is None else np.asarray(D) @ np.asarray(R_body_mag).T
-    E = np.zeros((3, 3)) if E_s is None else np.asarray(E_s)
-    return cast(F64, np.cross(omega_body_rad_s, b_body_nT) @ DRt.T - (bddot_nT_s2 @ DRt.T) @ E.T)
+    J = np.cross(omega_body_rad_s, b_body_nT) @ DRt.T
+    if E_s is None or bddot_nT_s2 is None:
+        return cast(F64, J)
+    return cast(F64, J - (bddot_nT_s2 @ DRt.T) @ np.asarray(E_s).T)
 
 
 def soft_iron_jacobian(basis: F64, m_nT: F64, mdot_nT_s: F64, E_s: F64 | None = None) -> F64:
