@@ -9,13 +9,15 @@ Wright 2006, Sect. 10.3)::
     (J^T W J + lambda diag(J^T W J)) dx = J^T W r
 
 accepts ``dx`` when the cost does not increase (then ``lambda <- lambda / 4``), else
-``lambda <- 5 lambda`` and tries again; stops when the relative decrease of the cost falls
-below ``rtol``, when the caller's ``converged`` says so, or when no step decreases it.
+``lambda <- 5 lambda`` and tries again (the schedule is a parameter); stops when the
+relative decrease of the cost falls below ``rtol``, when the caller's ``converged`` says
+so, or when no step decreases it.
 
 Its users: the diagnosis fit (:func:`levenberg_marquardt`, unweighted rows, the Jacobian of
 :func:`stages.diagnose.model.evaluate`), the ML estimator (:mod:`stages.estimators.ml`:
 per-sample weights, IRLS outside, steps by a truncated pseudo-inverse, a stop in units of
-the parameters' sigmas).
+the parameters' sigmas), the streaming estimator (:mod:`stages.estimators.streaming`: the
+normal equations from sufficient statistics, its own damping schedule).
 """
 
 from __future__ import annotations
@@ -120,6 +122,9 @@ def minimise(
     accept_atol: float = 0.0,
     max_tries: int = 12,
     relinearise_last: bool = True,
+    lam_up: float = 5.0,
+    lam_down: float = 4.0,
+    lam_min: float = 1e-9,
 ) -> Minimum:
     """Minimise by damped Gauss-Newton (module docstring): THE core every fit of the model runs.
 
@@ -149,6 +154,9 @@ def minimise(
     relinearise_last : bool
         False: the normal equations returned are those the last step was solved from (at
         most a negligible step away), saving one linearisation at the final state.
+    lam_up, lam_down, lam_min : float
+        The damping schedule: times ``lam_up`` after a rejected step, divided by ``lam_down``
+        (not below ``lam_min``) after an accepted one.
 
     """
     cur = _with_normal(linearise, state)
@@ -171,12 +179,12 @@ def minimise(
             if np.isfinite(c) and c <= cur.cost * (1.0 + accept_rtol) + accept_atol:
                 step_ok = True
                 break
-            lam *= 5.0
+            lam *= lam_up
         if not step_ok:
             break
         rel = (cur.cost - c) / max(cur.cost, 1e-30)
         state, before = cand, cur
-        lam = max(lam / 4.0, 1e-9)
+        lam = max(lam / lam_down, lam_min)
         stop = rel < rtol or (converged is not None and converged(before, at_cand, dx))
         if stop and not relinearise_last:
             cur = Linearised(c, before.H, before.g, at_cand.aux)
