@@ -43,6 +43,15 @@ Sect. III, right plus; the Jacobian of the action ``R.T v`` follows from
 where ``omega_body`` is the angular velocity of the interpolated attitude at ``t - tau`` (exact,
 (A6) there): ``d/dt C.T B = -omega x (C.T B)``, so ``d b(t - tau)/dtau = omega x b``. The
 columns are checked against finite differences in ``tests/test_model.py``.
+
+Who computes what: :func:`reading` is (M2)-(M5) from the pieces (attitude matrices at
+``t - tau``, the field ``B'(t)``, the sensor terms) and returns the intermediate quantities
+(``b``, ``m``, ``C'.T B'``, ``ydot0``); :func:`evaluate` (calibration, restore), the
+diagnosis (:func:`stages.diagnose.model.evaluate`), the ML estimator
+(:class:`stages.estimators.ml.Model`), the axis-tilt fit and the simulator's fast path all
+call it. :func:`field_jacobian` (J2), :func:`soft_iron_jacobian` (J4) and
+:func:`time_offset_jacobian` (J5) serve :func:`jacobian`, the diagnosis and the ML estimator;
+(J1) differs by the side of the rotation's perturbation and stays with each.
 """
 
 from __future__ import annotations
@@ -130,21 +139,6 @@ def in_windows(t_s: F64, windows_s: Any) -> np.ndarray:
     for a, b in windows_s or ():
         out |= (t >= float(a)) & (t < float(b))
     return out
-
-
-def sensor_reading(b_body_nT: F64, R_body_mag: F64, D: F64 | None = None,
-                   offset_nT: F64 | None = None) -> F64:
-    """(M3)-(M4) and the offset: ``D @ R_body_mag.T @ b + o`` for each row of ``b`` (N, 3), nT.
-
-    The one place the sensor terms act on the body-frame field: :func:`evaluate` and the ML
-    estimator's inner loop (:class:`stages.estimators.ml.Model`) both call it.
-    """
-    y = np.asarray(b_body_nT, dtype=float) @ np.asarray(R_body_mag)  # rows R.T @ b
-    if D is not None:
-        y = y @ np.asarray(D).T
-    if offset_nT is not None:
-        y = y + offset_nT
-    return y
 
 
 def _mv(M: F64, v: F64) -> F64:

@@ -1,20 +1,31 @@
 """The effect library: every physical effect ``diagnose`` can add to the forward model.
 
-Forward model (CONVENTIONS, "Measurement model"), one magnetometer sample stamped ``t``::
+Forward model: (M1)-(M5) of :mod:`pipeline.model.forward` (CONVENTIONS, "Measurement
+model"), one magnetometer sample stamped ``t``::
 
-    b(t)   = C_enu_body(t - tau).T @ T.T @ (B_enu + F(t))      body frame, nT
-    m(t)   = R_body_mag.T @ b(t)                               mag frame, nT
-    y0(t)  = D @ m(t)
-    y(t)   = y0(t) + o + o_step * 1[t in windows] + E_s @ dy0/dt
+    b(t)   = C_enu_body(t - tau).T @ T.T @ (B_enu + F(t))      (M1)-(M2), body frame, nT
+    m(t)   = R_body_mag.T @ b(t)                               (M3), mag frame, nT
+    y0(t)  = D @ m(t)                                          (M4)
+    y(t)   = y0(t) + o + o_step * 1[t in windows] + E_s @ dy0/dt   (M5)
 
 with ``F(t)`` the ENU field terms (``field_drift``, ``disturbance``, ``field_gradient``:
-``G (p(t) - p_ref)`` with ``p`` the attitude source's position), ``T`` the turntable-axis
-tilt (``axis_tilt``), ``D = I + S`` (``soft_iron``, ``S`` symmetric and traceless because the
-isotropic scale of ``D`` is the field magnitude when ``B_enu`` is estimated), ``o``
-(``hard_iron``), ``o_step`` (``hard_iron_step``), ``E_s`` (``eddy_current``). ``dy0/dt`` is the
-rate of change of the undisturbed reading caused by the rotation of the platform (the field
-the airframe sees changing), so that a time offset is exactly the isotropic special case
-``E_s = -tau I`` to first order.
+``G (p(t) - p_ref)`` with ``p`` the attitude source's position; ``heading_drift`` turns the
+field about Up, (M1h)), ``T`` the turntable-axis tilt (``axis_tilt``, the diagnosis' own
+term), ``D = I + S`` (``soft_iron``, ``S`` symmetric and traceless because the isotropic
+scale of ``D`` is the field magnitude when ``B_enu`` is estimated), ``o`` (``hard_iron``),
+``o_step`` (``hard_iron_step``), ``E_s`` (``eddy_current``). ``dy0/dt`` is the rate of change
+of the undisturbed reading caused by the rotation of the platform (the field the airframe
+sees changing), so that a time offset is exactly the isotropic special case ``E_s = -tau I``
+to first order.
+
+:func:`evaluate` builds the pieces (``C.T`` and its central differences, cached over a fit;
+the field with every term; the sensor offsets in term order) and hands them to
+:func:`pipeline.model.forward.reading`, which computes (M2)-(M5) for it and for the
+calibration's :func:`pipeline.model.forward.evaluate`; the Jacobian blocks they share are
+:func:`pipeline.model.forward.field_jacobian` (J2),
+:func:`~pipeline.model.forward.soft_iron_jacobian` (J4) and
+:func:`~pipeline.model.forward.time_offset_jacobian` (J5); the columns of the
+diagnosis' own terms (drift, disturbance, gradient, heading, tilt, steps, eddy) are here.
 
 The baseline model is ``R_body_mag`` and ``B_enu`` only. Every other term is an
 :class:`Effect`; each has its parameters, its contribution to the predicted reading, its
@@ -22,8 +33,9 @@ analytic Jacobian (checked numerically in ``tests/test_effects.py``), a physical
 and an identifiability condition computed from the data.
 
 Parameter vector layout: ``[dR (3), B (3), term_1 (k_1), term_2 (k_2), ...]``. ``dR`` and the
-tilt of ``axis_tilt`` are left perturbations on SO(3) (``R <- exp([dR]x) R``), so the Jacobian
-columns are evaluated at zero perturbation and the state stores the rotation matrices.
+tilt of ``axis_tilt`` are left perturbations on SO(3) (``R <- exp([dR]x) R``; (J1) of the
+forward model is the right one), so the Jacobian columns are evaluated at zero perturbation
+and the state stores the rotation matrices.
 """
 
 from __future__ import annotations
