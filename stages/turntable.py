@@ -45,6 +45,7 @@ from pipeline.core.geometry import (
     quat_conj,
     quat_mul,
     quat_rotate,
+    quat_to_matrix,
     rotvec_to_quat,
     so3_exp,
 )
@@ -55,6 +56,7 @@ from pipeline.core.recording import (
     Recording,
     Role,
 )
+from pipeline.model.forward import reading
 from pipeline.model.tang import (
     axis_angle_quat,
     heading_error_stats,
@@ -451,9 +453,11 @@ def fit_axis_tilt(
         return Rx, Bx, x[n_r + n_b :]
 
     def predict(x: F64) -> F64:
+        # (M2)-(M3) of THE forward model with the tilted turntable attitude
         Rx, Bx, lean = unpack(x)
         q_true = quat_mul(_tilt_quat_vec(lean, n_enu), q_nom)
-        return b_body(q_true, Bx) @ Rx  # R.T @ b per row
+        Ct = np.swapaxes(quat_to_matrix(q_true), -1, -2)
+        return reading(Ct, Bx, Rx).y_nT
 
     x0 = np.concatenate([np.zeros(n_r), (B if not B_known else np.zeros(0)), np.zeros(2)])
     r0 = (predict(x0) - yk).ravel()

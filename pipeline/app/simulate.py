@@ -64,6 +64,7 @@ from pipeline.core.recording import (
     Role,
     VectorSeries,
 )
+from pipeline.model.forward import reading
 from schemas import MessageRole, types_of
 
 F64 = NDArray[np.float64]
@@ -1090,22 +1091,29 @@ class _Model:
         return B
 
     def y(self, t_s: F64) -> F64:
-        """``D R.T C(t - tau).T B(t) + o + step(t)`` (CONVENTIONS model without eddy/noise)."""
-        C = self.C_enu_body(t_s - self.tau)
-        b_body = np.einsum("nji,nj->ni", C, self.B_enu(t_s))  # C.T @ B
-        y = b_body @ self.R  # (R.T @ b)^T = b^T R
-        if self.D is not None:
-            y = y @ self.D.T
-        if self.o is not None:
-            y = y + self.o
+        """``D R.T C(t - tau).T B(t) + o + step(t)``: (M2)-(M5) without the eddy term.
+
+        Computed by THE forward model (:func:`pipeline.model.forward.reading`) from the
+        scenario's own pieces: the analytic motion at ``t - tau`` (not interpolated), the
+        field with its drift, gradient and disturbance bells, and the hard-iron steps with
+        their raised-cosine edges. The independent implementation of the same model is the
+        test oracle ``tests/indep_gen.py``.
+        """
+        Ct = np.swapaxes(self.C_enu_body(t_s - self.tau), -1, -2)
+        offsets = [] if self.o is None else [self.o]
         step = self.sc.effects.hard_iron_step
         if step is not None:
-            y = y + _gates(t_s - self.t0, step.windows_s, step.edge_s)[:, None] * np.array(
-                step.offset_nT)
-        return y
+            offsets.append(_gates(t_s - self.t0, step.windows_s, step.edge_s)[:, None]
+                           * np.array(step.offset_nT))
+        return reading(Ct, self.B_enu(t_s), self.R, self.D, offsets).y_nT
 
     def y_full(self, t_s: F64) -> F64:
-        """Model with the eddy-current term ``E_s @ d/dt(y)`` (central difference)."""
+        """Model with the eddy-current term ``E_s @ d/dt(y)`` of (M5).
+
+        The rate is the central difference of the whole noise-free reading (step
+        :data:`_EDDY_STEP_S`, on the analytic motion); the forward model's regressor ``ydot0``
+        (rotation alone, on the interpolated attitude) approximates it.
+        """
         y = self.y(t_s)
         ed = self.sc.effects.eddy_current
         if ed is not None:

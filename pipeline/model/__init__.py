@@ -1,8 +1,11 @@
 """The one measurement model of magalign (CONVENTIONS, "Measurement model").
 
-- :mod:`pipeline.model.attitude`: THE attitude interpolator (SLERP with the gap rule).
-- :mod:`pipeline.model.forward`: prediction, Jacobian and restore (inverse).
-- :mod:`pipeline.model.solve`: THE damped Gauss-Newton core.
+- :mod:`pipeline.model.attitude`: THE attitude interpolator (C1 cubic on SO(3) with the gap
+  rule).
+- :mod:`pipeline.model.forward`: prediction ((M1)-(M5); ``reading`` computes (M2)-(M5) for
+  every caller), Jacobian ((J1)-(J5)) and restore ((M6), the inverse).
+- :mod:`pipeline.model.solve`: THE damped Gauss-Newton core (``minimise``), run by the
+  diagnosis, the ML and the streaming estimators.
 - :mod:`pipeline.model.calibration`: ``Calibration``, the fitted value (predicts and restores
   through the forward model); :mod:`pipeline.model.tang`, :mod:`pipeline.model.sample_hold`,
   :mod:`pipeline.model.igrf`: the rest of the physics.
@@ -12,8 +15,16 @@ The physics layer: imports ``pipeline.core`` only (docs/architecture.md,
 """
 
 from pipeline.model.attitude import AttitudeInterpolator, auto_max_gap_s, interpolate_attitude
-from pipeline.model.forward import ForwardModel, Restoration, evaluate, jacobian, predict, restore
-from pipeline.model.solve import levenberg_marquardt
+from pipeline.model.forward import (
+    ForwardModel,
+    Restoration,
+    evaluate,
+    jacobian,
+    predict,
+    reading,
+    restore,
+)
+from pipeline.model.solve import levenberg_marquardt, minimise
 
 __all__ = [
     "AttitudeInterpolator",
@@ -24,6 +35,8 @@ __all__ = [
     "interpolate_attitude",
     "jacobian",
     "levenberg_marquardt",
+    "minimise",
     "predict",
+    "reading",
     "restore",
 ]

@@ -43,6 +43,15 @@ Sect. III, right plus; the Jacobian of the action ``R.T v`` follows from
 where ``omega_body`` is the angular velocity of the interpolated attitude at ``t - tau`` (exact,
 (A6) there): ``d/dt C.T B = -omega x (C.T B)``, so ``d b(t - tau)/dtau = omega x b``. The
 columns are checked against finite differences in ``tests/test_model.py``.
+
+Who computes what: :func:`reading` is (M2)-(M5) from the pieces (attitude matrices at
+``t - tau``, the field ``B'(t)``, the sensor terms) and returns the intermediate quantities
+(``b``, ``m``, ``C'.T B'``, ``ydot0``); :func:`evaluate` (calibration, restore), the
+diagnosis (:func:`stages.diagnose.model.evaluate`), the ML estimator
+(:class:`stages.estimators.ml.Model`), the axis-tilt fit and the simulator's fast path all
+call it. :func:`field_jacobian` (J2), :func:`soft_iron_jacobian` (J4) and
+:func:`time_offset_jacobian` (J5) serve :func:`jacobian`, the diagnosis and the ML estimator;
+(J1) differs by the side of the rotation's perturbation and stays with each.
 """
 
 from __future__ import annotations
@@ -132,19 +141,125 @@ def in_windows(t_s: F64, windows_s: Any) -> np.ndarray:
     return out
 
 
-def sensor_reading(b_body_nT: F64, R_body_mag: F64, D: F64 | None = None,
-                   offset_nT: F64 | None = None) -> F64:
-    """(M3)-(M4) and the offset: ``D @ R_body_mag.T @ b + o`` for each row of ``b`` (N, 3), nT.
+def _mv(M: F64, v: F64) -> F64:
+    """Per-sample matrix-vector product (N, 3, 3) x (N, 3) -> (N, 3)."""
+    return np.matmul(M, v[:, :, None])[:, :, 0]
 
-    The one place the sensor terms act on the body-frame field: :func:`evaluate` and the ML
-    estimator's inner loop (:class:`stages.estimators.ml.Model`) both call it.
+
+@dataclass(frozen=True)
+class Reading:
+    """(M2)-(M5) at given attitude matrices, with the intermediate quantities.
+
+    Attributes
+    ----------
+    y_nT : ndarray (N, 3)
+        (M5): ``y0 + sum(offsets) + E_s ydot0``.
+    y0_nT : ndarray (N, 3)
+        (M4): ``D m``.
+    b_body_nT, m_nT : ndarray (N, 3)
+        (M2) ``C.T B'`` and (M3) ``R.T b``.
+    bdot_nT_s, mdot_nT_s, ydot0_nT_s : ndarray (N, 3)
+        ``C'.T B'``, ``R.T bdot`` and ``D mdot`` (the eddy regressor of (M5)); zeros without
+        ``C'.T``.
+
     """
-    y = np.asarray(b_body_nT, dtype=float) @ np.asarray(R_body_mag)  # rows R.T @ b
-    if D is not None:
-        y = y @ np.asarray(D).T
-    if offset_nT is not None:
-        y = y + offset_nT
-    return y
+
+    y_nT: F64
+    y0_nT: F64
+    b_body_nT: F64
+    m_nT: F64
+    bdot_nT_s: F64
+    mdot_nT_s: F64
+    ydot0_nT_s: F64
+
+
+def reading(Ct: F64, field_nT: F64, R_body_mag: F64, D: F64 | None = None,
+            offsets_nT: tuple[F64, ...] | list[F64] = (), E_s: F64 | None = None,
+            Cdot_t: F64 | None = None) -> Reading:
+    """(M2)-(M5) from the pieces: THE place the prediction is computed.
+
+    Both :func:`evaluate` (a :class:`ForwardModel`) and the diagnosis
+    (:func:`stages.diagnose.model.evaluate`, which caches ``C.T`` over a fit and adds its own
+    terms to the field) call it.
+
+    Parameters
+    ----------
+    Ct : ndarray (N, 3, 3)
+        ``C_enu_body(t - tau).T``, the attitude at the sensing time.
+    field_nT : ndarray (N, 3) or (3,)
+        The field the attitude source sees, ``B'(t)`` of (M1)-(M1h), ENU (the diagnosis'
+        ``axis_tilt`` turns it further); (3,): constant (``B_enu`` alone, the estimators).
+    R_body_mag : ndarray (3, 3)
+        ``R`` of (M3).
+    D : ndarray (3, 3) or None
+        Identity when None.
+    offsets_nT : sequence of ndarray (3,) or (N, 3)
+        The additive mag-frame terms of (M5) (``o``, ``o_step 1[t in windows]``), added in order.
+    E_s : ndarray (3, 3) or None
+        ``eddy_current``; None: no eddy term.
+    Cdot_t : ndarray (N, 3, 3) or None
+        ``d/dt C.T`` at ``t - tau`` (:func:`rate_matrices`); None: ``ydot0 = 0``.
+
+    """
+    R = np.asarray(R_body_mag)
+    b = _field_in(Ct, field_nT)  # (M2)
+    m = b @ R  # (M3): rows R.T @ b
+    y0 = m if D is None else m @ np.asarray(D).T  # (M4)
+    if Cdot_t is not None:
+        bdot = _field_in(Cdot_t, field_nT)
+        mdot = bdot @ R
+        ydot0 = mdot if D is None else mdot @ np.asarray(D).T
+    else:
+        bdot = mdot = ydot0 = np.zeros_like(b)
+    y = y0.copy()
+    for o in offsets_nT:  # (M5)
+        y += o
+    if E_s is not None:
+        y += ydot0 @ np.asarray(E_s).T
+    return Reading(y, y0, b, m, bdot, mdot, ydot0)
+
+
+def _field_in(M: F64, field_nT: F64) -> F64:
+    """Rows ``M_i @ B_i``; a constant field (3,) as three fused column sums (no batched matmul)."""
+    f = np.asarray(field_nT)
+    if f.ndim == 1:
+        return cast(F64, M[:, :, 0] * f[0] + M[:, :, 1] * f[1] + M[:, :, 2] * f[2])
+    return _mv(M, f)
+
+
+def field_jacobian(Ct: F64, R_body_mag: F64, D: F64 | None = None, E_s: F64 | None = None,
+                   Cdot_t: F64 | None = None) -> F64:
+    """(J2): ``dy/dB' = D R.T C.T + E_s D R.T C'.T`` (N, 3, 3), per sample."""
+    DRt = np.asarray(R_body_mag).T if D is None else np.asarray(D) @ np.asarray(R_body_mag).T
+    G = np.matmul(DRt, Ct)
+    if E_s is not None and Cdot_t is not None:
+        G = G + np.matmul(np.asarray(E_s) @ DRt, Cdot_t)
+    return G
+
+
+def time_offset_jacobian(omega_body_rad_s: F64, b_body_nT: F64, bddot_nT_s2: F64 | None,
+                         R_body_mag: F64, D: F64 | None = None, E_s: F64 | None = None) -> F64:
+    """(J5): ``dy/dtau = D R.T (omega_body x b) - E_s D R.T C''.T B'`` (N, 3), per s.
+
+    ``bddot_nT_s2`` is ``C''.T B'`` (:func:`rate_matrices`; unused without ``E_s``).
+    """
+    DRt = np.asarray(R_body_mag).T if D is None else np.asarray(D) @ np.asarray(R_body_mag).T
+    J = np.cross(omega_body_rad_s, b_body_nT) @ DRt.T
+    if E_s is None or bddot_nT_s2 is None:
+        return cast(F64, J)
+    return cast(F64, J - (bddot_nT_s2 @ DRt.T) @ np.asarray(E_s).T)
+
+
+def soft_iron_jacobian(basis: F64, m_nT: F64, mdot_nT_s: F64, E_s: F64 | None = None) -> F64:
+    """(J4): ``dy/dd_k = S_k m + E_s S_k mdot`` (N, 3, K), ``S_k`` of ``basis`` (K, 3, 3).
+
+    ``D`` perturbed along ``basis``: :data:`PARAM_NAMES` use the six symmetric unit matrices,
+    the diagnosis' ``soft_iron`` the five traceless ones.
+    """
+    J = np.einsum("kij,nj->nik", basis, m_nT)
+    if E_s is not None:
+        J = J + np.einsum("kij,nj->nik", np.matmul(np.asarray(E_s), basis), mdot_nT_s)
+    return cast(F64, J)
 
 
 def _as_list(p: Any) -> list[dict]:
@@ -395,27 +510,33 @@ def evaluate(
     h_rad = model.heading_rad(t_s)
     if h_rad is not None:
         Bt = rotate_about_up(Bt, h_rad)  # (M1h)
-    Ct = _Ct(q)
-    b = np.matmul(Ct, Bt[:, :, None])[:, :, 0]
-    m = b @ model.R_body_mag
-    y0 = sensor_reading(b, model.R_body_mag, model.D)
-    sensor = model.step_offset_nT(t_s)
-    if model.offset_nT is not None:
-        sensor = sensor + model.offset_nT
-    ydot0 = np.zeros((n, 3))
+    Cdot = None
     if model.E_s is not None:
-        ydot0 = _rate(model, it, t_ns, tau, Bt, valid)[0]
+        Cdot = rate_matrices(it, t_ns, tau)[0]
+    offsets = [model.step_offset_nT(t_s)]
+    if model.offset_nT is not None:
+        offsets.append(model.offset_nT)
+    rd = reading(_Ct(q), Bt, model.R_body_mag, model.D, offsets, model.E_s, Cdot)  # (M2)-(M5)
+    b, m, y = rd.b_body_nT, rd.m_nT, rd.y_nT
+    ydot0 = rd.ydot0_nT_s
+    ydot0[~valid] = 0.0
+    sensor = offsets[0] if len(offsets) == 1 else offsets[0] + offsets[1]
+    if model.E_s is not None:
         sensor = sensor + ydot0 @ model.E_s.T
-    y = y0 + sensor
     w = np.where(valid[:, None], at.omega_body_rad_s, 0.0)
     nanv = ~valid
     y[nanv] = np.nan
     return Evaluation(y, valid, at.q_enu_body, w, Bt, b, m, ydot0, sensor, at.position, h_rad)
 
 
-def _rate(model: ForwardModel, it: AttitudeInterpolator, t_ns: NDArray[np.int64], tau: float,
-          Bt: F64, valid: np.ndarray) -> tuple[F64, F64, F64]:
-    """Eddy regressor ``ydot0`` (N, 3), ``C'.T`` and ``C''.T`` (N, 3, 3) by central differences."""
+def rate_matrices(it: AttitudeInterpolator, t_ns: NDArray[np.int64], tau: float
+                  ) -> tuple[F64, F64]:
+    """``C'.T`` and ``C''.T`` (N, 3, 3) at ``t - tau`` by central differences.
+
+    Half-width :data:`RATE_STEP_INTERVALS` attitude intervals (the eddy regressor of (M5)
+    then shares no attitude sample with the reading's own interpolation); ``C'.T B'`` is
+    ``bdot`` of :func:`reading`, ``C''.T B'`` enters (J5).
+    """
     h = max(RATE_STEP_INTERVALS * it.step_s, 1e-3)
     ident = np.array([0.0, 0.0, 0.0, 1.0])
     # clamped: the neighbours of a valid sample may fall just outside the span
@@ -423,10 +544,7 @@ def _rate(model: ForwardModel, it: AttitudeInterpolator, t_ns: NDArray[np.int64]
     Cp, C0, Cm = (_Ct(np.where(np.all(np.isfinite(x), axis=1)[:, None], x, ident)) for x in qs)
     Cdot = (Cp - Cm) / (2.0 * h)
     Cddot = (Cp - 2.0 * C0 + Cm) / (h * h)
-    mdot = np.matmul(Cdot, Bt[:, :, None])[:, :, 0] @ model.R_body_mag
-    ydot0 = mdot @ model.D_or_I.T
-    ydot0[~valid] = 0.0
-    return ydot0, Cdot, Cddot
+    return Cdot, Cddot
 
 
 def predict(model: ForwardModel, t_ns: NDArray[np.int64],
@@ -500,17 +618,19 @@ def jacobian(model: ForwardModel, t_ns: NDArray[np.int64],
     valid = ev.valid
     ident = np.array([0.0, 0.0, 0.0, 1.0])
     Ct = _Ct(np.where(valid[:, None], ev.q_enu_body, ident))
-    DRt = D @ R.T
-    E = np.zeros((3, 3)) if model.E_s is None else model.E_s
+    E = model.E_s
     m = ev.m_nT
     J = np.zeros((n, 3, len(PARAM_NAMES)))
-    if model.E_s is not None:
-        _, Cdot, Cddot = _rate(model, it, t_ns, model.time_offset_s, ev.field_enu_nT, valid)
+    if E is not None:
+        Cdot, Cddot = rate_matrices(it, t_ns, model.time_offset_s)
     else:
         Cdot = Cddot = np.zeros((n, 3, 3))
-    mdot = np.matmul(Cdot, ev.field_enu_nT[:, :, None])[:, :, 0] @ R
-    J[:, :, 0:3] = D @ skew_rows(m) + E @ D @ skew_rows(mdot)  # (J1)
-    J[:, :, 3:6] = np.matmul(DRt, Ct) + np.matmul(E @ DRt, Cdot)  # (J2)
+    B = ev.field_enu_nT
+    mdot = _mv(Cdot, B) @ R
+    J[:, :, 0:3] = D @ skew_rows(m)  # (J1)
+    if E is not None:
+        J[:, :, 0:3] += E @ D @ skew_rows(mdot)
+    J[:, :, 3:6] = field_jacobian(Ct, R, D, E, Cdot)  # (J2)
     if ev.heading_rad is not None:  # (J2) through (M1h): d B'/d B_enu = Rz(h)
         c, s_ = np.cos(ev.heading_rad), np.sin(ev.heading_rad)
         Rz = np.zeros((n, 3, 3))
@@ -519,11 +639,9 @@ def jacobian(model: ForwardModel, t_ns: NDArray[np.int64],
         Rz[:, 2, 2] = 1.0
         J[:, :, 3:6] = np.matmul(J[:, :, 3:6], Rz)
     J[:, :, 6:9] = np.eye(3)  # (J3)
-    J[:, :, 9:15] = (np.einsum("kij,nj->nik", _SYM6, m)
-                     + np.einsum("ab,kbj,nj->nak", E, _SYM6, mdot))  # (J4)
-    wxb = np.cross(ev.omega_body_rad_s, ev.b_body_nT)
-    bddot = np.matmul(Cddot, ev.field_enu_nT[:, :, None])[:, :, 0]
-    J[:, :, 15] = wxb @ DRt.T - (bddot @ DRt.T) @ E.T  # (J5)
+    J[:, :, 9:15] = soft_iron_jacobian(_SYM6, m, mdot, E)  # (J4)
+    J[:, :, 15] = time_offset_jacobian(ev.omega_body_rad_s, ev.b_body_nT, _mv(Cddot, B),
+                                       R, D, E)  # (J5)
     J[~valid] = 0.0
     return J
 

@@ -1,14 +1,23 @@
 """THE damped Gauss-Newton (Levenberg-Marquardt) core of every fit of the model.
 
-Minimises ``sum_i r_i(x)^T r_i(x)`` over a state ``x`` that may live on a manifold (rotations
-are updated by ``Exp``, the rest additively: the caller's ``update``). Each iteration solves
-the damped normal equations (Marquardt 1963; Nocedal & Wright 2006, Sect. 10.3)::
+:func:`minimise` minimises a cost ``sum_i r_i(x)^T W_i r_i(x)`` (the caller's ``linearise``
+gives it with the normal equations ``J^T W J``, ``J^T W r``) over a state ``x`` that may live
+on a manifold (rotations are updated by ``Exp``, the rest additively: the caller's
+``update``). Each iteration solves the damped normal equations (Marquardt 1963; Nocedal &
+Wright 2006, Sect. 10.3)::
 
-    (J^T J + lambda diag(J^T J)) dx = J^T r
+    (J^T W J + lambda diag(J^T W J)) dx = J^T W r
 
 accepts ``dx`` when the cost does not increase (then ``lambda <- lambda / 4``), else
-``lambda <- 5 lambda`` and tries again; stops when the relative decrease of the cost falls
-below ``rtol`` or no step decreases it.
+``lambda <- 5 lambda`` and tries again (the schedule is a parameter); stops when the
+relative decrease of the cost falls below ``rtol``, when the caller's ``converged`` says
+so, or when no step decreases it.
+
+Its users: the diagnosis fit (:func:`levenberg_marquardt`, unweighted rows, the Jacobian of
+:func:`stages.diagnose.model.evaluate`), the ML estimator (:mod:`stages.estimators.ml`:
+per-sample weights, IRLS outside, steps by a truncated pseudo-inverse, a stop in units of
+the parameters' sigmas), the streaming estimator (:mod:`stages.estimators.streaming`: the
+normal equations from sufficient statistics, its own damping schedule).
 """
 
 from __future__ import annotations
@@ -64,6 +73,136 @@ class Solution:
     n_iter: int
 
 
+@dataclass(frozen=True)
+class Linearised:
+    """The objective at one state, as :func:`minimise` needs it.
+
+    Attributes
+    ----------
+    cost : float
+        The objective (a sum of squares, possibly weighted).
+    H, g : ndarray (P, P), (P,) or None
+        Normal equations ``J.T W J`` and ``J.T W r`` (None when not asked for).
+    aux : Any
+        Whatever the caller wants back at the final state (e.g. the residual).
+
+    """
+
+    cost: float
+    H: F64 | None = None
+    g: F64 | None = None
+    aux: Any = None
+
+
+@dataclass(frozen=True)
+class Minimum:
+    """Where :func:`minimise` stopped: the state, its cost and ``aux``, the normal equations."""
+
+    state: Any
+    at: Linearised
+    n_iter: int
+
+
+def damped_solve(H: F64, g: F64, lam: float, scale: F64) -> F64:
+    """Solve the Marquardt step ``(H + lam diag(scale)) dx = g``."""
+    return cast(F64, np.linalg.solve(H + lam * np.diag(scale), g))
+
+
+def minimise(
+    state: Any,
+    linearise: Callable[[Any, bool], Linearised],
+    update: Callable[[Any, F64], Any],
+    *,
+    solve_step: Callable[[F64, F64, float, F64], F64] = damped_solve,
+    converged: Callable[[Linearised, Linearised, F64], bool] | None = None,
+    max_iter: int = 40,
+    rtol: float = 1e-10,
+    lam0: float = 1e-4,
+    accept_rtol: float = 0.0,
+    accept_atol: float = 0.0,
+    max_tries: int = 12,
+    relinearise_last: bool = True,
+    lam_up: float = 5.0,
+    lam_down: float = 4.0,
+    lam_min: float = 1e-9,
+) -> Minimum:
+    """Minimise by damped Gauss-Newton (module docstring): THE core every fit of the model runs.
+
+    Parameters
+    ----------
+    state : Any
+        Starting state.
+    linearise : callable
+        ``(state, with_normal_equations) -> Linearised``.
+    update : callable
+        ``(state, dx (P,)) -> state``.
+    solve_step : callable
+        ``(H, g, lam, scale) -> dx``; default :func:`damped_solve` (a caller with
+        unobservable directions solves with a truncated pseudo-inverse instead).
+    converged : callable or None
+        ``(before, after, dx) -> bool``, asked after each accepted step (``before`` holds the
+        normal equations the step was solved from, ``after`` the cost at the new state): a
+        caller's own stopping rule, besides ``rtol``.
+    max_iter, rtol, lam0 : int, float, float
+        Iteration limit; stop when the relative decrease of the cost falls below ``rtol``;
+        first damping.
+    accept_rtol, accept_atol : float
+        A step is accepted when its cost does not exceed ``(1 + accept_rtol) cost + accept_atol``
+        (``cost`` the current one).
+    max_tries : int
+        Damping increases per iteration before giving up.
+    relinearise_last : bool
+        False: the normal equations returned are those the last step was solved from (at
+        most a negligible step away), saving one linearisation at the final state.
+    lam_up, lam_down, lam_min : float
+        The damping schedule: times ``lam_up`` after a rejected step, divided by ``lam_down``
+        (not below ``lam_min``) after an accepted one.
+
+    """
+    cur = _with_normal(linearise, state)
+    lam = lam0
+    it = 0
+    for it in range(1, max_iter + 1):  # noqa: B007 (it is reported)
+        H, g = cast(F64, cur.H), cast(F64, cur.g)
+        d = np.diag(H).copy()
+        scale = d + 1e-9 * max(float(np.max(d)), 1e-30)
+        step_ok = False
+        for _ in range(max_tries):
+            try:
+                dx = solve_step(H, g, lam, scale)
+            except np.linalg.LinAlgError:
+                lam *= 10.0
+                continue
+            cand = update(state, dx)
+            at_cand = linearise(cand, False)
+            c = at_cand.cost
+            if np.isfinite(c) and c <= cur.cost * (1.0 + accept_rtol) + accept_atol:
+                step_ok = True
+                break
+            lam *= lam_up
+        if not step_ok:
+            break
+        rel = (cur.cost - c) / max(cur.cost, 1e-30)
+        state, before = cand, cur
+        lam = max(lam / lam_down, lam_min)
+        stop = rel < rtol or (converged is not None and converged(before, at_cand, dx))
+        if stop and not relinearise_last:
+            cur = Linearised(c, before.H, before.g, at_cand.aux)
+            break
+        cur = _with_normal(linearise, state)
+        if stop:
+            break
+    return Minimum(state, cur, it)
+
+
+def _with_normal(linearise: Callable[[Any, bool], Linearised], state: Any) -> Linearised:
+    """Return the objective with its normal equations at ``state``."""
+    lin = linearise(state, True)
+    if lin.H is None or lin.g is None:
+        raise ValueError("linearise(state, True) returned no normal equations")
+    return lin
+
+
 def levenberg_marquardt(
     state: Any,
     residual_and_jacobian: Callable[[Any, bool], tuple[F64, F64 | None]],
@@ -73,7 +212,7 @@ def levenberg_marquardt(
     rtol: float = 1e-10,
     lam0: float = 1e-4,
 ) -> Solution:
-    """Damped Gauss-Newton from ``state`` (module docstring).
+    """:func:`minimise` on the unweighted sum of squares ``sum_i r_i.T r_i``.
 
     Parameters
     ----------
@@ -96,45 +235,16 @@ def levenberg_marquardt(
     Solution
 
     """
-    r, J = _with_jacobian(residual_and_jacobian, state)
-    rss = float(np.sum(r * r))
-    lam = lam0
-    it = 0
-    H, g = normal_equations(J, r)
-    for it in range(1, max_iter + 1):  # noqa: B007 (it is reported)
-        d = np.diag(H).copy()
-        scale = d + 1e-9 * max(float(np.max(d)), 1e-30)
-        step_ok = False
-        for _ in range(12):
-            try:
-                dx = cast(F64, np.linalg.solve(H + lam * np.diag(scale), g))
-            except np.linalg.LinAlgError:
-                lam *= 10.0
-                continue
-            cand = update(state, dx)
-            r_c, _ = residual_and_jacobian(cand, False)
-            rss_c = float(np.sum(r_c * r_c))
-            if np.isfinite(rss_c) and rss_c <= rss:
-                step_ok = True
-                break
-            lam *= 5.0
-        if not step_ok:
-            break
-        rel = (rss - rss_c) / max(rss, 1e-30)
-        state, rss = cand, rss_c
-        lam = max(lam / 4.0, 1e-9)
-        r, J = _with_jacobian(residual_and_jacobian, state)
+
+    def linearise(st: Any, with_normal: bool) -> Linearised:
+        if not with_normal:
+            r, _ = residual_and_jacobian(st, False)
+            return Linearised(float(np.sum(r * r)), aux=r)
+        r, J = residual_and_jacobian(st, True)
+        if J is None:
+            raise ValueError("residual_and_jacobian(state, True) returned no Jacobian")
         H, g = normal_equations(J, r)
-        if rel < rtol:
-            break
-    return Solution(state, r, rss, H, it)
+        return Linearised(float(np.sum(r * r)), H, g, r)
 
-
-def _with_jacobian(
-    residual_and_jacobian: Callable[[Any, bool], tuple[F64, F64 | None]], state: Any
-) -> tuple[F64, F64]:
-    """Residual and Jacobian at ``state`` (the Jacobian asked for must be there)."""
-    r, J = residual_and_jacobian(state, True)
-    if J is None:
-        raise ValueError("residual_and_jacobian(state, True) returned no Jacobian")
-    return r, J
+    m = minimise(state, linearise, update, max_iter=max_iter, rtol=rtol, lam0=lam0)
+    return Solution(m.state, m.at.aux, m.at.cost, cast(F64, m.at.H), m.n_iter)

@@ -1,20 +1,31 @@
 """The effect library: every physical effect ``diagnose`` can add to the forward model.
 
-Forward model (CONVENTIONS, "Measurement model"), one magnetometer sample stamped ``t``::
+Forward model: (M1)-(M5) of :mod:`pipeline.model.forward` (CONVENTIONS, "Measurement
+model"), one magnetometer sample stamped ``t``::
 
-    b(t)   = C_enu_body(t - tau).T @ T.T @ (B_enu + F(t))      body frame, nT
-    m(t)   = R_body_mag.T @ b(t)                               mag frame, nT
-    y0(t)  = D @ m(t)
-    y(t)   = y0(t) + o + o_step * 1[t in windows] + E_s @ dy0/dt
+    b(t)   = C_enu_body(t - tau).T @ T.T @ (B_enu + F(t))      (M1)-(M2), body frame, nT
+    m(t)   = R_body_mag.T @ b(t)                               (M3), mag frame, nT
+    y0(t)  = D @ m(t)                                          (M4)
+    y(t)   = y0(t) + o + o_step * 1[t in windows] + E_s @ dy0/dt   (M5)
 
 with ``F(t)`` the ENU field terms (``field_drift``, ``disturbance``, ``field_gradient``:
-``G (p(t) - p_ref)`` with ``p`` the attitude source's position), ``T`` the turntable-axis
-tilt (``axis_tilt``), ``D = I + S`` (``soft_iron``, ``S`` symmetric and traceless because the
-isotropic scale of ``D`` is the field magnitude when ``B_enu`` is estimated), ``o``
-(``hard_iron``), ``o_step`` (``hard_iron_step``), ``E_s`` (``eddy_current``). ``dy0/dt`` is the
-rate of change of the undisturbed reading caused by the rotation of the platform (the field
-the airframe sees changing), so that a time offset is exactly the isotropic special case
-``E_s = -tau I`` to first order.
+``G (p(t) - p_ref)`` with ``p`` the attitude source's position; ``heading_drift`` turns the
+field about Up, (M1h)), ``T`` the turntable-axis tilt (``axis_tilt``, the diagnosis' own
+term), ``D = I + S`` (``soft_iron``, ``S`` symmetric and traceless because the isotropic
+scale of ``D`` is the field magnitude when ``B_enu`` is estimated), ``o`` (``hard_iron``),
+``o_step`` (``hard_iron_step``), ``E_s`` (``eddy_current``). ``dy0/dt`` is the rate of change
+of the undisturbed reading caused by the rotation of the platform (the field the airframe
+sees changing), so that a time offset is exactly the isotropic special case ``E_s = -tau I``
+to first order.
+
+:func:`evaluate` builds the pieces (``C.T`` and its central differences, cached over a fit;
+the field with every term; the sensor offsets in term order) and hands them to
+:func:`pipeline.model.forward.reading`, which computes (M2)-(M5) for it and for the
+calibration's :func:`pipeline.model.forward.evaluate`; the Jacobian blocks they share are
+:func:`pipeline.model.forward.field_jacobian` (J2),
+:func:`~pipeline.model.forward.soft_iron_jacobian` (J4) and
+:func:`~pipeline.model.forward.time_offset_jacobian` (J5); the columns of the
+diagnosis' own terms (drift, disturbance, gradient, heading, tilt, steps, eddy) are here.
 
 The baseline model is ``R_body_mag`` and ``B_enu`` only. Every other term is an
 :class:`Effect`; each has its parameters, its contribution to the predicted reading, its
@@ -22,22 +33,34 @@ analytic Jacobian (checked numerically in ``tests/test_effects.py``), a physical
 and an identifiability condition computed from the data.
 
 Parameter vector layout: ``[dR (3), B (3), term_1 (k_1), term_2 (k_2), ...]``. ``dR`` and the
-tilt of ``axis_tilt`` are left perturbations on SO(3) (``R <- exp([dR]x) R``), so the Jacobian
-columns are evaluated at zero perturbation and the state stores the rotation matrices.
+tilt of ``axis_tilt`` are left perturbations on SO(3) (``R <- exp([dR]x) R``; (J1) of the
+forward model is the right one), so the Jacobian columns are evaluated at zero perturbation
+and the state stores the rotation matrices.
 """
 
 from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field, replace
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.core.geometry import quat_to_matrix, skew, so3_exp
 from pipeline.model.attitude import AttitudeInterpolator
-from pipeline.model.forward import HEADING_DEGREE, heading_basis, rotate_about_up
+from pipeline.model.forward import (
+    DRIFT_DEGREE,
+    HEADING_DEGREE,
+    field_jacobian,
+    hat_basis,
+    heading_basis,
+    reading,
+    rotate_about_up,
+    soft_iron_jacobian,
+    time_offset_jacobian,
+)
+from pipeline.model.forward import drift_basis as forward_drift_basis
 
 F64 = NDArray[np.float64]
 
@@ -282,7 +305,6 @@ class Term:
         return ind
 
 
-DRIFT_DEGREE = 4
 
 
 def rot_z(yaw_rad: float) -> F64:
@@ -306,23 +328,9 @@ def drift_basis(t_s: F64, t0_s: float, t1_s: float) -> F64:
 
     A slow field variation (diurnal, drift, up to about one period over the recording) is
     smooth: a few Legendre polynomials per ENU axis carry it; the constant is ``B_enu``.
+    :func:`pipeline.model.forward.drift_basis` (``field_drift`` of (M1)) on ``t - t0``.
     """
-    x = (2.0 * (np.asarray(t_s) - t0_s) / max(t1_s - t0_s, 1e-9)) - 1.0
-    return cast(F64, np.polynomial.legendre.legvander(x, DRIFT_DEGREE)[:, 1:])
-
-
-def hat_basis(t_s: F64, knots: F64) -> F64:
-    """Linear B-splines (hat functions) on ``knots``, zero outside [knots[0], knots[-1]), (N, K)."""
-    t = np.asarray(t_s, dtype=float)[:, None]
-    k = np.asarray(knots, dtype=float)
-    h = np.diff(k)
-    left = np.concatenate([[np.inf], h])  # width to the previous knot
-    right = np.concatenate([h, [np.inf]])
-    d = t - k[None, :]
-    phi = np.where(d < 0, 1.0 + d / left, 1.0 - d / right)
-    phi = np.clip(phi, 0.0, 1.0)
-    inside = (t >= k[0]) & (t < k[-1])
-    return phi * inside
+    return forward_drift_basis(np.asarray(t_s) - t0_s, t1_s - t0_s)
 
 
 @dataclass(frozen=True)
@@ -616,30 +624,27 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             Bt_unturned = Bt
             Bt = rotate_about_up(Bt, h_rad)
     TT = state.T_enu.T
-    Bp = Bt @ TT.T  # T.T @ B_t per row
+    Bp = Bt @ TT.T  # T.T @ B_t per row (axis_tilt)
 
-    b = _mv(Ct, Bp)
-    bdot = _mv(Cdot, Bp)
+    # (M2)-(M5): THE prediction (pipeline.model.forward.reading), sensor terms in term order
     R = state.R_body_mag
     D = state.D()
-    m = b @ R  # R.T @ b per row
-    mdot = bdot @ R
-    y0 = m @ D.T
-    ydot0 = mdot @ D.T
-
-    E = np.zeros((3, 3))
-    y = y0.copy()
+    offsets: list[F64] = []
+    E_term: F64 | None = None
     for term, v in zip(state.terms, state.values, strict=True):
         if term.kind is EffectKind.HARD_IRON:
-            y += v
+            offsets.append(v)
         elif term.kind is EffectKind.HARD_IRON_STEP:
-            y += term.indicator(t)[:, None] * v
+            offsets.append(term.indicator(t)[:, None] * v)
         elif term.kind is EffectKind.EDDY_CURRENT:
-            E = v.reshape(3, 3)
-    y += ydot0 @ E.T
+            E_term = v.reshape(3, 3)
+    rd = reading(Ct, Bp, R, D, offsets, E_term, Cdot)
+    y, b, m = rd.y_nT, rd.b_body_nT, rd.m_nT
+    bdot, mdot, ydot0 = rd.bdot_nT_s, rd.mdot_nT_s, rd.ydot0_nT_s
+    E = np.zeros((3, 3)) if E_term is None else E_term
 
     DRt = D @ R.T
-    Gp = np.matmul(DRt, Ct) + np.matmul(E @ DRt, Cdot)
+    Gp = field_jacobian(Ct, R, D, E, Cdot)  # (J2), before the tilt
     G = Gp @ TT
     w = sample_weights(data, tau)
     sqrt_w = None if w is None else np.sqrt(w)
@@ -667,15 +672,12 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             J[:, :, i : i + 3] = term.indicator(t)[:, None, None] * np.eye(3)
         elif k is EffectKind.SOFT_IRON:
             # dy/ds_k = S_k m + E S_k mdot
-            J[:, :, i : i + 5] = np.einsum("kij,nj->nik", _SOFT_BASIS, m) + np.einsum(
-                "kij,nj->nik", np.matmul(E, _SOFT_BASIS), mdot
-            )
+            J[:, :, i : i + 5] = soft_iron_jacobian(_SOFT_BASIS, m, mdot, E)  # (J4)
         elif k is EffectKind.TIME_OFFSET:
             # b(t - tau) with the attitude re-interpolated at t - tau: db/dtau = omega x b with
             # omega the exact interpolated rate at t - tau (pipeline.model.forward, (J5));
             # dbdot/dtau = -bddot for the eddy regressor
-            w = data.track.omega_body(s)
-            J[:, :, i] = np.cross(w, b) @ DRt.T - (bddot @ DRt.T) @ E.T
+            J[:, :, i] = time_offset_jacobian(data.track.omega_body(s), b, bddot, R, D, E)
         elif k is EffectKind.EDDY_CURRENT:
             # y_i += E_ij ydot0_j (row-major E)
             for r_ in range(3):

@@ -1,18 +1,23 @@
 """Joint maximum likelihood of the misalignment, the field and the optional terms (default).
 
-Model (CONVENTIONS)::
+Model: (M2)-(M5) of :mod:`pipeline.model.forward` without the diagnosed terms,
+predicted by :func:`pipeline.model.forward.reading` (:meth:`Model.predict`)::
 
     y_i = D @ R.T @ b_i + o,    b_i = C_enu_body(t_i - tau).T @ B_enu,    R = R_body_mag
 
-Gauss-Newton on SO(3) with the left perturbation ``R = exp(phi^) @ R_bar`` (phi in the body
-frame). Then ``R.T = R_bar.T @ exp(-phi^) ~ R_bar.T (I - phi^)`` and
-``-D R_bar.T [phi]x b = D R_bar.T [b]x phi``, so
+with ``C_enu_body(t - tau)`` from THE interpolator (:mod:`pipeline.model.attitude`). Fitted
+by THE solver core (:func:`pipeline.model.solve.minimise`, damped Gauss-Newton, each step
+solved by the truncated pseudo-inverse) on SO(3) with the left perturbation
+``R = exp(phi^) @ R_bar`` (phi in the body frame). Then
+``R.T = R_bar.T @ exp(-phi^) ~ R_bar.T (I - phi^)`` and
+``-D R_bar.T [phi]x b = D R_bar.T [b]x phi``, so (the other blocks are (J2)-(J5) of
+:mod:`pipeline.model.forward`, without the eddy term)::
 
     dy/dphi = D @ R_bar.T @ [b]x                     (3 x 3)
-    dy/dB   = D @ R_bar.T @ C.T                      (3 x 3)
-    dy/do   = I
-    dy/dd_k = E_k @ R_bar.T @ b                      (symmetric basis E_k of D)
-    dy/dtau = -D @ R_bar.T @ db/dt                   (b at t - tau)
+    dy/dB   = D @ R_bar.T @ C.T                      (J2)
+    dy/do   = I                                      (J3)
+    dy/dd_k = E_k @ R_bar.T @ b                      (J4, symmetric basis E_k of D)
+    dy/dtau = D @ R_bar.T @ (omega_body x b)         (J5, b at t - tau)
 
 (The note "Misalignment Error Computation" writes ``-D (R_bar m)^`` for its own convention
 where the rotation acts on the magnetometer vector; with CONVENTIONS' ``y = D R.T C.T B`` the
@@ -36,6 +41,14 @@ from pipeline.core.geometry import quat_to_matrix, skew, so3_exp
 from pipeline.core.recording import AttitudeSeries
 from pipeline.model.attitude import AttitudeInterpolator
 from pipeline.model.calibration import Calibration
+from pipeline.model.forward import (
+    Reading,
+    field_jacobian,
+    reading,
+    soft_iron_jacobian,
+    time_offset_jacobian,
+)
+from pipeline.model.solve import Linearised, minimise
 from stages.estimators.base import (
     F64,
     RELATIVE_INFO_THRESHOLD,
@@ -128,38 +141,51 @@ class Model:
         self._C0 = problem.C_enu_body  # computed once: the property converts every call
 
     # ------------------------------------------------------------------ attitude
+    def interpolator(self) -> AttitudeInterpolator:
+        """Return THE interpolator of the attitude (every gap bridged, clamped at the ends)."""
+        if self._interp is None:
+            self._interp = AttitudeInterpolator.of(self.attitude, max_gap_s=np.inf, clamp=True)
+        return self._interp
+
     def C(self, tau: float) -> F64:
         """Attitude matrices at ``t - tau``, (N, 3, 3)."""
         if not self.with_tau:
             return self._C0
         if self._C_cache is not None and self._C_cache[0] == tau:
             return self._C_cache[1]
-        from stages.estimators.base import interpolate_q
-
-        C = quat_to_matrix(interpolate_q(self.attitude, self.p.t_ns, tau))
+        C = quat_to_matrix(self.interpolator().at(self.p.t_ns, tau).q_enu_body)
         self._C_cache = (tau, C)
         return C
 
+    def Ct(self, tau: float) -> F64:
+        """``C_enu_body(t - tau).T`` (N, 3, 3), the attitude piece of (M2)."""
+        return np.swapaxes(self.C(tau), -1, -2)
+
     def omega_body(self, tau: float) -> F64:
         """Angular velocity of THE attitude interpolation at ``t - tau``, body, rad/s."""
-        if self._interp is None:
-            self._interp = AttitudeInterpolator.of(self.attitude, max_gap_s=np.inf, clamp=True)
-        return self._interp.at(self.p.t_ns, tau).omega_body_rad_s
+        return self.interpolator().at(self.p.t_ns, tau).omega_body_rad_s
+
+    def reading(self, s: State) -> Reading:
+        """(M2)-(M4) and the offset at ``s``: :func:`pipeline.model.forward.reading`."""
+        return reading(self.Ct(s.tau), s.B, s.R, s.D, (s.o,))
 
     def b_body(self, s: State, tau: float | None = None) -> F64:
-        """Predicted body field ``C.T @ B``, (N, 3)."""
-        return _rows_Ct_B(self.C(s.tau if tau is None else tau), s.B)
+        """Predicted body field ``C.T @ B``, (N, 3), (M2)."""
+        return reading(self.Ct(s.tau if tau is None else tau), s.B, s.R).b_body_nT
 
     def predict(self, s: State) -> F64:
-        """Predicted magnetometer readings, (N, 3)."""
-        from pipeline.model.forward import sensor_reading
-
-        return sensor_reading(self.b_body(s), s.R, s.D, s.o)  # (M3)-(M4) + o
+        """Predicted magnetometer readings, (N, 3), (M2)-(M5) without the diagnosed terms."""
+        return self.reading(s).y_nT
 
     def jacobian(self, s: State) -> F64:
-        """dy/dparams, (N, 3, P), in the order of ``blocks``."""
-        C = self.C(s.tau)
-        b = _rows_Ct_B(C, s.B)
+        """dy/dparams, (N, 3, P), in the order of ``blocks`` ((J2)-(J5) of the forward model).
+
+        The rotation block is the left perturbation ``R <- exp([phi]x) R`` (module docstring):
+        ``D R.T [b]x``.
+        """
+        Ct = self.Ct(s.tau)
+        rd = reading(Ct, s.B, s.R, s.D)
+        b = rd.b_body_nT
         DRt = s.D @ s.R.T
         N = len(b)
         J = np.empty((N, 3, self.n_params))
@@ -168,20 +194,15 @@ class Model:
         K = np.stack([skew(DRt[i]) for i in range(3)])  # (3 rows i, 3 params j, 3 k)
         J[:, :, self.blocks["rot"]] = (b @ K.reshape(9, 3).T).reshape(N, 3, 3)
         if "B" in self.blocks:
-            # D R.T C_n.T, from one (3N, 3) x (3, 3) product: [n, j, i] = (C_n DRt.T)[j, i]
-            J[:, :, self.blocks["B"]] = (
-                (C.reshape(-1, 3) @ DRt.T).reshape(N, 3, 3).transpose(0, 2, 1))
+            J[:, :, self.blocks["B"]] = field_jacobian(Ct, s.R, s.D)  # (J2)
         if "offset" in self.blocks:
-            J[:, :, self.blocks["offset"]] = np.eye(3)  # broadcast over N
+            J[:, :, self.blocks["offset"]] = np.eye(3)  # (J3), broadcast over N
         if "D" in self.blocks:
-            m = b @ s.R
-            J[:, :, self.blocks["D"]] = np.einsum("kij,nj->nik", self.basis, m)
+            J[:, :, self.blocks["D"]] = soft_iron_jacobian(self.basis, rd.m_nT, rd.mdot_nT_s)
         if "tau" in self.blocks:
-            # y depends on b(t - tau) with the attitude re-interpolated at t - tau:
-            # db/dtau = omega x b, omega the exact interpolated rate at t - tau (body frame;
-            # pipeline.model.forward, (J5))
-            w = self.omega_body(s.tau)
-            J[:, :, self.blocks["tau"].start] = np.cross(w, b) @ DRt.T
+            # (J5): the attitude re-interpolated at t - tau, db/dtau = omega x b
+            J[:, :, self.blocks["tau"].start] = time_offset_jacobian(
+                self.omega_body(s.tau), b, None, s.R, s.D)
         return J
 
     def weights(self, s: State) -> F64 | None:
@@ -194,7 +215,7 @@ class Model:
         if nm is None:
             return None
         C = self.C(s.tau)
-        b = _rows_Ct_B(C, s.B)
+        b = reading(np.swapaxes(C, -1, -2), s.B, s.R).b_body_nT  # (M2)
         A = s.D @ s.R.T @ skew(b)  # maps body attitude error to y
         S_att = nm.attitude_cov_body(C)
         Sig = np.matmul(np.matmul(A, S_att), np.swapaxes(A, 1, 2))
@@ -233,11 +254,6 @@ def inv_sym3(S: F64) -> F64:
     return out / det[:, None, None]
 
 
-def _rows_Ct_B(C: F64, B: F64) -> F64:
-    """Rows ``C_i.T @ B`` for C (N, 3, 3), B (3,): three fused row sums, not N tiny matmuls."""
-    return C[:, 0, :] * B[0] + C[:, 1, :] * B[1] + C[:, 2, :] * B[2]
-
-
 def _normal(J: F64, W: F64 | None, r: F64, w: F64) -> tuple[F64, F64]:
     # Batched matmul and one BLAS product over the stacked rows: einsum is ~5x slower here.
     P = J.shape[2]
@@ -262,9 +278,10 @@ def _cost(r: F64, W: F64 | None, w: F64) -> tuple[float, F64]:
 
 @dataclass(frozen=True)
 class GNResult:
-    """Where Gauss-Newton stopped: the state and its last linearisation.
+    """Where the solver core stopped: the state and its last linearisation.
 
-    ``H`` is the normal matrix ``J.T W J`` of the last iteration, taken at the state before a
+    ``H`` is the normal matrix ``J.T W J`` of the last iteration (``relinearise_last=False``
+    of :func:`pipeline.model.solve.minimise`), taken at the state before a
     final step smaller than :data:`STEP_TOL_SIGMA` standard deviations (or at ``s`` itself):
     the covariance computed from it differs from one at ``s`` by far less than its own
     uncertainty, and saves a full-data Jacobian.
@@ -280,6 +297,9 @@ class GNResult:
 #: Gauss-Newton stops once a step moves every parameter by less than this many of its standard
 #: deviations: with quadratic convergence the error left is far smaller still.
 STEP_TOL_SIGMA = 1e-4
+#: First damping of THE solver core for the ML fit (relative to the diagonal of ``J.T W J``):
+#: the first step is close to the Gauss-Newton step (fewer function evaluations than 1e-8).
+ML_DAMPING = 1e-4
 
 
 def gauss_newton(model: Model, s: State, max_iter: int = 60) -> GNResult:
@@ -300,42 +320,51 @@ def gauss_newton(model: Model, s: State, max_iter: int = 60) -> GNResult:
 
 def _gn_fixed_weights(model: Model, s: State, w: F64, max_iter: int
                       ) -> tuple[State, F64 | None, F64, F64]:
+    """Minimise the weighted cost at fixed robust weights ``w`` with THE solver core.
+
+    :func:`pipeline.model.solve.minimise`: damped Gauss-Newton, each step solved with the
+    truncated pseudo-inverse (directions the motion does not observe stay where they are),
+    stopped once a step moves every parameter by less than :data:`STEP_TOL_SIGMA` of its
+    standard deviation.
+    """
     y = model.p.mag_nT
-    W = model.weights(s)
-    r = y - model.predict(s)
-    cost, _ = _cost(r, W, w)
     dof = max(3 * model.p.n - model.n_params, 1)
-    H = np.zeros((model.n_params, model.n_params))
-    for it in range(max_iter):
-        J = model.jacobian(s)
-        H, g = _normal(J, W, r, w)
-        # One truncated pseudo-inverse serves the step and, below, the parameters' sigmas.
-        H_pinv = solve_many_truncated(H, np.eye(model.n_params), RELATIVE_INFO_THRESHOLD)
-        delta = H_pinv @ g
-        lam = 1.0
-        improved = False
-        for _ in range(20):
-            s_new = model.step(s, lam * delta)
-            W_new = model.weights(s_new)
-            r_new = y - model.predict(s_new)
-            c_new, _ = _cost(r_new, W_new, w)
-            if c_new <= cost * (1 + 1e-12) + 1e-300:
-                improved = True
-                break
-            lam *= 0.5
-        if not improved:
-            break
-        rel = (cost - c_new) / max(cost, 1e-300)
-        s, W, r, cost = s_new, W_new, r_new, c_new
-        # The step in units of each parameter's standard deviation (from this H; the noise
-        # scale as in MLEstimator.finish).
-        s2 = c_new / dof if model.p.noise is None else 1.0
+    eye = np.eye(model.n_params)
+
+    last: list[tuple[State, Linearised]] = []  # the accepted step's cost, not computed twice
+
+    def linearise(st: State, with_normal: bool) -> Linearised:
+        if last and last[0][0] is st:
+            lin = last[0][1]
+        else:
+            W = model.weights(st)
+            r = y - model.predict(st)
+            lin = Linearised(_cost(r, W, w)[0], aux=(W, r))
+            last[:] = [(st, lin)]
+        if not with_normal:
+            return lin
+        W, r = lin.aux
+        H, g = _normal(model.jacobian(st), W, r, w)
+        return Linearised(lin.cost, H, g, lin.aux)
+
+    def solve_step(H: F64, g: F64, lam: float, scale: F64) -> F64:
+        Hd = H + lam * np.diag(scale)
+        return cast(F64, solve_many_truncated(Hd, g[:, None], RELATIVE_INFO_THRESHOLD)[:, 0])
+
+    def converged(before: Linearised, after: Linearised, dx: F64) -> bool:
+        # the step in units of each parameter's standard deviation (the noise scale as in
+        # MLEstimator.finish)
+        s2 = after.cost / dof if model.p.noise is None else 1.0
+        H_pinv = solve_many_truncated(cast(F64, before.H), eye, RELATIVE_INFO_THRESHOLD)
         var = np.diag(H_pinv) * s2
-        small = np.abs(lam * delta) <= STEP_TOL_SIGMA * np.sqrt(np.maximum(var, 0.0))
-        if (small.all() or np.max(np.abs(lam * delta[model.blocks["rot"]])) < 1e-13
-                or (rel < 1e-14 and it > 2)):
-            break
-    return s, W, r, H
+        small = np.abs(dx) <= STEP_TOL_SIGMA * np.sqrt(np.maximum(var, 0.0))
+        return bool(small.all() or np.max(np.abs(dx[model.blocks["rot"]])) < 1e-13)
+
+    m = minimise(s, linearise, model.step, solve_step=solve_step, converged=converged,
+                 max_iter=max_iter, rtol=1e-14, lam0=ML_DAMPING, accept_rtol=1e-12,
+                 accept_atol=1e-300, max_tries=20, relinearise_last=False)
+    W, r = m.at.aux
+    return m.state, W, r, cast(F64, m.at.H)
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -35,6 +36,7 @@ from numpy.typing import NDArray
 from pipeline.core.errors import EstimationError
 from pipeline.core.geometry import quat_to_matrix, skew, so3_exp
 from pipeline.model.calibration import Calibration
+from pipeline.model.solve import Linearised, minimise
 
 F64 = NDArray[np.float64]
 
@@ -295,7 +297,7 @@ def fit_stats(
     R_nominal_body_mag: F64 | None = None,
     max_iter: int = 50,
 ) -> StreamingFit:
-    """Gauss-Newton (Levenberg-damped) on the sufficient statistics alone.
+    """Gauss-Newton (Levenberg-damped, THE solver core) on the sufficient statistics alone.
 
     Parameters
     ----------
@@ -339,32 +341,35 @@ def fit_stats(
             best, best_c = _State(R, B, o), c
     assert best is not None
     free = np.array([True] * 3 + [B_fixed is None] * 3 + [estimate_offset] * 3)
-    s, c, lam, iterations = best, best_c, 1e-9, 0
-    for iterations in range(1, max_iter + 1):  # noqa: B007 (reported below)
-        H, g = normal_equations(st, s)
-        Hf, gf = H[np.ix_(free, free)], g[free]
+    def linearise(x: _State, with_normal: bool) -> Linearised:
+        cx = cost(st, x.R, x.B, x.o)
+        if not with_normal:
+            return Linearised(cx)
+        H, g = normal_equations(st, x)
+        # THE core's convention: g = J.T r with J = d(prediction)/dx = -d(residual)/dx
+        return Linearised(cx, H[np.ix_(free, free)], -g[free])
+
+    def update(x: _State, step: F64) -> _State:
+        d = np.zeros(9)
+        d[free] = step
+        return _State(x.R @ so3_exp(d[:3]), x.B + d[3:6], x.o + d[6:])
+
+    def solve_step(Hf: F64, gf: F64, lam: float, _scale: F64) -> F64:
         scale = np.sqrt(np.clip(np.diag(Hf), 1e-300, None))
         Hs = Hf / np.outer(scale, scale)
-        accepted = False
-        for _ in range(20):
-            try:
-                step = -np.linalg.lstsq(Hs + lam * np.eye(len(gf)), gf / scale,
-                                        rcond=1e-12)[0] / scale
-            except np.linalg.LinAlgError:
-                lam *= 10.0
-                continue
-            d = np.zeros(9)
-            d[free] = step
-            trial = _State(s.R @ so3_exp(d[:3]), s.B + d[3:6], s.o + d[6:])
-            ct = cost(st, trial.R, trial.B, trial.o)
-            if ct <= c:
-                s, lam, accepted = trial, max(lam / 10.0, 1e-12), True
-                done = c - ct <= 1e-12 * max(c, 1.0) and np.max(np.abs(d[:3])) < 1e-12
-                c = ct
-                break
-            lam *= 10.0
-        if not accepted or done:
-            break
+        return cast(F64, np.linalg.lstsq(Hs + lam * np.eye(len(gf)), gf / scale,
+                                         rcond=1e-12)[0] / scale)
+
+    def converged(before: Linearised, after: Linearised, step: F64) -> bool:
+        return bool(before.cost - after.cost <= 1e-12 * max(before.cost, 1.0)
+                    and np.max(np.abs(step[:n_rot])) < 1e-12)
+
+    n_rot = 3  # the rotation leads the free parameters
+    # THE solver core (pipeline.model.solve.minimise) on the sums alone
+    sol = minimise(best, linearise, update, solve_step=solve_step, converged=converged,
+                   max_iter=max_iter, rtol=0.0, lam0=1e-9, max_tries=20, lam_up=10.0,
+                   lam_down=10.0, lam_min=1e-12)
+    s, c, iterations = sol.state, sol.at.cost, sol.n_iter
     H, _g = normal_equations(st, s)
     p = int(free.sum())
     dof = max(3 * st.n - p, 1)
