@@ -59,8 +59,9 @@ def test_real_recordings_sample_hold_rate_and_repeats():
 
 @pytest.mark.skipif(not LAB_03.exists(), reason="real recordings absent: lab_03.mcap not found")
 def test_real_recording_gradient_and_sample_hold_findings():
-    """lab_03 (positions in the motion-capture room frame): diagnose reports sample_hold at
-    ~202 Hz with ~29 % repeats; a field_gradient finding, if any, lowers the held-out error."""
+    """lab_03 (positions in the motion-capture room frame): the sensor holds samples at
+    ~202 Hz with ~29 % repeats; a sample_hold or field_gradient finding, if any, lowers the
+    held-out error."""
     from pipeline.core.recording import Context
     from pipeline.io.mcap_read import read_recording
     from stages.diagnose.result import DiagnoseConfig
@@ -73,10 +74,19 @@ def test_real_recording_gradient_and_sample_hold_findings():
     diag = Diagnose(config=DiagnoseConfig(max_samples=3000, max_findings=4)).run(ctx).diagnosis
     print(f"\n{LAB_03.name}\n{diag.table()}")
     by = {f.effect: f for f in diag.findings}
+    # the repeats are a fact of the sensor (detected, and left out of every fit); the
+    # finding is named only when handling them lowers the held-out error block by block,
+    # which on lab_03 it does by under 0.1 % (not named at this sample budget)
+    from pipeline.model.sample_hold import detect_sample_hold
+
+    info = detect_sample_hold(rec.mag.t_ns, rec.mag.values)
+    assert info is not None
+    p = info.params()
+    assert abs(p["native_rate_hz"] - 202.6) < 2.0  # Hz
+    assert abs(p["repeated_fraction"] - 0.291) < 0.01
     sh = by.get("sample_hold")
-    assert sh is not None, diag.table()
-    assert abs(sh.params["native_rate_hz"] - 202.6) < 2.0  # Hz
-    assert abs(sh.params["repeated_fraction"] - 0.291) < 0.01
+    if sh is not None:
+        assert sh.evidence["heldout_rms_after_nT"] < sh.evidence["heldout_rms_before_nT"]
     g = by.get("field_gradient")
     if g is not None:
         ev = g.evidence

@@ -118,20 +118,27 @@ def _positions_at(recording: Recording, t_ns: np.ndarray) -> np.ndarray | None:
 
 
 def _heldout_split(state: ModelState, train: FitData, test: FitData, cfg: DiagnoseConfig,
-                   t0_s: float) -> float:
+                   t0_s: float, block_of: np.ndarray | None = None) -> tuple[float, np.ndarray]:
     """Held-out RMS (nT) when the model is fitted on ``train`` and predicts ``test``.
 
     Like :func:`heldout_rms` (the same time blocks, counted from ``t0_s``: with the first
     sample of the diagnosis data the folds are exactly those of :func:`heldout_rms`), but the
     samples fitted and the samples predicted may differ: the repeats of a sample-and-hold
     sensor are predicted although only the first copies are fitted.
+
+    Returns the RMS and the squared error of each test sample (summed over its components),
+    so that two handlings can be compared block by block (``block_of``: the test samples'
+    block numbers, default from their own stamps).
     """
     f_tr = np.floor((train.t_s - t0_s) / cfg.block_s).astype(np.int64) % cfg.n_folds
-    f_te = np.floor((test.t_s - t0_s) / cfg.block_s).astype(np.int64) % cfg.n_folds
+    blk = (np.floor((test.t_s - t0_s) / cfg.block_s).astype(np.int64) if block_of is None
+           else np.asarray(block_of, dtype=np.int64))
+    f_te = blk % cfg.n_folds
     start = dataclasses.replace(state, values=tuple(
         np.zeros_like(v) if t.kind in LOCAL_KINDS else v
         for t, v in zip(state.terms, state.values, strict=True)))
     sq, cnt = 0.0, 0
+    per = np.full(len(test), np.nan)
     for j in range(cfg.n_folds):
         te, tr = f_te == j, f_tr != j
         if te.sum() == 0 or tr.sum() < 10:
@@ -141,7 +148,25 @@ def _heldout_split(state: ModelState, train: FitData, test: FitData, cfg: Diagno
         e = sub.y_nT - evaluate(res.state, sub, jacobian=False).y_nT
         sq += float(np.sum(e * e))
         cnt += e.size
-    return float(np.sqrt(sq / max(cnt, 1)))
+        per[te] = np.sum(e * e, axis=1)
+    return float(np.sqrt(sq / max(cnt, 1))), per
+
+
+def _blocks_better(sq_old: np.ndarray, sq_new: np.ndarray, block: np.ndarray) -> bool:
+    """Tell whether the new handling lowers the held-out error block by block, beyond chance.
+
+    Paired over the held-out blocks (one second each): the mean of the per-block changes of
+    the squared error must exceed twice its standard error. A change of a few tenths of a
+    percent that some blocks gain and others lose is not evidence.
+    """
+    ok = np.isfinite(sq_old) & np.isfinite(sq_new)
+    if ok.sum() < 10:
+        return False
+    _, inv = np.unique(block[ok], return_inverse=True)
+    d = np.bincount(inv, weights=sq_old[ok] - sq_new[ok])
+    if len(d) < 5:
+        return False
+    return bool(np.mean(d) > 2.0 * np.std(d, ddof=1) / np.sqrt(len(d)))
 
 
 def sample_hold_finding(
@@ -163,8 +188,9 @@ def sample_hold_finding(
     the conversions re-stamped on the sensor's native grid (``SampleHold.t_sensed_ns``). The
     better one is kept; without it (the messages fitted and predicted at their own stamps)
     is the final model of ``diag``. The finding is added when the handling lowers the
-    held-out error by ``heldout_margin`` (as every finding); its evidence is the change of
-    the in-sample and held-out RMS over the same messages.
+    held-out error by ``heldout_margin`` (as every finding) and the fall holds over the
+    held-out blocks (:func:`_blocks_better`); its evidence is the change of the in-sample and
+    held-out RMS over the same messages.
 
     Returns
     -------
@@ -185,6 +211,7 @@ def sample_hold_finding(
         "first_stamp": mag_t[first_idx],
         "native_grid": np.asarray(sh.t_sensed_ns, dtype=np.int64),
     }
+    block = np.floor((data.t_s - float(data.t_s[0])) / cfg.block_s).astype(np.int64)
     best = None
     for name, t_new in variants.items():
         al_new = AlignedSeries(t_new[al_idx][keep], aligned.mag_nT[keep],
@@ -194,15 +221,18 @@ def sample_hold_finding(
         test = dataclasses.replace(data, t_s=cast(F64, (t_new[idx] - t0) * 1e-9))
         if len(train) < 30:
             continue
-        cv = _heldout_split(res.state, train, test, cfg, float(data.t_s[0]))
+        cv, sq = _heldout_split(res.state, train, test, cfg, float(data.t_s[0]), block)
         if best is None or cv < best[0]:
-            best = (cv, name, train, test)
+            best = (cv, name, train, test, sq)
     # the same blocks as the handled variants and as diag.final's held-out error
-    cv_old = _heldout_split(res.state, data, data, cfg, float(data.t_s[0]))
-    # the same rule as every other finding: the held-out error must fall by heldout_margin
-    if best is None or not best[0] < cv_old * (1.0 - cfg.heldout_margin):
+    cv_old, sq_old = _heldout_split(res.state, data, data, cfg, float(data.t_s[0]), block)
+    # the rule of every other finding (the held-out error falls by heldout_margin), and the
+    # fall holds block by block: the repeats are a fact of the sensor, the finding says that
+    # handling them changes the fit
+    if best is None or not best[0] < cv_old * (1.0 - cfg.heldout_margin) \
+            or not _blocks_better(sq_old, best[4], block):
         return None
-    cv_new, name, train, test = best
+    cv_new, name, train, test, _ = best
     res_h = fit(res.state, train)
     r_new = test.y_nT - evaluate(res_h.state, test, jacobian=False).y_nT
     rss_new = float(np.sum(r_new * r_new))
