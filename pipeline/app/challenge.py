@@ -23,7 +23,7 @@ import numpy as np
 
 from pipeline.core.atomic import write_text_atomic
 from pipeline.core.errors import InputError
-from pipeline.model.attitude import MEAN_INTERPOLATION_NOISE_FACTOR
+from pipeline.model.attitude import mean_interpolation_noise_factor
 
 KINDS = (
     "hard_iron",
@@ -172,7 +172,7 @@ def _strength_of(d: np.ndarray, sim_full: Any, kind: str, noise: dict[str, float
     B = float(np.linalg.norm(tr.B_enu_nT))
     att = np.radians(np.sqrt((noise["heading_sigma_deg"] ** 2
                               + 2 * noise["pitch_roll_sigma_deg"] ** 2) / 3.0))
-    var = noise["mag_sigma_nT"] ** 2 + (B * att) ** 2 * MEAN_INTERPOLATION_NOISE_FACTOR
+    var = noise["mag_sigma_nT"] ** 2 + (B * att) ** 2 * mean_interpolation_noise_factor()
     lam = float(rem @ rem) / var
     lam_thr = _K[kind] * np.log(dv.size) + 20.0
     return float(np.sqrt(lam / lam_thr))

@@ -84,9 +84,13 @@ B8 = NDArray[np.bool_]
 MIN_AUTO_GAP_S = 0.05
 #: automatic gap threshold in median attitude intervals
 AUTO_GAP_INTERVALS = 5.0
-#: mean over ``s`` of :func:`interpolation_noise_factor` (the integral of the sum of the
-#: squared Catmull-Rom weights over one interval)
-MEAN_INTERPOLATION_NOISE_FACTOR = 57.0 / 70.0
+
+
+def increments(q_enu_body: F64) -> F64:
+    """Rotation vectors ``Log(q_k^* q_{k+1})`` (rad, body frame, short way round), (M-1, 3)."""
+    q = np.asarray(q_enu_body, dtype=float)
+    dq = quat_mul(quat_conj(q[:-1]), q[1:])
+    return quat_to_rotvec(np.where(dq[:, 3:4] < 0, -dq, dq))
 
 
 def estimate_cubic_weight(t_ns: I64, q_enu_body: F64) -> float:
@@ -96,13 +100,15 @@ def estimate_cubic_weight(t_ns: I64, q_enu_body: F64) -> float:
     gaps and the gap rule do not change it.
     """
     t = np.asarray(t_ns, dtype=np.int64)
-    q = np.asarray(q_enu_body, dtype=float)
     if len(t) < 12:
         return 0.0
-    dq = quat_mul(quat_conj(q[:-1]), q[1:])
-    dq = np.where(dq[:, 3:4] < 0, -dq, dq)
-    phi = quat_to_rotvec(dq)  # (M-1, 3)
-    dt = np.diff(t).astype(float)
+    return _cubic_weight(increments(q_enu_body), np.diff(t).astype(float))
+
+
+def _cubic_weight(phi: F64, dt: F64) -> float:
+    """:func:`estimate_cubic_weight` from the increments ``phi`` (M-1, 3) and spacings ``dt``."""
+    if len(phi) < 11:
+        return 0.0
     med = float(np.median(dt))
     if med <= 0:
         return 0.0
@@ -241,11 +247,9 @@ class AttitudeInterpolator:
         # a float64 exactly) and sub-ns offsets
         self._tr = (ta - ta[0]).astype(float) * 1e-9 if len(ta) else np.zeros(0)
         if len(ta) >= 2:
-            dq = quat_mul(quat_conj(qa[:-1]), qa[1:])
-            dq = np.where(dq[:, 3:4] < 0, -dq, dq)  # short way round, as quat_slerp
-            self._phi = quat_to_rotvec(dq)  # (M-1, 3) rad, body frame, (A3)
+            self._phi = increments(qa)  # (M-1, 3) rad, body frame, (A3)
             self._dt = np.diff(self._tr)
-            self.cubic_weight = (estimate_cubic_weight(ta, qa) if cubic_weight is None
+            self.cubic_weight = (_cubic_weight(self._phi, self._dt) if cubic_weight is None
                                  else float(cubic_weight))
             self._a, self._b = self._tangents()
         else:
@@ -297,6 +301,36 @@ class AttitudeInterpolator:
         """Median sample spacing, s (0.01 with fewer than two samples)."""
         return float(np.median(self._dt)) if len(self._dt) else 0.01
 
+    def _locate(self, tq: F64, clamp: bool) -> tuple[I64, F64, B8, B8]:
+        """Segment ``j``, position ``s`` in it, ``valid`` (gap rule) and ``held`` of queries."""
+        tr = self._tr
+        held = np.zeros(len(tq), dtype=bool)
+        if clamp:
+            held = (tq < tr[0]) | (tq > tr[-1])  # held end sample: no rotation
+            tq = np.clip(tq, tr[0], tr[-1])
+        i = np.searchsorted(tr, tq, side="right") - 1  # tr[i] <= tq < tr[i + 1]
+        i = np.where(tq == tr[-1], len(tr) - 2, i)
+        inside = (i >= 0) & (i < len(tr) - 1)
+        j = np.clip(i, 0, len(tr) - 2)
+        dt = self._dt[j]
+        on_sample = (tq == tr[j]) | (tq == tr[j + 1])
+        valid = inside & ((dt <= self.max_gap_s + 1e-12) | on_sample)
+        s = np.clip((tq - tr[j]) / np.where(dt > 0, dt, 1.0), 0.0, 1.0)
+        return j, s, valid, held
+
+    def position_rel_s(self, tq_s: F64, *, clamp: bool | None = None) -> F64:
+        """Where queries (s from the first sample) fall between two samples, 0..1, (N,).
+
+        The ``position`` of :meth:`at_rel_s` without interpolating the attitude (0 where not
+        valid).
+        """
+        clamp = self.clamp if clamp is None else clamp
+        tq = np.asarray(tq_s, dtype=float)
+        if len(self._tr) < 2 or len(tq) == 0:
+            return np.zeros(len(tq))
+        _, s, valid, _ = self._locate(tq, clamp)
+        return np.where(valid, s, 0.0)
+
     def at_rel_s(self, tq_s: F64, *, clamp: bool | None = None) -> Interpolated:
         """Return the attitude at ``tq_s``, seconds from the first attitude sample.
 
@@ -316,18 +350,8 @@ class AttitudeInterpolator:
             q_out[inside] = quat_normalize(qa[0])
             w_out[inside] = 0.0
             return Interpolated(q_out, inside, w_out, pos)
-        held = np.zeros(n, dtype=bool)
-        if clamp:
-            held = (tq < tr[0]) | (tq > tr[-1])  # held end sample: no rotation
-            tq = np.clip(tq, tr[0], tr[-1])
-        i = np.searchsorted(tr, tq, side="right") - 1  # tr[i] <= tq < tr[i + 1]
-        i = np.where(tq == tr[-1], len(tr) - 2, i)
-        inside = (i >= 0) & (i < len(tr) - 1)
-        j = np.clip(i, 0, len(tr) - 2)
+        j, s, valid, held = self._locate(tq, clamp)
         dt = self._dt[j]
-        on_sample = (tq == tr[j]) | (tq == tr[j + 1])
-        valid = inside & ((dt <= self.max_gap_s + 1e-12) | on_sample)
-        s = np.clip((tq - tr[j]) / np.where(dt > 0, dt, 1.0), 0.0, 1.0)
         jv = j[valid]
         sv = s[valid][:, None]
         s2, s3 = sv * sv, sv * sv * sv
@@ -402,8 +426,7 @@ def _midway_error2(it: AttitudeInterpolator, m: int) -> F64:
     got = base.at(mid_t)
     ok = got.valid
     dq = quat_mul(quat_conj(mid_q[ok]), got.q_enu_body[ok])
-    dq = np.where(dq[:, 3:4] < 0, -dq, dq)
-    e2 = np.sum(quat_to_rotvec(dq) ** 2, axis=1)
+    e2 = np.sum(quat_to_rotvec(np.where(dq[:, 3:4] < 0, -dq, dq)) ** 2, axis=1)
     return e2[e2 <= 100.0 * max(float(np.median(e2)), 1e-30)] if len(e2) else e2  # gaps
 
 
@@ -457,8 +480,7 @@ def attitude_noise_rad(q_enu_body: F64) -> float:
     if med <= 0:
         return 0.0
     second = float(np.sqrt(np.mean(e2[e2 <= 10.0 * med]) / 1.5))
-    dq = quat_mul(quat_conj(q[:-1]), q[1:])
-    phi = quat_to_rotvec(np.where(dq[:, 3:4] < 0, -dq, dq))
+    phi = increments(q)
     phi = phi - phi.mean(axis=0)
     m = len(phi)
     P = np.abs(np.fft.rfft(phi, axis=0)) ** 2 / m  # (m // 2 + 1, 3)

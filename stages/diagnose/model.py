@@ -143,7 +143,7 @@ class AttitudeTrack:
     def position(self, t_s: F64) -> F64:
         """Where each ``t_s`` falls between its two attitude samples, 0..1, (N,)."""
         tq = np.asarray(t_s, dtype=float) - float(self.t_s[0])
-        return self._interp.at_rel_s(tq).position
+        return self._interp.position_rel_s(tq)
 
     def omega_body(self, t_s: F64) -> F64:
         """Angular velocity of the attitude at ``t_s``, body frame, rad/s, (N, 3) (exact)."""
@@ -475,14 +475,24 @@ def sample_weights(data: FitData, tau_s: float) -> F64 | None:
 
     s2, c, c_int = data.noise_model
     pos = data.track.position(data.t_s - tau_s)
-    f = data.track.noise_factor(data.t_s - tau_s)
+    f = data.track.interpolator.noise_factor(pos)
     g = interpolation_error_shape(pos)
     v_mean = (s2 + mean_interpolation_noise_factor(data.track.cubic_weight) * c
               + MEAN_INTERPOLATION_ERROR_SHAPE * c_int)
     return v_mean / (s2 + c * f + c_int * g)
 
 
-def estimate_noise_model(residual_nT: F64, data: FitData
+def _angle_variance_nT2(data: FitData) -> float:
+    """Variance (nT^2) per component of ``C.T B`` per unit squared isotropic angle error.
+
+    A small isotropic attitude error of RMS angle ``e`` moves each component by
+    ``2/9 |B|^2 e^2`` in variance (``|B|`` from the readings).
+    """
+    y = np.asarray(data.y_nT, dtype=float)
+    return 2.0 / 9.0 * float(np.mean(np.sum(y * y, axis=1)))
+
+
+def estimate_noise_model(residual_nT: F64, data: FitData, e_int_nT: float | None = None
                          ) -> tuple[float, float, float] | None:
     """``(sigma_mag2, c_att, c_int)`` (nT^2) of :func:`sample_weights` from a baseline fit.
 
@@ -500,10 +510,10 @@ def estimate_noise_model(residual_nT: F64, data: FitData
     if not np.isfinite(var) or var <= 0:
         return None
     sig = attitude_noise_rad(data.track.q_enu_body)
-    y = np.asarray(data.y_nT, dtype=float)
-    yy = 2.0 / 9.0 * float(np.mean(np.sum(y * y, axis=1)))
-    c = yy * sig * sig
-    c_int = interpolation_error_nT(data) ** 2 / MEAN_INTERPOLATION_ERROR_SHAPE  # midway
+    c = _angle_variance_nT2(data) * sig * sig
+    if e_int_nT is None:
+        e_int_nT = interpolation_error_nT(data)
+    c_int = e_int_nT**2 / MEAN_INTERPOLATION_ERROR_SHAPE  # midway
     if c + c_int < 1e-3 * var:
         return None
     f = data.track.noise_factor(data.t_s)
@@ -521,9 +531,7 @@ def interpolation_error_nT(data: FitData) -> float:
     from pipeline.model.attitude import MEAN_INTERPOLATION_ERROR_SHAPE, interpolation_error_rad
 
     e = interpolation_error_rad(data.track.interpolator)
-    y = np.asarray(data.y_nT, dtype=float)
-    yy = 2.0 / 9.0 * float(np.mean(np.sum(y * y, axis=1)))
-    return float(np.sqrt(yy * MEAN_INTERPOLATION_ERROR_SHAPE) * e)
+    return float(np.sqrt(_angle_variance_nT2(data) * MEAN_INTERPOLATION_ERROR_SHAPE) * e)
 
 
 def interpolation_error_proxy(state: ModelState, data: FitData) -> F64:

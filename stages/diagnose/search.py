@@ -123,51 +123,39 @@ def scan_windows(
     level = med + cfg.scan_sigma * mad
     # a window needs a real excess, not just a little above a very quiet median
     level = max(level, med + 2.0)
-    scans = [_excess_runs(s, med, level)]
-    # a weak offset held for seconds (a hard-iron step) barely lifts the squared norm but
-    # moves the mean of the residual vector: the same scan on the moving mean, in units of
-    # its own white-noise spread, at four times the smoothing width (used when the
-    # squared norm opens no window)
-    cr = np.concatenate([np.zeros((1, 3)), np.cumsum(residual_nT, axis=0)])
-    for k in (4,):
-        wk = min(n, k * w)
-        lo_k = np.clip(np.arange(n) - wk // 2, 0, n)
-        hi_k = np.clip(np.arange(n) + wk // 2 + 1, 0, n)
-        m = (cr[hi_k] - cr[lo_k]) / (hi_k - lo_k)[:, None]
-        sv = np.sum(m * m, axis=1) * (hi_k - lo_k) / (3 * sig * sig)
-        med_v = float(np.median(sv))
-        mad_v = float(1.4826 * np.median(np.abs(sv - med_v))) + 1e-12
-        scans.append(_excess_runs(sv, med_v, max(med_v + cfg.scan_sigma * mad_v, med_v + 2.0)))
-    wins: list[tuple[float, float]] = []
-    for runs in scans:  # merged within each scan; a window another scan gave is not repeated
-        if wins:
-            # the moving-mean scans only when the squared norm shows nothing: their
-            # windows would otherwise crowd the few refits of each round
-            break
+    def windows(runs: list[tuple[int, int]]) -> list[tuple[float, float]]:
         merged: list[list[int]] = []
         for a, b in runs:
             if merged and a - merged[-1][1] < w:
                 merged[-1][1] = max(merged[-1][1], b)
             else:
                 merged.append([a, b])
+        out = []
         for a, b in merged:
-            start = float(t_s[a])
-            end = float(t_s[min(b, n - 1)])
+            start, end = float(t_s[a]), float(t_s[min(b, n - 1)])
             if end - start < 2 * dt:
                 continue
             if end - start > 0.5 * (t_s[-1] - t_s[0]):
                 continue  # not local: a global term's job
-            if any(_overlap(start, end, x, y) > 0.8 for x, y in wins):
-                continue
-            wins.append((start, end))
-    return wins
+            out.append((start, end))
+        return out
 
-
-def _overlap(a0: float, a1: float, b0: float, b1: float) -> float:
-    """Intersection over union of two intervals."""
-    inter = max(0.0, min(a1, b1) - max(a0, b0))
-    union = max(a1, b1) - min(a0, b0)
-    return inter / union if union > 0 else 0.0
+    wins = windows(_excess_runs(s, med, level))
+    if wins:
+        return wins
+    # a weak offset held for seconds (a hard-iron step) barely lifts the squared norm but
+    # moves the mean of the residual vector: when the norm opens no window, the same scan
+    # on the moving mean over four smoothing widths, in units of its white-noise spread
+    # (only then: its windows would otherwise crowd the few refits of each round)
+    wk = min(n, 4 * w)
+    lo4 = np.clip(np.arange(n) - wk // 2, 0, n)
+    hi4 = np.clip(np.arange(n) + wk // 2 + 1, 0, n)
+    cr = np.concatenate([np.zeros((1, 3)), np.cumsum(residual_nT, axis=0)])
+    m = (cr[hi4] - cr[lo4]) / (hi4 - lo4)[:, None]
+    sv = np.sum(m * m, axis=1) * (hi4 - lo4) / (3 * sig * sig)
+    med_v = float(np.median(sv))
+    mad_v = float(1.4826 * np.median(np.abs(sv - med_v))) + 1e-12
+    return windows(_excess_runs(sv, med_v, max(med_v + cfg.scan_sigma * mad_v, med_v + 2.0)))
 
 
 def refine_step(
@@ -268,11 +256,11 @@ def diagnose_data(
     # weights for what the attitude noise does between attitude samples
     # (stages.diagnose.model.sample_weights)
     base_rms = cur.rms_nT
-    nm = estimate_noise_model(cur.residual_nT, data)
+    e_int_nT = interpolation_error_nT(data)  # measured once, from the attitude track
+    nm = estimate_noise_model(cur.residual_nT, data, e_int_nT)
     if nm is not None:
         data = dataclasses.replace(data, noise_model=nm)
         cur = fit(cur.state, data)
-    e_int_nT = interpolation_error_nT(data)
     if e_int_nT > 0.05 * robust_sigma(cur.residual_nT):
         # the attitude's own interpolation error stands out of the noise: what it could
         # produce is not named (ScoreTest.interp_statistic)
@@ -425,7 +413,8 @@ def diagnose_data(
         if data.noise_model is None:
             # the attitude noise may only now stand out of what the model leaves
             nm = estimate_noise_model(
-                cur.residual_nT if cur.raw_residual_nT is None else cur.raw_residual_nT, data)
+                cur.residual_nT if cur.raw_residual_nT is None else cur.raw_residual_nT, data,
+                e_int_nT)
             if nm is not None:
                 data = dataclasses.replace(data, noise_model=nm)
                 cur = fit(cur.state, data)

@@ -34,6 +34,7 @@ from stages.diagnose.model import (
     FitData,
     ModelState,
     Term,
+    _span,
     evaluate,
     term_params,
     term_sigma,
@@ -292,13 +293,11 @@ def _model_values(term: Term, value: np.ndarray, data: FitData) -> dict[str, Any
             i += len(kn)
         return {"knots_s": [k.tolist() for k in knots], "knot_field_nT": out}
     if term.kind is EffectKind.FIELD_DRIFT:
-        span = float(data.track.t_s[-1]) if data.track.t_s[-1] > 0 else 1.0
         return {"legendre_nT": np.asarray(value, dtype=float).reshape(-1, 3).tolist(),
-                "span_s": span}
+                "span_s": _span(data)}
     if term.kind is EffectKind.HEADING_DRIFT:
-        span = float(data.track.t_s[-1]) if data.track.t_s[-1] > 0 else 1.0
         return {"legendre_rad": np.asarray(value, dtype=float).reshape(-1).tolist(),
-                "span_s": span}
+                "span_s": _span(data)}
     return {}
 
 
