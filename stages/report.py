@@ -660,17 +660,23 @@ def _diagnosis_html(diagnosis: Any, t0_ns: int = 0, options: Any = None
     d = diagnosis.to_dict() if hasattr(diagnosis, "to_dict") else dict(diagnosis)
     parts = [rows_html(d, t0_ns)]
     b, f = d.get("baseline") or {}, d.get("final") or {}
-    parts.append(
-        "<p>Without these terms the model leaves "
-        f"{_fmt(b.get('residual_rms_nT'), 1)} nT rms ({_fmt(b.get('heldout_rms_nT'), 1)} nT on "
-        f"held-out data); with them {_fmt(f.get('residual_rms_nT'), 1)} nT "
-        f"({_fmt(f.get('heldout_rms_nT'), 1)} nT held-out). Held-out: data the model was not "
-        "fitted to, so an improvement there is not overfitting. Evidence: how strongly the "
-        "data ask for the term (Bayesian information criterion).</p>")
+    held = ("Held-out: data the model was not fitted to, so an improvement there is not "
+            "overfitting. Evidence: how strongly the data ask for the term (Bayesian "
+            "information criterion).")
+    if d.get("findings"):
+        parts.append(
+            "<p>Without these terms the model leaves "
+            f"{_fmt(b.get('residual_rms_nT'), 1)} nT rms ({_fmt(b.get('heldout_rms_nT'), 1)} nT "
+            f"on held-out data); with them {_fmt(f.get('residual_rms_nT'), 1)} nT "
+            f"({_fmt(f.get('heldout_rms_nT'), 1)} nT held-out). {held}</p>")
+    else:  # one model: the final one, whose residual every other place reports
+        parts.append(
+            f"<p>The model leaves {_fmt(f.get('residual_rms_nT'), 1)} nT rms "
+            f"({_fmt(f.get('heldout_rms_nT'), 1)} nT on held-out data). {held}</p>")
     ni = d.get("not_identifiable") or []
     if ni:
         parts.append(
-            "<p>Cannot be told from this motion:</p><ul>"
+            "<p>Cannot be told from this recording:</p><ul>"
             + "".join(f"<li>{html.escape(str(x.get('effect')).replace('_', ' '))}: "
                       f"{html.escape(str(x.get('reason')))}</li>" for x in ni)
             + "</ul>"

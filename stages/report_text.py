@@ -209,7 +209,8 @@ def rows_html(diagnosis: dict[str, Any], t0_ns: int) -> str:
     """Return the findings table (or a sentence when there is none)."""
     rs = rows(diagnosis, t0_ns)
     if not rs:
-        return "<p>No finding: the model explains the data as well as the noise allows.</p>"
+        return ("<p>No finding: the data ask for no term beyond the calibration's (the "
+                "verdict above compares what is left with the sensor noise).</p>")
     body = "".join(
         "<tr>"
         f"<td class=l>{html.escape(r.sentence)}"
