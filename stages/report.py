@@ -620,7 +620,7 @@ def _residual_html(restored: Any) -> str:
         return ""
     rms = f"<span id=residual_rms_nT>{restored.residual_rms_nT:.7g}</span>"
     return (f"<p>Residual of the final model (every term of the calibration, diagnosed effects "
-            f"included): {rms} nT RMS over {int(np.count_nonzero(restored.valid))} samples "
+            f"included): {rms} nT RMS over {restored.n_valid} samples "
             "with a usable attitude.</p>")
 
 

@@ -28,7 +28,7 @@ uncalibrated comparison of the metrics) while it has one at ``t - tau``.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
@@ -92,12 +92,13 @@ class RestoreResult:
     B_enu_nT: np.ndarray
     max_gap_s: float
     model_key: str = ""
+    totals: RestoreTotals | None = None
 
     # ------------------------------------------------------------------ counts
     @property
     def n_total(self) -> int:
         """Every magnetometer sample of the recording."""
-        return int(self.t_ns.shape[0])
+        return self.totals.n_total if self.totals is not None else int(self.t_ns.shape[0])
 
     @property
     def used(self) -> np.ndarray:
@@ -107,16 +108,27 @@ class RestoreResult:
     @property
     def n_used(self) -> int:
         """Samples restored and compared with the uncalibrated field."""
+        if self.totals is not None:
+            return self.totals.n_used
         return int(np.count_nonzero(self.used))
+
+    @property
+    def n_valid(self) -> int:
+        """Samples restored (attitude at ``t - tau``)."""
+        if self.totals is not None:
+            return self.totals.n_valid
+        return int(np.count_nonzero(self.valid))
 
     @property
     def n_without_attitude(self) -> int:
         """Samples left out for want of an attitude at ``t - tau``."""
-        return int(np.count_nonzero(~self.valid))
+        return self.n_total - self.n_valid
 
     @property
     def n_without_attitude_at_stamp(self) -> int:
         """Samples restored (attitude at ``t - tau``) but without one at ``t`` itself."""
+        if self.totals is not None:
+            return self.totals.n_valid - self.totals.n_used
         return int(np.count_nonzero(self.valid & ~self.valid0))
 
     # ------------------------------------------------------------------ derived
@@ -128,8 +140,70 @@ class RestoreResult:
     @property
     def residual_rms_nT(self) -> float:
         """RMS over every component of the final model's residual, valid samples, nT."""
+        if self.totals is not None:
+            return self.totals.residual_rms_nT
         r = self.residual_nT[self.valid]
         return float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
+
+    @property
+    def is_sample(self) -> bool:
+        """True when the arrays hold a sample of the recording's rows, not all of them.
+
+        A recording restored chunk by chunk (:class:`ChunkedRestore`) keeps every k-th row
+        for the figures; its counts and residual RMS (:attr:`totals`) are those of every
+        sample.
+        """
+        return self.totals is not None and self.totals.n_total != int(self.t_ns.shape[0])
+
+    def rows(self, sl: slice | np.ndarray) -> RestoreResult:
+        """Return the result restricted to rows ``sl`` (a slice or index array), no totals."""
+        import dataclasses
+
+        arrays = {f: getattr(self, f)[sl] for f in _ROW_FIELDS}
+        return dataclasses.replace(self, totals=None, **arrays)
+
+
+#: the per-row arrays of a RestoreResult
+_ROW_FIELDS = ("t_ns", "raw_mag_nT", "calibrated_mag_nT", "q_enu_body", "enu_nT",
+               "residual_nT", "valid", "q0_enu_body", "valid0")
+
+
+@dataclass(frozen=True)
+class RestoreTotals:
+    """Counts and residual sum of squares over every sample of a recording restored in chunks.
+
+    Attributes
+    ----------
+    n_total, n_valid, n_used : int
+        Every magnetometer sample; those with an attitude at ``t - tau``; those with one at
+        ``t - tau`` and at ``t``.
+    residual_sumsq_nT2 : float
+        Sum over the valid samples and the three components of the squared residual, nT^2.
+
+    """
+
+    n_total: int = 0
+    n_valid: int = 0
+    n_used: int = 0
+    residual_sumsq_nT2: float = 0.0
+
+    def __add__(self, other: RestoreTotals) -> RestoreTotals:
+        return RestoreTotals(self.n_total + other.n_total, self.n_valid + other.n_valid,
+                             self.n_used + other.n_used,
+                             self.residual_sumsq_nT2 + other.residual_sumsq_nT2)
+
+    @classmethod
+    def of(cls, rs: RestoreResult) -> RestoreTotals:
+        """Return the totals of a (chunk's) restore result."""
+        r = rs.residual_nT[rs.valid]
+        return cls(int(rs.t_ns.shape[0]), int(np.count_nonzero(rs.valid)),
+                   int(np.count_nonzero(rs.used)), float(np.sum(r * r)))
+
+    @property
+    def residual_rms_nT(self) -> float:
+        """RMS over every component of the residual, nT."""
+        return (float(np.sqrt(self.residual_sumsq_nT2 / (3 * self.n_valid))) if self.n_valid
+                else float("nan"))
 
 
 
@@ -176,10 +250,42 @@ def restore_samples(
         )
     interp = AttitudeInterpolator.of(recording.attitude, max_gap_s=max_gap_s)
     t_ns = np.asarray(recording.mag.t_ns, dtype=np.int64)
-    y = np.array(recording.mag.values, dtype=float)
-    rs = model_restore(cal.forward_model(), y, t_ns, interp,
-                       t0_ns=int(t_ns[0]) if len(t_ns) else None,
-                       position=recording.position)
+    return restore_rows(cal, t_ns, recording.mag.values, interp,
+                        t0_ns=int(t_ns[0]) if len(t_ns) else 0, position=recording.position,
+                        model_key=model_key_of(cal, max_gap_s))
+
+
+def restore_rows(cal: Calibration, t_ns: np.ndarray, mag_nT: np.ndarray,
+                 interp: AttitudeInterpolator, *, t0_ns: int, position: Any = None,
+                 model_key: str = "") -> RestoreResult:
+    """Restore the magnetometer rows ``t_ns``, ``mag_nT`` with the attitude of ``interp``.
+
+    The one place a :class:`RestoreResult` is computed: :func:`restore_samples` calls it on
+    a whole recording, :class:`ChunkedRestore` on each chunk of a long one (with an
+    interpolator over the chunk's attitude and its neighbours, which gives the same
+    attitude as one over the whole series).
+
+    Parameters
+    ----------
+    cal : Calibration
+        The fitted model (every term it carries is used).
+    t_ns : ndarray of int64, shape (N,)
+        Magnetometer stamps, sorted.
+    mag_nT : ndarray, shape (N, 3)
+        Readings, mag frame.
+    interp : AttitudeInterpolator
+        THE interpolator over the attitude around these rows.
+    t0_ns : int
+        First magnetometer stamp of the RECORDING (effect windows and drifts count from it).
+    position : PositionSeries, optional
+        Marker positions (the field gradient term).
+    model_key : str
+        :func:`model_key_of` the calibration.
+
+    """
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    y = np.array(mag_nT, dtype=float)
+    rs = model_restore(cal.forward_model(), y, t_ns, interp, t0_ns=t0_ns, position=position)
     at0 = interp.at(t_ns, 0.0)
     out = RestoreResult(
         t_ns=t_ns, raw_mag_nT=y, calibrated_mag_nT=np.array(rs.calibrated_mag_nT),
@@ -187,11 +293,100 @@ def restore_samples(
         residual_nT=np.array(rs.residual_nT), valid=np.array(rs.valid),
         q0_enu_body=np.array(at0.q_enu_body), valid0=np.array(at0.valid),
         B_enu_nT=np.array(cal.B_enu_nT, dtype=float), max_gap_s=interp.max_gap_s,
-        model_key=model_key_of(cal, max_gap_s),
+        model_key=model_key,
     )
     _readonly(out.raw_mag_nT, out.calibrated_mag_nT, out.q_enu_body, out.enu_nT,
               out.residual_nT, out.valid, out.q0_enu_body, out.valid0, out.B_enu_nT)
     return out
+
+
+class ChunkedRestore:
+    """Restore a long recording chunk by chunk, in memory that does not grow with its length.
+
+    Feed the recording's chunks in time order (:meth:`add`, e.g. the ranges of
+    :func:`pipeline.io.mcap_read.iter_recording_chunks`); each call returns the
+    :class:`RestoreResult` of the magnetometer samples whose attitude is settled, and
+    :meth:`finish` the rest. The attitude of a magnetometer sample at ``t`` comes from the
+    cubic over its bracketing samples and their neighbours (pipeline/model/attitude.py,
+    (A4)-(A5)), so a sample is restored once the attitude two samples past ``t`` and
+    ``t - tau`` has arrived, and the attitude samples kept from one chunk to the next are
+    the two before the earliest waiting query. The interpolator's blend weight and gap rule
+    are the recording's (given), not the chunk's: every chunk is interpolated as the whole
+    series would be.
+
+    Parameters
+    ----------
+    cal : Calibration
+    t0_ns : int
+        First magnetometer stamp of the recording.
+    max_gap_s : float
+        The recording's gap rule (s).
+    cubic_weight : float
+        The recording's ``lam`` of (A7).
+    model_key : str
+        :func:`model_key_of` the calibration.
+
+    """
+
+    def __init__(self, cal: Calibration, *, t0_ns: int, max_gap_s: float, cubic_weight: float,
+                 model_key: str = ""):
+        self.cal = cal
+        self.t0_ns = int(t0_ns)
+        self.max_gap_s = float(max_gap_s)
+        self.cubic_weight = float(cubic_weight)
+        self.model_key = model_key
+        tau = float(cal.forward_model().time_offset_s)
+        # the queries are t and t - tau: the earliest and latest of them, relative to t
+        self._lo_ns = int(np.floor(min(0.0, -tau) * 1e9)) - 1
+        self._hi_ns = int(np.ceil(max(0.0, -tau) * 1e9)) + 1
+        self._att_t = np.zeros(0, np.int64)
+        self._att_q = np.zeros((0, 4))
+        self._mag_t = np.zeros(0, np.int64)
+        self._mag_v = np.zeros((0, 3))
+
+    def add(self, mag_t_ns: np.ndarray, mag_nT: np.ndarray, att_t_ns: np.ndarray | None,
+            q_enu_body: np.ndarray | None) -> RestoreResult | None:
+        """Take one chunk (sorted stamps); return the rows now settled, or None."""
+        if att_t_ns is not None and len(att_t_ns):
+            self._att_t = np.concatenate([self._att_t, np.asarray(att_t_ns, np.int64)])
+            self._att_q = np.concatenate([self._att_q, np.asarray(q_enu_body, float)])
+            if np.any(np.diff(self._att_t[-len(att_t_ns) - 1:]) <= 0):
+                o = np.argsort(self._att_t, kind="stable")
+                self._att_t, self._att_q = self._att_t[o], self._att_q[o]
+        self._mag_t = np.concatenate([self._mag_t, np.asarray(mag_t_ns, np.int64)])
+        self._mag_v = np.concatenate([self._mag_v, np.asarray(mag_nT, float)])
+        if np.any(np.diff(self._mag_t) < 0):  # a logger's stamps may straddle chunks
+            o = np.argsort(self._mag_t, kind="stable")
+            self._mag_t, self._mag_v = self._mag_t[o], self._mag_v[o]
+        if len(self._att_t) < 4:
+            return None
+        # settled: the latest query lies before the third-last attitude sample, whose
+        # segment's tangents (A5) need nothing later
+        ready = int(np.searchsorted(self._mag_t, self._att_t[-3] - self._hi_ns, "right"))
+        return self._emit(ready)
+
+    def finish(self) -> RestoreResult | None:
+        """Return the rows still waiting (the end of the recording)."""
+        return self._emit(len(self._mag_t))
+
+    def _emit(self, ready: int) -> RestoreResult | None:
+        if ready == 0:
+            return None
+        t, v = self._mag_t[:ready], self._mag_v[:ready]
+        self._mag_t, self._mag_v = self._mag_t[ready:], self._mag_v[ready:]
+        # attitude samples from two before the earliest query to two after the latest
+        a = max(int(np.searchsorted(self._att_t, t[0] + self._lo_ns, "right")) - 2, 0)
+        b = min(int(np.searchsorted(self._att_t, t[-1] + self._hi_ns, "right")) + 2,
+                len(self._att_t))
+        interp = AttitudeInterpolator(self._att_t[a:b], self._att_q[a:b],
+                                      max_gap_s=self.max_gap_s,
+                                      cubic_weight=self.cubic_weight)
+        out = restore_rows(self.cal, t, v, interp, t0_ns=self.t0_ns, model_key=self.model_key)
+        # keep what the waiting queries (and later ones) can still need
+        first = t[-1] if not len(self._mag_t) else min(int(self._mag_t[0]), int(t[-1]))
+        keep = max(int(np.searchsorted(self._att_t, first + self._lo_ns, "right")) - 2, 0)
+        self._att_t, self._att_q = self._att_t[keep:], self._att_q[keep:]
+        return out
 
 
 @dataclass(frozen=True)

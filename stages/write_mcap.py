@@ -55,6 +55,7 @@ import numpy as np
 
 from pipeline.core.errors import OutputError
 from pipeline.core.recording import Context, EncodingFamily, Recording
+from pipeline.io.messages import schema_for
 
 METADATA_NAME = "magalign.calibration"
 ATTACHMENT_NAME = "calibration.json"
@@ -69,6 +70,152 @@ COPY_RANGE_MESSAGES = 400_000
 def corrected_path(out_dir: str | Path, recording_path: str | Path) -> Path:
     """``out_dir / <stem>.corrected.mcap``."""
     return Path(out_dir) / f"{Path(recording_path).stem}.corrected.mcap"
+
+
+class CorrectedMcapStream:
+    """The corrected MCAP written chunk by chunk (module docstring for the contents).
+
+    Use as a context manager; :meth:`add` takes the restore result of the next magnetometer
+    samples in time order (a chunk of a long recording, or a range of a whole one) and
+    writes their four new channels, after the input's chunks that start before them;
+    leaving the block writes the rest of the input, the calibration (metadata and
+    attachment) and the summary, and renames the file into place. Left by an exception, no
+    file appears. Memory holds one chunk of new messages, whatever the recording's length.
+
+    Parameters
+    ----------
+    recording : Recording
+        The input's channels, encoding and frame names (its series are not used).
+    calibration : Calibration
+    dest : path
+        Output file; must not be the input.
+    passthrough : PassThrough, optional
+        The input's chunks to copy as they are (:func:`pipeline.io.mcap_read.pass_through`);
+        ``None``: the caller copies the input (:func:`write_corrected_mcap`'s damaged-input
+        path) through :attr:`writer`.
+
+    """
+
+    def __init__(self, recording: Recording, calibration: Any, dest: str | Path,
+                 passthrough: Any = None) -> None:
+        from pipeline.io.mcap_write import McapColumnWriter
+
+        dest = Path(dest)
+        src = Path(recording.path)
+        if src.exists() and dest.resolve() == src.resolve():
+            raise OutputError("refusing to write over an input file", path=dest)
+        self.ros2 = recording.encoding == EncodingFamily.ROS2
+        self.msg_type = "sensor_msgs/msg/MagneticField" if self.ros2 else "magalign.Magnetometer"
+        self.mag_type = "std_msgs/msg/Float64" if self.ros2 else "magalign.FieldMagnitude"
+        self.mag_frame = recording.mag_frame_id or "mag"
+        self.body_frame = getattr(recording, "attitude_frame_id", "") or DEFAULT_BODY_FRAME
+        self.topic_base = recording.mag_topic.rstrip("/")
+        self.calibration = calibration
+        self.cal_text = calibration.to_json()
+        self.dest = dest
+        self.pt = passthrough
+        self._k = 0  # input chunks copied so far
+        self._t_first: int | None = None
+        self.new_ids: list[int] = []
+        self._tf_id = 0
+        # zstd level 1: ~30% faster than the default 3 for ~1% more bytes on this data
+        self.writer = McapColumnWriter(dest, profile="ros2" if self.ros2 else "",
+                                       inputs=(str(src),), zstd_level=1)
+
+    def __enter__(self) -> CorrectedMcapStream:
+        self.writer.__enter__()
+        if self.pt is not None:
+            w = self.writer
+            for sid, (name, enc, data) in sorted(self.pt.schemas.items()):
+                w.add_schema(name, enc, data, schema_id=sid)
+            for cid, (topic, m_enc, sid, md) in sorted(self.pt.channels.items()):
+                w.add_channel(topic, m_enc, sid, md, channel_id=cid)
+            self.add_new_channels()
+        return self
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        if exc_type is None:
+            self._copy_input_before(None)
+            self.writer.add_metadata(METADATA_NAME, {"json": self.cal_text})
+            self.writer.add_attachment(ATTACHMENT_NAME, "application/json",
+                                       self.cal_text.encode("utf-8"), self._t_first or 0)
+        self.writer.__exit__(exc_type, exc, tb)
+
+    def add_new_channels(self) -> None:
+        """Register the four new channels and /tf_static (once)."""
+        if self.new_ids:
+            return
+        w = self.writer
+        s_name, s_enc, s_data, m_enc = schema_for(self.msg_type)
+        sid = w.add_schema(s_name, s_enc, bytes(s_data))  # the writer de-duplicates
+        self.new_ids.extend(w.add_channel(f"{self.topic_base}/{suffix}", m_enc, sid,
+                                          {"magalign": "1"}) for suffix in SUFFIXES[:3])
+        s_name, s_enc, s_data, m_enc = schema_for(self.mag_type)
+        sid = w.add_schema(s_name, s_enc, bytes(s_data))
+        self.new_ids.append(w.add_channel(f"{self.topic_base}/magnitude", m_enc, sid,
+                                          {"magalign": "1", "unit": "nT"}))
+        s_name, s_enc, s_data, m_enc = schema_for("tf2_msgs/msg/TFMessage")
+        sid = w.add_schema(s_name, s_enc, bytes(s_data))
+        self._tf_id = w.add_channel(TF_STATIC_TOPIC, m_enc, sid, {"magalign": "1"})
+
+    def start(self, t_first_ns: int) -> None:
+        """Write the /tf_static message at the first magnetometer stamp (once).
+
+        Call before the first flush (any log time may still be written then).
+        """
+        from pipeline.core.geometry import matrix_to_quat
+        from pipeline.io.messages import encode_tf_static
+
+        self.add_new_channels()
+        if self._t_first is not None:
+            return
+        self._t_first = int(t_first_ns)
+        data, offsets = encode_tf_static(
+            self._t_first, self.body_frame, self.mag_frame,
+            matrix_to_quat(np.asarray(self.calibration.R_body_mag, float)))
+        self.writer.add_messages(self._tf_id, np.array([self._t_first], np.int64), data,
+                                 offsets)
+
+    def _copy_input_before(self, bound: int | None) -> None:
+        if self.pt is None:
+            return
+        chunks = self.pt.chunks
+        while self._k < len(chunks) and (bound is None or chunks[self._k].start_ns < bound):
+            self.writer.add_chunk_record(chunks[self._k])
+            chunks[self._k].release()
+            self._k += 1
+
+    def add(self, rs: Any, *, flush: bool = True) -> None:
+        """Write the new channels' messages of the restore result ``rs`` (next samples).
+
+        With ``flush`` (and an input copied by this stream) everything up to the last
+        stamp of ``rs`` is written out: later calls must bring later stamps.
+        """
+        from pipeline.io.messages import encode, encode_field_magnitude_json
+
+        t_ns = np.asarray(rs.t_ns, dtype=np.int64)
+        if not len(t_ns):
+            return
+        self.start(int(t_ns[0]))
+        w = self.writer
+        bound = int(t_ns[-1]) + 1
+        if flush:
+            self._copy_input_before(bound)
+        series = ((rs.calibrated_mag_nT, self.mag_frame), (rs.enu_nT, "enu"),
+                  (rs.residual_nT, self.mag_frame))
+        for cid, (values_nT, frame_id) in zip(self.new_ids[:3], series, strict=True):
+            v = np.asarray(values_nT)
+            fields = {"mag_T": v * 1e-9} if self.ros2 else {"mag_nT": v}  # REP-145: tesla
+            data, offsets = encode(self.msg_type, t_ns, fields, frame_id=frame_id)
+            w.add_messages(cid, t_ns, data, offsets)
+        magnitude_nT = np.linalg.norm(np.asarray(rs.calibrated_mag_nT), axis=1)
+        if self.ros2:  # Float64: no header, the log time is the stamp; data in nT
+            data, offsets = encode(self.mag_type, t_ns, {"value": magnitude_nT})
+        else:
+            data, offsets = encode_field_magnitude_json(t_ns, magnitude_nT, self.mag_frame)
+        w.add_messages(self.new_ids[3], t_ns, data, offsets)
+        if flush and self.pt is not None:
+            w.flush(bound)
 
 
 def write_corrected_mcap(
@@ -97,110 +244,32 @@ def write_corrected_mcap(
         ``dest``.
 
     """
-    from pipeline.core.geometry import matrix_to_quat
     from pipeline.io.mcap_read import iter_raw_channels, pass_through
-    from pipeline.io.mcap_write import McapColumnWriter
-    from pipeline.io.messages import (
-        encode,
-        encode_field_magnitude_json,
-        encode_tf_static,
-        schema_for,
-    )
     from stages.restore import restore_samples
 
-    dest = Path(dest)
     src = Path(recording.path)
-    if src.exists() and dest.resolve() == src.resolve():
-        raise OutputError("refusing to write over an input file", path=dest)
     rs = restored if restored is not None else restore_samples(recording, calibration,
                                                                 max_gap_s=max_gap_s)
-    ros2 = recording.encoding == EncodingFamily.ROS2
-    msg_type = "sensor_msgs/msg/MagneticField" if ros2 else "magalign.Magnetometer"
-    profile = "ros2" if ros2 else ""
-    cal_text = calibration.to_json()
-    mag_frame = recording.mag_frame_id or "mag"
-    series = (
-        ("calibrated", rs.calibrated_mag_nT, mag_frame),
-        ("enu", rs.enu_nT, "enu"),
-        ("residual", rs.residual_nT, mag_frame),
-    )
-    topic_base = recording.mag_topic.rstrip("/")
     t_ns = rs.t_ns
-    magnitude_nT = np.linalg.norm(rs.calibrated_mag_nT, axis=1)
-    mag_type = "std_msgs/msg/Float64" if ros2 else "magalign.FieldMagnitude"
-    body_frame = getattr(recording, "attitude_frame_id", "") or DEFAULT_BODY_FRAME
     pt = None if getattr(recording, "problems", ()) else pass_through(src)
-    # zstd level 1: ~30% faster than the default 3 for ~1% more bytes on this data
-    with McapColumnWriter(dest, profile=profile, inputs=(str(src),), zstd_level=1) as w:
-        new_ids: list[int] = []
-        done = 0  # magnetometer samples written to the new channels so far
-
-        def add_new_channels() -> None:
-            s_name, s_enc, s_data, m_enc = schema_for(msg_type)
-            sid = w.add_schema(s_name, s_enc, bytes(s_data))  # the writer de-duplicates
-            new_ids.extend(w.add_channel(f"{topic_base}/{suffix}", m_enc, sid, {"magalign": "1"})
-                           for suffix, _v, _f in series)
-            s_name, s_enc, s_data, m_enc = schema_for(mag_type)
-            sid = w.add_schema(s_name, s_enc, bytes(s_data))
-            new_ids.append(w.add_channel(f"{topic_base}/magnitude", m_enc, sid,
-                                         {"magalign": "1", "unit": "nT"}))
-            s_name, s_enc, s_data, m_enc = schema_for("tf2_msgs/msg/TFMessage")
-            sid = w.add_schema(s_name, s_enc, bytes(s_data))
-            tf_id = w.add_channel(TF_STATIC_TOPIC, m_enc, sid, {"magalign": "1"})
-            if len(t_ns):  # before the first flush: any log time may still be written
-                data, offsets = encode_tf_static(
-                    int(t_ns[0]), body_frame, mag_frame,
-                    matrix_to_quat(np.asarray(calibration.R_body_mag, float)))
-                w.add_messages(tf_id, t_ns[:1], data, offsets)
-
-        def add_new_messages(upto: int) -> None:
-            """Add the new channels' messages of samples ``done`` to ``upto`` (whole arrays)."""
-            nonlocal done
-            if upto <= done:
-                return
-            sl = slice(done, upto)
-            for cid, (_suffix, values_nT, frame_id) in zip(new_ids[:3], series, strict=True):
-                v = values_nT[sl]
-                fields = {"mag_T": v * 1e-9} if ros2 else {"mag_nT": v}  # REP-145: tesla
-                data, offsets = encode(msg_type, t_ns[sl], fields, frame_id=frame_id)
-                w.add_messages(cid, t_ns[sl], data, offsets)
-            if ros2:  # Float64: no header, the log time is the stamp; data in nT
-                data, offsets = encode(mag_type, t_ns[sl], {"value": magnitude_nT[sl]})
-            else:
-                data, offsets = encode_field_magnitude_json(t_ns[sl], magnitude_nT[sl],
-                                                            mag_frame)
-            w.add_messages(new_ids[3], t_ns[sl], data, offsets)
-            done = upto
-
+    with CorrectedMcapStream(recording, calibration, dest, pt) as out:
         if pt is not None:
             # An intact indexed input: its chunks are copied as they are (compressed bytes and
             # message indexes, the input's schema and channel ids kept), nothing decompressed;
             # only the new channels are encoded and compressed, range by range, each range
             # after the input chunks that start before its end (the file stays roughly in
             # time order; chunks may overlap in time, as the MCAP format allows).
-            for sid, (name, enc, data) in sorted(pt.schemas.items()):
-                w.add_schema(name, enc, data, schema_id=sid)
-            for cid, (topic, m_enc, sid, md) in sorted(pt.channels.items()):
-                w.add_channel(topic, m_enc, sid, md, channel_id=cid)
-            add_new_channels()
-            k = 0
-            for a in range(0, max(len(t_ns), 1), COPY_RANGE_MESSAGES):
-                upto = min(a + COPY_RANGE_MESSAGES, len(t_ns))
-                bound = int(t_ns[upto]) if upto < len(t_ns) else None
-                while k < len(pt.chunks) and (bound is None or pt.chunks[k].start_ns < bound):
-                    w.add_chunk_record(pt.chunks[k])
-                    pt.chunks[k].release()
-                    k += 1
-                add_new_messages(upto)
-                if bound is not None:
-                    w.flush(bound)
+            for a in range(0, len(t_ns), COPY_RANGE_MESSAGES):
+                out.add(rs.rows(slice(a, a + COPY_RANGE_MESSAGES)))
         else:
             # The input is copied range by range (READER's iter_raw_channels) and the writer
             # flushes each range before the next is read: memory holds one range of input
             # messages, not the whole file. The new channels' messages (log time = stamp) go
             # in with the range whose flush bound they precede, so every call keeps log
             # times after the last flush point.
+            w = out.writer
             copied: dict[str, int] = {}
+            done = 0
             for raw, bound in iter_raw_channels(src, max_messages=COPY_RANGE_MESSAGES):
                 for rc in raw:  # every input channel, byte for byte
                     if rc.topic not in copied:
@@ -212,16 +281,15 @@ def write_corrected_mcap(
                                                          dict(rc.metadata))
                     w.add_messages(copied[rc.topic], rc.log_time_ns, rc.data, rc.offsets,
                                    publish_time_ns=rc.publish_time_ns, sequence=rc.sequence)
-                if not new_ids:
-                    add_new_channels()
+                if len(t_ns):
+                    out.start(int(t_ns[0]))
                 upto = len(t_ns) if bound is None else int(np.searchsorted(t_ns, bound, "left"))
-                add_new_messages(upto)
+                if upto > done:
+                    out.add(rs.rows(slice(done, upto)), flush=False)
+                    done = upto
                 if bound is not None:
                     w.flush(bound)
-        w.add_metadata(METADATA_NAME, {"json": cal_text})
-        log0 = int(t_ns[0]) if len(t_ns) else 0
-        w.add_attachment(ATTACHMENT_NAME, "application/json", cal_text.encode("utf-8"), log0)
-    return dest
+    return Path(dest)
 
 
 @dataclass(frozen=True)
