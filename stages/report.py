@@ -793,6 +793,15 @@ def render_html(
 
     day = dt.datetime.fromtimestamp(t0 / 1e9, tz=dt.timezone.utc).strftime("%Y-%m-%d")
     headline = _headline(calibration, metrics, diagnosis)
+    # the counts of every sample (a long recording's figures show every k-th row)
+    n_samples = metrics.n_samples if metrics is not None else len(recording.mag)
+    duration_s = metrics.whole.end_s if metrics is not None else recording.duration_s
+    sampled = ""
+    if restored is not None and getattr(restored, "is_sample", False):
+        sampled = (f" The recording was processed in chunks: the figures show every "
+                   f"{max(1, round(restored.n_total / max(len(restored.t_ns), 1)))}-th "
+                   f"sample ({len(restored.t_ns)} of {restored.n_total}); every number is "
+                   "over all samples.")
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>magalign: {html.escape(stem)}</title>
 <style>{CSS}</style></head><body>
@@ -800,8 +809,8 @@ def render_html(
 {_verdict_html(calibration)}
 <p class=headline id=headline>{headline}</p>
 <p>Recording <code>{html.escape(Path(recording.path).name)}</code> of {day}, from {start} UTC,
-{recording.duration_s:.1f} s, {len(recording.mag)} magnetometer samples. Times below count
-from its first magnetometer sample, with the UTC time beside them. Click a figure to zoom.</p>
+{duration_s:.1f} s, {n_samples} magnetometer samples. Times below count from its first
+magnetometer sample, with the UTC time beside them. Click a figure to zoom.{sampled}</p>
 <h2>What the diagnosis found</h2>
 {diag_html}
 <h2>Field before and after calibration</h2>

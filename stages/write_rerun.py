@@ -145,107 +145,138 @@ def _log_spans(rec: Any, entity: str, items: list[tuple[int, int, str]],
     rec.reset_time()
 
 
-def write_rrd(
-    recording: Recording,
-    calibration: Any,
-    dest: str | Path,
-    *,
-    segments: tuple[Segment, ...] | None = None,
-    diagnosis: Any = None,
-    max_gap_s: float | None = None,
-    max_points: int = 20000,
-    restored: Any = None,
-) -> Path:
-    """Write the rerun recording (module docstring for the entities).
+class RrdStream:
+    """The rerun recording written chunk by chunk (module docstring for the entities).
+
+    Use as a context manager: :meth:`add` sends the time series of the next magnetometer
+    samples (a chunk's :class:`stages.restore.RestoreResult`, in time order), :meth:`finish`
+    the 3D views (from a sample of the rows: all of them, or every k-th of a long
+    recording), the segments and the diagnosis, and leaving the block flushes rerun and
+    renames the file into place (left by an exception, no file appears).
 
     Parameters
     ----------
     recording : Recording
-        With ``attitude`` filled.
+        Its path names the recording (its series are not used).
     calibration : Calibration
-        The fitted model.
     dest : path
         ``<stem>.rrd``; never the input.
-    segments : tuple of Segment, optional
-        Shown as ``segments/index`` and ``segments/log``.
-    diagnosis : Diagnosis or dict, optional
-        Its findings' windows are logged under ``diagnosis/log``.
-    max_gap_s : float
-        Attitude gap bridged by interpolation.
-    max_points : int
-        Most points per static 3D trajectory.
-    restored : RestoreResult, optional
-        ``ctx.restored``; computed when not given.
-
-    Returns
-    -------
-    Path
-        ``dest``.
 
     """
-    # rerun's own log lines (several per failure) would break the one-line answer; a failed
-    # write is reported by magalign itself (OutputError below)
-    os.environ.setdefault("RUST_LOG", "off")
-    import rerun as rr
 
-    from pipeline.core.geometry import quat_to_li2020_euler
-    from stages.restore import restore_samples, view_data
+    def __init__(self, recording: Recording, calibration: Any, dest: str | Path) -> None:
+        self.recording = recording
+        self.calibration = calibration
+        self.dest = Path(dest)
+        self._atomic: Any = None
+        self.rec: Any = None
 
-    if restored is None:
-        restored = restore_samples(recording, calibration, max_gap_s=max_gap_s)
-    stem = Path(recording.path).stem
-    dest = Path(dest)
-    t_all = np.asarray(restored.t_ns, dtype="datetime64[ns]")
-    v = restored.valid
+    def __enter__(self) -> RrdStream:
+        # rerun's own log lines (several per failure) would break the one-line answer; a
+        # failed write is reported by magalign itself (OutputError below)
+        os.environ.setdefault("RUST_LOG", "off")
+        import rerun as rr
 
-    def times(mask: np.ndarray | None = None) -> list:
-        return [rr.TimeColumn("time", timestamp=t_all if mask is None else t_all[mask])]
+        self._atomic = atomic_path(self.dest, (self.recording.path,))
+        tmp = self._atomic.__enter__()
+        try:
+            os.unlink(tmp)  # rerun creates the file itself
+            stem = Path(self.recording.path).stem
+            rec = rr.RecordingStream("magalign", recording_id=f"magalign-{stem}")
+            rec.save(str(tmp), default_blueprint=blueprint())
+            rec.send_recording_name(stem)
+            self.rec = rec
+            self._styles(rr)
+        except BaseException as exc:
+            self._atomic.__exit__(type(exc), exc, exc.__traceback__)
+            raise
+        return self
 
-    def send_scalars(ent: str, values: np.ndarray, mask: np.ndarray | None = None) -> None:
-        """One Scalars series, sent in pieces of SEND_ROWS rows (no Python object per row)."""
-        t = t_all
-        if mask is not None and not bool(mask.all()):
-            t, values = t_all[mask], values[mask]
-        for a in range(0, len(t), SEND_ROWS):
-            rec.send_columns(ent, indexes=[rr.TimeColumn("time", timestamp=t[a:a + SEND_ROWS])],
-                             columns=rr.Scalars.columns(scalars=values[a:a + SEND_ROWS]))
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        if exc_type is None:
+            try:
+                self.rec.flush()
+                self.rec.disconnect()
+            except RuntimeError as err:  # rerun's file writer stopped (disk full, ...)
+                e = OutputError(f"cannot write the rerun recording: {err}", path=self.dest,
+                                hint="free some disk space and run again")
+                self._atomic.__exit__(OutputError, e, None)
+                raise e from err
+        self._atomic.__exit__(exc_type, exc, tb)
 
-    with atomic_path(dest, (recording.path,)) as tmp:
-        os.unlink(tmp)  # rerun creates the file itself
-        rec = rr.RecordingStream("magalign", recording_id=f"magalign-{stem}")
-        rec.save(str(tmp), default_blueprint=blueprint())
-        rec.send_recording_name(stem)
+    def _styles(self, rr: Any) -> None:
+        rec = self.rec
+        for c in ENU_NAMES:
+            rec.log(f"field/calibrated/{c}",
+                    rr.SeriesLines(colors=[AFTER_RGB], names=[f"{c} calibrated"]), static=True)
+            rec.log(f"field/uncalibrated/{c}",
+                    rr.SeriesLines(colors=[BEFORE_RGB], names=[f"{c} uncalibrated"]),
+                    static=True)
+        for k, a in enumerate(AXES):
+            rec.log(f"residual/{a}", rr.SeriesLines(colors=[AXIS_RGB[k]], names=[f"residual {a}"]),
+                    static=True)
+            rec.log(f"mag/raw/{a}", rr.SeriesLines(colors=[AXIS_RGB[k]], names=[f"raw {a}"]),
+                    static=True)
+        for name in ("heading", "pitch", "roll"):
+            rec.log(f"attitude/{name}_deg", rr.SeriesLines(colors=[ANGLE_RGB[name]],
+                                                           names=[f"{name} (deg)"]), static=True)
+
+    def add(self, restored: Any) -> None:
+        """Send the time series of the restore result ``restored`` (the next samples)."""
+        import rerun as rr
+
+        from pipeline.core.geometry import quat_to_li2020_euler
+        from stages.restore import view_data
+
+        rec = self.rec
+        t_all = np.asarray(restored.t_ns, dtype="datetime64[ns]")
+        v = restored.valid
+
+        def send_scalars(ent: str, values: np.ndarray, mask: np.ndarray | None = None) -> None:
+            """One Scalars series, sent in pieces of SEND_ROWS rows (no Python object per row)."""
+            t = t_all
+            if mask is not None and not bool(mask.all()):
+                t, values = t_all[mask], values[mask]
+            for a in range(0, len(t), SEND_ROWS):
+                rec.send_columns(ent,
+                                 indexes=[rr.TimeColumn("time", timestamp=t[a:a + SEND_ROWS])],
+                                 columns=rr.Scalars.columns(scalars=values[a:a + SEND_ROWS]))
+
         # The series the restore result holds go first: rerun encodes them on its own
         # thread while the view series are computed.
         # --- Li 2020 Figs. 5 and 8: ENU components after calibration, then before
         enu = np.asarray(restored.enu_nT)
         for k, c in enumerate(ENU_NAMES):
-            ent = f"field/calibrated/{c}"
-            rec.log(ent, rr.SeriesLines(colors=[AFTER_RGB], names=[f"{c} calibrated"]),
-                    static=True)
-            send_scalars(ent, enu[:, k], np.isfinite(enu[:, k]))
+            send_scalars(f"field/calibrated/{c}", enu[:, k], np.isfinite(enu[:, k]))
         # --- residuals and raw magnetometer, mag frame
         raw = np.asarray(restored.raw_mag_nT, dtype=float)
         for k, a in enumerate(AXES):
-            rec.log(f"residual/{a}", rr.SeriesLines(colors=[AXIS_RGB[k]], names=[f"residual {a}"]),
-                    static=True)
             send_scalars(f"residual/{a}", np.asarray(restored.residual_nT)[:, k], v)
-            rec.log(f"mag/raw/{a}", rr.SeriesLines(colors=[AXIS_RGB[k]], names=[f"raw {a}"]),
-                    static=True)
             send_scalars(f"mag/raw/{a}", raw[:, k])
-        vd = view_data(restored, calibration.R_body_mag)
+        vd = view_data(restored, self.calibration.R_body_mag)
         unc = vd.uncalibrated_enu_nT
         for k, c in enumerate(ENU_NAMES):
-            ent = f"field/uncalibrated/{c}"
-            rec.log(ent, rr.SeriesLines(colors=[BEFORE_RGB], names=[f"{c} uncalibrated"]),
-                    static=True)
-            send_scalars(ent, unc[:, k], np.isfinite(unc[:, k]))
-        # --- attitude: Li 2020 Euler angles and a rotating body frame
+            send_scalars(f"field/uncalibrated/{c}", unc[:, k], np.isfinite(unc[:, k]))
+        # --- attitude: Li 2020 Euler angles
         h, p, r = quat_to_li2020_euler(vd.q_enu_body)  # every row (identity where not valid)
         for name, ang in (("heading", h), ("pitch", p), ("roll", r)):
-            rec.log(f"attitude/{name}_deg", rr.SeriesLines(colors=[ANGLE_RGB[name]],
-                                                           names=[f"{name} (deg)"]), static=True)
             send_scalars(f"attitude/{name}_deg", np.degrees(ang), v)
+
+    def finish(self, sample: Any, *, segments: tuple[Segment, ...] | None = None,
+               diagnosis: Any = None, max_points: int = 20000) -> None:
+        """Send the 3D views (from ``sample``, a restore result), segments and diagnosis."""
+        import rerun as rr
+
+        from stages.restore import view_data
+
+        rec = self.rec
+        vd = view_data(sample, self.calibration.R_body_mag)
+        t_all = np.asarray(sample.t_ns, dtype="datetime64[ns]")
+        v = sample.valid
+
+        def times(idx: np.ndarray) -> list:
+            return [rr.TimeColumn("time", timestamp=t_all[idx])]
+
         # --- 3D: the body turning in ENU, and the field: the reference (fixed in ENU) and
         # the measured field before / after calibration, carried by the body frame (they
         # point along the reference when the calibration is right); unit length x 1.5
@@ -320,13 +351,54 @@ def write_rrd(
                                                                       dtype="datetime64[ns]"))],
                     columns=rr.TextLog.columns(text=texts, level=["WARN"] * len(texts)),
                 )
-        try:
-            rec.flush()
-            rec.disconnect()
-        except RuntimeError as exc:  # rerun's file writer stopped (disk full, ...)
-            raise OutputError(f"cannot write the rerun recording: {exc}", path=dest,
-                              hint="free some disk space and run again") from exc
-    return dest
+
+
+def write_rrd(
+    recording: Recording,
+    calibration: Any,
+    dest: str | Path,
+    *,
+    segments: tuple[Segment, ...] | None = None,
+    diagnosis: Any = None,
+    max_gap_s: float | None = None,
+    max_points: int = 20000,
+    restored: Any = None,
+) -> Path:
+    """Write the rerun recording (module docstring for the entities).
+
+    Parameters
+    ----------
+    recording : Recording
+        With ``attitude`` filled.
+    calibration : Calibration
+        The fitted model.
+    dest : path
+        ``<stem>.rrd``; never the input.
+    segments : tuple of Segment, optional
+        Shown as ``segments/index`` and ``segments/log``.
+    diagnosis : Diagnosis or dict, optional
+        Its findings' windows are logged under ``diagnosis/log``.
+    max_gap_s : float
+        Attitude gap bridged by interpolation.
+    max_points : int
+        Most points per static 3D trajectory.
+    restored : RestoreResult, optional
+        ``ctx.restored``; computed when not given.
+
+    Returns
+    -------
+    Path
+        ``dest``.
+
+    """
+    from stages.restore import restore_samples
+
+    if restored is None:
+        restored = restore_samples(recording, calibration, max_gap_s=max_gap_s)
+    with RrdStream(recording, calibration, dest) as out:
+        out.add(restored)
+        out.finish(restored, segments=segments, diagnosis=diagnosis, max_points=max_points)
+    return Path(dest)
 
 
 @dataclass(frozen=True)

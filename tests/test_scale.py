@@ -165,18 +165,28 @@ def test_decimated_stage_does_not_leak_its_restore_result():
     assert out.calibration == "fitted" and out.restored is None
 
 
-def test_process_scale_path_matches_the_normal_path(tmp_path, monkeypatch):
+@pytest.mark.parametrize("chunked", [True, False], ids=["two-pass", "in-memory"])
+def test_process_scale_path_matches_the_normal_path(tmp_path, monkeypatch, chunked):
+    """Both paths of a long recording: two passes over the file (an intact file) and the
+    in-memory one with decimated analysis (what a damaged file takes)."""
     import pipeline.app.process_one as process_one
+    import pipeline.app.process_stream as process_stream
     from pipeline.app.process_one import ProcessOptions, process_recording
 
     monkeypatch.setattr(process_one, "DECIMATED_SAMPLES", 2_000)  # every 4th sample
+    monkeypatch.setattr(process_stream, "DECIMATED_SAMPLES", 2_000)
+    if not chunked:
+        monkeypatch.setattr(process_stream, "plan_stream", lambda *a: None)
 
     path, R = make(tmp_path / "e.mcap", n=8_000)
     base = dict(diagnose=False, write_rerun=False, write_report=False)
     small = process_recording(path, tmp_path / "normal", options=ProcessOptions(**base))
     big = process_recording(path, tmp_path / "scale",
                             options=ProcessOptions(scale_samples=1_000, **base))
-    assert "StreamingEstimate" in big["timings_s"] and "OnDecimated" in big["timings_s"]
+    if chunked:
+        assert "Restore+outputs" in big["timings_s"]
+    else:
+        assert "StreamingEstimate" in big["timings_s"] and "OnDecimated" in big["timings_s"]
     assert big["estimator"] == "ml-streaming"
     rv_small = np.array(small["rotvec_body_mag_deg"])
     rv_big = np.array(big["rotvec_body_mag_deg"])

@@ -206,8 +206,8 @@ def summary_row(ctx: Context, stem: str, out_dir: Path) -> dict[str, Any]:
         "stem": stem,
         "status": "ok",
         "path": str(rec.path),
-        "duration_s": float(rec.duration_s),
-        "n_samples": int(len(rec.mag)),
+        "duration_s": float(m.whole.end_s) if m is not None else float(rec.duration_s),
+        "n_samples": int(m.n_samples) if m is not None else int(len(rec.mag)),
         "estimator": cal.estimator,
         "rotvec_body_mag_deg": _finite_list(cal.rotvec_body_mag_deg),
         "sigma_rotvec_deg": _finite_list(cal.sigma_rotvec_deg),
@@ -290,11 +290,17 @@ def process_recording(
     # started the worker issues them once from the row (pipeline.app.commands.process).
     with warnings.catch_warnings(record=True) as caught, \
             progress.use_sink(progress.current() or progress.sink_from_env(stem)):
-        ctx = Pipeline([ingest]).run(ctx, progress=tick)
-        rest = Pipeline(build_stages(ctx, rec_dir, options),
-                        initial=ctx.provided() | {"source"})
-        shown[1:] = [progress_name(st) for st in rest.stages]
-        ctx = rest.run(ctx, progress=tick)
+        from pipeline.app.process_stream import plan_stream, process_stream
+
+        plan = plan_stream(path, options)
+        if plan is not None:  # long: two passes over the file, bounded memory
+            ctx = process_stream(plan, path, rec_dir, options, tick, shown)
+        else:
+            ctx = Pipeline([ingest]).run(ctx, progress=tick)
+            rest = Pipeline(build_stages(ctx, rec_dir, options),
+                            initial=ctx.provided() | {"source"})
+            shown[1:] = [progress_name(st) for st in rest.stages]
+            ctx = rest.run(ctx, progress=tick)
     tick(None)
     row = summary_row(ctx, stem, rec_dir)
     row["timings_s"] = {k: round(v, 3) for k, v in timings.items()}

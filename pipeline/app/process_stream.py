@@ -1,0 +1,378 @@
+"""``process`` of a long recording in memory that does not grow with its length (issue 18).
+
+A recording with more magnetometer samples than ``ProcessOptions.scale_samples`` whose file
+is an intact indexed MCAP is processed in two passes over the file, never holding it whole:
+
+1. **Read** (range by range, :func:`pipeline.io.mcap_read.iter_recording_chunks`): every
+   sample, brought onto the magnetometer stamps, is reduced to the streaming estimator's
+   sums (:mod:`stages.estimators.streaming`: the ML rotation, and offset, from every
+   sample); every k-th aligned sample is kept for the segmentation (at most
+   :data:`DECIMATED_SAMPLES`); and :data:`DIAGNOSIS_WINDOWS` windows spread evenly over the
+   recording are kept whole, at the full rate of both sensors (about
+   :data:`DECIMATED_SAMPLES` magnetometer samples in all), for the estimators that need
+   the samples themselves and for the diagnosis: its effects (a time offset, eddy
+   currents, a sample-and-hold, the attitude's interpolation error) live at the sensors'
+   own rates, which a decimated series would hide, and windows spread over the whole
+   recording keep its slow terms (drifts) interpolated, never extrapolated.
+2. **Analyse**: segmentation, estimation, diagnosis and the verdict, as in memory, on
+   those samples.
+3. **Restore and write** (range by range again): :class:`stages.restore.ChunkedRestore`
+   restores every sample with the final model (the same attitude as a whole-recording
+   interpolator, with the blend weight and gap rule of the recording's first range); each
+   range goes to the metrics (:class:`stages.metrics.MetricsAccumulator`), the corrected
+   MCAP (:class:`stages.write_mcap.CorrectedMcapStream`, the input's chunks copied as they
+   are) and the rerun recording (:class:`stages.write_rerun.RrdStream`), and every k-th
+   row is kept for the report's figures and the rerun 3D views. Counts, the residual RMS
+   and every metric are over every sample.
+
+What is not streamed (such recordings take the in-memory path, whatever their length): a
+damaged or unindexed file (the reader must recover what it can from the whole file), a
+turntable recording (the axis-tilt fit needs the whole rotation), and an attitude that
+carries positions (the field gradient term). Ingest's whole-recording checks (duplicated
+stamps, clock jumps, gaps) are made range by range here, so a stamp repeated across two
+ranges is not reported.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.core.errors import InputError
+from pipeline.core.recording import (
+    AlignedSeries,
+    AttitudeSeries,
+    Context,
+    Recording,
+    VectorSeries,
+)
+
+#: analysis stages see at most this many magnetometer samples (segmentation: every k-th;
+#: diagnosis: this many in whole windows)
+DECIMATED_SAMPLES = 150_000
+#: windows of full-rate data the diagnosis sees, spread evenly over the recording
+DIAGNOSIS_WINDOWS = 12
+#: messages per range read from the file (memory: about 100 bytes a message)
+RANGE_MESSAGES = 200_000
+#: attitude kept beyond each diagnosis window (s): its interpolation at the window's edges
+WINDOW_MARGIN_S = 1.0
+
+
+@dataclasses.dataclass(frozen=True)
+class StreamPlan:
+    """Why and how a recording is processed in chunks (:func:`plan_stream`)."""
+
+    header: Recording
+    passthrough: Any
+    n_mag: int
+    start_ns: int
+    end_ns: int
+
+
+def plan_stream(path: str | Path, options: Any) -> StreamPlan | None:
+    """Return the plan for processing ``path`` in chunks, or None for the in-memory path.
+
+    Chunks when the options allow it (``scale_samples``), the file holds more magnetometer
+    messages than ``scale_samples``, is intact and indexed (its chunks can be copied as they
+    are), and its attitude source is neither a turntable nor carries positions.
+    """
+    from pipeline.io.mcap_header import read_recording_header
+    from pipeline.io.mcap_read import pass_through
+
+    if options.scale_samples is None or options.turntable_topic is not None:
+        return None
+    header = read_recording_header(path, mag_topic=options.mag_topic,
+                                   attitude_topic=options.attitude_topic)
+    mag = next((c for c in header.channels if c.topic == header.mag_topic), None)
+    if (mag is None or mag.count <= options.scale_samples or header.attitude is None
+            or header.position is not None):
+        return None
+    pt = pass_through(path)
+    if pt is None or not pt.chunks:
+        return None
+    return StreamPlan(header, pt, int(mag.count), min(c.start_ns for c in pt.chunks),
+                      max(c.end_ns for c in pt.chunks))
+
+
+def windows_ns(plan: StreamPlan) -> np.ndarray:
+    """Return the diagnosis windows, (W, 2) int64 ns, half-open, spread over the recording."""
+    span = plan.end_ns - plan.start_ns
+    share = min(1.0, DECIMATED_SAMPLES / max(plan.n_mag, 1))
+    length = span * share / DIAGNOSIS_WINDOWS
+    centres = plan.start_ns + (np.arange(DIAGNOSIS_WINDOWS) + 0.5) * span / DIAGNOSIS_WINDOWS
+    lo = np.floor(centres - length / 2).astype(np.int64)
+    return np.stack([lo, lo + int(np.ceil(length))], axis=1)
+
+
+class _Collector:
+    """The samples of pass 1 kept for the analysis (windows; every k-th aligned row)."""
+
+    def __init__(self, windows: np.ndarray, step: int) -> None:
+        self.windows = windows
+        self.step = step
+        self.mag_t: list[np.ndarray] = []
+        self.mag_v: list[np.ndarray] = []
+        self.att_t: list[np.ndarray] = []
+        self.att_q: list[np.ndarray] = []
+        self.al: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self.n_aligned = 0
+        self.t_first_ns: int | None = None
+
+    def _inside(self, t: np.ndarray, margin_ns: int = 0) -> np.ndarray:
+        w = self.windows
+        k = np.searchsorted(w[:, 0] - margin_ns, t, "right") - 1
+        ok = k >= 0
+        ok[ok] = t[ok] < w[k[ok], 1] + margin_ns
+        return ok
+
+    def chunk(self, ch: Any) -> None:
+        t = ch.mag.t_ns
+        if len(t):
+            t_min = int(t.min())
+            self.t_first_ns = t_min if self.t_first_ns is None else min(self.t_first_ns, t_min)
+        m = self._inside(t)
+        if m.any():
+            self.mag_t.append(t[m])
+            self.mag_v.append(ch.mag.values[m])
+        if ch.attitude is not None and len(ch.attitude):
+            a = self._inside(ch.attitude.t_ns, int(WINDOW_MARGIN_S * 1e9))
+            if a.any():
+                self.att_t.append(ch.attitude.t_ns[a])
+                self.att_q.append(ch.attitude.q_enu_body[a])
+
+    def aligned(self, q: np.ndarray, y: np.ndarray, t: np.ndarray) -> None:
+        first = (-self.n_aligned) % self.step
+        self.al.append((q[first::self.step], y[first::self.step], t[first::self.step]))
+        self.n_aligned += len(t)
+
+    def aligned_series(self) -> AlignedSeries:
+        if not self.al:
+            return AlignedSeries(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 4)))
+        q, y, t = (np.concatenate(x) for x in zip(*self.al, strict=True))
+        return AlignedSeries(t, y, q)
+
+    def window_recording(self, header: Recording) -> Recording:
+        def cat(parts: list[np.ndarray], shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+            return np.concatenate(parts) if parts else np.zeros(shape, dtype)
+
+        mt, mv = cat(self.mag_t, (0,), np.int64), cat(self.mag_v, (0, 3), float)
+        at, aq = cat(self.att_t, (0,), np.int64), cat(self.att_q, (0, 4), float)
+        o = np.argsort(mt, kind="stable")
+        oa = np.argsort(at, kind="stable")
+        return dataclasses.replace(
+            header, mag=VectorSeries(mt[o], mv[o], header.mag.frame, header.mag.unit),
+            attitude=AttitudeSeries(at[oa], aq[oa]), position=None)
+
+
+def _chunks(path: str | Path, options: Any) -> Iterator[Any]:
+    from pipeline.io.mcap_read import iter_recording_chunks
+
+    return iter_recording_chunks(path, max_messages=RANGE_MESSAGES, mag_topic=options.mag_topic,
+                                 attitude_topic=options.attitude_topic)
+
+
+def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: Any,
+                   tick: Callable[..., None], shown: list[str]) -> Context:
+    """Run the pipeline on a long recording in two passes (module docstring).
+
+    Parameters
+    ----------
+    plan : StreamPlan
+        From :func:`plan_stream`.
+    path : path
+        The recording (never modified).
+    rec_dir : Path
+        Output folder of this recording.
+    options : ProcessOptions
+        What to do (as for the in-memory path).
+    tick : callable
+        ``tick(stage name, index, total)`` at the start of each step (progress and timings).
+    shown : list of str
+        Filled with the step names (the progress line's stages).
+
+    Returns
+    -------
+    Context
+        ``calibration``, ``diagnosis``, ``segments``, ``metrics``, ``outputs``; ``restored``
+        holds every k-th restored row with the counts and residual RMS of every sample
+        (``RestoreResult.totals``); ``recording`` is the header with those rows' readings.
+
+    """
+    from pipeline.model.attitude import AttitudeInterpolator, auto_max_gap_s
+    from stages.estimators.streaming import SufficientStats, fit_stats, iter_aligned_chunks
+    from stages.metrics import MetricsAccumulator
+    from stages.restore import ChunkedRestore, RestoreTotals, model_key_of
+    from stages.write_mcap import CorrectedMcapStream, corrected_path
+    from stages.write_results import WriteResults
+
+    steps = ["Ingest", "SegmentMotion", "Estimate", "Diagnose", "Judge",
+             "Restore+outputs", "WriteResults", "Report"]
+    if not options.diagnose or options.calibration_path is not None:
+        steps.remove("Diagnose")
+    if options.calibration_path is not None:
+        steps.remove("Judge")
+    if not options.write_report:
+        steps.remove("Report")
+    shown[:] = steps
+
+    def step(name: str) -> None:
+        tick(name, steps.index(name), len(steps))
+
+    # ---------------------------------------------------------------- pass 1: read
+    step("Ingest")
+    k = max(1, -(-plan.n_mag // DECIMATED_SAMPLES))
+    col = _Collector(windows_ns(plan), k)
+    chunks = _chunks(path, options)
+    first = next(chunks)
+    att0 = first.attitude if first.attitude is not None else plan.header.attitude
+    assert att0 is not None  # plan_stream took only recordings with an attitude
+    gap_s = (float(options.max_gap_s) if options.max_gap_s is not None
+             else auto_max_gap_s(att0.t_ns))
+    lam = AttitudeInterpolator(att0.t_ns, att0.q_enu_body, max_gap_s=gap_s).cubic_weight
+
+    def tapped() -> Iterator[Any]:
+        for ch in itertools.chain([first], chunks):
+            col.chunk(ch)
+            yield ch
+
+    stats = SufficientStats()
+    for q, y, t in iter_aligned_chunks(tapped(), max_gap_s=gap_s):
+        stats = stats + SufficientStats.from_samples(q, y, t)
+        col.aligned(q, y, t)
+    win = Context(source=str(path), recording=col.window_recording(plan.header),
+                  options=options)
+
+    # ---------------------------------------------------------------- analyse
+    step("SegmentMotion")
+    segments = None
+    try:
+        from stages.segment import SegmentMotion
+    except ModuleNotFoundError:  # pragma: no cover - the stage is part of the project
+        SegmentMotion = None  # type: ignore[assignment,misc]  # noqa: N806
+    if SegmentMotion is not None:
+        segments = SegmentMotion().run(Context(aligned=col.aligned_series())).segments
+    step("Estimate")
+    from stages.resample import Resample
+
+    win = Resample(max_gap_s=gap_s).run(win).replace(segments=segments)
+    if options.calibration_path is not None:
+        from stages.load_calibration import LoadCalibration
+
+        win = LoadCalibration(str(options.calibration_path)).run(win)
+    else:
+        from stages.estimate import Estimate, EstimatorKind, Term
+        from stages.require_observable import RequireObservable
+
+        terms = {Term(t) for t in options.terms}
+        ref = options.reference_field_enu_nT
+        ml = options.estimator is None or EstimatorKind(options.estimator) is EstimatorKind("ml")
+        if ml and terms <= {Term.OFFSET}:
+            # every sample, from the sums of pass 1
+            fit = fit_stats(stats, estimate_offset=Term.OFFSET in terms,
+                            reference_field_enu_nT=None if ref is None
+                            else np.asarray(ref, dtype=float))
+            win = win.replace(calibration=fit.to_calibration())
+        else:
+            kw: dict[str, Any] = {"terms": frozenset(options.terms)}
+            if options.estimator is not None:
+                kw["estimator"] = options.estimator
+            if ref is not None:
+                kw["reference_field_enu_nT"] = tuple(float(x) for x in ref)
+            win = Estimate(**kw).run(win)
+        win = RequireObservable().run(win)
+        if options.diagnose:
+            step("Diagnose")
+            from stages.diagnose.stage import Diagnose
+
+            dkw: dict[str, Any] = {"max_gap_s": options.max_gap_s}
+            if ref is not None:
+                dkw["reference_field_enu_nT"] = tuple(float(x) for x in ref)
+            win = Diagnose(**dkw).run(win)
+        step("Judge")
+        from stages.estimate import Judge
+
+        win = Judge().run(win)
+    cal = win.need_calibration()
+
+    # ---------------------------------------------------------------- pass 2: restore, write
+    step("Restore+outputs")
+    from pipeline.io.mcap_read import pass_through
+
+    t0 = int(col.t_first_ns if col.t_first_ns is not None else plan.start_ns)
+    restorer = ChunkedRestore(cal, t0_ns=t0, max_gap_s=gap_s, cubic_weight=lam,
+                              model_key=model_key_of(cal, options.max_gap_s))
+    acc = MetricsAccumulator(segments, t0, spill_dir=rec_dir)
+    totals = RestoreTotals()
+    kept: list[Any] = []
+    n_seen = 0
+    outputs: tuple[tuple[str, str], ...] = ()
+    mcap_dest = corrected_path(rec_dir, path)
+    pt = pass_through(path)  # afresh: pass 1 released the first one's pages
+    from contextlib import ExitStack
+
+    with ExitStack() as stack:
+        mc = stack.enter_context(CorrectedMcapStream(plan.header, cal, mcap_dest, pt))
+        rrd = None
+        if options.write_rerun:
+            from stages.write_rerun import RrdStream, rrd_path
+
+            rrd_dest = rrd_path(rec_dir, path)
+            rrd = stack.enter_context(RrdStream(plan.header, cal, rrd_dest))
+
+        def consume(rs: Any) -> None:
+            nonlocal totals, n_seen
+            if rs is None or not len(rs.t_ns):
+                return
+            totals = totals + RestoreTotals.of(rs)
+            acc.add(rs)
+            mc.add(rs)
+            if rrd is not None:
+                rrd.add(rs)
+            kept.append(rs.rows(slice((-n_seen) % k, None, k)))
+            n_seen += len(rs.t_ns)
+
+        for ch in _chunks(path, options):
+            att = ch.attitude
+            consume(restorer.add(ch.mag.t_ns, ch.mag.values,
+                                 None if att is None else att.t_ns,
+                                 None if att is None else att.q_enu_body))
+        consume(restorer.finish())
+        sample = _concat(kept, totals)
+        if rrd is not None:
+            rrd.finish(sample, segments=segments, diagnosis=win.diagnosis)
+    outputs += (("corrected_mcap", str(mcap_dest)),)
+    if options.write_rerun:
+        outputs += (("rrd", str(rrd_dest)),)
+    metrics = acc.finish()
+    j, pq = metrics.write(rec_dir, (str(path),))
+    outputs = (("metrics.json", str(j)), ("metrics.parquet", str(pq))) + outputs
+    report_rec = dataclasses.replace(
+        plan.header, mag=VectorSeries(sample.t_ns, sample.raw_mag_nT, plan.header.mag.frame,
+                                      plan.header.mag.unit), attitude=None, position=None)
+    ctx = Context(source=str(path), recording=report_rec, calibration=cal,
+                  segments=segments, restored=sample, metrics=metrics,
+                  diagnosis=win.diagnosis, outputs=outputs, options=options)
+    step("WriteResults")
+    ctx = WriteResults(str(rec_dir)).run(ctx)
+    if options.write_report:
+        step("Report")
+        from stages.report import Report
+
+        ctx = Report(str(rec_dir), max_gap_s=options.max_gap_s).run(ctx)
+    return ctx
+
+
+def _concat(parts: list[Any], totals: Any) -> Any:
+    """One RestoreResult of the kept rows, carrying the totals of every sample."""
+    from stages.restore import _ROW_FIELDS
+
+    if not parts:
+        raise InputError("no magnetometer sample of the recording could be restored",
+                         hint="check that the magnetometer and attitude overlap in time")
+    arrays = {f: np.concatenate([getattr(p, f) for p in parts]) for f in _ROW_FIELDS}
+    return dataclasses.replace(parts[0], totals=totals, **arrays)
