@@ -798,8 +798,9 @@ def render_html(
     duration_s = metrics.whole.end_s if metrics is not None else recording.duration_s
     sampled = ""
     if restored is not None and getattr(restored, "is_sample", False):
-        sampled = (f" The recording was processed in chunks: the figures show every "
-                   f"{max(1, round(restored.n_total / max(len(restored.t_ns), 1)))}-th "
+        k = max(2, round(restored.n_total / max(len(restored.t_ns), 1)))
+        nth = f"{k}{'nd' if k == 2 else 'rd' if k == 3 else 'th'}"
+        sampled = (f" The recording was processed in chunks: the figures show every {nth} "
                    f"sample ({len(restored.t_ns)} of {restored.n_total}); every number is "
                    "over all samples.")
     return f"""<!DOCTYPE html>

@@ -159,7 +159,8 @@ class RestoreResult:
         """Return the result restricted to rows ``sl`` (a slice or index array), no totals."""
         import dataclasses
 
-        arrays = {f: getattr(self, f)[sl] for f in _ROW_FIELDS}
+        # copies: a view would keep the whole arrays alive (a long recording's kept rows)
+        arrays = {f: np.array(getattr(self, f)[sl]) for f in _ROW_FIELDS}
         return dataclasses.replace(self, totals=None, **arrays)
 
 

@@ -68,7 +68,6 @@ class StreamPlan:
     """Why and how a recording is processed in chunks (:func:`plan_stream`)."""
 
     header: Recording
-    passthrough: Any
     n_mag: int
     start_ns: int
     end_ns: int
@@ -95,7 +94,7 @@ def plan_stream(path: str | Path, options: Any) -> StreamPlan | None:
     pt = pass_through(path)
     if pt is None or not pt.chunks:
         return None
-    return StreamPlan(header, pt, int(mag.count), min(c.start_ns for c in pt.chunks),
+    return StreamPlan(header, int(mag.count), min(c.start_ns for c in pt.chunks),
                       max(c.end_ns for c in pt.chunks))
 
 
@@ -147,7 +146,9 @@ class _Collector:
 
     def aligned(self, q: np.ndarray, y: np.ndarray, t: np.ndarray) -> None:
         first = (-self.n_aligned) % self.step
-        self.al.append((q[first::self.step], y[first::self.step], t[first::self.step]))
+        # copies: views would keep every block alive
+        self.al.append((q[first::self.step].copy(), y[first::self.step].copy(),
+                        t[first::self.step].copy()))
         self.n_aligned += len(t)
 
     def aligned_series(self) -> AlignedSeries:
@@ -221,7 +222,9 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
     shown[:] = steps
 
     def step(name: str) -> None:
-        tick(name, steps.index(name), len(steps))
+        # process_one's tick counts the stages after Ingest from 0 (they follow it)
+        i = steps.index(name)
+        tick(name, i if i == 0 else i - 1, len(steps))
 
     # ---------------------------------------------------------------- pass 1: read
     step("Ingest")

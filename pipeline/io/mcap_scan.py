@@ -323,6 +323,9 @@ def _finish_scan(scan: _Scan, last_chunk: _Chunk | None, last_index: dict, pos: 
             msg = (f"{scan.path}: file cut at byte {size} (no footer); read the first {pos} "
                    f"bytes up to the last complete record, {lost} trailing bytes lost")
         _problem(scan.problems, "truncated", msg, lost)
+    # walking the records touched pages across the whole file: drop them (those a reader
+    # needs come back from the page cache, one chunk at a time)
+    _release(scan, 0, len(raw))
     return scan
 
 

@@ -1,0 +1,161 @@
+"""A long recording processed in two passes over the file (pipeline/app/process_stream.py)
+gives the outputs the in-memory path gives for the same model, in memory that does not grow
+with the recording: restore, metrics, corrected MCAP, rerun recording, report counts."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from test_scale import make
+
+from pipeline.core.recording import Segment, SegmentKind
+from pipeline.io.mcap_read import iter_recording_chunks, read_recording
+from pipeline.model.attitude import AttitudeInterpolator
+from pipeline.model.calibration import Calibration
+from stages.metrics import MetricsAccumulator, compute_metrics
+from stages.restore import ChunkedRestore, RestoreTotals, restore_samples
+
+
+def _walk(a, b, path=""):
+    """Every number of two JSON documents within 1e-6 (nT, or relative), everything else equal."""
+    if isinstance(a, dict):
+        assert set(a) == set(b), path
+        for k in a:
+            _walk(a[k], b[k], f"{path}/{k}")
+    elif isinstance(a, list):
+        assert len(a) == len(b), path
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            _walk(x, y, f"{path}[{i}]")
+    elif isinstance(a, float) and isinstance(b, float):
+        # nT, or a ratio of nT: a range of ~1 nT over ~50,000 nT readings takes the
+        # interpolation's rounding (1e-9 nT) at 1e-9 of itself
+        assert b == pytest.approx(a, rel=1e-6, abs=1e-6), path
+    else:
+        assert a == b, path
+
+
+def _cal(tau_s: float) -> Calibration:
+    from test_scale import B_ENU, ROTVEC_DEG
+
+    from pipeline.core.geometry import so3_exp
+
+    return Calibration(R_body_mag=so3_exp(np.radians(ROTVEC_DEG)),
+                       sigma_rotvec_deg=np.full(3, 0.01), B_enu_nT=B_ENU, estimator="test",
+                       residual_rms_nT=0.5, n_samples=0, time_offset_s=tau_s)
+
+
+def _chunked(path, cal, chunk_messages, **kw):
+    rec = read_recording(path)
+    it = AttitudeInterpolator.of(rec.attitude)
+    cr = ChunkedRestore(cal, t0_ns=int(rec.mag.t_ns[0]), max_gap_s=it.max_gap_s,
+                        cubic_weight=it.cubic_weight, **kw)
+    parts, held = [], 0
+    for ch in iter_recording_chunks(path, max_messages=chunk_messages):
+        parts.append(cr.add(ch.mag.t_ns, ch.mag.values, ch.attitude.t_ns,
+                            ch.attitude.q_enu_body))
+        held = max(held, len(cr._att_t), len(cr._mag_t))
+    parts.append(cr.finish())
+    return rec, [p for p in parts if p is not None], held
+
+
+@pytest.mark.parametrize("tau_s", [0.0, 0.013, -0.031])
+def test_chunked_restore_equals_the_whole_recording_restore(tmp_path, tau_s):
+    path, _ = make(tmp_path / "a.mcap", n=9_000, chunk_size=16 << 10)
+    cal = _cal(tau_s)
+    rec, parts, held = _chunked(path, cal, 1_500)
+    whole = restore_samples(rec, cal)
+    assert len(parts) >= 5
+    np.testing.assert_array_equal(np.concatenate([p.t_ns for p in parts]), whole.t_ns)
+    for f in ("enu_nT", "residual_nT", "calibrated_mag_nT"):
+        got = np.concatenate([getattr(p, f) for p in parts])
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(getattr(whole, f)))
+        np.testing.assert_allclose(got, getattr(whole, f), atol=1e-6, equal_nan=True)  # nT
+    tot = sum((RestoreTotals.of(p) for p in parts), RestoreTotals())
+    assert (tot.n_total, tot.n_used) == (whole.n_total, whole.n_used)
+    assert tot.residual_rms_nT == pytest.approx(whole.residual_rms_nT, rel=1e-9)
+    # what is held between chunks stays about one chunk (750 + 750 messages), not the file
+    assert held < 2_000
+
+
+def test_metrics_accumulator_equals_compute_metrics(tmp_path):
+    path, _ = make(tmp_path / "b.mcap", n=6_000)
+    cal = _cal(0.004)
+    rec, parts, _ = _chunked(path, cal, 1_000)
+    t = rec.mag.t_ns
+    segs = (Segment(int(t[100]), int(t[2_500]), SegmentKind("rotation")),
+            Segment(int(t[2_500]), int(t[5_999]), SegmentKind("static")))
+    acc = MetricsAccumulator(segs, int(t[0]), spill_dir=tmp_path)
+    for p in parts:
+        acc.add(p)
+    _walk(compute_metrics(rec, restore_samples(rec, cal), segs).to_dict(),
+          acc.finish().to_dict())
+
+
+def _decoded(path: Path, topic: str) -> np.ndarray:
+    out = []
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()], validate_crcs=True)
+        for _s, _c, _m, msg in reader.iter_decoded_messages(topics=[topic]):
+            v = msg.magnetic_field
+            out.append([v.x, v.y, v.z])
+    return np.array(out) * 1e9
+
+
+@pytest.mark.parametrize("step", [1, 4])
+def test_two_pass_process_gives_the_in_memory_outputs(tmp_path, monkeypatch, step):
+    """Same model (one calibration file), two paths: every output agrees.
+
+    ``step``: the two-pass path segments (and draws) every ``step``-th sample; with 1 its
+    segments, so every scope of the metrics, are the in-memory path's.
+    """
+    from test_outputs import rrd_rows
+
+    import pipeline.app.process_stream as process_stream
+    from pipeline.app.process_one import ProcessOptions, process_recording
+
+    monkeypatch.setattr(process_stream, "DECIMATED_SAMPLES", 8_000 // step)
+    monkeypatch.setattr(process_stream, "RANGE_MESSAGES", 3_000)  # several ranges
+    path, _ = make(tmp_path / "c.mcap", n=8_000)
+    first = process_recording(path, tmp_path / "fit",
+                              options=ProcessOptions(diagnose=False, write_rerun=False,
+                                                     write_report=False))
+    cal_path = first["paths"]["calibration.json"]
+    rows = {}
+    for name, scale in (("mem", None), ("two", 1_000)):
+        rows[name] = process_recording(path, tmp_path / name, options=ProcessOptions(
+            calibration_path=cal_path, scale_samples=scale))
+    mem, two = rows["mem"], rows["two"]
+    assert "Restore+outputs" in two["timings_s"] and "Restore+outputs" not in mem["timings_s"]
+    assert set(mem["paths"]) == set(two["paths"])
+    assert two["n_samples"] == mem["n_samples"] == 8_000
+    for k in ("residual_rms_nT", "ratio_pct_x", "ratio_pct_y", "ratio_pct_z", "duration_s"):
+        assert two[k] == pytest.approx(mem[k], rel=1e-6), k
+    d = {n: json.loads(Path(r["paths"]["metrics.json"]).read_text()) for n, r in rows.items()}
+    if step == 1:
+        _walk(d["mem"], d["two"])
+    else:  # segments of every 4th sample differ: the whole recording's scope agrees
+        _walk(d["mem"]["scopes"][0], d["two"]["scopes"][0])
+        for k in ("n_samples", "n_used", "n_without_attitude"):
+            assert d["mem"][k] == d["two"][k]
+    for suffix in ("calibrated", "enu", "residual"):
+        a = _decoded(Path(mem["paths"]["corrected_mcap"]), f"/mag/{suffix}")
+        b = _decoded(Path(two["paths"]["corrected_mcap"]), f"/mag/{suffix}")
+        assert a.shape == b.shape == (8_000, 3)
+        np.testing.assert_allclose(b, a, atol=1e-6, equal_nan=True)  # nT
+    # the rerun recordings, read back by rerun: every time series has the same rows; the
+    # 3D views and clouds come from every 4th row in the two-pass one
+    ra, rb = rrd_rows(Path(mem["paths"]["rrd"])), rrd_rows(Path(two["paths"]["rrd"]))
+    for ent in ("/field/calibrated/east", "/field/uncalibrated/up", "/residual/x",
+                "/mag/raw/z", "/attitude/heading_deg"):
+        assert rb[ent] == ra[ent] > 7_900, ent
+    assert 0 < rb["/world/body"] <= ra["/world/body"]
+    # the report quotes the residual of every sample and says what its figures show
+    html = Path(two["paths"]["report.html"]).read_text()
+    assert f"{two['residual_rms_nT']:.7g}" in html and "8000 magnetometer samples" in html
+    assert ("every 4th sample (2000 of 8000)" in html) == (step == 4)
+    assert "processed in chunks" not in Path(mem["paths"]["report.html"]).read_text()
