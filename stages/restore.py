@@ -160,7 +160,7 @@ class RestoreResult:
         import dataclasses
 
         # copies: a view would keep the whole arrays alive (a long recording's kept rows)
-        arrays = {f: np.array(getattr(self, f)[sl]) for f in _ROW_FIELDS}
+        arrays: dict[str, Any] = {f: np.array(getattr(self, f)[sl]) for f in _ROW_FIELDS}
         return dataclasses.replace(self, totals=None, **arrays)
 
 

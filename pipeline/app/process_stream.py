@@ -377,5 +377,6 @@ def _concat(parts: list[Any], totals: Any) -> Any:
     if not parts:
         raise InputError("no magnetometer sample of the recording could be restored",
                          hint="check that the magnetometer and attitude overlap in time")
-    arrays = {f: np.concatenate([getattr(p, f) for p in parts]) for f in _ROW_FIELDS}
+    arrays: dict[str, Any] = {f: np.concatenate([getattr(p, f) for p in parts])
+                              for f in _ROW_FIELDS}
     return dataclasses.replace(parts[0], totals=totals, **arrays)
