@@ -326,32 +326,69 @@ def compute_metrics(
 
 
 class _Moments:
-    """Count, minimum, maximum, mean and centred sum of squares of (n, 3) rows, mergeable.
+    """Per scope: count, minimum, maximum, mean and centred sum of squares, mergeable.
 
-    Chunks are merged with the pairwise update of Chan, Golub & LeVeque (1979), so the
-    standard deviation of hours of ~50,000 nT readings loses nothing to cancellation.
+    Arrays of shape (S, 3) for S scopes. Chunks are merged with the pairwise update of
+    Chan, Golub & LeVeque (1979), so the standard deviation of hours of ~50,000 nT readings
+    loses nothing to cancellation.
     """
 
-    def __init__(self) -> None:
-        self.n = 0
-        self.lo = np.full(3, np.inf)
-        self.hi = np.full(3, -np.inf)
-        self.mean = np.zeros(3)
-        self.m2 = np.zeros(3)
+    def __init__(self, scopes: int) -> None:
+        self.n = np.zeros(scopes, dtype=np.int64)
+        self.lo = np.full((scopes, 3), np.inf)
+        self.hi = np.full((scopes, 3), -np.inf)
+        self.mean = np.zeros((scopes, 3))
+        self.m2 = np.zeros((scopes, 3))
 
-    def add(self, v: np.ndarray) -> None:
-        k = len(v)
-        if k == 0:
+    def add(self, v: np.ndarray, sel: list[Any]) -> None:
+        """Merge the rows ``v`` (N, 3) of each scope (``sel``: None, slice or mask)."""
+        if not len(v):
             return
-        mb = v.mean(axis=0)
-        m2b = ((v - mb) ** 2).sum(axis=0)
-        n = self.n + k
-        d = mb - self.mean
-        self.mean = self.mean + d * (k / n)
-        self.m2 = self.m2 + m2b + d * d * (self.n * k / n)
-        self.n = n
-        self.lo = np.minimum(self.lo, v.min(axis=0))
-        self.hi = np.maximum(self.hi, v.max(axis=0))
+        ref = v.mean(axis=0)  # centring: squares of deviations, not of ~50,000 nT
+        d = v - ref
+        k = np.zeros(len(sel), dtype=np.int64)
+        sm = np.zeros((len(sel), 3))
+        sq = np.zeros((len(sel), 3))
+        lo = np.full((len(sel), 3), np.inf)
+        hi = np.full((len(sel), 3), -np.inf)
+        slices = [(i, x) for i, x in enumerate(sel) if isinstance(x, slice) and x.stop > x.start]
+        if slices:
+            idx = np.array([[x.start, x.stop] for _, x in slices]).ravel()
+            ends = idx[1::2] == len(v)
+            idx = np.minimum(idx, len(v) - 1)  # reduceat: a start of len(v) is not allowed
+            which = np.array([i for i, _ in slices])
+            for arr, out, op in ((d, sm, np.add), (d * d, sq, np.add), (v, lo, np.minimum),
+                                 (v, hi, np.maximum)):
+                r = op.reduceat(arr, idx, axis=0)[::2]
+                # reduceat stops one row short where a slice ends at the last row
+                last = ends & (idx[::2] < len(v) - 1)
+                if last.any():
+                    r[last] = op(r[last], arr[-1])
+                out[which] = r
+            k[which] = [x.stop - x.start for _, x in slices]
+        for i, x in enumerate(sel):
+            if x is None or not isinstance(x, slice):
+                w = d if x is None else d[x]
+                if len(w):
+                    vv = v if x is None else v[x]
+                    k[i], sm[i], sq[i] = len(w), w.sum(axis=0), (w * w).sum(axis=0)
+                    lo[i], hi[i] = vv.min(axis=0), vv.max(axis=0)
+        has = k > 0
+        if not has.any():
+            return
+        kk = np.where(has, k, 1)[:, None]
+        mb = sm / kk  # chunk mean of each scope, relative to ref
+        m2b = sq - kk * mb * mb
+        n = self.n[:, None] + k[:, None]
+        nn = np.where(n > 0, n, 1)
+        delta = (mb + ref) - self.mean
+        upd = has[:, None]
+        self.mean = np.where(upd, self.mean + delta * (k[:, None] / nn), self.mean)
+        self.m2 = np.where(upd, self.m2 + m2b + delta * delta * (self.n[:, None] * k[:, None]
+                                                              / nn), self.m2)
+        self.n = self.n + k
+        self.lo = np.minimum(self.lo, lo)
+        self.hi = np.maximum(self.hi, hi)
 
 
 class MetricsAccumulator:
@@ -386,13 +423,22 @@ class MetricsAccumulator:
         self.segments = tuple(segments or ())
         self.t0_ns = int(t0_ns)
         self.t_last_ns = int(t0_ns)
-        self._moments = [(_Moments(), _Moments()) for _ in range(1 + len(self.segments))]
+        self._cal = _Moments(1 + len(self.segments))
+        self._raw = _Moments(1 + len(self.segments))
+        self._starts = np.array([sg.start_ns for sg in self.segments], dtype=np.int64)
+        self._ends = np.array([sg.end_ns for sg in self.segments], dtype=np.int64)
         self._spill = tempfile.TemporaryFile(dir=None if spill_dir is None else str(spill_dir))
         self.n_samples = 0
         self.n_valid = 0
         self.n_used = 0
 
-    def _masks(self, t: np.ndarray) -> list[np.ndarray | None]:
+    def _masks(self, t: np.ndarray) -> list[Any]:
+        """Row selections of each scope: None (all), a slice (sorted stamps) or a mask."""
+        if len(t) < 2 or bool(np.all(t[1:] >= t[:-1])):
+            # half-open windows (Segment.contains) of sorted stamps: slices
+            a = np.searchsorted(t, self._starts, "left")
+            b = np.searchsorted(t, self._ends, "left")
+            return [None] + [slice(int(i), int(j)) for i, j in zip(a, b, strict=True)]
         return [None] + [sg.contains(t) for sg in self.segments]
 
     def add(self, rs: RestoreResult) -> None:
@@ -410,14 +456,14 @@ class MetricsAccumulator:
         rows["c"] = np.asarray(rs.enu_nT)[used]
         # Uncalibrated: attitude only, C_enu_body(t) @ y_mag (Li 2020, Table 4 "before").
         rows["r"] = quat_rotate(rs.q0_enu_body[used], np.asarray(rs.raw_mag_nT)[used])
-        for (mc, mr), m in zip(self._moments, self._masks(rows["t"]), strict=True):
-            mc.add(rows["c"] if m is None else rows["c"][m])
-            mr.add(rows["r"] if m is None else rows["r"][m])
+        sel = self._masks(rows["t"])
+        self._cal.add(rows["c"], sel)
+        self._raw.add(rows["r"], sel)
         rows.tofile(self._spill)
 
     def finish(self) -> MetricsResult:
         """Return the metrics of every sample added (and drop the temporary file)."""
-        dev = np.zeros((len(self._moments), 2, 3))
+        dev = np.zeros((2, 1 + len(self.segments), 3))
         self._spill.flush()
         self._spill.seek(0)
         while True:
@@ -425,36 +471,35 @@ class MetricsAccumulator:
             if not len(rows):
                 break
             for i, m in enumerate(self._masks(rows["t"])):
-                for j, (name, mo) in enumerate((("c", self._moments[i][0]),
-                                                ("r", self._moments[i][1]))):
+                for j, (name, mo) in enumerate((("c", self._cal), ("r", self._raw))):
                     v = rows[name] if m is None else rows[name][m]
-                    dev[i, j] += np.abs(v - mo.mean).sum(axis=0)
+                    if len(v):
+                        dev[j, i] += np.abs(v - mo.mean[i]).sum(axis=0)
         self._spill.close()
 
-        def stats(mo: _Moments, d: np.ndarray, k: int) -> dict[str, float]:
-            if mo.n == 0:
+        def stats(mo: _Moments, d: np.ndarray, i: int, k: int) -> dict[str, float]:
+            if mo.n[i] == 0:
                 return dict.fromkeys(STATS, float("nan"))
-            return {"fluctuation_range_nT": float(mo.hi[k] - mo.lo[k]),
-                    "absolute_deviation_nT": float(d[k] / mo.n),
-                    "std_nT": float(np.sqrt(mo.m2[k] / mo.n))}
+            return {"fluctuation_range_nT": float(mo.hi[i, k] - mo.lo[i, k]),
+                    "absolute_deviation_nT": float(d[i, k] / mo.n[i]),
+                    "std_nT": float(np.sqrt(max(mo.m2[i, k], 0.0) / mo.n[i]))}
 
         def components(i: int) -> dict[str, dict]:
             out: dict[str, dict] = {}
-            mc, mr = self._moments[i]
             for k, c in enumerate(COMPONENTS):
-                sc, su = stats(mc, dev[i, 0], k), stats(mr, dev[i, 1], k)
+                sc, su = stats(self._cal, dev[0], i, k), stats(self._raw, dev[1], i, k)
                 out[c] = {"calibrated": sc, "uncalibrated": su,
                           "ratio_pct": {s: _ratio(sc[s], su[s]) for s in STATS}}
             return out
 
         t0 = self.t0_ns
         scopes = [ScopeMetrics("all", "all", 0.0, float((self.t_last_ns - t0) * 1e-9),
-                               self._moments[0][0].n, components(0))]
+                               int(self._cal.n[0]), components(0))]
         for i, seg in enumerate(self.segments):
             scopes.append(ScopeMetrics(
                 f"segment_{i}", str(getattr(seg.kind, "value", seg.kind)),
                 float((seg.start_ns - t0) * 1e-9), float((seg.end_ns - t0) * 1e-9),
-                self._moments[i + 1][0].n, components(i + 1)))
+                int(self._cal.n[i + 1]), components(i + 1)))
         return MetricsResult(
             n_samples=self.n_samples,
             n_without_attitude=self.n_samples - self.n_valid,

@@ -286,13 +286,18 @@ def restore_rows(cal: Calibration, t_ns: np.ndarray, mag_nT: np.ndarray,
     """
     t_ns = np.asarray(t_ns, dtype=np.int64)
     y = np.array(mag_nT, dtype=float)
-    rs = model_restore(cal.forward_model(), y, t_ns, interp, t0_ns=t0_ns, position=position)
-    at0 = interp.at(t_ns, 0.0)
+    model = cal.forward_model()
+    rs = model_restore(model, y, t_ns, interp, t0_ns=t0_ns, position=position)
+    if model.time_offset_s:
+        at0 = interp.at(t_ns, 0.0)
+        q0, valid0 = np.array(at0.q_enu_body), np.array(at0.valid)
+    else:  # the attitude at the stamp is the one just interpolated
+        q0, valid0 = np.array(rs.q_enu_body), np.array(rs.valid)
     out = RestoreResult(
         t_ns=t_ns, raw_mag_nT=y, calibrated_mag_nT=np.array(rs.calibrated_mag_nT),
         q_enu_body=np.array(rs.q_enu_body), enu_nT=np.array(rs.enu_nT),
         residual_nT=np.array(rs.residual_nT), valid=np.array(rs.valid),
-        q0_enu_body=np.array(at0.q_enu_body), valid0=np.array(at0.valid),
+        q0_enu_body=q0, valid0=valid0,
         B_enu_nT=np.array(cal.B_enu_nT, dtype=float), max_gap_s=interp.max_gap_s,
         model_key=model_key,
     )

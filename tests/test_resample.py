@@ -189,3 +189,24 @@ def test_interpolation_error_is_measured_from_the_track_without_the_noise():
     rng = np.random.default_rng(9)
     still = Rotation.from_rotvec(rng.normal(0, np.radians(0.03), (len(t), 3))).as_quat()
     assert interpolation_error_rad(AttitudeInterpolator(t, still, max_gap_s=1.0)) == 0.0
+
+
+def test_right_jacobians_applied_equal_the_matrices():
+    """(A5)/(A6) apply Jr and its inverse without forming them (Sola 2018, Eqs. 143-144)."""
+    from pipeline.model.attitude import right_jacobian_apply, right_jacobian_inv_apply
+
+    rng = np.random.default_rng(3)
+    r = np.concatenate([rng.normal(size=(50, 3)), 1e-7 * rng.normal(size=(5, 3))])
+    v = rng.normal(size=(55, 3))
+    th = np.linalg.norm(r, axis=1)
+    out, inv = [], []
+    for ri, vi, t in zip(r, v, th, strict=True):
+        K = np.array([[0, -ri[2], ri[1]], [ri[2], 0, -ri[0]], [-ri[1], ri[0], 0]])
+        if t < 1e-6:
+            Jr = np.eye(3) - 0.5 * K + K @ K / 6.0
+        else:
+            Jr = np.eye(3) - (1 - np.cos(t)) / t**2 * K + (t - np.sin(t)) / t**3 * K @ K
+        out.append(Jr @ vi)
+        inv.append(np.linalg.solve(Jr, vi))
+    np.testing.assert_allclose(right_jacobian_apply(r, v), out, atol=1e-12)
+    np.testing.assert_allclose(right_jacobian_inv_apply(r, v), inv, atol=1e-9)

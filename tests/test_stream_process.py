@@ -88,7 +88,8 @@ def test_metrics_accumulator_equals_compute_metrics(tmp_path):
     rec, parts, _ = _chunked(path, cal, 1_000)
     t = rec.mag.t_ns
     segs = (Segment(int(t[100]), int(t[2_500]), SegmentKind("rotation")),
-            Segment(int(t[2_500]), int(t[5_999]), SegmentKind("static")))
+            Segment(int(t[2_500]), int(t[-1]) + 1, SegmentKind("static")),
+            Segment(int(t[3_000]), int(t[3_001]), SegmentKind("static")))
     acc = MetricsAccumulator(segs, int(t[0]), spill_dir=tmp_path)
     for p in parts:
         acc.add(p)

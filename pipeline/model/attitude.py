@@ -138,33 +138,37 @@ def mean_interpolation_noise_factor(cubic_weight: float = 1.0) -> float:
     return 2.0 / 3.0 + 2.0 * lam / 15.0 + lam * lam / 70.0
 
 
-def _skew(v: F64) -> F64:
-    z = np.zeros(v.shape[:-1])
-    x, y, w = v[..., 0], v[..., 1], v[..., 2]
-    return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1),
-                     np.stack([-y, x, z], -1)], -2)
+def _cross(a: F64, b: F64) -> F64:
+    """Row-wise ``a x b`` of (N, 3) arrays (np.cross without its per-call overhead)."""
+    ax, ay, az = a[:, 0], a[:, 1], a[:, 2]
+    bx, by, bz = b[:, 0], b[:, 1], b[:, 2]
+    return np.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=1)
 
 
-def right_jacobian(r: F64) -> F64:
-    """``Jr(r)`` of SO(3), (N, 3, 3) for rotation vectors ``r`` (N, 3) (Sola 2018, Eq. 143)."""
-    th = np.linalg.norm(r, axis=-1)[..., None, None]
+def right_jacobian_apply(r: F64, v: F64) -> F64:
+    """``Jr(r) v`` of SO(3) row by row, (N, 3), for rotation vectors ``r`` (N, 3).
+
+    ``Jr(r) = I - a [r]x + b [r]x^2`` (Sola 2018, Eq. 143) applied without forming the
+    matrices: ``[r]x v = r x v``.
+    """
+    th = np.linalg.norm(r, axis=-1)[:, None]
     small = th < 1e-6
     t = np.where(small, 1.0, th)
     a = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(t)) / t**2)
     b = np.where(small, 1.0 / 6.0 - th**2 / 120.0, (t - np.sin(t)) / t**3)
-    K = _skew(r)
-    return np.eye(3) - a * K + b * (K @ K)
+    rv = _cross(r, v)
+    return v - a * rv + b * _cross(r, rv)
 
 
-def right_jacobian_inv(r: F64) -> F64:
-    """``Jr(r)^-1`` of SO(3), (N, 3, 3) (Sola 2018, Eq. 144)."""
-    th = np.linalg.norm(r, axis=-1)[..., None, None]
+def right_jacobian_inv_apply(r: F64, v: F64) -> F64:
+    """``Jr(r)^-1 v`` of SO(3) row by row, (N, 3) (Sola 2018, Eq. 144)."""
+    th = np.linalg.norm(r, axis=-1)[:, None]
     small = th < 1e-4
     t = np.where(small, 1.0, th)
     c = np.where(small, 1.0 / 12.0 + th**2 / 720.0,
                  1.0 / t**2 - (1.0 + np.cos(t)) / (2.0 * t * np.sin(t)))
-    K = _skew(r)
-    return np.eye(3) + 0.5 * K + c * (K @ K)
+    rv = _cross(r, v)
+    return v + 0.5 * rv + c * _cross(r, rv)
 
 
 def auto_max_gap_s(t_ns: I64) -> float:
@@ -279,7 +283,7 @@ class AttitudeInterpolator:
         only_l = left & ~right
         w[only_l] = rate[np.flatnonzero(only_l) - 1]
         a = dt[:, None] * w[:-1]
-        b = dt[:, None] * np.matmul(right_jacobian_inv(self._phi), w[1:, :, None])[:, :, 0]
+        b = dt[:, None] * right_jacobian_inv_apply(self._phi, w[1:])
         lam = self.cubic_weight  # (A7): lam = 0 is SLERP
         return lam * a + (1.0 - lam) * self._phi, lam * b + (1.0 - lam) * self._phi
 
@@ -361,7 +365,7 @@ class AttitudeInterpolator:
         qv = quat_mul(qa[jv], rotvec_to_quat(r))  # (A1)
         q_out[valid] = qv / np.linalg.norm(qv, axis=1, keepdims=True)
         dtv = np.where(dt[valid] > 0, dt[valid], 1.0)[:, None]
-        w_out[valid] = np.matmul(right_jacobian(r), dr[:, :, None])[:, :, 0] / dtv  # (A6)
+        w_out[valid] = right_jacobian_apply(r, dr) / dtv  # (A6)
         w_out[valid & held] = 0.0
         pos[valid] = s[valid]
         return Interpolated(q_out, valid, w_out, pos)
