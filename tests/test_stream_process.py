@@ -160,3 +160,19 @@ def test_two_pass_process_gives_the_in_memory_outputs(tmp_path, monkeypatch, ste
     assert f"{two['residual_rms_nT']:.7g}" in html and "8000 magnetometer samples" in html
     assert ("every 4th sample (2000 of 8000)" in html) == (step == 4)
     assert "processed in chunks" not in Path(mem["paths"]["report.html"]).read_text()
+
+
+def test_two_pass_fit_is_checked_by_its_halves(tmp_path):
+    """The streaming fit's sigmas hold the disagreement of the recording's two halves (the
+    attitude here lags the magnetometer by 2 ms, which the rotation-only fit leaves out)."""
+    from pipeline.app.process_one import ProcessOptions, process_recording
+
+    path, _ = make(tmp_path / "d.mcap", n=8_000)
+    row = process_recording(path, tmp_path / "o", options=ProcessOptions(
+        scale_samples=1_000, diagnose=False, write_rerun=False, write_report=False))
+    cal = json.loads(Path(row["paths"]["calibration.json"]).read_text())
+    split = cal["checks"]["split"]
+    d = np.array(split["difference_deg"])
+    assert 70.0 < split["split_s"] < 90.0  # the halves meet half way through 160 s
+    # d d^T / 2 added to the covariance (stages/estimators/checks.py): sigma >= |d_i| / sqrt 2
+    assert np.all(np.array(row["sigma_rotvec_deg"]) >= np.abs(d) / np.sqrt(2) * 0.999)

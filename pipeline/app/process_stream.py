@@ -243,10 +243,20 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
             col.chunk(ch)
             yield ch
 
-    stats = SufficientStats()
+    # the sums of each half of the recording (split-half check of the sigmas) add up to
+    # the whole's
+    halves = [SufficientStats(), SufficientStats()]
+    split_ns: int | None = None
     for q, y, t in iter_aligned_chunks(tapped(), max_gap_s=gap_s):
-        stats = stats + SufficientStats.from_samples(q, y, t)
+        cut = min(max(plan.n_mag // 2 - col.n_aligned, 0), len(t))
+        if 0 < cut < len(t) or (cut == 0 and split_ns is None and len(t)):
+            split_ns = int(t[cut])
+        if cut:
+            halves[0] = halves[0] + SufficientStats.from_samples(q[:cut], y[:cut], t[:cut])
+        if cut < len(t):
+            halves[1] = halves[1] + SufficientStats.from_samples(q[cut:], y[cut:], t[cut:])
         col.aligned(q, y, t)
+    stats = halves[0] + halves[1]
     win = Context(source=str(path), recording=col.window_recording(plan.header),
                   options=options)
 
@@ -276,10 +286,12 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
         ml = options.estimator is None or EstimatorKind(options.estimator) is EstimatorKind("ml")
         if ml and terms <= {Term.OFFSET}:
             # every sample, from the sums of pass 1
-            fit = fit_stats(stats, estimate_offset=Term.OFFSET in terms,
-                            reference_field_enu_nT=None if ref is None
-                            else np.asarray(ref, dtype=float))
-            win = win.replace(calibration=fit.to_calibration())
+            kw_fit: dict[str, Any] = {
+                "estimate_offset": Term.OFFSET in terms,
+                "reference_field_enu_nT": None if ref is None else np.asarray(ref, float)}
+            cal0 = fit_stats(stats, **kw_fit).to_calibration()
+            split_s = 0.0 if split_ns is None else (split_ns - (col.t_first_ns or 0)) * 1e-9
+            win = win.replace(calibration=split_halves(cal0, halves, kw_fit, split_s))
         else:
             kw: dict[str, Any] = {"terms": frozenset(options.terms)}
             if options.estimator is not None:
@@ -368,6 +380,38 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
 
         ctx = Report(str(rec_dir), max_gap_s=options.max_gap_s).run(ctx)
     return ctx
+
+
+def split_halves(cal: Any, halves: list[Any], kw_fit: dict[str, Any], split_s: float) -> Any:
+    """Return the streaming fit ``cal`` checked against the fits of its two halves.
+
+    As the in-memory estimator does (:func:`stages.estimators.checks.apply_split`): when the
+    halves of the recording disagree beyond their sigmas, the disagreement goes into the
+    rotation's sigmas (and into the verdict's doubts when it more than doubles them), and
+    the check is recorded in ``checks["split"]`` (``split_s``: where the halves meet, s
+    from the first sample).
+    """
+    from pipeline.core.errors import EstimationError
+    from pipeline.core.geometry import so3_log
+    from stages.estimators.checks import SplitCheck, apply_split
+    from stages.estimators.streaming import fit_stats
+
+    if min(h.n for h in halves) < 200:
+        return cal
+    try:
+        a, b = (fit_stats(h, **kw_fit).to_calibration() for h in halves)
+    except (EstimationError, np.linalg.LinAlgError):
+        return cal
+    if (a.unobservable_axes_body or b.unobservable_axes_body) and not cal.unobservable_axes_body:
+        return cal
+    d = so3_log(a.R_body_mag @ b.R_body_mag.T)
+    var = np.radians(a.sigma_rotvec_deg) ** 2 + np.radians(b.sigma_rotvec_deg) ** 2
+    ok = np.isfinite(var) & (var > 0)
+    chi2 = float(np.sum(d[ok] ** 2 / var[ok]))
+    split = SplitCheck(a.rotvec_body_mag_deg, b.rotvec_body_mag_deg, np.degrees(d), chi2,
+                       float(split_s))
+    cal = cal.replace(checks={**cal.checks, "split": split.to_dict()})
+    return apply_split(cal, split)
 
 
 def _concat(parts: list[Any], totals: Any) -> Any:
