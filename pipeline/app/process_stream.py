@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.core.errors import InputError
+from pipeline.core.memory import release_free_memory
 from pipeline.core.recording import (
     AlignedSeries,
     AttitudeSeries,
@@ -228,6 +229,7 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
 
     # ---------------------------------------------------------------- pass 1: read
     step("Ingest")
+    release_free_memory()  # what scanning the file's indexes freed
     k = max(1, -(-plan.n_mag // DECIMATED_SAMPLES))
     col = _Collector(windows_ns(plan), k)
     chunks = _chunks(path, options)
@@ -261,6 +263,7 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
                   options=options)
 
     # ---------------------------------------------------------------- analyse
+    release_free_memory()
     step("SegmentMotion")
     segments = None
     try:
@@ -313,11 +316,22 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
 
         win = Judge().run(win)
     cal = win.need_calibration()
+    n_win = len(win.need_recording().mag)
+    if options.calibration_path is None and n_win < plan.n_mag:
+        w = windows_ns(plan)
+        what = ("estimated and diagnosed" if options.diagnose else "estimated")
+        note = (f"long recording processed in chunks: the model was {what} on "
+                f"{len(w)} windows of {(w[0, 1] - w[0, 0]) * 1e-9:.0f} s spread over the "
+                f"recording ({n_win} of {plan.n_mag} magnetometer samples; the rotation from "
+                "every sample when only it (and an offset) is estimated before the "
+                "diagnosis); restored, measured and written: every sample")
+        cal = cal.replace(warnings=cal.warnings + (note,))
 
     # ---------------------------------------------------------------- pass 2: restore, write
     step("Restore+outputs")
     from pipeline.io.mcap_read import pass_through
 
+    release_free_memory()
     t0 = int(col.t_first_ns if col.t_first_ns is not None else plan.start_ns)
     restorer = ChunkedRestore(cal, t0_ns=t0, max_gap_s=gap_s, cubic_weight=lam,
                               model_key=model_key_of(cal, options.max_gap_s))
@@ -350,6 +364,7 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
                 rrd.add(rs)
             kept.append(rs.rows(slice((-n_seen) % k, None, k)))
             n_seen += len(rs.t_ns)
+            release_free_memory()
 
         for ch in _chunks(path, options):
             att = ch.attitude

@@ -317,6 +317,11 @@ def pass_through(path: str | Path) -> PassThrough | None:
             uncompressed_size=ch.uncompressed_size,
             mi_offsets={c: p - ch.offset for c, p in ch.mi_pos.items()},
             counts={c: len(v) for c, v in ch.index.items()}, release=release))
+    # the chunks are copied from the file's bytes: the message offsets (8 bytes a message)
+    # and the pages read to find the chunks are not needed any more
+    for ch in scan.chunks:
+        ch.index = None
+    _release(scan, 0, len(scan.buf))
     return PassThrough(
         schemas={i: (x.name, x.encoding, bytes(x.data)) for i, x in scan.schemas.items()},
         channels={i: (c.topic, c.message_encoding, c.schema_id, dict(c.metadata))
