@@ -523,6 +523,12 @@ def _nearest_about_axis(st: SufficientStats, s: _State, axis_body: F64, R_nomina
 NG = 28
 #: default baseline of the three-point attitude derivatives, s (module docstring)
 DERIVATIVE_BASELINE_S = 0.05
+#: most time blocks kept for the block sandwich covariance (fixed memory): the block length
+#: starts at :data:`stages.estimators.checks.BLOCK_S` and doubles when the recording outgrows
+#: them (adjacent blocks are merged)
+MAX_BLOCKS = 128
+#: length of the rotation-model vector a = [1, vec C] of every sample
+NA = 10
 
 
 @dataclass(frozen=True)
@@ -540,16 +546,28 @@ class StreamStats:
         ``sum g_i y_i.T``, nT.
     yy : float
         ``sum |y_i|^2`` over the same samples, nT^2.
-    baseline_s : float
-        Baseline of the attitude derivatives.
+    block_Wg, block_Yg, block_yy : ndarray (K, 28, 28), (K, 28, 3), (K,)
+        The same sums per time block (at most :data:`MAX_BLOCKS`): the block sandwich
+        covariance.
+    block_Wa, block_Ya, block_yya : ndarray (K, 10, 10), (K, 10, 3), (K,)
+        Per block, the rotation-model sums of every sample (``a = [1, vec C]``).
+    baseline_s, block_s : float
+        Baseline of the attitude derivatives; length of a time block.
 
     """
 
-    base: SufficientStats = field(default_factory=SufficientStats)
-    Wg: F64 = field(default_factory=lambda: _zeros(NG, NG))
-    Yg: F64 = field(default_factory=lambda: _zeros(NG, 3))
-    yy: float = 0.0
+    base: SufficientStats
+    Wg: F64
+    Yg: F64
+    yy: float
+    block_Wg: F64
+    block_Yg: F64
+    block_yy: F64
+    block_Wa: F64
+    block_Ya: F64
+    block_yya: F64
     baseline_s: float = DERIVATIVE_BASELINE_S
+    block_s: float = 1.0
 
     @property
     def n(self) -> int:
@@ -561,28 +579,46 @@ class StreamStats:
         """Number of samples in the expanded sums (those with both stencil neighbours)."""
         return int(round(self.Wg[0, 0]))
 
-    def __add__(self, other: StreamStats) -> StreamStats:
-        """Merge the sums of two disjoint sets of samples (the stencils do not cross)."""
-        return StreamStats(self.base + other.base, self.Wg + other.Wg, self.Yg + other.Yg,
-                           self.yy + other.yy, self.baseline_s)
+
+def _embed(Wa: F64, Ya: F64) -> tuple[F64, F64]:
+    """Rotation-model sums ``[1, vec C]`` (..., 10, ·) as expanded sums (G1 = G2 = 0)."""
+    Wg = np.zeros((*Wa.shape[:-2], NG, NG))
+    Yg = np.zeros((*Ya.shape[:-2], NG, 3))
+    Wg[..., :NA, :NA] = Wa
+    Yg[..., :NA, :] = Ya
+    return Wg, Yg
 
 
-def _expanded_sums(stats: SufficientStats | StreamStats, with_tau: bool
-                   ) -> tuple[F64, F64, float, int]:
-    """``(Wg, Yg, yy, n)`` of the samples a fit uses (the rotation sums embedded, no tau)."""
+@dataclass(frozen=True)
+class _Sums:
+    """The sums one fit uses: totals and per time block (``None`` without blocks)."""
+
+    Wg: F64
+    Yg: F64
+    yy: float
+    n: int
+    block_Wg: F64 | None = None
+    block_Yg: F64 | None = None
+
+
+def _expanded_sums(stats: SufficientStats | StreamStats, with_tau: bool) -> _Sums:
+    """Return the sums of the samples a fit uses (rotation sums embedded when tau is fixed)."""
     if with_tau:
         if not isinstance(stats, StreamStats):
             raise EstimationError("the time offset needs the sums of a StreamAccumulator")
-        return stats.Wg, stats.Yg, stats.yy, stats.n_tau
+        return _Sums(stats.Wg, stats.Yg, stats.yy, stats.n_tau, stats.block_Wg,
+                     stats.block_Yg)
     st = stats.base if isinstance(stats, StreamStats) else stats
-    Wg = np.zeros((NG, NG))
-    Yg = np.zeros((NG, 3))
-    Wg[0, 0] = st.n
-    Wg[0, 1:10] = Wg[1:10, 0] = st.S.reshape(9)
-    Wg[1:10, 1:10] = st.W.reshape(9, 9)
-    Yg[0] = st.sum_y
-    Yg[1:10] = st.M.reshape(9, 3)
-    return Wg, Yg, st.sum_yy, st.n
+    Wa = np.zeros((NA, NA))
+    Wa[0, 0] = st.n
+    Wa[0, 1:] = Wa[1:, 0] = st.S.reshape(9)
+    Wa[1:, 1:] = st.W.reshape(9, 9)
+    Ya = np.concatenate([st.sum_y[None], st.M.reshape(9, 3)])
+    Wg, Yg = _embed(Wa, Ya)
+    if not isinstance(stats, StreamStats):
+        return _Sums(Wg, Yg, st.sum_yy, st.n)
+    bW, bY = _embed(stats.block_Wa, stats.block_Ya)
+    return _Sums(Wg, Yg, st.sum_yy, st.n, bW, bY)
 
 
 def _stencil_weights(a: F64, c: F64) -> tuple[F64, F64]:
@@ -595,6 +631,30 @@ def _stencil_weights(a: F64, c: F64) -> tuple[F64, F64]:
     return d1, d2
 
 
+class _Blocks:
+    """Sums ``sum v v.T``, ``sum v y.T``, ``sum |y|^2`` per time block, at most MAX_BLOCKS."""
+
+    def __init__(self, dim: int):
+        self.W = np.zeros((MAX_BLOCKS, dim, dim))
+        self.Y = np.zeros((MAX_BLOCKS, dim, 3))
+        self.yy = np.zeros(MAX_BLOCKS)
+
+    def merge_pairs(self) -> None:
+        for a in (self.W, self.Y, self.yy):
+            half = a[0::2] + a[1::2]
+            a[:] = 0.0
+            a[: MAX_BLOCKS // 2] = half
+
+    def add(self, blk: NDArray[np.int64], v: F64, y: F64) -> None:
+        """Add rows ``v``, ``y`` in blocks ``blk`` (non-decreasing)."""
+        cuts = np.flatnonzero(np.diff(blk)) + 1
+        for lo, hi in zip(np.r_[0, cuts], np.r_[cuts, len(blk)], strict=True):
+            b, vv, yv = int(blk[lo]), v[lo:hi], y[lo:hi]
+            self.W[b] += vv.T @ vv
+            self.Y[b] += vv.T @ yv
+            self.yy[b] += float(np.einsum("ij,ij->", yv, yv))
+
+
 class StreamAccumulator:
     """One pass, fixed memory: the sums of :class:`StreamStats` from ordered blocks.
 
@@ -602,7 +662,9 @@ class StreamAccumulator:
     Blocks must come in time order (stamps non-decreasing across and within blocks). The
     attitude derivatives of a sample are taken once its neighbour ``baseline_s`` later has
     arrived; the samples they still need are carried to the next block (module docstring), so
-    the sums do not depend on how the data are split.
+    the sums do not depend on how the data are split. The sums are also kept per time block
+    (at most :data:`MAX_BLOCKS`, from the first stamp; adjacent blocks merge when the
+    recording outgrows them) for the block sandwich covariance.
 
     Parameters
     ----------
@@ -610,24 +672,36 @@ class StreamAccumulator:
         Least distance of the stencil neighbours, s.
     max_gap_s : float
         A larger step between consecutive samples ends a stretch: stencils do not cross it.
+    block_s : float
+        Initial length of the time blocks of the covariance, s.
 
     """
 
-    def __init__(self, baseline_s: float = DERIVATIVE_BASELINE_S, max_gap_s: float = 0.1):
-        if not baseline_s > 0 or not max_gap_s > 0:
-            raise EstimationError("baseline_s and max_gap_s must be positive")
+    def __init__(self, baseline_s: float = DERIVATIVE_BASELINE_S, max_gap_s: float = 0.1,
+                 block_s: float = 1.0):
+        if not (baseline_s > 0 and max_gap_s > 0 and block_s > 0):
+            raise EstimationError("baseline_s, max_gap_s and block_s must be positive")
         self.baseline_s = float(baseline_s)
         self._h = int(round(baseline_s * 1e9))
         self._gap = int(round(max_gap_s * 1e9))
+        self._blk = max(int(round(block_s * 1e9)), 1)
+        self._t0: int | None = None
         self._base = SufficientStats()
-        self._Wg = np.zeros((NG, NG))
-        self._Yg = np.zeros((NG, 3))
-        self._yy = 0.0
+        self._g = _Blocks(NG)
+        self._a = _Blocks(NA)
         # carried samples: the first ``_done`` of them are already decided
         self._t = np.zeros(0, np.int64)
         self._q = np.zeros((0, 4))
         self._y = np.zeros((0, 3))
         self._done = 0
+
+    def _block_of(self, t: NDArray[np.int64]) -> NDArray[np.int64]:
+        assert self._t0 is not None
+        while int(t[-1] - self._t0) // self._blk >= MAX_BLOCKS:
+            self._g.merge_pairs()
+            self._a.merge_pairs()
+            self._blk *= 2
+        return (t - self._t0) // self._blk
 
     def add(self, q_enu_body: F64, mag_nT: F64, t_ns: NDArray[np.int64]) -> None:
         """Add one block of aligned samples (attitude at the stamps, scalar-last)."""
@@ -640,7 +714,11 @@ class StreamAccumulator:
             return
         if np.any(np.diff(t) < 0) or (len(self._t) and t[0] < self._t[-1]):
             raise EstimationError("the stamps of the stream must not decrease")
+        if self._t0 is None:
+            self._t0 = int(t[0])
         self._base = self._base + SufficientStats.from_samples(q, y, t)
+        C = quat_to_matrix(q).reshape(-1, 9)
+        self._a.add(self._block_of(t), np.concatenate([np.ones((len(t), 1)), C], axis=1), y)
         T = np.concatenate([self._t, t])
         Q = np.concatenate([self._q, q])
         Y = np.concatenate([self._y, y])
@@ -671,15 +749,19 @@ class StreamAccumulator:
         Cdot = d1[:, :1] * CL + d1[:, 1:2] * C0 + d1[:, 2:] * CR
         Cddot = d2[:, :1] * CL + d2[:, 1:2] * C0 + d2[:, 2:] * CR
         g = np.concatenate([np.ones((len(j), 1)), C0, -Cdot, 0.5 * Cddot], axis=1)
-        y = Y[j]
-        self._Wg += g.T @ g
-        self._Yg += g.T @ y
-        self._yy += float(np.einsum("ij,ij->", y, y))
+        self._g.add(self._block_of(T[j]), g, Y[j])
 
     def result(self) -> StreamStats:
-        """Return the sums so far (samples still waiting for a later neighbour are left out)."""
-        return StreamStats(self._base, self._Wg.copy(), self._Yg.copy(), self._yy,
-                           self.baseline_s)
+        """Return the sums so far (samples still waiting for a later neighbour left out)."""
+        used = np.flatnonzero((self._a.W[:, 0, 0] > 0) | (self._g.W[:, 0, 0] > 0))
+        k = int(used[-1]) + 1 if len(used) else 0
+        g, a = self._g, self._a
+        return StreamStats(
+            base=self._base, Wg=g.W.sum(axis=0), Yg=g.Y.sum(axis=0), yy=float(g.yy.sum()),
+            block_Wg=g.W[:k].copy(), block_Yg=g.Y[:k].copy(), block_yy=g.yy[:k].copy(),
+            block_Wa=a.W[:k].copy(), block_Ya=a.Y[:k].copy(), block_yya=a.yy[:k].copy(),
+            baseline_s=self.baseline_s, block_s=self._blk * 1e-9,
+        )
 
 
 @dataclass(frozen=True)
@@ -766,7 +848,7 @@ def full_normal_equations(Wg: F64, Yg: F64, design: _Design, s: _Full
     return 0.5 * (H + H.T), g
 
 
-def _fit_full(Wg: F64, Yg: F64, yy: float, n: int, design: _Design, s0: _Full,
+def _fit_full(Wg: F64, Yg: F64, yy: float, design: _Design, s0: _Full,
               max_iter: int) -> tuple[_Full, float, int]:
     """Run THE solver core on the expanded sums from ``s0``."""
     floor = 1e-13 * max(yy, 1.0)  # rounding of the cost from the sums
@@ -795,6 +877,28 @@ def _fit_full(Wg: F64, Yg: F64, yy: float, n: int, design: _Design, s0: _Full,
     return sol.state, max(float(sol.at.cost), 0.0), sol.n_iter
 
 
+def _block_sandwich(bW: F64, bY: F64, design: _Design, s: _Full, H_pinv: F64,
+                    cov_white: F64) -> F64:
+    """Block (batch-means) sandwich covariance from the per-block sums, never below white.
+
+    The score of a time block at ``s``, ``J_b.T r_b = sum_g K_g.T Yg_bg - sum_gh Wg_bgh K_g.T
+    k_h``, is exact from its sums; ``H^+ (sum_b s_b s_b.T) H^+`` then holds whatever the
+    noise's correlation within a block and its dependence on the attitude (the attitude
+    noise moves the reading across the field, not isotropically), as the in-memory ML's
+    :func:`stages.estimators.checks.sandwich_cov`.
+    """
+    k, K = design.predict(_EYE_G, s)
+    assert K is not None
+    scores = (np.einsum("gap,bga->bp", K, bY)
+              - np.einsum("bgh,gap,ha->bp", bW, K, k))
+    cov = H_pinv @ (scores.T @ scores) @ H_pinv
+    cov = 0.5 * (cov + cov.T)
+    dw = np.sqrt(np.maximum(np.diag(cov_white), 0.0))
+    ds = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    f = np.where(ds > 0, np.maximum(dw / np.where(ds > 0, ds, 1.0), 1.0), 1.0)
+    return cast(F64, cov * f[:, None] * f[None, :])
+
+
 def _fit_terms(stats: SufficientStats | StreamStats, *, estimate_offset: bool,
                estimate_soft_iron: bool, estimate_time_offset: bool, B_fixed: F64 | None,
                R_nominal: F64 | None, max_iter: int) -> StreamingFit:
@@ -802,7 +906,8 @@ def _fit_terms(stats: SufficientStats | StreamStats, *, estimate_offset: bool,
     base = stats.base if isinstance(stats, StreamStats) else stats
     first = fit_stats(base, estimate_offset=estimate_offset, reference_field_enu_nT=B_fixed,
                       R_nominal_body_mag=R_nominal, max_iter=max_iter)
-    Wg, Yg, yy, n = _expanded_sums(stats, estimate_time_offset)
+    sums = _expanded_sums(stats, estimate_time_offset)
+    Wg, Yg, yy, n = sums.Wg, sums.Yg, sums.yy, sums.n
     if n < 10:
         raise EstimationError(f"only {n} samples with attitude neighbours: too few to "
                               "estimate the time offset")
@@ -821,12 +926,14 @@ def _fit_terms(stats: SufficientStats | StreamStats, *, estimate_offset: bool,
     stages.append((estimate_soft_iron, estimate_time_offset))
     for with_D, with_tau in stages:
         design = _Design(B_free, estimate_offset, with_D, with_tau)
-        s, c, k = _fit_full(Wg, Yg, yy, n, design, s, max_iter)
+        s, c, k = _fit_full(Wg, Yg, yy, design, s, max_iter)
         it += k
     H, _g = full_normal_equations(Wg, Yg, design, s)
     dof = max(3 * n - design.n_params, 1)
     an = analyse(H, design.blocks)
     cov_all = an.cov * (c / dof)
+    if sums.block_Wg is not None and sums.block_Yg is not None:
+        cov_all = _block_sandwich(sums.block_Wg, sums.block_Yg, design, s, an.cov, cov_all)
     b = design.blocks
     cov = np.zeros((9, 9))
     idx = [np.r_[b["rot"]]]
