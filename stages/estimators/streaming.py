@@ -1052,6 +1052,8 @@ def calibrate_streaming(
     path: str,
     *,
     estimate_offset: bool = False,
+    estimate_soft_iron: bool = False,
+    estimate_time_offset: bool = False,
     reference_field_enu_nT: F64 | None = None,
     max_messages: int = 200_000,
     max_gap_s: float = 0.1,
@@ -1066,6 +1068,8 @@ def calibrate_streaming(
         The MCAP recording.
     estimate_offset : bool
         Estimate the hard-iron offset.
+    estimate_soft_iron, estimate_time_offset : bool
+        Estimate ``D`` and ``tau`` (:class:`StreamAccumulator`, module docstring).
     reference_field_enu_nT : ndarray (3,), optional
         Known background field.
     max_messages : int
@@ -1080,6 +1084,14 @@ def calibrate_streaming(
 
     chunks = iter_recording_chunks(path, max_messages=max_messages, mag_topic=mag_topic,
                                    attitude_topic=attitude_topic)
-    st = accumulate(iter_aligned_chunks(chunks, max_gap_s=max_gap_s))
-    return fit_stats(st, estimate_offset=estimate_offset,
+    aligned = iter_aligned_chunks(chunks, max_gap_s=max_gap_s)
+    if not (estimate_soft_iron or estimate_time_offset):
+        return fit_stats(accumulate(aligned), estimate_offset=estimate_offset,
+                         reference_field_enu_nT=reference_field_enu_nT).to_calibration()
+    acc = StreamAccumulator(max_gap_s=max_gap_s)
+    for q, y, t in aligned:
+        acc.add(q, y, t)
+    return fit_stats(acc.result(), estimate_offset=estimate_offset,
+                     estimate_soft_iron=estimate_soft_iron,
+                     estimate_time_offset=estimate_time_offset,
                      reference_field_enu_nT=reference_field_enu_nT).to_calibration()
