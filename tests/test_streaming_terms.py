@@ -420,3 +420,24 @@ def test_from_file_in_chunks_equals_the_whole(tmp_path):
     assert rot_deg(cal.R_body_mag, whole.R_body_mag) < 1e-7
     np.testing.assert_allclose(cal.D, whole.D, atol=1e-9)
     assert cal.time_offset_s == pytest.approx(0.01, abs=0.1e-3)
+
+
+def test_known_field_carries_the_scale_of_soft_iron():
+    """With a reference field D is not normalised: its scale is estimated, as in the ML."""
+    t, y, q, att, D = simulated("simulate", 0.01, True, False)
+    B = np.array([500.0, 20000.0, -45000.0])  # the scenario's field
+    D_scaled = 1.1 * D
+    y2 = (y - OFFSET) @ np.linalg.solve(D, D_scaled).T + OFFSET
+    acc = StreamAccumulator()
+    acc.add(q, y2, t)
+    f = fit_stats(acc.result(), estimate_offset=True, estimate_soft_iron=True,
+                  estimate_time_offset=True, reference_field_enu_nT=B)
+    p = Problem(t_ns=t, mag_nT=y2, q_enu_body=q, attitude=att, terms=ALL,
+                reference_field_enu_nT=B)
+    c = MLEstimator(checks=False).fit(p)
+    assert f.D is not None and f.time_offset_s is not None and c.time_offset_s is not None
+    np.testing.assert_allclose(f.D, D_scaled, atol=1e-6)
+    np.testing.assert_allclose(f.D, c.D, atol=1e-6)
+    np.testing.assert_allclose(f.B_enu_nT, B)
+    assert rot_deg(f.R_body_mag, c.R_body_mag) < 0.001
+    assert abs(f.time_offset_s - c.time_offset_s) < 0.2e-3
