@@ -176,3 +176,24 @@ def test_two_pass_fit_is_checked_by_its_halves(tmp_path):
     assert 70.0 < split["split_s"] < 90.0  # the halves meet half way through 160 s
     # d d^T / 2 added to the covariance (stages/estimators/checks.py): sigma >= |d_i| / sqrt 2
     assert np.all(np.array(row["sigma_rotvec_deg"]) >= np.abs(d) / np.sqrt(2) * 0.999)
+
+
+def test_two_pass_estimates_time_offset_and_soft_iron_from_every_sample(tmp_path):
+    """--estimate soft_iron,time_offset on a long recording: the streamed sums of every sample
+    (stages/estimators/streaming.py) agree with the in-memory ML estimator."""
+    from pipeline.app.process_one import ProcessOptions, process_recording
+
+    path, R = make(tmp_path / "f.mcap", n=8_000)
+    base = dict(terms=frozenset({"time_offset", "soft_iron"}), diagnose=False,
+                write_rerun=False, write_report=False)
+    mem = process_recording(path, tmp_path / "mem",
+                            options=ProcessOptions(scale_samples=None, **base))
+    two = process_recording(path, tmp_path / "two",
+                            options=ProcessOptions(scale_samples=1_000, **base))
+    assert two["estimator"] == "ml-streaming" and "Restore+outputs" in two["timings_s"]
+    assert abs(two["time_offset_s"] - mem["time_offset_s"]) < 2e-4  # 0.2 ms
+    assert abs(two["time_offset_s"]) > 1e-3  # the 2 ms lag of make() is seen
+    cals = [json.loads(Path(r["paths"]["calibration.json"]).read_text()) for r in (mem, two)]
+    np.testing.assert_allclose(cals[1]["D"], cals[0]["D"], atol=2e-4)
+    np.testing.assert_allclose(two["rotvec_body_mag_deg"], mem["rotvec_body_mag_deg"],
+                               atol=0.01)  # deg

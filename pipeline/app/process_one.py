@@ -140,10 +140,11 @@ def build_stages(ctx: Context, out_dir: Path, options: ProcessOptions) -> list:
             kw["reference_field_enu_nT"] = tuple(float(x) for x in options.reference_field_enu_nT)
         terms = {Term(t) for t in options.terms}
         ml = options.estimator is None or EstimatorKind(options.estimator) is EstimatorKind("ml")
-        if large and ml and terms <= {Term.OFFSET}:
+        if large and ml and terms <= set(StreamingEstimate.SUPPORTED_TERMS):
             # every sample, in bounded memory: chunked sufficient statistics
             stages.append(StreamingEstimate(Term.OFFSET in terms,
-                                            kw.get("reference_field_enu_nT")))
+                                            kw.get("reference_field_enu_nT"),
+                                            frozenset(terms)))
         else:
             stages.append(scaled(Estimate(**kw)))
         stages.append(RequireObservable())

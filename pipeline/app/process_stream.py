@@ -206,7 +206,12 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
 
     """
     from pipeline.model.attitude import AttitudeInterpolator, auto_max_gap_s
-    from stages.estimators.streaming import SufficientStats, fit_stats, iter_aligned_chunks
+    from stages.estimators.streaming import (
+        StreamAccumulator,
+        SufficientStats,
+        fit_stats,
+        iter_aligned_chunks,
+    )
     from stages.metrics import MetricsAccumulator
     from stages.restore import ChunkedRestore, RestoreTotals, model_key_of
     from stages.write_mcap import CorrectedMcapStream, corrected_path
@@ -249,7 +254,19 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
     # the whole's
     halves = [SufficientStats(), SufficientStats()]
     split_ns: int | None = None
+    from stages.estimate import EstimatorKind, Term
+    from stages.streaming_estimate import StreamingEstimate
+
+    terms = {Term(t) for t in options.terms}
+    ml = options.estimator is None or EstimatorKind(options.estimator) is EstimatorKind("ml")
+    streamed = (ml and options.calibration_path is None
+                and terms <= set(StreamingEstimate.SUPPORTED_TERMS))
+    # soft iron and time offset: the expanded sums of every sample (one pass, fixed size)
+    terms_acc = (StreamAccumulator(max_gap_s=gap_s) if streamed and terms - {Term.OFFSET}
+                 else None)
     for q, y, t in iter_aligned_chunks(tapped(), max_gap_s=gap_s):
+        if terms_acc is not None:
+            terms_acc.add(q, y, t)
         cut = min(max(plan.n_mag // 2 - col.n_aligned, 0), len(t))
         if 0 < cut < len(t) or (cut == 0 and split_ns is None and len(t)):
             split_ns = int(t[cut])
@@ -281,20 +298,24 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
 
         win = LoadCalibration(str(options.calibration_path)).run(win)
     else:
-        from stages.estimate import Estimate, EstimatorKind, Term
+        from stages.estimate import Estimate
         from stages.require_observable import RequireObservable
 
-        terms = {Term(t) for t in options.terms}
         ref = options.reference_field_enu_nT
-        ml = options.estimator is None or EstimatorKind(options.estimator) is EstimatorKind("ml")
-        if ml and terms <= {Term.OFFSET}:
-            # every sample, from the sums of pass 1
-            kw_fit: dict[str, Any] = {
-                "estimate_offset": Term.OFFSET in terms,
-                "reference_field_enu_nT": None if ref is None else np.asarray(ref, float)}
+        kw_fit: dict[str, Any] = {
+            "estimate_offset": Term.OFFSET in terms,
+            "reference_field_enu_nT": None if ref is None else np.asarray(ref, float)}
+        if streamed and terms_acc is None:
+            # every sample, from the sums of pass 1; checked by its halves
             cal0 = fit_stats(stats, **kw_fit).to_calibration()
             split_s = 0.0 if split_ns is None else (split_ns - (col.t_first_ns or 0)) * 1e-9
             win = win.replace(calibration=split_halves(cal0, halves, kw_fit, split_s))
+        elif terms_acc is not None:
+            # soft iron and time offset from every sample too (its sigmas: the block
+            # sandwich of the expanded sums)
+            fit = fit_stats(terms_acc.result(), estimate_soft_iron=Term.SOFT_IRON in terms,
+                            estimate_time_offset=Term.TIME_OFFSET in terms, **kw_fit)
+            win = win.replace(calibration=fit.to_calibration())
         else:
             kw: dict[str, Any] = {"terms": frozenset(options.terms)}
             if options.estimator is not None:
