@@ -193,6 +193,10 @@ def check_magic(head: bytes, path: str | Path) -> None:
                            hint="nothing can be recovered from this file")
 
 
+#: bytes of a memory-mapped file walked between two releases of its pages while scanning
+RELEASE_EVERY = 32 << 20
+
+
 def _scan(path: str | Path) -> _Scan:
     """Read the file and list its top-level records (see the module docstring)."""
     p = Path(path)
@@ -210,6 +214,7 @@ def _scan(path: str | Path) -> _Scan:
     last_chunk: _Chunk | None = None
     last_chunk_index: dict[int, np.ndarray] = {}
     saw_header = False
+    released = 0  # file pages before this offset were dropped
     while pos < size:
         if pos + 9 > size:
             break
@@ -253,6 +258,10 @@ def _scan(path: str | Path) -> _Scan:
             elif op == Opcode.CHUNK and not data_end:
                 last_chunk = _chunk_header(raw, pos, body, length, size)
                 scan.chunks.append(last_chunk)
+                if pos - released > RELEASE_EVERY:
+                    # the message indexes read so far (16 bytes a message): drop their pages
+                    _release(scan, released, pos - released)
+                    released = pos
             elif op == Opcode.MESSAGE_INDEX and last_chunk is not None:
                 (cid, n) = struct.unpack_from("<HI", raw, body)
                 pairs = np.frombuffer(raw, dtype="<u8", count=n // 8, offset=body + 6)
