@@ -81,6 +81,10 @@ class _Scan:
     mapped: Any = None  # the mmap.mmap when the file is memory-mapped
 
 
+#: pages mapped around a faulting address that a release also drops (Linux maps up to 64 kB)
+FAULT_AROUND_BYTES = 128 << 10
+
+
 def _release(scan: _Scan, start: int, length: int) -> None:
     """Drop the mapped pages of ``[start, start + length)`` from this process's memory.
 
@@ -90,7 +94,9 @@ def _release(scan: _Scan, start: int, length: int) -> None:
     if scan.mapped is None or not hasattr(mmap, "MADV_DONTNEED"):
         return
     page = mmap.PAGESIZE
-    lo = (start // page) * page
+    # a page fault maps its neighbours too (the kernel's fault-around, up to 64 kB), also
+    # pages before ``start`` that an earlier release dropped: drop those again
+    lo = (max(start - FAULT_AROUND_BYTES, 0) // page) * page
     hi = start + length
     if hi > lo:
         try:
