@@ -171,6 +171,49 @@ class _Collector:
             attitude=AttitudeSeries(at[oa], aq[oa]), position=None)
 
 
+class _Replay:
+    """The decoded samples of pass 1, spilled to an anonymous file for pass 2.
+
+    Reading them back is a copy of 72 bytes a sample pair; decoding the MCAP again (CDR,
+    zstd) costs ten times more. The file (next to the outputs) goes away with the object.
+    """
+
+    def __init__(self, folder: Path) -> None:
+        import tempfile
+
+        self._fh = tempfile.TemporaryFile(dir=str(folder))
+        self.n_chunks = 0
+
+    def write(self, ch: Any) -> None:
+        att = ch.attitude
+        m = 0 if att is None else len(att.t_ns)
+        np.array([len(ch.mag.t_ns), m], dtype=np.int64).tofile(self._fh)
+        for a, dt in ((ch.mag.t_ns, np.int64), (ch.mag.values, np.float64)):
+            np.ascontiguousarray(a, dtype=dt).tofile(self._fh)
+        if att is not None and m:
+            np.ascontiguousarray(att.t_ns, dtype=np.int64).tofile(self._fh)
+            np.ascontiguousarray(att.q_enu_body, dtype=np.float64).tofile(self._fh)
+        self.n_chunks += 1
+
+    def chunks(self) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None,
+                                       np.ndarray | None]]:
+        """Yield ``(mag_t_ns, mag_nT, att_t_ns, q_enu_body)`` of each chunk, in order."""
+        fh = self._fh
+        fh.flush()
+        fh.seek(0)
+        for _ in range(self.n_chunks):
+            n, m = (int(x) for x in np.fromfile(fh, np.int64, 2))
+            mt = np.fromfile(fh, np.int64, n)
+            mv = np.fromfile(fh, np.float64, 3 * n).reshape(n, 3)
+            if m:
+                at = np.fromfile(fh, np.int64, m)
+                aq = np.fromfile(fh, np.float64, 4 * m).reshape(m, 4)
+                yield mt, mv, at, aq
+            else:
+                yield mt, mv, None, None
+        fh.close()
+
+
 def _chunks(path: str | Path, options: Any) -> Iterator[Any]:
     from pipeline.io.mcap_read import iter_recording_chunks
 
@@ -245,9 +288,12 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
              else auto_max_gap_s(att0.t_ns))
     lam = AttitudeInterpolator(att0.t_ns, att0.q_enu_body, max_gap_s=gap_s).cubic_weight
 
+    replay = _Replay(rec_dir)
+
     def tapped() -> Iterator[Any]:
         for ch in itertools.chain([first], chunks):
             col.chunk(ch)
+            replay.write(ch)
             yield ch
 
     # the sums of each half of the recording (split-half check of the sigmas) add up to
@@ -387,11 +433,8 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
             n_seen += len(rs.t_ns)
             release_free_memory()
 
-        for ch in _chunks(path, options):
-            att = ch.attitude
-            consume(restorer.add(ch.mag.t_ns, ch.mag.values,
-                                 None if att is None else att.t_ns,
-                                 None if att is None else att.q_enu_body))
+        for mt, mv, at, aq in replay.chunks():
+            consume(restorer.add(mt, mv, at, aq))
         consume(restorer.finish())
         sample = _concat(kept, totals)
         if rrd is not None:
