@@ -176,6 +176,8 @@ def test_two_pass_fit_is_checked_by_its_halves(tmp_path):
     assert 70.0 < split["split_s"] < 90.0  # the halves meet half way through 160 s
     # d d^T / 2 added to the covariance (stages/estimators/checks.py): sigma >= |d_i| / sqrt 2
     assert np.all(np.array(row["sigma_rotvec_deg"]) >= np.abs(d) / np.sqrt(2) * 0.999)
+    # nothing happens between the windows here: no warning about unseen physics
+    assert not [w for w in row["warnings"] if "between the analysed windows" in w]
 
 
 def test_two_pass_estimates_time_offset_and_soft_iron_from_every_sample(tmp_path):
@@ -197,3 +199,45 @@ def test_two_pass_estimates_time_offset_and_soft_iron_from_every_sample(tmp_path
     np.testing.assert_allclose(cals[1]["D"], cals[0]["D"], atol=2e-4)
     np.testing.assert_allclose(two["rotvec_body_mag_deg"], mem["rotvec_body_mag_deg"],
                                atol=0.01)  # deg
+
+
+def test_two_pass_warns_of_physics_between_the_analysed_windows(tmp_path, monkeypatch):
+    """A disturbance that falls between the diagnosis windows of a long recording: the
+    final model fits the windows, and pass 2, which restores every sample, says where it
+    does not fit (UNSEEN_RMS_RATIO)."""
+    from test_scale import B_ENU, ROTVEC_DEG
+
+    import pipeline.app.process_stream as process_stream
+    from pipeline.app.process_one import ProcessOptions, process_recording
+    from pipeline.core.geometry import li2020_euler_to_quat, quat_conj, quat_rotate, so3_exp
+    from pipeline.io.mcap_write import write_recording
+
+    monkeypatch.setattr(process_stream, "DECIMATED_SAMPLES", 1_200)  # windows of 2 s
+    monkeypatch.setattr(process_stream, "RANGE_MESSAGES", 1_000)  # chunks of 10 s
+    n = 8_000
+    s = np.arange(n) / 50.0
+    q = li2020_euler_to_quat(2 * np.pi * s / 30.0, np.radians(20) * np.sin(s / 3.0),
+                             np.radians(20) * np.sin(s / 4.0))
+    y = quat_rotate(quat_conj(q), np.broadcast_to(B_ENU, (n, 3))) @ so3_exp(
+        np.radians(ROTVEC_DEG))
+    y = y + 0.5 * np.random.default_rng(0).standard_normal((n, 3))
+    windows = [(0.5 + i) * s[-1] / 12 for i in range(12)]
+    assert all(abs(w - 27.0) > 4.0 for w in windows)  # 25-29 s is between two windows
+    y[(s >= 25.0) & (s < 29.0)] += [300.0, -200.0, 100.0]  # a car parked beside the sensor
+    t = 1_700_000_000_000_000_000 + np.arange(n, dtype=np.int64) * 20_000_000
+    path = tmp_path / "g.mcap"
+    write_recording(path, mag_t_ns=t, mag_nT=y, attitude_t_ns=t, q_enu_body=q,
+                    chunk_size=32 << 10)
+    row = process_recording(path, tmp_path / "o", options=ProcessOptions(
+        scale_samples=1_000, write_rerun=False, write_report=False))
+    note = [w for w in row["warnings"] if "between the analysed windows" in w]
+    assert len(note) == 1, row["warnings"]
+    import re
+
+    a, b = (float(x) for x in re.search(r"from (\d+) s to (\d+) s", note[0]).groups())
+    assert a <= 27.0 <= b and b - a < 12.0  # the chunk that holds it
+    cal = json.loads(Path(row["paths"]["calibration.json"]).read_text())
+    assert note[0] in cal["warnings"]
+    with open(row["paths"]["corrected_mcap"], "rb") as f:  # the same calibration inside
+        (meta,) = [m for m in make_reader(f).iter_metadata() if m.name == "magalign.calibration"]
+    assert note[0] in json.loads(meta.metadata["json"])["warnings"]

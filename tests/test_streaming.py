@@ -98,7 +98,7 @@ def test_fit_recovers_rotation_field_and_offset():
     assert rot_err_deg(fit.R_body_mag, R) < 0.005
     np.testing.assert_allclose(fit.offset_nT, OFFSET, atol=0.5)
     np.testing.assert_allclose(fit.B_enu_nT, B_ENU, atol=0.5)
-    assert fit.residual_rms_nT == pytest.approx(np.sqrt(3.0), rel=0.05)  # 1 nT per axis
+    assert fit.residual_rms_nT == pytest.approx(1.0, rel=0.05)  # 1 nT per axis
     # reported sigma matches the error scale: errors within 5 sigma on each axis
     err = np.degrees(so3_log(fit.R_body_mag @ R.T))
     assert np.all(np.abs(err) < 5 * fit.sigma_rotvec_deg + 1e-9)

@@ -420,11 +420,17 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
             rrd_dest = rrd_path(rec_dir, path)
             rrd = stack.enter_context(RrdStream(plan.header, cal, rrd_dest))
 
+        # the final model's residual per chunk: where the samples the analysis did not see
+        # disagree with it (:func:`unseen_check`)
+        per_chunk: list[tuple[int, int, Any]] = []
+
         def consume(rs: Any) -> None:
             nonlocal totals, n_seen
             if rs is None or not len(rs.t_ns):
                 return
-            totals = totals + RestoreTotals.of(rs)
+            part = RestoreTotals.of(rs)
+            per_chunk.append((int(rs.t_ns[0]), int(rs.t_ns[-1]), part))
+            totals = totals + part
             acc.add(rs)
             mc.add(rs)
             if rrd is not None:
@@ -437,6 +443,12 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
             consume(restorer.add(mt, mv, at, aq))
         consume(restorer.finish())
         sample = _concat(kept, totals)
+        ref_rms = _analysed_rms(win)
+        if ref_rms is not None:
+            note = unseen_check(per_chunk, totals, ref_rms, t0)
+            if note is not None:
+                cal = cal.replace(warnings=cal.warnings + (note,))
+                mc.cal_text = cal.to_json()  # the corrected MCAP carries the same calibration
         if rrd is not None:
             rrd.finish(sample, segments=segments, diagnosis=win.diagnosis)
     outputs += (("corrected_mcap", str(mcap_dest)),)
@@ -491,6 +503,59 @@ def split_halves(cal: Any, halves: list[Any], kw_fit: dict[str, Any], split_s: f
                        float(split_s))
     cal = cal.replace(checks={**cal.checks, "split": split.to_dict()})
     return apply_split(cal, split)
+
+
+#: the final model's residual over every sample may exceed its residual on the analysed
+#: samples by this factor before the user is warned
+UNSEEN_RMS_RATIO = 1.25
+
+
+def _analysed_rms(win: Context) -> float | None:
+    """Return the final model's residual RMS (nT) on the samples the analysis saw, or None."""
+    d = win.diagnosis
+    if d is not None:
+        dd = d.to_dict() if hasattr(d, "to_dict") else dict(d)
+        v = (dd.get("final") or {}).get("residual_rms_nT")
+        if v is not None and np.isfinite(v):
+            return float(v)
+    cal = win.calibration
+    if cal is not None and np.isfinite(cal.residual_rms_nT) and cal.residual_rms_nT > 0:
+        return float(cal.residual_rms_nT)
+    return None
+
+
+def unseen_check(per_chunk: list[tuple[int, int, Any]], totals: Any, analysed_rms_nT: float,
+                 t0_ns: int) -> str | None:
+    """Return a warning when every sample fits the final model worse than the analysed ones.
+
+    The analysis of a long recording sees windows of it; pass 2 restores every sample with
+    the final model. When the residual RMS over every sample exceeds the analysed samples'
+    by more than :data:`UNSEEN_RMS_RATIO`, something between the windows (a disturbance, a
+    step, a change of the platform) was left out of the model: the warning says so and names
+    the stretch (a chunk of the recording) where the residual is largest.
+
+    Parameters
+    ----------
+    per_chunk : list of (first stamp ns, last stamp ns, RestoreTotals)
+        The restored chunks in order.
+    totals : RestoreTotals
+        Over every sample.
+    analysed_rms_nT : float
+        The final model's residual RMS on the analysed samples (per component, nT).
+    t0_ns : int
+        First magnetometer stamp.
+
+    """
+    rms = totals.residual_rms_nT
+    if not np.isfinite(rms) or rms <= UNSEEN_RMS_RATIO * analysed_rms_nT:
+        return None
+    worst = max(per_chunk, key=lambda c: c[2].residual_rms_nT if c[2].n_valid else -1.0)
+    a, b = (worst[0] - t0_ns) * 1e-9, (worst[1] - t0_ns) * 1e-9
+    return (f"the final model leaves {rms:.3g} nT rms over every sample against "
+            f"{analysed_rms_nT:.3g} nT on the samples it was fitted and diagnosed on: the "
+            "recording holds physics between the analysed windows that the model lacks "
+            f"(largest: {worst[2].residual_rms_nT:.3g} nT rms from {a:.0f} s to {b:.0f} s); "
+            "look at the residual there, or process that stretch on its own")
 
 
 def _concat(parts: list[Any], totals: Any) -> Any:

@@ -304,7 +304,8 @@ class StreamingFit:
         Covariance of ``[phi (rad, mag frame), B (nT), o (nT)]``; rows of fixed or
         unestimated parameters are zero.
     residual_rms_nT : float
-        RMS of the residual vector norms.
+        RMS over every component of the residual, nT (as every estimator's: the residual
+        vector's norm over sqrt 3; the verdict compares it with the per-axis noise).
     n_samples : int
     unobservable_axes_body : tuple of ndarray (3,)
     iterations : int
@@ -493,7 +494,7 @@ def fit_stats(
         B_enu_nT=s.B,
         offset_nT=s.o if estimate_offset else None,
         cov=cov,
-        residual_rms_nT=float(np.sqrt(c / st.n)),
+        residual_rms_nT=float(np.sqrt(c / (3 * st.n))),
         n_samples=st.n,
         unobservable_axes_body=tuple(a / np.linalg.norm(a) for a in axes),
         iterations=iterations,
@@ -981,7 +982,7 @@ def _fit_terms(stats: SufficientStats | StreamStats, *, estimate_offset: bool,
         B_enu_nT=s.B,
         offset_nT=s.o if estimate_offset else None,
         cov=cov,
-        residual_rms_nT=float(np.sqrt(c / n)),
+        residual_rms_nT=float(np.sqrt(c / (3 * n))),
         n_samples=n,
         unobservable_axes_body=axes,
         iterations=it,
