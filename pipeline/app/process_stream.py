@@ -512,9 +512,9 @@ UNSEEN_RMS_RATIO = 1.25
 
 def _analysed_rms(win: Context) -> float | None:
     """Return the final model's residual RMS (nT) on the samples the analysis saw, or None."""
-    d = win.diagnosis
+    d: Any = win.diagnosis
     if d is not None:
-        dd = d.to_dict() if hasattr(d, "to_dict") else dict(d)
+        dd: dict[str, Any] = d.to_dict() if hasattr(d, "to_dict") else dict(d)
         v = (dd.get("final") or {}).get("residual_rms_nT")
         if v is not None and np.isfinite(v):
             return float(v)
