@@ -445,9 +445,9 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
         sample = _concat(kept, totals)
         ref_rms = _analysed_rms(win)
         if ref_rms is not None:
-            note = unseen_check(per_chunk, totals, ref_rms, t0)
-            if note is not None:
-                cal = cal.replace(warnings=cal.warnings + (note,))
+            unseen = unseen_check(per_chunk, totals, ref_rms, t0)
+            if unseen is not None:
+                cal = cal.replace(warnings=cal.warnings + (unseen,))
                 mc.cal_text = cal.to_json()  # the corrected MCAP carries the same calibration
         if rrd is not None:
             rrd.finish(sample, segments=segments, diagnosis=win.diagnosis)
