@@ -1,7 +1,9 @@
 """``process`` of a long recording in memory that does not grow with its length (issue 18).
 
 A recording with more magnetometer samples than ``ProcessOptions.scale_samples`` whose file
-is an intact indexed MCAP is processed in two passes over the file, never holding it whole:
+is an intact indexed MCAP is processed in two passes over its samples, never holding them
+whole (the file is decoded once; its samples are spilled to an anonymous file beside the
+outputs, 72 bytes a sample pair, and replayed by pass 2):
 
 1. **Read** (range by range, :func:`pipeline.io.mcap_read.iter_recording_chunks`): every
    sample, brought onto the magnetometer stamps, is reduced to the streaming estimator's
@@ -16,14 +18,16 @@ is an intact indexed MCAP is processed in two passes over the file, never holdin
    recording keep its slow terms (drifts) interpolated, never extrapolated.
 2. **Analyse**: segmentation, estimation, diagnosis and the verdict, as in memory, on
    those samples.
-3. **Restore and write** (range by range again): :class:`stages.restore.ChunkedRestore`
+3. **Restore and write** (the spilled ranges again): :class:`stages.restore.ChunkedRestore`
    restores every sample with the final model (the same attitude as a whole-recording
    interpolator, with the blend weight and gap rule of the recording's first range); each
    range goes to the metrics (:class:`stages.metrics.MetricsAccumulator`), the corrected
    MCAP (:class:`stages.write_mcap.CorrectedMcapStream`, the input's chunks copied as they
    are) and the rerun recording (:class:`stages.write_rerun.RrdStream`), and every k-th
    row is kept for the report's figures and the rerun 3D views. Counts, the residual RMS
-   and every metric are over every sample.
+   and every metric are over every sample. The final model's residual over every sample is
+   compared with its residual on the analysed windows (:func:`unseen_check`): physics
+   between the windows that the model lacks is reported, with the stretch where it is.
 
 What is not streamed (such recordings take the in-memory path, whatever their length): a
 damaged or unindexed file (the reader must recover what it can from the whole file), a
