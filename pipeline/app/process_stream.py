@@ -390,12 +390,17 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
     n_win = len(win.need_recording().mag)
     if options.calibration_path is None and n_win < plan.n_mag:
         w = windows_ns(plan)
-        what = ("estimated and diagnosed" if options.diagnose else "estimated")
-        note = (f"long recording processed in chunks: the model was {what} on "
-                f"{len(w)} windows of {(w[0, 1] - w[0, 0]) * 1e-9:.0f} s spread over the "
-                f"recording ({n_win} of {plan.n_mag} magnetometer samples; the rotation from "
-                "every sample when only it (and an offset) is estimated before the "
-                "diagnosis); restored, measured and written: every sample")
+        where = (f"{len(w)} windows of {(w[0, 1] - w[0, 0]) * 1e-9:.0f} s spread over the "
+                 f"recording ({n_win} of {plan.n_mag} magnetometer samples)")
+        if not streamed:
+            fitted = f"the model was fitted on {where}"
+        elif options.diagnose:
+            fitted = ("the rotation and the terms asked for were estimated from every sample, "
+                      f"then the diagnosis fitted the final model on {where}")
+        else:
+            fitted = "the model was estimated from every sample"
+        note = (f"long recording processed in chunks: {fitted}; restored, measured and "
+                "written: every sample")
         cal = cal.replace(warnings=cal.warnings + (note,))
 
     # ---------------------------------------------------------------- pass 2: restore, write
