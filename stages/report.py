@@ -81,14 +81,23 @@ def _time_label(t0_ns: int, unit: str) -> str:
 def _shade(ax: Any, segments: tuple[Segment, ...] | None, t0_ns: int, scale: float = 1.0
            ) -> dict[str, Any]:
     """Shade the segments by kind; return kind -> patch for a key."""
+    from matplotlib.collections import PolyCollection
     from matplotlib.patches import Patch
 
     handles: dict[str, Any] = {}
+    spans: dict[str, list] = {}
     for s in segments or ():
         kind = str(getattr(s.kind, "value", s.kind))
+        a, b = (s.start_ns - t0_ns) * 1e-9 / scale, (s.end_ns - t0_ns) * 1e-9 / scale
+        spans.setdefault(kind, []).append([(a, 0.0), (b, 0.0), (b, 1.0), (a, 1.0)])
+    # one collection per kind (an axvspan per segment drew hundreds of patches per axis on
+    # hours of data); x in data units, y across the axes
+    for kind, polys in spans.items():
         colour = style.segment_colour(kind)
-        ax.axvspan((s.start_ns - t0_ns) * 1e-9 / scale, (s.end_ns - t0_ns) * 1e-9 / scale,
-                   color=colour, zorder=0, lw=0)
+        ax.add_collection(PolyCollection(polys, facecolors=colour, edgecolors="none",
+                                         linewidths=0, zorder=0,
+                                         transform=ax.get_xaxis_transform()),
+                          autolim=False)
         handles.setdefault(kind, Patch(color=colour, label=f"{kind} segment"))
     return handles
 
