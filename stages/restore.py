@@ -306,19 +306,99 @@ def restore_rows(cal: Calibration, t_ns: np.ndarray, mag_nT: np.ndarray,
     return out
 
 
+class ChunkedAttitude:
+    """THE interpolator over a long recording's attitude, chunk by chunk.
+
+    Feed the recording's chunks in time order (:meth:`add`); each call returns the
+    magnetometer rows whose attitude is settled, with an interpolator over the attitude
+    samples around them (:meth:`finish`: the rest). The attitude of a query at ``t`` comes
+    from the cubic over its bracketing samples and their neighbours
+    (pipeline/model/attitude.py, (A4)-(A5)), so a row is settled once the attitude two
+    samples past its latest query has arrived, and the attitude samples kept from one chunk
+    to the next are the two before the earliest waiting query. The interpolator's blend
+    weight and gap rule are the recording's (given), not the chunk's: every chunk is
+    interpolated as the whole series would be.
+
+    Parameters
+    ----------
+    max_gap_s : float
+        The recording's gap rule (s).
+    cubic_weight : float
+        The recording's ``lam`` of (A7).
+    time_offset_s : float
+        ``tau``: the rows are queried at ``t`` and at ``t - tau``.
+
+    """
+
+    def __init__(self, *, max_gap_s: float, cubic_weight: float, time_offset_s: float = 0.0):
+        self.max_gap_s = float(max_gap_s)
+        self.cubic_weight = float(cubic_weight)
+        tau = float(time_offset_s)
+        # the queries are t and t - tau: the earliest and latest of them, relative to t
+        self._lo_ns = int(np.floor(min(0.0, -tau) * 1e9)) - 1
+        self._hi_ns = int(np.ceil(max(0.0, -tau) * 1e9)) + 1
+        self._att_t = np.zeros(0, np.int64)
+        self._att_q = np.zeros((0, 4))
+        self._mag_t = np.zeros(0, np.int64)
+        self._mag_v = np.zeros((0, 3))
+
+    def add(self, mag_t_ns: np.ndarray, mag_nT: np.ndarray, att_t_ns: np.ndarray | None,
+            q_enu_body: np.ndarray | None
+            ) -> tuple[np.ndarray, np.ndarray, AttitudeInterpolator] | None:
+        """Take one chunk; return ``(t_ns, mag_nT, interpolator)`` of the settled rows."""
+        if att_t_ns is not None and len(att_t_ns):
+            self._att_t = np.concatenate([self._att_t, np.asarray(att_t_ns, np.int64)])
+            self._att_q = np.concatenate([self._att_q, np.asarray(q_enu_body, float)])
+            if np.any(np.diff(self._att_t[-len(att_t_ns) - 1:]) <= 0):
+                o = np.argsort(self._att_t, kind="stable")
+                self._att_t, self._att_q = self._att_t[o], self._att_q[o]
+        self._mag_t = np.concatenate([self._mag_t, np.asarray(mag_t_ns, np.int64)])
+        self._mag_v = np.concatenate([self._mag_v, np.asarray(mag_nT, float)])
+        if np.any(np.diff(self._mag_t) < 0):  # a logger's stamps may straddle chunks
+            o = np.argsort(self._mag_t, kind="stable")
+            self._mag_t, self._mag_v = self._mag_t[o], self._mag_v[o]
+        if len(self._att_t) < 4:
+            return None
+        # settled: the latest query lies before the third-last attitude sample, whose
+        # segment's tangents (A5) need nothing later
+        ready = int(np.searchsorted(self._mag_t, self._att_t[-3] - self._hi_ns, "right"))
+        return self._emit(ready)
+
+    def finish(self) -> tuple[np.ndarray, np.ndarray, AttitudeInterpolator] | None:
+        """Return the rows still waiting (the end of the recording)."""
+        return self._emit(len(self._mag_t))
+
+    def _emit(self, ready: int) -> tuple[np.ndarray, np.ndarray, AttitudeInterpolator] | None:
+        if ready == 0:
+            return None
+        t, v = self._mag_t[:ready], self._mag_v[:ready]
+        self._mag_t, self._mag_v = self._mag_t[ready:], self._mag_v[ready:]
+        # attitude samples from two before the earliest query to two after the latest
+        a = max(int(np.searchsorted(self._att_t, t[0] + self._lo_ns, "right")) - 2, 0)
+        b = min(int(np.searchsorted(self._att_t, t[-1] + self._hi_ns, "right")) + 2,
+                len(self._att_t))
+        interp = AttitudeInterpolator(self._att_t[a:b], self._att_q[a:b],
+                                      max_gap_s=self.max_gap_s,
+                                      cubic_weight=self.cubic_weight)
+        # keep what the waiting queries (and later ones) can still need
+        first = t[-1] if not len(self._mag_t) else min(int(self._mag_t[0]), int(t[-1]))
+        keep = max(int(np.searchsorted(self._att_t, first + self._lo_ns, "right")) - 2, 0)
+        self._att_t, self._att_q = self._att_t[keep:], self._att_q[keep:]
+        return t, v, interp
+
+    @property
+    def held(self) -> int:
+        """Samples held between chunks (attitude and magnetometer): about one chunk's."""
+        return max(len(self._att_t), len(self._mag_t))
+
+
 class ChunkedRestore:
     """Restore a long recording chunk by chunk, in memory that does not grow with its length.
 
-    Feed the recording's chunks in time order (:meth:`add`, e.g. the ranges of
-    :func:`pipeline.io.mcap_read.iter_recording_chunks`); each call returns the
-    :class:`RestoreResult` of the magnetometer samples whose attitude is settled, and
-    :meth:`finish` the rest. The attitude of a magnetometer sample at ``t`` comes from the
-    cubic over its bracketing samples and their neighbours (pipeline/model/attitude.py,
-    (A4)-(A5)), so a sample is restored once the attitude two samples past ``t`` and
-    ``t - tau`` has arrived, and the attitude samples kept from one chunk to the next are
-    the two before the earliest waiting query. The interpolator's blend weight and gap rule
-    are the recording's (given), not the chunk's: every chunk is interpolated as the whole
-    series would be.
+    :class:`ChunkedAttitude` (the attitude as a whole-series interpolator gives it, at ``t``
+    and ``t - tau``) and :func:`restore_rows` on each chunk's settled rows: feed the chunks in
+    time order (:meth:`add`), each call returns the :class:`RestoreResult` of the rows now
+    settled, and :meth:`finish` the rest.
 
     Parameters
     ----------
@@ -338,61 +418,26 @@ class ChunkedRestore:
                  model_key: str = ""):
         self.cal = cal
         self.t0_ns = int(t0_ns)
-        self.max_gap_s = float(max_gap_s)
-        self.cubic_weight = float(cubic_weight)
         self.model_key = model_key
-        tau = float(cal.forward_model().time_offset_s)
-        # the queries are t and t - tau: the earliest and latest of them, relative to t
-        self._lo_ns = int(np.floor(min(0.0, -tau) * 1e9)) - 1
-        self._hi_ns = int(np.ceil(max(0.0, -tau) * 1e9)) + 1
-        self._att_t = np.zeros(0, np.int64)
-        self._att_q = np.zeros((0, 4))
-        self._mag_t = np.zeros(0, np.int64)
-        self._mag_v = np.zeros((0, 3))
+        self.attitude = ChunkedAttitude(
+            max_gap_s=max_gap_s, cubic_weight=cubic_weight,
+            time_offset_s=float(cal.forward_model().time_offset_s))
 
     def add(self, mag_t_ns: np.ndarray, mag_nT: np.ndarray, att_t_ns: np.ndarray | None,
             q_enu_body: np.ndarray | None) -> RestoreResult | None:
         """Take one chunk (sorted stamps); return the rows now settled, or None."""
-        if att_t_ns is not None and len(att_t_ns):
-            self._att_t = np.concatenate([self._att_t, np.asarray(att_t_ns, np.int64)])
-            self._att_q = np.concatenate([self._att_q, np.asarray(q_enu_body, float)])
-            if np.any(np.diff(self._att_t[-len(att_t_ns) - 1:]) <= 0):
-                o = np.argsort(self._att_t, kind="stable")
-                self._att_t, self._att_q = self._att_t[o], self._att_q[o]
-        self._mag_t = np.concatenate([self._mag_t, np.asarray(mag_t_ns, np.int64)])
-        self._mag_v = np.concatenate([self._mag_v, np.asarray(mag_nT, float)])
-        if np.any(np.diff(self._mag_t) < 0):  # a logger's stamps may straddle chunks
-            o = np.argsort(self._mag_t, kind="stable")
-            self._mag_t, self._mag_v = self._mag_t[o], self._mag_v[o]
-        if len(self._att_t) < 4:
-            return None
-        # settled: the latest query lies before the third-last attitude sample, whose
-        # segment's tangents (A5) need nothing later
-        ready = int(np.searchsorted(self._mag_t, self._att_t[-3] - self._hi_ns, "right"))
-        return self._emit(ready)
+        return self._restore(self.attitude.add(mag_t_ns, mag_nT, att_t_ns, q_enu_body))
 
     def finish(self) -> RestoreResult | None:
         """Return the rows still waiting (the end of the recording)."""
-        return self._emit(len(self._mag_t))
+        return self._restore(self.attitude.finish())
 
-    def _emit(self, ready: int) -> RestoreResult | None:
-        if ready == 0:
+    def _restore(self, rows: tuple[np.ndarray, np.ndarray, AttitudeInterpolator] | None
+                 ) -> RestoreResult | None:
+        if rows is None:
             return None
-        t, v = self._mag_t[:ready], self._mag_v[:ready]
-        self._mag_t, self._mag_v = self._mag_t[ready:], self._mag_v[ready:]
-        # attitude samples from two before the earliest query to two after the latest
-        a = max(int(np.searchsorted(self._att_t, t[0] + self._lo_ns, "right")) - 2, 0)
-        b = min(int(np.searchsorted(self._att_t, t[-1] + self._hi_ns, "right")) + 2,
-                len(self._att_t))
-        interp = AttitudeInterpolator(self._att_t[a:b], self._att_q[a:b],
-                                      max_gap_s=self.max_gap_s,
-                                      cubic_weight=self.cubic_weight)
-        out = restore_rows(self.cal, t, v, interp, t0_ns=self.t0_ns, model_key=self.model_key)
-        # keep what the waiting queries (and later ones) can still need
-        first = t[-1] if not len(self._mag_t) else min(int(self._mag_t[0]), int(t[-1]))
-        keep = max(int(np.searchsorted(self._att_t, first + self._lo_ns, "right")) - 2, 0)
-        self._att_t, self._att_q = self._att_t[keep:], self._att_q[keep:]
-        return out
+        t, v, interp = rows
+        return restore_rows(self.cal, t, v, interp, t0_ns=self.t0_ns, model_key=self.model_key)
 
 
 @dataclass(frozen=True)

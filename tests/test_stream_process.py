@@ -58,7 +58,7 @@ def _chunked(path, cal, chunk_messages, **kw):
     for ch in iter_recording_chunks(path, max_messages=chunk_messages):
         parts.append(cr.add(ch.mag.t_ns, ch.mag.values, ch.attitude.t_ns,
                             ch.attitude.q_enu_body))
-        held = max(held, len(cr._att_t), len(cr._mag_t))
+        held = max(held, cr.attitude.held)
     parts.append(cr.finish())
     return rec, [p for p in parts if p is not None], held
 
