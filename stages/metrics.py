@@ -427,7 +427,8 @@ class MetricsAccumulator:
         self._raw = _Moments(1 + len(self.segments))
         self._starts = np.array([sg.start_ns for sg in self.segments], dtype=np.int64)
         self._ends = np.array([sg.end_ns for sg in self.segments], dtype=np.int64)
-        self._spill = tempfile.TemporaryFile(dir=None if spill_dir is None else str(spill_dir))
+        self._spill_dir = str(spill_dir) if spill_dir is not None else tempfile.gettempdir()
+        self._spill = tempfile.TemporaryFile(dir=self._spill_dir)
         self.n_samples = 0
         self.n_valid = 0
         self.n_used = 0
@@ -459,7 +460,15 @@ class MetricsAccumulator:
         sel = self._masks(rows["t"])
         self._cal.add(rows["c"], sel)
         self._raw.add(rows["r"], sel)
-        rows.tofile(self._spill)
+        try:
+            rows.tofile(self._spill)
+        except OSError as exc:
+            from pipeline.core.errors import OutputError
+
+            raise OutputError(f"cannot keep the restored rows for the metrics: "
+                              f"{exc.strerror or exc}", path=self._spill_dir,
+                              hint="free some disk space beside the outputs (56 bytes a "
+                              "sample) and run again") from exc
 
     def finish(self) -> MetricsResult:
         """Return the metrics of every sample added (and drop the temporary file)."""

@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.core.errors import InputError
+from pipeline.core.errors import InputError, OutputError
 from pipeline.core.memory import release_free_memory
 from pipeline.core.recording import (
     AlignedSeries,
@@ -185,18 +185,31 @@ class _Replay:
     def __init__(self, folder: Path) -> None:
         import tempfile
 
-        self._fh = tempfile.TemporaryFile(dir=str(folder))
+        self.folder = folder
+        try:
+            self._fh = tempfile.TemporaryFile(dir=str(folder))
+        except OSError as exc:
+            raise self._error(exc) from exc
         self.n_chunks = 0
+
+    def _error(self, exc: OSError) -> OutputError:
+        return OutputError(f"cannot keep the decoded samples for the second pass: "
+                           f"{exc.strerror or exc}", path=self.folder,
+                           hint="a long recording needs about 72 bytes a sample pair of free "
+                           "space beside the outputs while it is processed")
 
     def write(self, ch: Any) -> None:
         att = ch.attitude
         m = 0 if att is None else len(att.t_ns)
-        np.array([len(ch.mag.t_ns), m], dtype=np.int64).tofile(self._fh)
-        for a, dt in ((ch.mag.t_ns, np.int64), (ch.mag.values, np.float64)):
-            np.ascontiguousarray(a, dtype=dt).tofile(self._fh)
-        if att is not None and m:
-            np.ascontiguousarray(att.t_ns, dtype=np.int64).tofile(self._fh)
-            np.ascontiguousarray(att.q_enu_body, dtype=np.float64).tofile(self._fh)
+        try:
+            np.array([len(ch.mag.t_ns), m], dtype=np.int64).tofile(self._fh)
+            for a, dt in ((ch.mag.t_ns, np.int64), (ch.mag.values, np.float64)):
+                np.ascontiguousarray(a, dtype=dt).tofile(self._fh)
+            if att is not None and m:
+                np.ascontiguousarray(att.t_ns, dtype=np.int64).tofile(self._fh)
+                np.ascontiguousarray(att.q_enu_body, dtype=np.float64).tofile(self._fh)
+        except OSError as exc:
+            raise self._error(exc) from exc
         self.n_chunks += 1
 
     def chunks(self) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None,
