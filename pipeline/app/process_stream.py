@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import os
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -314,6 +315,13 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
         # process_one's tick counts the stages after Ingest from 0 (they follow it)
         i = steps.index(name)
         tick(name, i if i == 0 else i - 1, len(steps))
+
+    if options.write_rerun:
+        # rerun's SDK takes about a second to import: on the other core, during pass 1
+        import threading
+
+        os.environ.setdefault("RUST_LOG", "off")  # as stages.write_rerun sets it
+        threading.Thread(target=_import_quietly, args=("rerun",), daemon=True).start()
 
     # ---------------------------------------------------------------- pass 1: read
     step("Ingest")
@@ -601,6 +609,16 @@ def unseen_check(per_chunk: list[tuple[int, int, Any]], totals: Any, analysed_rm
             "recording holds physics between the analysed windows that the model lacks "
             f"(largest: {worst[2].residual_rms_nT:.3g} nT rms from {a:.0f} s to {b:.0f} s); "
             "look at the residual there, or process that stretch on its own")
+
+
+def _import_quietly(name: str) -> None:
+    """Import a module ahead of its use; a failure is left to the use to report."""
+    import importlib
+
+    try:
+        importlib.import_module(name)
+    except Exception:  # noqa: BLE001 - the stage that needs it raises it properly
+        pass
 
 
 def _concat(parts: list[Any], totals: Any) -> Any:
