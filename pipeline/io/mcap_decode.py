@@ -8,6 +8,7 @@ from ``schemas.MESSAGE_TYPES``), message records decoded in batches straight int
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any, Literal, overload
 
@@ -22,15 +23,19 @@ from pipeline.core.geometry import li2020_euler_to_quat, novatel_to_quat
 from pipeline.core.recording import (
     Role,
 )
-from pipeline.io.cdr import CdrLayout, normalise_type, stamp_ns
+from pipeline.io.cdr import CdrLayout, UniformPlan, _plan, decode_uniform, normalise_type, stamp_ns
+from pipeline.io.mcap_format import Opcode
 from pipeline.io.mcap_scan import (
     BATCH_BYTES,
     _Channel,
     _compact_records,
     _copy_ranges,
-    _iter_blocks,
+    _decompressed,
+    _join_blocks,
     _record_columns,
+    _release,
     _Scan,
+    _select,
 )
 from schemas import MESSAGE_TYPES, MessageRole, types_of
 
@@ -265,6 +270,176 @@ class _Decoder:
 _SUPPORTED_HINT = "supported: " + ", ".join(MAG_TYPES + ATTITUDE_TYPES + TURNTABLE_TYPES)
 
 
+# --------------------------------------------------------------------------- uniform records
+#: bytes of a Message record before its payload: opcode, length, channel id, sequence, log and
+#: publish times
+_RECORD_HEAD = 31
+
+
+@dataclass(frozen=True)
+class _Shape:
+    """One layout of a channel's message records: every wanted field at a fixed place.
+
+    Records of one length whose opcode, length and channel id, CDR encapsulation and string
+    lengths / sequence counts (``checks``: offset, dtype, value) equal the template's have
+    their wanted fields at the offsets of ``plan``; only their first ``width`` bytes are
+    needed (the prefix up to the last wanted field).
+    """
+
+    decoder: _Decoder
+    plan: UniformPlan
+    width: int
+    record: int
+    checks: tuple[tuple[int, str, int], ...]
+
+    def rows(self, buf: NDArray[np.uint8], off: np.ndarray) -> np.ndarray | None:
+        """Return the first ``width`` bytes of the records at ``off`` (sorted), or None.
+
+        None also when a record is not whole inside ``buf``: the caller then validates the
+        offsets one by one (:func:`_select`) and reads them the general way.
+        """
+        n = len(buf)
+        if int(off[0]) < 0 or int(off[-1]) + self.record > n:
+            return None
+        w = self.width
+        view: np.ndarray = np.ndarray(shape=(n - w + 1,), dtype=f"V{w}", buffer=buf,
+                                      strides=(1,))
+        rows = view[off]
+        raw = rows.view(np.uint8)
+        for o, dt, v in self.checks:
+            if not bool((np.ndarray(shape=(len(off),), dtype=dt, buffer=raw, offset=o,
+                                    strides=(w,)) == v).all()):
+                return None
+        return rows
+
+    def decode(self, rows: np.ndarray) -> _Decoded:
+        """:meth:`_Decoder.decode` of records gathered by :meth:`rows` (the same arrays)."""
+        raw = rows.view(np.uint8)
+        n, w = len(rows), self.width
+        dec = self.decoder
+        f = decode_uniform(raw, n, w, _RECORD_HEAD + 4, self.plan, dec.paths)
+        log = np.ndarray(shape=(n,), dtype="<u8", buffer=raw, offset=15,
+                         strides=(w,)).astype(np.int64)
+        return dec._from_cdr(f, log, raw)
+
+
+def _shape_at(decoder: _Decoder, cid: int, buf: NDArray[np.uint8], o: int) -> _Shape | None:
+    """Return the :class:`_Shape` of the record at ``o``, or None.
+
+    None when it is not a whole record of channel ``cid`` or its layout is not one
+    :func:`decode_uniform` reads.
+    """
+    n = len(buf)
+    if decoder.layout is None or o < 0 or o + _RECORD_HEAD > n or buf[o] != Opcode.MESSAGE:
+        return None
+    head = buf[o : o + 11].tobytes()
+    length = int.from_bytes(head[1:9], "little")
+    if (length < 22 or length > n - 9 - o
+            or int.from_bytes(head[9:11], "little") != cid):
+        return None
+    payload = buf[o + _RECORD_HEAD : o + 9 + length].tobytes()
+    plan = _plan(decoder.layout, payload, decoder.paths)
+    if plan is None:
+        return None
+    checks = [(0, "<u8", int.from_bytes(head[0:8], "little")),
+              (7, "<u4", int.from_bytes(head[7:11], "little")),
+              (_RECORD_HEAD, "<u2", int.from_bytes(payload[0:2], "little"))]
+    checks += [(_RECORD_HEAD + 4 + p, "<u4", int.from_bytes(payload[4 + p : 8 + p], "little"))
+               for p in plan.invariants]
+    return _Shape(decoder, plan, _RECORD_HEAD + 4 + plan.end, 9 + length, tuple(checks))
+
+
+class _Uniform:
+    """The fast path's state for one CDR channel: the shape of its last chunk's records."""
+
+    def __init__(self, decoder: _Decoder, cid: int):
+        self.decoder = decoder
+        self.cid = cid
+        self.shape: _Shape | None = None
+
+    def rows(self, buf: NDArray[np.uint8], off: np.ndarray
+             ) -> tuple[np.ndarray, _Shape] | None:
+        """Return the records at ``off`` as rows of one shape, or None (read the general way)."""
+        if self.shape is not None:
+            rows = self.shape.rows(buf, off)
+            if rows is not None:
+                return rows, self.shape
+        shape = _shape_at(self.decoder, self.cid, buf, int(off[0]))
+        if shape is None:
+            return None
+        self.shape = shape
+        rows = shape.rows(buf, off)
+        return None if rows is None else (rows, shape)
+
+
+def _batches(scan: _Scan, want: set[int], decoders: dict[int, _Decoder]
+             ) -> Iterator[tuple[NDArray[np.uint8] | None, dict[int, Any]]]:
+    """:func:`_iter_blocks` with ``BATCH_BYTES``, reading uniform records the fast way.
+
+    Yields ``(buffer, {channel id: record offsets})`` as :func:`_iter_blocks` does, or
+    ``(None, {channel id: [(rows, shape), ...]})`` for a batch whose chunks all hold records
+    of one shape per channel (:class:`_Shape`): only the bytes up to the last wanted field of
+    each record are gathered, once, from the decompressed chunk, and every field is then a
+    strided copy of those rows (issue 18). The batches, the chunks' checks, the problems
+    noted and the decoded arrays are those of :func:`_iter_blocks` and
+    :meth:`_Decoder.decode`: a chunk whose records differ is selected by :func:`_select`
+    (which validates each offset and walks a chunk whose index is damaged), and a batch
+    holding such a chunk is decoded the general way.
+    """
+    for cid in sorted(want & scan.top_messages.keys()):
+        yield scan.buf, {cid: np.asarray(scan.top_messages[cid], dtype=np.int64)}
+    fast = {cid: _Uniform(decoders[cid], cid) for cid in want
+            if decoders[cid].layout is not None}
+    entries: list[tuple[bytes, dict[int, np.ndarray], dict[int, Any] | None]] = []
+    size = 0
+    todo = [ch for ch in scan.chunks
+            if not ch.bad and ch.index and (want & ch.index.keys())]
+
+    def flush() -> tuple[NDArray[np.uint8] | None, dict[int, Any]]:
+        if any(got is None for _, _, got in entries):
+            return _join_blocks([b for b, _, _ in entries], [s for _, s, _ in entries])
+        groups: dict[int, list[tuple[list[np.ndarray], _Shape]]] = {}
+        for _, _, got in entries:
+            assert got is not None
+            for cid, (rows, shape) in got.items():
+                gs = groups.setdefault(cid, [])
+                if gs and gs[-1][1] is shape:
+                    gs[-1][0].append(rows)
+                else:
+                    gs.append(([rows], shape))
+        return None, {cid: [(r[0] if len(r) == 1 else np.concatenate(r), shape)
+                            for r, shape in gs] for cid, gs in groups.items()}
+
+    for ch, b in _decompressed(scan, todo):
+        if b is None:
+            continue
+        buf = np.frombuffer(b, dtype=np.uint8)
+        assert ch.index is not None
+        rows: dict[int, Any] = {}
+        uniform = True
+        for cid in want & ch.index.keys():
+            off = ch.index[cid]
+            if not len(off):
+                continue  # nothing to read (_select leaves it out too)
+            r = fast[cid].rows(buf, off) if cid in fast else None
+            if r is None:
+                uniform = False
+                break
+            rows[cid] = r
+        got = rows if uniform else None
+        sel = {cid: ch.index[cid] for cid in rows} if uniform else _select(scan, ch, buf, want)
+        _release(scan, ch.data_start, ch.data_len)  # decompressed: the bytes are not needed
+        if not sel:
+            continue
+        entries.append((b, sel, got))
+        size += len(b)
+        if size >= BATCH_BYTES:
+            yield flush()
+            entries, size = [], 0
+    if entries:
+        yield flush()
+
+
 def _decode_channels(scan: _Scan, cids: list[int]) -> dict[int, _Decoded]:
     decoders = {cid: _Decoder(scan, scan.channels[cid]) for cid in cids}
     # Upper bound of each channel's message count, from the message indexes: the columns are
@@ -277,24 +452,33 @@ def _decode_channels(scan: _Scan, cids: list[int]) -> dict[int, _Decoded]:
     fill = dict.fromkeys(cids, 0)
     frames = dict.fromkeys(cids, "")
     kinds = dict.fromkeys(cids, "")
-    for buf, sel in _iter_blocks(scan, set(cids), BATCH_BYTES):
-        for cid, rec in sel.items():
-            d = decoders[cid].decode(buf, rec)
-            k, i = len(d.t_ns), fill[cid]
-            parts: tuple[np.ndarray, ...] = (d.t_ns, d.values, d.log_time_ns)
-            if d.position is not None:
-                parts += (d.position,)
-                kinds[cid] = d.position_kind
-            if cid not in cols:
-                cols[cid] = [np.empty((max(cap[cid], k),) + a.shape[1:], dtype=a.dtype)
-                             for a in parts]
-            elif i + k > cols[cid][0].shape[0]:  # more than indexed: grow
-                cols[cid] = [np.concatenate([c[:i], np.empty((k,) + c.shape[1:], c.dtype)])
-                             for c in cols[cid]]
-            for c, a in zip(cols[cid], parts, strict=True):
-                c[i : i + k] = a
-            fill[cid] = i + k
+
+    def put(cid: int, d: _Decoded, first: bool = True) -> None:
+        k, i = len(d.t_ns), fill[cid]
+        parts: tuple[np.ndarray, ...] = (d.t_ns, d.values, d.log_time_ns)
+        if d.position is not None:
+            parts += (d.position,)
+            kinds[cid] = d.position_kind
+        if cid not in cols:
+            cols[cid] = [np.empty((max(cap[cid], k),) + a.shape[1:], dtype=a.dtype)
+                         for a in parts]
+        elif i + k > cols[cid][0].shape[0]:  # more than indexed: grow
+            cols[cid] = [np.concatenate([c[:i], np.empty((k,) + c.shape[1:], c.dtype)])
+                         for c in cols[cid]]
+        for c, a in zip(cols[cid], parts, strict=True):
+            c[i : i + k] = a
+        fill[cid] = i + k
+        if first:
             frames[cid] = frames[cid] or d.frame_id
+
+    for buf, sel in _batches(scan, set(cids), decoders):
+        if buf is not None:
+            for cid, rec in sel.items():
+                put(cid, decoders[cid].decode(buf, rec))
+            continue
+        for cid, groups in sel.items():
+            for g, (rows, u) in enumerate(groups):
+                put(cid, u.decode(rows), first=g == 0)
     out = {}
     for cid in cids:
         if cid not in cols:
