@@ -509,7 +509,9 @@ def read_recording_warning(path: str | Path, **kw: Any) -> Recording:
 def _rate_hz(t: np.ndarray) -> float | None:
     if len(t) < 2:
         return None
-    dt = np.diff(np.sort(t))
+    dt = np.diff(t)
+    if not bool((dt >= 0).all()):
+        dt = np.diff(np.sort(t))
     dt = dt[dt > 0]
     if not len(dt):
         return None

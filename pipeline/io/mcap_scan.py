@@ -10,6 +10,7 @@ from __future__ import annotations
 import itertools
 import mmap
 import struct
+import threading
 import warnings
 import zlib
 from collections.abc import Iterator
@@ -327,27 +328,45 @@ def _finish_scan(scan: _Scan, last_chunk: _Chunk | None, last_index: dict, pos: 
 
 
 # --------------------------------------------------------------------------- chunks
+_local = threading.local()
+
+
+def _zstd() -> Any:
+    """Return this thread's ``zstandard.ZstdDecompressor``.
+
+    One is not to be used by two threads at once; making one per chunk cost a context
+    allocation each time.
+    """
+    d = getattr(_local, "zstd", None)
+    if d is None:
+        import zstandard
+
+        d = _local.zstd = zstandard.ZstdDecompressor()
+    return d
+
+
 def _inflate(scan: _Scan, ch: _Chunk) -> tuple[bytes | None, str, str]:
     """Decompress a chunk and check its CRC: ``(bytes or None, problem kind, detail)``.
 
     Touches nothing shared (it runs on worker threads, see :func:`_decompressed`); a torn
     chunk is decompressed as far as its bytes go.
     """
-    comp = scan.buf[ch.data_start : ch.data_start + ch.data_len].tobytes()
+    view = scan.buf[ch.data_start : ch.data_start + ch.data_len]
     try:
         if ch.compression == "":
-            out = comp
+            out = view.tobytes()
         elif ch.compression == "zstd":
-            import zstandard
-
             if ch.torn:
-                out = zstandard.ZstdDecompressor().decompressobj().decompress(comp)
+                import zstandard
+
+                out = zstandard.ZstdDecompressor().decompressobj().decompress(view.tobytes())
             else:
-                out = zstandard.ZstdDecompressor().decompress(
-                    comp, max_output_size=ch.uncompressed_size)
+                # straight from the file's bytes (no copy), with this thread's decompressor
+                out = _zstd().decompress(view, max_output_size=ch.uncompressed_size)
         elif ch.compression == "lz4":
             import lz4.frame
 
+            comp = view.tobytes()
             if ch.torn:
                 out = lz4.frame.LZ4FrameDecompressor().decompress(comp)
             else:
