@@ -281,16 +281,18 @@ class _Shape:
     """One layout of a channel's message records: every wanted field at a fixed place.
 
     Records of one length whose opcode, length and channel id, CDR encapsulation and string
-    lengths / sequence counts (``checks``: offset, dtype, value) equal the template's have
-    their wanted fields at the offsets of ``plan``; only their first ``width`` bytes are
-    needed (the prefix up to the last wanted field).
+    lengths / sequence counts equal the template's have their wanted fields at the offsets
+    of ``plan``; only their first ``width`` bytes are needed (the prefix up to the last
+    wanted field). ``checked`` is a structured dtype of ``width`` bytes whose fields are
+    those bytes, ``template`` the template's values: one comparison checks a whole chunk.
     """
 
     decoder: _Decoder
     plan: UniformPlan
     width: int
     record: int
-    checks: tuple[tuple[int, str, int], ...]
+    checked: np.dtype
+    template: np.ndarray
 
     def rows(self, buf: NDArray[np.uint8], off: np.ndarray) -> np.ndarray | None:
         """Return the first ``width`` bytes of the records at ``off`` (sorted), or None.
@@ -305,11 +307,8 @@ class _Shape:
         view: np.ndarray = np.ndarray(shape=(n - w + 1,), dtype=f"V{w}", buffer=buf,
                                       strides=(1,))
         rows = view[off]
-        raw = rows.view(np.uint8)
-        for o, dt, v in self.checks:
-            if not bool((np.ndarray(shape=(len(off),), dtype=dt, buffer=raw, offset=o,
-                                    strides=(w,)) == v).all()):
-                return None
+        if not bool((rows.view(self.checked) == self.template).all()):
+            return None
         return rows
 
     def decode(self, rows: np.ndarray) -> _Decoded:
@@ -341,12 +340,16 @@ def _shape_at(decoder: _Decoder, cid: int, buf: NDArray[np.uint8], o: int) -> _S
     plan = _plan(decoder.layout, payload, decoder.paths)
     if plan is None:
         return None
-    checks = [(0, "<u8", int.from_bytes(head[0:8], "little")),
-              (7, "<u4", int.from_bytes(head[7:11], "little")),
-              (_RECORD_HEAD, "<u2", int.from_bytes(payload[0:2], "little"))]
-    checks += [(_RECORD_HEAD + 4 + p, "<u4", int.from_bytes(payload[4 + p : 8 + p], "little"))
-               for p in plan.invariants]
-    return _Shape(decoder, plan, _RECORD_HEAD + 4 + plan.end, 9 + length, tuple(checks))
+    width = _RECORD_HEAD + 4 + plan.end
+    # opcode and length (bytes 0-8), channel id (9-10), CDR encapsulation (31-32), and the
+    # lengths / counts the field positions depend on
+    fields = [(0, "<u8"), (7, "<u4"), (_RECORD_HEAD, "<u2")] + [
+        (_RECORD_HEAD + 4 + p, "<u4") for p in plan.invariants]
+    checked = np.dtype({"names": [f"f{i}" for i in range(len(fields))],
+                        "formats": [f for _, f in fields],
+                        "offsets": [o for o, _ in fields], "itemsize": width})
+    template = np.frombuffer(buf[o : o + width].tobytes(), dtype=checked)
+    return _Shape(decoder, plan, width, 9 + length, checked, template)
 
 
 class _Uniform:
