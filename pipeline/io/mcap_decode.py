@@ -321,6 +321,51 @@ class _Shape:
                          strides=(w,)).astype(np.int64)
         return dec._from_cdr(f, log, raw)
 
+    @property
+    def direct(self) -> int:
+        """Columns of the values :meth:`decode_into` writes (0: use :meth:`decode`)."""
+        d = _DIRECT.get(self.decoder.type)
+        return len(d[1]) if d is not None else 0
+
+    def decode_into(self, rows: np.ndarray, t: np.ndarray, v: np.ndarray, log: np.ndarray
+                    ) -> str:
+        """:meth:`decode` for the types of ``_DIRECT``, written straight into output slices.
+
+        ``t``, ``v`` and ``log`` (``len(rows)`` rows each) receive the stamps, values and log
+        times :meth:`_Decoder._from_cdr` computes, with the same arithmetic in place (no
+        temporary arrays); returns the first message's frame id.
+        """
+        raw = rows.view(np.uint8)
+        n, w = len(rows), self.width
+        fields = self.plan.fields
+        base = _RECORD_HEAD + 4
+
+        def col(path: str) -> np.ndarray:
+            _, off, dt, _ = fields[path]
+            return np.ndarray(shape=(n,), dtype=np.dtype(dt).newbyteorder("<"), buffer=raw,
+                              offset=base + off, strides=(w,))
+
+        t[...] = col("header.stamp.sec")  # stamp_ns, in place
+        t *= 1_000_000_000
+        t += col("header.stamp.nanosec")
+        prefix, axes, scale = _DIRECT[self.decoder.type]
+        for j, k in enumerate(axes):
+            v[:, j] = col(f"{prefix}.{k}")
+        if scale is not None:
+            v *= scale
+        log[...] = np.ndarray(shape=(n,), dtype="<u8", buffer=raw, offset=15, strides=(w,))
+        _, off, _, ln = fields["header.frame_id"]
+        s0 = base + off
+        return bytes(raw[s0 : s0 + max(ln - 1, 0)]).decode("utf-8", "replace")
+
+
+#: types :meth:`_Shape.decode_into` writes straight into the output columns: the value
+#: field, its components and the factor to nT (as :meth:`_Decoder._from_cdr`)
+_DIRECT: dict[str, tuple[str, str, float | None]] = {
+    "sensor_msgs/MagneticField": ("magnetic_field", "xyz", 1e9),
+    "sensor_msgs/Imu": ("orientation", "xyzw", None),
+}
+
 
 def _shape_at(decoder: _Decoder, cid: int, buf: NDArray[np.uint8], o: int) -> _Shape | None:
     """Return the :class:`_Shape` of the record at ``o``, or None.
@@ -456,19 +501,25 @@ def _decode_channels(scan: _Scan, cids: list[int]) -> dict[int, _Decoded]:
     frames = dict.fromkeys(cids, "")
     kinds = dict.fromkeys(cids, "")
 
+    def reserve(cid: int, k: int, like: list[tuple[tuple[int, ...], np.dtype]]
+                ) -> list[np.ndarray]:
+        """Return the columns of ``cid`` with room for ``k`` more rows (shapes, dtypes)."""
+        i = fill[cid]
+        if cid not in cols:
+            cols[cid] = [np.empty((max(cap[cid], k),) + shape, dtype=dt) for shape, dt in like]
+        elif i + k > cols[cid][0].shape[0]:  # more than indexed: grow
+            cols[cid] = [np.concatenate([c[:i], np.empty((k,) + c.shape[1:], c.dtype)])
+                         for c in cols[cid]]
+        return cols[cid]
+
     def put(cid: int, d: _Decoded, first: bool = True) -> None:
         k, i = len(d.t_ns), fill[cid]
         parts: tuple[np.ndarray, ...] = (d.t_ns, d.values, d.log_time_ns)
         if d.position is not None:
             parts += (d.position,)
             kinds[cid] = d.position_kind
-        if cid not in cols:
-            cols[cid] = [np.empty((max(cap[cid], k),) + a.shape[1:], dtype=a.dtype)
-                         for a in parts]
-        elif i + k > cols[cid][0].shape[0]:  # more than indexed: grow
-            cols[cid] = [np.concatenate([c[:i], np.empty((k,) + c.shape[1:], c.dtype)])
-                         for c in cols[cid]]
-        for c, a in zip(cols[cid], parts, strict=True):
+        for c, a in zip(reserve(cid, k, [(a.shape[1:], a.dtype) for a in parts]), parts,
+                        strict=True):
             c[i : i + k] = a
         fill[cid] = i + k
         if first:
@@ -480,8 +531,19 @@ def _decode_channels(scan: _Scan, cids: list[int]) -> dict[int, _Decoded]:
                 put(cid, decoders[cid].decode(buf, rec))
             continue
         for cid, groups in sel.items():
-            for g, (rows, u) in enumerate(groups):
-                put(cid, u.decode(rows), first=g == 0)
+            for g, (rows, shape) in enumerate(groups):
+                width = shape.direct
+                if not width:
+                    put(cid, shape.decode(rows), first=g == 0)
+                    continue
+                k, i = len(rows), fill[cid]
+                t, v, log = reserve(cid, k, [((), np.dtype(np.int64)),
+                                             ((width,), np.dtype(np.float64)),
+                                             ((), np.dtype(np.int64))])
+                frame = shape.decode_into(rows, t[i : i + k], v[i : i + k], log[i : i + k])
+                fill[cid] = i + k
+                if g == 0:
+                    frames[cid] = frames[cid] or frame
     out = {}
     for cid in cids:
         if cid not in cols:

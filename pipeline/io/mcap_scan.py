@@ -257,7 +257,9 @@ def _scan(path: str | Path) -> _Scan:
             elif op == Opcode.MESSAGE_INDEX and last_chunk is not None:
                 (cid, n) = struct.unpack_from("<HI", raw, body)
                 pairs = np.frombuffer(raw, dtype="<u8", count=n // 8, offset=body + 6)
-                last_chunk_index[cid] = np.sort(pairs[1::2].astype(np.int64))
+                offsets = pairs[1::2].astype(np.int64)
+                offsets.sort()  # in place: np.sort would copy it again
+                last_chunk_index[cid] = offsets
                 last_chunk.mi_pos[cid] = pos
                 last_chunk.mi_end = body + length
             elif op == Opcode.DATA_END:
