@@ -28,9 +28,10 @@ from pipeline.io.mcap_format import Opcode
 from pipeline.io.mcap_scan import (
     BATCH_BYTES,
     _Channel,
+    _Chunk,
     _compact_records,
     _copy_ranges,
-    _decompressed,
+    _decompressed_then,
     _join_blocks,
     _record_columns,
     _release,
@@ -458,24 +459,31 @@ def _batches(scan: _Scan, want: set[int], decoders: dict[int, _Decoder]
         return None, {cid: [(r[0] if len(r) == 1 else np.concatenate(r), shape)
                             for r, shape in gs] for cid, gs in groups.items()}
 
-    for ch, b in _decompressed(scan, todo):
-        if b is None:
-            continue
+    def uniform_rows(ch: _Chunk, b: bytes) -> dict[int, Any] | None:
+        """Return each wanted channel's records as rows of one shape, or None.
+
+        Runs on the inflating thread: it only reads the chunk and the shapes (which any
+        thread may replace: a shape is checked against every record it reads).
+        """
         buf = np.frombuffer(b, dtype=np.uint8)
         assert ch.index is not None
         rows: dict[int, Any] = {}
-        uniform = True
         for cid in want & ch.index.keys():
             off = ch.index[cid]
             if not len(off):
                 continue  # nothing to read (_select leaves it out too)
             r = fast[cid].rows(buf, off) if cid in fast else None
             if r is None:
-                uniform = False
-                break
+                return None
             rows[cid] = r
-        got = rows if uniform else None
-        sel = {cid: ch.index[cid] for cid in rows} if uniform else _select(scan, ch, buf, want)
+        return rows
+
+    for ch, b, got in _decompressed_then(scan, todo, uniform_rows):
+        if b is None:
+            continue
+        assert ch.index is not None
+        sel = ({cid: ch.index[cid] for cid in got} if got is not None
+               else _select(scan, ch, np.frombuffer(b, dtype=np.uint8), want))
         _release(scan, ch.data_start, ch.data_len)  # decompressed: the bytes are not needed
         if not sel:
             continue

@@ -13,7 +13,7 @@ import struct
 import threading
 import warnings
 import zlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -419,9 +419,30 @@ def _decompressed(scan: _Scan, chunks: list[_Chunk]) -> Iterator[tuple[_Chunk, b
     Problems are noted here, in file order, so that messages come out the same whatever the
     threads' timing.
     """
+    for ch, b, _ in _decompressed_then(scan, chunks, None):
+        yield ch, b
+
+
+def _inflate_then(scan: _Scan, ch: _Chunk, after: Callable[[_Chunk, bytes], Any] | None
+                  ) -> tuple[tuple[bytes | None, str, str], Any]:
+    result = _inflate(scan, ch)
+    if after is None or result[0] is None:
+        return result, None
+    return result, after(ch, result[0])
+
+
+def _decompressed_then(scan: _Scan, chunks: list[_Chunk],
+                       after: Callable[[_Chunk, bytes], Any] | None
+                       ) -> Iterator[tuple[_Chunk, bytes | None, Any]]:
+    """:func:`_decompressed`, with ``after(chunk, records)`` run on the inflating thread.
+
+    ``after`` must note nothing and change nothing shared that the reading thread uses (its
+    result, or None for a chunk that could not be read, comes with the chunk).
+    """
     if len(chunks) < 3 or DECOMPRESS_THREADS < 2:
         for ch in chunks:
-            yield ch, _decompress(scan, ch)
+            result, extra = _inflate_then(scan, ch, after)
+            yield ch, _report(scan, ch, result), extra
         return
     from collections import deque
     from concurrent.futures import ThreadPoolExecutor
@@ -429,14 +450,15 @@ def _decompressed(scan: _Scan, chunks: list[_Chunk]) -> Iterator[tuple[_Chunk, b
     with ThreadPoolExecutor(max_workers=DECOMPRESS_THREADS,
                             thread_name_prefix="magalign-inflate") as ex:
         it = iter(chunks)
-        pending = deque((ch, ex.submit(_inflate, scan, ch))
+        pending = deque((ch, ex.submit(_inflate_then, scan, ch, after))
                         for ch in itertools.islice(it, DECOMPRESS_AHEAD))
         while pending:
             ch, fut = pending.popleft()
             nxt = next(it, None)
             if nxt is not None:
-                pending.append((nxt, ex.submit(_inflate, scan, nxt)))
-            yield ch, _report(scan, ch, fut.result())
+                pending.append((nxt, ex.submit(_inflate_then, scan, nxt, after)))
+            result, extra = fut.result()
+            yield ch, _report(scan, ch, result), extra
 
 
 def _index_count(ch: _Chunk) -> int | str:
