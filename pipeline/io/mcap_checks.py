@@ -200,12 +200,13 @@ def _check_mag(path: str, name: str, dec: _Decoded, problems: list[Problem]) -> 
     # saturation: many samples pinned at the extreme value of an axis (a rail)
     pinned = np.zeros(len(v), dtype=bool)
     rails: list[str] = []
-    # every axis at once (a few passes over the rows, not a dozen over strided columns);
-    # the extremes are the columns' (a zero is taken from its column: its sign is printed)
-    hi, lo = v.max(axis=0), v.min(axis=0)
-    n_hi, n_lo = np.count_nonzero(v == hi, axis=0), np.count_nonzero(v == lo, axis=0)
+    # each axis as a contiguous row (one transposing copy; strided columns cost about twice
+    # as much); a zero extreme is taken from the column as before, for its printed sign
+    cols = np.ascontiguousarray(v.T)
     for ax in range(3):
-        for top, ext, k in ((True, hi[ax], int(n_hi[ax])), (False, lo[ax], int(n_lo[ax]))):
+        c = cols[ax]
+        for top, ext in ((True, c.max()), (False, c.min())):
+            k = int(np.count_nonzero(c == ext))
             if k >= max(10, len(v) // 100):
                 if ext == 0:
                     ext = v[:, ax].max() if top else v[:, ax].min()
