@@ -510,12 +510,14 @@ def _rate_hz(t: np.ndarray) -> float | None:
     if len(t) < 2:
         return None
     dt = np.diff(t)
-    if not bool((dt >= 0).all()):
-        dt = np.diff(np.sort(t))
-    dt = dt[dt > 0]
+    if int(dt.min()) <= 0:  # (strictly increasing stamps need neither sort nor filter)
+        if int(dt.min()) < 0:
+            dt = np.diff(np.sort(t))
+        dt = dt[dt > 0]
     if not len(dt):
         return None
-    return float(1e9 / np.median(dt))
+    # dt is this function's own array: the median may partition it in place
+    return float(1e9 / np.median(dt, overwrite_input=True))
 
 
 def _channel_infos(scan: _Scan, counts: dict[int, int], stamps: dict[int, np.ndarray]
