@@ -370,3 +370,140 @@ class CdrLayout:
 def stamp_ns(sec: np.ndarray, nanosec: np.ndarray) -> NDArray[np.int64]:
     """``builtin_interfaces/Time`` (int32 sec, uint32 nanosec) -> int64 ns."""
     return sec.astype(np.int64) * 1_000_000_000 + nanosec.astype(np.int64)
+
+
+@dataclass(frozen=True)
+class UniformPlan:
+    """Where the wanted fields sit in messages that all share one layout (:meth:`CdrLayout.plan`).
+
+    Offsets are from the end of the encapsulation header. ``fields`` maps a path to
+    ``(kind, offset, dtype, count)``: kind ``"prim"`` (count unused), ``"array"`` (a fixed
+    array of ``count`` primitives) or ``"string"`` (``count``: its length with the NUL).
+    ``invariants`` are the offsets of the ``uint32`` string lengths and sequence counts the
+    positions depend on: messages whose values there equal the template's (and whose length
+    and encapsulation equal its) have every field at the same place. ``end`` is the offset
+    just past the last wanted field.
+    """
+
+    fields: dict[str, tuple[str, int, str, int]]
+    invariants: tuple[int, ...]
+    end: int
+
+
+class _NoPlan(Exception):
+    pass
+
+
+def _plan(layout: CdrLayout, payload: bytes, paths: list[str]) -> UniformPlan | None:
+    """Return the field positions of one little-endian CDR payload, walked as ``decode`` does.
+
+    None when :meth:`CdrLayout.decode` would refuse the message or when a wanted field is not
+    a fixed-size primitive, string or fixed array (the caller then uses :meth:`decode`).
+    """
+    size = len(payload)
+    if size < 4 or payload[0] != 0 or payload[1] != 1:
+        return None
+    wanted = set(paths)
+    out: dict[str, tuple[str, int, str, int]] = {}
+    inv: list[int] = []
+
+    def check(p_end: int) -> None:
+        if 4 + p_end > size:
+            raise _NoPlan
+
+    def u4(p: int) -> int:
+        return int.from_bytes(payload[4 + p : 8 + p], "little")
+
+    def walk(tname: str, prefix: str, pos: int) -> int:
+        for f in layout.types[tname]:
+            if not (wanted - out.keys()):
+                return pos
+            pos = field(f, f"{prefix}{f.name}", pos)
+        return pos
+
+    def field(f: Field, path: str, pos: int) -> int:
+        t = f.type
+        if f.array is None:
+            if t in PRIMITIVES:
+                k = np.dtype(PRIMITIVES[t]).itemsize
+                pos = (pos + (k - 1)) // k * k
+                if path in wanted:
+                    check(pos + k)
+                    out[path] = ("prim", pos, PRIMITIVES[t], 1)
+                return pos + k
+            if t in ("string", "wstring"):
+                pos = (pos + 3) // 4 * 4
+                check(pos + 4)
+                inv.append(pos)
+                ln = u4(pos) * (4 if t == "wstring" else 1)
+                check(pos + 4 + ln)
+                if path in wanted:
+                    out[path] = ("string", pos + 4, "", ln)
+                return pos + 4 + ln
+            return walk(t, path + ".", pos)
+        count = None
+        if f.array < 0:
+            pos = (pos + 3) // 4 * 4
+            check(pos + 4)
+            inv.append(pos)
+            count = u4(pos)
+            pos += 4
+        if t in PRIMITIVES:
+            k = np.dtype(PRIMITIVES[t]).itemsize
+            pos = (pos + (k - 1)) // k * k
+            if count is None:
+                if path in wanted:
+                    check(pos + k * f.array)
+                    out[path] = ("array", pos, PRIMITIVES[t], f.array)
+                return pos + k * f.array
+            if path in wanted:
+                raise _NoPlan  # decode refuses a wanted sequence
+            return pos + k * count
+        if not (wanted - out.keys()):
+            return pos
+        for _ in range(f.array if count is None else count):
+            pos = (field(Field(f.name, t, None), path, pos) if t in ("string", "wstring")
+                   else walk(t, path + ".", pos))
+        return pos
+
+    try:
+        end = walk(layout.top, "", 0)
+    except _NoPlan:
+        return None
+    if any(p not in out for p in paths):
+        return None
+    return UniformPlan(out, tuple(inv), end)
+
+
+def decode_uniform(raw: NDArray[np.uint8], n: int, stride: int, origin: int,
+                   plan: UniformPlan, paths: list[str]) -> dict[str, np.ndarray]:
+    """:meth:`CdrLayout.decode` of ``n`` messages laid ``stride`` bytes apart in ``raw``.
+
+    Every message shares ``plan`` (checked by the caller), the first one's encapsulation
+    header ends at ``origin``: each field is one strided copy. The arrays equal
+    :meth:`CdrLayout.decode`'s, dtypes included; a string's ``(N, 2)`` start and length
+    refer to ``raw``.
+    """
+    out: dict[str, np.ndarray] = {}
+    for path in paths:
+        kind, off, dtype, count = plan.fields[path]
+        if kind == "string":
+            s = np.empty((n, 2), dtype=np.int64)
+            s[:, 0] = np.arange(origin + off, origin + off + n * stride, stride,
+                                dtype=np.int64)[:n]
+            s[:, 1] = count
+            out[path] = s
+            continue
+        dt = np.dtype(dtype).newbyteorder("<")
+        k = dt.itemsize
+
+        def col(o: int, dt: np.dtype = dt) -> np.ndarray:
+            return np.ndarray(shape=(n,), dtype=dt, buffer=raw, offset=origin + o,
+                              strides=(stride,)).copy()
+
+        if kind == "prim":
+            out[path] = col(off)
+        else:
+            cols = [col(off + k * j) for j in range(count)]
+            out[path] = np.stack(cols, axis=-1) if cols else np.zeros((n, 0))
+    return out

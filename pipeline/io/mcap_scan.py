@@ -10,9 +10,10 @@ from __future__ import annotations
 import itertools
 import mmap
 import struct
+import threading
 import warnings
 import zlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -271,7 +272,9 @@ def _scan(path: str | Path) -> _Scan:
             elif op == Opcode.MESSAGE_INDEX and last_chunk is not None:
                 (cid, n) = struct.unpack_from("<HI", raw, body)
                 pairs = np.frombuffer(raw, dtype="<u8", count=n // 8, offset=body + 6)
-                last_chunk_index[cid] = np.sort(pairs[1::2].astype(np.int64))
+                offsets = pairs[1::2].astype(np.int64)
+                offsets.sort()  # in place: np.sort would copy it again
+                last_chunk_index[cid] = offsets
                 last_chunk.mi_pos[cid] = pos
                 last_chunk.mi_end = body + length
             elif op == Opcode.DATA_END:
@@ -345,27 +348,45 @@ def _finish_scan(scan: _Scan, last_chunk: _Chunk | None, last_index: dict, pos: 
 
 
 # --------------------------------------------------------------------------- chunks
+_local = threading.local()
+
+
+def _zstd() -> Any:
+    """Return this thread's ``zstandard.ZstdDecompressor``.
+
+    One is not to be used by two threads at once; making one per chunk cost a context
+    allocation each time.
+    """
+    d = getattr(_local, "zstd", None)
+    if d is None:
+        import zstandard
+
+        d = _local.zstd = zstandard.ZstdDecompressor()
+    return d
+
+
 def _inflate(scan: _Scan, ch: _Chunk) -> tuple[bytes | None, str, str]:
     """Decompress a chunk and check its CRC: ``(bytes or None, problem kind, detail)``.
 
     Touches nothing shared (it runs on worker threads, see :func:`_decompressed`); a torn
     chunk is decompressed as far as its bytes go.
     """
-    comp = scan.buf[ch.data_start : ch.data_start + ch.data_len].tobytes()
+    view = scan.buf[ch.data_start : ch.data_start + ch.data_len]
     try:
         if ch.compression == "":
-            out = comp
+            out = view.tobytes()
         elif ch.compression == "zstd":
-            import zstandard
-
             if ch.torn:
-                out = zstandard.ZstdDecompressor().decompressobj().decompress(comp)
+                import zstandard
+
+                out = zstandard.ZstdDecompressor().decompressobj().decompress(view.tobytes())
             else:
-                out = zstandard.ZstdDecompressor().decompress(
-                    comp, max_output_size=ch.uncompressed_size)
+                # straight from the file's bytes (no copy), with this thread's decompressor
+                out = _zstd().decompress(view, max_output_size=ch.uncompressed_size)
         elif ch.compression == "lz4":
             import lz4.frame
 
+            comp = view.tobytes()
             if ch.torn:
                 out = lz4.frame.LZ4FrameDecompressor().decompress(comp)
             else:
@@ -416,9 +437,30 @@ def _decompressed(scan: _Scan, chunks: list[_Chunk]) -> Iterator[tuple[_Chunk, b
     Problems are noted here, in file order, so that messages come out the same whatever the
     threads' timing.
     """
+    for ch, b, _ in _decompressed_then(scan, chunks, None):
+        yield ch, b
+
+
+def _inflate_then(scan: _Scan, ch: _Chunk, after: Callable[[_Chunk, bytes], Any] | None
+                  ) -> tuple[tuple[bytes | None, str, str], Any]:
+    result = _inflate(scan, ch)
+    if after is None or result[0] is None:
+        return result, None
+    return result, after(ch, result[0])
+
+
+def _decompressed_then(scan: _Scan, chunks: list[_Chunk],
+                       after: Callable[[_Chunk, bytes], Any] | None
+                       ) -> Iterator[tuple[_Chunk, bytes | None, Any]]:
+    """:func:`_decompressed`, with ``after(chunk, records)`` run on the inflating thread.
+
+    ``after`` must note nothing and change nothing shared that the reading thread uses (its
+    result, or None for a chunk that could not be read, comes with the chunk).
+    """
     if len(chunks) < 3 or DECOMPRESS_THREADS < 2:
         for ch in chunks:
-            yield ch, _decompress(scan, ch)
+            result, extra = _inflate_then(scan, ch, after)
+            yield ch, _report(scan, ch, result), extra
         return
     from collections import deque
     from concurrent.futures import ThreadPoolExecutor
@@ -426,14 +468,15 @@ def _decompressed(scan: _Scan, chunks: list[_Chunk]) -> Iterator[tuple[_Chunk, b
     with ThreadPoolExecutor(max_workers=DECOMPRESS_THREADS,
                             thread_name_prefix="magalign-inflate") as ex:
         it = iter(chunks)
-        pending = deque((ch, ex.submit(_inflate, scan, ch))
+        pending = deque((ch, ex.submit(_inflate_then, scan, ch, after))
                         for ch in itertools.islice(it, DECOMPRESS_AHEAD))
         while pending:
             ch, fut = pending.popleft()
             nxt = next(it, None)
             if nxt is not None:
-                pending.append((nxt, ex.submit(_inflate, scan, nxt)))
-            yield ch, _report(scan, ch, fut.result())
+                pending.append((nxt, ex.submit(_inflate_then, scan, nxt, after)))
+            result, extra = fut.result()
+            yield ch, _report(scan, ch, result), extra
 
 
 def _index_count(ch: _Chunk) -> int | str:
