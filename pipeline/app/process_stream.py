@@ -386,7 +386,13 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
     step("Estimate")
     from stages.resample import Resample
 
-    win = Resample(max_gap_s=gap_s).run(win).replace(segments=segments)
+    # the analysis sees the segments its windows overlap (thousands on a 10-hour recording
+    # otherwise, each a mask over the window samples)
+    w_ns = col.windows
+    win_segments = None if segments is None else tuple(
+        sg for sg in segments
+        if bool(np.any((sg.start_ns < w_ns[:, 1]) & (sg.end_ns > w_ns[:, 0]))))
+    win = Resample(max_gap_s=gap_s).run(win).replace(segments=win_segments)
     if options.calibration_path is not None:
         from stages.load_calibration import LoadCalibration
 
