@@ -520,8 +520,11 @@ def _t(t0_ns: int, t_s: float) -> str:
 def _metrics_html(metrics: Any, t0_ns: int = 0) -> str:
     if metrics is None:
         return "<p>No metrics.</p>"
-    rows = []
+    rows: list[str] = []
+    scope_rows: list[list[str]] = []
     for s in metrics.scopes:
+        rows = []
+        scope_rows.append(rows)
         for i, c in enumerate(("x", "y", "z")):
             comp = s.components[c]
             cal, unc, r = comp["calibrated"], comp["uncalibrated"], comp["ratio_pct"]
@@ -565,7 +568,21 @@ def _metrics_html(metrics: Any, t0_ns: int = 0) -> str:
                 + "</tr>" for w in ("uncalibrated", "calibrated")
             ) + "</table>"
         )
-    return f"<table class=metrics>{head}{''.join(rows)}</table>{extra}"
+    table = f"<table class=metrics>{head}{''.join(scope_rows[0])}"
+    segs = scope_rows[1:]
+    if len(segs) > MAX_SEGMENT_ROWS:
+        # hours of data hold hundreds of segments: the whole recording stays in view, the
+        # segments fold away (every row is also in metrics.json / metrics.parquet)
+        table += (f"</table><details><summary>{len(segs)} segments (click to show)</summary>"
+                  f"<table class=metrics>{head}{''.join(r for rs in segs for r in rs)}"
+                  "</table></details>")
+    else:
+        table += f"{''.join(r for rs in segs for r in rs)}</table>"
+    return f"{table}{extra}"
+
+
+#: segments shown in the metrics table before it folds them away
+MAX_SEGMENT_ROWS = 20
 
 
 def _pm(a: Any, sg: Any, nd: int) -> str:

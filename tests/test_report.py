@@ -174,3 +174,24 @@ def test_headline_first(tmp_path):
     body = html[html.index("<body>"):]
     assert body.index("Verdict:") < body.index("id=headline") < body.index("<h2>")
     assert "found 2 effects" in body  # one event and one time offset
+
+
+def test_metrics_table_folds_hundreds_of_segments():
+    """Hours of data hold hundreds of segments: the whole recording's rows stay in view and
+    the segments fold into a <details> element; a few segments stay in the table."""
+    from stages.metrics import STATS, MetricsResult, ScopeMetrics
+    from stages.report import MAX_SEGMENT_ROWS, _metrics_html
+
+    comp = {c: {"calibrated": dict.fromkeys(STATS, 1.0), "uncalibrated": dict.fromkeys(STATS, 2.0),
+                "ratio_pct": dict.fromkeys(STATS, 50.0)} for c in "xyz"}
+
+    def result(n_seg: int) -> MetricsResult:
+        scopes = [ScopeMetrics("all", "all", 0.0, 100.0, 1000, comp)] + [
+            ScopeMetrics(f"segment_{i}", "rotation", i, i + 1.0, 10, comp) for i in range(n_seg)]
+        return MetricsResult(1000, 0, 1000, tuple(scopes))
+
+    many = _metrics_html(result(MAX_SEGMENT_ROWS + 5))
+    assert many.count("<details>") == 1 and f"{MAX_SEGMENT_ROWS + 5} segments" in many
+    assert many.index("whole recording") < many.index("<details>") < many.index("segment_0")
+    few = _metrics_html(result(3))
+    assert "<details>" not in few and "segment_2" in few
