@@ -498,9 +498,22 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
             n_seen += len(rs.t_ns)
             release_free_memory()
 
-        for mt, mv, at, aq in replay.chunks():
-            consume(restorer.add(mt, mv, at, aq))
-        consume(restorer.finish())
+        # each range's outputs are written on a helper thread while the next range is
+        # restored (numpy, zstd and rerun release the interpreter lock): one at a time, in
+        # order (2 h: about 0.4 s of 10.6 on a quiet machine)
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            pending = None
+            for mt, mv, at, aq in replay.chunks():
+                rs = restorer.add(mt, mv, at, aq)
+                if pending is not None:
+                    pending.result()
+                pending = pool.submit(consume, rs)
+            rs = restorer.finish()
+            if pending is not None:
+                pending.result()
+            consume(rs)
         sample = _concat(kept, totals)
         ref_rms = _analysed_rms(win)
         if ref_rms is not None:
