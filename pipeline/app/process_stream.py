@@ -232,34 +232,6 @@ class _Replay:
         fh.close()
 
 
-def _aligned(chunks: Iterator[Any], max_gap_s: float, cubic_weight: float
-             ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Yield ``(q_enu_body, mag_nT, t_ns)`` of the samples with an attitude, chunk by chunk.
-
-    The attitude at each magnetometer stamp from :class:`stages.restore.ChunkedAttitude`:
-    the interpolation pass 2 restores with (the recording's blend weight and gap rule).
-    """
-    from stages.restore import ChunkedAttitude
-
-    stream = ChunkedAttitude(max_gap_s=max_gap_s, cubic_weight=cubic_weight)
-
-    def settled(rows: Any) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        if rows is None:
-            return
-        t, y, interp = rows
-        at = interp.at(t, 0.0)
-        ok = at.valid
-        if ok.any():
-            yield at.q_enu_body[ok], y[ok], t[ok]
-
-    for ch in chunks:
-        att = ch.attitude
-        yield from settled(stream.add(ch.mag.t_ns, ch.mag.values,
-                                      None if att is None else att.t_ns,
-                                      None if att is None else att.q_enu_body))
-    yield from settled(stream.finish())
-
-
 def _chunks(path: str | Path, options: Any) -> Iterator[Any]:
     from pipeline.io.mcap_read import iter_recording_chunks
 
@@ -295,7 +267,12 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
 
     """
     from pipeline.model.attitude import AttitudeInterpolator, auto_max_gap_s
-    from stages.estimators.streaming import StreamAccumulator, SufficientStats, fit_stats
+    from stages.estimators.streaming import (
+        StreamAccumulator,
+        SufficientStats,
+        fit_stats,
+        iter_aligned_chunks,
+    )
     from stages.metrics import MetricsAccumulator
     from stages.restore import ChunkedRestore, RestoreTotals, model_key_of
     from stages.write_mcap import CorrectedMcapStream, corrected_path
@@ -358,7 +335,7 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
     # soft iron and time offset: the expanded sums of every sample (one pass, fixed size)
     terms_acc = (StreamAccumulator(max_gap_s=gap_s) if streamed and terms - {Term.OFFSET}
                  else None)
-    for q, y, t in _aligned(tapped(), gap_s, lam):
+    for q, y, t in iter_aligned_chunks(tapped(), max_gap_s=gap_s, cubic_weight=lam):
         if terms_acc is not None:
             terms_acc.add(q, y, t)
         cut = min(max(plan.n_mag // 2 - col.n_aligned, 0), len(t))

@@ -87,7 +87,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -997,9 +997,13 @@ def _fit_terms(stats: SufficientStats | StreamStats, *, estimate_offset: bool,
 
 # ------------------------------------------------------------------------------ chunked I/O
 def iter_aligned_chunks(
-    chunks: Iterable, *, max_gap_s: float = 0.1
+    chunks: Iterable, *, max_gap_s: float = 0.1, cubic_weight: float | None = None
 ) -> Iterator[tuple[F64, F64, NDArray[np.int64]]]:
     """Bring chunks of a recording onto the magnetometer stamps, chunk by chunk.
+
+    THE interpolator over the whole series, computed chunk by chunk
+    (:class:`stages.restore.ChunkedAttitude`: the cubic's neighbours are carried from one
+    chunk to the next, so every chunk is interpolated as the whole series would be).
 
     Parameters
     ----------
@@ -1007,46 +1011,60 @@ def iter_aligned_chunks(
         (AttitudeSeries or None), such as :func:`pipeline.io.mcap_read.iter_recording_chunks`.
         Within a chunk samples need not be sorted; across chunks stamps must advance.
     max_gap_s : float
-        Attitude gap bridged by THE interpolator (:func:`stages.resample.interpolate_attitude`).
+        Attitude gap bridged by the interpolator, s.
+    cubic_weight : float, optional
+        The blend weight ``lam`` of (A7) (pipeline/model/attitude.py); by default estimated
+        from the first chunk's attitude (a long recording's first range holds ~100,000
+        attitude samples).
 
     Yields
     ------
     (q_enu_body (N, 4), mag_nT (N, 3), t_ns (N,))
-        Magnetometer samples with a usable attitude. A magnetometer sample later than the
-        last attitude sample seen so far waits for the next chunk; the last attitude sample
-        of a chunk is kept to bracket the first magnetometer samples of the next.
+        Magnetometer samples with a usable attitude, in time order. A magnetometer sample
+        waits until the attitude two samples past it has arrived (or the chunks end).
 
     """
-    from pipeline.core.recording import AttitudeSeries
-    from pipeline.model.attitude import interpolate_attitude
+    from pipeline.model.attitude import estimate_cubic_weight
+    from stages.restore import ChunkedAttitude
 
-    att_t = np.zeros(0, np.int64)
-    att_q = np.zeros((0, 4))
-    mag_t = np.zeros(0, np.int64)
-    mag_v = np.zeros((0, 3))
-    for ch in chunks:
-        if ch.attitude is not None and len(ch.attitude):
-            att_t = np.concatenate([att_t, ch.attitude.t_ns])
-            att_q = np.concatenate([att_q, ch.attitude.q_enu_body])
-            o = np.argsort(att_t, kind="stable")
-            att_t, att_q = att_t[o], att_q[o]
-        mag_t = np.concatenate([mag_t, ch.mag.t_ns])
-        mag_v = np.concatenate([mag_v, ch.mag.values])
-        if len(att_t) < 2:
+    it = iter(chunks)
+    stream: ChunkedAttitude | None = None
+    waiting: list = []  # chunks read before the first attitude sample (lam from it)
+
+    def settled(rows: Any) -> Iterator[tuple[F64, F64, NDArray[np.int64]]]:
+        if rows is None:
+            return
+        t, y, interp = rows
+        at = interp.at(t, 0.0)
+        ok = at.valid
+        if ok.any():
+            yield at.q_enu_body[ok], y[ok], t[ok]
+
+    def feed(ch: Any) -> Iterator[tuple[F64, F64, NDArray[np.int64]]]:
+        assert stream is not None
+        att = ch.attitude
+        yield from settled(stream.add(ch.mag.t_ns, ch.mag.values,
+                                      None if att is None else att.t_ns,
+                                      None if att is None else att.q_enu_body))
+
+    for ch in it:
+        if stream is None:
+            waiting.append(ch)
+            if ch.attitude is None or not len(ch.attitude):
+                continue
+            lam = (float(cubic_weight) if cubic_weight is not None
+                   else estimate_cubic_weight(np.sort(ch.attitude.t_ns),
+                                              ch.attitude.q_enu_body[
+                                                  np.argsort(ch.attitude.t_ns, kind="stable")]))
+            stream = ChunkedAttitude(max_gap_s=max_gap_s, cubic_weight=lam)
+            for w in waiting:
+                yield from feed(w)
+            waiting = []
             continue
-        ready = mag_t <= att_t[-1]
-        if ready.any():
-            t_r = mag_t[ready]
-            q, ok = interpolate_attitude(AttitudeSeries(att_t, att_q), t_r, max_gap_s=max_gap_s)
-            if ok.any():
-                yield q[ok], mag_v[ready][ok], t_r[ok]
-            mag_t, mag_v = mag_t[~ready], mag_v[~ready]
-        # keep the attitude samples that can still bracket the waiting magnetometer samples
-        keep_from = len(att_t) - 1
-        if len(mag_t):
-            keep_from = min(keep_from, max(int(np.searchsorted(att_t, mag_t.min())) - 1, 0))
-        att_t, att_q = att_t[keep_from:], att_q[keep_from:]
-    # magnetometer samples after the last attitude sample have no attitude: dropped
+        yield from feed(ch)
+    if stream is not None:
+        yield from settled(stream.finish())
+    # a recording without any attitude sample: nothing has an attitude
 
 
 def calibrate_streaming(
