@@ -52,7 +52,6 @@ import numpy as np
 
 from pipeline.core.atomic import atomic_path, write_text_atomic
 from pipeline.core.errors import InputError
-from pipeline.core.geometry import quat_rotate
 from pipeline.core.recording import Context, Recording, Segment
 
 if TYPE_CHECKING:
@@ -291,7 +290,7 @@ def compute_metrics(
     used = rs.used
     cal_enu = np.asarray(rs.enu_nT)[used]
     # Uncalibrated: attitude only, C_enu_body(t) @ y_mag (Li 2020, Table 4 "before").
-    raw_enu = quat_rotate(rs.q0_enu_body[used], recording.mag.values[used])
+    raw_enu = rs.uncalibrated_enu_nT()[used]
     t = t_all[used]
     t0 = int(t_all[0]) if n else 0
     end_all = float((t_all[-1] - t0) * 1e-9) if n else 0.0
@@ -456,7 +455,7 @@ class MetricsAccumulator:
         rows["t"] = rs.t_ns[used]
         rows["c"] = np.asarray(rs.enu_nT)[used]
         # Uncalibrated: attitude only, C_enu_body(t) @ y_mag (Li 2020, Table 4 "before").
-        rows["r"] = quat_rotate(rs.q0_enu_body[used], np.asarray(rs.raw_mag_nT)[used])
+        rows["r"] = rs.uncalibrated_enu_nT()[used]
         sel = self._masks(rows["t"])
         self._cal.add(rows["c"], sel)
         self._raw.add(rows["r"], sel)

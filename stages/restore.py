@@ -155,6 +155,32 @@ class RestoreResult:
         """
         return self.totals is not None and self.totals.n_total != int(self.t_ns.shape[0])
 
+    def uncalibrated_enu_nT(self) -> np.ndarray:
+        """Return ``C_enu_body(t) @ y_mag`` (attitude only, Li 2020 Figs. 5, 8 "before"), (N, 3).
+
+        NaN without an attitude at the stamp. Computed on each call.
+        """
+        from pipeline.core.geometry import quat_rotate
+
+        q0 = np.where(self.valid0[:, None], self.q0_enu_body, _IDENTITY_Q)
+        unc = quat_rotate(q0, np.asarray(self.raw_mag_nT, dtype=float))
+        unc[~self.valid0] = np.nan
+        return unc
+
+    def q_or_identity(self) -> np.ndarray:
+        """Return the attitude at ``t - tau``, identity where not valid, (N, 4)."""
+        return np.where(self.valid[:, None], self.q_enu_body, _IDENTITY_Q)
+
+    @classmethod
+    def concat(cls, parts: list[RestoreResult], totals: RestoreTotals | None = None
+               ) -> RestoreResult:
+        """Join results of consecutive rows (chunks); ``totals``: those of every sample."""
+        import dataclasses
+
+        arrays: dict[str, Any] = {f: np.concatenate([getattr(p, f) for p in parts])
+                                  for f in _ROW_FIELDS}
+        return dataclasses.replace(parts[0], totals=totals, **arrays)
+
     def rows(self, sl: slice | np.ndarray) -> RestoreResult:
         """Return the result restricted to rows ``sl`` (a slice or index array), no totals."""
         import dataclasses
@@ -163,6 +189,8 @@ class RestoreResult:
         arrays: dict[str, Any] = {f: np.array(getattr(self, f)[sl]) for f in _ROW_FIELDS}
         return dataclasses.replace(self, totals=None, **arrays)
 
+
+_IDENTITY_Q = np.array([0.0, 0.0, 0.0, 1.0])
 
 #: the per-row arrays of a RestoreResult
 _ROW_FIELDS = ("t_ns", "raw_mag_nT", "calibrated_mag_nT", "q_enu_body", "enu_nT",
@@ -524,11 +552,8 @@ def view_data(restored: RestoreResult, R_body_mag: np.ndarray) -> ViewData:
 
     rs = restored
     y = np.asarray(rs.raw_mag_nT, dtype=float)
-    ident = np.array([0.0, 0.0, 0.0, 1.0])
-    q0 = np.where(rs.valid0[:, None], rs.q0_enu_body, ident)
-    unc = quat_rotate(q0, y)
-    unc[~rs.valid0] = np.nan
-    q = np.where(rs.valid[:, None], rs.q_enu_body, ident)
+    unc = rs.uncalibrated_enu_nT()
+    q = rs.q_or_identity()
     B = np.asarray(rs.B_enu_nT, dtype=float)
     ideal = quat_rotate(quat_conj(q), np.broadcast_to(B, y.shape))
     ideal[~rs.valid] = np.nan

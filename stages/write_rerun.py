@@ -225,7 +225,7 @@ class RrdStream:
         """Send the time series of the restore result ``restored`` (the next samples)."""
         import rerun as rr
 
-        from pipeline.core.geometry import quat_rotate, quat_to_li2020_euler
+        from pipeline.core.geometry import quat_to_li2020_euler
 
         rec = self.rec
         t_all = np.asarray(restored.t_ns, dtype="datetime64[ns]")
@@ -252,17 +252,13 @@ class RrdStream:
         for k, a in enumerate(AXES):
             send_scalars(f"residual/{a}", np.asarray(restored.residual_nT)[:, k], v)
             send_scalars(f"mag/raw/{a}", raw[:, k])
-        # the view series of these rows (stages.restore.view_data computes the same, and the
-        # body-frame ones the 3D views need)
-        ident = np.array([0.0, 0.0, 0.0, 1.0])
-        v0 = restored.valid0
-        unc = quat_rotate(np.where(v0[:, None], restored.q0_enu_body, ident), raw)
-        unc[~v0] = np.nan
+        # the view series of these rows (view_data's; the body-frame ones only the 3D views
+        # at the end need)
+        unc = restored.uncalibrated_enu_nT()
         for k, c in enumerate(ENU_NAMES):
             send_scalars(f"field/uncalibrated/{c}", unc[:, k], np.isfinite(unc[:, k]))
         # --- attitude: Li 2020 Euler angles
-        q = np.where(v[:, None], restored.q_enu_body, ident)
-        h, p, r = quat_to_li2020_euler(q)  # every row (identity where not valid)
+        h, p, r = quat_to_li2020_euler(restored.q_or_identity())  # identity where not valid
         for name, ang in (("heading", h), ("pitch", p), ("roll", r)):
             send_scalars(f"attitude/{name}_deg", np.degrees(ang), v)
 

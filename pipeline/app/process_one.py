@@ -131,17 +131,12 @@ def build_stages(ctx: Context, out_dir: Path, options: ProcessOptions) -> list:
     if options.calibration_path is not None:
         stages.append(LoadCalibration(str(options.calibration_path)))
     else:
-        from stages.estimate import Estimate, EstimatorKind, Term
+        from stages.estimate import Estimate, Term
 
-        kw: dict[str, Any] = {"terms": frozenset(options.terms)}
-        if options.estimator is not None:
-            kw["estimator"] = options.estimator
-        if options.reference_field_enu_nT is not None:
-            kw["reference_field_enu_nT"] = tuple(float(x) for x in options.reference_field_enu_nT)
-        terms = {Term(t) for t in options.terms}
-        ml = options.estimator is None or EstimatorKind(options.estimator) is EstimatorKind("ml")
-        if large and ml and terms <= set(StreamingEstimate.SUPPORTED_TERMS):
+        kw = estimate_kwargs(options)
+        if large and streams_estimate(options):
             # every sample, in bounded memory: chunked sufficient statistics
+            terms = {Term(t) for t in options.terms}
             stages.append(StreamingEstimate(Term.OFFSET in terms,
                                             kw.get("reference_field_enu_nT"),
                                             frozenset(terms)))
@@ -153,12 +148,7 @@ def build_stages(ctx: Context, out_dir: Path, options: ProcessOptions) -> list:
         if diag_cls is not None:
             # Diagnose replaces the calibration by its final model (more effects), so the
             # field is restored and measured after it, with that model.
-            dkw: dict[str, Any] = {"max_gap_s": options.max_gap_s}
-            if options.reference_field_enu_nT is not None:
-                dkw["reference_field_enu_nT"] = tuple(
-                    float(x) for x in options.reference_field_enu_nT
-                )
-            stages.append(scaled(diag_cls(**dkw)))
+            stages.append(scaled(diag_cls(**diagnose_kwargs(options))))
     if tilt_note is not None and options.calibration_path is None:
         stages.append(tilt_note)  # axis_tilt (or why not) into calibration effects/warnings
     if options.calibration_path is None:
@@ -178,6 +168,32 @@ def build_stages(ctx: Context, out_dir: Path, options: ProcessOptions) -> list:
 
         stages.append(Report(str(out_dir), max_gap_s=options.max_gap_s))
     return stages
+
+
+def estimate_kwargs(options: ProcessOptions) -> dict[str, Any]:
+    """Keywords of :class:`stages.estimate.Estimate` for these options."""
+    kw: dict[str, Any] = {"terms": frozenset(options.terms)}
+    if options.estimator is not None:
+        kw["estimator"] = options.estimator
+    if options.reference_field_enu_nT is not None:
+        kw["reference_field_enu_nT"] = tuple(float(x) for x in options.reference_field_enu_nT)
+    return kw
+
+
+def diagnose_kwargs(options: ProcessOptions) -> dict[str, Any]:
+    """Keywords of :class:`stages.diagnose.stage.Diagnose` for these options."""
+    dkw: dict[str, Any] = {"max_gap_s": options.max_gap_s}
+    if options.reference_field_enu_nT is not None:
+        dkw["reference_field_enu_nT"] = tuple(float(x) for x in options.reference_field_enu_nT)
+    return dkw
+
+
+def streams_estimate(options: ProcessOptions) -> bool:
+    """Whether the streaming estimator can make the estimate asked for (ML, its terms)."""
+    from stages.estimate import EstimatorKind, Term
+
+    ml = options.estimator is None or EstimatorKind(options.estimator) is EstimatorKind("ml")
+    return ml and {Term(t) for t in options.terms} <= set(StreamingEstimate.SUPPORTED_TERMS)
 
 
 def _finite_list(a: Any) -> list | None:

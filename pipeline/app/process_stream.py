@@ -266,7 +266,7 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
         (``RestoreResult.totals``); ``recording`` is the header with those rows' readings.
 
     """
-    from pipeline.model.attitude import AttitudeInterpolator, auto_max_gap_s
+    from pipeline.model.attitude import auto_max_gap_s, estimate_cubic_weight
     from stages.estimators.streaming import (
         StreamAccumulator,
         SufficientStats,
@@ -274,7 +274,7 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
         iter_aligned_chunks,
     )
     from stages.metrics import MetricsAccumulator
-    from stages.restore import ChunkedRestore, RestoreTotals, model_key_of
+    from stages.restore import ChunkedRestore, RestoreResult, RestoreTotals, model_key_of
     from stages.write_mcap import CorrectedMcapStream, corrected_path
     from stages.write_results import WriteResults
 
@@ -311,7 +311,7 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
     assert att0 is not None  # plan_stream took only recordings with an attitude
     gap_s = (float(options.max_gap_s) if options.max_gap_s is not None
              else auto_max_gap_s(att0.t_ns))
-    lam = AttitudeInterpolator(att0.t_ns, att0.q_enu_body, max_gap_s=gap_s).cubic_weight
+    lam = estimate_cubic_weight(att0.t_ns, att0.q_enu_body)  # (A7) of the first range
 
     replay = _Replay(rec_dir)
 
@@ -325,28 +325,26 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
     # the whole's
     halves = [SufficientStats(), SufficientStats()]
     split_ns: int | None = None
-    from stages.estimate import EstimatorKind, Term
-    from stages.streaming_estimate import StreamingEstimate
+    from pipeline.app.process_one import diagnose_kwargs, estimate_kwargs, streams_estimate
+    from stages.estimate import Term
 
     terms = {Term(t) for t in options.terms}
-    ml = options.estimator is None or EstimatorKind(options.estimator) is EstimatorKind("ml")
-    streamed = (ml and options.calibration_path is None
-                and terms <= set(StreamingEstimate.SUPPORTED_TERMS))
+    streamed = options.calibration_path is None and streams_estimate(options)
     # soft iron and time offset: the expanded sums of every sample (one pass, fixed size)
     terms_acc = (StreamAccumulator(max_gap_s=gap_s) if streamed and terms - {Term.OFFSET}
                  else None)
     for q, y, t in iter_aligned_chunks(tapped(), max_gap_s=gap_s, cubic_weight=lam):
         if terms_acc is not None:
-            terms_acc.add(q, y, t)
-        cut = min(max(plan.n_mag // 2 - col.n_aligned, 0), len(t))
-        if 0 < cut < len(t) or (cut == 0 and split_ns is None and len(t)):
-            split_ns = int(t[cut])
-        if cut:
-            halves[0] = halves[0] + SufficientStats.from_samples(q[:cut], y[:cut], t[:cut])
-        if cut < len(t):
-            halves[1] = halves[1] + SufficientStats.from_samples(q[cut:], y[cut:], t[cut:])
+            terms_acc.add(q, y, t)  # its own rotation sums included
+        else:
+            cut = min(max(plan.n_mag // 2 - col.n_aligned, 0), len(t))
+            if 0 < cut < len(t) or (cut == 0 and split_ns is None and len(t)):
+                split_ns = int(t[cut])
+            if cut:
+                halves[0] = halves[0] + SufficientStats.from_samples(q[:cut], y[:cut], t[:cut])
+            if cut < len(t):
+                halves[1] = halves[1] + SufficientStats.from_samples(q[cut:], y[cut:], t[cut:])
         col.aligned(q, y, t)
-    stats = halves[0] + halves[1]
     win = Context(source=str(path), recording=col.window_recording(plan.header),
                   options=options)
 
@@ -384,7 +382,7 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
             "reference_field_enu_nT": None if ref is None else np.asarray(ref, float)}
         if streamed and terms_acc is None:
             # every sample, from the sums of pass 1; checked by its halves
-            cal0 = fit_stats(stats, **kw_fit).to_calibration()
+            cal0 = fit_stats(halves[0] + halves[1], **kw_fit).to_calibration()
             split_s = 0.0 if split_ns is None else (split_ns - (col.t_first_ns or 0)) * 1e-9
             win = win.replace(calibration=split_halves(cal0, halves, kw_fit, split_s))
         elif terms_acc is not None:
@@ -394,21 +392,13 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
                             estimate_time_offset=Term.TIME_OFFSET in terms, **kw_fit)
             win = win.replace(calibration=fit.to_calibration())
         else:
-            kw: dict[str, Any] = {"terms": frozenset(options.terms)}
-            if options.estimator is not None:
-                kw["estimator"] = options.estimator
-            if ref is not None:
-                kw["reference_field_enu_nT"] = tuple(float(x) for x in ref)
-            win = Estimate(**kw).run(win)
+            win = Estimate(**estimate_kwargs(options)).run(win)
         win = RequireObservable().run(win)
         if options.diagnose:
             step("Diagnose")
             from stages.diagnose.stage import Diagnose
 
-            dkw: dict[str, Any] = {"max_gap_s": options.max_gap_s}
-            if ref is not None:
-                dkw["reference_field_enu_nT"] = tuple(float(x) for x in ref)
-            win = Diagnose(**dkw).run(win)
+            win = Diagnose(**diagnose_kwargs(options)).run(win)
         step("Judge")
         from stages.estimate import Judge
 
@@ -416,7 +406,7 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
     cal = win.need_calibration()
     n_win = len(win.need_recording().mag)
     if options.calibration_path is None and n_win < plan.n_mag:
-        w = windows_ns(plan)
+        w = col.windows
         where = (f"{len(w)} windows of {(w[0, 1] - w[0, 0]) * 1e-9:.0f} s spread over the "
                  f"recording ({n_win} of {plan.n_mag} magnetometer samples)")
         if not streamed:
@@ -491,7 +481,11 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
             if pending is not None:
                 pending.result()
             consume(rs)
-        sample = _concat(kept, totals)
+        if not kept:
+            raise InputError("no magnetometer sample of the recording could be restored",
+                             path=str(path), hint="check that the magnetometer and attitude "
+                             "overlap in time")
+        sample = RestoreResult.concat(kept, totals)
         ref_rms = _analysed_rms(win)
         if ref_rms is not None:
             unseen = unseen_check(per_chunk, totals, ref_rms, t0)
@@ -532,7 +526,6 @@ def split_halves(cal: Any, halves: list[Any], kw_fit: dict[str, Any], split_s: f
     from the first sample).
     """
     from pipeline.core.errors import EstimationError
-    from pipeline.core.geometry import so3_log
     from stages.estimators.checks import SplitCheck, apply_split
     from stages.estimators.streaming import fit_stats
 
@@ -544,12 +537,7 @@ def split_halves(cal: Any, halves: list[Any], kw_fit: dict[str, Any], split_s: f
         return cal
     if (a.unobservable_axes_body or b.unobservable_axes_body) and not cal.unobservable_axes_body:
         return cal
-    d = so3_log(a.R_body_mag @ b.R_body_mag.T)
-    var = np.radians(a.sigma_rotvec_deg) ** 2 + np.radians(b.sigma_rotvec_deg) ** 2
-    ok = np.isfinite(var) & (var > 0)
-    chi2 = float(np.sum(d[ok] ** 2 / var[ok]))
-    split = SplitCheck(a.rotvec_body_mag_deg, b.rotvec_body_mag_deg, np.degrees(d), chi2,
-                       float(split_s))
+    split = SplitCheck.compare(a, b, split_s)
     cal = cal.replace(checks={**cal.checks, "split": split.to_dict()})
     return apply_split(cal, split)
 
@@ -615,15 +603,3 @@ def _import_quietly(name: str) -> None:
         importlib.import_module(name)
     except Exception:  # noqa: BLE001 - the stage that needs it raises it properly
         pass
-
-
-def _concat(parts: list[Any], totals: Any) -> Any:
-    """One RestoreResult of the kept rows, carrying the totals of every sample."""
-    from stages.restore import _ROW_FIELDS
-
-    if not parts:
-        raise InputError("no magnetometer sample of the recording could be restored",
-                         hint="check that the magnetometer and attitude overlap in time")
-    arrays: dict[str, Any] = {f: np.concatenate([getattr(p, f) for p in parts])
-                              for f in _ROW_FIELDS}
-    return dataclasses.replace(parts[0], totals=totals, **arrays)

@@ -153,6 +153,22 @@ class SplitCheck:
     chi2: float
     split_s: float
 
+    @classmethod
+    def compare(cls, a, b, split_s: float) -> SplitCheck:
+        """Compare the rotations of two calibrations fitted to the halves of a recording.
+
+        ``chi2`` weighs the difference by the halves' own rotation variances (the axes with
+        a finite, positive variance); ``split_s``: where the halves meet, s.
+        """
+        from pipeline.core.geometry import so3_log
+
+        d = so3_log(a.R_body_mag @ b.R_body_mag.T)
+        var = np.radians(a.sigma_rotvec_deg) ** 2 + np.radians(b.sigma_rotvec_deg) ** 2
+        ok = np.isfinite(var) & (var > 0)
+        chi2 = float(np.sum(d[ok] ** 2 / var[ok]))
+        return cls(a.rotvec_body_mag_deg, b.rotvec_body_mag_deg, np.degrees(d), chi2,
+                   float(split_s))
+
     @property
     def consistent(self) -> bool:
         """Whether the halves agree within the 95 % chi-square bound."""

@@ -672,16 +672,8 @@ class MLEstimator:
             if c.unobservable_axes_body and not cal.unobservable_axes_body:
                 return None
             out.append(c)
-        a, b = out
-        d = _log(a.R_body_mag @ b.R_body_mag.T)
-        Ca = np.radians(a.sigma_rotvec_deg) ** 2
-        Cb = np.radians(b.sigma_rotvec_deg) ** 2
-        var = Ca + Cb
-        ok = np.isfinite(var) & (var > 0)
-        chi2 = float(np.sum(d[ok] ** 2 / var[ok]))
         t_split = float((p.t_ns[np.flatnonzero(~first)[0]] - p.t_ns[0]) * 1e-9)
-        return SplitCheck(a.rotvec_body_mag_deg, b.rotvec_body_mag_deg, np.degrees(d), chi2,
-                          t_split)
+        return SplitCheck.compare(out[0], out[1], t_split)
 
 
     def finish(self, p: Problem, model: Model, gn: GNResult) -> Calibration:

@@ -1052,10 +1052,11 @@ def iter_aligned_chunks(
             waiting.append(ch)
             if ch.attitude is None or not len(ch.attitude):
                 continue
-            lam = (float(cubic_weight) if cubic_weight is not None
-                   else estimate_cubic_weight(np.sort(ch.attitude.t_ns),
-                                              ch.attitude.q_enu_body[
-                                                  np.argsort(ch.attitude.t_ns, kind="stable")]))
+            if cubic_weight is not None:
+                lam = float(cubic_weight)
+            else:
+                o = np.argsort(ch.attitude.t_ns, kind="stable")
+                lam = estimate_cubic_weight(ch.attitude.t_ns[o], ch.attitude.q_enu_body[o])
             stream = ChunkedAttitude(max_gap_s=max_gap_s, cubic_weight=lam)
             for w in waiting:
                 yield from feed(w)
