@@ -74,6 +74,7 @@ class StreamPlan:
     """Why and how a recording is processed in chunks (:func:`plan_stream`)."""
 
     header: Recording
+    passthrough: Any  # pipeline.io.mcap_read.PassThrough: the input's chunks, for pass 2
     n_mag: int
     start_ns: int
     end_ns: int
@@ -100,7 +101,7 @@ def plan_stream(path: str | Path, options: Any) -> StreamPlan | None:
     pt = pass_through(path)
     if pt is None or not pt.chunks:
         return None
-    return StreamPlan(header, int(mag.count), min(c.start_ns for c in pt.chunks),
+    return StreamPlan(header, pt, int(mag.count), min(c.start_ns for c in pt.chunks),
                       max(c.end_ns for c in pt.chunks))
 
 
@@ -422,8 +423,6 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
 
     # ---------------------------------------------------------------- pass 2: restore, write
     step("Restore+outputs")
-    from pipeline.io.mcap_read import pass_through
-
     release_free_memory()
     t0 = int(col.t_first_ns if col.t_first_ns is not None else plan.start_ns)
     restorer = ChunkedRestore(cal, t0_ns=t0, max_gap_s=gap_s, cubic_weight=lam,
@@ -434,11 +433,11 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
     n_seen = 0
     outputs: tuple[tuple[str, str], ...] = ()
     mcap_dest = corrected_path(rec_dir, path)
-    pt = pass_through(path)  # afresh: pass 1 released the first one's pages
     from contextlib import ExitStack
 
     with ExitStack() as stack:
-        mc = stack.enter_context(CorrectedMcapStream(plan.header, cal, mcap_dest, pt))
+        mc = stack.enter_context(CorrectedMcapStream(plan.header, cal, mcap_dest,
+                                                     plan.passthrough))
         rrd = None
         if options.write_rerun:
             from stages.write_rerun import RrdStream, rrd_path
