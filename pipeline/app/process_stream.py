@@ -462,7 +462,6 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
                 rrd.add(rs)
             kept.append(rs.rows(slice((-n_seen) % k, None, k)))
             n_seen += len(rs.t_ns)
-            release_free_memory()
 
         # each range's outputs are written on a helper thread while the next range is
         # restored (numpy, zstd and rerun release the interpreter lock): one at a time, in
