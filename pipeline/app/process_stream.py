@@ -268,12 +268,7 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
 
     """
     from pipeline.model.attitude import auto_max_gap_s, estimate_cubic_weight
-    from stages.estimators.streaming import (
-        StreamAccumulator,
-        SufficientStats,
-        fit_stats,
-        iter_aligned_chunks,
-    )
+    from stages.estimators.streaming import StreamAccumulator, fit_stats, iter_aligned_chunks
     from stages.metrics import MetricsAccumulator
     from stages.restore import ChunkedRestore, RestoreResult, RestoreTotals, model_key_of
     from stages.write_mcap import CorrectedMcapStream, corrected_path
@@ -324,7 +319,9 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
 
     # the sums of each half of the recording (split-half check of the sigmas) add up to
     # the whole's
-    halves = [SufficientStats(), SufficientStats()]
+    # rotation only: the whole's and each half's sums per time block (block sandwich)
+    whole = StreamAccumulator(max_gap_s=gap_s, with_tau=False)
+    halves = [StreamAccumulator(max_gap_s=gap_s, with_tau=False) for _ in range(2)]
     split_ns: int | None = None
     from pipeline.app.process_one import diagnose_kwargs, estimate_kwargs, streams_estimate
     from stages.estimate import Term
@@ -338,13 +335,14 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
         if terms_acc is not None:
             terms_acc.add(q, y, t)  # its own rotation sums included
         else:
+            whole.add(q, y, t)
             cut = min(max(plan.n_mag // 2 - col.n_aligned, 0), len(t))
             if 0 < cut < len(t) or (cut == 0 and split_ns is None and len(t)):
                 split_ns = int(t[cut])
             if cut:
-                halves[0] = halves[0] + SufficientStats.from_samples(q[:cut], y[:cut], t[:cut])
+                halves[0].add(q[:cut], y[:cut], t[:cut])
             if cut < len(t):
-                halves[1] = halves[1] + SufficientStats.from_samples(q[cut:], y[cut:], t[cut:])
+                halves[1].add(q[cut:], y[cut:], t[cut:])
         col.aligned(q, y, t)
     win = Context(source=str(path), recording=col.window_recording(plan.header),
                   options=options)
@@ -380,12 +378,14 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
         ref = options.reference_field_enu_nT
         kw_fit: dict[str, Any] = {
             "estimate_offset": Term.OFFSET in terms,
-            "reference_field_enu_nT": None if ref is None else np.asarray(ref, float)}
+            "reference_field_enu_nT": None if ref is None else np.asarray(ref, float),
+            "block_sandwich": True}
         if streamed and terms_acc is None:
             # every sample, from the sums of pass 1; checked by its halves
-            cal0 = fit_stats(halves[0] + halves[1], **kw_fit).to_calibration()
+            cal0 = fit_stats(whole.result(), **kw_fit).to_calibration()
             split_s = 0.0 if split_ns is None else (split_ns - (col.t_first_ns or 0)) * 1e-9
-            win = win.replace(calibration=split_halves(cal0, halves, kw_fit, split_s))
+            win = win.replace(calibration=split_halves(
+                cal0, [h.result() for h in halves], kw_fit, split_s))
         elif terms_acc is not None:
             # soft iron and time offset from every sample too (its sigmas: the block
             # sandwich of the expanded sums)

@@ -378,6 +378,7 @@ def fit_stats(
     reference_field_enu_nT: F64 | None = None,
     R_nominal_body_mag: F64 | None = None,
     max_iter: int = 50,
+    block_sandwich: bool = False,
 ) -> StreamingFit:
     """Gauss-Newton (Levenberg-damped, THE solver core) on the sufficient statistics alone.
 
@@ -400,6 +401,11 @@ def fit_stats(
         Starting rotation; by default the best of the 24 axis-aligned rotations.
     max_iter : int
         Gauss-Newton iterations.
+    block_sandwich : bool
+        With a :class:`StreamStats` (per-time-block sums), give the rotation-only model the
+        block sandwich covariance too (as the in-memory ML and the soft iron / time offset
+        fits have): residuals correlated over seconds (attitude noise interpolated, field
+        gradients) make the information's sigmas too small. ``False``: the information's.
 
     Raises
     ------
@@ -411,7 +417,8 @@ def fit_stats(
         raise EstimationError(f"only {st.n} aligned samples: too few to calibrate")
     B_fixed = None if reference_field_enu_nT is None else np.asarray(
         reference_field_enu_nT, dtype=float).reshape(3)
-    if estimate_soft_iron or estimate_time_offset:
+    if estimate_soft_iron or estimate_time_offset or (
+            block_sandwich and isinstance(st, StreamStats) and len(st.block_Wa)):
         return _fit_terms(st, estimate_offset=estimate_offset,
                           estimate_soft_iron=estimate_soft_iron,
                           estimate_time_offset=estimate_time_offset, B_fixed=B_fixed,
@@ -677,14 +684,18 @@ class StreamAccumulator:
         A larger step between consecutive samples ends a stretch: stencils do not cross it.
     block_s : float
         Initial length of the time blocks of the covariance, s.
+    with_tau : bool
+        Accumulate the expanded sums of the time offset (``False``: only the rotation
+        model's sums, every sample and per time block, for the block sandwich).
 
     """
 
     def __init__(self, baseline_s: float = DERIVATIVE_BASELINE_S, max_gap_s: float = 0.1,
-                 block_s: float = 1.0):
+                 block_s: float = 1.0, with_tau: bool = True):
         if not (baseline_s > 0 and max_gap_s > 0 and block_s > 0):
             raise EstimationError("baseline_s, max_gap_s and block_s must be positive")
         self.baseline_s = float(baseline_s)
+        self.with_tau = bool(with_tau)
         self._h = int(round(baseline_s * 1e9))
         self._gap = int(round(max_gap_s * 1e9))
         self._blk = max(int(round(block_s * 1e9)), 1)
@@ -722,6 +733,9 @@ class StreamAccumulator:
         self._base = self._base + SufficientStats.from_samples(q, y, t)
         C = quat_to_matrix(q).reshape(-1, 9)
         self._a.add(self._block_of(t), np.concatenate([np.ones((len(t), 1)), C], axis=1), y)
+        if not self.with_tau:
+            self._t = t[-1:]  # the stamps must still advance
+            return
         T = np.concatenate([self._t, t])
         Q = np.concatenate([self._q, q])
         Y = np.concatenate([self._y, y])
