@@ -319,8 +319,7 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
 
     # the sums of each half of the recording (split-half check of the sigmas) add up to
     # the whole's
-    # rotation only: the whole's and each half's sums per time block (block sandwich)
-    whole = StreamAccumulator(max_gap_s=gap_s, with_tau=False)
+    # rotation only: each half's sums per time block (block sandwich); the whole's are theirs
     halves = [StreamAccumulator(max_gap_s=gap_s, with_tau=False) for _ in range(2)]
     split_ns: int | None = None
     from pipeline.app.process_one import diagnose_kwargs, estimate_kwargs, streams_estimate
@@ -335,7 +334,6 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
         if terms_acc is not None:
             terms_acc.add(q, y, t)  # its own rotation sums included
         else:
-            whole.add(q, y, t)
             cut = min(max(plan.n_mag // 2 - col.n_aligned, 0), len(t))
             if 0 < cut < len(t) or (cut == 0 and split_ns is None and len(t)):
                 split_ns = int(t[cut])
@@ -382,10 +380,10 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
             "block_sandwich": True}
         if streamed and terms_acc is None:
             # every sample, from the sums of pass 1; checked by its halves
-            cal0 = fit_stats(whole.result(), **kw_fit).to_calibration()
+            half_stats = [h.result() for h in halves]
+            cal0 = fit_stats(half_stats[0] + half_stats[1], **kw_fit).to_calibration()
             split_s = 0.0 if split_ns is None else (split_ns - (col.t_first_ns or 0)) * 1e-9
-            win = win.replace(calibration=split_halves(
-                cal0, [h.result() for h in halves], kw_fit, split_s))
+            win = win.replace(calibration=split_halves(cal0, half_stats, kw_fit, split_s))
         elif terms_acc is not None:
             # soft iron and time offset from every sample too (its sigmas: the block
             # sandwich of the expanded sums)

@@ -589,6 +589,26 @@ class StreamStats:
         """Number of samples in the expanded sums (those with both stencil neighbours)."""
         return int(round(self.Wg[0, 0]))
 
+    def __add__(self, other: StreamStats) -> StreamStats:
+        """Return the sums of two disjoint stretches (e.g. the halves of a recording).
+
+        Totals add; the time blocks of the two are kept side by side (the block sandwich
+        only needs the blocks to be disjoint stretches, not of one length).
+        """
+        def cat(a: F64, b: F64) -> F64:
+            return np.concatenate([a, b])
+
+        return StreamStats(
+            base=self.base + other.base, Wg=self.Wg + other.Wg, Yg=self.Yg + other.Yg,
+            yy=self.yy + other.yy,
+            block_Wg=cat(self.block_Wg, other.block_Wg),
+            block_Yg=cat(self.block_Yg, other.block_Yg),
+            block_yy=cat(self.block_yy, other.block_yy),
+            block_Wa=cat(self.block_Wa, other.block_Wa),
+            block_Ya=cat(self.block_Ya, other.block_Ya),
+            block_yya=cat(self.block_yya, other.block_yya),
+            baseline_s=self.baseline_s, block_s=max(self.block_s, other.block_s))
+
 
 def _embed(Wa: F64, Ya: F64) -> tuple[F64, F64]:
     """Rotation-model sums ``[1, vec C]`` (..., 10, ·) as expanded sums (G1 = G2 = 0)."""
