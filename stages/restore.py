@@ -181,12 +181,17 @@ class RestoreResult:
                                   for f in _ROW_FIELDS}
         return dataclasses.replace(parts[0], totals=totals, **arrays)
 
-    def rows(self, sl: slice | np.ndarray) -> RestoreResult:
-        """Return the result restricted to rows ``sl`` (a slice or index array), no totals."""
+    def rows(self, sl: slice | np.ndarray, *, copy: bool = True) -> RestoreResult:
+        """Return the result restricted to rows ``sl`` (a slice or index array), no totals.
+
+        ``copy``: the arrays are copies (rows kept while the rest goes, as a long recording's
+        sample for the figures: a view would keep the whole arrays alive); ``False``: views
+        of a slice, for rows used at once.
+        """
         import dataclasses
 
-        # copies: a view would keep the whole arrays alive (a long recording's kept rows)
-        arrays: dict[str, Any] = {f: np.array(getattr(self, f)[sl]) for f in _ROW_FIELDS}
+        arrays: dict[str, Any] = {f: (np.array if copy else np.asarray)(getattr(self, f)[sl])
+                                  for f in _ROW_FIELDS}
         return dataclasses.replace(self, totals=None, **arrays)
 
 

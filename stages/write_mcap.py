@@ -260,7 +260,7 @@ def write_corrected_mcap(
             # after the input chunks that start before its end (the file stays roughly in
             # time order; chunks may overlap in time, as the MCAP format allows).
             for a in range(0, len(t_ns), COPY_RANGE_MESSAGES):
-                out.add(rs.rows(slice(a, a + COPY_RANGE_MESSAGES)))
+                out.add(rs.rows(slice(a, a + COPY_RANGE_MESSAGES), copy=False))
         else:
             # The input is copied range by range (READER's iter_raw_channels) and the writer
             # flushes each range before the next is read: memory holds one range of input
@@ -285,7 +285,7 @@ def write_corrected_mcap(
                     out.start(int(t_ns[0]))
                 upto = len(t_ns) if bound is None else int(np.searchsorted(t_ns, bound, "left"))
                 if upto > done:
-                    out.add(rs.rows(slice(done, upto)), flush=False)
+                    out.add(rs.rows(slice(done, upto), copy=False), flush=False)
                     done = upto
                 if bound is not None:
                     w.flush(bound)
