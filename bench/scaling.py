@@ -102,7 +102,7 @@ def plot(rows: list[dict], png: Path) -> None:
         ax.set_xlim(left=0)
         ax.set_ylim(bottom=0)
         ax.grid(alpha=0.3)
-        ax.legend(loc="upper left", fontsize=8)
+        ax.legend(loc="lower right", fontsize=8)  # the points rise to the upper right
     for r in rows:
         if not r["finished"]:
             axes[0].axvline(r["minutes"] / 60, color="#d62728", alpha=0.4)
