@@ -39,12 +39,7 @@ ENU_LABELS = ("east", "north", "up")
 
 
 def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    return style.pyplot()
 
 
 def _png(fig: Any) -> bytes:

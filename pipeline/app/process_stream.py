@@ -57,6 +57,7 @@ from pipeline.core.recording import (
     Recording,
     VectorSeries,
 )
+from pipeline.core.warm import warm_in_background
 
 #: analysis stages see at most this many magnetometer samples (segmentation: every k-th;
 #: diagnosis: this many in whole windows)
@@ -289,12 +290,15 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
         i = steps.index(name)
         tick(name, i if i == 0 else i - 1, len(steps))
 
+    # rerun's SDK (about a second) and matplotlib (about half a second) imported on the
+    # other core during pass 1, which waits on reading more than on computing
+    warm = []
     if options.write_rerun:
-        # rerun's SDK takes about a second to import: on the other core, during pass 1
-        import threading
-
         os.environ.setdefault("RUST_LOG", "off")  # as stages.write_rerun sets it
-        threading.Thread(target=_import_quietly, args=("rerun",), daemon=True).start()
+        warm.append("rerun")
+    if options.write_report:
+        warm += ["pipeline.core.style:pyplot", "stages.report"]
+    warm_in_background(*warm)
 
     # ---------------------------------------------------------------- pass 1: read
     step("Ingest")
@@ -589,13 +593,3 @@ def unseen_check(per_chunk: list[tuple[int, int, Any]], totals: Any, analysed_rm
             "recording holds physics between the analysed windows that the model lacks "
             f"(largest: {worst[2].residual_rms_nT:.3g} nT rms from {a:.0f} s to {b:.0f} s); "
             "look at the residual there, or process that stretch on its own")
-
-
-def _import_quietly(name: str) -> None:
-    """Import a module ahead of its use; a failure is left to the use to report."""
-    import importlib
-
-    try:
-        importlib.import_module(name)
-    except Exception:  # noqa: BLE001 - the stage that needs it raises it properly
-        pass

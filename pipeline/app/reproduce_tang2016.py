@@ -161,10 +161,9 @@ def eta_grid(
 
 
 def _figure(grid: dict, path: Path) -> None:
-    import matplotlib
+    from pipeline.core.style import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     om = np.asarray(grid["omega_deg"])
     al = np.asarray(grid["alpha_deg"])

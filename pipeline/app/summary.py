@@ -246,12 +246,9 @@ def campaign_figure(rows: Sequence[Mapping[str, Any]]) -> bytes | None:
         return None
     import io
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     from pipeline.core import style
+
+    plt = style.pyplot()
 
     with plt.rc_context(style.rc()):
         fig, axes = plt.subplots(1, 3, figsize=(12, 3.4), sharex=True)

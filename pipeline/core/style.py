@@ -88,3 +88,16 @@ def minus(text: str) -> str:
         else:
             out.append(ch)
     return "".join(out)
+
+
+def pyplot() -> Any:
+    """Return ``matplotlib.pyplot`` on the Agg backend (files only, no screen).
+
+    The one place that selects the backend: it must be chosen before pyplot is imported.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt

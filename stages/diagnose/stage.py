@@ -483,13 +483,11 @@ def finding_figures(diagnosis: Diagnosis, dpi: int = 100) -> list[tuple[str, byt
     list of (title, png bytes)
 
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from matplotlib.patches import Patch
 
     from pipeline.core import style
+
+    plt = style.pyplot()
 
     out = []
     for f in diagnosis.findings:

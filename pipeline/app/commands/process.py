@@ -147,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
     from pipeline.app.campaign import RecordingOptions, campaign_for_input
     from pipeline.app.executors import make_executor
     from pipeline.app.summary import row_for, write_summary
+    from pipeline.core.warm import warm_in_background
 
     if args.jobs is not None and (args.dask_local is not None or args.scheduler is not None):
         raise UsageError("--jobs is for the local pool; with Dask give --dask-local N only")
@@ -165,6 +166,9 @@ def run(args: argparse.Namespace) -> int:
             for r in camp.recordings))
     executor = make_executor(jobs=args.jobs, dask_local=args.dask_local,
                              scheduler=args.scheduler)
+    # the summary's imports (pandas through pyarrow's conversions, matplotlib for its
+    # figure: about a second) while the workers run, not after them
+    warm_in_background("pyarrow.parquet", "pandas", "pipeline.core.style:pyplot")
     results = _run_with_progress(camp, out, executor, args)
     issue_warnings(results)
     out_r = out.resolve()
