@@ -63,7 +63,9 @@ valid (a query that falls exactly on a sample is valid even beside a gap).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -210,8 +212,14 @@ class Interpolated:
 
     q_enu_body: F64
     valid: B8
-    omega_body_rad_s: F64
     position: F64
+    #: computes ``omega_body_rad_s`` on first use (most queries need the attitude only)
+    _omega: Callable[[], F64] = field(repr=False, compare=False)
+
+    @cached_property
+    def omega_body_rad_s(self) -> F64:
+        """Angular velocity, body frame, rad/s, (N, 3) (A6); NaN where not ``valid``."""
+        return self._omega()
 
 
 class AttitudeInterpolator:
@@ -345,30 +353,52 @@ class AttitudeInterpolator:
         tr, qa = self._tr, self.q_enu_body
         n = len(tq)
         q_out = np.full((n, 4), np.nan)
-        w_out = np.full((n, 3), np.nan)
         pos = np.zeros(n)
         if len(tr) == 0 or n == 0:
-            return Interpolated(q_out, np.zeros(n, dtype=bool), w_out, pos)
+            return Interpolated(q_out, np.zeros(n, dtype=bool), pos, lambda: np.full((n, 3),
+                                                                                     np.nan))
         if len(tr) == 1:
             inside = np.ones(n, dtype=bool) if clamp else tq == tr[0]
             q_out[inside] = quat_normalize(qa[0])
-            w_out[inside] = 0.0
-            return Interpolated(q_out, inside, w_out, pos)
+
+            def still() -> F64:
+                w = np.full((n, 3), np.nan)
+                w[inside] = 0.0
+                return w
+
+            return Interpolated(q_out, inside, pos, still)
         j, s, valid, held = self._locate(tq, clamp)
-        dt = self._dt[j]
-        jv = j[valid]
-        sv = s[valid][:, None]
+        all_valid = bool(valid.all())
+        jv = j if all_valid else j[valid]
+        sv = (s if all_valid else s[valid])[:, None]
         s2, s3 = sv * sv, sv * sv * sv
         a, phi, b = self._a[jv], self._phi[jv], self._b[jv]
         r = (s3 - 2 * s2 + sv) * a + (3 * s2 - 2 * s3) * phi + (s3 - s2) * b  # (A2)
-        dr = (3 * s2 - 4 * sv + 1) * a + (6 * sv - 6 * s2) * phi + (3 * s2 - 2 * sv) * b
         qv = quat_mul(qa[jv], rotvec_to_quat(r))  # (A1)
-        q_out[valid] = qv / np.linalg.norm(qv, axis=1, keepdims=True)
-        dtv = np.where(dt[valid] > 0, dt[valid], 1.0)[:, None]
-        w_out[valid] = right_jacobian_apply(r, dr) / dtv  # (A6)
-        w_out[valid & held] = 0.0
-        pos[valid] = s[valid]
-        return Interpolated(q_out, valid, w_out, pos)
+        qv /= np.linalg.norm(qv, axis=1, keepdims=True)
+        if all_valid:
+            q_out = qv
+            pos = s.copy()
+        else:
+            q_out[valid] = qv
+            pos[valid] = s[valid]
+
+        del a, phi, b, r, qv, s2, s3  # the closure below keeps the rows' indices only
+
+        def omega() -> F64:
+            # (A6): the exact derivative of the cubic, computed when asked for
+            s2 = sv * sv
+            a, phi, b = self._a[jv], self._phi[jv], self._b[jv]
+            r = (sv * s2 - 2 * s2 + sv) * a + (3 * s2 - 2 * sv * s2) * phi + (sv * s2 - s2) * b
+            dr = (3 * s2 - 4 * sv + 1) * a + (6 * sv - 6 * s2) * phi + (3 * s2 - 2 * sv) * b
+            dt = self._dt[jv]
+            w = right_jacobian_apply(r, dr) / np.where(dt > 0, dt, 1.0)[:, None]
+            w_out = np.full((n, 3), np.nan)
+            w_out[valid] = w
+            w_out[valid & held] = 0.0
+            return w_out
+
+        return Interpolated(q_out, valid, pos, omega)
 
     def at(self, t_ns: I64, time_offset_s: float = 0.0, *,
            clamp: bool | None = None) -> Interpolated:

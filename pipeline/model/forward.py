@@ -57,12 +57,13 @@ call it. :func:`field_jacobian` (J2), :func:`soft_iron_jacobian` (J4) and
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.model.attitude import AttitudeInterpolator
+from pipeline.model.attitude import AttitudeInterpolator, Interpolated
 
 if TYPE_CHECKING:
     from pipeline.core.recording import AttitudeSeries, PositionSeries
@@ -456,7 +457,6 @@ class Evaluation:
     y_nT: F64
     valid: np.ndarray
     q_enu_body: F64
-    omega_body_rad_s: F64
     field_enu_nT: F64
     b_body_nT: F64
     m_nT: F64
@@ -464,6 +464,15 @@ class Evaluation:
     sensor_nT: F64
     interp_position: F64
     heading_rad: F64 | None = None
+    #: the attitude query (its angular velocity is computed on first use)
+    _at: Interpolated | None = field(default=None, repr=False, compare=False)
+
+    @cached_property
+    def omega_body_rad_s(self) -> F64:
+        """Angular velocity at ``t - tau``, body frame, rad/s, (N, 3); 0 where not valid."""
+        if self._at is None:
+            return np.zeros((len(self.valid), 3))
+        return np.where(self.valid[:, None], self._at.omega_body_rad_s, 0.0)
 
 
 def _interp(attitude: AttitudeSeries | AttitudeInterpolator, max_gap_s: float | None
@@ -523,10 +532,10 @@ def evaluate(
     sensor = offsets[0] if len(offsets) == 1 else offsets[0] + offsets[1]
     if model.E_s is not None:
         sensor = sensor + ydot0 @ model.E_s.T
-    w = np.where(valid[:, None], at.omega_body_rad_s, 0.0)
     nanv = ~valid
     y[nanv] = np.nan
-    return Evaluation(y, valid, at.q_enu_body, w, Bt, b, m, ydot0, sensor, at.position, h_rad)
+    return Evaluation(y, valid, at.q_enu_body, Bt, b, m, ydot0, sensor, at.position, h_rad,
+                      _at=at)
 
 
 def rate_matrices(it: AttitudeInterpolator, t_ns: NDArray[np.int64], tau: float
