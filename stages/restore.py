@@ -28,6 +28,7 @@ uncalibrated comparison of the metrics) while it has one at ``t - tau``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
@@ -158,13 +159,19 @@ class RestoreResult:
     def uncalibrated_enu_nT(self) -> np.ndarray:
         """Return ``C_enu_body(t) @ y_mag`` (attitude only, Li 2020 Figs. 5, 8 "before"), (N, 3).
 
-        NaN without an attitude at the stamp. Computed on each call.
+        NaN without an attitude at the stamp. Computed on the first call and kept (the
+        metrics, the rerun recording and the report's views all need it); read-only.
         """
+        return self._uncalibrated_enu_nT
+
+    @cached_property
+    def _uncalibrated_enu_nT(self) -> np.ndarray:
         from pipeline.core.geometry import quat_rotate
 
         q0 = np.where(self.valid0[:, None], self.q0_enu_body, _IDENTITY_Q)
         unc = quat_rotate(q0, np.asarray(self.raw_mag_nT, dtype=float))
         unc[~self.valid0] = np.nan
+        unc.flags.writeable = False
         return unc
 
     def q_or_identity(self) -> np.ndarray:
