@@ -328,15 +328,18 @@ def restore_rows(cal: Calibration, t_ns: np.ndarray, mag_nT: np.ndarray,
     y = np.array(mag_nT, dtype=float)
     model = cal.forward_model()
     rs = model_restore(model, y, t_ns, interp, t0_ns=t0_ns, position=position)
+    # The arrays of rs and at0 are the model's own fresh results, referenced by nothing
+    # else: kept as they are (read-only below), not copied (five copies of every sample's
+    # rows were a tenth of a long recording's restore).
     if model.time_offset_s:
         at0 = interp.at(t_ns, 0.0)
-        q0, valid0 = np.array(at0.q_enu_body), np.array(at0.valid)
+        q0, valid0 = at0.q_enu_body, at0.valid
     else:  # the attitude at the stamp is the one just interpolated
-        q0, valid0 = np.array(rs.q_enu_body), np.array(rs.valid)
+        q0, valid0 = rs.q_enu_body, rs.valid
     out = RestoreResult(
-        t_ns=t_ns, raw_mag_nT=y, calibrated_mag_nT=np.array(rs.calibrated_mag_nT),
-        q_enu_body=np.array(rs.q_enu_body), enu_nT=np.array(rs.enu_nT),
-        residual_nT=np.array(rs.residual_nT), valid=np.array(rs.valid),
+        t_ns=t_ns, raw_mag_nT=y, calibrated_mag_nT=rs.calibrated_mag_nT,
+        q_enu_body=rs.q_enu_body, enu_nT=rs.enu_nT, residual_nT=rs.residual_nT,
+        valid=rs.valid,
         q0_enu_body=q0, valid0=valid0,
         B_enu_nT=np.array(cal.B_enu_nT, dtype=float), max_gap_s=interp.max_gap_s,
         model_key=model_key,
