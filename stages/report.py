@@ -909,19 +909,22 @@ def write_report(
     max_gap_s: float | None = None,
     restored: Any = None,
     options: Any = None,
+    figures: dict[str, bytes] | None = None,
 ) -> Path:
     """Write the figures and ``report.html`` into ``out_dir``; returns the report's path.
 
     ``restored``: the :class:`stages.restore.RestoreResult` (``ctx.restored``); computed when
-    not given.
+    not given. ``figures``: :func:`make_figures` of the same arguments, when already drawn
+    (the two-pass process draws them while its outputs are closed).
     """
     from stages.restore import restore_samples
 
     out = Path(out_dir)
     if restored is None:
         restored = restore_samples(recording, calibration, max_gap_s=max_gap_s)
-    figures = make_figures(recording, calibration, segments, max_gap_s=max_gap_s,
-                           restored=restored)
+    if figures is None:
+        figures = make_figures(recording, calibration, segments, max_gap_s=max_gap_s,
+                               restored=restored)
     for name, data in figures.items():
         with atomic_path(out / name, (recording.path,)) as tmp:
             tmp.write_bytes(data)
