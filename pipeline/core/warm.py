@@ -8,6 +8,7 @@ imports them meanwhile, so that the step that uses them does not pay for it.
 from __future__ import annotations
 
 import importlib
+import os
 import threading
 
 
@@ -27,11 +28,27 @@ def import_quietly(*names: str) -> None:
             pass
 
 
-def warm_in_background(*names: str) -> threading.Thread | None:
-    """Start :func:`import_quietly` of ``names`` on a daemon thread (None when none)."""
+def _import_niced(names: tuple[str, ...]) -> None:
+    # Linux schedules threads, and a thread's nice value is its own: at 19 the imports take
+    # only cycles the process's other work (or its worker processes) leave idle
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+    except (AttributeError, OSError):  # not Linux, or not allowed: at normal priority
+        pass
+    import_quietly(*names)
+
+
+def warm_in_background(*names: str, idle: bool = False) -> threading.Thread | None:
+    """Start :func:`import_quietly` of ``names`` on a daemon thread (None when none).
+
+    ``idle``: at the lowest priority, for imports needed only once the CPU-bound work of
+    other processes (a campaign's workers) is over. Not for imports this process needs soon:
+    its main thread would wait on a starved thread's import lock.
+    """
     if not names:
         return None
-    th = threading.Thread(target=import_quietly, args=names, daemon=True,
+    th = threading.Thread(target=_import_niced if idle else import_quietly,
+                          args=(names,) if idle else names, daemon=True,
                           name="magalign-warm-imports")
     th.start()
     return th
