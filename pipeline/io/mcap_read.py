@@ -189,8 +189,8 @@ def read_raw_channels(path: str | Path) -> list[RawChannel]:
 
 
 def _chunk_start_ns(scan: _Scan, ch: _Chunk) -> int:
-    """Return the chunk record's ``message_start_time``."""
-    return int(scan.buf[ch.offset + 9 : ch.offset + 17].view("<u8")[0])
+    """Return the chunk record's ``message_start_time`` (as the scan read it)."""
+    return int(ch.start_ns)
 
 
 def iter_raw_channels(
@@ -316,7 +316,7 @@ def pass_through(path: str | Path) -> PassThrough | None:
         chunks.append(PassThroughChunk(
             record=scan.buf[ch.offset:end], message_indexes=scan.buf[end:ch.mi_end],
             start_ns=_chunk_start_ns(scan, ch),
-            end_ns=int(scan.buf[ch.offset + 17 : ch.offset + 25].view("<u8")[0]),
+            end_ns=int(ch.end_ns),
             compression=ch.compression, compressed_size=ch.data_len,
             uncompressed_size=ch.uncompressed_size,
             mi_offsets={c: p - ch.offset for c, p in ch.mi_pos.items()},

@@ -66,6 +66,11 @@ class _Chunk:
     # end of the last one (0: none)
     mi_pos: dict[int, int] = field(default_factory=dict)
     mi_end: int = 0
+    # the chunk record's message_start_time and message_end_time, ns: kept from the scan,
+    # since reading them again from the mapping maps the pages (with the kernel's large
+    # folios, up to megabytes around each) that the scan released
+    start_ns: int = 0
+    end_ns: int = 0
 
 
 @dataclass
@@ -306,7 +311,8 @@ def _chunk_header(raw: bytes | mmap.mmap, pos: int, body: int, length: int, size
     comp, p = _str(raw, body + 28)
     (rlen,) = struct.unpack_from("<Q", raw, p)
     avail = min(rlen, size - (p + 8))
-    return _Chunk(pos, comp, p + 8, avail, usize, crc, torn=avail < rlen)
+    return _Chunk(pos, comp, p + 8, avail, usize, crc, torn=avail < rlen, start_ns=start_t,
+                  end_ns=end_t)
 
 
 def _finish_scan(scan: _Scan, last_chunk: _Chunk | None, last_index: dict, pos: int,
