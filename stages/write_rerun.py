@@ -232,8 +232,7 @@ class RrdStream:
         if self._sent:
             # rerun encodes on its own thread and queues what it has not written yet: wait
             # for the previous rows (encoded meanwhile) so that a long recording's backlog
-            # stays one range, not as many as a busy machine lets pile up (10 h at a load of
-            # 2: +300 MB of peak)
+            # stays one range (~100 MB at 200k rows), however busy the machine
             rec.flush()
         self._sent = True
         t_all = np.asarray(restored.t_ns, dtype="datetime64[ns]")
@@ -278,24 +277,15 @@ class RrdStream:
         from stages.restore import view_data
 
         rec = self.rec
-        R = np.asarray(self.calibration.R_body_mag)
-        # The rows the views show (at most max_points per view), chosen before view_data so
-        # that it computes the body-frame series of those rows only (the sample may be every
-        # row of a long recording): the body's attitude on valid rows; the clouds before /
-        # after / ideal on rows where each is finite (before: the raw reading; after: the
-        # calibrated reading; ideal: the reference turned into the body, valid rows).
+        # The views show at most max_points rows each: view_data computes the body-frame
+        # series only for max_points rows spread evenly and as many valid ones (the sample
+        # may be every row of a recording), and the views pick from those.
         valid = np.asarray(sample.valid, dtype=bool)
-        fin = {"before": np.isfinite(sample.raw_mag_nT).all(axis=1),
-               "after": np.isfinite(sample.calibrated_mag_nT).all(axis=1),
-               "ideal": valid & bool(np.isfinite(sample.B_enu_nT).all())}
-        dec_all = np.flatnonzero(valid)[_decimate(int(np.count_nonzero(valid)), max_points)]
-        sel_all = {k: np.flatnonzero(m)[_decimate(int(np.count_nonzero(m)), max_points)]
-                   for k, m in fin.items()}
-        rows = np.unique(np.concatenate([dec_all, *sel_all.values()]))
-        vd = view_data(sample.rows(rows, copy=False), R)
-        dec = np.searchsorted(rows, dec_all)  # positions in the chosen rows
-        sel = {k: np.searchsorted(rows, a) for k, a in sel_all.items()}
+        rows = np.union1d(_decimate(len(valid), max_points),
+                          np.flatnonzero(valid)[_decimate(int(valid.sum()), max_points)])
+        vd = view_data(sample.rows(rows, copy=False), self.calibration.R_body_mag)
         t_all = np.asarray(vd.t_ns, dtype="datetime64[ns]")
+        v = vd.valid
 
         def times(idx: np.ndarray) -> list:
             return [rr.TimeColumn("time", timestamp=t_all[idx])]
@@ -311,6 +301,7 @@ class RrdStream:
         scale = FIELD_ARROW / max(float(np.linalg.norm(B)), 1e-9)
         rec.log("world/field/reference", rr.Arrows3D(vectors=[B * scale], colors=[IDEAL_RGB],
                                                      labels=["reference field"]), static=True)
+        dec = np.flatnonzero(v)[_decimate(int(np.count_nonzero(v)), max_points)]
         rec.send_columns("world/body", indexes=times(dec),
                          columns=rr.Transform3D.columns(quaternion=vd.q_enu_body[dec]))
         for name, arr, rgb in (("before", vd.body_before_nT, BEFORE_RGB),
@@ -329,8 +320,10 @@ class RrdStream:
             ("after", vd.body_after_nT, AFTER_RGB),
             ("ideal", vd.body_ideal_nT, IDEAL_RGB),
         ):
-            rec.log(f"trajectory/{name}", rr.Points3D(arr[sel[name]], colors=[rgb],
-                                                      radii=[50.0]), static=True)
+            good = np.flatnonzero(np.isfinite(arr).all(axis=1))
+            sel = good[_decimate(len(good), max_points)]
+            rec.log(f"trajectory/{name}", rr.Points3D(arr[sel], colors=[rgb], radii=[50.0]),
+                    static=True)
         # --- segments and diagnosis events: labelled spans (state timeline) and text logs
         seg_items = [
             (int(sg.start_ns), int(sg.end_ns),

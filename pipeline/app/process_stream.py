@@ -446,14 +446,15 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
     with ExitStack() as stack, ThreadPoolExecutor(max_workers=1) as pool:
         mc = stack.enter_context(CorrectedMcapStream(plan.header, cal, mcap_dest,
                                                      plan.passthrough))
-        rrds: list[Any] = []  # the rerun stream, once the helper has opened it
-        pending: Future[None] | None = None
+        rrd = None
+        pending: Future[Any] | None = None
         if options.write_rerun:
             from stages.write_rerun import RrdStream, rrd_path
 
             rrd_dest = rrd_path(rec_dir, path)
-            stream = RrdStream(plan.header, cal, rrd_dest)
-            pending = pool.submit(lambda: rrds.append(stack.enter_context(stream)))
+            rrd = RrdStream(plan.header, cal, rrd_dest)
+            # opened by the helper before it takes any range (one worker, tasks in order)
+            pending = pool.submit(stack.enter_context, rrd)
 
         # the final model's residual per chunk: where the samples the analysis did not see
         # disagree with it (:func:`unseen_check`)
@@ -468,8 +469,8 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
             totals = totals + part
             acc.add(rs)
             mc.add(rs)
-            for r in rrds:
-                r.add(rs)
+            if rrd is not None:
+                rrd.add(rs)
             kept.append(rs.rows(slice((-n_seen) % k, None, k)))
             n_seen += len(rs.t_ns)
 
@@ -506,8 +507,8 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
 
             figures = pool.submit(make_figures, report_rec, cal, segments,
                                   max_gap_s=options.max_gap_s, restored=sample)
-        for r in rrds:
-            r.finish(sample, segments=segments, diagnosis=win.diagnosis)
+        if rrd is not None:
+            rrd.finish(sample, segments=segments, diagnosis=win.diagnosis)
         stack.close()  # flush rerun, finish the corrected MCAP (the helper is idle or drawing)
         outputs += (("corrected_mcap", str(mcap_dest)),)
         if options.write_rerun:

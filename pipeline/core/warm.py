@@ -28,13 +28,14 @@ def import_quietly(*names: str) -> None:
             pass
 
 
-def _import_niced(names: tuple[str, ...]) -> None:
-    # Linux schedules threads, and a thread's nice value is its own: at 19 the imports take
-    # only cycles the process's other work (or its worker processes) leave idle
-    try:
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
-    except (AttributeError, OSError):  # not Linux, or not allowed: at normal priority
-        pass
+def _warm(names: tuple[str, ...], idle: bool) -> None:
+    if idle:
+        # Linux schedules threads, and a thread's nice value is its own: at 19 the imports
+        # take only cycles the process's other work (or its worker processes) leave idle
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+        except (AttributeError, OSError):  # not Linux, or not allowed: normal priority
+            pass
     import_quietly(*names)
 
 
@@ -47,8 +48,7 @@ def warm_in_background(*names: str, idle: bool = False) -> threading.Thread | No
     """
     if not names:
         return None
-    th = threading.Thread(target=_import_niced if idle else import_quietly,
-                          args=(names,) if idle else names, daemon=True,
+    th = threading.Thread(target=_warm, args=(names, idle), daemon=True,
                           name="magalign-warm-imports")
     th.start()
     return th

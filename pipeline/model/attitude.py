@@ -66,6 +66,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -371,10 +372,7 @@ class AttitudeInterpolator:
         all_valid = bool(valid.all())
         jv = j if all_valid else j[valid]
         sv = (s if all_valid else s[valid])[:, None]
-        s2, s3 = sv * sv, sv * sv * sv
-        a, phi, b = self._a[jv], self._phi[jv], self._b[jv]
-        r = (s3 - 2 * s2 + sv) * a + (3 * s2 - 2 * s3) * phi + (s3 - s2) * b  # (A2)
-        qv = quat_mul(qa[jv], rotvec_to_quat(r))  # (A1)
+        qv = quat_mul(qa[jv], rotvec_to_quat(self._rotvec(jv, sv)))  # (A1)
         qv /= np.linalg.norm(qv, axis=1, keepdims=True)
         if all_valid:
             q_out = qv
@@ -383,14 +381,13 @@ class AttitudeInterpolator:
             q_out[valid] = qv
             pos[valid] = s[valid]
 
-        del a, phi, b, r, qv, s2, s3  # the closure below keeps the rows' indices only
-
         def omega() -> F64:
-            # (A6): the exact derivative of the cubic, computed when asked for
+            # (A6): the exact derivative of the cubic, computed when asked for (the closure
+            # keeps the rows' segments and positions, not the curve's terms)
             s2 = sv * sv
             a, phi, b = self._a[jv], self._phi[jv], self._b[jv]
-            r = (sv * s2 - 2 * s2 + sv) * a + (3 * s2 - 2 * sv * s2) * phi + (sv * s2 - s2) * b
             dr = (3 * s2 - 4 * sv + 1) * a + (6 * sv - 6 * s2) * phi + (3 * s2 - 2 * sv) * b
+            r = self._rotvec(jv, sv)
             dt = self._dt[jv]
             w = right_jacobian_apply(r, dr) / np.where(dt > 0, dt, 1.0)[:, None]
             w_out = np.full((n, 3), np.nan)
@@ -399,6 +396,13 @@ class AttitudeInterpolator:
             return w_out
 
         return Interpolated(q_out, valid, pos, omega)
+
+    def _rotvec(self, jv: I64, sv: F64) -> F64:
+        """(A2): the cubic's rotation vector in segments ``jv`` at positions ``sv`` (N, 1)."""
+        s2 = sv * sv
+        s3 = s2 * sv
+        a, phi, b = self._a[jv], self._phi[jv], self._b[jv]
+        return cast(F64, (s3 - 2 * s2 + sv) * a + (3 * s2 - 2 * s3) * phi + (s3 - s2) * b)
 
     def at(self, t_ns: I64, time_offset_s: float = 0.0, *,
            clamp: bool | None = None) -> Interpolated:

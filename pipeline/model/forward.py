@@ -463,15 +463,13 @@ class Evaluation:
     ydot0_nT_s: F64
     sensor_nT: F64
     interp_position: F64
-    heading_rad: F64 | None = None
     #: the attitude query (its angular velocity is computed on first use)
-    _at: Interpolated | None = field(default=None, repr=False, compare=False)
+    _at: Interpolated = field(repr=False, compare=False)
+    heading_rad: F64 | None = None
 
     @cached_property
     def omega_body_rad_s(self) -> F64:
         """Angular velocity at ``t - tau``, body frame, rad/s, (N, 3); 0 where not valid."""
-        if self._at is None:
-            return np.zeros((len(self.valid), 3))
         return np.where(self.valid[:, None], self._at.omega_body_rad_s, 0.0)
 
 
@@ -534,8 +532,7 @@ def evaluate(
         sensor = sensor + ydot0 @ model.E_s.T
     nanv = ~valid
     y[nanv] = np.nan
-    return Evaluation(y, valid, at.q_enu_body, Bt, b, m, ydot0, sensor, at.position, h_rad,
-                      _at=at)
+    return Evaluation(y, valid, at.q_enu_body, Bt, b, m, ydot0, sensor, at.position, at, h_rad)
 
 
 def rate_matrices(it: AttitudeInterpolator, t_ns: NDArray[np.int64], tau: float
