@@ -46,3 +46,20 @@ def test_lab_recording_outputs(tmp_path):
                 for cid, ch in summary.channels.items()}
     for suffix in ("calibrated", "enu", "residual"):
         assert by_topic[f"/imu/mag/{suffix}"] == m["n_samples"] == by_topic["/imu/mag"]
+
+
+@pytest.mark.parametrize("name", [f"lab_0{i}.mcap" for i in range(1, 6)])
+def test_scan_chunk_times_on_lab_recordings(name):
+    """On files another tool wrote, the scan's chunk start and end times (which the long
+    recording's plan and pass-through use instead of re-reading the mapping) are the chunk
+    indexes mcap's own reader gives."""
+    from pipeline.io.mcap_scan import _scan
+
+    p = REAL / name
+    if not p.is_file():
+        pytest.skip(f"{p} not present")
+    with open(p, "rb") as fh:
+        idx = {ci.chunk_start_offset: (ci.message_start_time, ci.message_end_time)
+               for ci in make_reader(fh).get_summary().chunk_indexes}
+    scan = _scan(p)
+    assert idx and {ch.offset: (ch.start_ns, ch.end_ns) for ch in scan.chunks} == idx
