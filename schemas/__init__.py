@@ -33,6 +33,7 @@ class MessageRole(str, enum.Enum):
     MAGNETOMETER = "magnetometer"
     ATTITUDE = "attitude"
     TURNTABLE = "turntable"
+    POSITION = "position"  # geodetic fixes of the platform (a GNSS receiver)
     OUTPUT = "output"  # written into the corrected MCAP only, never read as input
 
 
@@ -52,7 +53,14 @@ class MessageType:
         Columns the encoder (:func:`pipeline.io.messages.encode`) needs, with their units in the
         name (``mag_T``, ``q_xyzw``, ``roll_deg``...).
     quaternion, position : str or None
-        Dotted CDR paths of the orientation and of a position the reader takes.
+        Dotted CDR paths of the orientation and of a local position (metres, the source's
+        own frame) the reader takes.
+    geodetic : (str, str, str) or None
+        CDR paths of a WGS-84 fix: latitude (deg), longitude (deg), ellipsoidal height (m);
+        the reader converts it to local ENU metres about the first valid fix.
+    fix_status : str or None
+        CDR path of a fix status whose negative values mean "no fix" (``NavSatStatus``):
+        those rows are read as lost positions.
     variants : tuple of (str or None)
         Layout variants with a stored definition (``None`` is the default layout).
     written : bool
@@ -67,6 +75,8 @@ class MessageType:
     columns: tuple[str, ...] = ()
     quaternion: str | None = None
     position: str | None = None
+    geodetic: tuple[str, str, str] | None = None
+    fix_status: str | None = None
     variants: tuple[str | None, ...] = (None,)
     written: bool = True
 
@@ -89,6 +99,7 @@ MESSAGE_TYPES: dict[str, MessageType] = {t.name: t for t in (
                 quaternion="quaternion"),
     MessageType("novatel_oem7_msgs/msg/INSPVA", _R.ATTITUDE, "ros2",
                 ("roll_deg", "pitch_deg", "azimuth_deg"),
+                geodetic=("latitude", "longitude", "height"),
                 variants=(None, "no_nov_header", "novatel_header")),
     MessageType("nav_msgs/msg/Odometry", _R.ATTITUDE, "ros2", quaternion="pose.pose.orientation",
                 position="pose.pose.position", written=False),
@@ -96,6 +107,9 @@ MESSAGE_TYPES: dict[str, MessageType] = {t.name: t for t in (
     MessageType("magalign.AttitudeEuler", _R.ATTITUDE, "json",
                 ("heading_deg", "pitch_deg", "roll_deg")),
     MessageType("std_msgs/msg/Float64", _R.TURNTABLE, "ros2", ("value",)),
+    MessageType("sensor_msgs/msg/NavSatFix", _R.POSITION, "ros2",
+                ("latitude_deg", "longitude_deg", "altitude_m"),
+                geodetic=("latitude", "longitude", "altitude"), fix_status="status.status"),
     MessageType("magalign.Turntable", _R.TURNTABLE, "json", ("angle_deg",)),
     MessageType("tf2_msgs/msg/TFMessage", _R.OUTPUT, "ros2"),
     MessageType("magalign.FieldMagnitude", _R.OUTPUT, "json"),
@@ -110,7 +124,7 @@ def types_of(role: MessageRole, encoding: str | None = None, *,
                  and written in (None, t.written))
 
 
-_INPUT_ROLES = (_R.MAGNETOMETER, _R.ATTITUDE, _R.TURNTABLE)
+_INPUT_ROLES = (_R.MAGNETOMETER, _R.ATTITUDE, _R.TURNTABLE, _R.POSITION)
 #: JSON message types of magalign's own channels.
 JSON_TYPES: tuple[str, ...] = tuple(n for r in _INPUT_ROLES for n in types_of(r, "json"))
 #: ROS 2 message types magalign writes (and reads).

@@ -61,6 +61,8 @@ class ProcessOptions:
         Write ``report.html`` and its PNG figures.
     max_gap_s : float
         Longest attitude gap (s) bridged by interpolation.
+    robust : str
+        Robust loss of the estimate: ``none``, ``huber`` or ``cauchy``.
     scale_samples : int or None
         Recordings with more magnetometer samples than this are processed at scale: the ML
         rotation (and offset) from chunked sufficient statistics of every sample
@@ -82,6 +84,7 @@ class ProcessOptions:
     write_report: bool = True
     max_gap_s: float | None = None
     scale_samples: int | None = 600_000
+    robust: str = "none"
 
 
 #: analysis stages of a long recording see at most this many magnetometer samples
@@ -99,12 +102,16 @@ def _optional(module: str, name: str) -> Any:
     return getattr(mod, name, None)
 
 
-def build_stages(ctx: Context, out_dir: Path, options: ProcessOptions) -> list:
-    """Return the stages after ingest, chosen from what the recording holds and the options."""
-    from stages.metrics import Metrics
+def analysis_stages(ctx: Context, options: ProcessOptions) -> list:
+    """Return the stages from Resample to the verdict (``calibrate``, ``diagnose``, ``process``).
+
+    All three commands run these, so one recording and one set of options give one answer.
+
+    The model is the one the data select (the estimate, then the diagnosis' terms) unless the
+    options restrict it (:func:`restricted_model`); then the estimate stays the answer and the
+    diagnosis measures how far the terms left out move the rotation (its sigma includes that).
+    """
     from stages.resample import Resample
-    from stages.restore import Restore
-    from stages.write_mcap import WriteCorrectedMcap
 
     rec = ctx.need_recording()
     stages: list = []
@@ -155,6 +162,53 @@ def build_stages(ctx: Context, out_dir: Path, options: ProcessOptions) -> list:
         from stages.estimate import Judge
 
         stages.append(Judge())  # the verdict on the final model
+    return stages
+
+
+def restricted_model(options: ProcessOptions) -> bool:
+    """Whether the user chose the model (``--estimate``, another estimator, a robust loss).
+
+    Then the estimate is the answer of every command, and its sigma includes the shift of
+    the rotation that the terms the data select, but the choice leaves out, would cause.
+    """
+    from stages.estimate import EstimatorKind, RobustLoss
+
+    other = (options.estimator is not None
+             and EstimatorKind(options.estimator) is not EstimatorKind("ml"))
+    return bool(options.terms) or other or RobustLoss(options.robust) is not RobustLoss.NONE
+
+
+def analyse_recording(path: str | Path, options: ProcessOptions | None = None) -> Context:
+    """Ingest one recording and run :func:`analysis_stages` on it; returns the Context.
+
+    ``calibrate`` and ``diagnose`` call this; ``process`` runs the same stages followed by
+    restore and the outputs (:func:`build_stages`). Each stage is announced on the progress
+    sink as it starts.
+    """
+    from stages.ingest import Ingest
+
+    options = options or ProcessOptions()
+    ctx = Context(source=str(path), options=options)
+    ingest = Ingest(mag_topic=options.mag_topic, attitude_topic=options.attitude_topic,
+                    turntable_topic=options.turntable_topic)
+    progress.stage("Ingest", 0, 1, ["Ingest"])
+    ctx = Pipeline([ingest]).run(ctx)
+    rest = Pipeline(analysis_stages(ctx, options), initial=ctx.provided() | {"source"})
+    names = ["Ingest"] + [progress_name(st) for st in rest.stages]
+
+    def tick(name: str, index: int, total: int) -> None:
+        progress.stage(names[index + 1], index + 1, len(names), names)
+
+    return rest.run(ctx, progress=tick)
+
+
+def build_stages(ctx: Context, out_dir: Path, options: ProcessOptions) -> list:
+    """Return the stages after ingest: :func:`analysis_stages`, then restore and the outputs."""
+    from stages.metrics import Metrics
+    from stages.restore import Restore
+    from stages.write_mcap import WriteCorrectedMcap
+
+    stages = analysis_stages(ctx, options)
     stages.append(Restore(max_gap_s=options.max_gap_s))
     stages.append(Metrics(out_dir=str(out_dir), max_gap_s=options.max_gap_s))
     stages.append(WriteResults(str(out_dir)))
@@ -175,6 +229,10 @@ def estimate_kwargs(options: ProcessOptions) -> dict[str, Any]:
     kw: dict[str, Any] = {"terms": frozenset(options.terms)}
     if options.estimator is not None:
         kw["estimator"] = options.estimator
+    if options.robust != "none":
+        from stages.estimate import RobustLoss
+
+        kw["robust"] = RobustLoss(options.robust)
     if options.reference_field_enu_nT is not None:
         kw["reference_field_enu_nT"] = tuple(float(x) for x in options.reference_field_enu_nT)
     return kw
@@ -182,7 +240,8 @@ def estimate_kwargs(options: ProcessOptions) -> dict[str, Any]:
 
 def diagnose_kwargs(options: ProcessOptions) -> dict[str, Any]:
     """Keywords of :class:`stages.diagnose.stage.Diagnose` for these options."""
-    dkw: dict[str, Any] = {"max_gap_s": options.max_gap_s}
+    dkw: dict[str, Any] = {"max_gap_s": options.max_gap_s,
+                           "keep_estimate": restricted_model(options)}
     if options.reference_field_enu_nT is not None:
         dkw["reference_field_enu_nT"] = tuple(float(x) for x in options.reference_field_enu_nT)
     return dkw

@@ -42,6 +42,7 @@ class Role(str, enum.Enum):
     MAGNETOMETER = "magnetometer"
     ATTITUDE = "attitude"
     TURNTABLE = "turntable"
+    POSITION = "position"
     OTHER = "other"
 
 
@@ -135,10 +136,10 @@ class PositionFrame(str, enum.Enum):
     """Frame of a position series.
 
     ``enu``: east, north, up in metres from a local origin (a NED source converted; for
-    geodetic fixes the flat-earth tangent plane at the first fix). ``attitude_source_local``:
-    the attitude source's own local frame (a motion-capture room): its third axis is up
-    (it shares the vertical with ENU) but its horizontal axes are rotated about Up by an
-    angle that is not known.
+    geodetic fixes the WGS-84 local ENU frame at the first valid fix, the series'
+    ``origin``). ``attitude_source_local``: the attitude source's own local frame (a
+    motion-capture room): its third axis is up (it shares the vertical with ENU) but its
+    horizontal axes are rotated about Up by an angle that is not known.
     """
 
     ENU = "enu"
@@ -146,24 +147,55 @@ class PositionFrame(str, enum.Enum):
 
 
 @dataclass(frozen=True)
+class GeodeticOrigin:
+    """The geodetic point a local ENU position frame starts from (CONVENTIONS ``position_origin``).
+
+    Attributes
+    ----------
+    lat_deg, lon_deg : float
+        WGS-84 geodetic latitude and longitude, degrees (north and east positive).
+    height_m : float
+        Height above the WGS-84 ellipsoid, metres (not above the geoid: GNSS fixes are
+        ellipsoidal).
+
+    """
+
+    lat_deg: float
+    lon_deg: float
+    height_m: float
+
+    def to_dict(self) -> dict[str, float]:
+        """``{"lat_deg", "lon_deg", "height_m"}``, the JSON form of ``position_origin``."""
+        return {"lat_deg": float(self.lat_deg), "lon_deg": float(self.lon_deg),
+                "height_m": float(self.height_m)}
+
+
+@dataclass(frozen=True)
 class PositionSeries:
-    """Positions of the attitude source, read from the attitude channel.
+    """Positions of the platform: from a position channel or carried by the attitude channel.
 
     Attributes
     ----------
     t_ns : ndarray of int64, shape (N,)
-        Stamps, ns since the Unix epoch (the attitude channel's, sorted).
+        Stamps, ns since the Unix epoch, sorted: the stamps of the channel the positions
+        were read from (a ``NavSatFix`` channel's, or the attitude channel's).
     p_m : ndarray of float64, shape (N, 3)
         Positions, metres, in ``frame``; a row is NaN where the position was lost (a
-        motion-capture marker occluded). NaN rows are kept so that ``t_ns`` stays the
-        attitude's; users of the series decide what a lost position means.
+        motion-capture marker occluded, a GNSS receiver without a fix). NaN rows are kept so
+        that ``t_ns`` stays the channel's; users of the series decide what a lost position
+        means.
     frame : PositionFrame
+    origin : GeodeticOrigin or None
+        The geodetic point ``p_m = 0`` stands for, when the positions come from geodetic
+        fixes (``NavSatFix``, INSPVA): frame ``enu`` about the first valid fix. None for
+        local frames (a motion-capture room), whose origin is not tied to the Earth.
 
     """
 
     t_ns: I64
     p_m: F64
     frame: PositionFrame = PositionFrame.ENU
+    origin: GeodeticOrigin | None = None
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t_ns, dtype=np.int64)
@@ -173,6 +205,9 @@ class PositionSeries:
         object.__setattr__(self, "t_ns", _readonly(t))
         object.__setattr__(self, "p_m", _readonly(p))
         object.__setattr__(self, "frame", PositionFrame(self.frame))
+        if self.origin is not None and self.frame is not PositionFrame.ENU:
+            # a geodetic origin places ENU axes on the Earth; a local frame has none
+            raise ValueError(f"a geodetic origin needs frame 'enu', not {self.frame.value!r}")
 
     def __len__(self) -> int:
         return int(self.t_ns.shape[0])
@@ -330,9 +365,10 @@ class Recording:
     problems : tuple of Problem
         Damage found and handled while reading (recovered bytes, duplicates, ...).
     position : PositionSeries or None
-        Positions carried by the attitude channel (``PoseStamped`` ``pose.position``,
-        ``Odometry`` ``pose.pose.position``, INSPVA latitude/longitude/height as local ENU);
-        None when the attitude channel carries none.
+        Positions: from a ``NavSatFix`` channel when the recording has one (WGS-84 fixes as
+        local ENU from the first valid fix), else those carried by the attitude channel
+        (``PoseStamped`` ``pose.position``, ``Odometry`` ``pose.pose.position``, INSPVA
+        latitude/longitude/height as local ENU); None when there are none.
 
     """
 

@@ -1,8 +1,9 @@
 """MCAP message decoding.
 
 The supported message types by role (``MAG_TYPES``, ``ATTITUDE_TYPES``, ``TURNTABLE_TYPES``,
-from ``schemas.MESSAGE_TYPES``), message records decoded in batches straight into numpy
-(CDR layouts from the stored definitions, JSON), and the channel of each role chosen.
+``POSITION_TYPES``, from ``schemas.MESSAGE_TYPES``), message records decoded in batches
+straight into numpy (CDR layouts from the stored definitions, JSON), WGS-84 fixes to local
+ENU and back, and the channel of each role chosen.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from pipeline.core.errors import (
 )
 from pipeline.core.geometry import li2020_euler_to_quat, novatel_to_quat
 from pipeline.core.recording import (
+    GeodeticOrigin,
     Role,
 )
 from pipeline.io.cdr import CdrLayout, UniformPlan, _plan, decode_uniform, normalise_type, stamp_ns
@@ -51,16 +53,22 @@ ATTITUDE_TYPES = tuple(MESSAGE_TYPES[n].short_name for n in types_of(MessageRole
 TURNTABLE_TYPES = tuple(MESSAGE_TYPES[n].short_name for n in types_of(MessageRole.TURNTABLE))
 
 
+POSITION_TYPES = tuple(MESSAGE_TYPES[n].short_name for n in types_of(MessageRole.POSITION))
+
+
 # CDR field paths of the orientation and of the position an attitude message carries (the
-# position is read when the stored definition has it); INSPVA's geodetic fix is converted to
-# local ENU after sorting (first fix origin)
+# position is read when the stored definition has it); geodetic fixes (INSPVA, NavSatFix) are
+# converted to local ENU after sorting (origin: the first valid fix)
 _CDR_QUAT = {t.short_name: t.quaternion for t in MESSAGE_TYPES.values() if t.quaternion}
 
 
 _CDR_POSITION = {t.short_name: t.position for t in MESSAGE_TYPES.values() if t.position}
 
 
-_INSPVA_FIX = ("latitude", "longitude", "height")
+_CDR_GEODETIC = {t.short_name: t.geodetic for t in MESSAGE_TYPES.values() if t.geodetic}
+
+
+_CDR_FIX_STATUS = {t.short_name: t.fix_status for t in MESSAGE_TYPES.values() if t.fix_status}
 
 
 #: WGS84 semi-major axis (m) and first eccentricity squared
@@ -76,10 +84,12 @@ class _Decoded:
     """Decoded columns of one channel (stamps in file order)."""
 
     t_ns: np.ndarray
-    values: np.ndarray  # (N,3) nT | (N,4) q_enu_body | (N,) turntable deg
+    # (N,3) nT | (N,4) q_enu_body | (N,) turntable deg | (N,3) position fix (as `position`)
+    values: np.ndarray
     log_time_ns: np.ndarray
     frame_id: str = ""
-    position: np.ndarray | None = None  # (N, 3): metres, or lat deg, lon deg, height m
+    # (N, 3): metres, or lat deg, lon deg, ellipsoidal height m (NaN rows: no valid fix)
+    position: np.ndarray | None = None
     position_kind: str = ""  # "local" (metres, the source's frame) or "geodetic"
 
     def take(self, idx: np.ndarray, values: np.ndarray | None = None) -> _Decoded:
@@ -90,32 +100,138 @@ class _Decoded:
                         self.position_kind)
 
 
-def geodetic_to_local_enu(lat_deg: np.ndarray, lon_deg: np.ndarray, h_m: np.ndarray
-                          ) -> np.ndarray:
-    """Local ENU positions (N, 3), m, of geodetic fixes: flat-earth tangent plane.
+def _valid_fixes(lat_deg: np.ndarray, lon_deg: np.ndarray, h_m: np.ndarray) -> np.ndarray:
+    """Rows holding a usable WGS-84 fix: finite, latitude within +-90 deg, longitude +-180 deg."""
+    with np.errstate(invalid="ignore"):
+        return (np.isfinite(lat_deg) & np.isfinite(lon_deg) & np.isfinite(h_m)
+                & (np.abs(lat_deg) <= 90.0) & (np.abs(lon_deg) <= 180.0))
 
-    The origin is the first finite fix; east and north are the longitude and latitude
-    differences times the WGS84 prime-vertical and meridian radii of curvature at the origin
-    (plus its height), up is the height difference. Over a survey of a few kilometres the
-    error of the plane is below a metre per ten kilometres (curvature ``d^2 / (2 R)``), far
-    below what a field gradient needs.
+
+def first_valid_fix(lat_deg: np.ndarray, lon_deg: np.ndarray, h_m: np.ndarray
+                    ) -> GeodeticOrigin | None:
+    """The first row of geodetic fixes that holds a usable fix, or None without any.
+
+    Parameters
+    ----------
+    lat_deg, lon_deg : ndarray, shape (N,)
+        WGS-84 latitude and longitude, degrees, in the order of the series (sorted stamps).
+    h_m : ndarray, shape (N,)
+        Height above the WGS-84 ellipsoid, m.
+
     """
-    lat, lon, h = (np.asarray(a, dtype=float) for a in (lat_deg, lon_deg, h_m))
-    out = np.full((lat.shape[0], 3), np.nan)
-    ok = np.isfinite(lat) & np.isfinite(lon) & np.isfinite(h)
+    lat, lon, h = (np.asarray(a, dtype=float).reshape(-1) for a in (lat_deg, lon_deg, h_m))
+    ok = _valid_fixes(lat, lon, h)
     if not ok.any():
-        return out
+        return None
     i0 = int(np.argmax(ok))
-    phi0 = np.radians(lat[i0])
-    w = np.sqrt(1.0 - _WGS84_E2 * np.sin(phi0) ** 2)
-    r_n = _WGS84_A_M / w  # prime vertical
-    r_m = _WGS84_A_M * (1.0 - _WGS84_E2) / w**3  # meridian
-    dlon = (lon - lon[i0] + 180.0) % 360.0 - 180.0
-    out[:, 0] = np.radians(dlon) * (r_n + h[i0]) * np.cos(phi0)
-    out[:, 1] = np.radians(lat - lat[i0]) * (r_m + h[i0])
-    out[:, 2] = h - h[i0]
-    out[~ok] = np.nan
+    return GeodeticOrigin(float(lat[i0]), float(lon[i0]), float(h[i0]))
+
+
+def geodetic_to_local_enu(lat_deg: np.ndarray, lon_deg: np.ndarray, h_m: np.ndarray,
+                          origin: GeodeticOrigin | None = None) -> np.ndarray:
+    """Local ENU positions (N, 3), m, of WGS-84 geodetic fixes: exact, through ECEF.
+
+    Each fix is taken to Earth-centred Earth-fixed coordinates on the WGS-84 ellipsoid
+    (prime-vertical radius ``N = a / sqrt(1 - e^2 sin^2 lat)``) and the difference from the
+    origin is rotated into its east, north, up axes. No flat-earth approximation: a point
+    1 km away at the origin's height is 7.8 cm below its Up = 0 plane (Earth curvature,
+    ``d^2 / (2 R)``), as it is in any ENU frame. The differences are formed in closed form
+    (sum-to-product identities) rather than by subtracting two ECEF vectors of 6,400 km, so
+    a displacement keeps its own relative precision (nanometres, not the ~1e-9 m rounding of
+    the Earth's radius).
+
+    Parameters
+    ----------
+    lat_deg, lon_deg : ndarray, shape (N,)
+        Latitude and longitude, degrees (north and east positive).
+    h_m : ndarray, shape (N,)
+        Height above the WGS-84 ellipsoid, m.
+    origin : GeodeticOrigin, optional
+        The point of ENU ``(0, 0, 0)``; default the first valid fix (:func:`first_valid_fix`).
+
+    Returns
+    -------
+    ndarray, shape (N, 3)
+        East, north, up, m. Rows of fixes that are not usable (non-finite, latitude beyond
+        +-90 deg, longitude beyond +-180 deg) are NaN; all rows are NaN when there is no
+        origin.
+
+    """
+    lat, lon, h = (np.asarray(a, dtype=float).reshape(-1) for a in (lat_deg, lon_deg, h_m))
+    out = np.full((lat.shape[0], 3), np.nan)
+    o = first_valid_fix(lat, lon, h) if origin is None else origin
+    ok = _valid_fixes(lat, lon, h)
+    if o is None or not ok.any():
+        return out
+    e2, a = _WGS84_E2, _WGS84_A_M
+    phi0, h0 = np.radians(o.lat_deg), float(o.height_m)
+    phi, dlam, hh = np.radians(lat[ok]), np.radians(lon[ok] - o.lon_deg), h[ok]
+    dlam = (dlam + np.pi) % (2 * np.pi) - np.pi  # across the antimeridian
+    s, c, s0, c0 = np.sin(phi), np.cos(phi), np.sin(phi0), np.cos(phi0)
+    w, w0 = np.sqrt(1.0 - e2 * s**2), np.sqrt(1.0 - e2 * s0**2)
+    n, n0 = a / w, a / w0
+    half, mid = 0.5 * (phi - phi0), 0.5 * (phi + phi0)
+    # N - N0 = a (w0 - w) / (w w0), with w0^2 - w^2 = e2 sin(phi + phi0) sin(phi - phi0)
+    dn = a * e2 * np.sin(phi + phi0) * np.sin(phi - phi0) / ((w0 + w) * w * w0)
+    dh = hh - h0
+    dcos = -2.0 * np.sin(mid) * np.sin(half)  # cos(phi) - cos(phi0)
+    dsin = 2.0 * np.cos(mid) * np.sin(half)  # sin(phi) - sin(phi0)
+    # ECEF difference in the frame turned about z by the origin's longitude (x' towards the
+    # origin's meridian, y' east there): the point is ((N + h) cos phi cos dlam,
+    # (N + h) cos phi sin dlam, (N (1 - e2) + h) sin phi), the origin ((N0 + h0) cos phi0,
+    # 0, (N0 (1 - e2) + h0) sin phi0)
+    dx = ((n + hh) * c * (-2.0 * np.sin(0.5 * dlam) ** 2) + (dn + dh) * c
+          + (n0 + h0) * dcos)
+    dy = (n + hh) * c * np.sin(dlam)
+    dz = (dn * (1.0 - e2) + dh) * s + (n0 * (1.0 - e2) + h0) * dsin
+    out[ok, 0] = dy
+    out[ok, 1] = -s0 * dx + c0 * dz
+    out[ok, 2] = c0 * dx + s0 * dz
     return out
+
+
+def local_enu_to_geodetic(p_enu_m: np.ndarray, origin: GeodeticOrigin
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """WGS-84 latitude, longitude (deg) and ellipsoidal height (m) of local ENU points.
+
+    The inverse of :func:`geodetic_to_local_enu` about ``origin`` (for writing fixes of a
+    known path: the simulator, tests): ENU rotated into ECEF and added to the origin's ECEF
+    position, then latitude by fixed-point iteration (``tan(lat) = Z / (p (1 - e2 N /
+    (N + h)))``, converged to below 1e-15 rad within a few steps near the surface) and
+    height ``p cos(lat) + Z sin(lat) - a sqrt(1 - e2 sin^2 lat)`` (well conditioned at every
+    latitude).
+
+    Parameters
+    ----------
+    p_enu_m : ndarray, shape (N, 3)
+        East, north, up about ``origin``, m.
+    origin : GeodeticOrigin
+
+    Returns
+    -------
+    lat_deg, lon_deg, h_m : ndarray, shape (N,)
+        Longitude in [-180, 180) deg.
+
+    """
+    p = np.asarray(p_enu_m, dtype=float).reshape(-1, 3)
+    e2, a = _WGS84_E2, _WGS84_A_M
+    phi0, lam0, h0 = np.radians(origin.lat_deg), np.radians(origin.lon_deg), origin.height_m
+    s0, c0, sl, cl = np.sin(phi0), np.cos(phi0), np.sin(lam0), np.cos(lam0)
+    n0 = a / np.sqrt(1.0 - e2 * s0**2)
+    x0 = np.array([(n0 + h0) * c0 * cl, (n0 + h0) * c0 * sl, (n0 * (1.0 - e2) + h0) * s0])
+    # rows of the ECEF -> ENU rotation at the origin; ECEF = x0 + R.T @ enu
+    r = np.array([[-sl, cl, 0.0], [-s0 * cl, -s0 * sl, c0], [c0 * cl, c0 * sl, s0]])
+    x = x0 + p @ r
+    xy = np.hypot(x[:, 0], x[:, 1])
+    lat = np.arctan2(x[:, 2], xy * (1.0 - e2))
+    for _ in range(6):
+        n = a / np.sqrt(1.0 - e2 * np.sin(lat) ** 2)
+        h = xy * np.cos(lat) + x[:, 2] * np.sin(lat) - a * np.sqrt(1.0 - e2 * np.sin(lat) ** 2)
+        lat = np.arctan2(x[:, 2], xy * (1.0 - e2 * n / (n + h)))
+    h = xy * np.cos(lat) + x[:, 2] * np.sin(lat) - a * np.sqrt(1.0 - e2 * np.sin(lat) ** 2)
+    lon = np.degrees(np.arctan2(x[:, 1], x[:, 0]))
+    lon = (lon + 180.0) % 360.0 - 180.0
+    return np.degrees(lat), lon, h
 
 
 class _Decoder:
@@ -177,9 +293,13 @@ class _Decoder:
             return out
         if t == "novatel_oem7_msgs/INSPVA":
             out = ["header.stamp.sec", "header.stamp.nanosec", "roll", "pitch", "azimuth"]
-            if all(self.layout.has_field(k) for k in _INSPVA_FIX):
-                out += list(_INSPVA_FIX)
+            fix = _CDR_GEODETIC[t]
+            if all(self.layout.has_field(k) for k in fix):
+                out += list(fix)
             return out
+        if t in POSITION_TYPES:
+            return (["header.stamp.sec", "header.stamp.nanosec", _CDR_FIX_STATUS[t]]
+                    + list(_CDR_GEODETIC[t]))
         if t == "std_msgs/Float64":
             return ["data"]
         raise SchemaError(f"channel {self.topic}: message type {self.type} is not supported",
@@ -221,9 +341,17 @@ class _Decoder:
                    if pp is not None and f"{pp}.x" in f else None)
             return _Decoded(t_ns, np.stack([f[f"{qp}.{k}"] for k in "xyzw"], axis=-1), log,
                             position=pos, position_kind="local" if pos is not None else "")
+        if t in POSITION_TYPES:
+            # a fix the receiver flags as none (NavSatStatus.status < 0), non-finite or out of
+            # range is a lost position: a NaN row, kept so that the stamps stay the channel's
+            fix = np.stack([f[k] for k in _CDR_GEODETIC[t]], axis=-1).astype(float)
+            lost = (f[_CDR_FIX_STATUS[t]] < 0) | ~_valid_fixes(fix[:, 0], fix[:, 1], fix[:, 2])
+            fix[lost] = np.nan
+            return _Decoded(t_ns, fix, log, position=fix, position_kind="geodetic")
         q = novatel_to_quat(f["roll"], f["pitch"], f["azimuth"])
-        if "latitude" in f:
-            fix = np.stack([f[k] for k in _INSPVA_FIX], axis=-1).astype(float)
+        geo = _CDR_GEODETIC[t]
+        if geo[0] in f:
+            fix = np.stack([f[k] for k in geo], axis=-1).astype(float)
             return _Decoded(t_ns, q, log, position=fix, position_kind="geodetic")
         return _Decoded(t_ns, q, log)
 
@@ -268,7 +396,8 @@ class _Decoder:
                           path=self.path, hint=_SUPPORTED_HINT)
 
 
-_SUPPORTED_HINT = "supported: " + ", ".join(MAG_TYPES + ATTITUDE_TYPES + TURNTABLE_TYPES)
+_SUPPORTED_HINT = "supported: " + ", ".join(MAG_TYPES + ATTITUDE_TYPES + TURNTABLE_TYPES
+                                             + POSITION_TYPES)
 
 
 # --------------------------------------------------------------------------- uniform records
@@ -573,9 +702,14 @@ def _decode_channels(scan: _Scan, cids: list[int]) -> dict[int, _Decoded]:
     out = {}
     for cid in cids:
         if cid not in cols:
-            width = {"sensor_msgs/MagneticField": 3, "magalign.Magnetometer": 3}.get(
-                decoders[cid].type, 4)
-            shape = (0,) if decoders[cid].type in TURNTABLE_TYPES else (0, width)
+            typ = decoders[cid].type
+            if typ in POSITION_TYPES:  # no message: no fix, in the columns of one
+                out[cid] = _Decoded(np.zeros(0, np.int64), np.zeros((0, 3)),
+                                    np.zeros(0, np.int64), position=np.zeros((0, 3)),
+                                    position_kind="geodetic")
+                continue
+            width = {"sensor_msgs/MagneticField": 3, "magalign.Magnetometer": 3}.get(typ, 4)
+            shape = (0,) if typ in TURNTABLE_TYPES else (0, width)
             out[cid] = _Decoded(np.zeros(0, np.int64), np.zeros(shape), np.zeros(0, np.int64))
             continue
         n = fill[cid]
@@ -594,6 +728,8 @@ def _role_of(scan: _Scan, ch: _Channel) -> Role:
         return Role.ATTITUDE
     if t in TURNTABLE_TYPES:
         return Role.TURNTABLE
+    if t in POSITION_TYPES:
+        return Role.POSITION
     return Role.OTHER
 
 
@@ -602,9 +738,17 @@ def _type_of(scan: _Scan, ch: _Channel) -> str:
     return sch.name if sch else "?"
 
 
-_OPTION = {Role.MAGNETOMETER: ("mag_topic", "--mag"),
-           Role.ATTITUDE: ("attitude_topic", "--attitude"),
-           Role.TURNTABLE: ("turntable_topic", "--turntable")}
+#: keyword of the reader and command-line option that choose each role's channel (None: the
+#: command line has no option for it)
+_OPTION: dict[Role, tuple[str, str | None]] = {
+    Role.MAGNETOMETER: ("mag_topic", "--mag"),
+    Role.ATTITUDE: ("attitude_topic", "--attitude"),
+    Role.TURNTABLE: ("turntable_topic", "--turntable"),
+    Role.POSITION: ("position_topic", None)}
+
+
+_ROLE_TYPES = {Role.MAGNETOMETER: MAG_TYPES, Role.ATTITUDE: ATTITUDE_TYPES,
+               Role.TURNTABLE: TURNTABLE_TYPES, Role.POSITION: POSITION_TYPES}
 
 
 @overload
@@ -625,9 +769,7 @@ def _pick(scan: _Scan, role: Role, topic: str | None, required: bool) -> int | N
             raise ChannelError(f"no channel with topic {topic} (topics: {topics})",
                                role=role.value, path=scan.path)
         c = hits[0]
-        ok = (MAG_TYPES if role is Role.MAGNETOMETER else ATTITUDE_TYPES
-              if role is Role.ATTITUDE else TURNTABLE_TYPES)
-        if normalise_type(_type_of(scan, c)) not in ok:
+        if normalise_type(_type_of(scan, c)) not in _ROLE_TYPES[role]:
             raise SchemaError(f"channel {topic} has type {_type_of(scan, c)}, which is not a "
                               f"supported {role.value} type", path=scan.path,
                               hint=_SUPPORTED_HINT)
@@ -635,9 +777,9 @@ def _pick(scan: _Scan, role: Role, topic: str | None, required: bool) -> int | N
     cands = [c for c in scan.channels.values() if _role_of(scan, c) is role]
     if len(cands) > 1:
         names = " and ".join(sorted(c.topic for c in cands))
+        how = f"{flag} TOPIC ({opt}=...)" if flag is not None else f"{opt}=TOPIC"
         raise ChannelError(f"two or more candidate {role.value} channels: {names}",
-                           role=role.value, path=scan.path,
-                           hint=f"choose one with {flag} TOPIC ({opt}=...)")
+                           role=role.value, path=scan.path, hint=f"choose one with {how}")
     if not cands:
         if not required:
             return None

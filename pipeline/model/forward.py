@@ -269,6 +269,43 @@ def _as_list(p: Any) -> list[dict]:
     return [x for x in (p if isinstance(p, list) else [p]) if isinstance(x, dict)]
 
 
+#: mu0 / 4 pi in nT m^3 / (A m^2): B = 100 nT (3 (m.u) u - m) / r^3 (CONVENTIONS local_source)
+DIPOLE_NT = 100.0
+
+#: Closest distance (m) at which a point dipole is evaluated: a guard against a fit step that
+#: puts the source on the path (the field there is not a point dipole's anyway)
+MIN_SOURCE_DISTANCE_M = 0.01
+
+
+def dipole_matrix(r_enu_m: F64) -> F64:
+    """``B = P(r) m``: the point dipole's field per unit moment, (N, 3, 3), nT / (A m^2).
+
+    ``P = 100 (3 u u^T - I) / r^3`` with ``r`` the vector from the source to the sensor, m.
+    """
+    r = np.asarray(r_enu_m, dtype=float)
+    d = np.maximum(np.linalg.norm(r, axis=1), MIN_SOURCE_DISTANCE_M)
+    u = r / d[:, None]
+    P = 3.0 * u[:, :, None] * u[:, None, :] - np.eye(3)
+    return DIPOLE_NT * P / (d**3)[:, None, None]
+
+
+def dipole_gradient(r_enu_m: F64, m_Am2: F64) -> F64:
+    """``dB/dr`` (N, 3, 3), nT/m, of the point dipole ``m`` at ``r`` (symmetric: curl-free).
+
+    From ``B = k (3 (m.r) r / r^5 - m / r^3)``::
+
+        dB_i/dr_j = k (3 (m_j r_i + m_i r_j + (m.r) d_ij) / r^5 - 15 (m.r) r_i r_j / r^7)
+    """
+    r = np.asarray(r_enu_m, dtype=float)
+    d = np.maximum(np.linalg.norm(r, axis=1), MIN_SOURCE_DISTANCE_M)
+    mr = r @ m_Am2
+    eye = np.eye(3)[None]
+    t1 = (m_Am2[None, None, :] * r[:, :, None] + m_Am2[None, :, None] * r[:, None, :]
+          + mr[:, None, None] * eye)
+    t2 = mr[:, None, None] * r[:, :, None] * r[:, None, :]
+    return DIPOLE_NT * (3.0 * t1 / (d**5)[:, None, None] - 15.0 * t2 / (d**7)[:, None, None])
+
+
 @dataclass(frozen=True)
 class ForwardModel:
     """Every term of (M1)-(M5) with its value; absent terms are ``None`` / empty.
@@ -295,6 +332,10 @@ class ForwardModel:
         ``field_gradient``: ``F = M (p - p_ref)``.
     heading : (coef_rad (2,), span_s) or None
         ``heading_drift`` Legendre coefficients of ``h(t)``.
+    sources : tuple of (position_m (3,), moment_Am2 (3,), yaw_rad, windows_s)
+        ``local_source`` point dipoles: the source's position in the position frame, its
+        moment in ENU, the bearing ``psi`` of the position frame (``r = Rz(psi) (p - c)``)
+        and the windows in which it was there (empty: the whole recording).
 
     """
 
@@ -309,6 +350,7 @@ class ForwardModel:
     drift: tuple | None = None
     gradient: tuple | None = None
     heading: tuple | None = None
+    sources: tuple = ()
     unmodelled: tuple[str, ...] = field(default=())
 
     @classmethod
@@ -372,6 +414,12 @@ class ForwardModel:
                            float(p["span_s"]))
             else:
                 unmodelled.append("heading_drift")
+        sources = tuple(
+            (np.asarray(p["position_m"], dtype=float).reshape(3),
+             np.asarray(p["moment_Am2"], dtype=float).reshape(3),
+             float(np.radians(p.get("frame_yaw_deg") or 0.0)),
+             tuple(tuple(w) for w in p.get("windows_s") or ()))
+            for p in _as_list(eff.get("local_source")))
         return cls(
             R_body_mag=np.asarray(cal.R_body_mag, dtype=float),
             B_enu_nT=np.asarray(cal.B_enu_nT, dtype=float),
@@ -384,6 +432,7 @@ class ForwardModel:
             drift=drift,
             gradient=grad,
             heading=heading,
+            sources=sources,
             unmodelled=tuple(unmodelled),
         )
 
@@ -396,8 +445,8 @@ class ForwardModel:
     def external_field_nT(self, t_s: F64, p_m: F64 | None = None) -> F64:
         """``F(t)`` of (M1), ENU, (N, 3); ``t_s`` from the first magnetometer sample.
 
-        ``p_m``: positions (N, 3), m, for ``field_gradient`` (NaN rows or None: no
-        contribution).
+        ``p_m``: positions (N, 3), m, for ``field_gradient`` and ``local_source`` (NaN rows or
+        None: no contribution).
         """
         t = np.asarray(t_s, dtype=float)
         F = np.zeros((len(t), 3))
@@ -410,6 +459,15 @@ class ForwardModel:
             M, ref = self.gradient
             dp = np.asarray(p_m, dtype=float) - ref
             F += np.where(np.isfinite(dp).all(axis=1)[:, None], np.nan_to_num(dp) @ M.T, 0.0)
+        if self.sources and p_m is not None:
+            p = np.asarray(p_m, dtype=float)
+            ok = np.isfinite(p).all(axis=1)
+            for c, m, psi, windows in self.sources:
+                cz, sz = np.cos(psi), np.sin(psi)
+                Q = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
+                r = np.nan_to_num(p - c) @ Q.T
+                here = ok & (in_windows(t, windows) if windows else True)
+                F += np.where(here[:, None], np.einsum("nij,j->ni", dipole_matrix(r), m), 0.0)
         return F
 
     def heading_rad(self, t_s: F64) -> F64 | None:
@@ -511,7 +569,7 @@ def evaluate(
     ident = np.array([0.0, 0.0, 0.0, 1.0])
     q = np.where(valid[:, None], at.q_enu_body, ident)
     p_m = None
-    if model.gradient is not None and position is not None:
+    if (model.gradient is not None or model.sources) and position is not None:
         p_m = position.at(t_ns)
     Bt = model.B_enu_nT[None, :] + model.external_field_nT(t_s, p_m)
     h_rad = model.heading_rad(t_s)

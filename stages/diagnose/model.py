@@ -52,6 +52,8 @@ from pipeline.model.attitude import AttitudeInterpolator
 from pipeline.model.forward import (
     DRIFT_DEGREE,
     HEADING_DEGREE,
+    dipole_gradient,
+    dipole_matrix,
     field_jacobian,
     hat_basis,
     heading_basis,
@@ -79,6 +81,7 @@ class EffectKind(str, enum.Enum):
     FIELD_GRADIENT = "field_gradient"
     SAMPLE_HOLD = "sample_hold"  # a timing effect handled on the data, not a model term
     HEADING_DRIFT = "heading_drift"
+    LOCAL_SOURCE = "local_source"
 
 
 LOCAL_KINDS = frozenset({EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP})
@@ -207,6 +210,9 @@ class FitData:
     interp_error_nT : ndarray (N, 3) or None
         What the attitude's interpolation error alone would leave in the residual
         (:func:`interpolation_error_proxy`); terms it could produce are not named.
+    position_origin : dict or None
+        ``{lat_deg, lon_deg, height_m}`` of geodetic positions turned to local ENU metres
+        (CONVENTIONS "Positions"); None for local frames.
 
     """
 
@@ -222,6 +228,7 @@ class FitData:
     n_available: int | None = None
     noise_model: tuple[float, float, float] | None = None
     interp_error_nT: F64 | None = None
+    position_origin: dict[str, float] | None = None
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
@@ -260,6 +267,10 @@ class Term:
     yaw_rad : float
         ``field_gradient`` in a position frame rotated about Up: the rotation ``Q = Rz(yaw)``
         from that frame to ENU, located by a search (like a window), not fitted.
+    fit_yaw : bool
+        ``local_source`` with positions in a frame of unknown bearing: the rotation
+        ``Rz(psi)`` from the position frame to ENU is a seventh parameter of the source.
+
 
     """
 
@@ -267,6 +278,7 @@ class Term:
     windows_s: tuple[tuple[float, float], ...] = ()
     knot_step_s: float = 1.0
     yaw_rad: float = 0.0
+    fit_yaw: bool = False
 
     def knots(self) -> list[F64]:
         """Knot times of each disturbance window (hat functions, both ends included)."""
@@ -295,7 +307,15 @@ class Term:
             return 3 * sum(len(kn) for kn in self.knots())
         if k is EffectKind.HEADING_DRIFT:
             return HEADING_DEGREE
+        if k is EffectKind.LOCAL_SOURCE:
+            return 7 if self.fit_yaw else 6
         raise ValueError(k)
+
+    def presence(self, t_s: F64) -> F64:
+        """1 where the term acts: inside its windows, or everywhere without windows, (N,)."""
+        if not self.windows_s:
+            return np.ones(np.shape(t_s))
+        return self.indicator(t_s)
 
     def indicator(self, t_s: F64) -> F64:
         """1 inside any window, else 0, shape (N,)."""
@@ -305,6 +325,16 @@ class Term:
         return ind
 
 
+
+
+def source_offset_enu(term: Term, value: F64, p_m: F64) -> F64:
+    """``r`` (N, 3), m, ENU: from the source at ``value[0:3]`` (position frame) to each ``p_m``.
+
+    ``r = Rz(psi) (p - c)``: the position frame turned to ENU by the source's yaw ``psi``
+    (``value[6]`` when ``fit_yaw``, else the term's ``yaw_rad``).
+    """
+    psi = float(value[6]) if term.fit_yaw else term.yaw_rad
+    return (np.asarray(p_m, dtype=float) - value[0:3]) @ rot_z(psi).T
 
 
 def rot_z(yaw_rad: float) -> F64:
@@ -623,6 +653,10 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
         elif term.kind is EffectKind.FIELD_GRADIENT:
             # B(p) = B_enu + G_enu Q (p - p_ref)  (CONVENTIONS field_gradient)
             Bt += data.dp_m @ gradient_matrix(v, term.yaw_rad).T
+        elif term.kind is EffectKind.LOCAL_SOURCE and data.p_m is not None:
+            # B(p) = B_enu + 100 nT (3 (m.u) u - m) / r^3  (CONVENTIONS local_source)
+            r_src = source_offset_enu(term, v, data.p_m)
+            Bt += term.presence(t)[:, None] * (dipole_matrix(r_src) @ v[3:6])
     # heading_drift: the attitude source reports Rz(h(t)) C_true(t), so the reading is
     # R.T C_rep.T Rz(h) B (CONVENTIONS heading_drift): the ENU field turned about Up by h(t)
     h_rad = None
@@ -672,7 +706,7 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             Rz[:, 2, 2] = 1.0
             J[:, :, 3:6] = np.matmul(G, Rz)
     bddot = _mv(Cddot, Bp)
-    for term, i in zip(state.terms, state.offsets(), strict=True):
+    for term, i, v in zip(state.terms, state.offsets(), state.values, strict=True):
         k = term.kind
         if k is EffectKind.HARD_IRON:
             J[:, :, i : i + 3] = np.eye(3)
@@ -707,6 +741,20 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             dpq = data.dp_m @ rot_z(term.yaw_rad).T  # Q (p - p_ref) per row
             dB = np.einsum("kij,nj->nik", _SOFT_BASIS, dpq)  # (N, 3, 5)
             J[:, :, i : i + 5] = np.matmul(G, dB)
+        elif k is EffectKind.LOCAL_SOURCE and data.p_m is not None:
+            # r = Rz(psi) (p - c), B = P(r) m: dB/dc = -K Rz(psi), dB/dm = P(r),
+            # dB/dpsi = K (e_z x r), K = dB/dr (dipole_gradient)
+            r_src = source_offset_enu(term, v, data.p_m)
+            pres = term.presence(t)[:, None, None]
+            K = dipole_gradient(r_src, v[3:6])
+            psi = float(v[6]) if term.fit_yaw else term.yaw_rad
+            dB = np.zeros((n, 3, term.n_params()))
+            dB[:, :, 0:3] = -np.matmul(K, rot_z(psi))
+            dB[:, :, 3:6] = dipole_matrix(r_src)
+            if term.fit_yaw:
+                ez_r = np.stack([-r_src[:, 1], r_src[:, 0], np.zeros(n)], axis=1)
+                dB[:, :, 6] = _mv(K, ez_r)
+            J[:, :, i : i + term.n_params()] = np.matmul(G, pres * dB)
         elif k is EffectKind.HEADING_DRIFT:
             # d(Rz(h) B)/dh = Rz(h + pi/2) B with the vertical part removed; h = P v
             assert h_rad is not None  # computed above: the model has the heading_drift term
@@ -760,6 +808,33 @@ def heading_signature_fraction(v_enu_nT: F64, B_enu_nT: F64) -> float:
 MIN_HORIZONTAL_FRACTION = 0.05
 
 
+def source_params(term: Term, value: F64, data: FitData) -> dict[str, Any]:
+    """CONVENTIONS params of ``local_source``: where, how strong, when, and the closest pass.
+
+    ``closest_approach_m`` / ``_s``: the smallest distance from the source to the sensor
+    while the source was there, and when (s from the first magnetometer sample).
+    """
+    windows = ([[float(a), float(b)] for a, b in term.windows_s] if term.windows_s
+               else [[0.0, _span(data)]])
+    out: dict[str, Any] = {
+        "position_m": np.asarray(value[0:3], dtype=float).tolist(),
+        "position_frame": data.position_frame or "enu",
+        "position_origin": data.position_origin,
+        "moment_Am2": np.asarray(value[3:6], dtype=float).tolist(),
+        "windows_s": windows,
+        "closest_approach_m": None,
+        "closest_approach_s": None,
+    }
+    if data.p_m is not None and len(data):
+        here = term.presence(data.t_s) > 0
+        if here.any():
+            d = np.linalg.norm(source_offset_enu(term, value, data.p_m[here]), axis=1)
+            j = int(np.argmin(d))
+            out["closest_approach_m"] = float(d[j])
+            out["closest_approach_s"] = float(data.t_s[here][j])
+    return out
+
+
 def term_params(term: Term, value: F64, state: ModelState, data: FitData) -> dict[str, Any]:
     """CONVENTIONS ``params`` of a fitted term (arrays as lists)."""
     k = term.kind
@@ -793,6 +868,8 @@ def term_params(term: Term, value: F64, state: ModelState, data: FitData) -> dic
                 "reference_position_m": ref.tolist()}
     if k is EffectKind.HEADING_DRIFT:
         return heading_drift_params(value, data)
+    if k is EffectKind.LOCAL_SOURCE:
+        return source_params(term, value, data)
     if k is EffectKind.AXIS_TILT:
         axis_true = state.T_enu @ np.array([0.0, 0.0, 1.0])
         tilt = float(np.degrees(np.arccos(np.clip(axis_true[2], -1.0, 1.0))))
@@ -830,6 +907,9 @@ def term_sigma(term: Term, cov: F64, state: ModelState, data: FitData) -> dict[s
         T_h = max(_span(data), 1e-9) / 3600.0
         return {"rate_deg_per_h": float(np.degrees(2.0 * sd[0]) / T_h),
                 "peak_to_peak_deg": float(np.degrees(2.0 * np.sqrt(np.sum(sd**2))))}
+    if k is EffectKind.LOCAL_SOURCE:
+        return {"position_m": sd[0:3].tolist(), "moment_Am2": sd[3:6].tolist(),
+                "closest_approach_m": float(np.linalg.norm(sd[0:3]))}
     if k is EffectKind.FIELD_GRADIENT:
         # M = sum_k g_k S_k Q: Var(M_ij) = sum_kl (S_k Q)_ij cov_kl (S_l Q)_ij
         SQ = _SOFT_BASIS @ rot_z(term.yaw_rad)

@@ -93,6 +93,9 @@ def fit_data_from(
         if pos:
             pos["p_m"] = pos["p_m"][::stride]
     B = None if reference_field_enu_nT is None else np.asarray(reference_field_enu_nT, float)
+    origin = getattr(recording.position, "origin", None) if pos else None
+    if origin is not None:
+        pos["position_origin"] = origin.to_dict()
     return FitData(cast(F64, t_s), y, track, B_known_enu_nT=B, stride=stride,
                    n_available=n_avail, **pos)
 
@@ -298,6 +301,11 @@ def _model_values(term: Term, value: np.ndarray, data: FitData) -> dict[str, Any
     if term.kind is EffectKind.HEADING_DRIFT:
         return {"legendre_rad": np.asarray(value, dtype=float).reshape(-1).tolist(),
                 "span_s": _span(data)}
+    if term.kind is EffectKind.LOCAL_SOURCE:
+        # the bearing of the position frame the source was fitted in (not a CONVENTIONS
+        # param: the model needs it to place the source in ENU)
+        psi = float(value[6]) if term.fit_yaw else term.yaw_rad
+        return {"frame_yaw_deg": float(np.degrees(psi))}
     return {}
 
 
@@ -393,6 +401,11 @@ class Diagnose:
     max_gap_s : float or None
         Attitude gap rule of the final model's residual over the whole recording (as the
         Restore stage); None: the automatic rule.
+    keep_estimate : bool
+        The user chose the model (``--estimate``, another estimator): the estimate in
+        ``ctx.calibration`` stays the answer. Its rotation sigma is widened by the shift of
+        ``R_body_mag`` between it and the diagnosis' final model when that model holds terms
+        the estimate left out (:func:`left_out_shift`), and the verdict says so.
 
     The final residual (``diagnosis.final.residual_rms_nT`` and the final calibration's
     ``residual_rms_nT``) is that of the final model over every sample of the recording with
@@ -404,6 +417,7 @@ class Diagnose:
     config: DiagnoseConfig = field(default_factory=DiagnoseConfig)
     reference_field_enu_nT: tuple[float, float, float] | None = None
     max_gap_s: float | None = None
+    keep_estimate: bool = False
 
     requires: ClassVar[frozenset[str]] = frozenset({"recording", "aligned", "calibration"})
     provides: ClassVar[frozenset[str]] = frozenset({"diagnosis", "calibration", "restored"})
@@ -466,8 +480,49 @@ class Diagnose:
             if np.isfinite(rms):
                 final = final.replace(residual_rms_nT=rms)
                 diag = dataclasses.replace(diag, final={**diag.final, "residual_rms_nT": rms})
+        if self.keep_estimate and cal is not None:
+            # the user's model is the answer; the restore of the diagnosis' model is not its
+            return ctx.replace(diagnosis=diag, calibration=left_out_shift(cal, final, diag),
+                               restored=None)
         # the restore result of the final model goes along: Restore keeps it (same model)
         return ctx.replace(diagnosis=diag, calibration=final, restored=restored)
+
+
+#: calibration terms of the estimate and the diagnosis effects they stand for
+_ESTIMATE_TERMS = {"hard_iron": "offset_nT", "soft_iron": "D", "time_offset": "time_offset_s"}
+
+
+def left_out_shift(estimate: Calibration, final: Calibration, diag: Diagnosis) -> Calibration:
+    """Return the user's ``estimate`` with the bias of the terms it leaves out in its sigma.
+
+    A term the data select but a fit leaves out biases its rotation; the noise sigma does not
+    see it. The diagnosis' final model holds every term the data select; the rotation vector
+    of ``R_final R_estimate.T`` (body frame, deg) is that bias, measured. Each axis' sigma
+    becomes ``sqrt(sigma^2 + shift^2)`` and a doubt names the terms and the shift (the
+    verdict is then at most QUESTIONABLE). Nothing changes when the final model holds no term
+    the estimate lacks.
+    """
+    from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
+
+    left_out = [f.effect for f in diag.findings
+                if f.effect not in _ESTIMATE_TERMS
+                or getattr(estimate, _ESTIMATE_TERMS[f.effect]) is None]
+    left_out = list(dict.fromkeys(left_out))
+    if not left_out:
+        return estimate
+    dR = np.asarray(final.R_body_mag) @ np.asarray(estimate.R_body_mag).T
+    shift = np.degrees(quat_to_rotvec(matrix_to_quat(dR)))
+    sig = np.asarray(estimate.sigma_rotvec_deg, float)
+    widened = np.sqrt(sig**2 + shift**2)
+    names = ", ".join(x.replace("_", " ") for x in left_out)
+    doubt = (f"the model was restricted: the data also ask for {names}, which move the "
+             f"misalignment by {float(np.linalg.norm(shift)):.2f} deg; the sigmas include "
+             "that shift (run without --estimate for the model the data select)")
+    checks = {**estimate.checks,
+              "left_out": {"effects": left_out, "shift_rotvec_deg": shift.tolist(),
+                           "sigma_rotvec_noise_deg": sig.tolist()},
+              "doubts": list(estimate.checks.get("doubts", ())) + [doubt]}
+    return estimate.replace(sigma_rotvec_deg=widened, checks=checks)
 
 
 def finding_figures(diagnosis: Diagnosis, dpi: int = 100) -> list[tuple[str, bytes]]:

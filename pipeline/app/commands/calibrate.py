@@ -19,7 +19,6 @@ from pipeline.core import progress
 from pipeline.core.atomic import atomic_path
 from pipeline.core.errors import NotObservableError, RefusedError, UsageError
 from pipeline.core.verdict import Status
-from pipeline.io.mcap_read import read_recording_warning
 from stages.estimators.registry import DESCRIPTIONS, ESTIMATORS
 
 log = logging.getLogger("magalign")
@@ -62,10 +61,15 @@ reference_from_args = field_from_args
 
 
 def run(args: argparse.Namespace) -> int:
-    """Read, resample, estimate, write DIR/calibration.json and print a summary."""
-    from pipeline.core.recording import Context
-    from stages.estimate import EstimatorKind, RobustLoss, Term, fit_calibration
-    from stages.resample import Resample
+    """Analyse as ``process`` does, write DIR/calibration.json and print a summary.
+
+    The stages are :func:`pipeline.app.process_one.analysis_stages`, the same as ``diagnose``
+    and ``process``: one recording and one set of options give one answer. Without
+    ``--estimate`` (and with the default estimator) the answer is the model the data select;
+    with it, the chosen model, its sigma widened by what the terms it leaves out do to R.
+    """
+    from pipeline.app.process_one import ProcessOptions, analyse_recording
+    from stages.estimate import EstimatorKind, Term
 
     try:
         terms = frozenset(Term(t.strip()) for t in args.estimate.split(",") if t.strip())
@@ -74,26 +78,18 @@ def run(args: argparse.Namespace) -> int:
             f"--estimate takes offset, soft_iron, time_offset; got {args.estimate!r}"
         ) from exc
     ref = reference_from_args(args)
-    steps = ["Ingest", "Resample", "Estimate"]
+    options = ProcessOptions(
+        estimator=EstimatorKind(args.estimator), terms=terms,
+        reference_field_enu_nT=None if ref is None else (float(ref[0]), float(ref[1]),
+                                                         float(ref[2])),
+        mag_topic=args.mag, attitude_topic=args.attitude, robust=args.robust,
+        write_rerun=False, write_report=False)
     display = progress.ProgressDisplay(1, "magalign calibrate",
                                        enabled=progress.enabled_for(sys.stderr))
     sink = progress.DirectSink(Path(args.recording).stem, display.update)
     with display, progress.use_sink(sink):
-        progress.stage("Ingest", 0, len(steps), steps)
-        rec = read_recording_warning(args.recording, mag_topic=args.mag,
-                                     attitude_topic=args.attitude)
-        progress.stage("Resample", 1, len(steps), steps)
-        ctx = Resample().run(Context(source=str(args.recording), recording=rec))
-        assert ctx.aligned is not None  # Resample sets it
-        progress.stage("Estimate", 2, len(steps), steps)
-        cal = fit_calibration(
-            rec,
-            ctx.aligned,
-            estimator=EstimatorKind(args.estimator),
-            terms=terms,
-            reference_field_enu_nT=ref,
-            robust=RobustLoss(args.robust),
-        )
+        ctx = analyse_recording(args.recording, options)
+    cal = ctx.need_calibration()
     log.info("%s: %s", Path(args.recording).stem, progress.timings_text(sink.state.timings))
     if len(cal.unobservable_axes_body) >= 3:
         # A calibration.json whose rotation is arbitrary must not be written: a later run

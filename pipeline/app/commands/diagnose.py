@@ -34,39 +34,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def diagnose_file(path: str | Path, *, mag_topic: str | None = None,
                   attitude_topic: str | None = None,
                   reference_field_enu_nT: tuple[float, float, float] | None = None):
-    """Read, align, calibrate and diagnose one recording; returns the final Context."""
-    from pipeline.core.errors import MagalignError
-    from pipeline.core.recording import Context
-    from pipeline.io.mcap_read import read_recording
-    from stages.diagnose.stage import Diagnose
-    from stages.resample import Resample
+    """Analyse one recording as ``process`` and ``calibrate`` do; returns the final Context.
 
-    def step(name: str) -> None:
-        progress.stage(name, STEPS.index(name), len(STEPS), list(STEPS))
+    The stages are :func:`pipeline.app.process_one.analysis_stages` (estimate, diagnosis,
+    verdict): the calibration written is the one ``process`` restores with.
+    """
+    from pipeline.app.process_one import ProcessOptions, analyse_recording
 
-    step("Ingest")
-    rec = read_recording(path, mag_topic=mag_topic, attitude_topic=attitude_topic)
-    ctx = Context(source=str(path), recording=rec)
-    if rec.attitude is None and rec.turntable is not None:
-        from stages.turntable import TurntableAttitude
-
-        ctx = TurntableAttitude().run(ctx)
-    step("Resample")
-    ctx = Resample().run(ctx)
-    step("Estimate")
-    try:
-        from stages.estimate import fit_calibration
-
-        cal = fit_calibration(ctx.recording, ctx.need_aligned())
-    except (ImportError, MagalignError):
-        cal = None  # the diagnosis starts from its own Wahba solution then
-    ctx = ctx.replace(calibration=cal)
-    step("Diagnose")
-    return Diagnose(reference_field_enu_nT=reference_field_enu_nT).run(ctx)
-
-
-#: the steps of ``diagnose`` as the progress line names them (pipeline.core.progress)
-STEPS = ("Ingest", "Resample", "Estimate", "Diagnose", "Judge")
+    options = ProcessOptions(reference_field_enu_nT=reference_field_enu_nT,
+                             mag_topic=mag_topic, attitude_topic=attitude_topic,
+                             write_rerun=False, write_report=False)
+    return analyse_recording(path, options)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -79,10 +57,9 @@ def run(args: argparse.Namespace) -> int:
         ctx = diagnose_file(args.recording, mag_topic=args.mag, attitude_topic=args.attitude,
                             reference_field_enu_nT=None if ref is None
                             else (float(ref[0]), float(ref[1]), float(ref[2])))
-        from stages.estimate import verdict_line, with_verdict
+        from stages.estimate import verdict_line
 
-        progress.stage("Judge", STEPS.index("Judge"), len(STEPS), list(STEPS))
-        cal = with_verdict(ctx.calibration, ctx.aligned)
+        cal = ctx.need_calibration()
     log.info("%s: %s", Path(args.recording).stem, progress.timings_text(sink.state.timings))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

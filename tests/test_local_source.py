@@ -1,0 +1,96 @@
+"""``local_source``: the point dipole fixed in the surroundings (wiring of the diagnosis model).
+
+These tests make their data with the diagnosis' own model (``_diag_sim``): they check the
+Jacobian against finite differences and that a fit from a nearby start finds the source
+with the noise off. Whether the physics is right is checked against the independent
+generator (``tests/indep_gen.py``) in ``tests/test_local_source_indep.py``.
+"""
+
+import numpy as np
+import pytest
+from _diag_sim import lissajous_m, make_data
+from test_effects import _numeric_jacobian
+
+from pipeline.model.forward import dipole_gradient, dipole_matrix
+from stages.diagnose.fit import fit
+from stages.diagnose.model import EffectKind, ModelState, Term, evaluate, term_params
+
+
+def test_dipole_field_on_axis_and_equator():
+    """B = 100 nT (3 (m.u) u - m) / r^3: 200 nT on the axis and -100 nT on the equator at 1 m."""
+    m = np.array([0.0, 0.0, 1.0])
+    on_axis = dipole_matrix(np.array([[0.0, 0.0, 1.0]]))[0] @ m
+    equator = dipole_matrix(np.array([[1.0, 0.0, 0.0]]))[0] @ m
+    assert np.allclose(on_axis, [0, 0, 200.0], atol=1e-9)
+    assert np.allclose(equator, [0, 0, -100.0], atol=1e-9)
+    # 1/r^3: twice as far, an eighth
+    far = dipole_matrix(np.array([[0.0, 0.0, 2.0]]))[0] @ m
+    assert np.allclose(far, on_axis / 8, atol=1e-9)
+
+
+def test_dipole_gradient_matches_finite_differences_and_is_curl_free():
+    rng = np.random.default_rng(1)
+    r = rng.normal(size=(20, 3))
+    m = np.array([0.3, -1.2, 0.7])
+    K = dipole_gradient(r, m)
+    h = 1e-6
+    for j in range(3):
+        e = np.zeros(3)
+        e[j] = h
+        num = (dipole_matrix(r + e) @ m - dipole_matrix(r - e) @ m) / (2 * h)
+        assert np.allclose(K[:, :, j], num, rtol=1e-6, atol=1e-6)
+    assert np.allclose(K, np.swapaxes(K, 1, 2), atol=1e-9)  # curl-free
+    assert np.allclose(np.trace(K, axis1=1, axis2=2), 0.0, atol=1e-6)  # divergence-free
+
+
+def _source_data(fit_yaw: bool, noise_nT: float = 0.0, psi_deg: float = 25.0):
+    term = Term(EffectKind.LOCAL_SOURCE, fit_yaw=fit_yaw,
+                yaw_rad=0.0 if fit_yaw else np.radians(psi_deg))
+    # the source 0.15 m below where the path is at t = 7 s
+    c = lissajous_m(np.array([7.0]))[0] + np.array([0.0, 0.0, -0.15])
+    value = np.r_[c, 0.4, -0.2, 0.3]
+    if fit_yaw:
+        value = np.append(value, np.radians(psi_deg))
+    frame = "attitude_source_local" if fit_yaw else "enu"
+    data, truth = make_data((term,), (value,), duration_s=30.0, rate_hz=100.0, seed=5,
+                            noise_nT=noise_nT,
+                            positions=lissajous_m,
+                            position_frame=frame)
+    return term, value, data, truth
+
+
+@pytest.mark.parametrize("fit_yaw", [False, True])
+def test_source_jacobian_matches_finite_differences(fit_yaw):
+    term, value, data, truth = _source_data(fit_yaw)
+    J = evaluate(truth, data).J
+    eps = np.r_[[1e-6] * 3, [1e-2] * 3, [1e-5] * 3, [1e-5] * 3, [1e-6] * (len(value) - 6)]
+    Jn = _numeric_jacobian(truth, data, eps)
+    inner = (data.t_s > 0.2) & (data.t_s < data.t_s[-1] - 0.2)
+    blk = slice(6, 6 + term.n_params())
+    a, b = J[inner, :, blk], Jn[inner, :, blk]
+    for k in range(term.n_params()):
+        scale = np.max(np.abs(b[:, :, k])) + 1e-12
+        assert np.max(np.abs(a[:, :, k] - b[:, :, k])) / scale < 1e-4, k
+
+
+@pytest.mark.parametrize("fit_yaw", [False, True])
+def test_source_noise_off_is_recovered(fit_yaw):
+    term, value, data, truth = _source_data(fit_yaw)
+    start = value.copy()
+    start[0:3] += [0.05, -0.04, 0.03]  # 7 cm off
+    start[3:6] *= 0.7
+    if fit_yaw:
+        start[6] += np.radians(8.0)
+    st = ModelState(truth.R_body_mag, truth.B_enu_nT, (term,), (start,))
+    res = fit(st, data, max_iter=80)
+    assert res.rms_nT < 1e-3  # nT
+    got = res.state.values[0]
+    assert np.max(np.abs(got[0:3] - value[0:3])) < 1e-5  # m
+    assert np.max(np.abs(got[3:6] - value[3:6])) < 1e-5  # A m^2
+    p = term_params(term, got, res.state, data)
+    assert p["position_frame"] == ("attitude_source_local" if fit_yaw else "enu")
+    d = np.linalg.norm(data.p_m - value[0:3], axis=1)  # the path against the true source
+    assert abs(p["closest_approach_m"] - d.min()) < 1e-5
+    assert p["closest_approach_m"] <= 0.15
+    assert abs(p["closest_approach_s"] - data.t_s[np.argmin(d)]) < 0.02
+    assert p["windows_s"] == [[0.0, pytest.approx(float(data.track.t_s[-1]))]]
