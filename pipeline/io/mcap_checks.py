@@ -1,7 +1,8 @@
 """Checks of decoded channels.
 
 Sorting and duplicate stamps, non-finite values, quaternion norms, magnetometer magnitude,
-spikes, saturation and clock jumps, gaps in the attitude: each a ``Problem`` with its count.
+spikes, saturation and clock jumps, gaps in the attitude, position fixes lost or missing
+altogether: each a ``Problem`` with its count.
 """
 
 from __future__ import annotations
@@ -231,13 +232,42 @@ def _check_mag(path: str, name: str, dec: _Decoded, problems: list[Problem]) -> 
     return _Decoded(dec.t_ns[keep], v[keep], dec.log_time_ns[keep], dec.frame_id)
 
 
+def _clean_position(name: str, dec: _Decoded, problems: list[Problem], path: str
+                    ) -> _Decoded:
+    """Check a position channel's fixes: clock jumps and duplicates dropped, stamps sorted.
+
+    Rows without a valid fix (the decoder made them NaN: no fix, non-finite or out-of-range
+    values) are kept, so that the series keeps the channel's stamps; they are counted in a
+    ``position_lost`` problem. A channel without a single valid fix gives no positions: a
+    ``no_position_fix`` problem says so (the recording is still usable; positions are only
+    needed by the spatial effects of the diagnosis). Nothing here refuses a recording.
+    """
+    dec = _sort_dedupe(name, dec, problems, path)
+    n = len(dec.t_ns)
+    lost = int(np.count_nonzero(~_finite_rows(dec.values)))
+    if n == 0:
+        problems.append(Problem("no_position_fix", f"{name}: no readable position message: "
+                                "the channel gives no positions", 0))
+    elif lost == n:
+        problems.append(Problem("no_position_fix", f"{name}: none of its {n:,} messages holds "
+                                "a valid fix (status below 0, or non-finite or out-of-range "
+                                "latitude, longitude or altitude): the channel gives no "
+                                "positions", n))
+    elif lost:
+        problems.append(Problem("position_lost", f"{name}: {lost:,} of {n:,} messages without "
+                                "a valid fix (status below 0, or non-finite or out-of-range "
+                                "values) are kept as lost positions (NaN)", lost))
+    return dec
+
+
 def _clean(role: Role, name: str, dec: _Decoded, problems: list[Problem], path: str
            ) -> _Decoded:
     """Run the reader's value checks of one channel, in the order :func:`read_recording` needs.
 
     Non-finite samples dropped; quaternions (attitude) checked and normalised; clock jumps
     dropped, stamps sorted, duplicates dropped; magnetometer data refused when unusable
-    (too short, stuck, wrong unit, saturated) and samples pinned at a rail dropped. Every
+    (too short, stuck, wrong unit, saturated) and samples pinned at a rail dropped. A
+    position channel keeps its lost fixes as NaN rows (:func:`_clean_position`). Every
     repair is appended to ``problems``. :func:`inspect_recording` runs the same checks.
 
     Raises
@@ -246,6 +276,8 @@ def _clean(role: Role, name: str, dec: _Decoded, problems: list[Problem], path: 
         Magnetometer data that cannot be used at all.
 
     """
+    if role is Role.POSITION:
+        return _clean_position(name, dec, problems, path)
     dec = _drop_nonfinite(name, dec, problems)
     if role is Role.ATTITUDE:
         dec = _check_quaternions(name, dec, problems)

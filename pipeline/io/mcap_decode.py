@@ -109,7 +109,7 @@ def _valid_fixes(lat_deg: np.ndarray, lon_deg: np.ndarray, h_m: np.ndarray) -> n
 
 def first_valid_fix(lat_deg: np.ndarray, lon_deg: np.ndarray, h_m: np.ndarray
                     ) -> GeodeticOrigin | None:
-    """The first row of geodetic fixes that holds a usable fix, or None without any.
+    """Return the first usable fix of a series of geodetic fixes, or None without any.
 
     Parameters
     ----------
@@ -192,7 +192,7 @@ def geodetic_to_local_enu(lat_deg: np.ndarray, lon_deg: np.ndarray, h_m: np.ndar
 
 def local_enu_to_geodetic(p_enu_m: np.ndarray, origin: GeodeticOrigin
                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """WGS-84 latitude, longitude (deg) and ellipsoidal height (m) of local ENU points.
+    """Return WGS-84 latitude, longitude (deg) and ellipsoidal height (m) of ENU points.
 
     The inverse of :func:`geodetic_to_local_enu` about ``origin`` (for writing fixes of a
     known path: the simulator, tests): ENU rotated into ECEF and added to the origin's ECEF
@@ -206,6 +206,7 @@ def local_enu_to_geodetic(p_enu_m: np.ndarray, origin: GeodeticOrigin
     p_enu_m : ndarray, shape (N, 3)
         East, north, up about ``origin``, m.
     origin : GeodeticOrigin
+        The point of ENU ``(0, 0, 0)``.
 
     Returns
     -------

@@ -3,7 +3,8 @@
 For a recording processed chunk by chunk (:mod:`pipeline.app.process_stream`), whose samples
 never sit in memory at once: :func:`read_recording_header` picks the channels as
 :func:`pipeline.io.mcap_read.read_recording` does, counts their messages from the chunk
-indexes and decodes the first chunk that holds each (for the frame names and rates only).
+indexes and decodes the first chunk that holds each (for the frame names and rates only,
+and whether the recording has positions).
 """
 
 from __future__ import annotations
@@ -16,12 +17,13 @@ from pipeline.core.recording import (
     AttitudeSeries,
     EncodingFamily,
     Frame,
+    Problem,
     Recording,
     Role,
     VectorSeries,
 )
 from pipeline.io.mcap_decode import _Decoded, _Decoder, _pick, _type_of
-from pipeline.io.mcap_read import _channel_infos, _position_series
+from pipeline.io.mcap_read import _channel_infos, _pick_position, _position_series
 from pipeline.io.mcap_scan import _iter_blocks, _prepare, _scan
 
 
@@ -30,6 +32,7 @@ def read_recording_header(
     *,
     mag_topic: str | None = None,
     attitude_topic: str | None = None,
+    position_topic: str | None = None,
 ) -> Recording:
     """Return the recording's channels, topics, encoding and frame names (no samples).
 
@@ -37,16 +40,20 @@ def read_recording_header(
     ----------
     path : path
         MCAP file (never modified).
-    mag_topic, attitude_topic : str, optional
+    mag_topic, attitude_topic, position_topic : str, optional
         Channels, as for :func:`pipeline.io.mcap_read.read_recording`.
 
     Returns
     -------
     Recording
         ``mag`` and ``attitude`` hold the first decoded chunk's samples only (they give the
-        frame names, and ``position`` tells whether the attitude carries positions);
-        ``channels`` carry the message counts of the whole file (from its
-        indexes) and the rates of that first chunk.
+        frame names); ``position`` tells whether the recording has positions: the position
+        channel's (``NavSatFix``) first chunk, NaN rows kept even when none of them is a
+        valid fix yet (a receiver still acquiring), else the attitude's positions of its
+        first chunk, else None. ``channels`` carry the message counts of the whole file
+        (from its indexes), their roles, and the rates of that first chunk; ``problems``
+        holds ``position_ambiguous`` when two or more position channels are not chosen
+        between.
 
     Raises
     ------
@@ -57,7 +64,9 @@ def read_recording_header(
     _prepare(scan)
     mag_id = _pick(scan, Role.MAGNETOMETER, mag_topic, True)
     att_id = _pick(scan, Role.ATTITUDE, attitude_topic, False)
-    ids = [i for i in (mag_id, att_id) if i is not None]
+    problems: list[Problem] = []
+    pos_id = _pick_position(scan, position_topic, problems)
+    ids = [i for i in (mag_id, att_id, pos_id) if i is not None]
     counts: dict[int, int] = {}
     for ch in scan.chunks:
         if not ch.bad and ch.index:
@@ -80,6 +89,12 @@ def read_recording_header(
             att_frame = first[att_id].frame_id
         attitude = AttitudeSeries(first[att_id].t_ns, first[att_id].values)
         position = _position_series(first[att_id])
+    if pos_id is not None and pos_id in first:
+        # sorted by stamp as read_recording sorts (the origin is the first valid fix)
+        d = first[pos_id].take(np.argsort(first[pos_id].t_ns, kind="stable"))
+        fixes = _position_series(d, fixes=True, keep_lost=True)
+        if fixes is not None:  # the position channel wins, as in read_recording
+            position = fixes
     return Recording(
         path=scan.path,
         channels=_channel_infos(scan, counts, stamps),
@@ -92,5 +107,6 @@ def read_recording_header(
         else EncodingFamily.ROS2,
         mag_frame_id="" if d_mag is None else d_mag.frame_id,
         attitude_frame_id=att_frame,
+        problems=tuple(problems),
         position=position,
     )

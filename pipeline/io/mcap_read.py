@@ -82,6 +82,7 @@ from pipeline.io.mcap_decode import (
     _pick,
     _role_of,
     _type_of,
+    first_valid_fix,
     geodetic_to_local_enu,
 )
 from pipeline.io.mcap_scan import (
@@ -339,6 +340,7 @@ def read_recording(
     mag_topic: str | None = None,
     attitude_topic: str | None = None,
     turntable_topic: str | None = None,
+    position_topic: str | None = None,
 ) -> Recording:
     """Read a magnetometer and its attitude source from an MCAP file.
 
@@ -348,17 +350,27 @@ def read_recording(
         MCAP file (never modified).
     mag_topic, attitude_topic, turntable_topic : str, optional
         Channels to use; by default the single channel of a supported type for each role.
+    position_topic : str, optional
+        The position channel (``sensor_msgs/msg/NavSatFix``); by default the recording's only
+        one. With two or more and no choice, none is used and a ``position_ambiguous``
+        problem names them.
 
     Returns
     -------
     Recording
         ``mag`` in nT, frame ``mag``; ``attitude`` as ``q_enu_body``; ``turntable`` as an
         unwrapped angle in rad. Samples sorted by header stamp; what was dropped or repaired
-        is listed in ``problems``.
+        is listed in ``problems``. ``position``: the position channel's fixes as local ENU
+        metres about the first valid fix (``origin``), on its own stamps, NaN rows where a
+        fix was lost; that channel wins over positions the attitude channel carries
+        (``PoseStamped``, ``Odometry``, INSPVA), which are used only when there is no
+        position channel chosen or it holds no valid fix.
 
     Raises
     ------
     NotMcapError, CorruptRecordingError, ChannelError, SchemaError, DataQualityError
+        ``ChannelError`` also when ``position_topic`` names no channel, ``SchemaError`` when
+        it names one that is not a position type (both name the file).
 
     Warns
     -----
@@ -369,6 +381,7 @@ def read_recording(
     scan = _scan(path)
     _prepare(scan)
     p = scan.path
+    pos_id = _pick_position(scan, position_topic, scan.problems)
     mag_id = _pick(scan, Role.MAGNETOMETER, mag_topic, True)
     att_id = _pick(scan, Role.ATTITUDE, attitude_topic, False)
     try:
@@ -382,7 +395,7 @@ def read_recording(
                                role=Role.ATTITUDE.value, path=p, hint=exc.hint) from None
         else:
             raise
-    ids = [i for i in (mag_id, att_id, tt_id) if i is not None]
+    ids = [i for i in (mag_id, att_id, tt_id, pos_id) if i is not None]
     dec = _decode_channels(scan, ids)
     counts = {cid: len(dec[cid].t_ns) for cid in ids}
     stamps = {cid: dec[cid].t_ns for cid in ids}
@@ -420,6 +433,13 @@ def read_recording(
             raise DataQualityError(f"{name}: only {len(d.t_ns)} usable turntable samples",
                                    path=p, hint="the recording is too short to calibrate")
         turntable = AngleSeries(d.t_ns, np.unwrap(np.radians(d.values)))
+    if pos_id is not None:
+        name = scan.channels[pos_id].topic
+        d = _clean(Role.POSITION, name, dec.pop(pos_id), problems, p)
+        _gap_problems(name, d.t_ns, problems)
+        fixes = _position_series(d, fixes=True)
+        if fixes is not None:  # the position channel wins over the attitude's positions
+            position = fixes
     mag_ch = scan.channels[mag_id]
     return Recording(
         path=p,
@@ -438,27 +458,55 @@ def read_recording(
     )
 
 
-def _position_series(d: _Decoded) -> PositionSeries | None:
-    """Return the attitude channel's positions (NaN rows kept), or None without any.
+def _pick_position(scan: _Scan, topic: str | None, problems: list[Problem]) -> int | None:
+    """Channel id of the position channel, or None.
+
+    By ``topic`` (an error naming the file when it is absent or not a position type), else
+    the single channel of a position type. Positions are optional: two or more candidates
+    and no choice is a ``position_ambiguous`` problem, not an error (the command line has no
+    option to choose one yet, and the recording calibrates without positions).
+    """
+    try:
+        return _pick(scan, Role.POSITION, topic, False)
+    except ChannelError as exc:
+        if topic is not None:
+            raise
+        problems.append(Problem("position_ambiguous", f"{exc.message}: no position channel "
+                                f"was used ({exc.hint})"))
+        return None
+
+
+def _position_series(d: _Decoded, *, fixes: bool = False, keep_lost: bool = False
+                     ) -> PositionSeries | None:
+    """Return a channel's positions (NaN rows kept), or None without any.
 
     ``PoseStamped`` / ``Odometry`` positions are in the source's own frame: a local frame
     whose third axis is up but whose horizontal axes need not be east and north (a
-    motion-capture room), frame ``attitude_source_local``. INSPVA fixes become ENU metres on
-    the tangent plane at the first fix (:func:`geodetic_to_local_enu`). A channel whose
-    positions are all zero or all NaN carries none (a writer that fills the field with zeros).
+    motion-capture room), frame ``attitude_source_local``, no origin. Geodetic fixes
+    (``NavSatFix``, INSPVA) become WGS-84 local ENU metres about the first valid fix in stamp
+    order, which is the series' ``origin`` (:func:`geodetic_to_local_enu`).
+
+    An attitude channel whose positions are all zero or all NaN carries none (a writer that
+    fills the field with zeros). A position channel (``fixes``: ``NavSatFix``) has positions
+    as soon as one fix is valid (a receiver standing still reads zeros about its own first
+    fix); with ``keep_lost`` even without a valid fix it gives its stamps with NaN rows and no
+    origin (a receiver without a fix yet still says that the recording has positions).
     """
     if d.position is None or len(d.t_ns) == 0:
         return None
+    origin = None
     if d.position_kind == "geodetic":
-        p = geodetic_to_local_enu(d.position[:, 0], d.position[:, 1], d.position[:, 2])
+        lat, lon, h = d.position[:, 0], d.position[:, 1], d.position[:, 2]
+        origin = first_valid_fix(lat, lon, h)
+        p = geodetic_to_local_enu(lat, lon, h, origin=origin)
         frame = PositionFrame.ENU
     else:
         p = np.asarray(d.position, dtype=float)
         frame = PositionFrame.ATTITUDE_SOURCE_LOCAL
     fin = np.isfinite(p).all(axis=1)
-    if not fin.any() or not np.any(p[fin] != 0.0):
+    if not (fixes and keep_lost) and (not fin.any() or (not fixes and not np.any(p[fin] != 0.0))):
         return None
-    return PositionSeries(d.t_ns, p, frame)
+    return PositionSeries(d.t_ns, p, frame, origin)
 
 
 def problem_warnings(path: str | Path, problems: tuple[Problem, ...] | list[Problem],
@@ -547,9 +595,9 @@ def inspect_recording(path: str | Path) -> dict:
     Nothing is refused here except files that are not MCAP at all: problems are listed.
     They are the damage found in the file (cut, chunks failing their CRC or not
     decompressing), the stamp checks of every channel (backwards, duplicated, gaps) and, for
-    magnetometer, attitude and turntable channels, the value checks of
-    :func:`read_recording` (NaN/Inf, zero or non-unit quaternions, clock jumps, saturation;
-    what it would refuse is listed with code ``unusable``).
+    magnetometer, attitude, turntable and position channels, the value checks of
+    :func:`read_recording` (NaN/Inf, zero or non-unit quaternions, clock jumps, saturation,
+    lost or missing position fixes; what it would refuse is listed with code ``unusable``).
 
     Returns
     -------

@@ -963,6 +963,12 @@ def _turntable_fields(msg_type: str, angle_deg: np.ndarray) -> dict[str, np.ndar
     raise SchemaError(f"{msg_type} is not a turntable message type")
 
 
+def _position_fields(msg_type: str, fix: np.ndarray) -> dict[str, np.ndarray]:
+    if msg_type == "sensor_msgs/msg/NavSatFix":
+        return {"latitude_deg": fix[:, 0], "longitude_deg": fix[:, 1], "height_m": fix[:, 2]}
+    raise SchemaError(f"{msg_type} is not a position message type")
+
+
 def write_recording(
     path: str | Path,
     *,
@@ -989,6 +995,13 @@ def write_recording(
     inputs: Sequence[str | Path] = (),
     chunk_size: int = 1 << 20,
     attitude_extra: Mapping[str, ArrayLike] | None = None,
+    position_t_ns: ArrayLike | None = None,
+    position_fix: ArrayLike | None = None,
+    position_type: str = "sensor_msgs/msg/NavSatFix",
+    position_topic: str = "/fix",
+    position_frame_id: str = "gnss",
+    position_log_delay_ns: int | ArrayLike = 0,
+    position_extra: Mapping[str, ArrayLike] | None = None,
 ) -> Path:
     """Write a recording as a real logger would: each stream's messages stamped, logged late.
 
@@ -1029,6 +1042,18 @@ def write_recording(
         Further columns of the attitude messages (see :func:`pipeline.messages.encode`),
         e.g. ``position_m`` (M, 3) for ``PoseStamped`` or ``latitude_deg``,
         ``longitude_deg``, ``height_m`` (M,) for INSPVA.
+    position_t_ns, position_fix : ndarray, shapes (P,) int64 and (P, 3), optional
+        A position channel: stamps and WGS-84 fixes, columns latitude (deg), longitude (deg),
+        height above the ellipsoid (m); a NaN row is written as NaN values (give
+        ``position_extra={"status": ...}`` with -1 to flag a fix as none).
+    position_type, position_topic, position_frame_id : str
+        Its message type (``sensor_msgs/msg/NavSatFix``), topic and ``header.frame_id`` (the
+        antenna's frame).
+    position_log_delay_ns : int or ndarray
+        Log time minus stamp, ns.
+    position_extra : mapping of str to ndarray, optional
+        Further columns of the position messages (:func:`pipeline.messages.encode`):
+        ``status`` (P,) (NavSatStatus, -1 no fix), ``position_covariance`` (P, 9), ...
 
     Returns
     -------
@@ -1041,6 +1066,8 @@ def write_recording(
         types.append(attitude_type)
     if turntable_deg is not None:
         types.append(turntable_type)
+    if position_fix is not None:
+        types.append(position_type)
     profile = "ros2" if all(t not in messages.JSON_TYPES for t in types) else ""
     streams: list[tuple[str, str, np.ndarray, dict[str, np.ndarray], str, Any, str | None]] = []
     # Columns are converted per stream up front (cheap); payloads are encoded one stream at a
@@ -1067,6 +1094,16 @@ def write_recording(
                         _turntable_fields(turntable_type,
                                           np.asarray(turntable_deg, dtype=np.float64)),
                         "", turntable_log_delay_ns, None))
+    if position_fix is not None:
+        if position_t_ns is None:
+            raise OutputError("position_fix given without position_t_ns", path=path)
+        fix = np.asarray(position_fix, dtype=np.float64).reshape(-1, 3)
+        pos_fields = _position_fields(position_type, fix)
+        # as given: the status is an integer column of the message (int8), not a float
+        pos_fields.update({k: np.asarray(v) for k, v in (position_extra or {}).items()})
+        streams.append((position_type, position_topic,
+                        np.asarray(position_t_ns, dtype=np.int64), pos_fields,
+                        position_frame_id, position_log_delay_ns, None))
     with McapColumnWriter(path, profile=profile, compression=compression, inputs=inputs,
                           chunk_size=chunk_size) as w:
         for msg_type, topic, t, fields, frame_id, delay, variant in streams:

@@ -187,6 +187,19 @@ def _layout_inspva(frame_id: str, variant: str | None) -> _Layout:
     return lay
 
 
+def _layout_nav_sat_fix(frame_id: str, variant: str | None) -> _Layout:
+    lay = _Layout()
+    lay.header(frame_id)
+    # sensor_msgs/NavSatStatus: status 0 = STATUS_FIX (-1 no fix), service 1 = SERVICE_GPS
+    lay.prim("i1", "status", const=0)
+    lay.prim("<u2", "service", const=1)
+    for name in ("latitude_deg", "longitude_deg", "height_m"):
+        lay.prim("<f8", name)
+    lay.prim("<f8", "position_covariance", 9)  # m^2, ENU, row-major
+    lay.prim("u1", "position_covariance_type", const=0)  # COVARIANCE_TYPE_UNKNOWN
+    return lay
+
+
 _CDR_LAYOUTS: dict[str, Callable[[str, str | None], _Layout]] = {
     "sensor_msgs/msg/MagneticField": _layout_magnetic_field,
     "sensor_msgs/msg/Imu": _layout_imu,
@@ -194,6 +207,7 @@ _CDR_LAYOUTS: dict[str, Callable[[str, str | None], _Layout]] = {
     "geometry_msgs/msg/QuaternionStamped": _layout_quaternion_stamped,
     "std_msgs/msg/Float64": _layout_float64,
     "novatel_oem7_msgs/msg/INSPVA": _layout_inspva,
+    "sensor_msgs/msg/NavSatFix": _layout_nav_sat_fix,
 }
 
 # Columns each type needs from the caller (everything else has a default): schemas' table.
@@ -378,6 +392,11 @@ def encode(
           ``height_m``, ``north_velocity_mps``, ``east_velocity_mps``, ``up_velocity_mps``,
           ``status`` (default 3, INS_SOLUTION_GOOD).
         - ``std_msgs/msg/Float64``: ``value`` (N,).
+        - ``sensor_msgs/msg/NavSatFix``: ``latitude_deg``, ``longitude_deg`` (N,), WGS-84,
+          ``height_m`` (N,), above the WGS-84 ellipsoid (the message's ``altitude``);
+          optional ``status`` (N,) int (default 0, STATUS_FIX; -1 is no fix), ``service``
+          (default 1, SERVICE_GPS), ``position_covariance`` (N, 9) or (9,), m^2, ENU
+          row-major (default zeros), ``position_covariance_type`` (default 0, unknown).
         - ``magalign.Magnetometer``: ``mag_nT`` (N, 3).
         - ``magalign.AttitudeQuaternion``: ``q_xyzw`` (N, 4), written as ``q_enu_body``.
         - ``magalign.AttitudeEuler``: ``heading_deg``, ``pitch_deg``, ``roll_deg`` (N,),

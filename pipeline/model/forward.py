@@ -328,14 +328,19 @@ class ForwardModel:
         ``disturbance`` fields at their knots, ENU.
     drift : (coef_nT (4, 3), span_s) or None
         ``field_drift`` Legendre coefficients, ENU.
-    gradient : (M_nT_per_m (3, 3), p_ref_m (3,)) or None
-        ``field_gradient``: ``F = M (p - p_ref)``.
+    gradient : (M_nT_per_m (3, 3), p_ref_m (3,), yaw_rad) or None
+        ``field_gradient``: ``F = M (p - p_ref)``, ``M = G_enu Rz(yaw)`` for positions in a
+        frame turned by ``yaw`` from ENU (the lever arm moves the sensor by ``C l`` in ENU:
+        ``F += G_enu C l``).
     heading : (coef_rad (2,), span_s) or None
         ``heading_drift`` Legendre coefficients of ``h(t)``.
     sources : tuple of (position_m (3,), moment_Am2 (3,), yaw_rad, windows_s)
         ``local_source`` point dipoles: the source's position in the position frame, its
         moment in ENU, the bearing ``psi`` of the position frame (``r = Rz(psi) (p - c)``)
         and the windows in which it was there (empty: the whole recording).
+    lever_arm_body_m : ndarray (3,) or None
+        ``lever_arm``: the magnetometer at ``p + C_enu_body l`` (CONVENTIONS), for the
+        spatial terms.
 
     """
 
@@ -351,6 +356,7 @@ class ForwardModel:
     gradient: tuple | None = None
     heading: tuple | None = None
     sources: tuple = ()
+    lever_arm_body_m: F64 | None = None
     unmodelled: tuple[str, ...] = field(default=())
 
     @classmethod
@@ -405,7 +411,8 @@ class ForwardModel:
         p = first("field_gradient")
         if p is not None:
             grad = (np.asarray(p["G_nT_per_m"], dtype=float).reshape(3, 3),
-                    np.asarray(p.get("reference_position_m") or [0, 0, 0], dtype=float))
+                    np.asarray(p.get("reference_position_m") or [0, 0, 0], dtype=float),
+                    float(np.radians(p.get("frame_yaw_deg") or 0.0)))
         heading = None
         p = first("heading_drift")
         if p is not None:
@@ -414,6 +421,9 @@ class ForwardModel:
                            float(p["span_s"]))
             else:
                 unmodelled.append("heading_drift")
+        p = first("lever_arm")
+        lever = None if p is None else np.asarray(p["lever_arm_body_m"],
+                                                  dtype=np.float64).reshape(3)
         sources = tuple(
             (np.asarray(p["position_m"], dtype=float).reshape(3),
              np.asarray(p["moment_Am2"], dtype=float).reshape(3),
@@ -433,6 +443,7 @@ class ForwardModel:
             gradient=grad,
             heading=heading,
             sources=sources,
+            lever_arm_body_m=lever,
             unmodelled=tuple(unmodelled),
         )
 
@@ -442,9 +453,11 @@ class ForwardModel:
         """``D`` (identity when not estimated)."""
         return np.eye(3) if self.D is None else self.D
 
-    def external_field_nT(self, t_s: F64, p_m: F64 | None = None) -> F64:
+    def external_field_nT(self, t_s: F64, p_m: F64 | None = None,
+                          lever_enu_m: F64 | None = None) -> F64:
         """``F(t)`` of (M1), ENU, (N, 3); ``t_s`` from the first magnetometer sample.
 
+        ``lever_enu_m``: the lever arm in ENU at each sample, ``C_enu_body l`` (N, 3), m.
         ``p_m``: positions (N, 3), m, for ``field_gradient`` and ``local_source`` (NaN rows or
         None: no contribution).
         """
@@ -455,17 +468,21 @@ class ForwardModel:
             F += drift_basis(t, span) @ coef
         for knots, values in self.disturbances:
             F += hat_basis(t, knots) @ values
+        lev = None if lever_enu_m is None else np.nan_to_num(np.asarray(lever_enu_m, float))
         if self.gradient is not None and p_m is not None:
-            M, ref = self.gradient
+            M, ref, yaw = self.gradient
             dp = np.asarray(p_m, dtype=float) - ref
-            F += np.where(np.isfinite(dp).all(axis=1)[:, None], np.nan_to_num(dp) @ M.T, 0.0)
+            f = np.nan_to_num(dp) @ M.T
+            if lev is not None:  # G_enu C l, G_enu = M Rz(yaw).T
+                f += lev @ (M @ _rot_z(yaw).T).T
+            F += np.where(np.isfinite(dp).all(axis=1)[:, None], f, 0.0)
         if self.sources and p_m is not None:
             p = np.asarray(p_m, dtype=float)
             ok = np.isfinite(p).all(axis=1)
             for c, m, psi, windows in self.sources:
-                cz, sz = np.cos(psi), np.sin(psi)
-                Q = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
-                r = np.nan_to_num(p - c) @ Q.T
+                r = np.nan_to_num(p - c) @ _rot_z(psi).T
+                if lev is not None:
+                    r = r + lev
                 here = ok & (in_windows(t, windows) if windows else True)
                 F += np.where(here[:, None], np.einsum("nij,j->ni", dipole_matrix(r), m), 0.0)
         return F
@@ -538,6 +555,12 @@ def _interp(attitude: AttitudeSeries | AttitudeInterpolator, max_gap_s: float | 
     return AttitudeInterpolator.of(attitude, max_gap_s=max_gap_s)
 
 
+def _rot_z(yaw_rad: float) -> F64:
+    """Rotation about Up by ``yaw_rad``, (3, 3)."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
 def _Ct(q: F64) -> F64:
     from pipeline.core.geometry import quat_to_matrix
 
@@ -571,7 +594,10 @@ def evaluate(
     p_m = None
     if (model.gradient is not None or model.sources) and position is not None:
         p_m = position.at(t_ns)
-    Bt = model.B_enu_nT[None, :] + model.external_field_nT(t_s, p_m)
+    lever = None
+    if model.lever_arm_body_m is not None and p_m is not None:
+        lever = np.swapaxes(_Ct(q), -1, -2) @ model.lever_arm_body_m  # C l, ENU
+    Bt = model.B_enu_nT[None, :] + model.external_field_nT(t_s, p_m, lever)
     h_rad = model.heading_rad(t_s)
     if h_rad is not None:
         Bt = rotate_about_up(Bt, h_rad)  # (M1h)

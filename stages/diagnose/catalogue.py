@@ -141,6 +141,26 @@ EFFECTS: dict[EffectKind, EffectInfo] = {
         "the reading (the repeats are late)",
         "mag",
     ),
+    EffectKind.LOCAL_SOURCE: EffectInfo(
+        EffectKind.LOCAL_SOURCE,
+        "a compact magnetised object fixed in the surroundings (a magnet or a tool on a "
+        "table, buried steel, a parked vehicle): it stays where it is while the sensor moves",
+        "an ENU residual that grows steeply (as the cube of the inverse distance) wherever "
+        "the sensor comes near one place, whenever that is",
+        "enu",
+        # tested at zero moment, where the position has no gradient: the moment carries the
+        # evidence (the position is fitted once the moment is there)
+        identifiable_in_part=True,
+    ),
+    EffectKind.LEVER_ARM: EffectInfo(
+        EffectKind.LEVER_ARM,
+        "the magnetometer is not at the point whose position the attitude source reports "
+        "(a motion-capture marker body, an INS's reference point): as the platform turns, "
+        "the sensor swings around that point through a field that varies in space",
+        "a residual that follows the attitude times the field's spatial gradient (strongest "
+        "near a local source)",
+        "enu",
+    ),
 }
 
 
@@ -197,6 +217,26 @@ def explanation(
             )
         else:
             text += ". " + note
+    if kind is EffectKind.LOCAL_SOURCE:
+        pos = ", ".join(f"{x:.2f}" for x in params["position_m"])
+        m = float(np.linalg.norm(params["moment_Am2"]))
+        frame = ("the attitude source's own frame (the motion-capture room)"
+                 if params.get("position_frame") == "attitude_source_local" else "local ENU")
+        text += f". Located at ({pos}) m in {frame}, moment {m:.3g} A m^2"
+        if params.get("closest_approach_m") is not None:
+            text += (f"; the sensor came closest, {100 * params['closest_approach_m']:.0f} cm, "
+                     f"at {params['closest_approach_s']:.1f} s")
+        text += (
+            ". It belongs to the surroundings, not to the sensor: the restored field keeps it "
+            "(a survey maps it); calibrate away from it, or keep it in the model"
+        )
+    if kind is EffectKind.LEVER_ARM:
+        lv = np.asarray(params["lever_arm_body_m"], dtype=float)
+        text += (
+            f". The magnetometer sits {100 * float(np.linalg.norm(lv)):.1f} cm from the tracked "
+            "point, at (" + ", ".join(f"{100 * x:+.1f}" for x in lv) + ") cm in the body "
+            "frame; set this offset in the survey's lever-arm configuration"
+        )
     if kind is EffectKind.HEADING_DRIFT:
         text += (
             f". The attitude's heading error changes by {params['peak_to_peak_deg']:.3g} deg "
@@ -366,6 +406,22 @@ def identifiability_reason(
 
     """
     single_axis = stats.axis_spread < 0.02
+    if kind is EffectKind.LEVER_ARM:
+        if data.p_m is None:
+            return "no positions in the recording: the sensor's offset from the tracked " \
+                   "point acts only through a field that varies in space"
+        if efficiency < CONFOUND_RATIO:
+            return (
+                f"the field varies too little in space along this motion (only {efficiency:.1e} "
+                "of the weakest lever-arm direction is independent of the other terms); turn "
+                "the platform near a source or in a strong gradient to determine it"
+            )
+        return None
+    if kind is EffectKind.LOCAL_SOURCE:
+        if data.p_m is None:
+            return "no positions in the recording: a source fixed in the surroundings is seen " \
+                   "only through where the sensor is"
+        return None
     if kind is EffectKind.FIELD_GRADIENT:
         if data.p_m is None:
             return "no positions in the recording (the attitude messages carry none)"

@@ -82,6 +82,7 @@ class EffectKind(str, enum.Enum):
     SAMPLE_HOLD = "sample_hold"  # a timing effect handled on the data, not a model term
     HEADING_DRIFT = "heading_drift"
     LOCAL_SOURCE = "local_source"
+    LEVER_ARM = "lever_arm"
 
 
 LOCAL_KINDS = frozenset({EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP})
@@ -309,6 +310,8 @@ class Term:
             return HEADING_DEGREE
         if k is EffectKind.LOCAL_SOURCE:
             return 7 if self.fit_yaw else 6
+        if k is EffectKind.LEVER_ARM:
+            return 3
         raise ValueError(k)
 
     def presence(self, t_s: F64) -> F64:
@@ -327,14 +330,16 @@ class Term:
 
 
 
-def source_offset_enu(term: Term, value: F64, p_m: F64) -> F64:
+def source_offset_enu(term: Term, value: F64, p_m: F64, lever_enu: F64 | None = None) -> F64:
     """``r`` (N, 3), m, ENU: from the source at ``value[0:3]`` (position frame) to each ``p_m``.
 
-    ``r = Rz(psi) (p - c)``: the position frame turned to ENU by the source's yaw ``psi``
-    (``value[6]`` when ``fit_yaw``, else the term's ``yaw_rad``).
+    ``r = Rz(psi) (p - c) + C l``: the position frame turned to ENU by the source's yaw
+    ``psi`` (``value[6]`` when ``fit_yaw``, else the term's ``yaw_rad``), plus the lever arm
+    in ENU (``lever_enu``, (N, 3), when the model has one).
     """
     psi = float(value[6]) if term.fit_yaw else term.yaw_rad
-    return (np.asarray(p_m, dtype=float) - value[0:3]) @ rot_z(psi).T
+    r = (np.asarray(p_m, dtype=float) - value[0:3]) @ rot_z(psi).T
+    return r if lever_enu is None else r + lever_enu
 
 
 def rot_z(yaw_rad: float) -> F64:
@@ -642,6 +647,11 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
     Cddot = (Cp - 2.0 * Ct + Cm) / (h * h)
 
     # --- ENU field at each sample: B + drift + disturbances
+    # lever_arm: the sensor sits at p + C l (CONVENTIONS), so every spatial term sees the
+    # position moved by C(t) l, ENU (the lever arm's own tau-dependence is left out of
+    # the time offset's Jacobian: second order, |omega x l| tau)
+    lever = state.value(EffectKind.LEVER_ARM)
+    lever_enu = None if lever is None or data.p_m is None else np.einsum("nji,j->ni", Ct, lever)
     Bt = np.broadcast_to(state.B_enu_nT, (n, 3)).copy()
     for term, v in zip(state.terms, state.values, strict=True):
         if term.kind is EffectKind.FIELD_DRIFT:
@@ -653,9 +663,11 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
         elif term.kind is EffectKind.FIELD_GRADIENT:
             # B(p) = B_enu + G_enu Q (p - p_ref)  (CONVENTIONS field_gradient)
             Bt += data.dp_m @ gradient_matrix(v, term.yaw_rad).T
+            if lever_enu is not None:  # + G_enu C l
+                Bt += lever_enu @ gradient_matrix(v, 0.0).T
         elif term.kind is EffectKind.LOCAL_SOURCE and data.p_m is not None:
             # B(p) = B_enu + 100 nT (3 (m.u) u - m) / r^3  (CONVENTIONS local_source)
-            r_src = source_offset_enu(term, v, data.p_m)
+            r_src = source_offset_enu(term, v, data.p_m, lever_enu)
             Bt += term.presence(t)[:, None] * (dipole_matrix(r_src) @ v[3:6])
     # heading_drift: the attitude source reports Rz(h(t)) C_true(t), so the reading is
     # R.T C_rep.T Rz(h) B (CONVENTIONS heading_drift): the ENU field turned about Up by h(t)
@@ -737,14 +749,16 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
                 0, 2, 1, 3
             ).reshape(n, 3, 3 * K)
         elif k is EffectKind.FIELD_GRADIENT:
-            # dB/dg_k = S_k Q (p - p_ref); dy/dg_k = G (N,3,3) @ that
+            # dB/dg_k = S_k (Q (p - p_ref) + C l); dy/dg_k = G (N,3,3) @ that
             dpq = data.dp_m @ rot_z(term.yaw_rad).T  # Q (p - p_ref) per row
+            if lever_enu is not None:
+                dpq = dpq + lever_enu
             dB = np.einsum("kij,nj->nik", _SOFT_BASIS, dpq)  # (N, 3, 5)
             J[:, :, i : i + 5] = np.matmul(G, dB)
         elif k is EffectKind.LOCAL_SOURCE and data.p_m is not None:
-            # r = Rz(psi) (p - c), B = P(r) m: dB/dc = -K Rz(psi), dB/dm = P(r),
-            # dB/dpsi = K (e_z x r), K = dB/dr (dipole_gradient)
-            r_src = source_offset_enu(term, v, data.p_m)
+            # r = Rz(psi) (p - c) + C l, B = P(r) m: dB/dc = -K Rz(psi), dB/dm = P(r),
+            # dB/dpsi = K (e_z x Rz(psi) (p - c)), K = dB/dr (dipole_gradient)
+            r_src = source_offset_enu(term, v, data.p_m, lever_enu)
             pres = term.presence(t)[:, None, None]
             K = dipole_gradient(r_src, v[3:6])
             psi = float(v[6]) if term.fit_yaw else term.yaw_rad
@@ -752,9 +766,22 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             dB[:, :, 0:3] = -np.matmul(K, rot_z(psi))
             dB[:, :, 3:6] = dipole_matrix(r_src)
             if term.fit_yaw:
-                ez_r = np.stack([-r_src[:, 1], r_src[:, 0], np.zeros(n)], axis=1)
+                r_p = source_offset_enu(term, v, data.p_m)
+                ez_r = np.stack([-r_p[:, 1], r_p[:, 0], np.zeros(n)], axis=1)
                 dB[:, :, 6] = _mv(K, ez_r)
             J[:, :, i : i + term.n_params()] = np.matmul(G, pres * dB)
+        elif k is EffectKind.LEVER_ARM and lever_enu is not None:
+            # dB/dl = sum over spatial terms of (dB/dr) C: G_enu C for the gradient,
+            # K(r) C for each source present
+            C = np.swapaxes(Ct, 1, 2)
+            dBdr = np.zeros((n, 3, 3))
+            for t2, v2 in zip(state.terms, state.values, strict=True):
+                if t2.kind is EffectKind.FIELD_GRADIENT:
+                    dBdr += gradient_matrix(v2, 0.0)[None]
+                elif t2.kind is EffectKind.LOCAL_SOURCE and data.p_m is not None:
+                    r2 = source_offset_enu(t2, v2, data.p_m, lever_enu)
+                    dBdr += t2.presence(t)[:, None, None] * dipole_gradient(r2, v2[3:6])
+            J[:, :, i : i + 3] = np.matmul(G, np.matmul(dBdr, C))
         elif k is EffectKind.HEADING_DRIFT:
             # d(Rz(h) B)/dh = Rz(h + pi/2) B with the vertical part removed; h = P v
             assert h_rad is not None  # computed above: the model has the heading_drift term
@@ -808,11 +835,13 @@ def heading_signature_fraction(v_enu_nT: F64, B_enu_nT: F64) -> float:
 MIN_HORIZONTAL_FRACTION = 0.05
 
 
-def source_params(term: Term, value: F64, data: FitData) -> dict[str, Any]:
+def source_params(term: Term, value: F64, data: FitData,
+                  lever_body_m: F64 | None = None, tau_s: float = 0.0) -> dict[str, Any]:
     """CONVENTIONS params of ``local_source``: where, how strong, when, and the closest pass.
 
     ``closest_approach_m`` / ``_s``: the smallest distance from the source to the sensor
-    while the source was there, and when (s from the first magnetometer sample).
+    (the tracked point moved by the lever arm ``lever_body_m`` when there is one) while the
+    source was there, and when (s from the first magnetometer sample).
     """
     windows = ([[float(a), float(b)] for a, b in term.windows_s] if term.windows_s
                else [[0.0, _span(data)]])
@@ -828,7 +857,11 @@ def source_params(term: Term, value: F64, data: FitData) -> dict[str, Any]:
     if data.p_m is not None and len(data):
         here = term.presence(data.t_s) > 0
         if here.any():
-            d = np.linalg.norm(source_offset_enu(term, value, data.p_m[here]), axis=1)
+            lever = None
+            if lever_body_m is not None:
+                C = quat_to_matrix(data.track.at(data.t_s[here] - tau_s))
+                lever = C @ np.asarray(lever_body_m, dtype=float)
+            d = np.linalg.norm(source_offset_enu(term, value, data.p_m[here], lever), axis=1)
             j = int(np.argmin(d))
             out["closest_approach_m"] = float(d[j])
             out["closest_approach_s"] = float(data.t_s[here][j])
@@ -869,7 +902,10 @@ def term_params(term: Term, value: F64, state: ModelState, data: FitData) -> dic
     if k is EffectKind.HEADING_DRIFT:
         return heading_drift_params(value, data)
     if k is EffectKind.LOCAL_SOURCE:
-        return source_params(term, value, data)
+        return source_params(term, value, data, state.value(EffectKind.LEVER_ARM),
+                             state.tau_s())
+    if k is EffectKind.LEVER_ARM:
+        return {"lever_arm_body_m": np.asarray(value, dtype=float).tolist()}
     if k is EffectKind.AXIS_TILT:
         axis_true = state.T_enu @ np.array([0.0, 0.0, 1.0])
         tilt = float(np.degrees(np.arccos(np.clip(axis_true[2], -1.0, 1.0))))
@@ -907,6 +943,8 @@ def term_sigma(term: Term, cov: F64, state: ModelState, data: FitData) -> dict[s
         T_h = max(_span(data), 1e-9) / 3600.0
         return {"rate_deg_per_h": float(np.degrees(2.0 * sd[0]) / T_h),
                 "peak_to_peak_deg": float(np.degrees(2.0 * np.sqrt(np.sum(sd**2))))}
+    if k is EffectKind.LEVER_ARM:
+        return {"lever_arm_body_m": sd.tolist()}
     if k is EffectKind.LOCAL_SOURCE:
         return {"position_m": sd[0:3].tolist(), "moment_Am2": sd[3:6].tolist(),
                 "closest_approach_m": float(np.linalg.norm(sd[0:3]))}

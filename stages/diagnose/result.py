@@ -48,6 +48,8 @@ class Finding:
     where: dict[str, Any]
     explanation: str
     signature: Signature | None = field(default=None, compare=False, repr=False)
+    #: words on what told this finding from its look-alikes (appended to the explanation)
+    told_apart: str = field(default="", compare=False, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
         """Return the finding object of diagnosis.json."""

@@ -32,6 +32,13 @@ from stages.diagnose.model import (
     term_params,
 )
 from stages.diagnose.result import DiagnoseConfig, Diagnosis, Finding, Signature
+from stages.diagnose.sources import (
+    MAX_NEAR_FAR_RATIO,
+    locate_source,
+    near_far_ratio,
+    source_term,
+    with_values,
+)
 from stages.diagnose.statistics import (
     _ISO,
     INTERP_MARGIN,
@@ -58,7 +65,11 @@ GLOBAL_KINDS = (
     EffectKind.AXIS_TILT,
     EffectKind.FIELD_GRADIENT,
     EffectKind.HEADING_DRIFT,
+    EffectKind.LEVER_ARM,
 )
+
+#: the terms whose field depends on where the sensor is: a lever arm acts through them
+SPATIAL_KINDS = frozenset({EffectKind.FIELD_GRADIENT, EffectKind.LOCAL_SOURCE})
 
 
 #: Nested pairs: the simpler term (value) is a special case of the other (key) and is
@@ -285,6 +296,7 @@ def diagnose_data(
         present = {t.kind for t in cur.state.terms}
         cands: list[Term] = [Term(k) for k in kinds if k not in present]
         taken = [w for t in cur.state.terms if t.kind in LOCAL_KINDS for w in t.windows_s]
+        src_start: dict[int, np.ndarray] = {}  # candidate index -> a source's start values
         for w in scan_windows(cur.residual_nT, data.t_s, cfg):
             if any(w[0] >= a and w[1] <= b for a, b in taken):
                 continue  # inside a window already modelled, not a new event
@@ -296,13 +308,24 @@ def diagnose_data(
             cands.append(Term(EffectKind.DISTURBANCE, (wd,), knot_step_s=ks))
             ws = refine_step(w, cur.residual_nT, data.t_s)
             cands.append(Term(EffectKind.HARD_IRON_STEP, (ws,)))
+            # the same excess as a source fixed in the room: present throughout, or only
+            # around the window (put down and taken away)
+            loc = locate_source(cur, data, w)
+            if loc is not None and near_far_ratio(source_term(loc[1], (wd,)), loc[0],
+                                                  data) <= MAX_NEAR_FAR_RATIO:
+                for presence in ((), (wd,)):
+                    src_start[len(cands)] = loc[0]
+                    cands.append(source_term(loc[1], presence))
         tests = []
+        starts: dict[int, ModelState] = {}  # id of a ScoreTest -> the state its refit starts at
         replace_trial = None
         for j, term in enumerate(cands):
             progress.detail(f"search {len(findings) + 1}, candidate {j + 1}/{len(cands)}",
                             len(findings) + 0.5 * j / len(cands), _ROUNDS_SHOWN)
             if (term.kind, term.windows_s) in rejected | dropped:
                 continue
+            if term.kind is EffectKind.LEVER_ARM and not present & SPATIAL_KINDS:
+                continue  # without a field that varies in space, no lever arm shows
             if term.kind is EffectKind.FIELD_DRIFT and EffectKind.HEADING_DRIFT in present:
                 # the heading drift spans part of the field drift: the field drift can only
                 # replace it (tried below), not be added to it
@@ -314,6 +337,12 @@ def diagnose_data(
             elif term.kind is EffectKind.EDDY_CURRENT and EffectKind.TIME_OFFSET in present:
                 # only what a time offset cannot explain: the anisotropic part of E_s
                 st = anisotropic_eddy_test(cur, data, sig)
+            elif term.kind is EffectKind.LOCAL_SOURCE:
+                # tested at zero moment at the located place; refitted from the grid's moment
+                v0 = src_start[j]
+                st = score_test(cur, term, data, sig,
+                                start=with_values(term, np.r_[v0[:3], 0, 0, 0, v0[6:]], cur))
+                starts[id(st)] = with_values(term, v0, cur)
             else:
                 st = score_test(cur, term, data, sig)
             Bc = cur.state.B_enu_nT
@@ -355,8 +384,8 @@ def diagnose_data(
                 break
             progress.detail(f"search {len(findings) + 1}, refit {r + 1}/{cfg.n_refit}",
                             len(findings) + 0.5 + 0.5 * r / cfg.n_refit, _ROUNDS_SHOWN)
-            fr = _refit(cur, st.term, data, cfg)
-            if fr is None:
+            fr = _refit(cur, st.term, data, cfg, start=starts.get(id(st)))
+            if fr is None or not _source_ok(fr[0], data):
                 rejected.add((st.term.kind, st.term.windows_s))
                 continue
             fits.append((fr[1], st, fr[0]))
@@ -404,6 +433,9 @@ def diagnose_data(
                 cur = fit(dataclasses.replace(res.state, terms=res.state.terms[:-1],
                                               values=res.state.values[:-1]), data)
             findings.append(_finding(cur, res, term, st, dbic, cv_cur, cv_new, data))
+            if term.kind is EffectKind.LOCAL_SOURCE:
+                findings[-1] = dataclasses.replace(findings[-1],
+                                                   told_apart=_told_apart(cur, res, data))
             cur, cv_cur = res, cv_new
             accepted = True
             rejected.clear()
@@ -467,7 +499,8 @@ def diagnose_data(
             f,
             params=(p := term_params(cur.state.terms[i], cur.state.values[i], cur.state, data)),
             sigma=_sigma_for(cur, i, cov_final, data),
-            explanation=explanation(cur.state.terms[i].kind, p, data.duration_s, note=note),
+            explanation=explanation(cur.state.terms[i].kind, p, data.duration_s, note=note)
+            + f.told_apart,
         )
         for i, f in enumerate(findings)
     ]
@@ -575,7 +608,8 @@ def _chain_evidence(
         dbic = _bic(after.rss, n_eff, after.state.n_params()) - _bic(
             before.rss, n_eff, before.state.n_params())
         new = _finding(before, after, term, st, float(dbic), cvs[k], cvs[k + 1], data)
-        out.append(dataclasses.replace(new, params=fd.params, sigma=fd.sigma))
+        out.append(dataclasses.replace(new, params=fd.params, sigma=fd.sigma,
+                                       told_apart=fd.told_apart))
     return out
 
 
@@ -708,11 +742,68 @@ def _without(state: ModelState, i: int) -> ModelState:
     )
 
 
+def _source_ok(res: FitResult, data: FitData) -> bool:
+    """Keep a fitted ``local_source`` only where the sensor sampled its ``1/r^3``.
+
+    Other terms pass. A source the fit moved far from the path, so that the sensor's
+    distance to it hardly changes where it acts, describes a smooth field, not an object.
+    """
+    term = res.state.terms[-1]
+    if term.kind is not EffectKind.LOCAL_SOURCE:
+        return True
+    value = res.state.values[-1]
+    near = near_far_ratio(term, value, data) if term.windows_s else near_far_ratio(
+        dataclasses.replace(term, windows_s=_active_windows(term, value, data)), value, data)
+    return bool(np.all(np.isfinite(value))) and near <= MAX_NEAR_FAR_RATIO
+
+
+def _active_windows(term: Term, value: np.ndarray, data: FitData) -> tuple:
+    """Where a source present throughout stands out: its field above a tenth of its peak."""
+    from stages.diagnose.model import source_offset_enu
+
+    d = np.linalg.norm(source_offset_enu(term, value, np.asarray(data.p_m)), axis=1)
+    strong = (d.min() / d) ** 3 > 0.1
+    idx = np.flatnonzero(strong)
+    return ((float(data.t_s[idx[0]]), float(data.t_s[idx[-1]]) + 1e-6),)
+
+
+def _told_apart(cur: FitResult, res: FitResult, data: FitData) -> str:
+    """Words: how much worse a magnet on the platform or a disturbance fits than the source.
+
+    Both are fitted in the windows where the source's field stands out (above a tenth of its
+    peak), in place of the source, and compared by BIC with one effective sample count.
+    """
+    term, value = res.state.terms[-1], res.state.values[-1]
+    wins = _active_windows(term, value, data)
+    if term.windows_s:
+        wins = term.windows_s
+    a, b = wins[0][0], wins[-1][1]
+    ks = min(2.0, max(0.75, (b - a) / 6))
+    parts = []
+    for alt, what in ((Term(EffectKind.HARD_IRON_STEP, ((a, b),)),
+                       "a magnet riding on the platform (an offset that turns with it)"),
+                      (Term(EffectKind.DISTURBANCE, ((a, b),), knot_step_s=ks),
+                       "a field changing in time, the same everywhere nearby")):
+        other = fit(cur.state.with_term(alt), data)
+        d = _bic_between(other, res, data)
+        parts.append(f"{what} fits worse by {d:.0f} in BIC" if d > 0
+                     else f"{what} fits as well (BIC {d:.0f}): the pass is too short to tell")
+    return (". Told apart by the data: the field stays where the object is and falls off "
+            f"with the cube of the distance as the sensor moves (checked in {a:.1f}-{b:.1f} s); "
+            + "; ".join(parts))
+
+
 def _refit(
-    cur: FitResult, term: Term, data: FitData, cfg: DiagnoseConfig
+    cur: FitResult, term: Term, data: FitData, cfg: DiagnoseConfig,
+    start: ModelState | None = None,
 ) -> tuple[FitResult, float] | None:
-    """Refit with ``term``; return (fit, delta BIC) if the BIC drops by ``bic_margin``."""
-    res = canonical_rate_terms(fit(cur.state.with_term(term), data), data)
+    """Refit with ``term``; return (fit, delta BIC) if the BIC drops by ``bic_margin``.
+
+    ``start``: the state the fit starts from (``term`` appended with its start values);
+    default ``term`` appended at zero.
+    """
+    res = canonical_rate_terms(fit(cur.state.with_term(term) if start is None else start,
+                                   data), data)
     if not res.rss < cur.rss:
         return None
     n_eff = _n_eff(res, data)

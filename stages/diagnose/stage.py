@@ -306,6 +306,9 @@ def _model_values(term: Term, value: np.ndarray, data: FitData) -> dict[str, Any
         # param: the model needs it to place the source in ENU)
         psi = float(value[6]) if term.fit_yaw else term.yaw_rad
         return {"frame_yaw_deg": float(np.degrees(psi))}
+    if term.kind is EffectKind.FIELD_GRADIENT:
+        # the same for the gradient (the lever arm turns the sensor's offset in ENU)
+        return {"frame_yaw_deg": float(np.degrees(term.yaw_rad))}
     return {}
 
 

@@ -132,9 +132,14 @@ def gradient_candidate(cur: FitResult, data: FitData, sigma: float) -> ScoreTest
     return best if best.statistic >= tests[i].statistic else tests[i]
 
 
-def score_test(cur: FitResult, term: Term, data: FitData, sigma: float) -> ScoreTest:
-    """Score test of adding ``term`` to the model of ``cur`` (no refit)."""
-    st = cur.state.with_term(term)
+def score_test(cur: FitResult, term: Term, data: FitData, sigma: float,
+               start: ModelState | None = None) -> ScoreTest:
+    """Score test of adding ``term`` to the model of ``cur`` (no refit).
+
+    ``start``: the model with ``term`` appended at its null values (default zero), for a
+    term whose Jacobian depends on where it is (a source's position).
+    """
+    st = cur.state.with_term(term) if start is None else start
     ev = evaluate(st, data)
     J = ev.jac if ev.sqrt_w is None else ev.jac * ev.sqrt_w[:, None, None]
     return _score_from_J(cur, term, J.reshape(-1, J.shape[-1]), data, sigma)

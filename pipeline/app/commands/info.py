@@ -5,14 +5,16 @@ With ``--json`` one object is printed (CONVENTIONS)::
     {"channels": [{"topic", "type", "role", "count", "rate_hz"}, ...],
      "duration_s": float, "problems": [{"code", "message", "count"}, ...]}
 
-``role`` is ``magnetometer``, ``attitude``, ``turntable`` or ``other``; ``rate_hz`` is
-``1 / median stamp interval`` (header stamps; log times for channels of other types) or
-null with fewer than two messages; ``duration_s`` spans the magnetometer stamps (all
+``role`` is ``magnetometer``, ``attitude``, ``turntable``, ``position`` (a
+``sensor_msgs/msg/NavSatFix`` channel: GNSS fixes, the recording's positions) or ``other``;
+``rate_hz`` is ``1 / median stamp interval`` (header stamps; log times for channels of other
+types) or null with fewer than two messages; ``duration_s`` spans the magnetometer stamps (all
 channels when there is no magnetometer). ``problems`` lists what was found wrong and
 handled (a cut file, chunks skipped for a bad CRC or compression, stamps backwards or
 duplicated, gaps) and what reading would repair or refuse in the values (the same checks as
 ``calibrate`` and ``process``: NaN/Inf samples, zero or non-unit quaternions, clock jumps,
-samples pinned at a rail; code ``unusable`` for what they would refuse): ``code`` is a short
+samples pinned at a rail, position fixes lost (``position_lost``) or none valid at all
+(``no_position_fix``); code ``unusable`` for what they would refuse): ``code`` is a short
 fixed identifier, ``message`` says it in words, ``count`` how many samples or bytes.
 """
 

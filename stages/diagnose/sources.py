@@ -1,0 +1,139 @@
+"""Where a ``local_source`` candidate starts: a point dipole located by a grid search.
+
+A source fixed in the surroundings adds ``B = P(r) m``
+(:func:`pipeline.model.forward.dipole_matrix`) to the ENU field at the sensor, with
+``r = Rz(psi) (p - c)`` from the source at ``c`` to the sensor at ``p``. The reading changes
+by ``G(t) B`` with ``G = dy/dB_enu`` of the current model, so for a fixed position ``c`` and
+bearing ``psi`` the moment ``m`` is a linear least-squares problem. The position enters as
+``1/r^3``: a Gauss-Newton fit from far away does not find it, and at zero moment the
+position has no gradient at all. The grid puts ``c`` on shells around the place where the
+residual peaks (the sensor is closest there), solves for ``m`` at each, and starts the
+joint fit from the best.
+
+What tells a fixed source from the other local terms (the report says which): a
+``hard_iron_step`` is constant in the mag frame (it turns with the platform); a
+``disturbance`` is a function of time, the same wherever the sensor is; a source is fixed in
+ENU and falls off as ``1/r^3`` with the distance to one place.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from pipeline.model.forward import dipole_matrix
+from stages.diagnose.fit import FitResult
+from stages.diagnose.model import F64, EffectKind, FitData, ModelState, Term, evaluate, rot_z
+
+#: distances (m) of the grid's shells from the place of the strongest residual
+SHELLS_M = (0.02, 0.04, 0.07, 0.12, 0.2, 0.35, 0.6, 1.0, 1.7, 3.0)
+
+#: bearings (deg) of the position frame tried when it is not known (a motion-capture room)
+YAW_GRID_DEG = tuple(range(0, 360, 30))
+
+#: a source is told from a smooth field only where the sensor passes it closer than this
+#: fraction of its farthest distance in the window: the field then changes by at least
+#: (1 / 0.5)^3 = 8 times along the path, which no linear gradient does
+MAX_NEAR_FAR_RATIO = 0.5
+
+
+def _directions() -> F64:
+    """Return the 26 directions to the corners, edges and faces of a cube, unit vectors (26, 3)."""
+    g = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)
+                  if (i, j, k) != (0, 0, 0)], dtype=float)
+    return g / np.linalg.norm(g, axis=1)[:, None]
+
+
+def locate_source(cur: FitResult, data: FitData, window_s: tuple[float, float],
+                  *, max_samples: int = 1500) -> tuple[F64, bool] | None:
+    """Start values of a ``local_source`` seen in ``window_s``, or None without positions.
+
+    Parameters
+    ----------
+    cur : FitResult
+        The current model; its residual holds the source's field.
+    data : FitData
+        With positions (``p_m``).
+    window_s : (float, float)
+        Where the scan saw the excess, s from the first magnetometer sample; the grid uses
+        the samples of this window widened by half its length on each side.
+    max_samples : int
+        The grid's sample budget (every k-th sample of the widened window).
+
+    Returns
+    -------
+    (ndarray, bool) or None
+        The term's values ``[c (3), m (3)]`` plus ``psi`` when the bearing is fitted, and
+        whether it is (positions in a frame of unknown bearing).
+
+    """
+    if data.p_m is None:
+        return None
+    a, b = window_s
+    pad = max(1.0, 0.5 * (b - a))
+    sel = np.flatnonzero((data.t_s >= a - pad) & (data.t_s < b + pad))
+    if sel.size < 20:
+        return None
+    sel = sel[:: max(1, sel.size // max_samples)]
+    r = (cur.residual_nT if cur.raw_residual_nT is None else cur.raw_residual_nT)[sel]
+    sub = data.subset(np.isin(np.arange(len(data)), sel))
+    G = evaluate(cur.state, sub, jacobian=False).G  # dy/dB_enu, (n, 3, 3)
+    p = np.asarray(sub.p_m, dtype=float)
+    inside = (sub.t_s >= a) & (sub.t_s < b)
+    norm = np.linalg.norm(r, axis=1)
+    k = int(np.flatnonzero(inside)[np.argmax(norm[inside])]) if inside.any() \
+        else int(np.argmax(norm))
+    centre = p[k]
+    cands = centre[None, :] + (np.asarray(SHELLS_M)[:, None, None]
+                               * _directions()[None, :, :]).reshape(-1, 3)
+    fit_yaw = data.position_frame == "attitude_source_local"
+    yaws = np.radians(YAW_GRID_DEG) if fit_yaw else np.array([0.0])
+    best: tuple[float, F64, float] | None = None
+    for psi in yaws:
+        Q = rot_z(float(psi))
+        GQ = G  # dy/dB_enu; the field is P(Rz(psi)(p - c)) m with m in ENU
+        for c in cands:
+            X = np.matmul(GQ, dipole_matrix((p - c) @ Q.T))  # (n, 3, 3): dy/dm
+            A = np.einsum("nki,nkj->ij", X, X)
+            g = np.einsum("nki,nk->i", X, r)
+            try:
+                m = np.linalg.solve(A + 1e-12 * np.trace(A) * np.eye(3), g)
+            except np.linalg.LinAlgError:
+                continue
+            gain = float(g @ m)
+            if best is None or gain > best[0]:
+                best = (gain, np.r_[c, m], float(psi))
+    if best is None or best[0] <= 0:
+        return None
+    value = best[1] if not fit_yaw else np.r_[best[1], best[2]]
+    return value, fit_yaw
+
+
+def near_far_ratio(term: Term, value: F64, data: FitData) -> float:
+    """Closest over farthest distance from the source to the sensor while it acts (0..1).
+
+    Where the sensor's distance to the source hardly changes, the dipole's ``1/r^3`` is not
+    sampled: the fit then describes a smooth field (a gradient or a field map does that)
+    and says nothing about a compact object.
+    """
+    from stages.diagnose.model import source_offset_enu
+
+    if data.p_m is None:
+        return 1.0
+    here = term.presence(data.t_s) > 0
+    if not here.any():
+        return 1.0
+    d = np.linalg.norm(source_offset_enu(term, value, data.p_m[here]), axis=1)
+    return float(d.min() / max(float(d.max()), 1e-12))
+
+
+def source_term(fit_yaw: bool, windows_s: tuple[tuple[float, float], ...] = ()) -> Term:
+    """Return the ``local_source`` term, present in ``windows_s`` (empty: the whole recording)."""
+    return Term(EffectKind.LOCAL_SOURCE, windows_s, fit_yaw=fit_yaw)
+
+
+def with_values(state_term: Term, value: F64, cur: FitResult) -> ModelState:
+    """Return ``cur.state`` with ``state_term`` appended at ``value`` (not at zero)."""
+    st = cur.state.with_term(state_term)
+    return replace(st, values=st.values[:-1] + (np.asarray(value, dtype=float),))
