@@ -108,7 +108,7 @@ MESSAGE_TYPES: dict[str, MessageType] = {t.name: t for t in (
                 ("heading_deg", "pitch_deg", "roll_deg")),
     MessageType("std_msgs/msg/Float64", _R.TURNTABLE, "ros2", ("value",)),
     MessageType("sensor_msgs/msg/NavSatFix", _R.POSITION, "ros2",
-                ("latitude_deg", "longitude_deg", "altitude_m"),
+                ("latitude_deg", "longitude_deg", "height_m"),
                 geodetic=("latitude", "longitude", "altitude"), fix_status="status.status"),
     MessageType("magalign.Turntable", _R.TURNTABLE, "json", ("angle_deg",)),
     MessageType("tf2_msgs/msg/TFMessage", _R.OUTPUT, "ros2"),

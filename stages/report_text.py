@@ -111,6 +111,25 @@ def what(f: dict[str, Any]) -> str:
     if e == "heading_drift":
         return (f"The attitude source's heading drifts by {num(float(p['rate_deg_per_h']), 2)}"
                 f"\u00b0/h ({float(p['peak_to_peak_deg']):.2f}\u00b0 peak to peak).")
+    if e == "local_source":
+        pos = np.asarray(p["position_m"], float)
+        sp = s.get("position_m")
+        frame = ("the motion-capture room's frame" if p.get("position_frame")
+                 == "attitude_source_local" else "local east, north, up")
+        where = ""
+        if p.get("closest_approach_m") is not None:
+            where = (f"; the sensor passed {100 * float(p['closest_approach_m']):.0f} cm from "
+                     f"it at {float(p['closest_approach_s']):.1f} s")
+        return (f"A magnetised object fixed in the surroundings (not on the sensor): located "
+                f"at {pm_vec(pos, sp, 2)} m in {frame}, moment "
+                f"{float(np.linalg.norm(p['moment_Am2'])):.3g} A m²{where}. The restored "
+                "field keeps it.")
+    if e == "lever_arm":
+        lv = 100 * np.asarray(p["lever_arm_body_m"], float)
+        sl = s.get("lever_arm_body_m")
+        return (f"The magnetometer sits {np.linalg.norm(lv):.1f} cm from the tracked point: "
+                f"{pm_vec(lv, None if sl is None else 100 * np.asarray(sl, float), 1)} cm "
+                "along the body's x, y, z.")
     if e == "sample_hold":
         return (f"The sensor samples at {float(p['native_rate_hz']):.1f} Hz, slower than its "
                 f"messages: {100 * float(p['repeated_fraction']):.1f} % of them repeat a "

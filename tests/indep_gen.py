@@ -17,6 +17,15 @@ with ``C_true`` the true attitude; the attitude source reports ``Rz(h(t)) C_true
 (``h`` the heading drift, ``n`` its noise). ``dy0/dt`` is a central difference of the
 continuous motion (step 0.1 ms), not of the samples.
 
+Space: ``p(t)`` is the tracked point of the position source (what the file carries); the
+magnetometer sits at ``p(t) + C_true(t) @ l`` (``lever_arm``, ``l = 0`` without it), and every
+spatial term of ``B_enu`` (``field_gradient``, ``local_source``: a point dipole fixed in the
+surroundings) is evaluated there. Paths (``Spec.path``): ``lissajous`` (the original motion),
+``survey`` (parallel lines walked with the heading along the track) and ``translate`` (a lab
+recording that moves the sensor but barely turns it). Positions are written as PoseStamped
+(local metres, optionally in a frame rotated about Up), INSPVA or NavSatFix (WGS-84 geodetic,
+flat-earth tangent plane at ``Spec.geo_origin``). :func:`truth` states what went in.
+
 Sizes are multiples of the detection threshold, computed here independently (the same
 definition as ``pipeline.app.challenge``): the noise-free signature ``d`` of the effect, with the
 part that a change of ``R_body_mag`` and ``B_enu`` absorbs removed by least squares (their
@@ -109,13 +118,54 @@ MSG: novatel_oem7_msgs/InertialSolutionStatus
 uint32 status
 """,
 }
+# ROS 2 sensor_msgs (Humble), with the NavSatStatus it nests; the constants are part of the
+# definition a reader parses, so they are written as the package states them
+MSGDEFS["sensor_msgs/msg/NavSatFix"] = """std_msgs/Header header
+sensor_msgs/NavSatStatus status
+float64 latitude
+float64 longitude
+float64 altitude
+float64[9] position_covariance
+uint8 COVARIANCE_TYPE_UNKNOWN = 0
+uint8 COVARIANCE_TYPE_APPROXIMATED = 1
+uint8 COVARIANCE_TYPE_DIAGONAL_KNOWN = 2
+uint8 COVARIANCE_TYPE_KNOWN = 3
+uint8 position_covariance_type
+""" + _HEADER + """================================================================================
+MSG: sensor_msgs/NavSatStatus
+int8 STATUS_NO_FIX =  -1
+int8 STATUS_FIX =      0
+int8 STATUS_SBAS_FIX = 1
+int8 STATUS_GBAS_FIX = 2
+int8 status
+uint16 SERVICE_GPS =     1
+uint16 SERVICE_GLONASS = 2
+uint16 SERVICE_COMPASS = 4
+uint16 SERVICE_GALILEO = 8
+uint16 service
+"""
+NAVSATFIX = "sensor_msgs/msg/NavSatFix"
 ATTITUDE_TYPES = ("sensor_msgs/msg/Imu", "geometry_msgs/msg/PoseStamped",
                   "geometry_msgs/msg/QuaternionStamped", "novatel_oem7_msgs/msg/INSPVA")
 
 #: Number of parameters of the term magalign reports for each effect (for the threshold).
 K_PARAMS = {"hard_iron": 3, "soft_iron": 5, "time_offset": 1, "eddy_current": 9,
             "field_drift": 12, "disturbance": 15, "hard_iron_step": 3, "field_gradient": 6,
-            "heading_drift": 2, "sample_hold": 1}
+            "heading_drift": 2, "sample_hold": 1, "local_source": 6, "lever_arm": 3}
+
+#: Paths (``Spec.path``) and position sources (``Spec.position_type``).
+PATHS = ("lissajous", "survey", "translate")
+POSITION_TYPES = ("pose", "inspva", "navsatfix")
+
+#: mu0 / 4 pi in nT m / A: the dipole field is ``MU0_4PI_NT * (3 (m.u) u - m) / r^3`` with m
+#: in A m^2 and r in m (1e-7 T m / A = 100 nT m / A).
+MU0_4PI_NT = 100.0
+#: WGS-84 semi-major axis (m) and flattening.
+WGS84_A = 6_378_137.0
+WGS84_F = 1.0 / 298.257223563
+
+_SURVEY_ACCEL_S = 3.0  # from rest to walking speed at the start of the first line
+_CAL_ROLL_DEG, _CAL_PITCH_DEG = 10.0, 5.0  # tilts of the survey's calibration manoeuvre
 
 T0_NS = 1_767_225_600_000_000_000  # 2026-01-01T00:00:00Z
 
@@ -159,7 +209,38 @@ class Spec:
     effects : dict
         Effect name -> parameters (see :func:`effect_params`).
     positions : bool
-        Move through space and write positions (PoseStamped only).
+        Write positions (PoseStamped; INSPVA / NavSatFix with ``position_type``).
+    path : str
+        One of :data:`PATHS`. ``lissajous``: the tracked point on a Lissajous figure
+        (+-0.2-0.4 m) with the attitude of ``motion``. ``survey``: parallel lines along north
+        (``survey_*``), the heading along the track (body frame x right, y forward, z up), and
+        swings of ``swing_deg`` at ``freqs_hz``. ``translate``: +-``translate_amp_m`` in each
+        ENU axis at 0.1-0.3 Hz, a fixed heading and swings of ``swing_deg`` at ``freqs_hz``.
+        ``motion`` and ``amps_deg`` / ``yaw_rate_deg_s`` belong to ``lissajous`` only.
+    swing_deg : tuple of float
+        Yaw, pitch, roll swing amplitudes of ``survey`` and ``translate``, deg.
+    survey_line_m, survey_spacing_m, survey_speed_m_s, survey_height_m : float
+        Line length (m, along north), spacing between lines (m, eastwards), walking speed
+        (m/s) and the constant height of the tracked point (m, ENU up).
+    survey_calibration_s : float
+        Length of the calibration manoeuvre before the walk (0: none): standing on the
+        first line's start, a roll of +-10 deg and a pitch of +-5 deg at each of the
+        headings north, east, south, west, each followed by a quarter turn clockwise.
+    translate_amp_m : float
+        Amplitude of each ENU axis of the ``translate`` path, m.
+    position_type : str
+        One of :data:`POSITION_TYPES`: ``pose`` (PoseStamped local metres, the default),
+        ``inspva`` (INSPVA latitude / longitude / height: ``att_type`` must be INSPVA) or
+        ``navsatfix`` (a ``/gps/fix`` NavSatFix channel at ``fix_rate_hz``; ``att_type`` must
+        be Imu or QuaternionStamped).
+    geo_origin : tuple of float
+        Latitude (deg), longitude (deg), ellipsoidal height (m, WGS-84) of the ENU origin of
+        the geodetic position types.
+    fix_rate_hz : float
+        Rate of the NavSatFix channel.
+    position_frame_yaw_deg : float
+        PoseStamped positions are written in a frame rotated about Up by this angle from ENU
+        (a motion-capture room): ``p_written = Rz(yaw).T @ p_enu``. ``pose`` only.
 
     """
 
@@ -183,6 +264,45 @@ class Spec:
     rotvec_body_mag_deg: tuple = (1.0, -1.5, 2.0)
     effects: dict = field(default_factory=dict)
     positions: bool = True
+    path: str = "lissajous"
+    swing_deg: tuple = (1.0, 2.0, 3.0)
+    survey_line_m: float = 30.0
+    survey_spacing_m: float = 2.0
+    survey_speed_m_s: float = 1.5
+    survey_height_m: float = 1.0
+    survey_calibration_s: float = 0.0
+    translate_amp_m: float = 0.5
+    position_type: str = "pose"
+    geo_origin: tuple = (52.5, 13.3, 40.0)
+    fix_rate_hz: float = 10.0
+    position_frame_yaw_deg: float = 0.0
+
+
+#: Spec fields added after the first corpora: left out of a key file while at their
+#: defaults, so that the key of a recording without them stays as it was.
+_NEW_FIELDS = ("path", "swing_deg", "survey_line_m", "survey_spacing_m", "survey_speed_m_s",
+               "survey_height_m", "survey_calibration_s", "translate_amp_m", "position_type",
+               "geo_origin", "fix_rate_hz", "position_frame_yaw_deg")
+
+
+def check_spec(spec: Spec) -> None:
+    """Raise ``ValueError`` for a combination of options the generator cannot write."""
+    if spec.path not in PATHS:
+        raise ValueError(f"path {spec.path!r}: not one of {PATHS}")
+    if spec.position_type not in POSITION_TYPES:
+        raise ValueError(f"position_type {spec.position_type!r}: not one of {POSITION_TYPES}")
+    if spec.position_type == "inspva" and spec.att_type != "novatel_oem7_msgs/msg/INSPVA":
+        raise ValueError("position_type inspva needs att_type novatel_oem7_msgs/msg/INSPVA")
+    if spec.position_type == "navsatfix" and spec.att_type not in (
+            "sensor_msgs/msg/Imu", "geometry_msgs/msg/QuaternionStamped"):
+        # a PoseStamped beside the fixes would carry a position that means nothing
+        raise ValueError("position_type navsatfix needs att_type sensor_msgs/msg/Imu or "
+                         "geometry_msgs/msg/QuaternionStamped")
+    if spec.position_frame_yaw_deg != 0.0 and spec.position_type != "pose":
+        raise ValueError("position_frame_yaw_deg applies to position_type pose only")
+    if spec.path == "survey" and _SURVEY_ACCEL_S * spec.survey_speed_m_s / 2 >= \
+            spec.survey_line_m:
+        raise ValueError("survey_line_m too short for the start from rest")
 
 
 # ----------------------------------------------------------------------------- physics
@@ -190,6 +310,8 @@ class Spec:
 
 def _angles(spec: Spec, t_s: np.ndarray) -> np.ndarray:
     """Yaw, pitch, roll (rad) of the true attitude at ``t_s``, (N, 3)."""
+    if spec.path != "lissajous":
+        return _path_angles(spec, t_s)
     f = np.asarray(spec.freqs_hz, dtype=float)
     a = np.radians(spec.amps_deg)
     ph = np.random.default_rng(spec.seed + 1).uniform(0, 2 * np.pi, 6)
@@ -209,6 +331,125 @@ def _angles(spec: Spec, t_s: np.ndarray) -> np.ndarray:
     return out
 
 
+def _smoothstep(u: np.ndarray) -> np.ndarray:
+    """``u - sin(2 pi u) / (2 pi)`` on [0, 1], 0 below, 1 above.
+
+    First and second derivatives vanish at both ends: joined to constants it is C2, so a
+    turn or a start built from it has no step in angular rate or acceleration.
+    """
+    u = np.clip(u, 0.0, 1.0)
+    return u - np.sin(2 * np.pi * u) / (2 * np.pi)
+
+
+def _survey_track(spec: Spec, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Position (ENU m), velocity (ENU m/s) and track yaw (rad) of the survey, closed form.
+
+    Timeline (``Tc = survey_calibration_s``): at rest at (0, 0, height) until ``Tc`` (the
+    calibration turns happen there); from rest to ``v`` along north in 3 s (speed
+    ``v * _smoothstep``); then lines of ``survey_line_m`` joined by turns of duration ``T =
+    8 s / (3 v)`` (``s`` the spacing) in which, with ``u = tau / T``,
+
+        v_east  = v sin^4(pi u)                       (area 3/8 v T = s)
+        v_north = +-v (1 - 2 u + sin(2 pi u) / pi)    (+-v at the ends, returns to the line end)
+
+    Both components are C2 at the joins (value, first and second derivatives match a
+    straight line), so position is C3 and the track heading ``atan2`` of the velocity C2;
+    the speed stays within 0.8-1 v. Lines alternate north / south, stepping east. The yaw is
+    that of the forward (y) body axis: 0 north, -pi south (it stays in [-pi, 0], no wrap).
+    """
+    t = np.asarray(t_s, dtype=float)
+    v, L, s = spec.survey_speed_m_s, spec.survey_line_m, spec.survey_spacing_m
+    Ta = _SURVEY_ACCEL_S
+    Tt = 8.0 * s / (3.0 * v)
+    d_acc = v * Ta / 2.0
+    T1 = (L - d_acc) / v  # rest of the first line at full speed
+    Tcyc = Tt + L / v
+    tau = t - max(spec.survey_calibration_s, 0.0)
+    x, y = np.zeros_like(t), np.zeros_like(t)
+    vx, vy = np.zeros_like(t), np.zeros_like(t)
+    m = (tau >= 0) & (tau < Ta)
+    u = tau[m] / Ta
+    y[m] = v * Ta * (u**2 / 2 + (np.cos(2 * np.pi * u) - 1) / (4 * np.pi**2))
+    vy[m] = v * _smoothstep(u)
+    m = (tau >= Ta) & (tau < Ta + T1)
+    y[m] = d_acc + v * (tau[m] - Ta)
+    vy[m] = v
+    r = tau - Ta - T1
+    on = r >= 0
+    k = np.floor(r[on] / Tcyc)
+    rr = r[on] - k * Tcyc
+    d = np.where(k % 2 == 0, 1.0, -1.0)  # direction of the line that ends at this turn
+    y_end = np.where(k % 2 == 0, L, 0.0)
+    x0 = k * s
+    turn = rr < Tt
+    u = rr / Tt
+    xs = np.where(turn, x0 + 8.0 * s / 3.0 * (3 * u / 8 - np.sin(2 * np.pi * u) / (4 * np.pi)
+                                            + np.sin(4 * np.pi * u) / (32 * np.pi)), x0 + s)
+    ys = np.where(turn, y_end + d * v * Tt * (u - u**2 + (1 - np.cos(2 * np.pi * u))
+                                              / (2 * np.pi**2)),
+                  y_end - d * v * (rr - Tt))
+    vxs = np.where(turn, v * np.sin(np.pi * u) ** 4, 0.0)
+    vys = np.where(turn, d * v * (1 - 2 * u + np.sin(2 * np.pi * u) / np.pi), -d * v)
+    x[on], y[on], vx[on], vy[on] = xs, ys, vxs, vys
+    # before and during the start the track is north (yaw 0); atan2 is undefined at rest
+    yaw = np.where(tau < Ta, 0.0, np.arctan2(vy, vx) - np.pi / 2)
+    pos = np.stack([x, y, np.full_like(t, spec.survey_height_m)], axis=-1)
+    vel = np.stack([vx, vy, np.zeros_like(t)], axis=-1)
+    return pos, vel, yaw
+
+
+def _survey_calibration(spec: Spec, t_s: np.ndarray) -> np.ndarray:
+    """Yaw, pitch, roll (rad) added by the calibration manoeuvre at the survey's start.
+
+    Four segments of ``Tc / 4``: roll ``10 deg sin^3`` over the first 30 % (+10 then -10
+    deg), pitch ``5 deg sin^3`` over the next 30 %, a clockwise quarter turn (yaw
+    ``-pi/2 * _smoothstep``) over the last 40 %. ``sin^3`` and the smoothstep have zero first
+    and second derivatives at their ends: the manoeuvre is C2 in angle. After it the yaw is
+    -2 pi (north again), so the walk continues without a jump.
+    """
+    t = np.asarray(t_s, dtype=float)
+    out = np.zeros((len(t), 3))
+    Tc = spec.survey_calibration_s
+    if Tc <= 0:
+        return out
+    Ts = Tc / 4.0
+    inside = (t >= 0) & (t < Tc)
+    k = np.clip(np.floor(t / Ts), 0, 3)
+    tau = t - k * Ts
+    u_roll = tau / (0.3 * Ts)
+    u_pitch = (tau - 0.3 * Ts) / (0.3 * Ts)
+    u_turn = (tau - 0.6 * Ts) / (0.4 * Ts)
+    roll = np.where((u_roll >= 0) & (u_roll < 1), np.sin(2 * np.pi * u_roll) ** 3, 0.0)
+    pitch = np.where((u_pitch >= 0) & (u_pitch < 1), np.sin(2 * np.pi * u_pitch) ** 3, 0.0)
+    out[:, 0] = np.where(inside, -np.pi / 2 * (k + _smoothstep(u_turn)),
+                         np.where(t >= Tc, -2 * np.pi, 0.0))
+    out[:, 1] = np.where(inside, np.radians(_CAL_PITCH_DEG) * pitch, 0.0)
+    out[:, 2] = np.where(inside, np.radians(_CAL_ROLL_DEG) * roll, 0.0)
+    return out
+
+
+def _path_angles(spec: Spec, t_s: np.ndarray) -> np.ndarray:
+    """Yaw, pitch, roll (rad) of the ``survey`` and ``translate`` paths, (N, 3).
+
+    A base heading (the survey's track plus its calibration manoeuvre; a fixed heading drawn
+    from the seed for ``translate``) plus swings of ``swing_deg`` at ``freqs_hz`` with the
+    phases of the ``lissajous`` swings, and the vibration of ``vib_deg``.
+    """
+    t = np.asarray(t_s, dtype=float)
+    f = np.asarray(spec.freqs_hz, dtype=float)
+    a = np.radians(spec.swing_deg)
+    ph = np.random.default_rng(spec.seed + 1).uniform(0, 2 * np.pi, 6)
+    out = a * np.sin(2 * np.pi * f * t[:, None] + ph[:3])
+    if spec.path == "survey":
+        out[:, 0] += _survey_track(spec, t)[2]
+        out += _survey_calibration(spec, t)
+    else:
+        out[:, 0] += np.random.default_rng(spec.seed + 5).uniform(-np.pi, np.pi)
+    if spec.vib_deg > 0:
+        out += np.radians(spec.vib_deg) * np.sin(2 * np.pi * spec.vib_hz * t[:, None] + ph[3:6])
+    return out
+
+
 def true_attitude(spec: Spec, t_s: np.ndarray) -> Rotation:
     """``C_enu_body`` at ``t_s``: ``Rz(yaw) Rx(pitch) Ry(roll)`` (CONVENTIONS Euler order)."""
     return Rotation.from_euler("ZXY", _angles(spec, t_s))
@@ -225,7 +466,20 @@ def heading_error_rad(spec: Spec, t_s: np.ndarray) -> np.ndarray:
 
 
 def position_m(spec: Spec, t_s: np.ndarray) -> np.ndarray:
-    """Position of the sensor, ENU m (a Lissajous path that revisits places), (N, 3)."""
+    """Position of the tracked point (what the position source reports), ENU m, (N, 3).
+
+    ``lissajous``: a Lissajous path that revisits places; ``survey``: see
+    :func:`_survey_track`; ``translate``: +-``translate_amp_m`` about (1, 2, 1.2) m at 0.1-0.3
+    Hz per axis. Without ``lever_arm`` it is also the magnetometer's position.
+    """
+    if spec.path == "survey":
+        return _survey_track(spec, t_s)[0]
+    if spec.path == "translate":
+        rng = np.random.default_rng(spec.seed + 2)
+        f = rng.uniform(0.1, 0.3, 3)
+        ph = rng.uniform(0, 2 * np.pi, 3)
+        t = np.asarray(t_s, dtype=float)[:, None]
+        return np.array([1.0, 2.0, 1.2]) + spec.translate_amp_m * np.sin(2 * np.pi * f * t + ph)
     rng = np.random.default_rng(spec.seed + 2)
     amp = rng.uniform(0.2, 0.4, 3)
     per = rng.uniform(5.0, 13.0, 3)
@@ -234,8 +488,92 @@ def position_m(spec: Spec, t_s: np.ndarray) -> np.ndarray:
     return np.array([1.0, 2.0, 1.2]) + amp * np.sin(2 * np.pi * t / per + ph)
 
 
+def velocity_m_s(spec: Spec, t_s: np.ndarray) -> np.ndarray:
+    """Velocity of the tracked point, ENU m/s, (N, 3) (central difference, step 1 ms).
+
+    The paths are analytic; the truncation error is below 1e-6 m/s for these motions.
+    """
+    t = np.asarray(t_s, dtype=float)
+    h = 1e-3
+    return (position_m(spec, t + h) - position_m(spec, t - h)) / (2 * h)
+
+
+def sensor_position_m(spec: Spec, t_s: np.ndarray) -> np.ndarray:
+    """Position of the magnetometer, ENU m, (N, 3): ``p(t) + C_true(t) @ lever_arm_body_m``.
+
+    The true attitude (not the reported one, which carries the heading drift and noise)
+    carries the lever arm: the sensor is where it is, whatever the INS says.
+    """
+    p = position_m(spec, t_s)
+    la = spec.effects.get("lever_arm")
+    if la is None:
+        return p
+    return p + true_attitude(spec, t_s).apply(np.asarray(la["lever_arm_body_m"], float))
+
+
+def dipole_field_nT(moment_Am2: np.ndarray, r_vec_m: np.ndarray) -> np.ndarray:
+    """Field of a point dipole, nT: ``100 nT * (3 (m.u) u - m) / r^3``.
+
+    Parameters
+    ----------
+    moment_Am2 : array_like, shape (3,) or (N, 3)
+        Dipole moment ``m``, A m^2, in the frame of ``r_vec_m`` (ENU here).
+    r_vec_m : array_like, shape (3,) or (N, 3)
+        Vector from the dipole to the point of evaluation, m (``r > 0``).
+
+    Returns
+    -------
+    ndarray, shape (N, 3) (or (3,) when both inputs are single vectors)
+        The field in the same frame, nT (``mu0 / 4 pi = 1e-7 T m / A = 100 nT m / A``).
+
+    """
+    m = np.asarray(moment_Am2, dtype=float)
+    r = np.asarray(r_vec_m, dtype=float)
+    rn = np.linalg.norm(r, axis=-1, keepdims=True)
+    u = r / rn
+    mu = np.sum(m * u, axis=-1, keepdims=True)
+    return MU0_4PI_NT * (3.0 * mu * u - m) / rn**3
+
+
+def source_presence(params: dict[str, Any], t_s: np.ndarray) -> np.ndarray:
+    """Presence (0-1) of the ``local_source`` at times ``t_s`` (s from the first mag sample).
+
+    Inside a window ``[a, b)`` of ``windows_s`` it is 1, outside 0 (half-open windows, as in
+    CONVENTIONS); with ``ramp_s`` it rises and falls as a raised cosine over ``ramp_s`` inside
+    each window's edges (no step in the field). Without ``windows_s`` it is present always.
+    """
+    t = np.asarray(t_s, dtype=float)
+    win = params.get("windows_s")
+    if win is None:
+        return np.ones_like(t)
+    ramp = float(params.get("ramp_s", 0.0))
+    out = np.zeros_like(t)
+    for a, b in win:
+        inside = (t >= a) & (t < b)
+        if ramp > 0:
+            x = np.clip(np.minimum(t - a, b - t) / min(ramp, (b - a) / 2), 0.0, 1.0)
+            w = 0.5 - 0.5 * np.cos(np.pi * x)
+        else:
+            w = np.ones_like(t)
+        out = np.maximum(out, np.where(inside, w, 0.0))
+    return out
+
+
+def source_field_nT(spec: Spec, t_s: np.ndarray) -> np.ndarray:
+    """Field of the ``local_source`` at the magnetometer, ENU nT, at sensing times, (N, 3)."""
+    p = spec.effects["local_source"]
+    t = np.asarray(t_s, dtype=float)
+    r = sensor_position_m(spec, t) - np.asarray(p["position_m"], float)
+    return source_presence(p, t)[:, None] * dipole_field_nT(np.asarray(p["moment_Am2"], float),
+                                                            r)
+
+
 def field_enu(spec: Spec, t_s: np.ndarray) -> np.ndarray:
-    """Field at the sensor, ENU nT, at sensing times ``t_s`` (N, 3)."""
+    """Field at the sensor, ENU nT, at sensing times ``t_s`` (N, 3).
+
+    Spatial terms are evaluated at the magnetometer (:func:`sensor_position_m`); the
+    gradient's reference point is the mean of the tracked point over the recording.
+    """
     t = np.asarray(t_s, dtype=float)
     B = np.broadcast_to(np.asarray(spec.B_enu_nT, float), (len(t), 3)).copy()
     e = spec.effects
@@ -249,9 +587,11 @@ def field_enu(spec: Spec, t_s: np.ndarray) -> np.ndarray:
         x = np.clip((t - a) / (b - a), 0.0, 1.0)
         B += p["peak_nT"] * np.sin(np.pi * x)[:, None] ** 2 * np.asarray(p["direction_enu"])
     if "field_gradient" in e:
-        pos = position_m(spec, t)
+        pos = sensor_position_m(spec, t)
         ref = position_m(spec, np.linspace(0, spec.duration_s, 4001)).mean(axis=0)
         B += (pos - ref) @ np.asarray(e["field_gradient"]["G_nT_per_m"]).T
+    if "local_source" in e:
+        B += source_field_nT(spec, t)
     return B
 
 
@@ -299,8 +639,19 @@ def att_stamps_s(spec: Spec) -> np.ndarray:
     return t
 
 
-def readings(spec: Spec) -> dict[str, np.ndarray]:
-    """Everything written: stamps (s), readings (nT), reported attitude, positions."""
+def fix_stamps_s(spec: Spec) -> np.ndarray:
+    """NavSatFix stamps, s from the first magnetometer sample (``fix_rate_hz``)."""
+    return np.arange(0.0, spec.duration_s, 1.0 / spec.fix_rate_hz)
+
+
+def readings(spec: Spec) -> dict[str, Any]:
+    """Everything written: stamps (s), readings (nT), reported attitude, positions.
+
+    Keys ``t_mag_s``, ``mag_nT``, ``t_att_s``, ``att`` (reported ``C_enu_body``), ``pos_m``
+    (tracked point at the attitude stamps, ENU m); with ``position_type`` ``navsatfix`` also
+    ``t_fix_s`` and ``fix_pos_m`` (tracked point at the fix stamps, ENU m).
+    """
+    check_spec(spec)
     rng = np.random.default_rng(spec.seed)
     tm = mag_stamps_s(spec)
     y = clean_readings(spec, tm)
@@ -320,8 +671,55 @@ def readings(spec: Spec) -> dict[str, np.ndarray]:
     if spec.att_noise_deg > 0:
         rep = rep * Rotation.from_rotvec(rng.normal(0, np.radians(spec.att_noise_deg),
                                                     (len(ta), 3)))
-    return {"t_mag_s": tm, "mag_nT": y, "t_att_s": ta, "att": rep,
-            "pos_m": position_m(spec, ta)}
+    out: dict[str, Any] = {"t_mag_s": tm, "mag_nT": y, "t_att_s": ta, "att": rep,
+                           "pos_m": position_m(spec, ta)}
+    if spec.position_type == "navsatfix":
+        tf = fix_stamps_s(spec)
+        out["t_fix_s"] = tf
+        out["fix_pos_m"] = position_m(spec, tf)
+    return out
+
+
+# ----------------------------------------------------------------------------- geodesy
+
+
+def wgs84_radii_m(lat_deg: float) -> tuple[float, float]:
+    """Prime-vertical ``N`` and meridian ``M`` radii of curvature of WGS-84 at ``lat_deg``, m."""
+    e2 = WGS84_F * (2.0 - WGS84_F)
+    s2 = np.sin(np.radians(lat_deg)) ** 2
+    N = WGS84_A / np.sqrt(1.0 - e2 * s2)
+    M = WGS84_A * (1.0 - e2) / (1.0 - e2 * s2) ** 1.5
+    return float(N), float(M)
+
+
+def enu_to_geodetic(p_enu_m: np.ndarray, origin: tuple) -> np.ndarray:
+    """ENU metres about ``origin`` to WGS-84 latitude (deg), longitude (deg), height (m).
+
+    Flat earth on the tangent plane at ``origin = (lat_deg, lon_deg, height_m)``: north
+    ``/ (M + h0)``, east ``/ ((N + h0) cos lat0)``, up added to the height. Within 100 m of
+    the origin it departs from the exact conversion by under 1 mm (the Earth's curvature,
+    ``d^2 / 2R``: 0.8 mm at 100 m, 3 mm at 200 m).
+
+    Returns
+    -------
+    ndarray, shape (N, 3)
+
+    """
+    lat0, lon0, h0 = (float(x) for x in origin)
+    N, M = wgs84_radii_m(lat0)
+    p = np.asarray(p_enu_m, dtype=float).reshape(-1, 3)
+    lat = lat0 + np.degrees(p[:, 1] / (M + h0))
+    lon = lon0 + np.degrees(p[:, 0] / ((N + h0) * np.cos(np.radians(lat0))))
+    return np.stack([lat, lon, h0 + p[:, 2]], axis=-1)
+
+
+def geodetic_to_enu(llh: np.ndarray, origin: tuple) -> np.ndarray:
+    """Inverse of :func:`enu_to_geodetic` (same flat earth), ENU m, (N, 3)."""
+    lat0, lon0, h0 = (float(x) for x in origin)
+    N, M = wgs84_radii_m(lat0)
+    g = np.asarray(llh, dtype=float).reshape(-1, 3)
+    return np.stack([np.radians(g[:, 1] - lon0) * (N + h0) * np.cos(np.radians(lat0)),
+                     np.radians(g[:, 0] - lat0) * (M + h0), g[:, 2] - h0], axis=-1)
 
 
 # ----------------------------------------------------------------------------- writing
@@ -333,11 +731,28 @@ def _stamp(t_ns: int) -> dict[str, int]:
 
 def write_streams(path: Path, t_mag_s, mag_nT, t_att_s, att: Rotation, att_type: str,
                   pos_m: np.ndarray | None = None, *, mag_topic: str = "/imu/mag",
-                  att_topic: str = "/attitude") -> Path:
+                  att_topic: str = "/attitude", geo: np.ndarray | None = None,
+                  vel_enu: np.ndarray | None = None,
+                  fix: tuple[np.ndarray, np.ndarray] | None = None,
+                  fix_topic: str = "/gps/fix") -> Path:
     """Write a magnetometer and an attitude stream with the ``mcap_ros2`` writer.
 
     Stamps are ``T0 + t`` (ns); log time is the stamp plus 2 ms; the field is written in
     tesla (REP-145).
+
+    Parameters
+    ----------
+    pos_m : ndarray, shape (N_att, 3), optional
+        PoseStamped positions, m, in the frame they are to be written in.
+    geo : ndarray, shape (N_att, 3), optional
+        INSPVA latitude (deg), longitude (deg), height (m); without it the INSPVA carries a
+        fixed position (52.5, 13.3, 40.0).
+    vel_enu : ndarray, shape (N_att, 3), optional
+        INSPVA east, north, up velocities, m/s (zero without).
+    fix : (t_s, llh), optional
+        A NavSatFix channel on ``fix_topic``: stamps (s) and latitude (deg), longitude (deg),
+        ellipsoidal height (m), status STATUS_FIX with service GPS.
+
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -383,14 +798,35 @@ def write_streams(path: Path, t_mag_s, mag_nT, t_att_s, att: Rotation, att_type:
                    "azimuth": float(az[k]), "status": {"status": 3}}
         else:
             raise ValueError(att_type)
+        if att_type == "novatel_oem7_msgs/msg/INSPVA" and geo is not None:
+            msg.update(latitude=float(geo[k, 0]), longitude=float(geo[k, 1]),
+                       height=float(geo[k, 2]))
+        if att_type == "novatel_oem7_msgs/msg/INSPVA" and vel_enu is not None:
+            msg.update(east_velocity=float(vel_enu[k, 0]), north_velocity=float(vel_enu[k, 1]),
+                       up_velocity=float(vel_enu[k, 2]))
         msgs.append((int(ta[k]) + 2_000_000, 1, msg))
+    if fix is not None:
+        tf = T0_NS + np.round(np.asarray(fix[0]) * 1e9).astype(np.int64)
+        llh = np.asarray(fix[1], dtype=float)
+        # 1 cm horizontal, 2 cm vertical: a nominal RTK covariance (the fixes are exact)
+        cov = [1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 4e-4]
+        for k in range(len(tf)):
+            msgs.append((int(tf[k]) + 2_000_000, 2, {
+                "header": {"stamp": _stamp(int(tf[k])), "frame_id": "gps"},
+                "status": {"status": 0, "service": 1},
+                "latitude": float(llh[k, 0]), "longitude": float(llh[k, 1]),
+                "altitude": float(llh[k, 2]), "position_covariance": cov,
+                "position_covariance_type": 2}))
     msgs.sort(key=lambda x: x[0])
     with open(path, "wb") as fh:
         w = Writer(fh, chunk_size=256 * 1024)
         schemas = [w.register_msgdef("sensor_msgs/msg/MagneticField",
                                      MSGDEFS["sensor_msgs/msg/MagneticField"]),
                    w.register_msgdef(att_type, MSGDEFS[att_type])]
-        topics = (mag_topic, att_topic)
+        topics: tuple[str, ...] = (mag_topic, att_topic)
+        if fix is not None:
+            schemas.append(w.register_msgdef(NAVSATFIX, MSGDEFS[NAVSATFIX]))
+            topics = (mag_topic, att_topic, fix_topic)
         for i, (log, s, msg) in enumerate(msgs):
             w.write_message(topics[s], schemas[s], msg, log_time=log, publish_time=log,
                             sequence=i)
@@ -398,13 +834,141 @@ def write_streams(path: Path, t_mag_s, mag_nT, t_att_s, att: Rotation, att_type:
     return path
 
 
-def write(spec: Spec, path: Path) -> Path:
-    """Make the recording of ``spec`` and write it."""
+def write(spec: Spec, path: Path, truth_path: Path | None = None) -> Path:
+    """Make the recording of ``spec`` and write it.
+
+    With ``truth_path``, :func:`truth` is written there as JSON too (keep it outside a folder
+    a program under test reads, as the corpus key is).
+    """
     r = readings(spec)
-    pos = r["pos_m"] if (spec.positions and spec.att_type == "geometry_msgs/msg/PoseStamped") \
-        else None
-    return write_streams(path, r["t_mag_s"], r["mag_nT"], r["t_att_s"], r["att"],
-                         spec.att_type, pos)
+    pos = r["pos_m"] if (spec.positions and spec.att_type == "geometry_msgs/msg/PoseStamped"
+                         and spec.position_type == "pose") else None
+    if pos is not None and spec.position_frame_yaw_deg != 0.0:
+        pos = _frame_rotation(spec).inv().apply(pos)
+    geo = vel = fix = None
+    if spec.positions and spec.position_type == "inspva":
+        geo = enu_to_geodetic(r["pos_m"], spec.geo_origin)
+        vel = velocity_m_s(spec, r["t_att_s"])
+    if spec.positions and spec.position_type == "navsatfix":
+        fix = (r["t_fix_s"], enu_to_geodetic(r["fix_pos_m"], spec.geo_origin))
+    out = write_streams(path, r["t_mag_s"], r["mag_nT"], r["t_att_s"], r["att"],
+                        spec.att_type, pos, geo=geo, vel_enu=vel, fix=fix)
+    if truth_path is not None:
+        tp = Path(truth_path)
+        tp.parent.mkdir(parents=True, exist_ok=True)
+        tp.write_text(json.dumps(truth(spec), indent=1))
+    return out
+
+
+# ----------------------------------------------------------------------------- truth
+
+
+def _frame_rotation(spec: Spec) -> Rotation:
+    """``Q``: written PoseStamped frame to ENU, ``p_enu = Q @ p_written`` (about Up)."""
+    return Rotation.from_euler("z", spec.position_frame_yaw_deg, degrees=True)
+
+
+def closest_approach(spec: Spec) -> tuple[float, float] | None:
+    """Closest approach of the magnetometer to the ``local_source`` while it is present.
+
+    Returns
+    -------
+    (distance_m, time_s) or None
+        Distance (m) and true time (s on the clock of the stamps, 0 at the first
+        magnetometer sample) within ``[0, duration_s)``; None without the effect or when the
+        source is never present. A search on a 10 ms grid refined on a 0.1 ms grid.
+    """
+    p = spec.effects.get("local_source")
+    if p is None:
+        return None
+    src = np.asarray(p["position_m"], float)
+
+    def dist(t: np.ndarray) -> np.ndarray:
+        d = np.linalg.norm(sensor_position_m(spec, t) - src, axis=1)
+        return np.where(source_presence(p, t) > 0, d, np.inf)
+
+    t = np.arange(0.0, spec.duration_s, 0.01)
+    d = dist(t)
+    if not np.isfinite(d).any():
+        return None
+    i = int(np.argmin(d))
+    tf = np.arange(max(t[i] - 0.01, 0.0), min(t[i] + 0.01, spec.duration_s), 1e-4)
+    df = dist(tf)
+    j = int(np.argmin(df))
+    return (float(df[j]), float(tf[j])) if df[j] < d[i] else (float(d[i]), float(t[i]))
+
+
+def _llh_dict(g: np.ndarray | tuple) -> dict[str, float]:
+    return {"lat_deg": float(g[0]), "lon_deg": float(g[1]), "height_m": float(g[2])}
+
+
+def truth(spec: Spec) -> dict[str, Any]:
+    """What went into the recording of ``spec`` beyond the spec itself, as JSON-ready values.
+
+    Keys: ``format`` (``indep_gen.truth/1``); ``path``; ``position_type``;
+    ``position_frame`` (``attitude_source_local`` for PoseStamped positions, ``enu`` for
+    geodetic ones, None when no positions are written); ``position_frame_yaw_deg``;
+    ``geo_origin`` (``{lat_deg, lon_deg, height_m}`` of the generator's ENU origin; None for
+    local positions); ``position_origin`` (the first written position as ``{lat_deg,
+    lon_deg, height_m}``: the origin CONVENTIONS gives a geodetic source; None otherwise);
+    ``first_position_enu_m`` (that position in the generator's ENU, m); and ``effects``:
+
+    - ``local_source``: the CONVENTIONS params ``position_m`` (in ``position_frame``, from
+      ``position_origin`` for geodetic positions: what a correct diagnosis reports),
+      ``position_frame``, ``position_origin``, ``moment_Am2`` (ENU), ``windows_s`` (None:
+      always present), ``closest_approach_m`` / ``closest_approach_s`` (of the
+      magnetometer, see :func:`closest_approach`); plus ``position_enu_m`` (the generator's
+      ENU) and ``ramp_s``.
+    - ``lever_arm``: ``lever_arm_body_m``.
+    """
+    pt = spec.position_type
+    frame: str | None = None
+    first: np.ndarray | None = None
+    origin: dict[str, float] | None = None
+    if spec.positions and pt == "pose" and spec.att_type == "geometry_msgs/msg/PoseStamped":
+        frame = "attitude_source_local"
+    elif spec.positions and pt in ("inspva", "navsatfix"):
+        frame = "enu"
+        t1 = att_stamps_s(spec)[:1] if pt == "inspva" else fix_stamps_s(spec)[:1]
+        first = position_m(spec, t1)[0]
+        origin = _llh_dict(enu_to_geodetic(first, spec.geo_origin)[0])
+    geodetic = pt in ("inspva", "navsatfix")
+    out: dict[str, Any] = {
+        "format": "indep_gen.truth/1", "path": spec.path, "position_type": pt,
+        "position_frame": frame, "position_frame_yaw_deg": float(spec.position_frame_yaw_deg),
+        "geo_origin": _llh_dict(spec.geo_origin) if geodetic else None,
+        "position_origin": origin,
+        "first_position_enu_m": None if first is None else first.tolist(), "effects": {}}
+    ls = spec.effects.get("local_source")
+    if ls is not None:
+        src = np.asarray(ls["position_m"], float)
+        if frame == "attitude_source_local":
+            pos = _frame_rotation(spec).inv().apply(src)
+        elif frame == "enu" and first is not None:
+            pos = src - first
+        else:
+            pos = src
+        ca = closest_approach(spec)
+        out["effects"]["local_source"] = {
+            "position_m": pos.tolist(), "position_frame": frame, "position_origin": origin,
+            "moment_Am2": [float(x) for x in ls["moment_Am2"]],
+            "windows_s": None if ls.get("windows_s") is None
+            else [[float(a), float(b)] for a, b in ls["windows_s"]],
+            "closest_approach_m": None if ca is None else ca[0],
+            "closest_approach_s": None if ca is None else ca[1],
+            "position_enu_m": src.tolist(), "ramp_s": float(ls.get("ramp_s", 0.0))}
+    la = spec.effects.get("lever_arm")
+    if la is not None:
+        out["effects"]["lever_arm"] = {
+            "lever_arm_body_m": [float(x) for x in la["lever_arm_body_m"]]}
+    return out
+
+
+def _uses_new_options(s: Spec) -> bool:
+    """Whether ``s`` uses an option added after the first corpora (it then gets a truth)."""
+    defaults = Spec(name="", seed=0)
+    return any(getattr(s, f) != getattr(defaults, f) for f in _NEW_FIELDS) or \
+        "local_source" in s.effects or "lever_arm" in s.effects
 
 
 # ----------------------------------------------------------------------------- strength
@@ -621,7 +1185,10 @@ def write_corpus(out_dir: Path, nulls: list[Spec],
                  effects: list[tuple[Spec, str, dict, float]]) -> Path:
     """Write recordings and the key (``pipeline.app.challenge`` key format) beside the folder.
 
-    Returns the key path ``<out_dir>_key/key.json``.
+    A recording that uses an option added later (a path other than ``lissajous``, geodetic
+    positions, a rotated position frame, ``local_source``, ``lever_arm``) also gets
+    ``truth`` (:func:`truth`) in its key entry. Returns the key path
+    ``<out_dir>_key/key.json``.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -630,10 +1197,14 @@ def write_corpus(out_dir: Path, nulls: list[Spec],
         write(s, out / f"{s.name}.mcap")
         key["recordings"][s.name] = {"effects": {}, "strength_x_threshold": {},
                                      "spec": _spec_dict(s)}
+        if _uses_new_options(s):
+            key["recordings"][s.name]["truth"] = truth(s)
     for s, rep, exp, st in effects:
         write(s, out / f"{s.name}.mcap")
         key["recordings"][s.name] = {"effects": {rep: exp}, "strength_x_threshold": {rep: st},
                                      "spec": _spec_dict(s)}
+        if _uses_new_options(s):
+            key["recordings"][s.name]["truth"] = truth(s)
     kp = out.parent / f"{out.name}_key" / "key.json"
     kp.parent.mkdir(parents=True, exist_ok=True)
     kp.write_text(json.dumps(key, indent=1))
@@ -642,4 +1213,8 @@ def write_corpus(out_dir: Path, nulls: list[Spec],
 
 def _spec_dict(s: Spec) -> dict[str, Any]:
     d = dict(s.__dict__)
+    defaults = Spec(name="", seed=0)
+    for f in _NEW_FIELDS:  # at their defaults they leave the key as it was
+        if d[f] == getattr(defaults, f):
+            del d[f]
     return json.loads(json.dumps(d, default=lambda x: list(x) if isinstance(x, tuple) else x))

@@ -81,6 +81,11 @@ def _check_ros2(msg_type: str, variant, t_ns, cols, frame_id, data, offsets) -> 
                 # "not provided" marker of sensor_msgs/Imu for the absent quantities
                 assert m.angular_velocity_covariance[0] == -1.0
                 assert m.linear_acceleration_covariance[0] == -1.0
+        elif msg_type == "sensor_msgs/msg/NavSatFix":
+            assert (m.latitude, m.longitude, m.altitude) == (
+                cols["latitude_deg"][i], cols["longitude_deg"][i], cols["height_m"][i])
+            assert (m.status.status, m.status.service) == (0, 1)  # STATUS_FIX, SERVICE_GPS
+            assert m.position_covariance == [0.0] * 9 and m.position_covariance_type == 0
         else:  # INSPVA
             assert (m.roll, m.pitch, m.azimuth) == (
                 cols["roll_deg"][i], cols["pitch_deg"][i], cols["azimuth_deg"][i])
@@ -134,6 +139,12 @@ def _ros2_dict(msg_type: str, t: int, cols: dict, i: int, frame_id: str) -> dict
         return {"header": hdr, "quaternion": q}
     if msg_type == "std_msgs/msg/Float64":
         return {"data": float(cols["value"][i])}
+    if msg_type == "sensor_msgs/msg/NavSatFix":
+        return {"header": hdr, "status": {"status": 0, "service": 1},
+                "latitude": float(cols["latitude_deg"][i]),
+                "longitude": float(cols["longitude_deg"][i]),
+                "altitude": float(cols["height_m"][i]), "position_covariance": [0.0] * 9,
+                "position_covariance_type": 0}
     raise AssertionError(msg_type)
 
 
@@ -336,7 +347,8 @@ def test_one_table_of_message_types():
 
     by_role = {MessageRole.MAGNETOMETER: (reader.MAG_TYPES, simulate.MAG_TYPES),
                MessageRole.ATTITUDE: (reader.ATTITUDE_TYPES, simulate.ATTITUDE_TYPES),
-               MessageRole.TURNTABLE: (reader.TURNTABLE_TYPES, simulate.TURNTABLE_TYPES)}
+               MessageRole.TURNTABLE: (reader.TURNTABLE_TYPES, simulate.TURNTABLE_TYPES),
+               MessageRole.POSITION: (reader.POSITION_TYPES, simulate.POSITION_TYPES)}
     for t in MESSAGE_TYPES.values():
         if t.role is MessageRole.OUTPUT:
             assert all(t.short_name not in r for r, _ in by_role.values())

@@ -183,7 +183,7 @@ def analyse_recording(path: str | Path, options: ProcessOptions | None = None) -
 
     ``calibrate`` and ``diagnose`` call this; ``process`` runs the same stages followed by
     restore and the outputs (:func:`build_stages`). Each stage is announced on the progress
-    sink as it starts.
+    sink as it starts; what the reader repaired is warned (``RecoveredDataWarning``).
     """
     from stages.ingest import Ingest
 
@@ -192,7 +192,23 @@ def analyse_recording(path: str | Path, options: ProcessOptions | None = None) -
     ingest = Ingest(mag_topic=options.mag_topic, attitude_topic=options.attitude_topic,
                     turntable_topic=options.turntable_topic)
     progress.stage("Ingest", 0, 1, ["Ingest"])
-    ctx = Pipeline([ingest]).run(ctx)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ctx = Pipeline([ingest]).run(ctx)
+    # what the reader repaired in the data (dropped samples, sorted stamps) is only listed in
+    # Recording.problems: the user hears it too, once, as the process command's rows say it
+    from pipeline.io.mcap_read import problem_warnings
+
+    said = {str(w.message) for w in caught}
+    for w in caught:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    for msg in problem_warnings(str(path), ctx.need_recording().problems, said):
+        warnings.warn(msg, RecoveredDataWarning, stacklevel=2)
+    return analyse(ctx, options)
+
+
+def analyse(ctx: Context, options: ProcessOptions) -> Context:
+    """Run :func:`analysis_stages` on a context that holds a recording (any span of one)."""
     rest = Pipeline(analysis_stages(ctx, options), initial=ctx.provided() | {"source"})
     names = ["Ingest"] + [progress_name(st) for st in rest.stages]
 

@@ -75,6 +75,7 @@ _Vec3 = tuple[float, float, float]
 MAG_TYPES = frozenset(types_of(MessageRole.MAGNETOMETER, written=True))
 ATTITUDE_TYPES = frozenset(types_of(MessageRole.ATTITUDE, written=True))
 TURNTABLE_TYPES = frozenset(types_of(MessageRole.TURNTABLE, written=True))
+POSITION_TYPES = frozenset(types_of(MessageRole.POSITION, written=True))
 
 DEFAULT_START = "2026-01-01T00:00:00Z"
 _EDDY_STEP_S = 1e-4  # central-difference step for d/dt(y_mag)

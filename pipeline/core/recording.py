@@ -217,13 +217,18 @@ class PositionSeries:
         """Rows with a finite position, (N,) bool."""
         return np.all(np.isfinite(self.p_m), axis=1)
 
-    def at(self, t_ns: np.ndarray, max_gap_s: float = 0.1) -> F64:
+    def at(self, t_ns: np.ndarray, max_gap_s: float | None = None) -> F64:
         """Positions at ``t_ns`` by linear interpolation between valid rows, (M, 3), m.
 
         NaN outside the span of the valid rows and where the two valid neighbours are more
-        than ``max_gap_s`` apart (a lost stretch is not bridged).
+        than ``max_gap_s`` apart (a lost stretch is not bridged). ``None``: 0.1 s, or 2.5
+        times the series' median interval when that is longer (a 10 Hz GNSS fix is
+        bridged between fixes, a lost motion-capture marker is not).
         """
         t = np.asarray(t_ns, dtype=np.int64)
+        if max_gap_s is None:
+            step = float(np.median(np.diff(self.t_ns))) * 1e-9 if len(self.t_ns) > 1 else 0.0
+            max_gap_s = max(0.1, 2.5 * step)
         ok = self.valid
         tv, pv = self.t_ns[ok], self.p_m[ok]
         out = np.full((t.shape[0], 3), np.nan)

@@ -422,6 +422,12 @@ def diagnose_data(
                     fits.insert(0, alt_fit)
         accepted = False
         for dbic, st, res in fits:
+            told = ""
+            if st.term.kind is EffectKind.LOCAL_SOURCE:
+                told, margin = _told_apart(cur, res, data)
+                if margin < SOURCE_DECISIVE_FACTOR * cfg.bic_margin:
+                    rejected.add((st.term.kind, st.term.windows_s))
+                    continue
             cv_new = _heldout_ok(cur, res, data, cfg, cv_cur)
             if cv_new is None:
                 rejected.add((st.term.kind, st.term.windows_s))
@@ -433,9 +439,8 @@ def diagnose_data(
                 cur = fit(dataclasses.replace(res.state, terms=res.state.terms[:-1],
                                               values=res.state.values[:-1]), data)
             findings.append(_finding(cur, res, term, st, dbic, cv_cur, cv_new, data))
-            if term.kind is EffectKind.LOCAL_SOURCE:
-                findings[-1] = dataclasses.replace(findings[-1],
-                                                   told_apart=_told_apart(cur, res, data))
+            if told:
+                findings[-1] = dataclasses.replace(findings[-1], told_apart=told)
             cur, cv_cur = res, cv_new
             accepted = True
             rejected.clear()
@@ -767,11 +772,19 @@ def _active_windows(term: Term, value: np.ndarray, data: FitData) -> tuple:
     return ((float(data.t_s[idx[0]]), float(data.t_s[idx[-1]]) + 1e-6),)
 
 
-def _told_apart(cur: FitResult, res: FitResult, data: FitData) -> str:
-    """Words: how much worse a magnet on the platform or a disturbance fits than the source.
+#: A source is named only when the look-alikes in its windows (a step, a disturbance) fit
+#: worse by this many times the BIC margin: a short pass near an object makes the three
+#: nearly equal, and naming the wrong one moves the restored field (a source stays in it,
+#: a step is taken out of it).
+SOURCE_DECISIVE_FACTOR = 5.0
+
+
+def _told_apart(cur: FitResult, res: FitResult, data: FitData) -> tuple[str, float]:
+    """Words on how much worse a magnet on the platform or a disturbance fits than the source.
 
     Both are fitted in the windows where the source's field stands out (above a tenth of its
     peak), in place of the source, and compared by BIC with one effective sample count.
+    Returns the words and the smaller of the two BIC differences.
     """
     term, value = res.state.terms[-1], res.state.values[-1]
     wins = _active_windows(term, value, data)
@@ -779,18 +792,19 @@ def _told_apart(cur: FitResult, res: FitResult, data: FitData) -> str:
         wins = term.windows_s
     a, b = wins[0][0], wins[-1][1]
     ks = min(2.0, max(0.75, (b - a) / 6))
-    parts = []
+    parts, worst = [], np.inf
     for alt, what in ((Term(EffectKind.HARD_IRON_STEP, ((a, b),)),
                        "a magnet riding on the platform (an offset that turns with it)"),
                       (Term(EffectKind.DISTURBANCE, ((a, b),), knot_step_s=ks),
                        "a field changing in time, the same everywhere nearby")):
         other = fit(cur.state.with_term(alt), data)
         d = _bic_between(other, res, data)
+        worst = min(worst, d)
         parts.append(f"{what} fits worse by {d:.0f} in BIC" if d > 0
                      else f"{what} fits as well (BIC {d:.0f}): the pass is too short to tell")
     return (". Told apart by the data: the field stays where the object is and falls off "
             f"with the cube of the distance as the sensor moves (checked in {a:.1f}-{b:.1f} s); "
-            + "; ".join(parts))
+            + "; ".join(parts)), float(worst)
 
 
 def _refit(

@@ -168,8 +168,14 @@ def run(args: argparse.Namespace) -> int:
                              scheduler=args.scheduler)
     # the summary's imports (pandas through pyarrow's conversions, matplotlib for its
     # figure: about a second) while the workers run, in the cycles they leave idle
-    warm_in_background("pyarrow.parquet", "pandas", "pipeline.core.style:pyplot", idle=True)
+    warm = warm_in_background("pyarrow.parquet", "pandas", "pipeline.core.style:pyplot",
+                              idle=True)
     results = _run_with_progress(camp, out, executor, args)
+    if warm is not None:
+        # matplotlib reads its style files inside warnings.catch_warnings, which swaps the
+        # process-wide warning hooks: a warning issued meanwhile on this thread would be
+        # logged as matplotlib's ("In <style file>: ...") instead of ours
+        warm.join()
     issue_warnings(results)
     out_r = out.resolve()
     rows = [row_for(out_r, r) for r in results]
