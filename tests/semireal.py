@@ -21,6 +21,10 @@ recorded attitude, SLERP-interpolated at the magnetometer stamps; ``R`` the misa
   lost).
 - ``hard_iron``, ``hard_iron_step``: ``y += o`` (inside the window for the step). Exact.
 - ``soft_iron``: ``y <- D y`` (about the recorded reading, offsets included).
+- ``local_source``: a point dipole fixed in the room, ``B = 100 nT (3 (m.u) u - m) / r^3``
+  at the recorded positions (the room frame taken as ENU), added as ``y += R.T C(t).T B``; it
+  sits 8 cm from a place the sensor passes twice, at least 5 s apart (:func:`revisited`),
+  on the side the rest of the path keeps farthest from (:func:`beside`).
 
 A semi-real recording is scored against its base: a finding counts only if the base did not
 have that effect (:func:`new_findings`).
@@ -126,6 +130,7 @@ SIZES: dict[str, tuple[Any, ...]] = {
     "hard_iron": (30.0, 100.0, 300.0),       # nT
     "field_gradient": (300.0, 1000.0, 3000.0),  # nT/m, Frobenius norm
     "soft_iron": (0.005, 0.01, 0.03),        # Frobenius norm of D - I
+    "local_source": (0.005, 0.02, 0.08),     # A m^2: ~1, 4, 16 uT at 8 cm
 }
 #: The name a correct diagnosis reports for each injection.
 REPORTED = {"eddy_iso": "time_offset"}
@@ -187,6 +192,22 @@ def inject(r: Real, case: str, size: float, seed: int = 0) -> tuple[Real, str, d
         a = float(rng.uniform(0.3, 0.6) * dur)
         y = y + ((t >= a) & (t < a + 10.0))[:, None] * o
         p = {"windows_s": [[a, a + 10.0]], "offset_nT": o.tolist()}
+    elif case == "local_source":
+        R, _ = wahba(r)
+        C = attitude_at(r, t)
+        ok = np.all(np.isfinite(r.pos_m), axis=1)
+        pos = np.stack([np.interp(t, r.t_att_s[ok], r.pos_m[ok, k]) for k in range(3)], -1)
+        c = beside(revisited(t, pos, rng), pos, 0.08)
+        u = rng.normal(size=3)
+        m = size * u / np.linalg.norm(u)
+        d = pos - c
+        dist = np.linalg.norm(d, axis=1)
+        uu = d / dist[:, None]
+        F = 100.0 * (3.0 * (uu @ m)[:, None] * uu - m) / dist[:, None] ** 3
+        y = y + R.inv().apply(C.inv().apply(F))
+        j = int(np.argmin(dist))
+        p = {"position_m": c.tolist(), "moment_Am2": m.tolist(),
+             "closest_approach_m": float(dist[j]), "closest_approach_s": float(t[j])}
     elif case == "soft_iron":
         A = rng.normal(size=(3, 3))
         S = 0.5 * (A + A.T)
@@ -197,6 +218,61 @@ def inject(r: Real, case: str, size: float, seed: int = 0) -> tuple[Real, str, d
     else:
         raise ValueError(case)
     return Real(tm, y, r.t_att_s, att, r.pos_m, r.t0_ns), rep, p
+
+
+def revisited(t_s: np.ndarray, pos_m: np.ndarray, rng: np.random.Generator,
+              gap_s: float = 5.0, away_m: float = 0.3) -> np.ndarray:
+    """A place the path passes twice: a pair of close points of two passes, (2, 3).
+
+    The two points are ``gap_s`` apart in time and the path goes more than ``away_m`` from
+    the place between them (two passes, not one rest: a source beside a place where the
+    sensor rests is a constant field there). Searched over a 0.1 s grid of the path among
+    the pairs closer than 5 cm where the path crosses the place (it leaves it by 15 cm
+    within a second on both sides), or the closest pair; one is drawn with ``rng``.
+    """
+    idx = np.arange(0, len(t_s), max(1, int(round(0.1 / float(np.median(np.diff(t_s)))))))
+    P, T = pos_m[idx], t_s[idx]
+    dd = np.linalg.norm(P[:, None, :] - P[None, :, :], axis=-1)
+    far = dd > away_m  # far[i, k]: the path at k is away from the place at i
+    cum = np.cumsum(far, axis=1)
+    i_, j_ = np.meshgrid(np.arange(len(T)), np.arange(len(T)), indexing="ij")
+    left = np.where(j_ > i_, cum[i_, np.maximum(j_ - 1, 0)] - cum[i_, i_], 0)
+    dd[(np.abs(T[:, None] - T[None, :]) < gap_s) | (left <= 0)] = np.inf
+    cand = np.argwhere(dd < 0.05)
+
+    def transit(k: int) -> bool:  # the path leaves the point within 1 s on both sides
+        near = np.abs(T - T[k]) <= 1.0
+        before, after = near & (T < T[k]), near & (T > T[k])
+        d = np.linalg.norm(P - P[k], axis=1)
+        return bool(before.any() and after.any() and d[before].max() > 0.15
+                    and d[after].max() > 0.15)
+
+    cand = np.array([c for c in cand if transit(int(c[0])) and transit(int(c[1]))]
+                    ).reshape(-1, 2)
+    i, j = cand[rng.integers(len(cand))] if len(cand) else np.unravel_index(
+        int(np.argmin(dd)), dd.shape)
+    return np.stack([P[i], P[j]])
+
+
+def beside(passes: np.ndarray, pos_m: np.ndarray, dist_m: float) -> np.ndarray:
+    """A point ``dist_m`` from the middle of two passes, seen about as close from both.
+
+    Of the 26 directions to a cube's corners, edges and faces, those from which both pass
+    points are within 1.3 times the path's closest distance (two approaches of similar
+    strength); among them the one the whole path keeps farthest from.
+    """
+    g = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)
+                  if (i, j, k) != (0, 0, 0)], dtype=float)
+    cands = passes.mean(axis=0) + dist_m * g / np.linalg.norm(g, axis=1)[:, None]
+    ok = pos_m[np.all(np.isfinite(pos_m), axis=1)]
+    best, score = cands[0], -np.inf
+    for c in cands:
+        closest = float(np.min(np.linalg.norm(ok - c, axis=1)))
+        both = float(np.max(np.linalg.norm(passes - c, axis=1)))
+        s = closest if both <= 1.3 * closest else closest - 10.0  # balanced passes first
+        if s > score:
+            best, score = c, s
+    return best
 
 
 def write_real(r: Real, path: Path) -> Path:

@@ -34,9 +34,11 @@ from stages.diagnose.model import (
 from stages.diagnose.result import DiagnoseConfig, Diagnosis, Finding, Signature
 from stages.diagnose.sources import (
     MAX_NEAR_FAR_RATIO,
+    MIN_VISITS,
     locate_source,
     near_far_ratio,
     source_term,
+    source_visits,
     with_values,
 )
 from stages.diagnose.statistics import (
@@ -385,7 +387,8 @@ def diagnose_data(
             progress.detail(f"search {len(findings) + 1}, refit {r + 1}/{cfg.n_refit}",
                             len(findings) + 0.5 + 0.5 * r / cfg.n_refit, _ROUNDS_SHOWN)
             fr = _refit(cur, st.term, data, cfg, start=starts.get(id(st)))
-            if fr is None or not _source_ok(fr[0], data):
+            if fr is None or not _source_ok(fr[0], data) or _pulled_away(
+                    starts.get(id(st)), fr[0], data):
                 rejected.add((st.term.kind, st.term.windows_s))
                 continue
             fits.append((fr[1], st, fr[0]))
@@ -447,6 +450,9 @@ def diagnose_data(
             break
         if not accepted:
             break
+        moved = _relocate_sources(cur, data)
+        if moved is not cur:
+            cur, cv_cur = moved, heldout_rms(moved.state, data, cfg)
         if data.noise_model is None:
             # the attitude noise may only now stand out of what the model leaves
             nm = estimate_noise_model(
@@ -747,19 +753,25 @@ def _without(state: ModelState, i: int) -> ModelState:
     )
 
 
-def _source_ok(res: FitResult, data: FitData) -> bool:
+def _source_ok(res: FitResult, data: FitData, i: int = -1) -> bool:
     """Keep a fitted ``local_source`` only where the sensor sampled its ``1/r^3``.
 
     Other terms pass. A source the fit moved far from the path, so that the sensor's
-    distance to it hardly changes where it acts, describes a smooth field, not an object.
+    distance to it hardly changes where it acts, describes a smooth field, not an object;
+    one seen on a single pass is a bump in time that a disturbance fits as well.
     """
-    term = res.state.terms[-1]
+    term = res.state.terms[i]
     if term.kind is not EffectKind.LOCAL_SOURCE:
         return True
-    value = res.state.values[-1]
+    value = res.state.values[i]
+    if not np.all(np.isfinite(value)):
+        return False
     near = near_far_ratio(term, value, data) if term.windows_s else near_far_ratio(
         dataclasses.replace(term, windows_s=_active_windows(term, value, data)), value, data)
-    return bool(np.all(np.isfinite(value))) and near <= MAX_NEAR_FAR_RATIO
+    # a pass of a few tenths of a second holds tens of samples: one noise sigma per sample
+    # is already a clear signal over it
+    visits = source_visits(term, value, data, robust_sigma(res.residual_nT))
+    return near <= MAX_NEAR_FAR_RATIO and visits >= MIN_VISITS
 
 
 def _active_windows(term: Term, value: np.ndarray, data: FitData) -> tuple:
@@ -777,6 +789,50 @@ def _active_windows(term: Term, value: np.ndarray, data: FitData) -> tuple:
 #: nearly equal, and naming the wrong one moves the restored field (a source stays in it,
 #: a step is taken out of it).
 SOURCE_DECISIVE_FACTOR = 5.0
+
+
+def _pulled_away(start: ModelState | None, res: FitResult, data: FitData) -> bool:
+    """Whether the joint fit moved a located source by more than half its closest distance.
+
+    The grid locates a source with the smooth field, a lag and a constant taken out around
+    it; a joint fit that then drags it away is fitting what the model still lacks (a
+    gradient, a time offset) with the source. It is tried again once the model has those.
+    """
+    if start is None or res.state.terms[-1].kind is not EffectKind.LOCAL_SOURCE:
+        return False
+    c0, c1 = start.values[-1][:3], res.state.values[-1][:3]
+    d0 = float(np.min(np.linalg.norm(np.asarray(data.p_m) - c0, axis=1)))
+    return float(np.linalg.norm(c1 - c0)) > 0.5 * max(d0, 0.02)
+
+
+def _relocate_sources(cur: FitResult, data: FitData) -> FitResult:
+    """Locate each ``local_source`` again on what the rest of the model now leaves.
+
+    A source located while much was unmodelled (a gradient, a time offset) may sit where
+    it absorbed part of them, a local minimum the joint fit does not leave. With the
+    source taken out, the grid of :func:`locate_source` runs on the residual of the other
+    terms (around the source's own strongest pass), and the joint fit from there replaces
+    the model when its weighted RSS is lower.
+    """
+    for i, term in enumerate(cur.state.terms):
+        if term.kind is not EffectKind.LOCAL_SOURCE:
+            continue
+        value = cur.state.values[i]
+        wins = term.windows_s or _active_windows(term, value, data)
+        without = fit(_without(cur.state, i), data, max_iter=10)
+        loc = locate_source(without, data, (wins[0][0], wins[-1][1]))
+        if loc is None:
+            continue
+        trial = with_values(term, loc[0], without)
+        # keep the term's place in the model (findings are listed in the model's order)
+        order = list(range(len(trial.terms) - 1))
+        order.insert(i, len(trial.terms) - 1)
+        trial = dataclasses.replace(trial, terms=tuple(trial.terms[k] for k in order),
+                                    values=tuple(trial.values[k] for k in order))
+        res = fit(trial, data)
+        if res.rss < cur.rss and _source_ok(res, data, i):
+            cur = res
+    return cur
 
 
 def _told_apart(cur: FitResult, res: FitResult, data: FitData) -> tuple[str, float]:

@@ -71,39 +71,62 @@ def locate_source(cur: FitResult, data: FitData, window_s: tuple[float, float],
     if data.p_m is None:
         return None
     a, b = window_s
-    pad = max(1.0, 0.5 * (b - a))
+    pad = max(2.0, 0.5 * (b - a))
     sel = np.flatnonzero((data.t_s >= a - pad) & (data.t_s < b + pad))
     if sel.size < 20:
         return None
     sel = sel[:: max(1, sel.size // max_samples)]
     r = (cur.residual_nT if cur.raw_residual_nT is None else cur.raw_residual_nT)[sel]
     sub = data.subset(np.isin(np.arange(len(data)), sel))
-    G = evaluate(cur.state, sub, jacobian=False).G  # dy/dB_enu, (n, 3, 3)
+    ev = evaluate(cur.state, sub, jacobian=False)
+    G = ev.G  # dy/dB_enu, (n, 3, 3)
     p = np.asarray(sub.p_m, dtype=float)
-    inside = (sub.t_s >= a) & (sub.t_s < b)
     norm = np.linalg.norm(r, axis=1)
-    k = int(np.flatnonzero(inside)[np.argmax(norm[inside])]) if inside.any() \
-        else int(np.argmax(norm))
-    centre = p[k]
-    cands = centre[None, :] + (np.asarray(SHELLS_M)[:, None, None]
-                               * _directions()[None, :, :]).reshape(-1, 3)
+    centre = p[int(np.argmax(norm))]
+    # what the model may still lack around the window, taken out of every candidate's fit:
+    # a constant field, a linear field in space (any 3x3 map of the positions, whatever the
+    # frame's bearing) and a lag (the rate of the reading); a compact source is what is left
+    n = len(p)
+    dp = p - p.mean(axis=0)
+    nuis = [G[:, :, k] for k in range(3)]
+    nuis += [G[:, :, k] * dp[:, j:j + 1] for k in range(3) for j in range(3)]
+    nuis.append(ev.ydot0_nT_s)
+    Nm = np.stack([c.reshape(-1) for c in nuis], axis=1)  # (3n, 13)
+    Qn, _ = np.linalg.qr(Nm / np.maximum(np.linalg.norm(Nm, axis=0), 1e-30))
+    rf = r.reshape(-1)
+    r_perp = (rf - Qn @ (Qn.T @ rf)).reshape(n, 3)
     fit_yaw = data.position_frame == "attitude_source_local"
     yaws = np.radians(YAW_GRID_DEG) if fit_yaw else np.array([0.0])
+    dirs = _directions()
     best: tuple[float, F64, float] | None = None
-    for psi in yaws:
-        Q = rot_z(float(psi))
-        GQ = G  # dy/dB_enu; the field is P(Rz(psi)(p - c)) m with m in ENU
-        for c in cands:
-            X = np.matmul(GQ, dipole_matrix((p - c) @ Q.T))  # (n, 3, 3): dy/dm
-            A = np.einsum("nki,nkj->ij", X, X)
-            g = np.einsum("nki,nk->i", X, r)
-            try:
-                m = np.linalg.solve(A + 1e-12 * np.trace(A) * np.eye(3), g)
-            except np.linalg.LinAlgError:
-                continue
-            gain = float(g @ m)
-            if best is None or gain > best[0]:
-                best = (gain, np.r_[c, m], float(psi))
+    # coarse to fine: shells around the strongest residual, then twice around the best
+    # point with shells a third and a ninth as large (the first grid's spacing is about
+    # 45 deg of arc: up to 0.7 of the shell radius)
+    shells = np.asarray(SHELLS_M)
+    for level in range(3):
+        cands = centre[None, :] + (shells[:, None, None] * dirs[None, :, :]).reshape(-1, 3)
+        if level:
+            cands = np.vstack([centre[None, :], cands])
+        for psi in (yaws if level == 0 or best is None else np.array([best[2]])):
+            Q = rot_z(float(psi))
+            for c in cands:
+                X = np.matmul(G, dipole_matrix((p - c) @ Q.T))  # (n, 3, 3): dy/dm, m in ENU
+                Xc = X.reshape(-1, 3)  # (3n, 3), rows as r's
+                Xc = Xc - Qn @ (Qn.T @ Xc)
+                A = Xc.T @ Xc
+                g = Xc.T @ r_perp.reshape(-1)
+                try:
+                    m = np.linalg.solve(A + 1e-12 * np.trace(A) * np.eye(3), g)
+                except np.linalg.LinAlgError:
+                    continue
+                gain = float(g @ m)
+                if best is None or gain > best[0]:
+                    best = (gain, np.r_[c, m], float(psi))
+        if best is None:
+            return None
+        centre = best[1][:3]
+        d_path = float(np.min(np.linalg.norm(p - centre, axis=1)))
+        shells = np.geomspace(0.05, 0.7, 5) * max(d_path, 0.01)
     if best is None or best[0] <= 0:
         return None
     value = best[1] if not fit_yaw else np.r_[best[1], best[2]]
@@ -126,6 +149,42 @@ def near_far_ratio(term: Term, value: F64, data: FitData) -> float:
         return 1.0
     d = np.linalg.norm(source_offset_enu(term, value, data.p_m[here]), axis=1)
     return float(d.min() / max(float(d.max()), 1e-12))
+
+
+#: approaches to a source needed to tell it from a transient: one approach is a single bump
+#: in time, which a disturbance (a free field in time) fits as well
+MIN_VISITS = 2
+
+
+def source_visits(term: Term, value: F64, data: FitData, floor_nT: float = 0.0) -> int:
+    """Separate approaches of the sensor to a source while it is there.
+
+    The source's field magnitude at the sensor, in time (smoothed over 0.1 s), has one
+    bump per approach. An approach counts when its bump rises above ``floor_nT`` (the
+    noise) and a tenth of the strongest, and the field falls to half the bump's height
+    between it and the next: the distance changed by at least ``2^(1/3)``, a real retreat.
+    """
+    from scipy.signal import find_peaks
+
+    from stages.diagnose.model import source_offset_enu
+
+    if data.p_m is None:
+        return 0
+    here = term.presence(data.t_s) > 0
+    if np.count_nonzero(here) < 3:
+        return 0
+    t = data.t_s[here]
+    r = source_offset_enu(term, value, data.p_m[here])
+    b = np.linalg.norm(dipole_matrix(r) @ value[3:6], axis=1)
+    dt = float(np.median(np.diff(t)))
+    w = max(1, int(round(0.1 / max(dt, 1e-6))))
+    bs = np.convolve(b, np.ones(w) / w, mode="same")
+    height = max(floor_nT, 0.1 * float(bs.max()))
+    peaks, props = find_peaks(bs, height=height)
+    if peaks.size == 0:
+        return 0
+    prom = find_peaks(bs, height=height, prominence=0.0)[1]["prominences"]
+    return int(np.count_nonzero(prom >= 0.5 * props["peak_heights"]))
 
 
 def source_term(fit_yaw: bool, windows_s: tuple[tuple[float, float], ...] = ()) -> Term:

@@ -23,7 +23,7 @@ import numpy as np
 
 from pipeline.core.recording import AlignedSeries, Context, Recording
 from pipeline.model.calibration import Calibration
-from pipeline.model.sample_hold import SampleHold, detect_sample_hold
+from pipeline.model.sample_hold import Handling, SampleHold, detect_sample_hold
 from stages.diagnose.catalogue import EFFECTS
 from stages.diagnose.fit import FitResult, fit
 from stages.diagnose.model import (
@@ -186,12 +186,16 @@ def sample_hold_finding(
 ) -> tuple[Diagnosis, FitResult, FitData] | None:
     """Add the ``sample_hold`` finding: the final model refitted on the handled data.
 
-    Two handlings are compared on the same messages (the diagnosis samples, repeats
-    included) by their held-out RMS: (a) the repeats are left out of the fit and every
-    message is predicted at the stamp of the first copy of its conversion; (b) as (a), with
-    the conversions re-stamped on the sensor's native grid (``SampleHold.t_sensed_ns``). The
-    better one is kept; without it (the messages fitted and predicted at their own stamps)
-    is the final model of ``diag``. The finding is added when the handling lowers the
+    Up to three handlings are compared on the same messages (the diagnosis samples, repeats
+    included) by their held-out RMS: (a) ``first_stamp``: the repeats are left out of the fit
+    and every message is predicted at the stamp of the first copy of its conversion; (b)
+    ``native_grid``: as (a), with the conversions re-stamped on the sensor's native grid
+    (``SampleHold.t_sensed_ns``); (c) ``anchored``: as (a), with the conversions at their
+    anchor-rule sensing times (``SampleHold.t_anchored_ns``: a reading held over three
+    messages sensed at its middle one, the conversions between such readings evenly spaced),
+    tried only where it differs from (a). The best one is kept (the first listed on a tie);
+    without it (the messages fitted and predicted at their own stamps) is the final model of
+    ``diag``. The finding is added when the handling lowers the
     held-out error by ``heldout_margin`` (as every finding) and the fall holds over the
     held-out blocks (:func:`_blocks_better`); its evidence is the change of the in-sample and
     held-out RMS over the same messages.
@@ -211,10 +215,14 @@ def sample_hold_finding(
     al_idx = (np.arange(len(aligned)) if aligned.index is None
               else np.asarray(aligned.index, dtype=np.int64))
     keep = sh.first[al_idx]
-    variants = {
+    variants: dict[Handling, np.ndarray] = {
         "first_stamp": mag_t[first_idx],
         "native_grid": np.asarray(sh.t_sensed_ns, dtype=np.int64),
     }
+    t_anchored = np.asarray(sh.t_anchored_ns, dtype=np.int64)
+    # without anchors the rule gives the first copies' stamps: nothing new to fit
+    if not np.array_equal(t_anchored, variants["first_stamp"]):
+        variants["anchored"] = t_anchored
     block = np.floor((data.t_s - float(data.t_s[0])) / cfg.block_s).astype(np.int64)
     best = None
     for name, t_new in variants.items():
@@ -244,9 +252,8 @@ def sample_hold_finding(
     s2 = res.rss / res.residual_nT.size
     span = float(mag_t[-1] - mag_t[0]) * 1e-9
     p = sh.params()
-    restamped = name == "native_grid"
     expl = EFFECTS[EffectKind.SAMPLE_HOLD].physics + "; signature: " + EFFECTS[
-        EffectKind.SAMPLE_HOLD].signature + ". " + sh.explanation(restamped=restamped) + (
+        EffectKind.SAMPLE_HOLD].signature + ". " + sh.explanation(handling=name) + (
         f" Compared on the same messages, the held-out error goes from {cv_old:.1f} to "
         f"{cv_new:.1f} nT. Read the sensor at its native rate (or publish only new "
         "conversions, stamped when they were sensed)")
