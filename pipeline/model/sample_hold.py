@@ -21,13 +21,14 @@ constant part of the lag is not determined by the stamps alone: it is the time o
 that the estimators fit.
 
 Anchored sensing times (the MEMS magnetometer of the lab recordings): its 285.714 Hz messages
-repeat a conversion in runs of 1 or 3 messages (rarely 5), never 2, so the conversions are not on
-a regular grid and the lower-envelope re-stamping falls back to the first copy's stamp. The sensor
-appears to convert at about half its conversion rate (about 101 Hz) and to insert a midpoint
-between each pair of raw conversions: the inserted conversions carry half the noise variance of
-the raw ones and neighbouring conversions correlate (0.67 at lag 1). Measured against the
-attitude on held-out data, a conversion held over three messages was sensed at its middle
-message, and the conversions between two such runs are evenly spaced between their middles.
+repeat a conversion in runs of 1 or 3 messages (rarely 5, almost never 2), so the conversions are
+not on a regular grid and the lower-envelope re-stamping falls back to the first copy's stamp.
+The sensor appears to convert at half its conversion rate (about 101 Hz) and to insert a
+midpoint between each pair of raw conversions: the inserted conversions carry half the noise
+variance of the raw ones, and neighbouring conversions correlate (0.67 at lag 1). Measured
+against the attitude on held-out data (``bench/turn_rate.py``), a conversion held over three
+messages was sensed at its middle message, and the conversions between two such runs are evenly
+spaced between their middles.
 :func:`anchored_times_ns` writes this down (the anchor rule); a plain sample-and-hold (runs of 1
 and 2 only) has no anchors and keeps the first copy's stamp. Which timing predicts better is
 decided on held-out data by the diagnosis, not here.
@@ -57,7 +58,7 @@ MAX_HOLD_RUN = 8
 #: Re-stamping follows the sensor clock over windows of this many conversions (about 0.2 s).
 RESTAMP_WINDOW = 41
 #: A run of at least this many identical messages (and at most :data:`MAX_HOLD_RUN`) is an
-#: anchor of :func:`anchored_times_ns`: a conversion whose sensing time its centre stamp gives.
+#: anchor of :func:`anchored_times_ns`: a conversion sensed at its centre stamp.
 ANCHOR_RUN = 3
 
 #: How the diagnosis times the conversions: the first copy's stamp, the native grid
@@ -267,7 +268,7 @@ def anchored_times_ns(t_ns: I64, first: B8) -> I64:
     if n == 0:
         return t.copy()
     f = np.asarray(first, dtype=bool).copy()
-    f[0] = True
+    f[0] = True  # a series starts a run whatever came before it
     start = np.flatnonzero(f)
     length = np.diff(np.r_[start, n])
     run_of = np.cumsum(f) - 1  # run (conversion) index of every message

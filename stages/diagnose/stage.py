@@ -193,12 +193,12 @@ def sample_hold_finding(
     (``SampleHold.t_sensed_ns``); (c) ``anchored``: as (a), with the conversions at their
     anchor-rule sensing times (``SampleHold.t_anchored_ns``: a reading held over three
     messages sensed at its middle one, the conversions between such readings evenly spaced),
-    tried only where it differs from (a). The best one is kept (the first listed on a tie);
+    each tried only where its times differ from those before it. The best one is kept;
     without it (the messages fitted and predicted at their own stamps) is the final model of
-    ``diag``. The finding is added when the handling lowers the
-    held-out error by ``heldout_margin`` (as every finding) and the fall holds over the
-    held-out blocks (:func:`_blocks_better`); its evidence is the change of the in-sample and
-    held-out RMS over the same messages.
+    ``diag``. The finding is added when the handling lowers the held-out error by
+    ``heldout_margin`` (as every finding) and the fall holds over the held-out blocks
+    (:func:`_blocks_better`); its evidence is the change of the in-sample and held-out RMS
+    over the same messages.
 
     Returns
     -------
@@ -215,14 +215,16 @@ def sample_hold_finding(
     al_idx = (np.arange(len(aligned)) if aligned.index is None
               else np.asarray(aligned.index, dtype=np.int64))
     keep = sh.first[al_idx]
-    variants: dict[Handling, np.ndarray] = {
-        "first_stamp": mag_t[first_idx],
-        "native_grid": np.asarray(sh.t_sensed_ns, dtype=np.int64),
-    }
-    t_anchored = np.asarray(sh.t_anchored_ns, dtype=np.int64)
-    # without anchors the rule gives the first copies' stamps: nothing new to fit
-    if not np.array_equal(t_anchored, variants["first_stamp"]):
-        variants["anchored"] = t_anchored
+    variants: dict[Handling, np.ndarray] = {"first_stamp": mag_t[first_idx]}
+    # a handling that gives the same times as one before it is not fitted again: the native
+    # grid falls back to the first copies' stamps on an irregular grid, the anchor rule
+    # without anchors
+    others: tuple[tuple[Handling, np.ndarray], ...] = (("native_grid", sh.t_sensed_ns),
+                                                        ("anchored", sh.t_anchored_ns))
+    for handling, t_h in others:
+        t_h = np.asarray(t_h, dtype=np.int64)
+        if not any(np.array_equal(t_h, v) for v in variants.values()):
+            variants[handling] = t_h
     block = np.floor((data.t_s - float(data.t_s[0])) / cfg.block_s).astype(np.int64)
     best = None
     for name, t_new in variants.items():
