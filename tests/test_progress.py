@@ -135,7 +135,10 @@ def test_diagnose_reports_candidate_search(recording):
     with pg.use_sink(pg.DirectSink("valid", seen.append)) as sink:
         diagnose_file(recording)
     names = [s["stages"][s["index"]] for s in seen if 0 <= s["index"] < len(s["stages"])]
-    assert names[:4] == ["Ingest", "Resample", "Estimate", "Diagnose"]
+    steps = [n for i, n in enumerate(names) if i == 0 or n != names[i - 1]]
+    # the analysis calibrate, diagnose and process share (process_one.analysis_stages)
+    assert steps == ["Ingest", "Resample", "SegmentMotion", "Estimate", "RequireObservable",
+                     "Diagnose", "Judge"]
     assert any(s["detail"].startswith("search 1, candidate 1/") for s in seen)
     assert set(sink.state.timings) >= {"Ingest", "Diagnose"}
 
@@ -146,7 +149,7 @@ def test_diagnose_on_terminal(recording, tmp_path):
                             _env(**{pg.ENV_MODE: "always"}))
     assert rc == 0, shown
     # each stage is drawn as it starts, however short
-    for label in ("reading (1/5)", "aligning (2/5)", "estimating (3/5)", "diagnosing (4/5)"):
+    for label in ("reading (1/1)", "aligning (2/7)", "estimating (4/7)", "diagnosing (6/7)"):
         assert f"magalign diagnose  valid: {label}" in shown, shown
 
 
@@ -155,5 +158,5 @@ def test_calibrate_on_terminal(recording, tmp_path):
                                         str(tmp_path / "c")], tmp_path,
                             _env(**{pg.ENV_MODE: "always"}))
     assert rc == 0, shown
-    assert "magalign calibrate  valid: estimating (3/3)" in shown, shown
+    assert "magalign calibrate  valid: estimating (4/7)" in shown, shown
     assert "valid: reading" in shown and " s, estimating " in shown  # -v timings
