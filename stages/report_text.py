@@ -120,8 +120,14 @@ def what(f: dict[str, Any]) -> str:
         if p.get("closest_approach_m") is not None:
             where = (f"; the sensor passed {100 * float(p['closest_approach_m']):.0f} cm from "
                      f"it at {float(p['closest_approach_s']):.1f} s")
+        where_at = vec(pos, 3) + " m"
+        if sp is not None and np.all(np.isfinite(sp)):
+            # the sigma in cm with the digits it has (a located source is often sub-cm)
+            sc = 100 * np.asarray(sp, float)
+            nd = 1 if float(np.min(sc)) >= 0.1 else 2
+            where_at += " \u00b1 " + vec(sc, nd) + " cm"
         return (f"A magnetised object fixed in the surroundings (not on the sensor): located "
-                f"at {pm_vec(pos, sp, 2)} m in {frame}, moment "
+                f"at {where_at} in {frame}, moment "
                 f"{float(np.linalg.norm(p['moment_Am2'])):.3g} A m²{where}. The restored "
                 "field keeps it.")
     if e == "lever_arm":
