@@ -179,32 +179,20 @@ def restricted_model(options: ProcessOptions) -> bool:
 
 
 def analyse_recording(path: str | Path, options: ProcessOptions | None = None) -> Context:
-    """Ingest one recording and run :func:`analysis_stages` on it; returns the Context.
+    """Read one recording and run :func:`analysis_stages` on it; returns the Context.
 
     ``calibrate`` and ``diagnose`` call this; ``process`` runs the same stages followed by
     restore and the outputs (:func:`build_stages`). Each stage is announced on the progress
     sink as it starts; what the reader repaired is warned (``RecoveredDataWarning``).
     """
-    from stages.ingest import Ingest
+    from pipeline.io.mcap_read import read_recording_warning
 
     options = options or ProcessOptions()
-    ctx = Context(source=str(path), options=options)
-    ingest = Ingest(mag_topic=options.mag_topic, attitude_topic=options.attitude_topic,
-                    turntable_topic=options.turntable_topic)
     progress.stage("Ingest", 0, 1, ["Ingest"])
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        ctx = Pipeline([ingest]).run(ctx)
-    # what the reader repaired in the data (dropped samples, sorted stamps) is only listed in
-    # Recording.problems: the user hears it too, once, as the process command's rows say it
-    from pipeline.io.mcap_read import problem_warnings
-
-    said = {str(w.message) for w in caught}
-    for w in caught:
-        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    for msg in problem_warnings(str(path), ctx.need_recording().problems, said):
-        warnings.warn(msg, RecoveredDataWarning, stacklevel=2)
-    return analyse(ctx, options)
+    rec = read_recording_warning(path, mag_topic=options.mag_topic,
+                                 attitude_topic=options.attitude_topic,
+                                 turntable_topic=options.turntable_topic)
+    return analyse(Context(source=str(path), recording=rec, options=options), options)
 
 
 def analyse(ctx: Context, options: ProcessOptions) -> Context:

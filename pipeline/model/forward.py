@@ -277,6 +277,24 @@ DIPOLE_NT = 100.0
 MIN_SOURCE_DISTANCE_M = 0.01
 
 
+def rot_z(yaw_rad: float) -> F64:
+    """Return the rotation about Up by ``yaw_rad``, (3, 3): ``p_enu = Q @ p_local``."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def source_offset_enu(c_m: F64, psi_rad: float, p_m: F64,
+                      lever_enu_m: F64 | None = None) -> F64:
+    """``r`` (N, 3), m, ENU: from a ``local_source`` at ``c_m`` to the sensor.
+
+    ``r = Rz(psi) (p - c) + C l``: positions ``p_m`` (N, 3) and ``c_m`` in the position
+    frame, turned to ENU by its bearing ``psi``; ``lever_enu_m`` the lever arm ``C l`` in
+    ENU (N, 3) when the model has one.
+    """
+    r = (np.asarray(p_m, dtype=float) - np.asarray(c_m, dtype=float)) @ rot_z(psi_rad).T
+    return r if lever_enu_m is None else r + lever_enu_m
+
+
 def dipole_matrix(r_enu_m: F64) -> F64:
     """``B = P(r) m``: the point dipole's field per unit moment, (N, 3, 3), nT / (A m^2).
 
@@ -474,15 +492,14 @@ class ForwardModel:
             dp = np.asarray(p_m, dtype=float) - ref
             f = np.nan_to_num(dp) @ M.T
             if lev is not None:  # G_enu C l, G_enu = M Rz(yaw).T
-                f += lev @ (M @ _rot_z(yaw).T).T
+                f += lev @ (M @ rot_z(yaw).T).T
             F += np.where(np.isfinite(dp).all(axis=1)[:, None], f, 0.0)
         if self.sources and p_m is not None:
             p = np.asarray(p_m, dtype=float)
             ok = np.isfinite(p).all(axis=1)
+            p0 = np.nan_to_num(p)  # rows without a position are masked below
             for c, m, psi, windows in self.sources:
-                r = np.nan_to_num(p - c) @ _rot_z(psi).T
-                if lev is not None:
-                    r = r + lev
+                r = source_offset_enu(c, psi, p0, lev)
                 here = ok & (in_windows(t, windows) if windows else True)
                 F += np.where(here[:, None], np.einsum("nij,j->ni", dipole_matrix(r), m), 0.0)
         return F
@@ -555,12 +572,6 @@ def _interp(attitude: AttitudeSeries | AttitudeInterpolator, max_gap_s: float | 
     return AttitudeInterpolator.of(attitude, max_gap_s=max_gap_s)
 
 
-def _rot_z(yaw_rad: float) -> F64:
-    """Rotation about Up by ``yaw_rad``, (3, 3)."""
-    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def _Ct(q: F64) -> F64:
     from pipeline.core.geometry import quat_to_matrix
 
@@ -594,9 +605,10 @@ def evaluate(
     p_m = None
     if (model.gradient is not None or model.sources) and position is not None:
         p_m = position.at(t_ns)
+    Ct = _Ct(q)
     lever = None
     if model.lever_arm_body_m is not None and p_m is not None:
-        lever = np.swapaxes(_Ct(q), -1, -2) @ model.lever_arm_body_m  # C l, ENU
+        lever = np.swapaxes(Ct, -1, -2) @ model.lever_arm_body_m  # C l, ENU
     Bt = model.B_enu_nT[None, :] + model.external_field_nT(t_s, p_m, lever)
     h_rad = model.heading_rad(t_s)
     if h_rad is not None:
@@ -607,7 +619,7 @@ def evaluate(
     offsets = [model.step_offset_nT(t_s)]
     if model.offset_nT is not None:
         offsets.append(model.offset_nT)
-    rd = reading(_Ct(q), Bt, model.R_body_mag, model.D, offsets, model.E_s, Cdot)  # (M2)-(M5)
+    rd = reading(Ct, Bt, model.R_body_mag, model.D, offsets, model.E_s, Cdot)  # (M2)-(M5)
     b, m, y = rd.b_body_nT, rd.m_nT, rd.y_nT
     ydot0 = rd.ydot0_nT_s
     ydot0[~valid] = 0.0

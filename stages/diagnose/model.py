@@ -58,11 +58,13 @@ from pipeline.model.forward import (
     hat_basis,
     heading_basis,
     reading,
+    rot_z,
     rotate_about_up,
     soft_iron_jacobian,
     time_offset_jacobian,
 )
 from pipeline.model.forward import drift_basis as forward_drift_basis
+from pipeline.model.forward import source_offset_enu as forward_source_offset
 
 F64 = NDArray[np.float64]
 
@@ -272,7 +274,6 @@ class Term:
         ``local_source`` with positions in a frame of unknown bearing: the rotation
         ``Rz(psi)`` from the position frame to ENU is a seventh parameter of the source.
 
-
     """
 
     kind: EffectKind
@@ -338,14 +339,7 @@ def source_offset_enu(term: Term, value: F64, p_m: F64, lever_enu: F64 | None = 
     in ENU (``lever_enu``, (N, 3), when the model has one).
     """
     psi = float(value[6]) if term.fit_yaw else term.yaw_rad
-    r = (np.asarray(p_m, dtype=float) - value[0:3]) @ rot_z(psi).T
-    return r if lever_enu is None else r + lever_enu
-
-
-def rot_z(yaw_rad: float) -> F64:
-    """Return the rotation about Up by ``yaw_rad``, (3, 3): ``p_enu = Q @ p_local``."""
-    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return forward_source_offset(value[0:3], psi, p_m, lever_enu)
 
 
 def gradient_matrix(value: F64, yaw_rad: float = 0.0) -> F64:

@@ -35,6 +35,7 @@ from stages.diagnose.result import DiagnoseConfig, Diagnosis, Finding, Signature
 from stages.diagnose.sources import (
     MAX_NEAR_FAR_RATIO,
     MIN_VISITS,
+    active_windows,
     locate_source,
     near_far_ratio,
     source_term,
@@ -766,22 +767,12 @@ def _source_ok(res: FitResult, data: FitData, i: int = -1) -> bool:
     value = res.state.values[i]
     if not np.all(np.isfinite(value)):
         return False
-    near = near_far_ratio(term, value, data) if term.windows_s else near_far_ratio(
-        dataclasses.replace(term, windows_s=_active_windows(term, value, data)), value, data)
+    near = near_far_ratio(dataclasses.replace(term, windows_s=active_windows(term, value, data)),
+                          value, data)
     # a pass of a few tenths of a second holds tens of samples: one noise sigma per sample
     # is already a clear signal over it
     visits = source_visits(term, value, data, robust_sigma(res.residual_nT))
     return near <= MAX_NEAR_FAR_RATIO and visits >= MIN_VISITS
-
-
-def _active_windows(term: Term, value: np.ndarray, data: FitData) -> tuple:
-    """Where a source present throughout stands out: its field above a tenth of its peak."""
-    from stages.diagnose.model import source_offset_enu
-
-    d = np.linalg.norm(source_offset_enu(term, value, np.asarray(data.p_m)), axis=1)
-    strong = (d.min() / d) ** 3 > 0.1
-    idx = np.flatnonzero(strong)
-    return ((float(data.t_s[idx[0]]), float(data.t_s[idx[-1]]) + 1e-6),)
 
 
 #: A source is named only when the look-alikes in its windows (a step, a disturbance) fit
@@ -817,8 +808,7 @@ def _relocate_sources(cur: FitResult, data: FitData) -> FitResult:
     for i, term in enumerate(cur.state.terms):
         if term.kind is not EffectKind.LOCAL_SOURCE:
             continue
-        value = cur.state.values[i]
-        wins = term.windows_s or _active_windows(term, value, data)
+        wins = active_windows(term, cur.state.values[i], data)
         without = fit(_without(cur.state, i), data, max_iter=10)
         loc = locate_source(without, data, (wins[0][0], wins[-1][1]))
         if loc is None:
@@ -842,10 +832,7 @@ def _told_apart(cur: FitResult, res: FitResult, data: FitData) -> tuple[str, flo
     peak), in place of the source, and compared by BIC with one effective sample count.
     Returns the words and the smaller of the two BIC differences.
     """
-    term, value = res.state.terms[-1], res.state.values[-1]
-    wins = _active_windows(term, value, data)
-    if term.windows_s:
-        wins = term.windows_s
+    wins = active_windows(res.state.terms[-1], res.state.values[-1], data)
     a, b = wins[0][0], wins[-1][1]
     ks = min(2.0, max(0.75, (b - a) / 6))
     parts, worst = [], np.inf

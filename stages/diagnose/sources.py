@@ -21,10 +21,20 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+from scipy.signal import find_peaks
 
 from pipeline.model.forward import dipole_matrix
 from stages.diagnose.fit import FitResult
-from stages.diagnose.model import F64, EffectKind, FitData, ModelState, Term, evaluate, rot_z
+from stages.diagnose.model import (
+    F64,
+    EffectKind,
+    FitData,
+    ModelState,
+    Term,
+    evaluate,
+    rot_z,
+    source_offset_enu,
+)
 
 #: distances (m) of the grid's shells from the place of the strongest residual
 SHELLS_M = (0.02, 0.04, 0.07, 0.12, 0.2, 0.35, 0.6, 1.0, 1.7, 3.0)
@@ -77,7 +87,9 @@ def locate_source(cur: FitResult, data: FitData, window_s: tuple[float, float],
         return None
     sel = sel[:: max(1, sel.size // max_samples)]
     r = (cur.residual_nT if cur.raw_residual_nT is None else cur.raw_residual_nT)[sel]
-    sub = data.subset(np.isin(np.arange(len(data)), sel))
+    mask = np.zeros(len(data), dtype=bool)
+    mask[sel] = True
+    sub = data.subset(mask)
     ev = evaluate(cur.state, sub, jacobian=False)
     G = ev.G  # dy/dB_enu, (n, 3, 3)
     p = np.asarray(sub.p_m, dtype=float)
@@ -140,8 +152,6 @@ def near_far_ratio(term: Term, value: F64, data: FitData) -> float:
     sampled: the fit then describes a smooth field (a gradient or a field map does that)
     and says nothing about a compact object.
     """
-    from stages.diagnose.model import source_offset_enu
-
     if data.p_m is None:
         return 1.0
     here = term.presence(data.t_s) > 0
@@ -164,10 +174,6 @@ def source_visits(term: Term, value: F64, data: FitData, floor_nT: float = 0.0) 
     noise) and a tenth of the strongest, and the field falls to half the bump's height
     between it and the next: the distance changed by at least ``2^(1/3)``, a real retreat.
     """
-    from scipy.signal import find_peaks
-
-    from stages.diagnose.model import source_offset_enu
-
     if data.p_m is None:
         return 0
     here = term.presence(data.t_s) > 0
@@ -180,11 +186,21 @@ def source_visits(term: Term, value: F64, data: FitData, floor_nT: float = 0.0) 
     w = max(1, int(round(0.1 / max(dt, 1e-6))))
     bs = np.convolve(b, np.ones(w) / w, mode="same")
     height = max(floor_nT, 0.1 * float(bs.max()))
-    peaks, props = find_peaks(bs, height=height)
-    if peaks.size == 0:
-        return 0
-    prom = find_peaks(bs, height=height, prominence=0.0)[1]["prominences"]
-    return int(np.count_nonzero(prom >= 0.5 * props["peak_heights"]))
+    _, props = find_peaks(bs, height=height, prominence=0.0)
+    return int(np.count_nonzero(props["prominences"] >= 0.5 * props["peak_heights"]))
+
+
+def active_windows(term: Term, value: F64, data: FitData) -> tuple[tuple[float, float], ...]:
+    """Return where a source stands out: its windows, or the span of its strong field.
+
+    A source present throughout stands out from the first to the last sample at which its
+    field exceeds a tenth of its peak (within ``10^(1/3)`` times the closest distance).
+    """
+    if term.windows_s or data.p_m is None:
+        return term.windows_s
+    d = np.linalg.norm(source_offset_enu(term, value, np.asarray(data.p_m)), axis=1)
+    idx = np.flatnonzero((d.min() / d) ** 3 > 0.1)
+    return ((float(data.t_s[idx[0]]), float(data.t_s[idx[-1]]) + 1e-6),)
 
 
 def source_term(fit_yaw: bool, windows_s: tuple[tuple[float, float], ...] = ()) -> Term:

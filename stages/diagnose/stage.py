@@ -21,6 +21,7 @@ from typing import Any, ClassVar, cast
 
 import numpy as np
 
+from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
 from pipeline.core.recording import AlignedSeries, Context, Recording
 from pipeline.model.calibration import Calibration
 from pipeline.model.sample_hold import Handling, SampleHold, detect_sample_hold
@@ -514,8 +515,6 @@ def left_out_shift(estimate: Calibration, final: Calibration, diag: Diagnosis) -
     verdict is then at most QUESTIONABLE). Nothing changes when the final model holds no term
     the estimate lacks.
     """
-    from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
-
     left_out = [f.effect for f in diag.findings
                 if f.effect not in _ESTIMATE_TERMS
                 or getattr(estimate, _ESTIMATE_TERMS[f.effect]) is None]

@@ -82,8 +82,7 @@ def run(args: argparse.Namespace) -> int:
         estimator=EstimatorKind(args.estimator), terms=terms,
         reference_field_enu_nT=None if ref is None else (float(ref[0]), float(ref[1]),
                                                          float(ref[2])),
-        mag_topic=args.mag, attitude_topic=args.attitude, robust=args.robust,
-        write_rerun=False, write_report=False)
+        mag_topic=args.mag, attitude_topic=args.attitude, robust=args.robust)
     display = progress.ProgressDisplay(1, "magalign calibrate",
                                        enabled=progress.enabled_for(sys.stderr))
     sink = progress.DirectSink(Path(args.recording).stem, display.update)

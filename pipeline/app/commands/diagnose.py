@@ -42,8 +42,7 @@ def diagnose_file(path: str | Path, *, mag_topic: str | None = None,
     from pipeline.app.process_one import ProcessOptions, analyse_recording
 
     options = ProcessOptions(reference_field_enu_nT=reference_field_enu_nT,
-                             mag_topic=mag_topic, attitude_topic=attitude_topic,
-                             write_rerun=False, write_report=False)
+                             mag_topic=mag_topic, attitude_topic=attitude_topic)
     return analyse_recording(path, options)
 
 
