@@ -27,6 +27,7 @@ uncalibrated comparison of the metrics) while it has one at ``t - tau``.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from functools import cached_property
 from typing import TYPE_CHECKING, Any, ClassVar
@@ -34,7 +35,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 
 from pipeline.core.errors import InputError
-from pipeline.core.recording import Context, Frame, Recording, VectorSeries
+from pipeline.core.recording import Context, Frame, PositionSeries, Recording, VectorSeries
 from pipeline.model.attitude import AttitudeInterpolator
 from pipeline.model.forward import restore as model_restore
 
@@ -182,8 +183,6 @@ class RestoreResult:
     def concat(cls, parts: list[RestoreResult], totals: RestoreTotals | None = None
                ) -> RestoreResult:
         """Join results of consecutive rows (chunks); ``totals``: those of every sample."""
-        import dataclasses
-
         arrays: dict[str, Any] = {f: np.concatenate([getattr(p, f) for p in parts])
                                   for f in _ROW_FIELDS}
         return dataclasses.replace(parts[0], totals=totals, **arrays)
@@ -195,8 +194,6 @@ class RestoreResult:
         sample for the figures: a view would keep the whole arrays alive); ``False``: views
         of a slice, for rows used at once.
         """
-        import dataclasses
-
         arrays: dict[str, Any] = {f: (np.array if copy else np.asarray)(getattr(self, f)[sl])
                                   for f in _ROW_FIELDS}
         return dataclasses.replace(self, totals=None, **arrays)
@@ -435,13 +432,77 @@ class ChunkedAttitude:
         return max(len(self._att_t), len(self._mag_t))
 
 
+class ChunkedPositions:
+    """A long recording's positions, chunk by chunk, held back until they bracket the rows.
+
+    The spatial terms of the field (``field_gradient``, ``local_source``, ``field_map``) need
+    the position at each magnetometer row: :meth:`PositionSeries.at` interpolates linearly
+    between the valid positions either side of it and gives NaN across a gap longer than the
+    series' rule. A row is therefore settled once a valid position at or after it has
+    arrived, or once no later position can bracket it: when the latest stamp read is more
+    than the gap rule past the latest valid position (the span would be too long), or when
+    no valid position has come yet (the row lies before the first one). The gap rule is the
+    first chunk's (:meth:`PositionSeries.gap_rule_s`): every piece is interpolated as the
+    whole series would be.
+    """
+
+    def __init__(self) -> None:
+        self._t = np.zeros(0, np.int64)
+        self._p = np.zeros((0, 3))
+        self._like: PositionSeries | None = None
+        self._seen_ns: int | None = None
+
+    def add(self, position: PositionSeries | None, seen_ns: int | None) -> None:
+        """Take a chunk's positions (valid rows, sorted); ``seen_ns``: its latest stamp."""
+        if seen_ns is not None:
+            self._seen_ns = seen_ns if self._seen_ns is None else max(self._seen_ns, seen_ns)
+        if position is None or not len(position):
+            return
+        ok = position.valid
+        if self._like is None and int(np.count_nonzero(ok)) >= 2:
+            self._like = dataclasses.replace(
+                position, t_ns=position.t_ns[:0], p_m=position.p_m[:0],
+                max_gap_s=position.gap_rule_s())
+        self._t = np.concatenate([self._t, position.t_ns[ok]])
+        self._p = np.concatenate([self._p, position.p_m[ok]])
+        if np.any(np.diff(self._t[-int(np.count_nonzero(ok)) - 1:]) < 0):
+            o = np.argsort(self._t, kind="stable")
+            self._t, self._p = self._t[o], self._p[o]
+
+    def settled(self, t_ns: np.ndarray) -> int:
+        """Return how many of the (sorted) rows ``t_ns`` no later position can change."""
+        if self._like is None:
+            # fewer than two valid positions yet: rows before the first (or, without any,
+            # before the stamps read) lie before every pair that could bracket them
+            first = int(self._t[0]) if len(self._t) else self._seen_ns
+            return 0 if first is None else int(np.searchsorted(t_ns, first, "left"))
+        last = int(self._t[-1])
+        gap_ns = float(self._like.gap_rule_s()) * 1e9
+        if self._seen_ns is not None and self._seen_ns - last > gap_ns:
+            return len(t_ns)
+        return int(np.searchsorted(t_ns, last, "right"))
+
+    def series(self, t_first_ns: int, t_last_ns: int) -> PositionSeries | None:
+        """Return the positions bracketing ``[t_first_ns, t_last_ns]``; drop earlier ones."""
+        if self._like is None:
+            return None
+        a = max(int(np.searchsorted(self._t, t_first_ns, "right")) - 1, 0)
+        b = min(int(np.searchsorted(self._t, t_last_ns, "left")) + 1, len(self._t))
+        out = dataclasses.replace(self._like, t_ns=self._t[a:b], p_m=self._p[a:b])
+        # the row after these needs the position at or before t_last_ns and later ones
+        keep = max(int(np.searchsorted(self._t, t_last_ns, "right")) - 1, 0)
+        self._t, self._p = self._t[keep:], self._p[keep:]
+        return out
+
+
 class ChunkedRestore:
     """Restore a long recording chunk by chunk, in memory that does not grow with its length.
 
     :class:`ChunkedAttitude` (the attitude as a whole-series interpolator gives it, at ``t``
     and ``t - tau``) and :func:`restore_rows` on each chunk's settled rows: feed the chunks in
     time order (:meth:`add`), each call returns the :class:`RestoreResult` of the rows now
-    settled, and :meth:`finish` the rest.
+    settled, and :meth:`finish` the rest. With ``positions``, rows also wait for the
+    positions that bracket them (:class:`ChunkedPositions`), for the field's spatial terms.
 
     Parameters
     ----------
@@ -454,33 +515,70 @@ class ChunkedRestore:
         The recording's ``lam`` of (A7).
     model_key : str
         :func:`model_key_of` the calibration.
+    positions : bool
+        The recording has positions (each chunk's are given to :meth:`add`).
 
     """
 
     def __init__(self, cal: Calibration, *, t0_ns: int, max_gap_s: float, cubic_weight: float,
-                 model_key: str = ""):
+                 model_key: str = "", positions: bool = False):
         self.cal = cal
         self.t0_ns = int(t0_ns)
         self.model_key = model_key
         self.attitude = ChunkedAttitude(
             max_gap_s=max_gap_s, cubic_weight=cubic_weight,
             time_offset_s=float(cal.forward_model().time_offset_s))
+        self.positions = ChunkedPositions() if positions else None
+        self._waiting: list[tuple[np.ndarray, np.ndarray, AttitudeInterpolator]] = []
 
     def add(self, mag_t_ns: np.ndarray, mag_nT: np.ndarray, att_t_ns: np.ndarray | None,
-            q_enu_body: np.ndarray | None) -> RestoreResult | None:
+            q_enu_body: np.ndarray | None, position: PositionSeries | None = None
+            ) -> RestoreResult | None:
         """Take one chunk (sorted stamps); return the rows now settled, or None."""
-        return self._restore(self.attitude.add(mag_t_ns, mag_nT, att_t_ns, q_enu_body))
+        rows = self.attitude.add(mag_t_ns, mag_nT, att_t_ns, q_enu_body)
+        if self.positions is None:
+            return self._restore(rows, None)
+        seen = [int(a[-1]) for a in (mag_t_ns, att_t_ns) if a is not None and len(a)]
+        self.positions.add(position, max(seen) if seen else None)
+        return self._drain(rows, final=False)
 
     def finish(self) -> RestoreResult | None:
         """Return the rows still waiting (the end of the recording)."""
-        return self._restore(self.attitude.finish())
+        rows = self.attitude.finish()
+        if self.positions is None:
+            return self._restore(rows, None)
+        return self._drain(rows, final=True)
 
-    def _restore(self, rows: tuple[np.ndarray, np.ndarray, AttitudeInterpolator] | None
-                 ) -> RestoreResult | None:
+    def _drain(self, rows: tuple[np.ndarray, np.ndarray, AttitudeInterpolator] | None,
+               final: bool) -> RestoreResult | None:
+        assert self.positions is not None
+        if rows is not None:
+            self._waiting.append(rows)
+        parts: list[RestoreResult] = []
+        while self._waiting:
+            t, v, interp = self._waiting[0]
+            n = len(t) if final else self.positions.settled(t)
+            if n == 0:
+                break
+            if n < len(t):
+                self._waiting[0] = (t[n:], v[n:], interp)
+            else:
+                self._waiting.pop(0)
+            rs = self._restore((t[:n], v[:n], interp),
+                               self.positions.series(int(t[0]), int(t[n - 1])))
+            if rs is not None:
+                parts.append(rs)
+        if not parts:
+            return None
+        return parts[0] if len(parts) == 1 else RestoreResult.concat(parts)
+
+    def _restore(self, rows: tuple[np.ndarray, np.ndarray, AttitudeInterpolator] | None,
+                 position: PositionSeries | None) -> RestoreResult | None:
         if rows is None:
             return None
         t, v, interp = rows
-        return restore_rows(self.cal, t, v, interp, t0_ns=self.t0_ns, model_key=self.model_key)
+        return restore_rows(self.cal, t, v, interp, t0_ns=self.t0_ns, position=position,
+                            model_key=self.model_key)
 
 
 @dataclass(frozen=True)

@@ -734,7 +734,7 @@ def write_streams(path: Path, t_mag_s, mag_nT, t_att_s, att: Rotation, att_type:
                   att_topic: str = "/attitude", geo: np.ndarray | None = None,
                   vel_enu: np.ndarray | None = None,
                   fix: tuple[np.ndarray, np.ndarray] | None = None,
-                  fix_topic: str = "/gps/fix") -> Path:
+                  fix_topic: str = "/gps/fix", chunk_size: int = 256 * 1024) -> Path:
     """Write a magnetometer and an attitude stream with the ``mcap_ros2`` writer.
 
     Stamps are ``T0 + t`` (ns); log time is the stamp plus 2 ms; the field is written in
@@ -819,7 +819,7 @@ def write_streams(path: Path, t_mag_s, mag_nT, t_att_s, att: Rotation, att_type:
                 "position_covariance_type": 2}))
     msgs.sort(key=lambda x: x[0])
     with open(path, "wb") as fh:
-        w = Writer(fh, chunk_size=256 * 1024)
+        w = Writer(fh, chunk_size=chunk_size)
         schemas = [w.register_msgdef("sensor_msgs/msg/MagneticField",
                                      MSGDEFS["sensor_msgs/msg/MagneticField"]),
                    w.register_msgdef(att_type, MSGDEFS[att_type])]
@@ -834,11 +834,13 @@ def write_streams(path: Path, t_mag_s, mag_nT, t_att_s, att: Rotation, att_type:
     return path
 
 
-def write(spec: Spec, path: Path, truth_path: Path | None = None) -> Path:
+def write(spec: Spec, path: Path, truth_path: Path | None = None,
+          chunk_size: int = 256 * 1024) -> Path:
     """Make the recording of ``spec`` and write it.
 
     With ``truth_path``, :func:`truth` is written there as JSON too (keep it outside a folder
-    a program under test reads, as the corpus key is).
+    a program under test reads, as the corpus key is). ``chunk_size``: the MCAP chunk size,
+    bytes (small: many chunks, as a reader of ranges sees a long recording).
     """
     r = readings(spec)
     pos = r["pos_m"] if (spec.positions and spec.att_type == "geometry_msgs/msg/PoseStamped"
@@ -852,7 +854,8 @@ def write(spec: Spec, path: Path, truth_path: Path | None = None) -> Path:
     if spec.positions and spec.position_type == "navsatfix":
         fix = (r["t_fix_s"], enu_to_geodetic(r["fix_pos_m"], spec.geo_origin))
     out = write_streams(path, r["t_mag_s"], r["mag_nT"], r["t_att_s"], r["att"],
-                        spec.att_type, pos, geo=geo, vel_enu=vel, fix=fix)
+                        spec.att_type, pos, geo=geo, vel_enu=vel, fix=fix,
+                        chunk_size=chunk_size)
     if truth_path is not None:
         tp = Path(truth_path)
         tp.parent.mkdir(parents=True, exist_ok=True)

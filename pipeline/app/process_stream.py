@@ -1,4 +1,4 @@
-"""``process`` of a long recording in memory that does not grow with its length (issue 18).
+"""``process`` of a long recording in memory that does not grow with its length.
 
 A recording with more magnetometer samples than ``ProcessOptions.scale_samples`` whose file
 is an intact indexed MCAP is processed in two passes over its samples, never holding them
@@ -29,12 +29,16 @@ outputs, 72 bytes a sample pair, and replayed by pass 2):
    compared with its residual on the analysed windows (:func:`unseen_check`): physics
    between the windows that the model lacks is reported, with the stretch where it is.
 
+Positions (a ``NavSatFix`` channel, or those the attitude carries) go with the samples: the
+diagnosis windows keep theirs, so the spatial terms of the field (``field_gradient``,
+``local_source``, ``field_map``) are fitted there, and pass 2 restores each row with the
+position interpolated as over the whole series (:class:`stages.restore.ChunkedPositions`).
+
 What is not streamed (such recordings take the in-memory path, whatever their length): a
-damaged or unindexed file (the reader must recover what it can from the whole file), a
-turntable recording (the axis-tilt fit needs the whole rotation), and an attitude that
-carries positions (the field gradient term). Ingest's whole-recording checks (duplicated
-stamps, clock jumps, gaps) are made range by range here, so a stamp repeated across two
-ranges is not reported.
+damaged or unindexed file (the reader must recover what it can from the whole file) and a
+turntable recording (the axis-tilt fit needs the whole rotation). Ingest's whole-recording
+checks (duplicated stamps, clock jumps, gaps) are made range by range here, so a stamp
+repeated across two ranges is not reported.
 """
 
 from __future__ import annotations
@@ -54,6 +58,7 @@ from pipeline.core.recording import (
     AlignedSeries,
     AttitudeSeries,
     Context,
+    PositionSeries,
     Recording,
     VectorSeries,
 )
@@ -86,7 +91,7 @@ def plan_stream(path: str | Path, options: Any) -> StreamPlan | None:
 
     Chunks when the options allow it (``scale_samples``), the file holds more magnetometer
     messages than ``scale_samples``, is intact and indexed (its chunks can be copied as they
-    are), and its attitude source is neither a turntable nor carries positions.
+    are), and its attitude source is not a turntable.
     """
     from pipeline.io.mcap_header import read_recording_header
     from pipeline.io.mcap_read import pass_through
@@ -96,8 +101,7 @@ def plan_stream(path: str | Path, options: Any) -> StreamPlan | None:
     header = read_recording_header(path, mag_topic=options.mag_topic,
                                    attitude_topic=options.attitude_topic)
     mag = next((c for c in header.channels if c.topic == header.mag_topic), None)
-    if (mag is None or mag.count <= options.scale_samples or header.attitude is None
-            or header.position is not None):
+    if mag is None or mag.count <= options.scale_samples or header.attitude is None:
         return None
     pt = pass_through(path)
     if pt is None or not pt.chunks:
@@ -126,6 +130,7 @@ class _Collector:
         self.mag_v: list[np.ndarray] = []
         self.att_t: list[np.ndarray] = []
         self.att_q: list[np.ndarray] = []
+        self.pos: list[PositionSeries] = []
         self.al: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self.n_aligned = 0
         self.t_first_ns: int | None = None
@@ -151,6 +156,11 @@ class _Collector:
             if a.any():
                 self.att_t.append(ch.attitude.t_ns[a])
                 self.att_q.append(ch.attitude.q_enu_body[a])
+        if ch.position is not None and len(ch.position):
+            p = self._inside(ch.position.t_ns, int(WINDOW_MARGIN_S * 1e9))
+            if p.any():
+                self.pos.append(dataclasses.replace(ch.position, t_ns=ch.position.t_ns[p],
+                                                    p_m=ch.position.p_m[p]))
 
     def aligned(self, q: np.ndarray, y: np.ndarray, t: np.ndarray) -> None:
         first = (-self.n_aligned) % self.step
@@ -173,9 +183,18 @@ class _Collector:
         at, aq = cat(self.att_t, (0,), np.int64), cat(self.att_q, (0, 4), float)
         o = np.argsort(mt, kind="stable")
         oa = np.argsort(at, kind="stable")
+        position = None
+        if header.position is not None and self.pos:
+            pt = np.concatenate([p.t_ns for p in self.pos])
+            pp = np.concatenate([p.p_m for p in self.pos])
+            op = np.argsort(pt, kind="stable")
+            # the whole series' gap rule: the windows' positions must not bridge the
+            # stretches between windows
+            position = dataclasses.replace(self.pos[0], t_ns=pt[op], p_m=pp[op],
+                                           max_gap_s=self.pos[0].gap_rule_s())
         return dataclasses.replace(
             header, mag=VectorSeries(mt[o], mv[o], header.mag.frame, header.mag.unit),
-            attitude=AttitudeSeries(at[oa], aq[oa]), position=None)
+            attitude=AttitudeSeries(at[oa], aq[oa]), position=position)
 
 
 class _Replay:
@@ -194,6 +213,7 @@ class _Replay:
         except OSError as exc:
             raise self._error(exc) from exc
         self.n_chunks = 0
+        self.position: PositionSeries | None = None  # frame and origin of the positions
 
     def _error(self, exc: OSError) -> OutputError:
         return OutputError(f"cannot keep the decoded samples for the second pass: "
@@ -202,35 +222,47 @@ class _Replay:
                            "space beside the outputs while it is processed")
 
     def write(self, ch: Any) -> None:
-        att = ch.attitude
+        att, pos = ch.attitude, ch.position
         m = 0 if att is None else len(att.t_ns)
+        k = 0 if pos is None else len(pos.t_ns)
         try:
-            np.array([len(ch.mag.t_ns), m], dtype=np.int64).tofile(self._fh)
+            np.array([len(ch.mag.t_ns), m, k], dtype=np.int64).tofile(self._fh)
             for a, dt in ((ch.mag.t_ns, np.int64), (ch.mag.values, np.float64)):
                 np.ascontiguousarray(a, dtype=dt).tofile(self._fh)
             if att is not None and m:
                 np.ascontiguousarray(att.t_ns, dtype=np.int64).tofile(self._fh)
                 np.ascontiguousarray(att.q_enu_body, dtype=np.float64).tofile(self._fh)
+            if pos is not None and k:
+                np.ascontiguousarray(pos.t_ns, dtype=np.int64).tofile(self._fh)
+                np.ascontiguousarray(pos.p_m, dtype=np.float64).tofile(self._fh)
+                if self.position is None:  # frame and origin: the same in every chunk
+                    self.position = dataclasses.replace(pos, t_ns=pos.t_ns[:0],
+                                                        p_m=pos.p_m[:0])
         except OSError as exc:
             raise self._error(exc) from exc
         self.n_chunks += 1
 
     def chunks(self) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None,
-                                       np.ndarray | None]]:
-        """Yield ``(mag_t_ns, mag_nT, att_t_ns, q_enu_body)`` of each chunk, in order."""
+                                       np.ndarray | None, PositionSeries | None]]:
+        """Yield ``(mag_t_ns, mag_nT, att_t_ns, q_enu_body, position)`` of each chunk."""
         fh = self._fh
         fh.flush()
         fh.seek(0)
         for _ in range(self.n_chunks):
-            n, m = (int(x) for x in np.fromfile(fh, np.int64, 2))
+            n, m, k = (int(x) for x in np.fromfile(fh, np.int64, 3))
             mt = np.fromfile(fh, np.int64, n)
             mv = np.fromfile(fh, np.float64, 3 * n).reshape(n, 3)
+            at = aq = None
             if m:
                 at = np.fromfile(fh, np.int64, m)
                 aq = np.fromfile(fh, np.float64, 4 * m).reshape(m, 4)
-                yield mt, mv, at, aq
-            else:
-                yield mt, mv, None, None
+            pos = None
+            if k:
+                pt = np.fromfile(fh, np.int64, k)
+                pp = np.fromfile(fh, np.float64, 3 * k).reshape(k, 3)
+                assert self.position is not None  # set with the first positions written
+                pos = dataclasses.replace(self.position, t_ns=pt, p_m=pp)
+            yield mt, mv, at, aq, pos
         fh.close()
 
 
@@ -428,7 +460,8 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
     release_free_memory()
     t0 = int(col.t_first_ns if col.t_first_ns is not None else plan.start_ns)
     restorer = ChunkedRestore(cal, t0_ns=t0, max_gap_s=gap_s, cubic_weight=lam,
-                              model_key=model_key_of(cal, options.max_gap_s))
+                              model_key=model_key_of(cal, options.max_gap_s),
+                              positions=plan.header.position is not None)
     acc = MetricsAccumulator(segments, t0, spill_dir=rec_dir)
     totals = RestoreTotals()
     kept: list[Any] = []
@@ -474,8 +507,8 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
             kept.append(rs.rows(slice((-n_seen) % k, None, k)))
             n_seen += len(rs.t_ns)
 
-        for mt, mv, at, aq in replay.chunks():
-            rs = restorer.add(mt, mv, at, aq)
+        for mt, mv, at, aq, pos in replay.chunks():
+            rs = restorer.add(mt, mv, at, aq, pos)
             if pending is not None:
                 pending.result()
             pending = pool.submit(consume, rs)

@@ -189,6 +189,10 @@ class PositionSeries:
         The geodetic point ``p_m = 0`` stands for, when the positions come from geodetic
         fixes (``NavSatFix``, INSPVA): frame ``enu`` about the first valid fix. None for
         local frames (a motion-capture room), whose origin is not tied to the Earth.
+    max_gap_s : float or None
+        The gap rule of :meth:`at` when it is given none; None: the series' own (see
+        :meth:`at`). A piece of a long recording's positions carries the whole series' rule,
+        so that each piece is interpolated as the whole would be.
 
     """
 
@@ -196,6 +200,7 @@ class PositionSeries:
     p_m: F64
     frame: PositionFrame = PositionFrame.ENU
     origin: GeodeticOrigin | None = None
+    max_gap_s: float | None = None
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t_ns, dtype=np.int64)
@@ -221,14 +226,14 @@ class PositionSeries:
         """Positions at ``t_ns`` by linear interpolation between valid rows, (M, 3), m.
 
         NaN outside the span of the valid rows and where the two valid neighbours are more
-        than ``max_gap_s`` apart (a lost stretch is not bridged). ``None``: 0.1 s, or 2.5
-        times the series' median interval when that is longer (a 10 Hz GNSS fix is
-        bridged between fixes, a lost motion-capture marker is not).
+        than ``max_gap_s`` apart (a lost stretch is not bridged). ``None``: the series'
+        ``max_gap_s`` if it has one, else 0.1 s, or 2.5 times the series' median interval
+        when that is longer (a 10 Hz GNSS fix is bridged between fixes, a lost
+        motion-capture marker is not).
         """
         t = np.asarray(t_ns, dtype=np.int64)
         if max_gap_s is None:
-            step = float(np.median(np.diff(self.t_ns))) * 1e-9 if len(self.t_ns) > 1 else 0.0
-            max_gap_s = max(0.1, 2.5 * step)
+            max_gap_s = self.gap_rule_s()
         ok = self.valid
         tv, pv = self.t_ns[ok], self.p_m[ok]
         out = np.full((t.shape[0], 3), np.nan)
@@ -242,6 +247,13 @@ class PositionSeries:
         p = pv[i] + s[:, None] * (pv[i + 1] - pv[i])
         out[inside] = p[inside]
         return out
+
+    def gap_rule_s(self) -> float:
+        """Return the longest gap between valid rows that :meth:`at` bridges by default, s."""
+        if self.max_gap_s is not None:
+            return float(self.max_gap_s)
+        step = float(np.median(np.diff(self.t_ns))) * 1e-9 if len(self.t_ns) > 1 else 0.0
+        return max(0.1, 2.5 * step)
 
     def window(self, start_ns: int, end_ns: int) -> PositionSeries:
         """Return the samples with ``start_ns <= t < end_ns``."""

@@ -58,6 +58,7 @@ from pipeline.core.recording import (
     ChannelInfo,
     EncodingFamily,
     Frame,
+    GeodeticOrigin,
     PositionFrame,
     PositionSeries,
     Problem,
@@ -682,6 +683,12 @@ class RecordingChunk:
         Attitude samples of the range (unit quaternions ``q_enu_body``), sorted by stamp.
     turntable : AngleSeries or None
         Turntable angle samples of the range (rad, not unwrapped across chunks).
+    position : PositionSeries or None
+        Positions of the range: the position channel's (``NavSatFix``) when the recording has
+        one, else those the attitude channel carries; geodetic fixes in local ENU about the
+        recording's first valid fix (the same origin in every range). Rows without a valid
+        position are left out. Whether the recording has positions at all is the header's
+        to say (:func:`pipeline.io.mcap_header.read_recording_header`).
 
     """
 
@@ -689,24 +696,51 @@ class RecordingChunk:
     mag: VectorSeries
     attitude: AttitudeSeries | None
     turntable: AngleSeries | None
+    position: PositionSeries | None = None
 
 
 def _chunk_part(dec: _Decoded | None, quat: bool) -> _Decoded | None:
     if dec is None:
         return None
     ok = _finite_rows(dec.values)
-    if not quat and dec.values.ndim == 2:
+    if not quat and dec.values.ndim == 2 and dec.position_kind != "geodetic":
         # damaged values (a flipped exponent bit) would overflow the streaming sums
         with np.errstate(over="ignore", invalid="ignore"):
             ok &= np.abs(dec.values).max(axis=1, initial=0.0) < ABSURD_NT
     if quat:
         norm = _quat_norm(np.where(ok[:, None], dec.values, 0.0))
         ok &= norm > 1e-6
-    t, v = dec.t_ns[ok], dec.values[ok]
+    kept = dec.take(ok)
     if quat:
-        v = v / norm[ok][:, None]
-    order = np.argsort(t, kind="stable")
-    return _Decoded(t[order], v[order], dec.log_time_ns[ok][order], dec.frame_id)
+        kept = _Decoded(kept.t_ns, kept.values / norm[ok][:, None], kept.log_time_ns,
+                        kept.frame_id, kept.position, kept.position_kind)
+    return kept.take(np.argsort(kept.t_ns, kind="stable"))
+
+
+class _ChunkPositions:
+    """Each range's positions, in one frame over the whole recording.
+
+    Geodetic fixes become local ENU about the recording's first valid fix (the ranges come
+    in time order, so the first range with a valid fix holds it), as :func:`read_recording`
+    places them; metres in the attitude source's frame are taken as they are.
+    """
+
+    def __init__(self) -> None:
+        self.origin: GeodeticOrigin | None = None
+
+    def series(self, d: _Decoded | None) -> PositionSeries | None:
+        if d is None or d.position is None or not len(d.t_ns):
+            return None
+        if d.position_kind != "geodetic":
+            return PositionSeries(d.t_ns, np.asarray(d.position, float),
+                                  PositionFrame.ATTITUDE_SOURCE_LOCAL)
+        lat, lon, h = d.position[:, 0], d.position[:, 1], d.position[:, 2]
+        if self.origin is None:
+            self.origin = first_valid_fix(lat, lon, h)
+        if self.origin is None:  # no valid fix yet: the rows are lost positions
+            return PositionSeries(d.t_ns, np.full((len(d.t_ns), 3), np.nan), PositionFrame.ENU)
+        return PositionSeries(d.t_ns, geodetic_to_local_enu(lat, lon, h, origin=self.origin),
+                              PositionFrame.ENU, self.origin)
 
 
 def iter_recording_chunks(
@@ -716,6 +750,7 @@ def iter_recording_chunks(
     mag_topic: str | None = None,
     attitude_topic: str | None = None,
     turntable_topic: str | None = None,
+    position_topic: str | None = None,
 ) -> Iterator[RecordingChunk]:
     """Read a recording range by range, in bounded memory, for files too large for memory.
 
@@ -733,7 +768,7 @@ def iter_recording_chunks(
         MCAP file (never modified).
     max_messages : int
         Messages of the chosen channels per yielded range (at least one MCAP chunk).
-    mag_topic, attitude_topic, turntable_topic : str, optional
+    mag_topic, attitude_topic, turntable_topic, position_topic : str, optional
         Channels to use.
 
     Yields
@@ -752,10 +787,13 @@ def iter_recording_chunks(
     tt_id = None
     if att_id is None or turntable_topic is not None:
         tt_id = _pick(scan, Role.TURNTABLE, turntable_topic, att_id is None)
-    ids = [i for i in (mag_id, att_id, tt_id) if i is not None]
+    # positions are optional: an ambiguous choice is the header's problem to report
+    pos_id = _pick_position(scan, position_topic, [])
+    ids = [i for i in (mag_id, att_id, tt_id, pos_id) if i is not None]
     decoders = {cid: _Decoder(scan, scan.channels[cid]) for cid in ids}
     parts: dict[int, list[_Decoded]] = {cid: [] for cid in ids}
     count, index = 0, 0
+    positions = _ChunkPositions()
 
     def emit() -> RecordingChunk:
         cat: dict[int, _Decoded | None] = {}
@@ -764,13 +802,17 @@ def iter_recording_chunks(
             if not ps:
                 cat[cid] = None
                 continue
+            pos = (np.concatenate([p.position for p in ps])
+                   if all(p.position is not None for p in ps) else None)
             cat[cid] = _Decoded(np.concatenate([p.t_ns for p in ps]),
                                 np.concatenate([p.values for p in ps]),
-                                np.concatenate([p.log_time_ns for p in ps]), ps[0].frame_id)
+                                np.concatenate([p.log_time_ns for p in ps]), ps[0].frame_id,
+                                pos, ps[0].position_kind)
             parts[cid] = []
         m = _chunk_part(cat[mag_id], False)
         a = _chunk_part(cat.get(att_id) if att_id is not None else None, True)
         tt = _chunk_part(cat.get(tt_id) if tt_id is not None else None, False)
+        fx = _chunk_part(cat.get(pos_id) if pos_id is not None else None, False)
         return RecordingChunk(
             index=index,
             mag=VectorSeries(m.t_ns, m.values, Frame.MAG, "nT") if m is not None
@@ -778,6 +820,7 @@ def iter_recording_chunks(
             attitude=None if a is None or not len(a.t_ns) else AttitudeSeries(a.t_ns, a.values),
             turntable=None if tt is None or not len(tt.t_ns)
             else AngleSeries(tt.t_ns, np.radians(tt.values)),
+            position=positions.series(fx if pos_id is not None else a),
         )
 
     for buf, sel in _iter_blocks(scan, set(ids)):
