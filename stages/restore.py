@@ -37,7 +37,9 @@ import numpy as np
 from pipeline.core.errors import InputError
 from pipeline.core.recording import Context, Frame, PositionSeries, Recording, VectorSeries
 from pipeline.model.attitude import AttitudeInterpolator
+from pipeline.model.forward import RATE_STEP_INTERVALS
 from pipeline.model.forward import restore as model_restore
+from pipeline.model.sample_hold import handling_of, sensing_times_ns
 
 if TYPE_CHECKING:
     from pipeline.model.calibration import Calibration
@@ -295,7 +297,7 @@ def restore_samples(
 
 def restore_rows(cal: Calibration, t_ns: np.ndarray, mag_nT: np.ndarray,
                  interp: AttitudeInterpolator, *, t0_ns: int, position: Any = None,
-                 model_key: str = "") -> RestoreResult:
+                 model_key: str = "", t_sensed_ns: np.ndarray | None = None) -> RestoreResult:
     """Restore the magnetometer rows ``t_ns``, ``mag_nT`` with the attitude of ``interp``.
 
     The one place a :class:`RestoreResult` is computed: :func:`restore_samples` calls it on
@@ -319,16 +321,26 @@ def restore_rows(cal: Calibration, t_ns: np.ndarray, mag_nT: np.ndarray,
         Marker positions (the field gradient term).
     model_key : str
         :func:`model_key_of` the calibration.
+    t_sensed_ns : ndarray of int64, shape (N,), optional
+        When each row's conversion was sensed, where the calibration carries a
+        sample-and-hold handling (:func:`pipeline.model.sample_hold.sensing_times_ns`);
+        None: computed from these rows.
 
     """
     t_ns = np.asarray(t_ns, dtype=np.int64)
     y = np.array(mag_nT, dtype=float)
     model = cal.forward_model()
-    rs = model_restore(model, y, t_ns, interp, t0_ns=t0_ns, position=position)
+    if t_sensed_ns is None:
+        handling = handling_of(cal.effects)
+        t_sensed_ns = t_ns if handling is None else sensing_times_ns(t_ns, y, handling)
+    # the model at the moment each conversion was sensed (sample_hold); the rows keep their
+    # stamps
+    rs = model_restore(model, y, np.asarray(t_sensed_ns, dtype=np.int64), interp,
+                       t0_ns=t0_ns, position=position)
     # The arrays of rs and at0 are the model's own fresh results, referenced by nothing
     # else: kept as they are (read-only below), not copied (five copies of every sample's
     # rows were a tenth of a long recording's restore).
-    if model.time_offset_s:
+    if model.time_offset_s or not np.array_equal(t_sensed_ns, t_ns):
         at0 = interp.at(t_ns, 0.0)
         q0, valid0 = at0.q_enu_body, at0.valid
     else:  # the attitude at the stamp is the one just interpolated
@@ -367,16 +379,30 @@ class ChunkedAttitude:
         The recording's ``lam`` of (A7).
     time_offset_s : float
         ``tau``: the rows are queried at ``t`` and at ``t - tau``.
+    sensing_margin_s : float
+        How far from its stamp a row's sensing time may lie (sample-and-hold handling): the
+        queries are then at ``t_sensed - tau``.
+    step_s : float or None
+        The series' attitude spacing (s): every piece's interpolator takes it, and the
+        pieces reach far enough for the eddy regressor's differences. Required for a
+        calibration with ``eddy_current``.
 
     """
 
-    def __init__(self, *, max_gap_s: float, cubic_weight: float, time_offset_s: float = 0.0):
+    def __init__(self, *, max_gap_s: float, cubic_weight: float, time_offset_s: float = 0.0,
+                 sensing_margin_s: float = 0.0, step_s: float | None = None):
         self.max_gap_s = float(max_gap_s)
         self.cubic_weight = float(cubic_weight)
+        self.step_s = step_s
         tau = float(time_offset_s)
-        # the queries are t and t - tau: the earliest and latest of them, relative to t
-        self._lo_ns = int(np.floor(min(0.0, -tau) * 1e9)) - 1
-        self._hi_ns = int(np.ceil(max(0.0, -tau) * 1e9)) + 1
+        # the eddy regressor differences the attitude RATE_STEP_INTERVALS samples either
+        # side of each query (pipeline.model.forward.rate_matrices)
+        m = float(sensing_margin_s) + (0.0 if step_s is None
+                                       else max(RATE_STEP_INTERVALS * step_s, 1e-3))
+        # the queries are t and t - tau (a sensing time within m of t): the earliest and
+        # latest of them, relative to t
+        self._lo_ns = int(np.floor((min(0.0, -tau) - m) * 1e9)) - 1
+        self._hi_ns = int(np.ceil((max(0.0, -tau) + m) * 1e9)) + 1
         self._att_t = np.zeros(0, np.int64)
         self._att_q = np.zeros((0, 4))
         self._mag_t = np.zeros(0, np.int64)
@@ -419,7 +445,7 @@ class ChunkedAttitude:
                 len(self._att_t))
         interp = AttitudeInterpolator(self._att_t[a:b], self._att_q[a:b],
                                       max_gap_s=self.max_gap_s,
-                                      cubic_weight=self.cubic_weight)
+                                      cubic_weight=self.cubic_weight, step_s=self.step_s)
         # keep what the waiting queries (and later ones) can still need
         first = t[-1] if not len(self._mag_t) else min(int(self._mag_t[0]), int(t[-1]))
         keep = max(int(np.searchsorted(self._att_t, first + self._lo_ns, "right")) - 2, 0)
@@ -430,6 +456,14 @@ class ChunkedAttitude:
     def held(self) -> int:
         """Samples held between chunks (attitude and magnetometer): about one chunk's."""
         return max(len(self._att_t), len(self._mag_t))
+
+
+#: Messages either side of a row from which a long recording's restore times its conversion
+#: (sample-and-hold handling): runs of identical messages and the anchors between which
+#: conversions are evenly spaced lie within a few messages of it.
+SENSING_CONTEXT = 256
+#: How far a sensing time may lie from its stamp, s (at most a few message periods).
+SENSING_MARGIN_S = 0.25
 
 
 class ChunkedPositions:
@@ -469,8 +503,12 @@ class ChunkedPositions:
             o = np.argsort(self._t, kind="stable")
             self._t, self._p = self._t[o], self._p[o]
 
-    def settled(self, t_ns: np.ndarray) -> int:
-        """Return how many of the (sorted) rows ``t_ns`` no later position can change."""
+    def settled(self, t_ns: np.ndarray, margin_ns: int = 0) -> int:
+        """Return how many of the (sorted) rows ``t_ns`` no later position can change.
+
+        ``margin_ns``: a row is queried up to this much after its stamp (its sensing time).
+        """
+        t_ns = np.asarray(t_ns, dtype=np.int64) + int(margin_ns)
         if self._like is None:
             # fewer than two valid positions yet: rows before the first (or, without any,
             # before the stamps read) lie before every pair that could bracket them
@@ -482,15 +520,21 @@ class ChunkedPositions:
             return len(t_ns)
         return int(np.searchsorted(t_ns, last, "right"))
 
-    def series(self, t_first_ns: int, t_last_ns: int) -> PositionSeries | None:
-        """Return the positions bracketing ``[t_first_ns, t_last_ns]``; drop earlier ones."""
+    def series(self, t_first_ns: int, t_last_ns: int, margin_ns: int = 0
+               ) -> PositionSeries | None:
+        """Return the positions bracketing ``[t_first_ns, t_last_ns]``; drop earlier ones.
+
+        ``margin_ns``: the rows are queried up to this much either side of their stamps
+        (their sensing times).
+        """
         if self._like is None:
             return None
-        a = max(int(np.searchsorted(self._t, t_first_ns, "right")) - 1, 0)
-        b = min(int(np.searchsorted(self._t, t_last_ns, "left")) + 1, len(self._t))
+        lo, hi = t_first_ns - margin_ns, t_last_ns + margin_ns
+        a = max(int(np.searchsorted(self._t, lo, "right")) - 1, 0)
+        b = min(int(np.searchsorted(self._t, hi, "left")) + 1, len(self._t))
         out = dataclasses.replace(self._like, t_ns=self._t[a:b], p_m=self._p[a:b])
-        # the row after these needs the position at or before t_last_ns and later ones
-        keep = max(int(np.searchsorted(self._t, t_last_ns, "right")) - 1, 0)
+        # the rows after these are queried from t_last_ns - margin_ns on
+        keep = max(int(np.searchsorted(self._t, t_last_ns - margin_ns, "right")) - 1, 0)
         self._t, self._p = self._t[keep:], self._p[keep:]
         return out
 
@@ -503,6 +547,11 @@ class ChunkedRestore:
     time order (:meth:`add`), each call returns the :class:`RestoreResult` of the rows now
     settled, and :meth:`finish` the rest. With ``positions``, rows also wait for the
     positions that bracket them (:class:`ChunkedPositions`), for the field's spatial terms.
+    Where the calibration carries a sample-and-hold handling, rows wait for
+    :data:`SENSING_CONTEXT` messages after them: each row's sensing time
+    (:func:`pipeline.model.sample_hold.sensing_times_ns`) comes from the messages either
+    side of it, as from the whole series (the native grid's period, fitted over the
+    context, is the one exception: it can differ from the whole series' by parts in 1e4).
 
     Parameters
     ----------
@@ -513,6 +562,8 @@ class ChunkedRestore:
         The recording's gap rule (s).
     cubic_weight : float
         The recording's ``lam`` of (A7).
+    step_s : float
+        The recording's attitude spacing, s (:attr:`AttitudeInterpolator.step_s`).
     model_key : str
         :func:`model_key_of` the calibration.
     positions : bool
@@ -521,64 +572,94 @@ class ChunkedRestore:
     """
 
     def __init__(self, cal: Calibration, *, t0_ns: int, max_gap_s: float, cubic_weight: float,
-                 model_key: str = "", positions: bool = False):
+                 step_s: float, model_key: str = "", positions: bool = False):
         self.cal = cal
         self.t0_ns = int(t0_ns)
         self.model_key = model_key
+        self.handling = handling_of(cal.effects)
         self.attitude = ChunkedAttitude(
             max_gap_s=max_gap_s, cubic_weight=cubic_weight,
-            time_offset_s=float(cal.forward_model().time_offset_s))
+            time_offset_s=float(cal.forward_model().time_offset_s),
+            sensing_margin_s=0.0 if self.handling is None else SENSING_MARGIN_S,
+            step_s=step_s)
         self.positions = ChunkedPositions() if positions else None
         self._waiting: list[tuple[np.ndarray, np.ndarray, AttitudeInterpolator]] = []
+        # the rows before the waiting ones: the sensing times' context
+        self._before_t = np.zeros(0, np.int64)
+        self._before_v = np.zeros((0, 3))
 
     def add(self, mag_t_ns: np.ndarray, mag_nT: np.ndarray, att_t_ns: np.ndarray | None,
             q_enu_body: np.ndarray | None, position: PositionSeries | None = None
             ) -> RestoreResult | None:
         """Take one chunk (sorted stamps); return the rows now settled, or None."""
         rows = self.attitude.add(mag_t_ns, mag_nT, att_t_ns, q_enu_body)
-        if self.positions is None:
-            return self._restore(rows, None)
-        seen = [int(a[-1]) for a in (mag_t_ns, att_t_ns) if a is not None and len(a)]
-        self.positions.add(position, max(seen) if seen else None)
+        if self.positions is not None:
+            seen = [int(a[-1]) for a in (mag_t_ns, att_t_ns) if a is not None and len(a)]
+            self.positions.add(position, max(seen) if seen else None)
         return self._drain(rows, final=False)
 
     def finish(self) -> RestoreResult | None:
         """Return the rows still waiting (the end of the recording)."""
-        rows = self.attitude.finish()
-        if self.positions is None:
-            return self._restore(rows, None)
-        return self._drain(rows, final=True)
+        return self._drain(self.attitude.finish(), final=True)
 
     def _drain(self, rows: tuple[np.ndarray, np.ndarray, AttitudeInterpolator] | None,
                final: bool) -> RestoreResult | None:
-        assert self.positions is not None
+        if self.positions is None and self.handling is None:
+            return self._restore(rows, None, None)
         if rows is not None:
             self._waiting.append(rows)
         parts: list[RestoreResult] = []
         while self._waiting:
             t, v, interp = self._waiting[0]
-            n = len(t) if final else self.positions.settled(t)
+            later = [w[0] for w in self._waiting[1:]]
+            n = len(t)
+            margin_ns = 0 if self.handling is None else int(SENSING_MARGIN_S * 1e9)
+            if not final and self.positions is not None:
+                n = min(n, self.positions.settled(t, margin_ns))
+            if not final and self.handling is not None:
+                # a row's sensing time needs SENSING_CONTEXT messages after it
+                n = min(n, max(len(t) + sum(len(x) for x in later) - SENSING_CONTEXT, 0))
             if n == 0:
                 break
+            t_sensed = None
+            if self.handling is not None:
+                after_t = np.concatenate([t[n:], *later])[:SENSING_CONTEXT]
+                after_v = np.concatenate([v[n:], *(w[1] for w in self._waiting[1:])])[
+                    :SENSING_CONTEXT]
+                t_sensed = self._sensing(t[:n], v[:n], after_t, after_v)
             if n < len(t):
                 self._waiting[0] = (t[n:], v[n:], interp)
             else:
                 self._waiting.pop(0)
-            rs = self._restore((t[:n], v[:n], interp),
-                               self.positions.series(int(t[0]), int(t[n - 1])))
+            position = (None if self.positions is None
+                        else self.positions.series(int(t[0]), int(t[n - 1]), margin_ns))
+            rs = self._restore((t[:n], v[:n], interp), position, t_sensed)
             if rs is not None:
                 parts.append(rs)
         if not parts:
             return None
         return parts[0] if len(parts) == 1 else RestoreResult.concat(parts)
 
+    def _sensing(self, t: np.ndarray, v: np.ndarray, after_t: np.ndarray,
+                 after_v: np.ndarray) -> np.ndarray:
+        """Sensing times of rows ``t`` from them and SENSING_CONTEXT messages either side."""
+        assert self.handling is not None
+        nb = len(self._before_t)
+        all_t = np.concatenate([self._before_t, t, after_t])
+        all_v = np.concatenate([self._before_v, v, after_v])
+        out = sensing_times_ns(all_t, all_v, self.handling)[nb:nb + len(t)]
+        self._before_t = np.concatenate([self._before_t, t])[-SENSING_CONTEXT:]
+        self._before_v = np.concatenate([self._before_v, v])[-SENSING_CONTEXT:]
+        return out
+
     def _restore(self, rows: tuple[np.ndarray, np.ndarray, AttitudeInterpolator] | None,
-                 position: PositionSeries | None) -> RestoreResult | None:
+                 position: PositionSeries | None, t_sensed_ns: np.ndarray | None
+                 ) -> RestoreResult | None:
         if rows is None:
             return None
         t, v, interp = rows
         return restore_rows(self.cal, t, v, interp, t0_ns=self.t0_ns, position=position,
-                            model_key=self.model_key)
+                            model_key=self.model_key, t_sensed_ns=t_sensed_ns)
 
 
 @dataclass(frozen=True)

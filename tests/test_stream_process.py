@@ -53,7 +53,7 @@ def _chunked(path, cal, chunk_messages, **kw):
     rec = read_recording(path)
     it = AttitudeInterpolator.of(rec.attitude)
     cr = ChunkedRestore(cal, t0_ns=int(rec.mag.t_ns[0]), max_gap_s=it.max_gap_s,
-                        cubic_weight=it.cubic_weight, **kw)
+                        cubic_weight=it.cubic_weight, step_s=it.step_s, **kw)
     parts, held = [], 0
     for ch in iter_recording_chunks(path, max_messages=chunk_messages):
         parts.append(cr.add(ch.mag.t_ns, ch.mag.values, ch.attitude.t_ns,
@@ -346,7 +346,7 @@ def test_chunked_restore_with_positions_equals_the_whole_recording_restore(
     whole = restore_samples(rec, cal)
     it = AttitudeInterpolator.of(rec.attitude)
     cr = ChunkedRestore(cal, t0_ns=int(rec.mag.t_ns[0]), max_gap_s=it.max_gap_s,
-                        cubic_weight=it.cubic_weight, positions=True)
+                        cubic_weight=it.cubic_weight, step_s=it.step_s, positions=True)
     parts = []
     chunks = list(iter_recording_chunks(path, max_messages=300))
     assert len(chunks) > 10 and all(c.position is not None for c in chunks)
@@ -359,7 +359,7 @@ def test_chunked_restore_with_positions_equals_the_whole_recording_restore(
     np.testing.assert_array_equal(np.concatenate([p.t_ns for p in parts]), whole.t_ns)
     # the terms matter: without positions the residual differs by far more than 1e-6 nT
     bare = ChunkedRestore(cal, t0_ns=int(rec.mag.t_ns[0]), max_gap_s=it.max_gap_s,
-                          cubic_weight=it.cubic_weight).add(
+                          cubic_weight=it.cubic_weight, step_s=it.step_s).add(
         rec.mag.t_ns, rec.mag.values, rec.attitude.t_ns, rec.attitude.q_enu_body)
     assert np.nanmax(np.abs(bare.residual_nT - whole.residual_nT[:len(bare.t_ns)])) > 50.0
     for f in ("enu_nT", "residual_nT"):

@@ -344,6 +344,9 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
     gap_s = (float(options.max_gap_s) if options.max_gap_s is not None
              else auto_max_gap_s(att0.t_ns))
     lam = estimate_cubic_weight(att0.t_ns, att0.q_enu_body)  # (A7) of the first range
+    # the attitude's spacing, s: the first range's stands for the recording's
+    att_dt = np.diff(np.unique(att0.t_ns))
+    att_step_s = float(np.median(att_dt)) * 1e-9 if len(att_dt) else 0.01
 
     replay = _Replay(rec_dir)
 
@@ -460,6 +463,7 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
     release_free_memory()
     t0 = int(col.t_first_ns if col.t_first_ns is not None else plan.start_ns)
     restorer = ChunkedRestore(cal, t0_ns=t0, max_gap_s=gap_s, cubic_weight=lam,
+                              step_s=att_step_s,
                               model_key=model_key_of(cal, options.max_gap_s),
                               positions=plan.header.position is not None)
     acc = MetricsAccumulator(segments, t0, spill_dir=rec_dir)

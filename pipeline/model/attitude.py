@@ -240,11 +240,15 @@ class AttitudeInterpolator:
         instead of marking them invalid.
     cubic_weight : float or None
         ``lam`` of (A7); ``None``: :func:`estimate_cubic_weight` from the samples.
+    step_s : float or None
+        The series' sample spacing (:attr:`step_s`); ``None``: the median of these samples'.
 
     """
 
     def __init__(self, t_ns: I64, q_enu_body: F64, max_gap_s: float | None = None,
-                 clamp: bool = False, cubic_weight: float | None = None):
+                 clamp: bool = False, cubic_weight: float | None = None,
+                 step_s: float | None = None):
+        self._step_s = None if step_s is None else float(step_s)
         ta = np.asarray(t_ns, dtype=np.int64)
         qa = np.asarray(q_enu_body, dtype=float).reshape(-1, 4)
         if len(ta) and np.any(np.diff(ta) <= 0):
@@ -311,7 +315,13 @@ class AttitudeInterpolator:
 
     @property
     def step_s(self) -> float:
-        """Median sample spacing, s (0.01 with fewer than two samples)."""
+        """Median sample spacing, s (0.01 with fewer than two samples).
+
+        An interpolator over a piece of a long series is given the whole series' (the eddy
+        regressor's difference step is a multiple of it).
+        """
+        if self._step_s is not None:
+            return self._step_s
         return float(np.median(self._dt)) if len(self._dt) else 0.01
 
     def _locate(self, tq: F64, clamp: bool) -> tuple[I64, F64, B8, B8]:

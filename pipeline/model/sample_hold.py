@@ -326,3 +326,50 @@ def _running_min(x: F64, w: int) -> F64:
     h = w // 2
     pad = np.concatenate([np.full(h, np.inf), x, np.full(w - 1 - h, np.inf)])
     return sliding_window_view(pad, w).min(axis=1)
+
+
+def sensing_times_ns(t_ns: I64, mag: F64, handling: Handling) -> I64:
+    """Sensing time of every message by the diagnosis' chosen ``handling``, ns, (N,).
+
+    The times the restore evaluates the model at, so that every message is restored with the
+    attitude of the moment its conversion was sensed (as the fit that chose the handling
+    predicted it): ``first_stamp``, each run of identical messages at its first copy's
+    stamp; ``native_grid``, the first copies re-stamped on the native grid
+    (:func:`detect_sample_hold`'s ``t_sensed_ns``, the first stamps where the series shows
+    no sample-and-hold); ``anchored``, :func:`anchored_times_ns`.
+
+    Parameters
+    ----------
+    t_ns : ndarray of int64, shape (N,)
+        Message stamps, sorted.
+    mag : ndarray, shape (N, 3)
+        Readings (only equality matters).
+    handling : {"first_stamp", "native_grid", "anchored"}
+        The timing the diagnosis kept (:func:`handling_of`).
+
+    """
+    t = np.asarray(t_ns, dtype=np.int64)
+    if len(t) == 0:
+        return t.copy()
+    first = ~repeated(mag)
+    first[0] = True
+    if handling == "anchored":
+        return anchored_times_ns(t, first)
+    if handling == "native_grid":
+        sh = detect_sample_hold(t, mag)
+        if sh is not None:
+            return np.asarray(sh.t_sensed_ns, dtype=np.int64)
+    return t[np.flatnonzero(first)][np.cumsum(first) - 1]
+
+
+def handling_of(effects: dict | None) -> Handling | None:
+    """Return the sample-and-hold handling a calibration's ``effects`` carry, or None.
+
+    The diagnosis stores it beside the finding's params (``effects["sample_hold"]``,
+    key ``handling``) when timing the conversions predicted held-out data better.
+    """
+    p = (effects or {}).get("sample_hold")
+    if isinstance(p, list):
+        p = p[0] if p else None
+    h = None if not isinstance(p, dict) else p.get("handling")
+    return h if h in ("first_stamp", "native_grid", "anchored") else None

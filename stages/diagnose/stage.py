@@ -184,7 +184,7 @@ def sample_hold_finding(
     cfg: DiagnoseConfig,
     *,
     reference_field_enu_nT: Any = None,
-) -> tuple[Diagnosis, FitResult, FitData] | None:
+) -> tuple[Diagnosis, FitResult, FitData, Handling] | None:
     """Add the ``sample_hold`` finding: the final model refitted on the handled data.
 
     Up to three handlings are compared on the same messages (the diagnosis samples, repeats
@@ -203,9 +203,9 @@ def sample_hold_finding(
 
     Returns
     -------
-    (Diagnosis, FitResult, FitData) or None
-        The diagnosis with the finding appended, the fit on the handled data, and that data;
-        None when the handling does not help.
+    (Diagnosis, FitResult, FitData, Handling) or None
+        The diagnosis with the finding appended, the fit on the handled data, that data and
+        the handling kept; None when the handling does not help.
 
     """
     mag_t = np.asarray(recording.mag.t_ns, dtype=np.int64)
@@ -286,11 +286,11 @@ def sample_hold_finding(
         "heldout_rms_nT": float(cv_new),
     }
     return (dataclasses.replace(diag, findings=diag.findings + (fd,), final=final), res_h,
-            train)
+            train, name)
 
 
 def _model_values(term: Term, value: np.ndarray, data: FitData) -> dict[str, Any]:
-    """Return the fitted values of a ``disturbance`` / ``field_drift`` / ``heading_drift`` term.
+    """Return the fitted values of a term that its CONVENTIONS params cannot reproduce.
 
     The CONVENTIONS params of these terms (``peak_nT``, ``peak_to_peak_nT``) describe them
     but cannot reproduce them; the calibration also carries the fitted values so that
@@ -319,6 +319,11 @@ def _model_values(term: Term, value: np.ndarray, data: FitData) -> dict[str, Any
     if term.kind is EffectKind.FIELD_GRADIENT:
         # the same for the gradient (the lever arm turns the sensor's offset in ENU)
         return {"frame_yaw_deg": float(np.degrees(term.yaw_rad))}
+    if term.kind is EffectKind.FIELD_MAP:
+        # the weights' basis: the modes per axis of the box (``n_basis`` is their product)
+        # and the bearing of the position frame the box is in
+        return {"n_per_axis": [int(x) for x in term.n_axis],
+                "frame_yaw_deg": float(np.degrees(term.yaw_rad))}
     return {}
 
 
@@ -454,8 +459,9 @@ class Diagnose:
             out = sample_hold_finding(diag, res, data, rec, al, sh, self.config,
                                       reference_field_enu_nT=self.reference_field_enu_nT)
             if out is not None:
-                diag, res, data = out
-                extra["sample_hold"] = diag.findings[-1].params
+                diag, res, data, handling = out
+                # the restore times the conversions as the fit that chose the handling did
+                extra["sample_hold"] = {**diag.findings[-1].params, "handling": handling}
         final = calibration_from(res, data, diag.findings)
         if extra:
             final = dataclasses.replace(final, effects={**(final.effects or {}), **extra})
