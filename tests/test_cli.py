@@ -134,3 +134,61 @@ def test_not_mcap_is_one_line_exit_2_and_no_output(tmp_path, command, name):
         assert "not an MCAP file" in err[0]
     assert str(src) in err[0] and "Traceback" not in r.stderr
     assert not out.exists()
+
+
+# ------------------------------------------------------------------ what the help says
+
+def _command_list(help_text: str) -> list[str]:
+    """Names in the top-level help's command list (indented under COMMAND)."""
+    block = help_text.split("  COMMAND\n", 1)[1].split("\n\n", 1)[0]
+    return [ln.split()[0] for ln in block.splitlines() if ln.strip()]
+
+
+def test_development_commands_are_apart_from_the_others():
+    parser = build_parser()
+    text = parser.format_help()
+    listed = _command_list(text)
+    assert {"info", "calibrate", "diagnose", "process", "export", "view"} <= set(listed)
+    assert "reproduce" not in listed and "score" not in listed
+    dev = text.split("development commands", 1)[1]
+    assert "reproduce" in dev and "score" in dev
+    subs = _subparsers(parser)  # still there to run
+    assert {"reproduce", "score"} <= set(subs)
+    assert "Development" in subs["reproduce"].format_help()
+
+
+def test_every_command_describes_itself():
+    for name, p in _subparsers(build_parser()).items():
+        assert p.description and len(p.description.split()) >= 8, name
+    text = _subparsers(build_parser())["view"].format_help()
+    assert "rerun viewer" in text and "--web" in text and ".rrd" in text
+
+
+def test_one_word_for_the_offset():
+    """--estimate spells it offset in every command; hard_iron is the effect name, explained."""
+    subs = _subparsers(build_parser())
+    helps = {name: _options(subs[name])["--estimate"].help for name in ("calibrate", "process")}
+    assert len(set(helps.values())) == 1, helps
+    text = next(iter(helps.values()))
+    assert "offset (" in text and "hard_iron" in text
+
+
+@pytest.mark.parametrize("command", ["calibrate", "process"])
+def test_estimate_takes_no_other_spelling(tmp_path, capsys, command):
+    args = [command, str(tmp_path / "missing.mcap"), "--out", str(tmp_path / "out"),
+            "--estimate", "hard_iron"]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--estimate" in err[0] and "offset" in err[0], err
+
+
+def test_summary_title_names_magalign_once():
+    import tomllib
+
+    from pipeline.app.commands.process import summary_title
+
+    demo = Path(__file__).resolve().parents[1] / "pipeline" / "demo" / "campaign.toml"
+    name = tomllib.loads(demo.read_text())["campaign"]["name"]
+    title = summary_title(name)
+    assert title.lower().count("magalign") == 1, title
+    assert summary_title("coast survey 2024") == "magalign: coast survey 2024"

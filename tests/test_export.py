@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
+import shutil
 import subprocess
 import sys
 
@@ -13,8 +15,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from pipeline.app.exports import (
+    FORMATS,
     ardupilot_correct,
     ardupilot_params,
+    export_text,
     matrix_from_rpy,
     rpy_from_matrix,
     to_ardupilot,
@@ -22,6 +26,7 @@ from pipeline.app.exports import (
     to_ros_tf,
     to_yaml,
 )
+from pipeline.core.errors import InputError
 from pipeline.core.geometry import quat_to_matrix
 from pipeline.core.verdict import Status, Verdict
 from pipeline.model.calibration import Calibration
@@ -91,7 +96,7 @@ def test_ardupilot_custom_orientation_convention():
         p = ardupilot_params(_cal(R_body_mag=R, D=None, offset_nT=None))
         got = (p["COMPASS_CUS_ROLL"], p["COMPASS_CUS_PIT"], p["COMPASS_CUS_YAW"])
         assert np.allclose(got, want, atol=1e-9), (got, want)
-        assert p["COMPASS_DIA_X"] == 1.0 and p["COMPASS_ODI_Z"] == 0.0
+        assert not {"COMPASS_DIA_X", "COMPASS_ODI_Z", "COMPASS_SCALE", "COMPASS_OFS_X"} & set(p)
     # intrinsic z-y'-x'' of scipy is the same composition
     r, pch, y = rpy_from_matrix(R_TRUE)
     assert np.allclose(Rotation.from_matrix(R_TRUE).as_euler("ZYX"), [y, pch, r], atol=1e-12)
@@ -120,16 +125,23 @@ def test_magcal_A_and_b():
     assert np.abs((Y_NT - b) @ A - cal.calibrated_mag(Y_NT)).max() < 1e-8
 
 
-def test_magcal_without_soft_iron_is_identity():
-    text = to_magcal(_cal(D=None, offset_nT=None))
-    assert np.array_equal(_matlab(text, "A"), np.eye(3))
-    assert np.array_equal(_matlab(text, "b"), np.zeros((1, 3)))
+def test_magcal_defines_only_what_was_estimated():
+    text = to_magcal(_cal(D=None))
+    assert re.search(r"^A =", text, re.M) is None and "A is left out" in text
+    assert np.allclose(_matlab(text, "b")[0], O_TRUE)
+    text = to_magcal(_cal(offset_nT=None))
+    assert re.search(r"^b =", text, re.M) is None and "b is left out" in text
+    assert np.abs(_matlab(text, "A") @ D_TRUE - np.eye(3)).max() < 1e-12
+    with pytest.raises(InputError, match="D and offset_nT were not estimated"):
+        to_magcal(_cal(D=None, offset_nT=None))
 
 
 # ------------------------------------------------------------------ ros-tf
 
 def test_ros_tf_quaternion_is_R_body_mag():
-    line = to_ros_tf(_cal(), "imu_link", "mag link")
+    text = to_ros_tf(_cal(), "imu_link", "mag link")
+    line = text.splitlines()[-1]  # comments first, the command last
+    assert all(ln.startswith("#") for ln in text.splitlines()[:-1])
     assert line.startswith("ros2 run tf2_ros static_transform_publisher --x 0 --y 0 --z 0 ")
     vals = {k: float(v) for k, v in re.findall(r"--q([xyzw]) (\S+)", line)}
     q = np.array([vals[k] for k in "xyzw"])
@@ -172,8 +184,7 @@ def _write(tmp_path, cal: Calibration, name="calibration.json"):
 
 def test_command_prints_each_format(tmp_path):
     p = _write(tmp_path, _cal())
-    for fmt, first in (("ardupilot", "#"), ("magcal", "%"), ("ros-tf", "ros2 run"),
-                       ("yaml", "#")):
+    for fmt, first in (("ardupilot", "#"), ("magcal", "%"), ("ros-tf", "#"), ("yaml", "#")):
         r = _run(str(p), "--format", fmt, cwd=tmp_path)
         assert r.returncode == 0 and r.stderr == "", (fmt, r.stderr)
         assert r.stdout.startswith(first)
@@ -220,3 +231,182 @@ def test_bad_input_one_line_exit_2(tmp_path, case):
         assert "px4" in err[0] and "export -h" in err[0]
     else:
         assert str(p) in err[0]
+
+
+# ------------------------------------------------------------------ what a file holds
+
+#: The extension each format's file gets when a user saves the output.
+EXT = {"ardupilot": "parm", "magcal": "m", "ros-tf": "sh", "yaml": "yaml"}
+COMMENT = {"ardupilot": "#", "magcal": "%", "ros-tf": "#", "yaml": "#"}
+
+
+def _export_file(cal_path, fmt: str, tmp_path, *extra: str):
+    """Run ``magalign export`` with stdout into a file, as a user saves it; return the result."""
+    out = tmp_path / f"{cal_path.stem}.{EXT[fmt]}"
+    with open(out, "w") as fh:
+        r = subprocess.run([sys.executable, "-m", "pipeline.app.cli", "export", str(cal_path),
+                            "--format", fmt, *extra], cwd=tmp_path, stdout=fh,
+                           stderr=subprocess.PIPE, text=True, timeout=120)
+    return r, out.read_text()
+
+
+def _comments(text: str, fmt: str) -> str:
+    """The comment lines, unwrapped into one string (continuations joined by a space)."""
+    c = COMMENT[fmt]
+    return " ".join(ln[len(c):].strip() for ln in text.splitlines() if ln.startswith(c))
+
+
+def _lab02_like(**kw) -> Calibration:
+    """As lab_02's calibration: rotation and time offset only, D and offset null."""
+    base = dict(D=None, offset_nT=None, status=Status.QUESTIONABLE,
+                effects={"hard_iron_step": [{"windows_s": [[38.3, 95.3]],
+                                             "offset_nT": [-6614.0, -1250.0, 57941.0]}]})
+    base.update(kw)
+    return _cal(**base)
+
+
+def test_null_offset_and_D_are_left_out_of_every_file(tmp_path):
+    cal = _lab02_like()
+    p = _write(tmp_path, cal)
+    # ArduPilot: the orientation only, no default that would overwrite the autopilot's own
+    r, text = _export_file(p, "ardupilot", tmp_path)
+    assert r.returncode == 0
+    params = _params(text)
+    assert set(params) == {"COMPASS_ORIENT", "COMPASS_CUS_ROLL", "COMPASS_CUS_PIT",
+                           "COMPASS_CUS_YAW"}
+    for name in ("COMPASS_OFS", "COMPASS_DIA", "COMPASS_ODI", "COMPASS_SCALE"):
+        assert not [ln for ln in text.splitlines() if ln.startswith(name)], name
+    notes = _comments(text, "ardupilot")
+    assert "COMPASS_OFS_X/Y/Z are left out" in notes and "offset was not estimated" in notes
+    assert "COMPASS_DIA_*, COMPASS_ODI_* and COMPASS_SCALE are left out" in notes
+    assert "--estimate offset" in notes and "--estimate soft_iron" in notes
+    assert "time offset +12.0 ms" in notes and "hard_iron_step" in notes
+    # with the autopilot's offsets and soft iron at their defaults, ours again
+    assert np.abs(ardupilot_correct(params, Y_NT / 100.0) * 100.0 - _ours(cal, Y_NT)).max() < 0.01
+    # magcal: no A, no b and no rotation would be an empty file: refused, one line
+    r, text = _export_file(p, "magcal", tmp_path)
+    err = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and text == "" and len(err) == 1, r.stderr
+    assert str(p) in err[0] and "D and offset_nT were not estimated" in err[0]
+    # ros-tf: the rotation only, and the file says what else calibration.json holds
+    r, text = _export_file(p, "ros-tf", tmp_path)
+    assert r.returncode == 0 and "time_offset_s" in _comments(text, "ros-tf")
+    # YAML: null (never a default) with the reason above it
+    r, text = _export_file(p, "yaml", tmp_path)
+    assert r.returncode == 0
+    assert re.search(r"^# offset_nT: not estimated: .*\n(#.*\n)*offset_nT: null$", text, re.M)
+    assert re.search(r"^# D: not estimated: .*\n(#.*\n)*D: null$", text, re.M)
+    yaml = pytest.importorskip("yaml")
+    d = yaml.safe_load(text)
+    assert d["offset_nT"] is None and d["D"] is None and d["unobservable_axes_body"] == []
+
+
+def test_one_null_term_is_left_out_the_other_kept(tmp_path):
+    r, text = _export_file(_write(tmp_path, _cal(offset_nT=None)), "ardupilot", tmp_path)
+    params = _params(text)
+    assert r.returncode == 0 and "COMPASS_OFS_X" not in params
+    assert {"COMPASS_DIA_X", "COMPASS_ODI_Y", "COMPASS_SCALE"} <= set(params)
+    assert "COMPASS_OFS_X/Y/Z are left out" in _comments(text, "ardupilot")
+    r, text = _export_file(_write(tmp_path, _cal(D=None)), "ardupilot", tmp_path)
+    params = _params(text)
+    assert {"COMPASS_OFS_X", "COMPASS_OFS_Y", "COMPASS_OFS_Z"} <= set(params)
+    assert not {"COMPASS_DIA_X", "COMPASS_ODI_X", "COMPASS_SCALE"} & set(params)
+    ofs = np.array([params[f"COMPASS_OFS_{k}"] for k in "XYZ"])
+    assert np.allclose(ofs, -(R_TRUE @ O_TRUE) / 100.0, rtol=1e-8)
+    r, text = _export_file(_write(tmp_path, _cal(D=None)), "magcal", tmp_path)
+    assert r.returncode == 0 and re.search(r"^A =", text, re.M) is None
+    assert np.allclose(_matlab(text, "b")[0], O_TRUE)
+    assert "A is left out" in _comments(text, "magcal")
+
+
+def test_reason_a_requested_term_was_dropped_is_in_the_file(tmp_path):
+    cal = _cal(D=None, not_estimated=({"term": "soft_iron",
+                                       "reason": "rotations about one axis only"},))
+    for fmt in ("ardupilot", "magcal", "yaml"):
+        r, text = _export_file(_write(tmp_path, cal), fmt, tmp_path)
+        assert r.returncode == 0
+        assert "motion could not determine it: rotations about one axis only" in \
+            _comments(text, fmt), fmt
+
+
+@pytest.mark.parametrize("status", [Status.OK, Status.QUESTIONABLE, None])
+def test_every_file_carries_the_verdict_and_its_reason(tmp_path, status):
+    cal = _cal(status, offset_nT=None)
+    p = _write(tmp_path, cal)
+    for fmt in FORMATS:
+        r, text = _export_file(p, fmt, tmp_path)
+        assert r.returncode == 0, r.stderr
+        notes = _comments(text, fmt)
+        if status is None:
+            assert "verdict: none recorded" in notes and r.stderr == ""
+        else:
+            assert f"verdict {status.value}: because" in notes, (fmt, text)
+            assert "residual RMS 4 nT; sensor noise 3 nT" in notes
+        if status is Status.QUESTIONABLE:
+            err = r.stderr.strip().splitlines()
+            assert len(err) == 1 and "QUESTIONABLE" in err[0] and "comments" in err[0]
+            assert "check the reason above before loading" in notes
+        else:
+            assert r.stderr == ""
+        # the comments are the file's first lines, before any value
+        assert text.startswith(COMMENT[fmt] + " magalign calibration from ")
+        assert all(len(ln) <= 100 for ln in text.splitlines()
+                   if ln.startswith(COMMENT[fmt]) and str(p) not in ln)
+
+
+def test_magcal_says_the_rotation_is_not_in_it(tmp_path):
+    r, text = _export_file(_write(tmp_path, _cal()), "magcal", tmp_path)
+    notes = _comments(text, "magcal")
+    assert r.returncode == 0
+    assert "not part of magcal's model" in notes and "R_body_mag in calibration.json" in notes
+    assert "--format yaml or ros-tf" in notes
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_refused_is_never_exported(tmp_path, fmt):
+    p = _write(tmp_path, _cal(Status.REFUSED))
+    r, text = _export_file(p, fmt, tmp_path)
+    err = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and text == "" and len(err) == 1, r.stderr
+    assert err[0].startswith(f"magalign: {p}: the calibration was refused (because)")
+    with pytest.raises(InputError, match="refused"):  # the functions refuse too
+        export_text(_cal(Status.REFUSED), fmt)
+
+
+@pytest.mark.parametrize("fmt", FORMATS)
+def test_undetermined_rotation_axis(tmp_path, fmt):
+    """Ardupilot and tf cannot leave one axis of a rotation out: refused; YAML says it."""
+    cal = _cal(unobservable_axes_body=(np.array([0.0, 0.0, 1.0]),))
+    p = _write(tmp_path, cal)
+    r, text = _export_file(p, fmt, tmp_path)
+    if fmt in ("ardupilot", "ros-tf"):
+        err = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and text == "" and len(err) == 1, r.stderr
+        assert str(p) in err[0] and "R_body_mag" in err[0] and "[+0.00, +0.00, +1.00]" in err[0]
+    else:
+        assert r.returncode == 0
+        if fmt == "yaml":
+            assert "unobservable_axes_body:" in text
+            assert "R_body_mag about those axes is not a measurement" in _comments(text, fmt)
+
+
+def test_ros_tf_file_runs_as_a_shell_script(tmp_path):
+    """The comments do not get in the way of running the saved command."""
+    sh = shutil.which("sh")
+    if sh is None:
+        pytest.skip("no POSIX shell")
+    r, text = _export_file(_write(tmp_path, _cal()), "ros-tf", tmp_path, "--mag-frame", "mag 1")
+    assert r.returncode == 0
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    fake = bin_dir / "ros2"
+    fake.write_text('#!/bin/sh\nfor a in "$@"; do echo "$a"; done\n')
+    fake.chmod(0o755)
+    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}"}
+    got = subprocess.run([sh, str(tmp_path / "calibration.sh")], capture_output=True,
+                         text=True, env=env, timeout=60)
+    args = got.stdout.splitlines()
+    assert got.returncode == 0 and args[:2] == ["run", "tf2_ros"], got
+    assert args[-2:] == ["--child-frame-id", "mag 1"]
+    q = np.array([float(args[args.index(f"--q{k}") + 1]) for k in "xyzw"])
+    assert np.abs(quat_to_matrix(q) - R_TRUE).max() < 1e-12

@@ -14,6 +14,7 @@ import logging
 import os
 import shlex
 import sys
+import textwrap
 import traceback
 import warnings
 from typing import NoReturn
@@ -34,6 +35,14 @@ COMMANDS = (
     "view",
 )
 
+#: Commands for checking magalign itself, not for calibrating a sensor: they stay out of the
+#: command list (their parsers are registered without a help line) and are named under a
+#: heading of their own.
+DEVELOPMENT_COMMANDS = {
+    "reproduce": "the papers' simulations and tables beside magalign's",
+    "score": "diagnoses of a simulated challenge against its key",
+}
+
 
 class _Parser(argparse.ArgumentParser):
     """argparse that exits with status 2 and one line, as CONVENTIONS require."""
@@ -44,13 +53,17 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"magalign: usage: {message} (see {see})\n")
 
 
-DESCRIPTION = ("Calibrate the misalignment between a magnetometer and its attitude source "
-               "from MCAP recordings.")
+DESCRIPTION = textwrap.fill("Calibrate the misalignment between a magnetometer and its "
+                            "attitude source from MCAP recordings.", 78)
+#: Laid out as the command list above it (the top-level help keeps it as written).
+EPILOG = "development commands, for checking magalign itself:\n" + "\n".join(
+    f"    {k:<13}{v}" for k, v in DEVELOPMENT_COMMANDS.items())
 
 
 def build_parser() -> argparse.ArgumentParser:
     """Build the argument parser with every available subcommand."""
-    parser = _Parser(prog="magalign", description=DESCRIPTION)
+    parser = _Parser(prog="magalign", description=DESCRIPTION, epilog=EPILOG,
+                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version",
                         version=f"magalign {package_version()}")
     parser.add_argument("--debug", action="store_true", help="show tracebacks")

@@ -5,19 +5,30 @@ these (``docs/exports.md`` describes each). Every function takes a
 :class:`~pipeline.model.calibration.Calibration` and returns the text; none prints.
 
 Our model (CONVENTIONS): ``v_body = R_body_mag @ inv(D) @ (y_mag - o)``, field in nT.
+
+An exported file is loaded into other tools, often over a calibration that is already there,
+so it holds only what magalign estimated: a term that is null in calibration.json is left
+out with a comment saying why (a default such as an identity ``D`` or a zero offset would
+overwrite the tool's own values with numbers nobody measured); where a format cannot leave a
+term out, or would hold nothing, the export is refused. A REFUSED calibration is never
+exported. Every file starts with comments carrying the verdict and its reason, so the file
+says how far it can be trusted wherever it is copied to.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import re
 import shlex
+import textwrap
 from typing import Any
 
 import numpy as np
 
 from pipeline.core.errors import InputError
 from pipeline.core.geometry import matrix_to_quat
+from pipeline.core.verdict import Status
 from pipeline.model.calibration import Calibration
 
 FORMATS = ("ardupilot", "magcal", "ros-tf", "yaml")
@@ -25,18 +36,30 @@ FORMATS = ("ardupilot", "magcal", "ros-tf", "yaml")
 #: ArduPilot's compass unit: 1 milligauss = 1e-7 T = 100 nT.
 NT_PER_MILLIGAUSS = 100.0
 
+#: Comment lines are wrapped to this width (the reason of a verdict is one long sentence).
+COMMENT_WIDTH = 96
+
+#: The ``--estimate`` word that adds each optional term (CONVENTIONS, "Command line"); the
+#: same words name the terms in a calibration's ``not_estimated``.
+_ESTIMATE_WORD = {"offset_nT": "offset", "D": "soft_iron", "time_offset_s": "time_offset"}
+
 
 # ------------------------------------------------------------------ shared pieces
 
 def check_exportable(cal: Calibration, path: str | None = None) -> None:
-    """Refuse a calibration whose numbers cannot describe a sensor.
+    """Refuse a calibration whose numbers cannot describe a sensor, or that was refused.
 
     Raises
     ------
     InputError
-        ``R_body_mag`` is not a proper rotation, or ``D`` is not symmetric positive-definite.
+        The verdict is REFUSED, ``R_body_mag`` is not a proper rotation, or ``D`` is not
+        symmetric positive-definite.
 
     """
+    if cal.verdict is not None and cal.verdict.status is Status.REFUSED:
+        raise InputError(f"the calibration was refused ({cal.verdict.reason}); it is not "
+                         "exported", path=path, hint="record the motion the reason asks for "
+                         "and calibrate again")
     R = np.asarray(cal.R_body_mag, float)
     if not (np.all(np.isfinite(R)) and np.allclose(R @ R.T, np.eye(3), atol=1e-6)
             and abs(np.linalg.det(R) - 1.0) < 1e-6):
@@ -48,6 +71,91 @@ def check_exportable(cal: Calibration, path: str | None = None) -> None:
                 and np.linalg.eigvalsh(D).min() > 0):
             raise InputError("D is not symmetric positive-definite", path=path,
                              hint="regenerate the calibration with magalign calibrate")
+
+
+def _check_rotation_determined(cal: Calibration, fmt: str, path: str | None) -> None:
+    """Refuse a rotation with an undetermined axis where the format must carry all of it.
+
+    Along an unobservable axis the rotation in calibration.json is not a measurement; an
+    orientation or a transform has no way to leave one axis of a rotation out.
+    """
+    if cal.unobservable_axes_body:
+        axes = "; ".join(_vec(a, "+.2f") for a in cal.unobservable_axes_body)
+        raise InputError(
+            f"R_body_mag: the recording did not determine the rotation about body axis "
+            f"{axes}, and a {fmt} export cannot leave part of a rotation out; nothing is "
+            "exported", path=path,
+            hint="record rotations about a second axis and calibrate again; --format yaml "
+            "exports the rotation with its unbounded sigma")
+
+
+def _vec(v: Any, spec: str = ".3g") -> str:
+    return "[" + ", ".join(format(float(x) + 0.0, spec) for x in v) + "]"
+
+
+def _why_not_estimated(cal: Calibration, key: str) -> str:
+    """Say why a term is null: the motion could not determine it, or it was not in the model."""
+    word = _ESTIMATE_WORD[key]
+    for d in cal.not_estimated:
+        if d.get("term") == word:
+            return f"asked for, but the motion could not determine it: {d.get('reason')}"
+    return f"the fitted model has no {word} term; magalign calibrate --estimate {word} fits one"
+
+
+def _verdict_lines(cal: Calibration) -> list[str]:
+    v = cal.verdict
+    if v is None:
+        return ["verdict: none recorded (the file predates verdicts): compare the residual "
+                f"RMS, {cal.residual_rms_nT:.0f} nT, with the sensor's noise before use"]
+    lines = [f"verdict {v.status.value}: {' '.join(str(v.reason).split())}"]
+    noise = "not measured (no still period)" if v.sensor_noise_nT is None else \
+        f"{v.sensor_noise_nT:.0f} nT"
+    lines.append(f"residual RMS {v.residual_rms_nT:.0f} nT; sensor noise {noise}")
+    if v.status is Status.QUESTIONABLE:
+        lines.append("QUESTIONABLE: check the reason above before loading these values")
+    return lines
+
+
+def _rotation_lines(cal: Calibration) -> list[str]:
+    rv, sg = cal.rotvec_body_mag_deg, cal.sigma_rotvec_deg
+    parts = [f"{v:+.3f} +- {s:.3f}" if np.isfinite(s) else f"{v:+.3f} +- inf"
+             for v, s in zip(rv, sg, strict=True)]
+    return ["R_body_mag maps mag-frame vectors into the body frame (v_body = R @ v_mag); "
+            f"its rotation vector about body x, y, z [deg]: {', '.join(parts)}"]
+
+
+def _effects_line(cal: Calibration, tool: str) -> list[str]:
+    if not cal.effects:
+        return []
+    return [f"calibration.json also models {', '.join(sorted(cal.effects))}; {tool} has no "
+            "place for it: not in this file"]
+
+
+#: A number and its unit stay on one line when a comment is wrapped.
+_NUMBER_UNIT = re.compile(r"(\d) (%|nT|ms|deg|s)\b")
+
+
+def _comment(prefix: str, lines: list[str]) -> list[str]:
+    """Wrap each line as comments (continuations indented), blank lines kept as bare marks."""
+    out: list[str] = []
+    for line in lines:
+        glued = _NUMBER_UNIT.sub("\\1\0\\2", line)
+        out += [w.replace("\0", " ") for w in textwrap.wrap(
+            glued, COMMENT_WIDTH, initial_indent=f"{prefix} ",
+            subsequent_indent=f"{prefix}   ", break_long_words=False,
+            break_on_hyphens=False)] or [prefix]
+    return out
+
+
+def _header(prefix: str, cal: Calibration, path: str | None, notes: list[str]) -> list[str]:
+    """Return the comment block a file starts with: its source, its verdict, then ``notes``.
+
+    The source line is not wrapped: a path cut in two cannot be copied.
+    """
+    where = " ".join(str(path).splitlines())  # a comment is one line
+    src = f"{prefix} magalign calibration from {where}" if path else \
+        f"{prefix} magalign calibration"
+    return [src, *_comment(prefix, _verdict_lines(cal) + notes)]
 
 
 def _offset(cal: Calibration) -> np.ndarray:
@@ -111,6 +219,10 @@ def ardupilot_params(cal: Calibration) -> dict[str, float]:
     calibrator leaves it) and the overall size goes to ``COMPASS_SCALE`` (ArduPilot
     applies it only within ``[1/1.5, 1.5]``).
 
+    Only what was estimated is returned: without ``D`` there is no ``DIA``, ``ODI`` or
+    ``SCALE``, without an offset no ``OFS`` (:func:`to_ardupilot` says so in comments), so
+    loading the file leaves the autopilot's own values of those in place.
+
     Returns
     -------
     dict
@@ -118,30 +230,41 @@ def ardupilot_params(cal: Calibration) -> dict[str, float]:
 
     """
     R = np.asarray(cal.R_body_mag, float)
-    if cal.D is None:  # no soft iron estimated: ArduPilot's defaults, exactly
-        S, scale = np.eye(3), 1.0
-    else:
+    out: dict[str, float] = {}
+    if cal.offset_nT is not None:
+        ofs_mG = -(R @ _offset(cal)) / NT_PER_MILLIGAUSS
+        out |= {"COMPASS_OFS_X": ofs_mG[0], "COMPASS_OFS_Y": ofs_mG[1],
+                "COMPASS_OFS_Z": ofs_mG[2]}
+    if cal.D is not None:
         M = R @ _d_inv(cal) @ R.T
         M = (M + M.T) / 2
         scale = float(np.cbrt(np.linalg.det(M)))
         S = M / scale
-    ofs_mG = -(R @ _offset(cal)) / NT_PER_MILLIGAUSS
+        out |= {"COMPASS_DIA_X": S[0, 0], "COMPASS_DIA_Y": S[1, 1], "COMPASS_DIA_Z": S[2, 2],
+                "COMPASS_ODI_X": S[0, 1], "COMPASS_ODI_Y": S[0, 2], "COMPASS_ODI_Z": S[1, 2],
+                "COMPASS_SCALE": scale}
     roll, pitch, yaw = (math.degrees(a) for a in rpy_from_matrix(R))
-    return {
-        "COMPASS_OFS_X": ofs_mG[0], "COMPASS_OFS_Y": ofs_mG[1], "COMPASS_OFS_Z": ofs_mG[2],
-        "COMPASS_DIA_X": S[0, 0], "COMPASS_DIA_Y": S[1, 1], "COMPASS_DIA_Z": S[2, 2],
-        "COMPASS_ODI_X": S[0, 1], "COMPASS_ODI_Y": S[0, 2], "COMPASS_ODI_Z": S[1, 2],
-        "COMPASS_SCALE": scale,
-        "COMPASS_ORIENT": 100,
-        "COMPASS_CUS_ROLL": roll, "COMPASS_CUS_PIT": pitch, "COMPASS_CUS_YAW": yaw,
-    }
+    out |= {"COMPASS_ORIENT": 100,
+            "COMPASS_CUS_ROLL": roll, "COMPASS_CUS_PIT": pitch, "COMPASS_CUS_YAW": yaw}
+    return out
+
+
+#: ArduPilot's own defaults of the parameters :func:`ardupilot_params` may leave out (what a
+#: fresh autopilot applies; one with a compass calibration applies that instead).
+ARDUPILOT_DEFAULTS = {"COMPASS_OFS_X": 0.0, "COMPASS_OFS_Y": 0.0, "COMPASS_OFS_Z": 0.0,
+                      "COMPASS_DIA_X": 1.0, "COMPASS_DIA_Y": 1.0, "COMPASS_DIA_Z": 1.0,
+                      "COMPASS_ODI_X": 0.0, "COMPASS_ODI_Y": 0.0, "COMPASS_ODI_Z": 0.0,
+                      "COMPASS_SCALE": 1.0}
 
 
 def ardupilot_correct(params: dict[str, float], m_mG: np.ndarray) -> np.ndarray:
-    """Apply ArduPilot's compass correction (steps of :func:`ardupilot_params`) to rows."""
+    """Apply ArduPilot's compass correction (steps of :func:`ardupilot_params`) to rows.
+
+    A parameter missing from ``params`` takes its value from :data:`ARDUPILOT_DEFAULTS`.
+    """
     C = matrix_from_rpy(*(math.radians(params[f"COMPASS_CUS_{k}"])
                           for k in ("ROLL", "PIT", "YAW")))
-    p = params
+    p = ARDUPILOT_DEFAULTS | dict(params)
     S = np.array([[p["COMPASS_DIA_X"], p["COMPASS_ODI_X"], p["COMPASS_ODI_Y"]],
                   [p["COMPASS_ODI_X"], p["COMPASS_DIA_Y"], p["COMPASS_ODI_Z"]],
                   [p["COMPASS_ODI_Y"], p["COMPASS_ODI_Z"], p["COMPASS_DIA_Z"]]])
@@ -150,18 +273,47 @@ def ardupilot_correct(params: dict[str, float], m_mG: np.ndarray) -> np.ndarray:
     return (m * p["COMPASS_SCALE"]) @ S.T
 
 
-def to_ardupilot(cal: Calibration, source: str = "") -> str:
-    """ArduPilot parameter file text (``NAME,VALUE`` lines, Mission Planner style)."""
+def to_ardupilot(cal: Calibration, path: str | None = None) -> str:
+    """ArduPilot parameter file text (``NAME,VALUE`` lines, Mission Planner style).
+
+    Raises
+    ------
+    InputError
+        The calibration was refused, is not a sensor's, or leaves a rotation axis
+        undetermined (an orientation cannot leave one out).
+
+    """
+    check_exportable(cal, path)
+    _check_rotation_determined(cal, "ArduPilot", path)
     p = ardupilot_params(cal)
-    lines = [
-        f"# magalign calibration {source}".rstrip(),
-        "# offsets in milligauss (1 mGauss = 100 nT), added after the orientation;",
-        "# COMPASS_ORIENT 100 = custom, COMPASS_CUS_ROLL/PIT/YAW in degrees,",
-        "# R_body_mag = Rz(yaw) Ry(pitch) Rx(roll) (ArduPilot Matrix3::from_euler).",
-        "# ArduPilot 4.2 and newer convert these to COMPASS_ORIENT 102 and",
-        f"# CUST_ROT_ENABLE 1, CUST_ROT2_ROLL {p['COMPASS_CUS_ROLL']:.9g}, "
-        f"CUST_ROT2_PIT {p['COMPASS_CUS_PIT']:.9g}, CUST_ROT2_YAW {p['COMPASS_CUS_YAW']:.9g}",
+    notes = _rotation_lines(cal) + [
+        "COMPASS_ORIENT 100 = custom, COMPASS_CUS_ROLL/PIT/YAW in degrees, "
+        "R_body_mag = Rz(yaw) Ry(pitch) Rx(roll) (ArduPilot Matrix3::from_euler).",
+        "ArduPilot 4.2 and newer convert these to COMPASS_ORIENT 102 and CUST_ROT_ENABLE 1, "
+        f"CUST_ROT2_ROLL {p['COMPASS_CUS_ROLL']:.9g}, CUST_ROT2_PIT "
+        f"{p['COMPASS_CUS_PIT']:.9g}, CUST_ROT2_YAW {p['COMPASS_CUS_YAW']:.9g}",
     ]
+    if cal.offset_nT is None:
+        notes.append("COMPASS_OFS_X/Y/Z are left out, so the autopilot keeps its own: the "
+                     f"offset was not estimated ({_why_not_estimated(cal, 'offset_nT')}).")
+    else:
+        notes.append("COMPASS_OFS_X/Y/Z: the offset in the body frame, negated (ArduPilot "
+                     "adds it after the orientation), in milligauss (1 mGauss = 100 nT)")
+    if cal.D is None:
+        notes.append("COMPASS_DIA_*, COMPASS_ODI_* and COMPASS_SCALE are left out, so the "
+                     "autopilot keeps its own: the soft-iron matrix D was not estimated ("
+                     f"{_why_not_estimated(cal, 'D')}).")
+    if cal.offset_nT is None or cal.D is None:
+        # both apply after the orientation, in the frame it rotates into
+        notes.append("ArduPilot applies its own offsets and soft-iron matrix after the "
+                     "orientation: values it calibrated under a different orientation need "
+                     "its compass calibration again.")
+    if cal.time_offset_s is not None:
+        notes.append(f"time offset {cal.time_offset_s * 1e3:+.1f} ms (positive: the magnetometer "
+                     "stamps are late): ArduPilot has no parameter for it, not in "
+                     "this file")
+    notes += _effects_line(cal, "ArduPilot")
+    lines = _header("#", cal, path, notes)
     # 9 significant digits: more than the float32 ArduPilot stores
     lines += [f"{k},{v}" if isinstance(v, int) else f"{k},{float(v) + 0.0:.9g}"
               for k, v in p.items()]
@@ -170,14 +322,17 @@ def to_ardupilot(cal: Calibration, source: str = "") -> str:
 
 # ------------------------------------------------------------------ MATLAB magcal
 
-def magcal_A_b(cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
+def magcal_A_b(cal: Calibration) -> tuple[np.ndarray | None, np.ndarray | None]:
     """MATLAB ``magcal``'s ``A`` (3x3) and ``b`` (1x3, nT): ``C = (D - b) * A``, row vectors.
 
     Ours in the mag frame is ``inv(D) @ (y - o)``; as a row vector ``(y - o) @ inv(D).T``,
     so ``A = inv(D).T = inv(D)`` (``D`` is symmetric) and ``b = o``. The rotation is not
-    part of magcal's model (the result stays in the sensor frame).
+    part of magcal's model (the result stays in the sensor frame). ``A`` is None when ``D``
+    was not estimated, ``b`` when the offset was not.
     """
-    return _d_inv(cal).T, _offset(cal)
+    A = None if cal.D is None else _d_inv(cal).T
+    b = None if cal.offset_nT is None else _offset(cal)
+    return A, b
 
 
 def _matlab_matrix(a: np.ndarray) -> str:
@@ -185,32 +340,90 @@ def _matlab_matrix(a: np.ndarray) -> str:
     return "[" + "; ".join(" ".join(_num(v) for v in row) for row in a) + "]"
 
 
-def to_magcal(cal: Calibration, source: str = "") -> str:
-    """MATLAB statements defining ``A`` and ``b`` (:func:`magcal_A_b`)."""
+#: Where the rotation is, for the formats that cannot carry it.
+_ROTATION_ELSEWHERE = ("the rotation is R_body_mag in calibration.json, and magalign export "
+                       "--format yaml or ros-tf writes it")
+
+
+def to_magcal(cal: Calibration, path: str | None = None) -> str:
+    """MATLAB statements defining ``A`` and ``b`` (:func:`magcal_A_b`), each only if estimated.
+
+    Raises
+    ------
+    InputError
+        The calibration was refused or is not a sensor's, or neither ``D`` nor the offset
+        was estimated (the file would define nothing).
+
+    """
+    check_exportable(cal, path)
     A, b = magcal_A_b(cal)
-    return "\n".join([
-        f"% magalign calibration {source}".rstrip(),
-        "% MATLAB magcal convention: calibrated = (raw - b) * A, one sample per row;",
-        "% raw and b in nT (divide b by 1000 for microtesla); A is dimensionless.",
-        f"A = {_matlab_matrix(A)};",
-        f"b = {_matlab_matrix(b)};",
-    ]) + "\n"
+    if A is None and b is None:
+        raise InputError(
+            "nothing to export as magcal: D and offset_nT were not estimated (null), and the "
+            "rotation is not part of magcal's model", path=path,
+            hint="the rotation: --format yaml or ros-tf; magalign calibrate --estimate "
+            "offset,soft_iron fits D and the offset")
+    notes = [
+        "MATLAB magcal convention: calibrated = (raw - b) * A, one sample per row; raw and b "
+        "in nT (divide b by 1000 for microtesla); A is dimensionless.",
+        "The misalignment (the rotation from the magnetometer's axes to the body's) is not "
+        "part of magcal's model: A and b correct the field in the magnetometer's own frame; "
+        f"{_ROTATION_ELSEWHERE}.",
+    ]
+    if A is None:
+        notes.append("A is left out, keep your own: the soft-iron matrix D was not "
+                     f"estimated ({_why_not_estimated(cal, 'D')}).")
+    if b is None:
+        notes.append("b is left out, keep your own: the offset was not estimated ("
+                     f"{_why_not_estimated(cal, 'offset_nT')}).")
+    if cal.time_offset_s is not None:
+        notes.append(f"time offset {cal.time_offset_s * 1e3:+.1f} ms (positive: the magnetometer "
+                     "stamps are late): not part of magcal's model")
+    notes += _effects_line(cal, "magcal")
+    lines = _header("%", cal, path, notes)
+    if A is not None:
+        lines.append(f"A = {_matlab_matrix(A)};")
+    if b is not None:
+        lines.append(f"b = {_matlab_matrix(b)};")
+    return "\n".join(lines) + "\n"
 
 
 # ------------------------------------------------------------------ ROS 2 tf
 
-def to_ros_tf(cal: Calibration, body_frame: str = "base_link", mag_frame: str = "mag") -> str:
+def to_ros_tf(cal: Calibration, body_frame: str = "base_link", mag_frame: str = "mag",
+              path: str | None = None) -> str:
     """Return a ``static_transform_publisher`` command: the mag frame's pose in the body frame.
 
     tf's transform from parent ``body_frame`` to child ``mag_frame`` maps child-frame
     vectors into the parent frame, ``v_body = R @ v_mag``: its rotation is ``R_body_mag``.
+    Shell comments before the command carry the verdict (a script, or ``eval``, skips them).
+
+    Raises
+    ------
+    InputError
+        The calibration was refused or is not a sensor's, or leaves a rotation axis
+        undetermined (a transform cannot leave one out).
+
     """
+    check_exportable(cal, path)
+    _check_rotation_determined(cal, "ros-tf", path)
     x, y, z, w = matrix_to_quat(np.asarray(cal.R_body_mag, float))
     if w < 0:  # the same rotation; a non-negative w reads more easily
         x, y, z, w = -x, -y, -z, -w
-    return ("ros2 run tf2_ros static_transform_publisher --x 0 --y 0 --z 0 "
-            f"--qx {_num(x)} --qy {_num(y)} --qz {_num(z)} --qw {_num(w)} "
-            f"--frame-id {shlex.quote(body_frame)} --child-frame-id {shlex.quote(mag_frame)}\n")
+    notes = _rotation_lines(cal) + [
+        "No translation was estimated: --x --y --z are 0, not a measured lever arm."]
+    terms = [k for k in ("offset_nT", "D", "time_offset_s") if getattr(cal, k) is not None]
+    if terms:
+        notes.append(f"calibration.json also holds {', '.join(terms)}; a transform carries "
+                     "only the rotation: magalign export --format yaml writes "
+                     + ("it" if len(terms) == 1 else "them"))
+    notes += _effects_line(cal, "a transform")
+    lines = _header("#", cal, path, notes)
+    lines.append("ros2 run tf2_ros static_transform_publisher --x 0 --y 0 --z 0 "
+                 f"--qx {_num(x)} --qy {_num(y)} --qz {_num(z)} --qw {_num(w)} "
+                 f"--frame-id {shlex.quote(body_frame)} --child-frame-id "
+                 f"{shlex.quote(mag_frame)}")
+    return "\n".join(lines) + "\n"
 
 
 # ------------------------------------------------------------------ YAML
@@ -256,20 +469,62 @@ def _yaml_value(v: Any, indent: int) -> str:
 def yaml_dict(cal: Calibration) -> dict[str, Any]:
     """Return the values the YAML export carries, as plain Python values (non-finite: None)."""
     d = cal.to_dict()
-    keys = ("format", "R_body_mag", "rotvec_body_mag_deg", "sigma_rotvec_deg", "offset_nT",
-            "sigma_offset_nT", "D", "sigma_D", "time_offset_s", "sigma_time_offset_s",
-            "B_enu_nT", "estimator", "residual_rms_nT", "n_samples")
+    keys = ("format", "R_body_mag", "rotvec_body_mag_deg", "sigma_rotvec_deg",
+            "unobservable_axes_body", "offset_nT", "sigma_offset_nT", "D", "sigma_D",
+            "time_offset_s", "sigma_time_offset_s", "B_enu_nT", "estimator",
+            "residual_rms_nT", "n_samples")
     out = {k: d.get(k) for k in keys}
     if d.get("verdict") is not None:
         out["verdict"] = d["verdict"]
     return out
 
 
-def to_yaml(cal: Calibration, source: str = "") -> str:
-    """Return a plain YAML document of the calibration (written without a YAML library)."""
-    lines = [f"# magalign calibration {source}".rstrip(),
-             "# R_body_mag maps mag-frame vectors into the body frame: v_body = R @ v_mag;",
-             "# calibrated = R_body_mag @ inv(D) @ (raw - offset_nT); fields in nT, angles",
-             "# in degrees, times in seconds; null = not estimated (or sigma unbounded)."]
-    lines += [f"{k}:{_yaml_value(v, 0)}" for k, v in yaml_dict(cal).items()]
+def to_yaml(cal: Calibration, path: str | None = None) -> str:
+    """Return a plain YAML document of the calibration (written without a YAML library).
+
+    A term that was not estimated stays as ``null`` (as in calibration.json, never a
+    default value), with a comment above it saying why.
+
+    Raises
+    ------
+    InputError
+        The calibration was refused or is not a sensor's.
+
+    """
+    check_exportable(cal, path)
+    notes = [
+        "R_body_mag maps mag-frame vectors into the body frame: v_body = R @ v_mag; "
+        "calibrated = R_body_mag @ inv(D) @ (raw - offset_nT); fields in nT, angles in "
+        "degrees, times in seconds; null = not estimated (or a sigma without bound)."]
+    notes += _effects_line(cal, "this YAML")
+    lines = _header("#", cal, path, notes)
+    for k, v in yaml_dict(cal).items():
+        if k in _ESTIMATE_WORD and v is None:
+            lines += _comment("#", [f"{k}: not estimated: {_why_not_estimated(cal, k)}"])
+        if k == "sigma_rotvec_deg" and cal.unobservable_axes_body:
+            lines += _comment("#", ["the recording did not determine the rotation about "
+                                    "unobservable_axes_body: its sigma is null (unbounded) "
+                                    "and R_body_mag about those axes is not a measurement"])
+        lines.append(f"{k}:{_yaml_value(v, 0)}")
     return "\n".join(lines) + "\n"
+
+
+def export_text(cal: Calibration, fmt: str, path: str | None = None, *,
+                body_frame: str = "base_link", mag_frame: str = "mag") -> str:
+    """Return the calibration in format ``fmt`` (one of :data:`FORMATS`).
+
+    Raises
+    ------
+    InputError
+        The calibration cannot be exported in this format (each ``to_*`` says when).
+
+    """
+    if fmt == "ardupilot":
+        return to_ardupilot(cal, path)
+    if fmt == "magcal":
+        return to_magcal(cal, path)
+    if fmt == "ros-tf":
+        return to_ros_tf(cal, body_frame, mag_frame, path)
+    if fmt == "yaml":
+        return to_yaml(cal, path)
+    raise ValueError(f"unknown export format {fmt!r}; one of {', '.join(FORMATS)}")

@@ -24,6 +24,10 @@ ATTITUDE_HELP = ("attitude topic; needed only when the recording has more than o
                  "attitude channel")
 REFERENCE_FIELD_HELP = ("known background field in nT, east, north, up; it is then not "
                         "estimated")
+ESTIMATE_HELP = ("comma-separated terms to estimate beside the rotation: offset (the "
+                 "constant offset in the magnetometer's frame, nT: sensor bias and hard "
+                 "iron; diagnose reports it as hard_iron), soft_iron (scale, soft iron and "
+                 "non-orthogonality), time_offset (magnetometer stamps late or early)")
 IGRF_HELP = ("background field from the IGRF model at this place and date: latitude and "
              "longitude in degrees, altitude in metres, date as YYYY-MM-DD")
 

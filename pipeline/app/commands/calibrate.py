@@ -14,7 +14,12 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.app.commands._options import add_field_options, add_topic_options, field_from_args
+from pipeline.app.commands._options import (
+    ESTIMATE_HELP,
+    add_field_options,
+    add_topic_options,
+    field_from_args,
+)
 from pipeline.core import progress
 from pipeline.core.atomic import atomic_path
 from pipeline.core.errors import NotObservableError, RefusedError, UsageError
@@ -44,7 +49,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--estimate",
         default="",
         metavar="TERMS",
-        help="comma-separated extra terms: offset, soft_iron, time_offset",
+        help=ESTIMATE_HELP,
     )
     p.add_argument(
         "--robust",

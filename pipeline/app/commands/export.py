@@ -1,7 +1,9 @@
 """``magalign export CALIBRATION.json --format ardupilot|magcal|ros-tf|yaml``: other tools' terms.
 
-Prints to stdout; ``docs/exports.md`` describes each format. A calibration whose verdict is
-REFUSED is not exported (exit status 2); a QUESTIONABLE one is, with a warning on stderr.
+Prints to stdout; ``docs/exports.md`` describes each format. The file carries the verdict
+as comments and only the terms that were estimated. A calibration whose verdict is REFUSED
+is not exported (exit status 2), nor one the format cannot carry without a value nobody
+estimated; a QUESTIONABLE one is, with a warning on stderr besides the file's own comments.
 """
 
 from __future__ import annotations
@@ -10,7 +12,7 @@ import argparse
 import sys
 import warnings
 
-from pipeline.core.errors import InputError, QuestionableCalibrationWarning
+from pipeline.core.errors import QuestionableCalibrationWarning
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -20,7 +22,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("export", help="print a calibration in another tool's terms",
                        description="Print a calibration.json in another tool's terms: "
                        "ArduPilot compass parameters, MATLAB magcal A and b, a ROS 2 static "
-                       "transform command, or plain YAML.")
+                       "transform command, or plain YAML. The output starts with comments "
+                       "giving the verdict and holds only the terms that were estimated; a "
+                       "refused calibration is not exported.")
     p.add_argument("calibration", metavar="CALIBRATION.json",
                    help="calibration.json written by magalign calibrate, diagnose or process")
     p.add_argument("--format", required=True, choices=FORMATS,
@@ -34,29 +38,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Load, check the verdict, print the chosen format."""
-    from pipeline.app.exports import check_exportable, to_ardupilot, to_magcal, to_ros_tf, to_yaml
+    """Load, export (which refuses what must not be exported), print."""
+    from pipeline.app.exports import export_text
     from pipeline.core.verdict import Status
     from pipeline.model.calibration import Calibration
 
     path = args.calibration
     cal = Calibration.load(path)
-    if cal.verdict is not None and cal.verdict.status is Status.REFUSED:
-        raise InputError(f"the calibration was refused ({cal.verdict.reason}); it is not "
-                         "exported", path=path, hint="record the motion the reason asks for "
-                         "and calibrate again")
-    check_exportable(cal, path)
+    text = export_text(cal, args.format, path, body_frame=args.body_frame,
+                       mag_frame=args.mag_frame)
     if cal.verdict is not None and cal.verdict.status is Status.QUESTIONABLE:
-        warnings.warn(f"{path}: the calibration is QUESTIONABLE ({cal.verdict.reason}); "
-                      "exported anyway", QuestionableCalibrationWarning, stacklevel=2)
-    src = f"from {path}"
-    if args.format == "ardupilot":
-        text = to_ardupilot(cal, src)
-    elif args.format == "magcal":
-        text = to_magcal(cal, src)
-    elif args.format == "ros-tf":
-        text = to_ros_tf(cal, args.body_frame, args.mag_frame)
-    else:
-        text = to_yaml(cal, src)
+        # the reason is in the exported text; stderr only flags it for whoever runs this
+        warnings.warn(f"{path}: QUESTIONABLE; the reason is in the output's comments",
+                      QuestionableCalibrationWarning, stacklevel=2)
     sys.stdout.write(text)
     return 0

@@ -29,7 +29,10 @@ from pipeline.io.mcap_read import inspect_recording
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register the subcommand."""
-    p = sub.add_parser("info", help="channels, roles, counts, rates and problems of a recording")
+    p = sub.add_parser("info", help="channels, roles, counts, rates and problems of a recording",
+                       description="Describe one recording: its channels, their message types "
+                       "and roles (magnetometer, attitude, other), counts, rates, duration, "
+                       "gaps and problems.")
     p.add_argument("recording", help="MCAP file")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run)

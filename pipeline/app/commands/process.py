@@ -20,6 +20,7 @@ import warnings
 from pathlib import Path
 
 from pipeline.app.commands._options import (
+    ESTIMATE_HELP,
     add_field_options,
     add_topic_options,
     check_mcap_file,
@@ -33,7 +34,7 @@ log = logging.getLogger("magalign")
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register the subcommand."""
-    from pipeline.app.campaign import EstimatorName, TermName
+    from pipeline.app.campaign import EstimatorName
 
     p = sub.add_parser("process", help="process a recording, a folder or a campaign TOML",
                        description="The whole pipeline on one recording, a folder of "
@@ -51,7 +52,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--estimator", choices=[e.value for e in EstimatorName], default=None,
                    help="estimator (default: the campaign's, else ml)")
     p.add_argument("--estimate", default=None, metavar="TERMS",
-                   help="comma-separated extra terms: " + ", ".join(t.value for t in TermName))
+                   help=ESTIMATE_HELP)
     add_field_options(p)
     add_topic_options(p)
     p.add_argument("--no-progress", action="store_true",
@@ -142,6 +143,11 @@ def _run_with_progress(camp, out: Path, executor, args: argparse.Namespace) -> l
                 os.environ[pg.ENV_DIR] = old_env
 
 
+def summary_title(name: str) -> str:
+    """Title of summary.html: the campaign's name, after "magalign: " unless it names it."""
+    return name if name.lower().startswith("magalign") else f"magalign: {name}"
+
+
 def run(args: argparse.Namespace) -> int:
     """Process; print where the results are; exit 3 when some recordings failed."""
     from pipeline.app.campaign import RecordingOptions, campaign_for_input
@@ -179,7 +185,7 @@ def run(args: argparse.Namespace) -> int:
     issue_warnings(results)
     out_r = out.resolve()
     rows = [row_for(out_r, r) for r in results]
-    pq_path, html_path = write_summary(out_r, rows, title=f"magalign: {camp.name}")
+    pq_path, html_path = write_summary(out_r, rows, title=summary_title(camp.name))
     n_ok = sum(r["status"] == "ok" for r in results)
     n_re = sum(r["status"] == "reused" for r in results)
     failures = [(r["name"], r["error"] or "unknown error") for r in results

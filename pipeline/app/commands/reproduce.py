@@ -13,9 +13,13 @@ PAPERS = {
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register the subcommand."""
-    p = sub.add_parser("reproduce", help="reproduce a paper's simulation and tables")
-    p.add_argument("paper", choices=sorted(PAPERS))
-    p.add_argument("--out", required=True, help="output folder")
+    # no help=: a development command, listed under its own heading (cli.DEVELOPMENT_COMMANDS)
+    p = sub.add_parser("reproduce", description="Development: reproduce a paper's simulation "
+                       "and tables (Li et al. 2020, Tang et al. 2016), the paper's numbers "
+                       "beside magalign's.")
+    p.add_argument("paper", choices=sorted(PAPERS), help="which paper: li2020 or tang2016")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="output folder (gets PAPER.json and figures)")
     p.set_defaults(func=run)
 
 

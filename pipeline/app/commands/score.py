@@ -8,7 +8,9 @@ import json
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register the subcommand."""
-    p = sub.add_parser("score", help="score diagnoses of a challenge against its key")
+    # no help=: a development command, listed under its own heading (cli.DEVELOPMENT_COMMANDS)
+    p = sub.add_parser("score", description="Development: score the diagnoses of a simulated "
+                       "challenge (magalign simulate --challenge) against its key.")
     p.add_argument("challenge", help="challenge folder written by simulate --challenge")
     p.add_argument("results", help="folder with <stem>/diagnosis.json per recording")
     p.add_argument("--key", default=None, help="key file (default: <challenge>_key/key.json)")

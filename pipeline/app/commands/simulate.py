@@ -16,7 +16,10 @@ log = logging.getLogger(__name__)
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register the subcommand."""
-    p = sub.add_parser("simulate", help="write a synthetic recording from a scenario file")
+    p = sub.add_parser("simulate", help="write a synthetic recording from a scenario file",
+                       description="Write a synthetic MCAP recording from a scenario TOML "
+                       "file; with --challenge N, a folder of N recordings with hidden effects "
+                       "and their key.")
     p.add_argument("scenario", nargs="?", help="scenario TOML file")
     p.add_argument("--out", required=True,
                    help="output recording (.mcap); with --challenge an output folder")

@@ -25,8 +25,13 @@ SUFFIXES = (".rrd", ".mcap")
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register the subcommand."""
-    p = sub.add_parser("view", help="open results in the rerun viewer")
-    p.add_argument("path", help="a .rrd file, a .mcap recording or a results folder")
+    p = sub.add_parser("view", help="open results in the rerun viewer",
+                       description="Open results in the rerun viewer: a .rrd file written by "
+                       "magalign process, a .mcap recording, or a results folder (every .rrd "
+                       "under it). The viewer needs a display; without one, --web serves "
+                       "the web viewer, to open in a browser at the address it prints.")
+    p.add_argument("path", metavar="PATH",
+                   help="a .rrd file, a .mcap recording or a results folder")
     p.add_argument("--web", action="store_true",
                    help="serve the web viewer instead of opening a window")
     p.set_defaults(func=run)
