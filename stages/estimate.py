@@ -248,8 +248,12 @@ def verdict_line(cal: Calibration) -> str:
     ang = float(np.linalg.norm(rv))
     u = rv / ang if ang > 0 else np.array([0.0, 0.0, 1.0])
     s_ang = float(np.sqrt(np.sum((u * sg) ** 2))) if np.all(np.isfinite(sg)) else float("inf")
+    # the sigma to two significant digits, the angle to the same decimals (never "+- 0.00")
+    dec = 2
+    if np.isfinite(s_ang) and s_ang > 0:
+        dec = int(min(max(2, 1 - np.floor(np.log10(s_ang))), 6))
     parts = [
-        f"misalignment {ang:.2f} +- {s_ang:.2f} deg about body ["
+        f"misalignment {ang:.{dec}f} +- {s_ang:.{dec}f} deg about body ["
         + ", ".join(f"{c:+.2f}" for c in u) + "]"
     ]
     if cal.time_offset_s is not None:

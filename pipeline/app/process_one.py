@@ -137,6 +137,11 @@ def analysis_stages(ctx: Context, options: ProcessOptions) -> list:
         stages.append(scaled(seg_cls()))
     if options.calibration_path is not None:
         stages.append(LoadCalibration(str(options.calibration_path)))
+        from stages.check_applied import CheckApplied, calibration_source
+
+        # the calibration run's verdict is not this recording's: checked here on its own
+        stages.append(CheckApplied(calibration_source(options.calibration_path),
+                                   max_gap_s=options.max_gap_s))
     else:
         from stages.estimate import Estimate, Term
 

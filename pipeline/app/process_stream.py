@@ -405,9 +405,14 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
         if bool(np.any((sg.start_ns < w_ns[:, 1]) & (sg.end_ns > w_ns[:, 0]))))
     win = Resample(max_gap_s=gap_s).run(win).replace(segments=win_segments)
     if options.calibration_path is not None:
+        from stages.check_applied import CheckApplied, calibration_source
         from stages.load_calibration import LoadCalibration
 
         win = LoadCalibration(str(options.calibration_path)).run(win)
+        # the line's noise and rotation from the windows; its verdict from every sample's
+        # residual after pass 2
+        win = CheckApplied(calibration_source(options.calibration_path),
+                           max_gap_s=options.max_gap_s).run(win)
     else:
         from stages.estimate import Estimate
         from stages.require_observable import RequireObservable
@@ -525,6 +530,12 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
                              path=str(path), hint="check that the magnetometer and attitude "
                              "overlap in time")
         sample = RestoreResult.concat(kept, totals)
+        if options.calibration_path is not None:
+            from stages.check_applied import applied_verdict
+
+            res_all = totals.residual_rms_nT
+            cal = cal.replace(residual_rms_nT=res_all, verdict=applied_verdict(cal, res_all))
+            mc.cal_text = cal.to_json()  # the corrected MCAP carries the same calibration
         ref_rms = _analysed_rms(win)
         if ref_rms is not None:
             unseen = unseen_check(per_chunk, totals, ref_rms, t0)
