@@ -57,6 +57,7 @@ class ReferenceFieldMode(str, enum.Enum):
 
 
 from stages.estimators.base import EstimatorKind, Term  # noqa: E402
+from stages.exclude import ExcludeWindow  # noqa: E402
 
 # One spelling per option: the estimator kinds come from the registry, the terms from the
 # estimators' own enum (re-exported under the names this module has always used).
@@ -119,6 +120,9 @@ class RecordingOptions:
         Channel mapping; None = found by message type.
     outputs : tuple of (str, bool)
         Output switches of the ``[outputs]`` table (e.g. ``("rerun", True)``).
+    exclude : tuple of str
+        Stretches left out of the fit and the verdict, ``START:END`` as the command line's
+        ``--exclude`` (:class:`stages.exclude.ExcludeWindow`).
 
     """
 
@@ -131,6 +135,7 @@ class RecordingOptions:
     attitude_topic: str | None = None
     turntable_topic: str | None = None
     outputs: tuple[tuple[str, bool], ...] = ()
+    exclude: tuple[str, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form (enum values as strings)."""
@@ -198,7 +203,7 @@ class Campaign:
 
 _TOP_KEYS = {"campaign", "channels", "estimator", "reference_field", "outputs", "recordings"}
 _REC_KEYS = {"name", "path", "glob", "scenario", "seed", "role", "calibration", "mag",
-             "attitude"}
+             "attitude", "exclude"}
 _OUTPUT_KEYS = {"diagnose", "rerun", "report"}
 # [outputs] switch -> ProcessOptions field
 _OUTPUT_FIELDS = {"diagnose": "diagnose", "rerun": "write_rerun", "report": "write_report"}
@@ -404,10 +409,20 @@ def campaign_from_doc(doc: TomlDoc) -> Campaign:
         if cal is not None and role is RecordingRole.CALIBRATION:
             raise dd.rec_error(i, "calibration", "a calibration run cannot take another "
                                "recording's calibration", hint="remove the key or the role")
+        exclude = r.get("exclude", [])
+        if not isinstance(exclude, list) or not all(isinstance(x, str) for x in exclude):
+            raise dd.rec_error(i, "exclude", f"must be a list of \"START:END\" strings, got "
+                               f"{exclude!r}")
+        for x in exclude:
+            try:
+                ExcludeWindow.parse(x)
+            except ValueError as exc:
+                raise dd.rec_error(i, "exclude", str(exc)) from None
         opts = dataclasses.replace(
             base_opts,
             mag_topic=r.get("mag", base_opts.mag_topic),
             attitude_topic=r.get("attitude", base_opts.attitude_topic),
+            exclude=tuple(exclude),
         )
         has = [k for k in ("path", "glob") if k in r]
         if len(has) > 1:
@@ -641,6 +656,8 @@ def _process_options(task: RecordingTask) -> Any:
     ref = o.reference_field.resolve_enu_nT()
     want["reference_field_enu_nT"] = None if ref is None else tuple(ref)
     want["calibration_path"] = task.calibration_path
+    if o.exclude:
+        want["exclude"] = tuple(ExcludeWindow.parse(x) for x in o.exclude)
     for k, v in o.outputs:
         want[_OUTPUT_FIELDS[k]] = v
     missing = sorted(set(want) - names)

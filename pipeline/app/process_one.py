@@ -63,6 +63,8 @@ class ProcessOptions:
         Longest attitude gap (s) bridged by interpolation.
     robust : str
         Robust loss of the estimate: ``none``, ``huber`` or ``cauchy``.
+    exclude : tuple of stages.exclude.ExcludeWindow
+        Stretches left out of the fit and the verdict (``--exclude``); restored like the rest.
     scale_samples : int or None
         Recordings with more magnetometer samples than this are processed at scale: the ML
         rotation (and offset) from chunked sufficient statistics of every sample
@@ -85,6 +87,7 @@ class ProcessOptions:
     max_gap_s: float | None = None
     scale_samples: int | None = 600_000
     robust: str = "none"
+    exclude: tuple = ()
 
 
 #: analysis stages of a long recording see at most this many magnetometer samples
@@ -132,6 +135,10 @@ def analysis_stages(ctx: Context, options: ProcessOptions) -> list:
         )
         stages.append(tt_stage)
     stages.append(Resample(max_gap_s=options.max_gap_s))
+    if options.exclude:
+        from stages.exclude import Exclude
+
+        stages.append(Exclude(tuple(options.exclude)))
     seg_cls = _optional("stages.segment", "SegmentMotion")
     if seg_cls is not None:
         stages.append(scaled(seg_cls()))
@@ -167,6 +174,10 @@ def analysis_stages(ctx: Context, options: ProcessOptions) -> list:
         from stages.estimate import Judge
 
         stages.append(Judge())  # the verdict on the final model
+    if options.exclude:
+        from stages.exclude import NoteExclusions
+
+        stages.append(NoteExclusions(tuple(options.exclude)))
     return stages
 
 

@@ -197,6 +197,14 @@ class _Collector:
             attitude=AttitudeSeries(at[oa], aq[oa]), position=position)
 
 
+@dataclasses.dataclass
+class _Counted:
+    """The recording's first magnetometer stamp and the samples ``--exclude`` leaves out."""
+
+    t0: int | None = None
+    n: int = 0
+
+
 class _Replay:
     """The decoded samples of pass 1, spilled to an anonymous file for pass 2.
 
@@ -350,10 +358,19 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
 
     replay = _Replay(rec_dir)
 
+    excl = tuple(options.exclude)
+    counted = _Counted()  # --exclude: the recording's first stamp, samples left out
+
     def tapped() -> Iterator[Any]:
         for ch in itertools.chain([first], chunks):
             col.chunk(ch)
             replay.write(ch)
+            if excl and col.t_first_ns is not None:
+                from stages.exclude import excluded_mask
+
+                if counted.t0 is None:  # the first range's first stamp: the recording's
+                    counted.t0 = int(col.t_first_ns)
+                counted.n += int(np.count_nonzero(excluded_mask(ch.mag.t_ns, excl, counted.t0)))
             yield ch
 
     # the sums of each half of the recording (split-half check of the sigmas) add up to
@@ -370,6 +387,11 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
     terms_acc = (StreamAccumulator(max_gap_s=gap_s) if streamed and terms - {Term.OFFSET}
                  else None)
     for q, y, t in iter_aligned_chunks(tapped(), max_gap_s=gap_s, cubic_weight=lam):
+        if excl and counted.t0 is not None:
+            from stages.exclude import excluded_mask
+
+            keep = ~excluded_mask(t, excl, counted.t0)
+            q, y, t = q[keep], y[keep], t[keep]
         if terms_acc is not None:
             terms_acc.add(q, y, t)  # its own rotation sums included
         else:
@@ -404,6 +426,10 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
         sg for sg in segments
         if bool(np.any((sg.start_ns < w_ns[:, 1]) & (sg.end_ns > w_ns[:, 0]))))
     win = Resample(max_gap_s=gap_s).run(win).replace(segments=win_segments)
+    if excl:
+        from stages.exclude import Exclude
+
+        win = Exclude(excl, t0_ns=counted.t0).run(win)
     if options.calibration_path is not None:
         from stages.check_applied import CheckApplied, calibration_source
         from stages.load_calibration import LoadCalibration
@@ -447,6 +473,11 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
 
         win = Judge().run(win)
     cal = win.need_calibration()
+    if excl:
+        from stages.exclude import noted
+
+        cal = noted(cal, excl, counted.t0 if counted.t0 is not None else plan.start_ns,
+                    counted.n)
     n_win = len(win.need_recording().mag)
     if options.calibration_path is None and n_win < plan.n_mag:
         w = col.windows

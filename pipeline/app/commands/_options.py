@@ -15,6 +15,7 @@ import numpy as np
 
 from pipeline.core.errors import UsageError
 from pipeline.io.mcap_format import MAGIC
+from stages.exclude import ExcludeWindow
 
 #: The first 8 bytes of every MCAP file (https://mcap.dev/spec).
 
@@ -28,6 +29,9 @@ ESTIMATE_HELP = ("comma-separated terms to estimate beside the rotation: offset 
                  "constant offset in the magnetometer's frame, nT: sensor bias and hard "
                  "iron; diagnose reports it as hard_iron), soft_iron (scale, soft iron and "
                  "non-orthogonality), time_offset (magnetometer stamps late or early)")
+EXCLUDE_HELP = ("leave this stretch out of the fit and the verdict (repeatable): START:END in "
+                "seconds from the first magnetometer sample (12.5:30) or UTC "
+                "(2026-11-20T10:03:00Z:2026-11-20T10:04:30Z); it is still restored")
 IGRF_HELP = ("background field from the IGRF model at this place and date: latitude and "
              "longitude in degrees, altitude in metres, date as YYYY-MM-DD")
 
@@ -115,3 +119,20 @@ def check_mcap_file(path: str | Path) -> None:
     except OSError as exc:
         raise open_error(p, exc) from None
     check_magic(head, p)
+
+
+def add_exclude_option(p: argparse.ArgumentParser) -> None:
+    """Add ``--exclude START:END`` (repeatable; default none)."""
+    p.add_argument("--exclude", action="append", default=None, metavar="START:END",
+                   help=EXCLUDE_HELP)
+
+
+def exclude_from_args(args: argparse.Namespace) -> tuple[ExcludeWindow, ...]:
+    """Return the ``--exclude`` windows, or raise UsageError naming the malformed one."""
+    out = []
+    for text in getattr(args, "exclude", None) or ():
+        try:
+            out.append(ExcludeWindow.parse(text))
+        except ValueError as exc:
+            raise UsageError(f"--exclude {exc}") from None
+    return tuple(out)

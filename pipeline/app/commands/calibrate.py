@@ -16,8 +16,10 @@ import numpy as np
 
 from pipeline.app.commands._options import (
     ESTIMATE_HELP,
+    add_exclude_option,
     add_field_options,
     add_topic_options,
+    exclude_from_args,
     field_from_args,
 )
 from pipeline.core import progress
@@ -58,6 +60,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="robust loss against outliers (default none)",
     )
     add_topic_options(p)
+    add_exclude_option(p)
     p.set_defaults(func=run)
 
 
@@ -87,7 +90,8 @@ def run(args: argparse.Namespace) -> int:
         estimator=EstimatorKind(args.estimator), terms=terms,
         reference_field_enu_nT=None if ref is None else (float(ref[0]), float(ref[1]),
                                                          float(ref[2])),
-        mag_topic=args.mag, attitude_topic=args.attitude, robust=args.robust)
+        mag_topic=args.mag, attitude_topic=args.attitude, robust=args.robust,
+        exclude=exclude_from_args(args))
     display = progress.ProgressDisplay(1, "magalign calibrate",
                                        enabled=progress.enabled_for(sys.stderr))
     sink = progress.DirectSink(Path(args.recording).stem, display.update)

@@ -12,7 +12,13 @@ import logging
 import sys
 from pathlib import Path
 
-from pipeline.app.commands._options import add_field_options, add_topic_options, field_from_args
+from pipeline.app.commands._options import (
+    add_exclude_option,
+    add_field_options,
+    add_topic_options,
+    exclude_from_args,
+    field_from_args,
+)
 from pipeline.core import progress
 from pipeline.core.atomic import write_text_atomic
 
@@ -28,12 +34,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     add_topic_options(p)
     add_field_options(p)
+    add_exclude_option(p)
     p.set_defaults(func=run)
 
 
 def diagnose_file(path: str | Path, *, mag_topic: str | None = None,
                   attitude_topic: str | None = None,
-                  reference_field_enu_nT: tuple[float, float, float] | None = None):
+                  reference_field_enu_nT: tuple[float, float, float] | None = None,
+                  exclude: tuple = ()):
     """Analyse one recording as ``process`` and ``calibrate`` do; returns the final Context.
 
     The stages are :func:`pipeline.app.process_one.analysis_stages` (estimate, diagnosis,
@@ -42,20 +50,23 @@ def diagnose_file(path: str | Path, *, mag_topic: str | None = None,
     from pipeline.app.process_one import ProcessOptions, analyse_recording
 
     options = ProcessOptions(reference_field_enu_nT=reference_field_enu_nT,
-                             mag_topic=mag_topic, attitude_topic=attitude_topic)
+                             mag_topic=mag_topic, attitude_topic=attitude_topic,
+                             exclude=tuple(exclude))
     return analyse_recording(path, options)
 
 
 def run(args: argparse.Namespace) -> int:
     """Diagnose and write the outputs; returns the exit status."""
     ref = field_from_args(args)
+    exclude = exclude_from_args(args)
     display = progress.ProgressDisplay(1, "magalign diagnose",
                                        enabled=progress.enabled_for(sys.stderr))
     sink = progress.DirectSink(Path(args.recording).stem, display.update)
     with display, progress.use_sink(sink):
         ctx = diagnose_file(args.recording, mag_topic=args.mag, attitude_topic=args.attitude,
                             reference_field_enu_nT=None if ref is None
-                            else (float(ref[0]), float(ref[1]), float(ref[2])))
+                            else (float(ref[0]), float(ref[1]), float(ref[2])),
+                            exclude=exclude)
         from stages.estimate import verdict_line
 
         cal = ctx.need_calibration()

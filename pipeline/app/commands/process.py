@@ -21,9 +21,11 @@ from pathlib import Path
 
 from pipeline.app.commands._options import (
     ESTIMATE_HELP,
+    add_exclude_option,
     add_field_options,
     add_topic_options,
     check_mcap_file,
+    exclude_from_args,
     field_from_args,
 )
 from pipeline.core import errors
@@ -55,6 +57,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help=ESTIMATE_HELP)
     add_field_options(p)
     add_topic_options(p)
+    add_exclude_option(p)
     p.add_argument("--no-progress", action="store_true",
                    help="no progress line (shown only on a terminal anyway; "
                    "MAGALIGN_PROGRESS=always|never overrides)")
@@ -83,6 +86,9 @@ def _overrides(args: argparse.Namespace):
         ov["mag_topic"] = args.mag
     if args.attitude is not None:
         ov["attitude_topic"] = args.attitude
+    if args.exclude:
+        exclude_from_args(args)  # a malformed window: one line, exit 2, before any output
+        ov["exclude"] = tuple(args.exclude)
     return ov
 
 
