@@ -34,6 +34,7 @@ from pipeline.core.verdict import (
     QUESTIONABLE_RESIDUAL_RATIO,
     Status,
     Verdict,
+    plain_words,
     sensor_noise_nT,
 )
 from pipeline.model.calibration import Calibration
@@ -140,20 +141,23 @@ def applied_verdict(cal: Calibration, residual_rms_nT: float) -> Verdict:
                       "calibration run's residual")
     res = float(residual_rms_nT)
     status = Status.OK
+    advice = None
     if noise is None or noise <= 0:
-        fit = f"residual {res:.0f} nT; no still window to measure the sensor noise"
+        fit = f"the model leaves {res:.0f} nT here; no still window to measure the noise"
     elif res <= QUESTIONABLE_RESIDUAL_RATIO * noise:
-        fit = f"residual {res:.0f} nT vs sensor noise {noise:.0f} nT"
+        fit = f"the model leaves {res:.0f} nT here against a sensor noise of {noise:.0f} nT"
     else:
         # never REFUSED: the restore does not depend on the field, and on a survey line the
         # field's own changes (the anomalies surveyed) are the product, not a fault
         status = Status.QUESTIONABLE
-        fit = (f"residual {res:.0f} nT is {res / noise:.1f} times the sensor noise "
-               f"({noise:.0f} nT): the field here departs from the calibration's model by more "
-               "than the noise (the survey's own anomalies, a disturbance, or a change of the "
-               "sensor since the calibration: magalign diagnose on this recording tells which)")
+        fit = (f"the field here departs from the calibration's model by {res:.0f} nT, "
+               f"{res / noise:.1f} times the sensor's noise ({noise:.0f} nT)")
+        advice = ("magalign diagnose on this recording tells the survey's own anomalies from "
+                  "a disturbance or a change of the sensor")
     if doubts:
         status = Status.QUESTIONABLE
+        cause, advice = plain_words(doubts[0])
+        fit = f"{fit}; {cause}"
     src_status = Status(ap.get("source_status", "OK"))
     status = max(status, src_status, key=lambda s: _RANK[s])
     if max_z is None:
@@ -164,10 +168,16 @@ def applied_verdict(cal: Calibration, residual_rms_nT: float) -> Verdict:
                     f"body {', '.join(rot['determined_axes'])}")
     else:
         rotation = ""
-    source = (f"calibration from {ap.get('source', 'another recording')} "
-              f"({src_status.value} there)")
-    reason = "; ".join(x for x in (source, fit, noise_from, *doubts, rotation) if x)
-    return Verdict(status, reason, None if noise is None else float(noise), res)
+    source = (f"Calibration from {ap.get('source', 'another recording')} "
+              f"({src_status.value} there).")
+    parts = [source, fit[:1].upper() + fit[1:] + "."]
+    if noise_from:
+        parts.append(noise_from[:1].upper() + noise_from[1:] + ".")
+    if rotation:
+        parts.append(rotation[:1].upper() + rotation[1:] + ".")
+    if advice:
+        parts.append(f"What to do: {advice}.")
+    return Verdict(status, " ".join(parts), None if noise is None else float(noise), res)
 
 
 def check_applied(cal: Calibration, aligned: AlignedSeries, refit: Calibration | None,

@@ -187,13 +187,21 @@ def fit_calibration(
     return with_verdict(cal, al)
 
 
+#: A rotation sigma above this (deg) about a body axis is a doubt: 1 deg of misalignment
+#: costs about 870 nT on a 50,000 nT field, more than any sensor's noise.
+POOR_AXIS_SIGMA_DEG = 1.0
+
+
 def with_verdict(cal: Calibration, aligned: AlignedSeries,
-                 residual_rms_nT: float | None = None) -> Calibration:
+                 residual_rms_nT: float | None = None, diagnosed: bool = False) -> Calibration:
     """Return ``cal`` with its verdict (:mod:`pipeline.core.verdict`) from the aligned samples.
 
     The sensor noise is measured in the still windows of ``aligned`` (repeated
     sample-and-hold messages left out); the fit's checks (``cal.checks``) give the refusals
-    and doubts. ``residual_rms_nT`` overrides the calibration's own (a later, fuller model).
+    and doubts, and a rotation known to worse than :data:`POOR_AXIS_SIGMA_DEG` about a body
+    axis the motion does determine is one more. ``residual_rms_nT`` overrides the
+    calibration's own (a later, fuller model); ``diagnosed``: the diagnosis ran (the
+    verdict's advice points to its findings).
     """
     from pipeline.core.verdict import judge, sensor_noise_nT
     from pipeline.model.sample_hold import repeated
@@ -206,7 +214,14 @@ def with_verdict(cal: Calibration, aligned: AlignedSeries,
         refusals.insert(0, "the platform did not rotate: nothing about the misalignment is "
                         "observable; record rotations about at least two different axes")
     doubts = list(cal.checks.get("doubts", ()))
-    return cal.replace(verdict=judge(res, noise, refusals=refusals, doubts=doubts))
+    sig = np.asarray(cal.sigma_rotvec_deg, float)
+    if len(cal.unobservable_axes_body) == 0 and np.all(np.isfinite(sig)):
+        i = int(np.argmax(sig))
+        if sig[i] > POOR_AXIS_SIGMA_DEG:
+            doubts.append(f"the rotation about body {'xyz'[i]} is only known to {sig[i]:.1f} "
+                          "deg: the motion barely turned the sensor about that axis")
+    return cal.replace(verdict=judge(res, noise, refusals=refusals, doubts=doubts,
+                                     diagnosed=diagnosed))
 
 
 def carry_checks(before: Calibration, after: Calibration, *, explained: bool = False,
@@ -277,7 +292,8 @@ class Judge:
 
     def run(self, ctx: Context) -> Context:
         """Return ``ctx`` with ``calibration.verdict`` for its final model."""
-        return ctx.replace(calibration=with_verdict(ctx.need_calibration(), ctx.need_aligned()))
+        return ctx.replace(calibration=with_verdict(ctx.need_calibration(), ctx.need_aligned(),
+                                                    diagnosed=ctx.diagnosis is not None))
 
 
 @dataclass(frozen=True)

@@ -44,7 +44,7 @@ def test_a_line_of_the_same_installation_is_ok_on_its_own_evidence(tmp_path, cal
     row = _line(tmp_path, calibration, Spec("same", seed=4, duration_s=40.0, mag_noise_nT=2.0))
     assert row["verdict"] == "OK", row["verdict_reason"]
     reason = row["verdict_reason"]
-    assert reason.startswith("calibration from cal/calibration.json (OK there)"), reason
+    assert reason.startswith("Calibration from cal/calibration.json (OK there)."), reason
     assert "agrees within" in reason
     line_cal = json.loads(Path(row["paths"]["calibration.json"]).read_text())
     ap = line_cal["checks"]["applied"]
@@ -66,6 +66,7 @@ def test_a_sensor_that_moved_on_its_mount_is_caught(tmp_path, calibration):
     d = np.asarray(ap["rotation"]["difference_deg"])
     assert abs(d[0] - 0.5) < 0.02 and np.all(np.abs(d[1:]) < 0.02)  # deg
     assert "differs from the calibration's by +0.50 deg about body x" in row["verdict_reason"]
+    assert "What to do: calibrate again" in row["verdict_reason"]
 
 
 def test_a_disturbance_on_the_line_is_questionable_not_refused(tmp_path, calibration):
@@ -74,7 +75,7 @@ def test_a_disturbance_on_the_line_is_questionable_not_refused(tmp_path, calibra
         effects={"disturbance": {"windows_s": [[15.0, 25.0]], "peak_nT": 200.0,
                                  "direction_enu": [0.6, 0.0, 0.8]}}))
     assert row["verdict"] == "QUESTIONABLE", row["verdict_reason"]
-    assert "magalign diagnose on this recording tells which" in row["verdict_reason"]
+    assert "magalign diagnose on this recording tells" in row["verdict_reason"]
     assert "agrees within" in row["verdict_reason"]  # the rotation still holds
 
 
@@ -106,7 +107,7 @@ def test_a_questionable_calibration_never_gives_an_ok_line(tmp_path, calibration
     row = _line(tmp_path, doubtful, Spec("same2", seed=4, duration_s=40.0, mag_noise_nT=2.0))
     assert row["verdict"] == "QUESTIONABLE"
     assert row["verdict_reason"].startswith(
-        "calibration from doubtful/calibration.json (QUESTIONABLE there)")
+        "Calibration from doubtful/calibration.json (QUESTIONABLE there).")
 
 
 @pytest.mark.parametrize(("sigma", "shown"), [(0.00014, "+- 0.00014"), (0.0123, "+- 0.012"),

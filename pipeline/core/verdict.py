@@ -9,6 +9,7 @@ above it is physics the model leaves out (CONVENTIONS, ``calibration.json`` ``ve
 from __future__ import annotations
 
 import enum
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -149,9 +150,81 @@ def sensor_noise_nT(t_ns: NDArray[np.int64], mag_nT: F64, q_enu_body: F64,
     return float(np.sqrt(np.mean(per_axis**2)))
 
 
+#: A doubt in plain words: its cause (``re`` groups fill the template) and what to do.
+#: The checks write their doubts with the details a report shows; the verdict's reason gives
+#: a person the cause in degrees and nanotesla and one thing to do. Patterns are matched on
+#: the start of the check's own words (tests/test_verdict_words.py holds every producer).
+_PLAIN: tuple[tuple[str, str, str], ...] = (
+    (r"the two halves of the recording disagree by ([\d.]+) deg",
+     "the two halves of the recording give rotations {0} deg apart, more than their sigmas "
+     "allow (the sigmas now include it)",
+     "record a longer run turning about all three axes, or look in the diagnosis for what "
+     "changes over the recording"),
+    (r"the motion cannot determine hard iron or soft iron",
+     "the motion cannot tell a magnetised or soft-magnetic part near the sensor from the "
+     "Earth's field",
+     "turn the sensor through large angles about all three axes, or give the field with "
+     "--reference-field E,N,U"),
+    (r"the motion cannot determine (hard|soft) iron",
+     "the motion cannot tell a {0}-magnetic part near the sensor from the Earth's field",
+     "turn the sensor through large angles about all three axes, or give the field with "
+     "--reference-field E,N,U"),
+    (r"the motion barely determines the rotation about one axis",
+     "the motion barely turned the sensor about one axis: the rotation about it is poorly "
+     "known",
+     "turn the sensor about a second, very different axis"),
+    (r"not estimated \(the motion cannot determine them\): (.+)$",
+     "the motion cannot determine the {0} asked for",
+     "turn the sensor through large angles about all three axes, or ask for fewer terms"),
+    (r"the (offset|soft-iron matrix) trades against",
+     "the motion cannot determine the {0}",
+     "turn the sensor through large angles about all three axes, or ask for fewer terms"),
+    (r"the model was restricted: the data also ask for (.+?), which move the "
+     r"misalignment by ([\d.]+) deg",
+     "the model asked for leaves out {0}, which moves the misalignment by {1} deg (the "
+     "sigmas include that)",
+     "run without --estimate for the model the data select"),
+    (r"the rotation refitted on this recording differs from the calibration's by "
+     r"([+-]?[\d.]+) deg about body (\w)",
+     "this recording's own rotation differs from the calibration's by {0} deg about body "
+     "{1}: the sensor may have moved on its mount",
+     "calibrate again with this installation"),
+    (r"the rotation about body (\w) is only known to ([\d.]+) deg",
+     "the rotation about body {0} is only known to +-{1} deg",
+     "turn the sensor about body {0} as well"),
+)
+
+
+def plain_words(doubt: str) -> tuple[str, str | None]:
+    """Return a check's doubt as ``(cause, what to do)`` for a person.
+
+    ``cause`` is in degrees and nanotesla without internal names; ``what to do`` is None for
+    a doubt without advice (its words up to the first colon are the cause).
+    """
+    for pattern, cause, advice in _PLAIN:
+        m = re.match(pattern, doubt)
+        if m:
+            g = tuple(x.replace("_", " ") for x in m.groups())
+            return cause.format(*g), advice.format(*g)
+    return doubt.split(":", 1)[0].strip(), None
+
+
+def _sentence(cause: str, advice: str | None, more: int) -> str:
+    text = cause[:1].upper() + cause[1:] + "."
+    if advice:
+        text += f" What to do: {advice}."
+    if more:
+        text += f" ({more} more {'doubt' if more == 1 else 'doubts'} in the report.)"
+    return text
+
+
 def judge(residual_rms_nT: float, sensor_noise: float | None, *,
-          refusals: Sequence[str] = (), doubts: Sequence[str] = ()) -> Verdict:
-    """Decide the verdict.
+          refusals: Sequence[str] = (), doubts: Sequence[str] = (),
+          diagnosed: bool = False) -> Verdict:
+    """Decide the verdict and say it in words a person can act on.
+
+    The reason is one cause, in nanotesla and degrees, then one thing to do; the checks'
+    own words (``refusals``, ``doubts``) stay in ``Calibration.checks`` for the report.
 
     Parameters
     ----------
@@ -161,42 +234,38 @@ def judge(residual_rms_nT: float, sensor_noise: float | None, *,
         From :func:`sensor_noise_nT`.
     refusals : sequence of str
         Reasons found by the fit's checks that make the result unusable (start dependence,
-        confounded motion); the first becomes the reason.
+        confounded motion); the first becomes the cause.
     doubts : sequence of str
-        Reasons for doubt (halves that disagree, terms not determined); joined into the reason.
+        Reasons for doubt (halves that disagree, terms not determined); the first becomes
+        the cause when the residual does not already decide.
+    diagnosed : bool
+        The diagnosis ran: its findings, not a new run, tell what the model misses.
 
     """
     res = float(residual_rms_nT)
-    parts: list[str] = []
-    status = Status.OK
-    if sensor_noise is not None and sensor_noise > 0:
-        ratio = res / sensor_noise
-        explained = (
-            f"residual {res:.0f} nT vs sensor noise {sensor_noise:.0f} nT"
-        )
-        if ratio <= 1.0:
-            parts.append(f"{explained}: the model explains all but the sensor's noise")
-        else:
-            left = 100.0 * (1.0 - sensor_noise / res)
-            parts.append(f"{explained}: the model explains all but {left:.0f} %")
-        if ratio > REFUSED_RESIDUAL_RATIO:
-            status = Status.REFUSED
-            parts = [
-                f"residual {res:.0f} nT is {ratio:.0f} times the sensor noise "
-                f"({sensor_noise:.0f} nT): the model does not describe this recording (a "
-                "magnet or another field the model leaves out dominates); run magalign "
-                "diagnose"
-            ]
-        elif ratio > QUESTIONABLE_RESIDUAL_RATIO:
-            status = Status.QUESTIONABLE
-            parts[-1] += " (more than the model should leave: run magalign diagnose)"
-    else:
-        parts.append(f"residual {res:.0f} nT; no still window to measure the sensor noise")
+    find = ("the diagnosis names what the model cannot describe (see its findings): exclude "
+            "those stretches with --exclude, or record again away from them" if diagnosed
+            else "run magalign diagnose to find what the model misses")
+    ratio = res / sensor_noise if sensor_noise is not None and sensor_noise > 0 else None
+    fit_words = (f"the model leaves {res:.0f} nT; no still window to measure the sensor's "
+                 "noise (record a few seconds without moving)" if ratio is None
+                 else f"the model leaves {res:.0f} nT against a sensor noise of "
+                 f"{sensor_noise:.0f} nT")
     if refusals:
-        status = Status.REFUSED
-        parts = [refusals[0]] + parts
-    elif doubts:
-        if status is Status.OK:
-            status = Status.QUESTIONABLE
-        parts = parts + list(doubts)
-    return Verdict(status, "; ".join(parts), sensor_noise, res)
+        cause, advice = plain_words(refusals[0])
+        return Verdict(Status.REFUSED, _sentence(cause, advice, len(refusals) - 1 + len(doubts)),
+                       sensor_noise, res)
+    if ratio is not None and ratio > REFUSED_RESIDUAL_RATIO:
+        cause = (f"the model leaves {res:.0f} nT, {ratio:.0f} times the sensor's noise "
+                 f"({sensor_noise:.0f} nT): something it does not model dominates")
+        return Verdict(Status.REFUSED, _sentence(cause, find, len(doubts)), sensor_noise, res)
+    if ratio is not None and ratio > QUESTIONABLE_RESIDUAL_RATIO:
+        cause = (f"the model leaves {res:.0f} nT, {ratio:.1f} times the sensor's noise "
+                 f"({sensor_noise:.0f} nT)")
+        return Verdict(Status.QUESTIONABLE, _sentence(cause, find, len(doubts)), sensor_noise,
+                       res)
+    if doubts:
+        cause, advice = plain_words(doubts[0])
+        return Verdict(Status.QUESTIONABLE, _sentence(cause, advice, len(doubts) - 1),
+                       sensor_noise, res)
+    return Verdict(Status.OK, _sentence(fit_words, None, 0), sensor_noise, res)

@@ -150,5 +150,5 @@ def summary(cal) -> str:
 
     lines.append(verdict_line(cal))
     if cal.verdict is not None:
-        lines.append(f"verdict {cal.verdict.line()}")
+        lines.append(cal.verdict.reason)  # the status ends the line above
     return "\n".join(lines)
