@@ -130,6 +130,12 @@ def what(f: dict[str, Any]) -> str:
                 f"at {where_at} in {frame}, moment "
                 f"{float(np.linalg.norm(p['moment_Am2'])):.3g} A m²{where}. The restored "
                 "field keeps it.")
+    if e == "field_map":
+        p2p = np.asarray(p["peak_to_peak_nT"], float)
+        return (f"Beyond the linear gradient the field varies smoothly over the area the "
+                f"sensor covered, by {vec(p2p)} nT peak to peak (east, north, up), mapped with "
+                f"{int(p['n_basis'])} basis functions (length scale "
+                f"{float(p['length_scale_m']):.2f} m). The restored field keeps it.")
     if e == "lever_arm":
         lv = 100 * np.asarray(p["lever_arm_body_m"], float)
         sl = s.get("lever_arm_body_m")

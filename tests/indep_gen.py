@@ -20,7 +20,9 @@ continuous motion (step 0.1 ms), not of the samples.
 Space: ``p(t)`` is the tracked point of the position source (what the file carries); the
 magnetometer sits at ``p(t) + C_true(t) @ l`` (``lever_arm``, ``l = 0`` without it), and every
 spatial term of ``B_enu`` (``field_gradient``, ``local_source``: a point dipole fixed in the
-surroundings) is evaluated there. Paths (``Spec.path``): ``lissajous`` (the original motion),
+surroundings; ``field_map``: a smooth non-linear field, the sum of distant point dipoles,
+each minus the gradient of its own closed-form potential ``100 nT (m.r) / r^3``) is
+evaluated there. Paths (``Spec.path``): ``lissajous`` (the original motion),
 ``survey`` (parallel lines walked with the heading along the track) and ``translate`` (a lab
 recording that moves the sensor but barely turns it). Positions are written as PoseStamped
 (local metres, optionally in a frame rotated about Up), INSPVA or NavSatFix (WGS-84 geodetic,
@@ -151,7 +153,8 @@ ATTITUDE_TYPES = ("sensor_msgs/msg/Imu", "geometry_msgs/msg/PoseStamped",
 #: Number of parameters of the term magalign reports for each effect (for the threshold).
 K_PARAMS = {"hard_iron": 3, "soft_iron": 5, "time_offset": 1, "eddy_current": 9,
             "field_drift": 12, "disturbance": 15, "hard_iron_step": 3, "field_gradient": 6,
-            "heading_drift": 2, "sample_hold": 1, "local_source": 6, "lever_arm": 3}
+            "heading_drift": 2, "sample_hold": 1, "local_source": 6, "lever_arm": 3,
+            "field_map": 27}
 
 #: Paths (``Spec.path``) and position sources (``Spec.position_type``).
 PATHS = ("lissajous", "survey", "translate")
@@ -568,6 +571,41 @@ def source_field_nT(spec: Spec, t_s: np.ndarray) -> np.ndarray:
                                                             r)
 
 
+def dipole_potential_nTm(moment_Am2: np.ndarray, r_vec_m: np.ndarray) -> np.ndarray:
+    """Scalar potential of a point dipole, nT m: ``100 nT (m.r) / r^3``, (N,).
+
+    Its field is minus its gradient (:func:`dipole_field_nT`): the magnetic scalar
+    potential ``(m.r) / (4 pi r^3)`` times ``mu0``.
+    """
+    m = np.asarray(moment_Am2, dtype=float)
+    r = np.asarray(r_vec_m, dtype=float)
+    rn = np.linalg.norm(r, axis=-1)
+    return MU0_4PI_NT * np.sum(m * r, axis=-1) / rn**3
+
+
+def smooth_field_at(params: dict[str, Any], x_enu_m: np.ndarray) -> np.ndarray:
+    """Field of the ``field_map`` effect at ENU points ``x_enu_m`` (N, 3), nT, (N, 3).
+
+    ``params["dipoles"]``: a list of ``{position_m (ENU), moment_Am2}``, placed far from the
+    path (metres to tens of metres), so that their sum is smooth over the area the sensor
+    covers and far from linear across it.
+    """
+    x = np.asarray(x_enu_m, dtype=float).reshape(-1, 3)
+    B = np.zeros_like(x)
+    for d in params["dipoles"]:
+        B += dipole_field_nT(np.asarray(d["moment_Am2"], float),
+                             x - np.asarray(d["position_m"], float))
+    return B
+
+
+def smooth_potential_at(params: dict[str, Any], x_enu_m: np.ndarray) -> np.ndarray:
+    """Potential of the ``field_map`` effect at ``x_enu_m`` (N, 3), nT m: the field is ``-grad``."""
+    x = np.asarray(x_enu_m, dtype=float).reshape(-1, 3)
+    return sum((dipole_potential_nTm(np.asarray(d["moment_Am2"], float),
+                                     x - np.asarray(d["position_m"], float))
+                for d in params["dipoles"]), np.zeros(len(x)))
+
+
 def field_enu(spec: Spec, t_s: np.ndarray) -> np.ndarray:
     """Field at the sensor, ENU nT, at sensing times ``t_s`` (N, 3).
 
@@ -592,6 +630,8 @@ def field_enu(spec: Spec, t_s: np.ndarray) -> np.ndarray:
         B += (pos - ref) @ np.asarray(e["field_gradient"]["G_nT_per_m"]).T
     if "local_source" in e:
         B += source_field_nT(spec, t)
+    if "field_map" in e:
+        B += smooth_field_at(e["field_map"], sensor_position_m(spec, t))
     return B
 
 
@@ -964,6 +1004,21 @@ def truth(spec: Spec) -> dict[str, Any]:
     if la is not None:
         out["effects"]["lever_arm"] = {
             "lever_arm_body_m": [float(x) for x in la["lever_arm_body_m"]]}
+    fm = spec.effects.get("field_map")
+    if fm is not None:
+        # what the map adds at the magnetometer over the recording (ENU, nT); the linear part
+        # of it (about the mean position) is the gradient's, the rest the map's
+        t = mag_stamps_s(spec) - spec.effects.get("time_offset", {}).get("time_offset_s", 0.0)
+        x = sensor_position_m(spec, t)
+        f = smooth_field_at(fm, x)
+        X = np.column_stack([np.ones(len(x)), x - x.mean(axis=0)])
+        beyond = f - X @ np.linalg.lstsq(X, f, rcond=None)[0]
+        out["effects"]["field_map"] = {
+            "dipoles": [{"position_m": [float(v) for v in d["position_m"]],
+                         "moment_Am2": [float(v) for v in d["moment_Am2"]]}
+                        for d in fm["dipoles"]],
+            "peak_to_peak_nT": (f.max(axis=0) - f.min(axis=0)).tolist(),
+            "beyond_linear_rms_nT": float(np.sqrt(np.mean(beyond**2)))}
     return out
 
 
@@ -971,7 +1026,7 @@ def _uses_new_options(s: Spec) -> bool:
     """Whether ``s`` uses an option added after the first corpora (it then gets a truth)."""
     defaults = Spec(name="", seed=0)
     return any(getattr(s, f) != getattr(defaults, f) for f in _NEW_FIELDS) or \
-        "local_source" in s.effects or "lever_arm" in s.effects
+        "local_source" in s.effects or "lever_arm" in s.effects or "field_map" in s.effects
 
 
 # ----------------------------------------------------------------------------- strength

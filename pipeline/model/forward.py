@@ -12,7 +12,9 @@ One magnetometer sample stamped ``t`` (CONVENTIONS, "Measurement model"; the rot
 
 ``F(t)`` is the sum of the diagnosed external-field terms (``field_drift``: Legendre
 P1..P4 in time; ``disturbance``: linear B-splines in its windows; ``field_gradient``:
-``G (p(t) - p_ref)`` with the attitude source's position ``p``). ``h(t)`` is the attitude
+``G (p(t) - p_ref)`` with the attitude source's position ``p``; ``local_source``: point
+dipoles; ``field_map``: ``-grad phi`` of a potential in a reduced-rank basis,
+:mod:`pipeline.model.field_map`). ``h(t)`` is the attitude
 source's heading error (``heading_drift``: Legendre P1..P2 in time, rad): the source reports
 ``Rz(h) C_true``, so the field it sees is turned about Up by ``h``. ``C_enu_body(t - tau)`` is
 the attitude re-interpolated at the sensing time ``t - tau`` (C1 cubic on SO(3),
@@ -64,6 +66,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.model.attitude import AttitudeInterpolator, Interpolated
+from pipeline.model.field_map import FieldMapBasis, map_field_enu, map_points
 
 if TYPE_CHECKING:
     from pipeline.core.recording import AttitudeSeries, PositionSeries
@@ -359,6 +362,9 @@ class ForwardModel:
     lever_arm_body_m : ndarray (3,) or None
         ``lever_arm``: the magnetometer at ``p + C_enu_body l`` (CONVENTIONS), for the
         spatial terms.
+    field_map : (FieldMapBasis, weights_nT (K,), yaw_rad) or None
+        ``field_map``: ``F = Q sum_j w_j g_j(x)`` at ``x = p + Q.T C l`` in the position
+        frame, ``Q = Rz(yaw)`` (:mod:`pipeline.model.field_map`).
 
     """
 
@@ -375,6 +381,7 @@ class ForwardModel:
     heading: tuple | None = None
     sources: tuple = ()
     lever_arm_body_m: F64 | None = None
+    field_map: tuple | None = None
     unmodelled: tuple[str, ...] = field(default=())
 
     @classmethod
@@ -448,6 +455,17 @@ class ForwardModel:
              float(np.radians(p.get("frame_yaw_deg") or 0.0)),
              tuple(tuple(w) for w in p.get("windows_s") or ()))
             for p in _as_list(eff.get("local_source")))
+        fmap = None
+        p = first("field_map")
+        if p is not None:
+            # the weights need their basis: the box, the modes per axis (written by
+            # diagnose beside the CONVENTIONS params) and the position frame's bearing
+            if all(k in p for k in ("domain_m", "n_per_axis", "weights")):
+                fmap = (FieldMapBasis.of(p["domain_m"], p["n_per_axis"]),
+                        np.asarray(p["weights"], dtype=float).reshape(-1),
+                        float(np.radians(p.get("frame_yaw_deg") or 0.0)))
+            else:
+                unmodelled.append("field_map")
         return cls(
             R_body_mag=np.asarray(cal.R_body_mag, dtype=float),
             B_enu_nT=np.asarray(cal.B_enu_nT, dtype=float),
@@ -462,6 +480,7 @@ class ForwardModel:
             heading=heading,
             sources=sources,
             lever_arm_body_m=lever,
+            field_map=fmap,
             unmodelled=tuple(unmodelled),
         )
 
@@ -476,8 +495,8 @@ class ForwardModel:
         """``F(t)`` of (M1), ENU, (N, 3); ``t_s`` from the first magnetometer sample.
 
         ``lever_enu_m``: the lever arm in ENU at each sample, ``C_enu_body l`` (N, 3), m.
-        ``p_m``: positions (N, 3), m, for ``field_gradient`` and ``local_source`` (NaN rows or
-        None: no contribution).
+        ``p_m``: positions (N, 3), m, for ``field_gradient``, ``local_source`` and
+        ``field_map`` (NaN rows or None: no contribution).
         """
         t = np.asarray(t_s, dtype=float)
         F = np.zeros((len(t), 3))
@@ -502,6 +521,12 @@ class ForwardModel:
                 r = source_offset_enu(c, psi, p0, lev)
                 here = ok & (in_windows(t, windows) if windows else True)
                 F += np.where(here[:, None], np.einsum("nij,j->ni", dipole_matrix(r), m), 0.0)
+        if self.field_map is not None and p_m is not None:
+            basis, weights, yaw = self.field_map
+            p = np.asarray(p_m, dtype=float)
+            ok = np.isfinite(p).all(axis=1)
+            x = map_points(np.nan_to_num(p), yaw, lev)
+            F += np.where(ok[:, None], map_field_enu(basis, weights, yaw, x), 0.0)
         return F
 
     def heading_rad(self, t_s: F64) -> F64 | None:
@@ -603,7 +628,8 @@ def evaluate(
     ident = np.array([0.0, 0.0, 0.0, 1.0])
     q = np.where(valid[:, None], at.q_enu_body, ident)
     p_m = None
-    if (model.gradient is not None or model.sources) and position is not None:
+    if (model.gradient is not None or model.sources or model.field_map is not None) \
+            and position is not None:
         p_m = position.at(t_ns)
     Ct = _Ct(q)
     lever = None

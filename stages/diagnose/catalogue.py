@@ -152,6 +152,18 @@ EFFECTS: dict[EffectKind, EffectInfo] = {
         # evidence (the position is fitted once the moment is there)
         identifiable_in_part=True,
     ),
+    EffectKind.FIELD_MAP: EffectInfo(
+        EffectKind.FIELD_MAP,
+        "a field that varies smoothly but not linearly over the area the sensor covers "
+        "(steel in the building's structure, a distant vehicle or pipe, a geological "
+        "anomaly): the gradient is only its first order",
+        "an ENU residual, left after the linear gradient, that follows the sensor's position "
+        "and repeats wherever the sensor comes back, smooth over the whole area",
+        "enu",
+        # a map along a path leaves combinations of its basis unobserved (the GP prior holds
+        # them): admitted on its best-determined directions
+        identifiable_in_part=True,
+    ),
     EffectKind.LEVER_ARM: EffectInfo(
         EffectKind.LEVER_ARM,
         "the magnetometer is not at the point whose position the attitude source reports "
@@ -229,6 +241,22 @@ def explanation(
         text += (
             ". It belongs to the surroundings, not to the sensor: the restored field keeps it "
             "(a survey maps it); calibrate away from it, or keep it in the model"
+        )
+    if kind is EffectKind.FIELD_MAP:
+        pp = [float(x) for x in params["peak_to_peak_nT"]]
+        dom = np.asarray(params["domain_m"], dtype=float)
+        frame = ("the attitude source's own frame (the motion-capture room)"
+                 if params.get("position_frame") == "attitude_source_local" else "local ENU")
+        text += (
+            f". Beyond the linear gradient the field changes by up to {max(pp):.0f} nT "
+            "(range of E, N, U over the places visited: " + ", ".join(f"{x:.0f}" for x in pp)
+            + f" nT), modelled as minus the gradient of a potential in {params['n_basis']} "
+            "Laplace eigenfunctions of a box of " + " x ".join(
+                f"{b - a:.2f}" for a, b in dom) + f" m in {frame} (Solin et al. 2018), "
+            f"GP length scale {params['length_scale_m']:.2f} m. It belongs to the "
+            "surroundings, not to the sensor: the restored field keeps it. Calibrate where the "
+            "field is uniform (or turn the sensor in place), or keep the positions and this "
+            "term in the model"
         )
     if kind is EffectKind.LEVER_ARM:
         lv = np.asarray(params["lever_arm_body_m"], dtype=float)

@@ -7,11 +7,18 @@ A model state fitted to the data by THE damped Gauss-Newton core
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
 from pipeline.core.geometry import quat_to_matrix, so3_exp
-from pipeline.model.solve import levenberg_marquardt
+from pipeline.model.solve import (
+    Linearised,
+    Solution,
+    levenberg_marquardt,
+    minimise,
+    normal_equations,
+)
 from stages.diagnose.model import F64, FitData, ModelState, _mv, evaluate
 
 
@@ -85,13 +92,47 @@ def fit(
             J = None if J is None else J * ev.sqrt_w[:, None, None]
         return r, J
 
-    sol = levenberg_marquardt(state, resid, lambda st, dx: st.update(dx, fixed_B=fixed_B),
-                              max_iter=max_iter, rtol=rtol)
+    def update(st: ModelState, dx: F64) -> ModelState:
+        return st.update(dx, fixed_B=fixed_B)
+
+    prec = state.prior_precision()
+    if prec is None:
+        sol = levenberg_marquardt(state, resid, update, max_iter=max_iter, rtol=rtol)
+    else:
+        # the weights enter linearly: a relative decrease of 1e-8 is converged well within
+        # the noise, and each iteration costs the map's columns squared
+        sol = _fit_with_prior(state, resid, update, prec, max_iter, max(rtol, 1e-8))
     raw = None
     if data.noise_model is not None:
         raw = data.y_nT - evaluate(sol.state, data, jacobian=False).y_nT
     return FitResult(sol.state, sol.residual, sol.rss, sol.info, sol.n_iter, raw,
                      data.noise_model)
+
+
+def _fit_with_prior(state: ModelState, resid: Any, update: Any, prec: F64, max_iter: int,
+                    rtol: float) -> Solution:
+    """Run the damped Gauss-Newton fit of ``|r|^2 + sum_i prec_i x_i^2`` (a ``field_map``'s prior).
+
+    The ridge is the GP prior of the map's weights (:meth:`ModelState.prior_precision`): it
+    makes the fit well posed where the path leaves combinations of the basis unobserved.
+    The normal equations returned are the posterior's (``J.T J + diag(prec)``), the RSS
+    the data's alone (the BIC and held-out errors compare fits of the data).
+    """
+
+    def linearise(st: ModelState, with_normal: bool) -> Linearised:
+        x = st.flat_values()
+        pen = float(np.sum(prec * x * x))
+        r, J = resid(st, with_normal)
+        if not with_normal:
+            return Linearised(float(np.sum(r * r)) + pen, aux=r)
+        assert J is not None
+        H, g = normal_equations(J, r)
+        return Linearised(float(np.sum(r * r)) + pen, H + np.diag(prec), g - prec * x, r)
+
+    m = minimise(state, linearise, update, max_iter=max_iter, rtol=rtol)
+    r = m.at.aux
+    assert m.at.H is not None  # relinearised at the last state
+    return Solution(m.state, r, float(np.sum(r * r)), m.at.H, m.n_iter)
 
 
 def wahba_init(data: FitData, n_iter: int = 10) -> ModelState:

@@ -9,11 +9,14 @@ model"), one magnetometer sample stamped ``t``::
     y(t)   = y0(t) + o + o_step * 1[t in windows] + E_s @ dy0/dt   (M5)
 
 with ``F(t)`` the ENU field terms (``field_drift``, ``disturbance``, ``field_gradient``:
-``G (p(t) - p_ref)`` with ``p`` the attitude source's position; ``heading_drift`` turns the
-field about Up, (M1h)), ``T`` the turntable-axis tilt (``axis_tilt``, the diagnosis' own
-term), ``D = I + S`` (``soft_iron``, ``S`` symmetric and traceless because the isotropic
-scale of ``D`` is the field magnitude when ``B_enu`` is estimated), ``o`` (``hard_iron``),
-``o_step`` (``hard_iron_step``), ``E_s`` (``eddy_current``). ``dy0/dt`` is the rate of change
+``G (p(t) - p_ref)`` with ``p`` the attitude source's position; ``local_source``;
+``field_map``: ``Q sum_j w_j g_j(x)``, minus the gradient of a potential in the Laplace
+eigenfunctions of a box, :mod:`pipeline.model.field_map`, its weights with a GP prior that
+the fit adds as a ridge; ``heading_drift`` turns the field about Up, (M1h)), ``T`` the
+turntable-axis tilt (``axis_tilt``, the diagnosis' own term), ``D = I + S`` (``soft_iron``,
+``S`` symmetric and traceless because the isotropic scale of ``D`` is the field magnitude
+when ``B_enu`` is estimated), ``o`` (``hard_iron``), ``o_step`` (``hard_iron_step``), ``E_s``
+(``eddy_current``). ``dy0/dt`` is the rate of change
 of the undisturbed reading caused by the rotation of the platform (the field the airframe
 sees changing), so that a time offset is exactly the isotropic special case ``E_s = -tau I``
 to first order.
@@ -49,6 +52,7 @@ from numpy.typing import NDArray
 
 from pipeline.core.geometry import quat_to_matrix, skew, so3_exp
 from pipeline.model.attitude import AttitudeInterpolator
+from pipeline.model.field_map import BASIS_NAME, FieldMapBasis, map_points
 from pipeline.model.forward import (
     DRIFT_DEGREE,
     HEADING_DEGREE,
@@ -85,6 +89,7 @@ class EffectKind(str, enum.Enum):
     HEADING_DRIFT = "heading_drift"
     LOCAL_SOURCE = "local_source"
     LEVER_ARM = "lever_arm"
+    FIELD_MAP = "field_map"
 
 
 LOCAL_KINDS = frozenset({EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP})
@@ -273,6 +278,18 @@ class Term:
     fit_yaw : bool
         ``local_source`` with positions in a frame of unknown bearing: the rotation
         ``Rz(psi)`` from the position frame to ENU is a seventh parameter of the source.
+    domain_m : tuple of 3 (a, b)
+        ``field_map``: the box of its basis in the position frame, m
+        (:mod:`pipeline.model.field_map`); its bearing is ``yaw_rad`` (the gradient's).
+    n_axis : tuple of 3 int
+        ``field_map``: modes per axis (the complexity chosen on held-out blocks).
+    length_scale_m : float
+        ``field_map``: the GP prior's length scale ``l``, m.
+    prior_nT : float
+        ``field_map``: the prior's standard deviation of each field component, nT.
+    noise_nT : float
+        ``field_map``: the noise of the residual the prior is weighed against, nT: the
+        ridge on weight ``j`` is ``(noise_nT^2 / var(w_j)) w_j^2`` in the fit's sum of squares.
 
     """
 
@@ -281,6 +298,26 @@ class Term:
     knot_step_s: float = 1.0
     yaw_rad: float = 0.0
     fit_yaw: bool = False
+    domain_m: tuple[tuple[float, float], ...] = ()
+    n_axis: tuple[int, ...] = ()
+    length_scale_m: float = 0.0
+    prior_nT: float = 0.0
+    noise_nT: float = 0.0
+
+    def basis(self) -> FieldMapBasis:
+        """Return the ``field_map`` basis of the term (its box and modes per axis)."""
+        return FieldMapBasis.of(self.domain_m, self.n_axis)
+
+    def prior_precision(self) -> F64:
+        """Ridge of a ``field_map``'s weights, (K,), per nT^2: ``noise^2 / var(w_j)``.
+
+        The GP prior of :mod:`pipeline.model.field_map` (squared exponential, length scale
+        ``length_scale_m``, field components of standard deviation ``prior_nT``) weighed
+        against the residual noise ``noise_nT``: the fit minimises ``|r|^2 + sum_j
+        prec_j w_j^2``, the negative log posterior times ``2 noise^2``.
+        """
+        var = self.basis().prior_variance(self.length_scale_m, self.prior_nT)
+        return (self.noise_nT**2) / np.maximum(var, 1e-300)
 
     def knots(self) -> list[F64]:
         """Knot times of each disturbance window (hat functions, both ends included)."""
@@ -313,6 +350,8 @@ class Term:
             return 7 if self.fit_yaw else 6
         if k is EffectKind.LEVER_ARM:
             return 3
+        if k is EffectKind.FIELD_MAP:
+            return int(np.prod(self.n_axis))
         raise ValueError(k)
 
     def presence(self, t_s: F64) -> F64:
@@ -407,6 +446,26 @@ class ModelState:
             out.append(i)
             i += t.n_params()
         return out
+
+    def prior_precision(self) -> F64 | None:
+        """Ridge of every parameter, (P,), per nT^2 (a ``field_map``'s weights); None without.
+
+        The fit (:func:`stages.diagnose.fit.fit`) adds ``sum_i prec_i x_i^2`` to the sum of
+        squares: the GP prior of the map's weights (:meth:`Term.prior_precision`); every
+        other parameter has none (zero).
+        """
+        if not any(t.kind is EffectKind.FIELD_MAP for t in self.terms):
+            return None
+        out = np.zeros(self.n_params())
+        for t, i in zip(self.terms, self.offsets(), strict=True):
+            if t.kind is EffectKind.FIELD_MAP:
+                out[i : i + t.n_params()] = t.prior_precision()
+        return out
+
+    def flat_values(self) -> F64:
+        """Return the parameters as one vector (P,): zeros for ``dR``, ``B_enu`` (perturbations)."""
+        return np.concatenate([np.zeros(6)] + [np.asarray(v, dtype=float).reshape(-1)
+                                               for v in self.values])
 
     def D(self) -> F64:
         """Soft-iron matrix ``I + S`` (identity without ``soft_iron``)."""
@@ -608,6 +667,28 @@ def _mv(M: F64, v: F64) -> F64:
     return np.matmul(M, v[:, :, None])[:, :, 0]
 
 
+_MAP_CACHE: dict[tuple, tuple[Any, F64]] = {}
+
+
+def _map_field(term: Term, p_m: F64, lever_enu: F64 | None) -> F64:
+    """``g_j(x)`` (N, 3, K) of a ``field_map`` at the sensor, ``x = p + Q.T C l``.
+
+    Without a lever arm it depends on the positions and the basis only: cached over a fit
+    (keyed by the positions' id, with a reference to them so the id cannot be reused).
+    """
+    if lever_enu is not None:
+        return term.basis().field(map_points(p_m, term.yaw_rad, lever_enu))
+    key = (id(p_m), len(p_m), term.domain_m, term.n_axis, term.yaw_rad)
+    hit = _MAP_CACHE.get(key)
+    if hit is not None and hit[0] is p_m:
+        return hit[1]
+    out = term.basis().field(p_m)
+    if len(_MAP_CACHE) > 8:
+        _MAP_CACHE.clear()
+    _MAP_CACHE[key] = (p_m, out)
+    return out
+
+
 def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluation:
     """Predicted magnetometer reading and its Jacobian (vectorised over samples).
 
@@ -663,6 +744,11 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             # B(p) = B_enu + 100 nT (3 (m.u) u - m) / r^3  (CONVENTIONS local_source)
             r_src = source_offset_enu(term, v, data.p_m, lever_enu)
             Bt += term.presence(t)[:, None] * (dipole_matrix(r_src) @ v[3:6])
+        elif term.kind is EffectKind.FIELD_MAP and data.p_m is not None:
+            # B(p) = B_enu - Q grad phi(x), x = p + Q.T C l  (CONVENTIONS field_map;
+            # pipeline.model.field_map): Q sum_j w_j g_j(x)
+            g_map = _map_field(term, data.p_m, lever_enu)
+            Bt += np.einsum("ndk,k->nd", g_map, v) @ rot_z(term.yaw_rad).T
     # heading_drift: the attitude source reports Rz(h(t)) C_true(t), so the reading is
     # R.T C_rep.T Rz(h) B (CONVENTIONS heading_drift): the ENU field turned about Up by h(t)
     h_rad = None
@@ -764,6 +850,11 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
                 ez_r = np.stack([-r_p[:, 1], r_p[:, 0], np.zeros(n)], axis=1)
                 dB[:, :, 6] = _mv(K, ez_r)
             J[:, :, i : i + term.n_params()] = np.matmul(G, pres * dB)
+        elif k is EffectKind.FIELD_MAP and data.p_m is not None:
+            # linear in the weights: dB/dw_j = Q g_j(x)
+            g_map = _map_field(term, data.p_m, lever_enu)
+            J[:, :, i : i + term.n_params()] = np.matmul(
+                G, np.einsum("ij,njk->nik", rot_z(term.yaw_rad), g_map))
         elif k is EffectKind.LEVER_ARM and lever_enu is not None:
             # dB/dl = sum over spatial terms of (dB/dr) C: G_enu C for the gradient,
             # K(r) C for each source present
@@ -775,6 +866,11 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
                 elif t2.kind is EffectKind.LOCAL_SOURCE and data.p_m is not None:
                     r2 = source_offset_enu(t2, v2, data.p_m, lever_enu)
                     dBdr += t2.presence(t)[:, None, None] * dipole_gradient(r2, v2[3:6])
+                elif t2.kind is EffectKind.FIELD_MAP and data.p_m is not None:
+                    # the map's ENU gradient Q (dB_x/dx) Q.T (dx/dr = Q.T)
+                    Qm = rot_z(t2.yaw_rad)
+                    x2 = map_points(data.p_m, t2.yaw_rad, lever_enu)
+                    dBdr += Qm @ t2.basis().field_gradient(x2, v2) @ Qm.T
             J[:, :, i : i + 3] = np.matmul(G, np.matmul(dBdr, C))
         elif k is EffectKind.HEADING_DRIFT:
             # d(Rz(h) B)/dh = Rz(h + pi/2) B with the vertical part removed; h = P v
@@ -862,6 +958,48 @@ def source_params(term: Term, value: F64, data: FitData,
     return out
 
 
+def map_field_at_data(term: Term, value: F64, state: ModelState, data: FitData) -> F64:
+    """Return the ``field_map``'s ENU field at the sensor for every sample, (N, 3), nT.
+
+    Each gradient row (N, 3, K) with ``value``: ``Q sum_j w_j g_j(x)`` at ``x = p + Q.T C l``
+    (the lever arm ``l`` when the model has one, turned by the attitude at ``t - tau``).
+    """
+    if data.p_m is None or not len(data):
+        return np.zeros((len(data), 3))
+    return np.einsum("ndk,k->nd", _map_columns(term, state, data), value)
+
+
+def _map_columns(term: Term, state: ModelState, data: FitData) -> F64:
+    """``Q g_j(x)`` (N, 3, K): the ENU field of each basis function at the sensor."""
+    lever = state.value(EffectKind.LEVER_ARM)
+    lever_enu = None
+    if lever is not None:
+        C = quat_to_matrix(data.track.at(data.t_s - state.tau_s()))
+        lever_enu = C @ np.asarray(lever, dtype=float)
+    g = term.basis().field(map_points(np.asarray(data.p_m), term.yaw_rad, lever_enu))
+    return np.einsum("ij,njk->nik", rot_z(term.yaw_rad), g)
+
+
+def map_params(term: Term, value: F64, state: ModelState, data: FitData) -> dict[str, Any]:
+    """CONVENTIONS params of ``field_map``.
+
+    ``peak_to_peak_nT``: max - min of each ENU component of the map's field over the
+    positions the sensor visited (the samples of the fit).
+    """
+    f = map_field_at_data(term, value, state, data)
+    p2p = (f.max(axis=0) - f.min(axis=0)) if len(f) else np.zeros(3)
+    return {
+        "basis": BASIS_NAME,
+        "n_basis": int(term.n_params()),
+        "length_scale_m": float(term.length_scale_m),
+        "domain_m": [[float(a), float(b)] for a, b in term.domain_m],
+        "weights": np.asarray(value, dtype=float).tolist(),
+        "position_frame": data.position_frame or "enu",
+        "position_origin": data.position_origin,
+        "peak_to_peak_nT": [float(x) for x in p2p],
+    }
+
+
 def term_params(term: Term, value: F64, state: ModelState, data: FitData) -> dict[str, Any]:
     """CONVENTIONS ``params`` of a fitted term (arrays as lists)."""
     k = term.kind
@@ -900,6 +1038,8 @@ def term_params(term: Term, value: F64, state: ModelState, data: FitData) -> dic
                              state.tau_s())
     if k is EffectKind.LEVER_ARM:
         return {"lever_arm_body_m": np.asarray(value, dtype=float).tolist()}
+    if k is EffectKind.FIELD_MAP:
+        return map_params(term, value, state, data)
     if k is EffectKind.AXIS_TILT:
         axis_true = state.T_enu @ np.array([0.0, 0.0, 1.0])
         tilt = float(np.degrees(np.arccos(np.clip(axis_true[2], -1.0, 1.0))))
@@ -942,6 +1082,20 @@ def term_sigma(term: Term, cov: F64, state: ModelState, data: FitData) -> dict[s
     if k is EffectKind.LOCAL_SOURCE:
         return {"position_m": sd[0:3].tolist(), "moment_Am2": sd[3:6].tolist(),
                 "closest_approach_m": float(np.linalg.norm(sd[0:3]))}
+    if k is EffectKind.FIELD_MAP:
+        # the range of each component is f(x_max) - f(x_min) at the samples where the
+        # fitted map is largest and smallest: first order, the weights' covariance on the
+        # difference of the two samples' basis rows
+        if data.p_m is None or not len(data):
+            return {"weights": sd.tolist(), "peak_to_peak_nT": [0.0, 0.0, 0.0]}
+        A = _map_columns(term, state, data)  # (N, 3, K)
+        v = state.values[list(state.terms).index(term)]
+        f = np.einsum("ndk,k->nd", A, v)
+        p2p = []
+        for d in range(3):
+            a = A[int(np.argmax(f[:, d])), d] - A[int(np.argmin(f[:, d])), d]
+            p2p.append(float(np.sqrt(max(float(a @ cov @ a), 0.0))))
+        return {"weights": sd.tolist(), "peak_to_peak_nT": p2p}
     if k is EffectKind.FIELD_GRADIENT:
         # M = sum_k g_k S_k Q: Var(M_ij) = sum_kl (S_k Q)_ij cov_kl (S_l Q)_ij
         SQ = _SOFT_BASIS @ rot_z(term.yaw_rad)

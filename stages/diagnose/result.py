@@ -158,6 +158,9 @@ def _estimate_text(fd: Finding) -> str:
         g = float(np.linalg.norm(np.asarray(p["G_nT_per_m"]))) / 1e3
         sg = float(np.linalg.norm(np.asarray(s.get("G_nT_per_m", 0.0)))) / 1e3
         return f"|G|={g:.2f}+-{sg:.2f} uT/m ({p['position_frame']})"
+    if fd.effect == "field_map":
+        return ("p2p=[" + ", ".join(f"{x:.0f}" for x in p["peak_to_peak_nT"])
+                + f"] nT ENU, {p['n_basis']} functions")
     if fd.effect == "sample_hold":
         return (f"native {p['native_rate_hz']:.1f} Hz, "
                 f"{100 * p['repeated_fraction']:.1f} % repeats")

@@ -16,6 +16,7 @@ from pipeline.core import progress
 from pipeline.core.errors import EstimationError
 from pipeline.core.geometry import quat_to_matrix
 from stages.diagnose.catalogue import EFFECTS, explanation, identifiability_reason, motion_stats
+from stages.diagnose.field_map import MapCandidate, map_candidate
 from stages.diagnose.fit import FitResult, fit, wahba_init
 from stages.diagnose.model import (
     CONFOUND_RATIO,
@@ -72,7 +73,8 @@ GLOBAL_KINDS = (
 )
 
 #: the terms whose field depends on where the sensor is: a lever arm acts through them
-SPATIAL_KINDS = frozenset({EffectKind.FIELD_GRADIENT, EffectKind.LOCAL_SOURCE})
+SPATIAL_KINDS = frozenset({EffectKind.FIELD_GRADIENT, EffectKind.LOCAL_SOURCE,
+                           EffectKind.FIELD_MAP})
 
 
 #: Nested pairs: the simpler term (value) is a special case of the other (key) and is
@@ -377,6 +379,24 @@ def diagnose_data(
                 continue
             tests.append(st)
         n = cur.residual_nT.size
+        # the field beyond the gradient's first order: tried once the gradient is in the
+        # model, its complexity chosen on the held-out blocks (stages.diagnose.field_map)
+        mc: MapCandidate | None = None
+        if EffectKind.FIELD_MAP not in present and (EffectKind.FIELD_MAP, ()) not in \
+                rejected | dropped:
+            got = map_candidate(cur, data, sig, cfg)
+            if isinstance(got, str):
+                not_ident.setdefault(EffectKind.FIELD_MAP.value, got)
+            elif got is not None:
+                st = got.test
+                if st.rot_efficiency < CONFOUND_RATIO:
+                    not_ident.setdefault(EffectKind.FIELD_MAP.value, (
+                        "with it the motion leaves the rotation R_body_mag confounded (only "
+                        f"{st.rot_efficiency:.1e} of its weakest combination stays determined)"))
+                elif st.statistic < INTERP_MARGIN**2 * st.interp_statistic:
+                    not_ident.setdefault(EffectKind.FIELD_MAP.value, interp_reason(data))
+                else:
+                    mc = got
         tests.sort(key=lambda s: -s.statistic + s.k * np.log(n))
         # the score test ranks the candidates; the few strongest are refitted and the one
         # with the lowest BIC is the strongest (a score statistic far from the null is only
@@ -393,6 +413,13 @@ def diagnose_data(
                 rejected.add((st.term.kind, st.term.windows_s))
                 continue
             fits.append((fr[1], st, fr[0]))
+        map_fits = []
+        if mc is not None and -mc.test.statistic + mc.test.k * np.log(n) <= 0:
+            fr = _refit(cur, mc.test.term, data, cfg)
+            if fr is None:
+                rejected.add((EffectKind.FIELD_MAP, ()))
+            else:
+                map_fits.append((fr[1], mc.test, fr[0]))
         if replace_trial is not None:
             rt = _replacement_fit(cur, EffectKind.HEADING_DRIFT, replace_trial, data, cfg)
             if rt is not None:
@@ -424,13 +451,39 @@ def diagnose_data(
                 if alt_fit is not None and prefer:
                     fits.remove(best) if best in fits else None
                     fits.insert(0, alt_fit)
+        # the map last: whatever a term local in time or space (a disturbance, a source, a
+        # step) or a global term explains is theirs; the map is for what none of them can.
+        # Except what the map explains as well: a term that no longer earns its margin once
+        # the map is in the model was fitting the map's field (a bump in time where a
+        # survey line crosses a smooth anomaly); it waits until the map has been tried
+        if map_fits:
+            first: list[tuple[float, ScoreTest, FitResult]] = []
+            later: list[tuple[float, ScoreTest, FitResult]] = []
+            for f in fits:
+                (later if _map_explains(map_fits[0][2], f[2], data, cfg) else first).append(f)
+            fits = first + map_fits + later
         accepted = False
-        for dbic, st, res in fits:
+        k_fit = 0
+        while k_fit < len(fits):
+            dbic, st, res = fits[k_fit]
+            k_fit += 1
             told = ""
+            if st.term.kind is EffectKind.FIELD_MAP and mc is not None:
+                told = mc.words
             if st.term.kind is EffectKind.LOCAL_SOURCE:
-                told, margin = _told_apart(cur, res, data)
+                told, margin, alts = _told_apart(cur, res, data)
                 if margin < SOURCE_DECISIVE_FACTOR * cfg.bic_margin:
                     rejected.add((st.term.kind, st.term.windows_s))
+                    if EffectKind.FIELD_MAP in present:
+                        # the map, fitted while a transient was still hidden under the
+                        # smooth field, took a share of it: what is left of the transient
+                        # looks spatial enough to rank a source first. A look-alike that
+                        # fits better than the source is tried in its place
+                        for look in alts:
+                            fr = _refit(cur, look, data, cfg)
+                            if fr is not None:
+                                fits.insert(k_fit, (fr[1], score_test(cur, look, data, sig),
+                                                    fr[0]))
                     continue
             cv_new = _heldout_ok(cur, res, data, cfg, cv_cur)
             if cv_new is None:
@@ -467,12 +520,19 @@ def diagnose_data(
         # for what a later term explains properly; drop it if it no longer earns its margin
         i = 0
         while i < len(cur.state.terms) - 1:
+            t_i = cur.state.terms[i]
+            if t_i.kind is EffectKind.FIELD_GRADIENT and any(
+                    t.kind is EffectKind.FIELD_MAP for t in cur.state.terms):
+                # the map is the field beyond the gradient's first order: with the map in
+                # the model the linear part stays the gradient's (the map's prior would
+                # otherwise pay for it)
+                i += 1
+                continue
             st_wo = _without(cur.state, i)
             res_wo = fit(st_wo, data)
             n_eff = _n_eff(cur, data)
             bic_cur = _bic(cur.rss, n_eff, cur.state.n_params())
             keep = bic_cur - _bic(res_wo.rss, n_eff, res_wo.state.n_params())
-            t_i = cur.state.terms[i]
             if keep > -cfg.bic_margin:
                 dropped.add((t_i.kind, t_i.windows_s))
                 findings.pop(i)
@@ -825,17 +885,19 @@ def _relocate_sources(cur: FitResult, data: FitData) -> FitResult:
     return cur
 
 
-def _told_apart(cur: FitResult, res: FitResult, data: FitData) -> tuple[str, float]:
+def _told_apart(cur: FitResult, res: FitResult, data: FitData
+                ) -> tuple[str, float, list[Term]]:
     """Words on how much worse a magnet on the platform or a disturbance fits than the source.
 
     Both are fitted in the windows where the source's field stands out (above a tenth of its
     peak), in place of the source, and compared by BIC with one effective sample count.
-    Returns the words and the smaller of the two BIC differences.
+    Returns the words, the smaller of the two BIC differences and the look-alikes that fit
+    better than the source.
     """
     wins = active_windows(res.state.terms[-1], res.state.values[-1], data)
     a, b = wins[0][0], wins[-1][1]
     ks = min(2.0, max(0.75, (b - a) / 6))
-    parts, worst = [], np.inf
+    parts, worst, better = [], np.inf, []
     for alt, what in ((Term(EffectKind.HARD_IRON_STEP, ((a, b),)),
                        "a magnet riding on the platform (an offset that turns with it)"),
                       (Term(EffectKind.DISTURBANCE, ((a, b),), knot_step_s=ks),
@@ -843,11 +905,30 @@ def _told_apart(cur: FitResult, res: FitResult, data: FitData) -> tuple[str, flo
         other = fit(cur.state.with_term(alt), data)
         d = _bic_between(other, res, data)
         worst = min(worst, d)
+        if d < 0:
+            better.append(alt)
         parts.append(f"{what} fits worse by {d:.0f} in BIC" if d > 0
                      else f"{what} fits as well (BIC {d:.0f}): the pass is too short to tell")
     return (". Told apart by the data: the field stays where the object is and falls off "
             f"with the cube of the distance as the sensor moves (checked in {a:.1f}-{b:.1f} s); "
-            + "; ".join(parts)), float(worst)
+            + "; ".join(parts)), float(worst), better
+
+
+def _map_explains(map_res: FitResult, res: FitResult, data: FitData,
+                  cfg: DiagnoseConfig) -> bool:
+    """Whether the last term of ``res`` no longer lowers the BIC by the margin beside the map.
+
+    ``map_res``: the current model with the ``field_map`` candidate; the term is added to it
+    at the values it was fitted with and the two are refitted and compared with one effective
+    sample count. A term the map leaves something to explain (a compact source's ``1/r^3``,
+    a disturbance where the sensor came back without it, a sensor term) still earns it.
+    """
+    term = res.state.terms[-1]
+    if term.kind is EffectKind.FIELD_MAP or any(t.kind is term.kind and t == term
+                                                 for t in map_res.state.terms):
+        return False
+    both = fit(with_values(term, res.state.values[-1], map_res), data)
+    return _bic_between(both, map_res, data) > -cfg.bic_margin
 
 
 def _refit(

@@ -146,9 +146,15 @@ def score_test(cur: FitResult, term: Term, data: FitData, sigma: float,
 
 
 def _score_from_J(
-    cur: FitResult, term: Term, J: np.ndarray, data: FitData, sigma: float
+    cur: FitResult, term: Term, J: np.ndarray, data: FitData, sigma: float,
+    prior: np.ndarray | None = None,
 ) -> ScoreTest:
-    """Score test from the Jacobian (3N, P) of the model with ``term`` appended."""
+    """Score test from the Jacobian (3N, P) of the model with ``term`` appended.
+
+    ``prior``: the ridge of the term's parameters (a ``field_map``'s GP prior, per nT^2,
+    :meth:`~stages.diagnose.model.Term.prior_precision`), added to their information: the
+    statistic and the rotation's efficiency are then those of the fit, which has it.
+    """
     r = cur.residual_nT.reshape(-1)
     p0 = cur.state.n_params()
     if data.B_known_enu_nT is not None:
@@ -156,9 +162,18 @@ def _score_from_J(
     else:
         keep = np.arange(p0)
     Jb, Jc = J[:, keep], J[:, p0:]
-    Hbb, Hbc, Hcc = gram(Jb, Jb), gram(Jb, Jc), gram(Jc, Jc)
+    Hbb, rot_base = _base_information(Jb)
+    Hbc, Hcc = gram(Jb, Jc), gram(Jc, Jc)
+    base_prior = cur.state.prior_precision()
+    if base_prior is not None:  # a field_map in the model: its ridge is information too
+        Hbb = Hbb + np.diag(base_prior[keep])
+        rot_base = _rot_efficiency_H(Hbb)
+    if prior is not None:
+        Hcc = Hcc + np.diag(prior)
     g = gram(Jc, r[:, None])[:, 0]
     gb = gram(Jb, r[:, None])[:, 0]  # ~0 at a converged fit; kept for exactness
+    if base_prior is not None:  # the posterior's gradient: the ridge pulls too
+        gb = gb - (base_prior * cur.state.flat_values())[keep]
     sb = np.sqrt(np.clip(np.diag(Hbb), 1e-30, None))
     Hbb_n = Hbb / np.outer(sb, sb)
     try:
@@ -199,8 +214,12 @@ def _score_from_J(
         ze = V.T @ ((ge - (Hbc / sb[:, None]).T @ xbe) / sc)
         stat_int = float(np.sum(ze[good] ** 2 / w[good])) / sigma**2
     k = int(np.count_nonzero(good)) if partial else term.n_params()
-    rot_with = _rot_efficiency(np.concatenate([Jb, Jc], 1))
-    rot_base = _rot_efficiency(Jb)
+    if prior is None and base_prior is None:
+        rot_with = _rot_efficiency(np.concatenate([Jb, Jc], 1))
+    else:
+        # with a field_map (its ridge included), from the blocks already formed: the map's
+        # columns make the full product the costliest step of the test
+        rot_with = _rot_efficiency_H(np.block([[Hbb, Hbc], [Hbc.T, Hcc]]))
     # what the term itself costs the rotation: below 1 when it trades against R
     rot_eff = rot_with if rot_with < 0.5 * rot_base else 1.0
     return ScoreTest(term, stat, max(eff, 0.0), max(k, 1), rot_eff, stat_int)
@@ -220,11 +239,35 @@ def interp_reason(data: FitData) -> str:
             "this term; record the attitude faster or move more slowly")
 
 
+_BASE_CACHE: list[tuple[np.ndarray, np.ndarray, float]] = []
+
+
+def _base_information(Jb: np.ndarray) -> tuple[np.ndarray, float]:
+    """``Jb.T Jb`` and the rotation's efficiency of the current model's columns ``Jb``.
+
+    Every candidate of a search round is tested against the same model, whose columns come
+    out of its evaluation bit for bit alike: the product is kept for the last ``Jb`` seen
+    (compared in full, far cheaper than forming it again).
+    """
+    if _BASE_CACHE and _BASE_CACHE[0][0].shape == Jb.shape \
+            and np.array_equal(_BASE_CACHE[0][0], Jb):
+        return _BASE_CACHE[0][1], _BASE_CACHE[0][2]
+    H = gram(Jb, Jb)
+    rot = _rot_efficiency(Jb)
+    _BASE_CACHE[:] = [(Jb.copy(), H, rot)]
+    return H, rot
+
+
 def _rot_efficiency(J: np.ndarray) -> float:
     """Fraction of the rotation's weakest information left with the other columns free."""
+    return _rot_efficiency_H(gram(J, J))
+
+
+def _rot_efficiency_H(H: np.ndarray) -> float:
+    """:func:`_rot_efficiency` from the information ``J.T J`` (rotation in its first 3 rows)."""
     from stages.estimators.base import RELATIVE_INFO_THRESHOLD, analyse
 
-    lam = analyse(gram(J, J), {"rot": slice(0, 3)}).block_ratio["rot"]
+    lam = analyse(H, {"rot": slice(0, 3)}).block_ratio["rot"]
     live = lam[lam >= RELATIVE_INFO_THRESHOLD]
     return float(np.min(live)) if live.size else 1.0
 
