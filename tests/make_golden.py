@@ -152,8 +152,14 @@ def store_baseline(results: Path, dest: Path) -> list[str]:
     """Copy the small JSON results of every finished recording into ``dest/<name>/``."""
     from pipeline.app.regress import recordings_in
 
+    # notes kept beside a baseline (PROVENANCE.md: what each value was checked against)
+    notes = {f.name: f.read_text(encoding="utf-8") for f in dest.glob("*.md")} \
+        if dest.exists() else {}
     if dest.exists():
         shutil.rmtree(dest)
+    dest.mkdir(parents=True)
+    for fname, text in notes.items():
+        (dest / fname).write_text(text, encoding="utf-8")
     names = recordings_in(results, need_marker=True)
     for name in names:
         (dest / name).mkdir(parents=True)
@@ -198,6 +204,10 @@ def main() -> int:
             camp = Path(tmp) / "real.toml"
             camp.write_text(REAL_CAMPAIGN_TOML.format(real=REAL.as_posix()), encoding="utf-8")
             status = process(camp, Path(tmp) / "real")
+            if keep_real is not None:  # its notes (PROVENANCE.md) stay with the new baseline
+                real_dir.mkdir(parents=True, exist_ok=True)
+                for f in keep_real.glob("*.md"):
+                    shutil.copy2(f, real_dir / f.name)
             names = store_baseline(Path(tmp) / "real", real_dir)
             print(f"baseline of the real recordings {', '.join(names)} in "
                   f"{real_dir.relative_to(ROOT)} (processing exit status {status})")

@@ -28,10 +28,23 @@ def test_generate_hides_the_key_and_score_counts(tmp_path):
         cal = json.loads((res_dir / p.stem / "calibration.json").read_text())
         assert cal["format"] == "magalign.calibration/1"
     r = score(out, res_dir)
-    assert r["n"] == 3 and 0 <= r["exact"] <= 3
-    total_true = sum(max(1, len(row["true"])) for row in r["rows"])
-    assert sum(sum(v.values()) for v in r["confusion"].values()) >= total_true
-    assert "true/found" in confusion_text(r)
+    # the score counted from the key and the diagnoses, recounted here from the files
+    found = {p.stem: {f["effect"] for f in json.loads(
+        (res_dir / p.stem / "diagnosis.json").read_text())["findings"]}
+        for p in out.glob("*.mcap")}
+    true = {name: set(rec["effects"]) for name, rec in key["recordings"].items()}
+    assert r["n"] == 3
+    assert r["exact"] == sum(found[n] == true[n] for n in true)
+    assert [(row["recording"], set(row["true"]), set(row["found"])) for row in r["rows"]] == [
+        (n, true[n], found[n]) for n in sorted(true)]
+    # every true effect that was found is on the confusion table's diagonal
+    for n in true:
+        for e in true[n] & found[n]:
+            assert r["confusion"][e][e] >= 1, (n, e, r["confusion"])
+    text = confusion_text(r)
+    assert "true/found" in text
+    for e in set().union(*true.values()):
+        assert e in text
     assert main(["score", str(out), str(res_dir)]) == 0
 
 

@@ -1,3 +1,15 @@
+"""The diagnose stage: search, evidence, findings, output.
+
+Tests named ``test_wiring_*`` are self-model tests: their data come from
+``tests/_diag_sim.py``, which makes them with ``stages.diagnose.model.evaluate``, the model
+the diagnosis fits. They check the wiring (search, fit, Jacobians, evidence, output),
+not the physics: a sign or convention error shared by the model and the data passes
+them. The physics of each effect is checked on recordings written without
+magalign's model (``tests/indep_gen.py``): ``tests/test_indep_corpus.py``,
+``tests/test_local_source_indep.py``, ``tests/test_model_independent.py``, and on the real
+recordings in ``tests/test_diagnose_real.py``.
+"""
+
 import json
 
 import numpy as np
@@ -55,7 +67,7 @@ CASES = [
 
 
 @pytest.mark.parametrize("kind,terms,values,check", CASES, ids=[c[0] for c in CASES])
-def test_each_effect_detected_and_located(kind, terms, values, check):
+def test_wiring_each_effect_detected_and_located(kind, terms, values, check):
     data, _ = make_data(terms, values, seed=11)
     diag, _ = diagnose_data(data, cfg=CFG)
     assert [f.effect for f in diag.findings] == [kind]
@@ -66,21 +78,21 @@ def test_each_effect_detected_and_located(kind, terms, values, check):
 
 
 @pytest.mark.parametrize("seed", [21, 22, 23, 24])
-def test_null_recordings_have_no_findings(seed):
+def test_wiring_null_recordings_have_no_findings(seed):
     data, _ = make_data(seed=seed)
     diag, _ = diagnose_data(data, cfg=CFG)
     assert diag.findings == ()
     assert diag.final["heldout_rms_nT"] == diag.baseline["heldout_rms_nT"]
 
 
-def test_single_axis_motion_reports_hard_iron_not_identifiable():
+def test_wiring_single_axis_motion_reports_hard_iron_not_identifiable():
     data, _ = make_data(single_axis=True, seed=5)
     diag, _ = diagnose_data(data, cfg=CFG)
     assert "hard_iron" in dict(diag.not_identifiable)
     assert diag.findings == ()
 
 
-def test_stage_output_format_and_figures():
+def test_wiring_stage_output_format_and_figures():
     data, truth = make_data((Term(K.TIME_OFFSET),), (np.array([0.005]),), seed=3)
     t0 = 1_700_000_000_000_000_000
     t_ns = t0 + np.round(data.t_s * 1e9).astype(np.int64)
@@ -108,7 +120,7 @@ def test_stage_output_format_and_figures():
     assert "time_offset" in out.diagnosis.table()
 
 
-def test_evidence_chains_from_baseline_to_final_on_two_effects():
+def test_wiring_evidence_chains_from_baseline_to_final_on_two_effects():
     # drift and a time offset together: the evidence of each finding is a build-up in the
     # final order, whatever rounds of selection (and backward steps) led there
     drift = np.r_[40.0, -30.0, 20.0, np.zeros(9)]
@@ -129,7 +141,7 @@ def test_evidence_chains_from_baseline_to_final_on_two_effects():
     assert 4.5 < diag.final["residual_rms_nT"] < 5.5
 
 
-def test_chain_evidence_rebuilds_a_swapped_history():
+def test_wiring_chain_evidence_rebuilds_a_swapped_history():
     # a history where the later-added term ends up first (as a backward step that drops and
     # re-adds a term produces): the stale numbers must be re-measured in the final order
     import dataclasses
@@ -217,7 +229,7 @@ def _grad_value(G):
 
 
 @pytest.mark.parametrize("frame, yaw_deg", [("enu", 0.0), ("attitude_source_local", 35.0)])
-def test_field_gradient_found_with_positions(frame, yaw_deg):
+def test_wiring_field_gradient_found_with_positions(frame, yaw_deg):
     """A gradient of a few uT/m along a path (0.3 m): found, G within 3 sigma or 10 %."""
     from _diag_sim import lissajous_m
 
@@ -240,7 +252,7 @@ def test_field_gradient_found_with_positions(frame, yaw_deg):
     assert "uT/m" in f.explanation
 
 
-def test_field_gradient_null_and_without_positions():
+def test_wiring_field_gradient_null_and_without_positions():
     """No gradient along a path: no finding; no positions: not identifiable, said so."""
     from _diag_sim import lissajous_m
 

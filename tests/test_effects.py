@@ -1,3 +1,13 @@
+"""The diagnosis' effect terms: Jacobians, fit, identifiability.
+
+Tests named ``test_wiring_*`` are self-model tests: their data come from
+``tests/_diag_sim.py``, which makes them with ``stages.diagnose.model.evaluate``, the model
+the diagnosis fits. They check the wiring (search, fit, Jacobians, evidence, output),
+not the physics: a sign or convention error shared by the model and the data passes
+them. The physics of the terms is checked on ``tests/indep_gen.py``
+recordings (``tests/test_model_independent.py``, ``tests/test_indep_corpus.py``).
+"""
+
 import numpy as np
 import pytest
 from _diag_sim import all_terms, lissajous_m, make_data
@@ -34,7 +44,7 @@ def _eps(state: ModelState) -> np.ndarray:
 
 
 @pytest.mark.parametrize("with_tilt_field", [False, True])
-def test_jacobian_matches_finite_differences(with_tilt_field):
+def test_wiring_jacobian_matches_finite_differences(with_tilt_field):
     terms, vals = all_terms()
     data, truth = make_data(terms, vals, duration_s=40.0, rate_hz=100.0, seed=3)
     if with_tilt_field:
@@ -63,7 +73,7 @@ def _blocks(state):
     return out
 
 
-def test_time_offset_is_isotropic_eddy_current():
+def test_wiring_time_offset_is_isotropic_eddy_current():
     """Nesting: E_s = -tau I reproduces a small time offset to first order."""
     tau = 0.01
     d1, _ = make_data((Term(EffectKind.TIME_OFFSET),), (np.array([tau]),), noise_nT=0.0, seed=1)
@@ -76,7 +86,7 @@ def test_time_offset_is_isotropic_eddy_current():
     assert np.abs(d1.y_nT - d2.y_nT)[inner].max() < 0.02 * effect
 
 
-def test_fit_recovers_every_global_effect():
+def test_wiring_fit_recovers_every_global_effect():
     terms = (Term(EffectKind.HARD_IRON), Term(EffectKind.SOFT_IRON), Term(EffectKind.TIME_OFFSET))
     vals = (np.array([800.0, -400.0, 250.0]), np.array([0.03, -0.02, 0.01, 0.005, -0.01]),
             np.array([0.015]))
@@ -150,7 +160,7 @@ def _gradient_value(G: np.ndarray) -> np.ndarray:
 
 
 @pytest.mark.parametrize("yaw_deg", [0.0, 35.0])
-def test_gradient_jacobian_matches_finite_differences(yaw_deg):
+def test_wiring_gradient_jacobian_matches_finite_differences(yaw_deg):
     terms = (Term(EffectKind.HARD_IRON), Term(EffectKind.FIELD_DRIFT),
              Term(EffectKind.FIELD_GRADIENT, yaw_rad=np.radians(yaw_deg)),
              Term(EffectKind.EDDY_CURRENT))
@@ -168,7 +178,7 @@ def test_gradient_jacobian_matches_finite_differences(yaw_deg):
         assert np.max(np.abs(a - b)) / scale < 1e-4, name
 
 
-def test_gradient_noise_off_is_recovered_to_numerical_precision():
+def test_wiring_gradient_noise_off_is_recovered_to_numerical_precision():
     """Noise off: a gradient along a path (positions in a frame yawed 35 deg) is recovered."""
     from stages.diagnose.model import term_params
 
@@ -196,7 +206,7 @@ def test_gradient_yaw_is_read_back_from_the_matrix():
         assert abs((got - deg + 180.0) % 360.0 - 180.0) < 0.5
 
 
-def test_gradient_identifiability_needs_positions_that_are_not_time():
+def test_wiring_gradient_identifiability_needs_positions_that_are_not_time():
     from stages.diagnose.catalogue import identifiability_reason
 
     st = None

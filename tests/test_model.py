@@ -426,7 +426,8 @@ def test_restore_runs_once_after_diagnose():
 # ----------------------------------------------------------------------------- one model
 
 
-def test_reading_is_what_evaluate_predicts():
+def test_wiring_reading_is_what_evaluate_predicts():
+    """Wiring: the model against itself (physics: tests/test_model_independent.py)."""
     # forward.reading is (M2)-(M5) from the pieces: with the attitude and the field of an
     # Evaluation it gives the same prediction, and a constant field (3,) the same as (N, 3).
     from pipeline.model.forward import reading
@@ -445,7 +446,9 @@ def test_reading_is_what_evaluate_predicts():
     np.testing.assert_allclose(rc.y_nT, rd.y_nT, rtol=0, atol=1e-9)
 
 
-def test_ml_estimator_predicts_with_the_forward_model():
+def test_wiring_ml_estimator_predicts_with_the_forward_model():
+    """Wiring: the ML estimator against the forward model, which it calls (physics:
+    tests/test_model_independent.py)."""
     # The ML estimator's prediction and Jacobian are the forward model's, (M2)-(M4) + o and
     # (J2)-(J5), for the same R, B, o, D and tau.
     from stages.estimators.base import Problem, Term

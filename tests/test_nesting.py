@@ -1,8 +1,15 @@
-"""Time offset nested in eddy currents (issue 15 E): the simpler term wins.
+"""Time offset nested in eddy currents: the simpler term wins.
 
 A time offset is the isotropic eddy term ``E_s = -tau I`` to first order. When a time offset
 explains the data it is reported as ``time_offset``; ``eddy_current`` only for what a time
 offset cannot explain (its anisotropic, traceless part).
+
+Tests named ``test_wiring_*`` are self-model tests: their data come from
+``tests/_diag_sim.py``, which makes them with ``stages.diagnose.model.evaluate``, the model
+the diagnosis fits. They check the wiring (search, fit, Jacobians, evidence, output),
+not the physics: a sign or convention error shared by the model and the data passes
+them. ``test_independent_*`` holds the same rule on recordings
+written by ``tests/indep_gen.py``.
 """
 
 from __future__ import annotations
@@ -25,7 +32,7 @@ def _close(est, true, sig, rel=0.1):
     return bool(np.all(np.abs(est - true) <= np.maximum(3 * sig, rel * np.max(np.abs(true)))))
 
 
-def test_time_offset_and_anisotropic_eddy_both_reported_split_canonically():
+def test_wiring_time_offset_and_anisotropic_eddy_both_reported_split_canonically():
     E = np.diag([0.003, -0.003, 0.0])
     data, _ = make_data((Term(K.TIME_OFFSET), Term(K.EDDY_CURRENT)),
                         (np.array([0.01]), E.ravel()), duration_s=60.0, noise_nT=2.0, seed=11)
@@ -39,7 +46,7 @@ def test_time_offset_and_anisotropic_eddy_both_reported_split_canonically():
     assert _close(Ef, E, f["eddy_current"].sigma["E_s"])
 
 
-def test_purely_anisotropic_eddy_is_not_a_time_offset():
+def test_wiring_purely_anisotropic_eddy_is_not_a_time_offset():
     E = np.diag([0.004, -0.004, 0.0])
     data, _ = make_data((Term(K.EDDY_CURRENT),), (E.ravel(),), duration_s=60.0, noise_nT=2.0,
                         seed=11)
@@ -48,7 +55,7 @@ def test_purely_anisotropic_eddy_is_not_a_time_offset():
 
 
 @pytest.mark.parametrize("tau_s", [-0.007, 0.04])
-def test_time_offset_alone_is_not_eddy(tau_s):
+def test_wiring_time_offset_alone_is_not_eddy(tau_s):
     data, _ = make_data((Term(K.TIME_OFFSET),), (np.array([tau_s]),), duration_s=60.0,
                         noise_nT=2.0, seed=12)
     diag, _ = diagnose_data(data)

@@ -120,11 +120,14 @@ def test_regress_passes_against_itself_and_fails_on_moved_rotation(archived_resu
     assert len(bad) == 1 and bad[0].startswith("rotation ") and "rotation_deg" in bad[0]
     assert "0.5" in bad[0]
     assert "rotation" in r.stderr and r.stderr.count("\n") == 1  # one line on stderr
-    # within tolerance: 0.05 deg is not a regression
+    # 0.05 deg is about 60 of this calibration's sigmas (0.0004-0.0008 deg): a regression
     shutil.rmtree(base)
     shutil.copytree(archived_results, base)
     _move_rotation(base / "rotation" / "calibration.json", 0.05)
-    assert _cli("regress", str(archived_results), "--baseline", str(base)).returncode == 0
+    r = _cli("regress", str(archived_results), "--baseline", str(base))
+    assert r.returncode == 1, r.stdout + r.stderr
+    bad = [ln for ln in r.stdout.splitlines() if REGRESSION in ln]
+    assert len(bad) == 1 and bad[0].startswith("rotation ") and "rotation_deg" in bad[0]
 
 
 def test_baseline_whose_matrix_and_vector_disagree_is_refused(archived_results, tmp_path):
@@ -201,7 +204,8 @@ CASES = [
     # (result calibration overrides, result findings, expected regressed quantities)
     ({}, [("disturbance", {"windows_s": [[10.0, 16.0]], "peak_nT": 60.0})], []),
     ({"rotvec": (1.2, -1.0, 1.7)}, None, ["rotation_deg"]),
-    ({"rotvec": (1.25, -1.0, 1.2)}, None, []),
+    ({"rotvec": (1.25, -1.0, 1.2)}, None, ["rotation_deg"]),  # 0.05 deg: 5 sigma about x
+    ({"rotvec": (1.205, -1.0, 1.2)}, None, []),  # 0.5 sigma
     ({"sigma": (0.01, 0.01, None)}, None, ["sigma_rotvec_deg.z"]),
     ({"sigma": (0.0105, 0.009, 0.021)}, None, []),
     ({"sigma": (0.02, 0.01, 0.02)}, None, ["sigma_rotvec_deg.x"]),
@@ -266,3 +270,123 @@ def test_real_recordings_match_golden(tmp_path):
     assert p.returncode in (0, 3), p.stderr
     r = _cli("regress", str(out), "--baseline", str(GOLDEN / "real"))
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+# --------------------------------------------------------------------------- tolerances in sigmas
+
+#: A value moved by this many of its own sigmas must be caught; by the second, not.
+CAUGHT_SIGMAS, PASSED_SIGMAS = 5.0, 0.5
+
+
+def _cal_with_sigmas() -> dict:
+    return _cal((1.2, -1.0, 1.2), offset_nT=[-300.0, 250.0, 190.0],
+                sigma_offset_nT=[30.0, 18.0, 18.0],
+                D=[[1.0006, 0.0086, -0.0056], [0.0086, 0.9991, -0.0075],
+                   [-0.0056, -0.0075, 1.0003]],
+                sigma_D=[[7e-4, 6e-4, 5e-4], [6e-4, 6e-4, 4e-4], [5e-4, 4e-4, 5e-4]],
+                time_offset_s=0.0152, sigma_time_offset_s=2.3e-4,
+                sigma_B_enu_nT=[30.0, 39.0, 23.0])
+
+
+def _shift(cal: dict, diag: dict, what: str, k: float) -> None:
+    """Move one quantity by ``k`` of its own sigmas (in place)."""
+    if what == "rotation_deg":
+        s = cal["sigma_rotvec_deg"][1]
+        dR = quat_to_matrix(rotvec_to_quat(np.radians([0.0, k * s, 0.0])))
+        R = dR @ np.asarray(cal["R_body_mag"])
+        from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
+
+        cal["R_body_mag"] = R.tolist()
+        cal["rotvec_body_mag_deg"] = np.degrees(quat_to_rotvec(matrix_to_quat(R))).tolist()
+    elif what == "D":
+        d = np.asarray(cal["D"])
+        d[0, 1] += k * cal["sigma_D"][0][1]
+        d[1, 0] = d[0, 1]
+        cal["D"] = d.tolist()
+    elif what == "time_offset_s":
+        cal["time_offset_s"] += k * cal["sigma_time_offset_s"]
+    elif what in ("offset_nT", "B_enu_nT"):
+        v = list(cal[what])
+        v[2] += k * cal[f"sigma_{what}"][2]
+        cal[what] = v
+    else:  # a finding's parameter, with the sigma the finding carries
+        f = diag["findings"][0]
+        f["params"]["peak_nT"] += k * f["sigma"]["peak_nT"]
+
+
+@pytest.mark.parametrize("what", ["rotation_deg", "offset_nT", "D", "time_offset_s",
+                                  "B_enu_nT", "findings.disturbance.peak_nT"])
+@pytest.mark.parametrize("k", [CAUGHT_SIGMAS, PASSED_SIGMAS])
+def test_change_in_own_sigmas(tmp_path, what, k):
+    """5 sigma of a quantity's own uncertainty is a regression, 0.5 sigma is not."""
+    def diag() -> dict:
+        return {"format": "magalign.diagnosis/1", "findings": [
+            {"effect": "disturbance", "params": {"windows_s": [[10.0, 16.0]], "peak_nT": 60.0},
+             "sigma": {"peak_nT": 5.0}}]}
+
+    _write(tmp_path / "base", "rec", _cal_with_sigmas(), diag(), marker=False)
+    cal, dg = _cal_with_sigmas(), diag()
+    _shift(cal, dg, what, k)
+    _write(tmp_path / "res", "rec", cal, dg)
+    rows = compare(tmp_path / "res", tmp_path / "base")
+    got = sorted(r.quantity for r in rows if r.status == REGRESSION)
+    assert got == ([what] if k == CAUGHT_SIGMAS else []), format_table(rows)
+
+
+def _golden_copy(src: Path, dst: Path) -> list[str]:
+    """A stored baseline as a finished results folder; its recordings' names."""
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("*.md", "*.toml"))
+    names = sorted(p.name for p in dst.iterdir() if (p / "calibration.json").is_file())
+    for n in names:
+        (dst / n / ".magalign-done.json").write_text("{}")
+    return names
+
+
+@pytest.mark.parametrize("golden", ["demo", "real"])
+@pytest.mark.parametrize("k", [CAUGHT_SIGMAS, PASSED_SIGMAS])
+def test_stored_baselines_hold_their_own_sigmas(tmp_path, golden, k):
+    """On every stored calibration (sigmas from 0.0004 deg to 6 deg, from 40 us to 0.8 ms):
+    the rotation moved by 5 of its own sigmas about y, and the time offset (calibration and
+    finding) by 5 of theirs, are caught; by 0.5 of them, not."""
+    src = GOLDEN if golden == "demo" else GOLDEN / "real"
+    res = tmp_path / "res"
+    names = _golden_copy(src, res)
+    assert names
+    expected = []
+    for n in names:
+        cal = json.loads((res / n / "calibration.json").read_text())
+        dgf = res / n / "diagnosis.json"
+        dg = json.loads(dgf.read_text()) if dgf.is_file() else {"findings": []}
+        _shift(cal, dg, "rotation_deg", k)
+        expected.append((n, "rotation_deg"))
+        if cal.get("time_offset_s") is not None:
+            _shift(cal, dg, "time_offset_s", k)
+            expected.append((n, "time_offset_s"))
+        for f in dg["findings"]:
+            if f["effect"] == "time_offset":
+                f["params"]["time_offset_s"] += k * f["sigma"]["time_offset_s"]
+                expected.append((n, "findings.time_offset.time_offset_s"))
+                break
+        (res / n / "calibration.json").write_text(json.dumps(cal))
+        if dgf.is_file():
+            dgf.write_text(json.dumps(dg))
+    rows = compare(res, src)
+    got = sorted((r.recording, r.quantity) for r in rows if r.status == REGRESSION)
+    assert got == (sorted(expected) if k == CAUGHT_SIGMAS else []), format_table(
+        rows, failures_only=True)
+
+
+def test_real_baseline_says_where_each_recording_was_checked():
+    """Beside the real goldens, a note names for every recording what confirmed its values
+    from outside the code, and says where nothing did."""
+    if not (GOLDEN / "real").is_dir():
+        pytest.fail("tests/golden/real is part of the repository and missing")
+    text = (GOLDEN / "real" / "PROVENANCE.md").read_text(encoding="utf-8")
+    names = sorted(p.name for p in (GOLDEN / "real").iterdir() if p.is_dir())
+    assert names
+    for n in names:
+        assert n in text, n
+    for value in ("time_offset_s", "B_enu_nT", "R_body_mag", "offset_nT", "D",
+                  "sample_hold", "field_gradient", "hard_iron_step", "local_source"):
+        assert f"`{value}" in text, value
+    assert "## Values with no outside check" in text

@@ -412,9 +412,7 @@ def test_copy_channels_with_reader_on_real_recording(tmp_path):
     lab = REAL / "lab_03.mcap"
     if not lab.exists():
         pytest.skip(f"real recordings not available ({REAL} is absent)")
-    mcap_read = pytest.importorskip("pipeline.io.mcap_read")
-    if not hasattr(mcap_read, "read_raw_channels"):
-        pytest.skip("pipeline.io.mcap_read.read_raw_channels not available yet")
+    from pipeline.io import mcap_read
     before = lab.read_bytes()
     dst = tmp_path / "copy.mcap"
     raw = mcap_read.read_raw_channels(lab)

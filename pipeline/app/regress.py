@@ -26,7 +26,7 @@ from pipeline.app.campaign import DONE_MARKER
 from pipeline.app.summary import flatten_numbers
 from pipeline.core.config import TomlDoc
 from pipeline.core.errors import InputError
-from pipeline.core.geometry import angle_between_deg
+from pipeline.core.geometry import angle_between_deg, matrix_to_quat, quat_to_rotvec
 from pipeline.core.validate import check_calibration_dict, check_diagnosis_dict, check_metrics_dict
 
 OK = "ok"
@@ -38,19 +38,31 @@ NEW = "new"
 class Tolerances:
     """Allowed differences between results and baseline, per quantity.
 
+    A quantity that carries a sigma (``sigma_rotvec_deg``, ``sigma_offset_nT``,
+    ``sigma_D``, ``sigma_time_offset_s``, ``sigma_B_enu_nT``, a finding's ``sigma``) may
+    move by ``sigmas`` of its own sigma, never less than a floor for numerical noise: the
+    larger of the absolute floor of its name below and ``rel_floor`` of its value. The
+    sigma used is the smaller of the baseline's and the result's, so a change that inflates
+    its own uncertainty does not widen its tolerance (the sigma itself is held to
+    ``sigma_rel``). A deterministic rerun on another machine moves results by far less
+    than the floors (about 1e-12 of their value); a regression of a few sigmas is far more.
+
     Attributes
     ----------
+    sigmas : float
+        Tolerance in the quantity's own sigmas.
+    rel_floor : float
+        Numerical-noise floor relative to the baseline value.
     rotation_deg : float
-        Angle of ``R_result @ R_baseline.T`` (deg).
+        Floor of each component of the rotation vector of ``R_result @ R_baseline.T``
+        (deg, body frame, compared with ``sigma_rotvec_deg``); the whole tolerance about an
+        axis whose sigma is null (unobservable).
     sigma_rel : float
         Relative change of each ``sigma_rotvec_deg`` component; an axis that becomes
         (un)observable (sigma null on one side only) is a regression.
-    offset_nT, B_enu_nT : float
-        Absolute, per component (nT).
-    D : float
-        Absolute, per element of the soft-iron matrix.
-    time_offset_s : float
-        Absolute (s).
+    offset_nT, B_enu_nT, D, time_offset_s : float
+        Absolute floors, per component (nT, -, s); without a sigma on either side the whole
+        tolerance.
     residual_rms_rel, residual_rms_nT : float
         ``residual_rms_nT`` may differ by ``max(rel * baseline, abs)``.
     metric_nT, metric_rel : float
@@ -58,21 +70,24 @@ class Tolerances:
     ratio_pct : float
         Every ``ratio_pct`` metric, absolute percentage points.
     finding_rel : float
-        Relative tolerance of finding params without an absolute one below (also the
-        relative part for ``*_nT`` params).
+        Relative tolerance of finding params that carry no sigma and no absolute tolerance
+        below (also the relative part for ``*_nT`` params without a sigma).
     finding_offset_nT, finding_D, finding_time_offset_s, finding_E_s, finding_windows_s,
     finding_tilt_deg, finding_azimuth_deg : float
-        Absolute tolerances of the CONVENTIONS finding params of those names (``_nT``
-        params: ``finding_offset_nT`` or the relative part, whichever is larger).
+        Absolute tolerances of the CONVENTIONS finding params of those names when the
+        finding carries no sigma for them (``windows_s`` never does; ``_nT`` params:
+        ``finding_offset_nT`` or the relative part, whichever is larger).
 
     """
 
-    rotation_deg: float = 0.1
+    sigmas: float = 3.0
+    rel_floor: float = 1e-6
+    rotation_deg: float = 1e-4
     sigma_rel: float = 0.25
-    offset_nT: float = 5.0
-    B_enu_nT: float = 20.0
-    D: float = 0.01
-    time_offset_s: float = 0.002
+    offset_nT: float = 0.05
+    B_enu_nT: float = 0.05
+    D: float = 1e-5
+    time_offset_s: float = 1e-6
     residual_rms_rel: float = 0.10
     residual_rms_nT: float = 0.5
     metric_nT: float = 2.0
@@ -150,39 +165,70 @@ def recordings_in(folder: Path, *, need_marker: bool) -> list[str]:
     return out
 
 
+def _sigma_array(x: Any, shape: tuple[int, ...]) -> np.ndarray:
+    """Return a sigma as floats of ``shape``, NaN where absent (null, missing, bad shape)."""
+    if x is None:
+        return np.full(shape, np.nan)
+    try:
+        a = np.array(x, dtype=float)  # null items become NaN
+    except (TypeError, ValueError):
+        return np.full(shape, np.nan)
+    return a if a.shape == shape else np.full(shape, np.nan)
+
+
+def _limits(vb: np.ndarray, sb: Any, sr: Any, floor: float, tol: Tolerances) -> np.ndarray:
+    """Per element: ``sigmas`` of the smaller sigma, never below the numerical floors."""
+    s = np.fmin(_sigma_array(sb, vb.shape), _sigma_array(sr, vb.shape))
+    base = np.maximum(floor, tol.rel_floor * np.abs(vb))
+    return np.where(np.isfinite(s), np.maximum(tol.sigmas * s, base), base)
+
+
 class _Cmp:
-    def __init__(self, rec: str):
+    def __init__(self, rec: str, tol: Tolerances):
         self.rec = rec
+        self.tol = tol
         self.rows: list[Diff] = []
 
     def add(self, q: str, b: Any, r: Any, d: Any, tol: str, ok: bool) -> None:
         self.rows.append(Diff(self.rec, q, _fmt(b), _fmt(r), _fmt(d), tol,
                               OK if ok else REGRESSION))
 
-    def abs_vec(self, q: str, b: Any, r: Any, tol: float) -> None:
+    def sig_vec(self, q: str, b: Any, r: Any, sb: Any, sr: Any, floor: float) -> None:
+        """Max abs difference per element, each within its own sigmas (or the floor)."""
         if b is None and r is None:
             return
         if b is None or r is None:
-            self.add(q, b, r, None, f"both present: {tol:g}", False)
+            self.add(q, b, r, None, "both present", False)
             return
         bb, rr = np.asarray(b, dtype=float), np.asarray(r, dtype=float)
         if bb.shape != rr.shape:
             self.add(q, b, r, None, "same shape", False)
             return
-        d = float(np.max(np.abs(rr - bb))) if bb.size else 0.0
-        self.add(q, b, r, d, f"<= {tol:g}", d <= tol)
+        if not bb.size:
+            self.add(q, b, r, 0.0, "empty", True)
+            return
+        d = np.abs(rr - bb)
+        lim = _limits(bb, sb, sr, floor, self.tol)
+        worst = int(np.argmax(d / lim))
+        self.add(q, b, r, float(d.flat[worst]),
+                 f"<= {lim.flat[worst]:.3g} ({self.tol.sigmas:g} sigma or floor)",
+                 bool(np.all(d <= lim)))
 
 
 def _compare_calibration(c: _Cmp, b: dict, r: dict, tol: Tolerances) -> None:
     try:
         Rb, Rr = np.asarray(b["R_body_mag"], float), np.asarray(r["R_body_mag"], float)
         ang = float(angle_between_deg(Rr, Rb))
+        dv = np.degrees(quat_to_rotvec(matrix_to_quat(Rr @ Rb.T)))
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(f"calibration of {c.rec} has no usable R_body_mag: {exc}") from exc
-    c.add("rotation_deg", b.get("rotvec_body_mag_deg"), r.get("rotvec_body_mag_deg"), ang,
-          f"<= {tol.rotation_deg:g} deg", ang <= tol.rotation_deg)
     sb = b.get("sigma_rotvec_deg") or [None] * 3
     sr = r.get("sigma_rotvec_deg") or [None] * 3
+    # each body axis within its own sigmas; the floor is the numerical noise of a rerun
+    lim = _limits(np.zeros(3), sb, sr, tol.rotation_deg, tol)
+    c.add("rotation_deg", b.get("rotvec_body_mag_deg"), r.get("rotvec_body_mag_deg"), ang,
+          "per axis <= " + _fmt([float(x) for x in lim]) + f" deg ({tol.sigmas:g} sigma)",
+          bool(np.all(np.abs(dv) <= lim)))
     for i, a in enumerate("xyz"):
         x0, x1 = sb[i], sr[i]
         if x0 is None or x1 is None:
@@ -192,14 +238,15 @@ def _compare_calibration(c: _Cmp, b: dict, r: dict, tol: Tolerances) -> None:
         rel = abs(x1 - x0) / max(abs(x0), 1e-12)
         c.add(f"sigma_rotvec_deg.{a}", x0, x1, rel, f"rel <= {tol.sigma_rel:g}",
               rel <= tol.sigma_rel)
-    c.abs_vec("offset_nT", b.get("offset_nT"), r.get("offset_nT"), tol.offset_nT)
-    c.abs_vec("D", b.get("D"), r.get("D"), tol.D)
-    c.abs_vec("time_offset_s", b.get("time_offset_s"), r.get("time_offset_s"), tol.time_offset_s)
-    c.abs_vec("B_enu_nT", b.get("B_enu_nT"), r.get("B_enu_nT"), tol.B_enu_nT)
+    for key, floor in (("offset_nT", tol.offset_nT), ("D", tol.D),
+                       ("time_offset_s", tol.time_offset_s), ("B_enu_nT", tol.B_enu_nT)):
+        c.sig_vec(key, b.get(key), r.get(key), b.get(f"sigma_{key}"), r.get(f"sigma_{key}"),
+                  floor)
     rb, rr = b.get("residual_rms_nT"), r.get("residual_rms_nT")
     if isinstance(rb, int | float) and isinstance(rr, int | float):
-        lim = max(tol.residual_rms_rel * abs(rb), tol.residual_rms_nT)
-        c.add("residual_rms_nT", rb, rr, abs(rr - rb), f"<= {lim:.3g}", abs(rr - rb) <= lim)
+        lim_rms = max(tol.residual_rms_rel * abs(rb), tol.residual_rms_nT)
+        c.add("residual_rms_nT", rb, rr, abs(rr - rb), f"<= {lim_rms:.3g}",
+              abs(rr - rb) <= lim_rms)
 
 
 def _metric_values(d: dict) -> dict[str, float]:
@@ -266,11 +313,13 @@ def _compare_findings(c: _Cmp, b: dict | None, r: dict | None, tol: Tolerances) 
         c.add("diagnosis.json", "present", "missing", None, "present", False)
         return
 
-    def by_effect(d: dict) -> dict[str, dict]:
-        out: dict[str, dict] = {}
+    def by_effect(d: dict) -> dict[str, tuple[dict, dict]]:
+        out: dict[str, tuple[dict, dict]] = {}
         for f in d.get("findings") or []:
             if isinstance(f, Mapping) and "effect" in f:
-                out.setdefault(str(f["effect"]), dict(f.get("params") or {}))
+                sig = f.get("sigma")
+                out.setdefault(str(f["effect"]), (dict(f.get("params") or {}),
+                                                   dict(sig) if isinstance(sig, Mapping) else {}))
         return out
 
     eb, er = by_effect(b), by_effect(r)
@@ -278,22 +327,27 @@ def _compare_findings(c: _Cmp, b: dict | None, r: dict | None, tol: Tolerances) 
     c.add("findings", ",".join(sb) or "none", ",".join(sr) or "none",
           None, "same set of effects", sb == sr)
     for eff in sorted(set(eb) & set(er)):
-        for key, pb in eb[eff].items():
-            pr = er[eff].get(key)
+        (params_b, sig_b), (params_r, sig_r) = eb[eff], er[eff]
+        for key, pb in params_b.items():
+            pr = params_r.get(key)
             q = f"findings.{eff}.{key}"
             fb, fr = flatten_numbers(pb), flatten_numbers(pr)
             if set(fb) != set(fr):
                 c.add(q, pb, pr, None, "same shape", False)
                 continue
-            worst, ok, lim_txt = 0.0, True, ""
-            for sub, vb in fb.items():
-                lim = _param_tol(key, vb, tol)
-                d = abs(fr[sub] - vb)
-                worst = max(worst, d)
-                ok &= d <= lim
-                lim_txt = f"<= {lim:.3g}"
-            if fb:
-                c.add(q, pb, pr, worst, lim_txt, ok)
+            if not fb:
+                continue
+            subs = sorted(fb)
+            vb = np.array([fb[k] for k in subs])
+            d = np.abs(np.array([fr[k] for k in subs]) - vb)
+            s0, s1 = flatten_numbers(sig_b.get(key)), flatten_numbers(sig_r.get(key))
+            if set(s0) == set(fb) and set(s1) == set(fb):
+                # the finding's own sigma; floor: the numerical noise of a rerun
+                lim = _limits(vb, [s0[k] for k in subs], [s1[k] for k in subs], 0.0, tol)
+            else:
+                lim = np.array([_param_tol(key, v, tol) for v in vb])
+            worst = int(np.argmax(d / np.maximum(lim, 1e-300)))
+            c.add(q, pb, pr, float(d[worst]), f"<= {lim[worst]:.3g}", bool(np.all(d <= lim)))
 
 
 def compare(results: str | Path, baseline: str | Path,
@@ -327,7 +381,7 @@ def compare(results: str | Path, baseline: str | Path,
     res_recs = set(recordings_in(res, need_marker=True))
     rows: list[Diff] = []
     for name in base_recs:
-        c = _Cmp(name)
+        c = _Cmp(name, tolerances)
         if name not in res_recs:
             c.add("recording", "finished", "missing or unfinished", None, "present", False)
             rows += c.rows
