@@ -23,7 +23,6 @@ import base64
 import html
 import io
 import warnings
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -34,6 +33,13 @@ from pipeline.core import style
 from pipeline.core.atomic import atomic_path, write_text_atomic
 from pipeline.core.recording import Context, Recording, Segment
 from pipeline.core.style import minus
+from stages.report_map import (
+    EVENT_EFFECTS,
+    draw_map,
+    event_windows,
+    map_data,
+    write_map_json,
+)
 
 ENU_LABELS = ("east", "north", "up")
 
@@ -220,6 +226,7 @@ def make_figures(
     dpi: int = 100,
     max_points: int = 1500,
     restored: Any = None,
+    diagnosis: Any = None,
 ) -> dict[str, bytes]:
     """Render the report's figures.
 
@@ -240,12 +247,16 @@ def make_figures(
         plotted range is the true fluctuation range) and the bin means as a line.
     restored : RestoreResult, optional
         ``ctx.restored``; computed when not given.
+    diagnosis : Diagnosis or dict, optional
+        Its event windows (disturbance, hard-iron step, local source) are shaded in the time
+        plots and marked on the map.
 
     Returns
     -------
     dict of str to bytes
         File name (``fig_*.png``) -> PNG bytes: ``fig_enu.png``, ``fig_residual.png``,
-        ``fig_sphere.png``, ``fig_attitude.png``.
+        ``fig_sphere.png``, ``fig_attitude.png``, and ``fig_map.png`` when the recording has
+        positions.
 
     """
     from pipeline.core.geometry import quat_to_li2020_euler
@@ -259,22 +270,144 @@ def make_figures(
     scale, unit = _time_scale(float(vd.t_s[-1]) if len(vd.t_s) else 0.0)
     ts = vd.t_s / scale
     out: dict[str, bytes] = {}
+    events = [(a / scale, b / scale, e) for a, b, e in
+              event_windows(diagnosis, float(vd.t_s[-1]) if len(vd.t_s) else None)]
+    shade = Shading(segments, t0, scale, events)
+    pred = predicted_field(restored, calibration)
     with plt.rc_context(style.rc() | {"savefig.dpi": dpi, "figure.dpi": dpi}):
-        out["fig_enu.png"] = _fig_enu(plt, vd, ts, t0, scale, unit, segments, max_points)
-        out["fig_residual.png"] = _fig_residual(plt, vd, ts, t0, scale, unit, segments,
+        out["fig_enu.png"] = _fig_enu(plt, vd, ts, t0, unit, shade, max_points, pred)
+        out["fig_residual.png"] = _fig_residual(plt, vd, ts, t0, scale, unit, shade,
                                                 max_points, quat_to_li2020_euler)
         out["fig_sphere.png"] = _fig_sphere(plt, vd, calibration)
-        out["fig_attitude.png"] = _fig_attitude(plt, vd, ts, t0, scale, unit, segments,
+        out["fig_attitude.png"] = _fig_attitude(plt, vd, ts, t0, unit, shade,
                                                 max_points, quat_to_li2020_euler)
+    md = report_map_data(recording, restored, calibration, diagnosis)
+    if md is not None:
+        out["fig_map.png"] = draw_map(md, dpi=dpi)
     return out
 
 
-def _fig_enu(plt: Any, vd: Any, ts: np.ndarray, t0: int, scale: float, unit: str,
-             segments: Any, max_points: int) -> bytes:
+def predicted_field(restored: Any, calibration: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Return the field the fitted model predicts at each sample: ENU (N, 3) and |B| (N,).
+
+    The background field plus every diagnosed field term (gradient, map, local sources,
+    drift, disturbances) where and when the sensor was: ``B_enu + F(t)`` of
+    :mod:`pipeline.model.forward` (M1). It follows from the restore result without
+    evaluating the model again: the reading is ``y = D R.T C.T (B + F) + sensor + r``, so
+    ``inv(D) (y - sensor) - inv(D) r`` is the prediction in the mag frame (its norm is
+    ``|B + F|`` exactly) and turned by the attitude it is the ENU prediction (up to the
+    heading-drift turn of the residual, far below a nanotesla). NaN without an attitude.
+    """
+    from pipeline.core.geometry import quat_rotate
+
+    r = np.asarray(restored.residual_nT, dtype=float)
+    D = getattr(calibration, "D", None)
+    dr = r if D is None else np.linalg.solve(np.asarray(D, float), r.T).T
+    m_pred = np.asarray(restored.calibrated_mag_nT, dtype=float) - dr
+    norm = np.linalg.norm(m_pred, axis=1)
+    enu = np.asarray(restored.enu_nT, dtype=float) - quat_rotate(
+        restored.q_or_identity(), dr @ np.asarray(calibration.R_body_mag, float).T)
+    bad = ~np.asarray(restored.valid, dtype=bool)
+    norm[bad] = np.nan
+    enu[bad] = np.nan
+    return enu, norm
+
+
+def report_map_data(recording: Recording, restored: Any, calibration: Any,
+                    diagnosis: Any = None) -> dict[str, Any] | None:
+    """Return the plan view's numbers (:func:`stages.report_map.map_data`) or None."""
+    pos = getattr(recording, "position", None)
+    if pos is None or not len(pos) or restored is None or not len(restored.t_ns):
+        return None
+    t = np.asarray(restored.t_ns, dtype=np.int64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        field = np.linalg.norm(np.asarray(restored.enu_nT, dtype=float), axis=1)
+    _, model = predicted_field(restored, calibration)
+    t0 = int(recording.mag.t_ns[0]) if len(recording.mag.t_ns) else int(t[0])
+    return map_data(t, pos.at(t), field, model, frame=str(getattr(pos.frame, "value", pos.frame)),
+                    t0_ns=t0, diagnosis=diagnosis, origin=pos.origin)
+
+
+@dataclass(frozen=True)
+class Shading:
+    """What the time plots shade: motion segments by kind and the diagnosed events.
+
+    ``events``: ``(start, end, effect)`` in the plot's time unit.
+    """
+
+    segments: tuple[Segment, ...] | None
+    t0_ns: int
+    scale: float
+    events: list[tuple[float, float, str]]
+
+    def draw(self, ax: Any) -> dict[str, Any]:
+        """Shade ``ax``; return label -> patch for the key."""
+        from matplotlib.patches import Patch
+
+        keys = _shade(ax, self.segments, self.t0_ns, self.scale)
+        for a, b, _ in self.events:
+            ax.axvspan(a, b, facecolor=style.EVENT, alpha=0.55, edgecolor=style.EVENT_EDGE,
+                       lw=1.0, zorder=0.5)
+        if self.events:
+            kinds = sorted({e.replace("_", " ") for _, _, e in self.events})
+            keys["event"] = Patch(facecolor=style.EVENT, alpha=0.55, edgecolor=style.EVENT_EDGE,
+                                  label="diagnosed event (" + ", ".join(kinds) + ")")
+        return keys
+
+
+def _fit_left(fig: Any, pad: float = 0.006) -> None:
+    """Move the axes right until every y label and tick label is inside the figure.
+
+    A fixed left margin cut the label of a residual of five-digit nT off; the room needed is
+    measured on the drawn figure instead.
+    """
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    inv = fig.transFigure.inverted()
+    x0 = min(inv.transform(ax.get_tightbbox(renderer).p0)[0] for ax in fig.axes
+             if ax.get_visible())
+    if x0 < pad:
+        left = fig.subplotpars.left + (pad - x0)
+        fig.subplots_adjust(left=min(left, 0.3))
+
+
+def _clip_to(ax: Any, t: np.ndarray, v: np.ndarray, colour: str) -> tuple[float, float, int]:
+    """Limit ``ax`` to where nearly all of ``v`` lies; mark what lies beyond at the edges.
+
+    The limits hold the 0.5 to 99.5 percentiles with a margin, so that a few spikes do not
+    make a "closer scale" panel as wide as the first; every sample beyond them is drawn as a
+    triangle on the edge it would cross. Returns the limits and how many samples are beyond.
+    """
+    ok = np.isfinite(v)
+    if not np.any(ok):
+        return 0.0, 1.0, 0
+    lo, hi = np.percentile(v[ok], [0.5, 99.5])
+    pad = 0.15 * max(hi - lo, 1e-9)
+    lo, hi = float(lo - pad), float(hi + pad)
+    above = ok & (v > hi)
+    below = ok & (v < lo)
+    for m, y, mk in ((above, hi, "^"), (below, lo, "v")):
+        if np.any(m):
+            tt = t[m]
+            if len(tt) > 400:  # one marker per distinct place on the axis is enough
+                tt = np.unique(np.round(tt, 2))
+            ax.plot(tt, np.full(len(tt), y), mk, color=colour, ms=6, clip_on=False,
+                    zorder=5)
+    ax.set_ylim(lo, hi)
+    return lo, hi, int(np.count_nonzero(above | below))
+
+
+def _fig_enu(plt: Any, vd: Any, ts: np.ndarray, t0: int, unit: str, shade: Shading,
+             max_points: int, pred: tuple[np.ndarray, np.ndarray]) -> bytes:
     """Li 2020 Figs. 5 and 8: east, north, up and |B|, before and after calibration.
 
-    A second column shows "after" at its own scale only when "before" spans far more (the
-    calibrated series would otherwise be a flat line); otherwise it would repeat the first.
+    Beside them the field the fitted model predicts where and when the sensor was (the
+    background field plus the diagnosed field terms): a step in "after" that the prediction
+    follows is the field in space or a disturbance, not a calibration error. A second column
+    shows "after" at its own scale only when "before" spans far more (the calibrated series
+    would otherwise be a flat line); its scale holds nearly every sample and the few beyond
+    it are marked on its edges.
     """
     unc, cal = vd.uncalibrated_enu_nT, vd.calibrated_enu_nT
     with warnings.catch_warnings():
@@ -282,9 +415,10 @@ def _fig_enu(plt: Any, vd: Any, ts: np.ndarray, t0: int, scale: float, unit: str
         mag_before = np.linalg.norm(vd.raw_mag_nT, axis=1)
         mag_before = np.where(np.isfinite(unc).all(axis=1), mag_before, np.nan)
         mag_after = np.linalg.norm(cal, axis=1)
-    B = np.asarray(vd.B_enu_nT, dtype=float)
-    rows = [(f"{name} (nT)", unc[:, k], cal[:, k], B[k]) for k, name in enumerate(ENU_LABELS)]
-    rows.append(("|B| (nT)", mag_before, mag_after, float(np.linalg.norm(B))))
+    pred_enu, pred_norm = pred
+    rows = [(f"{name} (nT)", unc[:, k], cal[:, k], pred_enu[:, k])
+            for k, name in enumerate(ENU_LABELS)]
+    rows.append(("|B| (nT)", mag_before, mag_after, pred_norm))
     # "after" at its own scale where "before" spans far more; elsewhere it would repeat
     own_rows = [needs_own_scale(b, a) for _, b, a, _ in rows]
     own = any(own_rows)
@@ -293,23 +427,25 @@ def _fig_enu(plt: Any, vd: Any, ts: np.ndarray, t0: int, scale: float, unit: str
     keys: dict[str, Any] = {}
     entries: list[tuple[Any, str]] = []
     k_bin = 1
-    for k, (ylabel, before, after, ref) in enumerate(rows):
+    n_clipped = 0
+    for k, (ylabel, before, after, model) in enumerate(rows):
         a = axes[k, 0]
-        keys.update(_shade(a, segments, t0, scale))
+        keys.update(shade.draw(a))
         # "before" broader underneath: where both agree (|B| without offsets) both show
         hb, k_bin = band(a, ts, before, style.BEFORE, "before", max_bins=max_points, lw=2.4)
         ha, _ = band(a, ts, after, style.AFTER, "after", max_bins=max_points)
-        hr = a.axhline(ref, color=style.REFERENCE, lw=1.0, ls="--")
+        hm = _model_line(a, ts, model, max_points)
         a.set_ylabel(ylabel)
         if k == 0:
             entries = [(hb, "before calibration (attitude only)"), (ha, "after calibration"),
-                       (hr, "reference field (estimated or given)")]
+                       (hm, "field the model predicts there and then")]
         if own:
             b = axes[k, 1]
             if own_rows[k]:
-                _shade(b, segments, t0, scale)
+                shade.draw(b)
                 band(b, ts, after, style.AFTER, "after", max_bins=max_points)
-                b.axhline(ref, color=style.REFERENCE, lw=1.0, ls="--")
+                _model_line(b, ts, model, max_points)
+                n_clipped += _clip_to(b, ts, after, style.AFTER)[2]
             else:
                 b.set_visible(False)
     axes[0, 0].set_title("field in ENU and its magnitude |B|, before and after calibration")
@@ -319,20 +455,34 @@ def _fig_enu(plt: Any, vd: Any, ts: np.ndarray, t0: int, scale: float, unit: str
         last = max(i for i, o in enumerate(own_rows) if o)
         axes[last, 1].xaxis.set_tick_params(labelbottom=True)
         axes[last, 1].set_xlabel(_time_label(t0, unit))
+    if n_clipped:
+        from matplotlib.lines import Line2D
+
+        entries.append((Line2D([], [], ls="none", marker="^", color=style.AFTER, ms=6),
+                        "beyond the closer scale (spikes)"))
     axes[-1, 0].set_xlabel(_time_label(t0, unit))
     y = _segment_key(fig, keys)
-    _legend(fig, entries, k_bin, loc="lower left", ncol=3, bbox_to_anchor=(0.01, y))
+    _legend(fig, entries, k_bin, loc="lower left", ncol=4 if n_clipped else 3,
+            bbox_to_anchor=(0.01, y))
     fig.subplots_adjust(left=0.08, right=0.99, bottom=0.12 + y, top=0.96, wspace=0.2,
                         hspace=0.12)
+    _fit_left(fig)
     return _png(fig)
 
 
+def _model_line(ax: Any, ts: np.ndarray, model: np.ndarray, max_points: int) -> Any:
+    """Draw the model's prediction: black dashed (the bin means of a long series)."""
+    tm, _, _, mean, _ = bins(ts, model, max_points)
+    (line,) = ax.plot(tm, mean, color=style.REFERENCE, lw=1.6, ls="--", zorder=4)
+    return line
+
+
 def _fig_residual(plt: Any, vd: Any, ts: np.ndarray, t0: int, scale: float, unit: str,
-                  segments: Any, max_points: int, euler: Any) -> bytes:
+                  shade: Shading, max_points: int, euler: Any) -> bytes:
     """Residual per mag axis against time (bands) and against heading (mean and spread)."""
     fig, (ax, axh) = plt.subplots(1, 2, figsize=(12, 4.6),
                                   gridspec_kw={"width_ratios": [3, 2]})
-    keys = _shade(ax, segments, t0, scale)
+    keys = shade.draw(ax)
     # drawn from residual_figure_data: the numbers of the <mag>/residual channel
     t_res_s, r_res = residual_figure_data(vd)
     r = vd.residual_nT
@@ -369,7 +519,8 @@ def _fig_residual(plt: Any, vd: Any, ts: np.ndarray, t0: int, scale: float, unit
     axh.set_title("against heading: mean and \u00b11 sd per 10\u00b0")
     y = _segment_key(fig, keys)
     _legend(fig, entries, k_bin, loc="lower left", ncol=3, bbox_to_anchor=(0.01, y))
-    fig.subplots_adjust(left=0.07, right=0.98, bottom=0.25 + y, top=0.92, wspace=0.22)
+    fig.subplots_adjust(left=0.07, right=0.98, bottom=0.25 + y, top=0.92, wspace=0.25)
+    _fit_left(fig)
     return _png(fig)
 
 
@@ -378,58 +529,67 @@ def _fig_sphere(plt: Any, vd: Any, calibration: Any, max_points: int = 3000) -> 
 
     Rotated through all attitudes a perfect sensor's readings lie on a sphere of radius
     |B| about the origin; hard iron moves the centre, soft iron makes it an ellipsoid.
-    Equal axes, so that a sphere looks round.
+    Equal axes, so that a sphere looks round; in microtesla, so that the tick labels stay
+    short. The distance from the sphere is a histogram per series at its own scale: a
+    corrected series a hundred times narrower than the raw one would be one bar on the
+    raw one's bins.
     """
-    raw = np.asarray(vd.raw_mag_nT, dtype=float)
+    raw = np.asarray(vd.raw_mag_nT, dtype=float) * 1e-3
     # the corrected reading in the mag frame: body_after = R_body_mag @ corrected
-    corr = np.asarray(vd.body_after_nT, dtype=float) @ np.asarray(calibration.R_body_mag)
+    corr = np.asarray(vd.body_after_nT, dtype=float) @ np.asarray(calibration.R_body_mag) * 1e-3
     good = np.isfinite(raw).all(axis=1) & np.isfinite(corr).all(axis=1)
     sel = np.flatnonzero(good)[_decimate(int(np.count_nonzero(good)), max_points)]
-    radius = float(np.linalg.norm(vd.B_enu_nT))
-    fig, axes = plt.subplots(1, 4, figsize=(12, 4.2),
-                             gridspec_kw={"width_ratios": [1, 1, 1, 1.1]})
+    radius = float(np.linalg.norm(vd.B_enu_nT)) * 1e-3
+    fig = plt.figure(figsize=(12, 4.6))
+    gs = fig.add_gridspec(2, 4, width_ratios=[1, 1, 1, 1.15], hspace=0.9, wspace=0.45)
+    axes = [fig.add_subplot(gs[:, i]) for i in range(3)]
     th = np.linspace(0, 2 * np.pi, 361)
-    for ax, (i, j) in zip(axes[:3], ((0, 1), (0, 2), (1, 2)), strict=True):
+    for ax, (i, j) in zip(axes, ((0, 1), (0, 2), (1, 2)), strict=True):
         ax.plot(raw[sel, i], raw[sel, j], ".", ms=5, color=style.BEFORE, alpha=0.4,
                 label="raw reading")
         ax.plot(corr[sel, i], corr[sel, j], ".", ms=1.5, color=style.AFTER, alpha=0.6,
                 label="corrected (model's offset and soft iron removed)")
         ax.plot(radius * np.cos(th), radius * np.sin(th), "--", color=style.REFERENCE, lw=1,
-                label=f"|B| = {radius:,.0f} nT".replace(",", "\u2009"))
+                label=f"|B| = {1e3 * radius:,.0f} nT".replace(",", "\u2009"))
         ax.plot([0], [0], "+", color=style.REFERENCE, ms=10)
         ax.set_aspect("equal", adjustable="datalim")
-        ax.set_xlabel(f"{'xyz'[i]} (nT)")
-        ax.set_ylabel(f"{'xyz'[j]} (nT)")
+        ax.set_xlabel(f"{'xyz'[i]} (\u00b5T)")
+        ax.set_ylabel(f"{'xyz'[j]} (\u00b5T)")
         ax.set_title(f"{'xyz'[i]}{'xyz'[j]} plane")
-        ax.xaxis.set_major_locator(plt.MaxNLocator(4))
+        ax.xaxis.set_major_locator(plt.MaxNLocator(5))
         ax.yaxis.set_major_locator(plt.MaxNLocator(5))
     # distance from the sphere: what an offset of a few hundred nT does, invisible above
-    ax = axes[3]
-    d_raw = np.linalg.norm(raw[good], axis=1) - radius
-    d_cor = np.linalg.norm(corr[good], axis=1) - radius
-    lim = float(np.percentile(np.abs(np.concatenate([d_raw, d_cor])), 99.5)) if good.any() \
-        else 1.0
-    edges = np.linspace(-lim, lim, 61)
-    ax.hist(d_raw, bins=edges, color=style.BEFORE, alpha=0.5, label="raw")
-    ax.hist(d_cor, bins=edges, histtype="step", color=style.AFTER, lw=1.6, label="corrected")
-    ax.axvline(0, color=style.REFERENCE, ls="--", lw=1)
-    ax.set_xlabel("|reading| \u2212 |B| (nT)")
-    ax.set_ylabel("samples")
-    ax.set_title("distance from the sphere")
-    ax.xaxis.set_major_locator(plt.MaxNLocator(4))
+    d_raw = np.linalg.norm(raw[good], axis=1) * 1e3 - 1e3 * radius
+    d_cor = np.linalg.norm(corr[good], axis=1) * 1e3 - 1e3 * radius
+    for row, (d, colour, name) in enumerate(((d_raw, style.BEFORE, "raw"),
+                                             (d_cor, style.AFTER, "corrected"))):
+        ax = fig.add_subplot(gs[row, 3])
+        if d.size:
+            lo, hi = np.percentile(d, [0.5, 99.5])
+            lim = max(abs(float(lo)), abs(float(hi)), 1e-3)
+            ax.hist(np.clip(d, -lim, lim), bins=np.linspace(-lim, lim, 41), color=colour,
+                    alpha=0.7 if row == 0 else 0.9)
+            ax.set_xlim(-lim, lim)
+        ax.axvline(0, color=style.REFERENCE, ls="--", lw=1)
+        ax.set_title(f"{name}: |reading| \u2212 |B|", fontsize=11)
+        ax.set_xlabel("nT")
+        ax.set_ylabel("samples")
+        ax.xaxis.set_major_locator(plt.MaxNLocator(5, symmetric=True))
+        ax.yaxis.set_major_locator(plt.MaxNLocator(3))
     h, lab = axes[0].get_legend_handles_labels()
     fig.legend(h, lab, loc="lower center", ncol=3, frameon=False, markerscale=4)
     fig.suptitle("readings in the magnetometer frame: a sphere of radius |B| about the origin "
                  "when the sensor is calibrated", fontsize=12)
-    fig.subplots_adjust(left=0.085, right=0.99, bottom=0.22, top=0.85, wspace=0.55)
+    fig.subplots_adjust(left=0.07, right=0.99, bottom=0.2, top=0.86)
+    _fit_left(fig)
     return _png(fig)
 
 
-def _fig_attitude(plt: Any, vd: Any, ts: np.ndarray, t0: int, scale: float, unit: str,
-                  segments: Any, max_points: int, euler: Any) -> bytes:
+def _fig_attitude(plt: Any, vd: Any, ts: np.ndarray, t0: int, unit: str, shade: Shading,
+                  max_points: int, euler: Any) -> bytes:
     """Heading, pitch and roll (Li 2020 Euler angles) with the segments shaded."""
     fig, ax = plt.subplots(figsize=(12, 4.2))
-    keys = _shade(ax, segments, t0, scale)
+    keys = shade.draw(ax)
     sel = _decimate(len(vd.t_s), 6 * max_points)
     v = vd.valid[sel]
     h, p, r = euler(vd.q_enu_body[sel])
@@ -445,6 +605,7 @@ def _fig_attitude(plt: Any, vd: Any, ts: np.ndarray, t0: int, scale: float, unit
     fig.legend(h_, lab, loc="lower left", ncol=3, frameon=False, markerscale=8,
                bbox_to_anchor=(0.01, y))
     fig.subplots_adjust(left=0.07, right=0.99, bottom=0.2 + y, top=0.92)
+    _fit_left(fig)
     return _png(fig)
 
 
@@ -472,6 +633,76 @@ def _img(data: bytes, alt: str, key: str = "") -> str:
             "</figure>")
 
 
+def _n(x: int) -> str:
+    """Return an integer with thin spaces between thousands (53 240)."""
+    return f"{int(x):,}".replace(",", "\u2009")
+
+
+def counts_sentence(restored: Any, calibration: Any, n_received: int | None = None) -> str:
+    """Where every magnetometer sample went, in one sentence whose counts add up.
+
+    Received = without a usable attitude + restored; restored = sample-and-hold repeats +
+    new readings (when the sensor repeats its readings); then what uses which: the metrics
+    and the residual every restored sample (the before/after comparison those that also have
+    an attitude at their own stamp), the fit the new readings outside excluded windows.
+    """
+    total = int(n_received if n_received is not None else restored.n_total)
+    n_valid = int(restored.n_valid)
+    n_without = total - n_valid
+    n_stamp = int(restored.n_without_attitude_at_stamp)
+    checks = getattr(calibration, "checks", None) or {}
+    fs = checks.get("fit_samples") if isinstance(checks.get("fit_samples"), dict) else None
+    held = getattr(calibration, "sample_hold", None)
+    parts = [f"Of {_n(total)} magnetometer samples received, {_n(n_without)} have no usable "
+             f"attitude and {_n(n_valid)} are restored"]
+    n_rep: int | None = None
+    if held:
+        if getattr(restored, "is_sample", False):
+            frac = float(held.get("repeated_fraction") or 0.0)
+            n_rep = round(frac * n_valid)
+            parts.append(f"; about {_n(n_rep)} of these ({100 * frac:.0f} %) repeat the "
+                         "previous reading (the sensor converts slower than it sends: "
+                         "sample-and-hold)")
+        else:
+            from pipeline.model.sample_hold import repeated
+
+            rep = repeated(np.asarray(restored.raw_mag_nT)) & np.asarray(restored.valid)
+            n_rep = int(np.count_nonzero(rep))
+            parts.append(f" = {_n(n_rep)} repeats of the previous reading (the sensor "
+                         f"converts slower than it sends: sample-and-hold) + "
+                         f"{_n(n_valid - n_rep)} new readings")
+    use = (f". The metrics and the residual use all {_n(n_valid)} restored samples"
+           + (f" (the before/after comparison {_n(n_valid - n_stamp)}: {_n(n_stamp)} have no "
+              "attitude at their own stamp, only at their sensing time t \u2212 \u03c4)"
+              if n_stamp else ""))
+    parts.append(use)
+    n_excl = int(checks.get("excluded_samples") or 0)
+    fit = [] if not held else ["the repeats"]
+    if n_excl:
+        fit.append(f"the {_n(n_excl)} samples in the excluded windows")
+    n_fit = int(fs["of"]) if fs and fs.get("of") else int(getattr(calibration, "n_samples", 0))
+    text = "".join(parts)
+    if fit:
+        text += "; " + " and ".join(fit) + " are left out of the fit only"
+    base = (n_valid - n_rep if held and n_rep is not None else n_valid) - n_excl
+    what = "new readings" if held else "restored samples"
+    text += f", which used {_n(n_fit)}"
+    notes = []
+    if 0 < n_fit < base:
+        text += f" of the {_n(base)} {what}"
+        notes.append(f"the {_n(base - n_fit)} others lie too close to the attitude's start or "
+                     "end to be predicted, or have no position")
+    else:
+        text += " samples"
+    if fs and int(fs.get("stride", 1) or 1) > 1:
+        k = int(fs["stride"])
+        nth = {2: "2nd", 3: "3rd"}.get(k, f"{k}th")
+        notes.append(f"the diagnosis fitted every {nth} of them, {_n(int(fs['n']))}")
+    if notes:
+        text += " (" + "; ".join(notes) + ")"
+    return text + "."
+
+
 def counts_text(metrics: Any) -> str:
     """Where every magnetometer sample went, in words; the named counts add up to the total.
 
@@ -483,8 +714,8 @@ def counts_text(metrics: Any) -> str:
     text = (f"{metrics.n_used} of {metrics.n_samples} samples used; "
             f"{metrics.n_without_attitude} without a usable attitude")
     if n_stamp:
-        text += (f"; {n_stamp} with an attitude at the sensing time t - tau but none at their "
-                 "own stamp (restored, not compared with the uncalibrated field)")
+        text += (f"; {n_stamp} with an attitude at the sensing time t \u2212 \u03c4 but none "
+                 "at their own stamp (restored, not compared with the uncalibrated field)")
     return text
 
 
@@ -703,14 +934,89 @@ def _diagnosis_html(diagnosis: Any, t0_ns: int = 0, options: Any = None
             + "</ul>"
         )
     figs: list[tuple[str, bytes]] = []
-    figures_of: Callable[..., list[tuple[str, bytes]]] | None
-    try:
-        from stages.diagnose.stage import finding_figures as figures_of
-    except ImportError:
-        figures_of = None
-    if figures_of is not None and not isinstance(diagnosis, dict):
-        figs = list(figures_of(diagnosis))
+    if not isinstance(diagnosis, dict):
+        figs = finding_figures(diagnosis, t0_ns)
     return "".join(parts), figs
+
+
+def finding_figures(diagnosis: Any, t0_ns: int, dpi: int = 100) -> list[tuple[str, bytes]]:
+    """One figure per diagnosis finding: its signature in the residual (PNG), in time order.
+
+    Findings that live in time windows (disturbance, hard-iron step, local source) come
+    after the others, ordered by when they start, so that a magnet brought near and taken
+    away reads left to right. The time axis is the report's (seconds, minutes or hours from
+    the first sample's UTC time); keys are under the axes, never over the data.
+
+    Returns
+    -------
+    list of (title, png bytes)
+
+    """
+    findings = [f for f in getattr(diagnosis, "findings", ()) if f.signature is not None]
+    if not findings:
+        return []
+    plt = _plt()
+
+    def start(f: Any) -> float:
+        w = (f.where or {}).get("windows_s") or [[0.0, 0.0]]
+        return min(float(x[0]) for x in w)
+
+    timed = [f for f in findings if f.effect in EVENT_EFFECTS]
+    ordered = [f for f in findings if f.effect not in EVENT_EFFECTS] + sorted(timed, key=start)
+    dur = float(getattr(diagnosis, "duration_s", 0.0) or 0.0)
+    scale, unit = _time_scale(dur)
+    out = []
+    for f in ordered:
+        s = f.signature
+        frame = f.where.get("frame", "")
+        with plt.rc_context(style.rc() | {"savefig.dpi": dpi, "figure.dpi": dpi}):
+            fig, ax = plt.subplots(figsize=(12, 4.2))
+            t = np.asarray(s.t_s, dtype=float) / scale
+            if s.regressor is not None:
+                for i, c in enumerate("xyz"):
+                    ax.plot(s.regressor[:, i], s.residual_before_nT[:, i], ".", ms=2,
+                            alpha=0.4, color=style.AXIS[i], label=f"{frame} {c}")
+                ax.set_xlabel(f"rate of change of the reading ({frame} frame, nT/s)")
+                ax.set_ylabel("residual before the term (nT)")
+            elif f.effect in EVENT_EFFECTS:
+                ax.plot(t, np.linalg.norm(s.residual_before_nT, axis=1), lw=0.7,
+                        color=style.BEFORE, label="|residual| before this term")
+                ax.plot(t, np.linalg.norm(s.contribution_nT, axis=1), lw=1.6,
+                        color=style.AFTER, label="|fitted term|")
+                for a, b in f.where.get("windows_s") or []:
+                    ax.axvspan(a / scale, b / scale, facecolor=style.EVENT, alpha=0.55,
+                               edgecolor=style.EVENT_EDGE, lw=1.0, zorder=0,
+                               label="window found" if a == f.where["windows_s"][0][0]
+                               else None)
+                ax.set_xlabel(_time_label(t0_ns, unit))
+                ax.set_ylabel("nT")
+            else:
+                for i, c in enumerate("xyz"):
+                    ax.plot(t, s.residual_before_nT[:, i], lw=0.5, alpha=0.35,
+                            color=style.AXIS[i], label=f"residual {c}")
+                    ax.plot(t, s.contribution_nT[:, i], lw=1.6, color=style.AXIS[i],
+                            label=f"fitted term {c}")
+                ax.set_xlabel(_time_label(t0_ns, unit))
+                ax.set_ylabel(f"nT ({frame} frame)")
+            title = _finding_title(f)
+            ax.set_title(title)
+            h, lab = ax.get_legend_handles_labels()
+            fig.legend(h, lab, loc="lower left", ncol=6, frameon=False, markerscale=5,
+                       bbox_to_anchor=(0.01, 0.0))
+            fig.subplots_adjust(left=0.07, right=0.99, bottom=0.27, top=0.9)
+            _fit_left(fig)
+            out.append((title, _png(fig)))
+    return out
+
+
+def _finding_title(f: Any) -> str:
+    """Return a figure title in words: the effect, and its windows for an event."""
+    name = str(f.effect).replace("_", " ")
+    w = (f.where or {}).get("windows_s") or []
+    if f.effect in EVENT_EFFECTS and w:
+        return minus(f"{name}: " + ", ".join(f"{float(a):.1f} to {float(b):.1f} s"
+                                            for a, b in w))
+    return name
 
 
 CSS = """
@@ -814,6 +1120,9 @@ def render_html(
 
     day = dt.datetime.fromtimestamp(t0 / 1e9, tz=dt.timezone.utc).strftime("%Y-%m-%d")
     headline = _headline(calibration, metrics, diagnosis)
+    counts = ("" if restored is None else
+              f"<p id=counts>{html.escape(counts_sentence(restored, calibration))}</p>")
+    map_html = _map_html(fig_html.get("fig_map.png"), recording)
     # the counts of every sample (a long recording's figures show every k-th row)
     n_samples = metrics.n_samples if metrics is not None else len(recording.mag)
     duration_s = metrics.whole.end_s if metrics is not None else recording.duration_s
@@ -833,16 +1142,24 @@ def render_html(
 <p>Recording <code>{html.escape(Path(recording.path).name)}</code> of {day}, from {start} UTC,
 {duration_s:.1f} s, {n_samples} magnetometer samples. Times below count from its first
 magnetometer sample, with the UTC time beside them. Click a figure to zoom.{sampled}</p>
+{counts}
 <h2>What the diagnosis found</h2>
 {diag_html}
 <h2>Field before and after calibration</h2>
 {fig_html.get('fig_enu.png', '')}
 <p class=caption>Amber: the reading turned into east, north, up by the attitude alone
-(axes taken as aligned); purple: after calibration; dashed: the reference field. A flat purple
-line means the calibration explains the rotation. The bottom row, |B|, does not depend on
-the heading or the misalignment: a flat |B| after calibration means offsets and soft iron are
-right (the check of MATLAB magcal and ArduPilot MagFit). Shading: motion segments (key under
-the figure).</p>
+(axes taken as aligned); purple: after calibration; black dashed: the field the fitted model
+predicts where and when the sensor was (the background field plus the field terms the
+diagnosis found: a gradient or map in space, a located source, a drift, a disturbance; a
+straight line when it found none). Purple on the black line means the calibration explains
+the rotation. The bottom row, |B|, does not depend on the heading or the misalignment: where
+purple |B| steps or wanders and the black line follows, that is the field changing from place
+to place or in time, not a calibration error; where purple departs from black, the offsets or
+soft iron are wrong or the model lacks a term (the check of MATLAB magcal and ArduPilot
+MagFit). Shading: motion segments, and in red the events the diagnosis found (key under the
+figure). The closer scale holds nearly every sample; triangles on its edge mark the few
+beyond it.</p>
+{map_html}
 <h2>Metrics (Li et al. 2020, Table 4)</h2>
 {_metrics_html(metrics, t0)}
 <h2>Calibration</h2>
@@ -856,6 +1173,9 @@ heading (right): a residual that repeats with the heading is a calibration term 
 lacks (a once-per-turn wave: an offset; twice per turn: soft iron).</p>
 <h2>Readings in the magnetometer frame</h2>
 {fig_html.get('fig_sphere.png', '')}
+<p class=caption>Each reading in the magnetometer's own axes, in microtesla: calibrated, they
+lie on the dashed circle of radius |B| about the cross. The histograms (right, each at its own
+scale) give each reading's distance from that sphere, raw above and corrected below.</p>
 <h2>Attitude and segments</h2>
 {fig_html.get('fig_attitude.png', '')}
 {'<h2>Diagnosis: each finding in the residual</h2>' if diag_figs else ''}
@@ -869,6 +1189,24 @@ lacks (a once-per-turn wave: an offset; twice per turn: soft iron).</p>
 <dl class=prov>{prov_html}</dl>
 </body></html>
 """
+
+
+def _map_html(fig: str | None, recording: Recording) -> str:
+    """Return the plan view's section (empty for a recording without positions)."""
+    if not fig:
+        return ""
+    pos = recording.position
+    frame = str(getattr(pos.frame, "value", pos.frame)) if pos is not None else ""
+    where = ("east and north about the first position fix" if frame == "enu" else
+             "the horizontal axes of the attitude source's own frame (a motion-capture "
+             "room: they need not point east and north)")
+    return (f"<h2 id=map>Where the sensor went</h2>{fig}<p class=caption>The path seen from "
+            f"above, in {where}, coloured by |B| minus its median: left the restored field, "
+            "right the field the fitted model predicts there. Colours that repeat where the "
+            "path comes back are the field in space; a colour on the left that the right "
+            "does not have is something the model leaves out. Crosses: located sources with "
+            "their 1-sigma ellipse; stars: where the sensor was during a diagnosed event. "
+            "Circle: start; square: end.</p>")
 
 
 def _headline(cal: Any, metrics: Any, diagnosis: Any) -> str:
@@ -924,10 +1262,13 @@ def write_report(
         restored = restore_samples(recording, calibration, max_gap_s=max_gap_s)
     if figures is None:
         figures = make_figures(recording, calibration, segments, max_gap_s=max_gap_s,
-                               restored=restored)
+                               restored=restored, diagnosis=diagnosis)
     for name, data in figures.items():
         with atomic_path(out / name, (recording.path,)) as tmp:
             tmp.write_bytes(data)
+    md = report_map_data(recording, restored, calibration, diagnosis)
+    if md is not None:  # the campaign summary draws every line's map from it
+        write_map_json(out / "map.json", md)
     text = render_html(recording, calibration, metrics, diagnosis, figures, restored=restored,
                        options=options)
     return write_text_atomic(out / "report.html", text)

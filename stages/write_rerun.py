@@ -20,7 +20,10 @@ rows; no per-sample log call). Timeline ``time`` (timestamps, the magnetometer s
 - ``segments/spans``, ``diagnosis/events`` (StateChange, with a StateConfiguration of
   colours): each segment and each diagnosed event in time (a disturbance, a magnet near the
   sensor) as a labelled span in the state timeline;
-- ``segments/log``, ``diagnosis/log`` (TextLog): one row per segment / diagnosis window start.
+- ``segments/log``, ``diagnosis/log`` (TextLog): one row per segment / diagnosis window start;
+- ``map/path``, ``map/sources``, ``map/events`` (where the recording has positions): the path
+  in 3D coloured by the restored |B| minus its median, located sources as 1-sigma ellipsoids,
+  and where the sensor was during each diagnosed event (:meth:`RrdStream._map`).
 
 Colours are the report's (:mod:`pipeline.style`). The blueprint puts the three ENU
 components (before and after) in a row of plots on top, residuals, attitude and the
@@ -98,6 +101,8 @@ def blueprint() -> Any:
                           origin="/world"),
         rrb.Spatial3DView(name="field in body frame: before / after / ideal (nT)",
                           origin="/trajectory"),
+        rrb.Spatial3DView(name="path (m) coloured by restored |B| minus its median",
+                          origin="/map"),
     )
     return rrb.Blueprint(
         rrb.Horizontal(rrb.Vertical(enu_row, lower, row_shares=[3, 2]), spatial,
@@ -324,6 +329,7 @@ class RrdStream:
             sel = good[_decimate(len(good), max_points)]
             rec.log(f"trajectory/{name}", rr.Points3D(arr[sel], colors=[rgb], radii=[50.0]),
                     static=True)
+        self._map(rr, sample, diagnosis)
         # --- segments and diagnosis events: labelled spans (state timeline) and text logs
         seg_items = [
             (int(sg.start_ns), int(sg.end_ns),
@@ -364,6 +370,51 @@ class RrdStream:
                                                                       dtype="datetime64[ns]"))],
                     columns=rr.TextLog.columns(text=texts, level=["WARN"] * len(texts)),
                 )
+
+
+    def _map(self, rr: Any, sample: Any, diagnosis: Any) -> None:
+        """Log the path through space coloured by the restored field, sources and events.
+
+        The report's plan view (:mod:`stages.report_map`) in 3D: ``map/path`` (Points3D, the
+        path's run means coloured by |B| minus its median, blue below, red above, and a grey
+        LineStrips3D joining them), ``map/sources`` (Ellipsoids3D: each located source with
+        its 1-sigma half-sizes) and ``map/events`` (Points3D: where the sensor was during
+        each diagnosed event, labelled). Nothing without positions.
+        """
+        from stages.report import report_map_data
+        from stages.report_map import CMAP, colour_limit
+
+        md = report_map_data(self.recording, sample, self.calibration, diagnosis)
+        if md is None:
+            return
+        import matplotlib
+
+        rec = self.rec
+        path = np.asarray(md["path"], dtype=float)
+        lim = colour_limit(md)
+        cmap = matplotlib.colormaps[CMAP]
+        rgb = (np.asarray(cmap(np.clip(0.5 + 0.5 * path[:, 4] / lim, 0.0, 1.0)))[:, :3]
+               * 255).astype(np.uint8)
+        xyz = path[:, 1:4]
+        scale = float(np.ptp(xyz, axis=0).max()) or 1.0
+        rec.log("map/path", rr.Points3D(xyz, colors=rgb, radii=[0.004 * scale]), static=True)
+        rec.log("map/path/line", rr.LineStrips3D([xyz], colors=[(150, 150, 150)],
+                                                 radii=[0.0008 * scale]), static=True)
+        src = md.get("sources") or []
+        if src:
+            half = [[(s or 0.02 * scale) for s in (x.get("sigma_m") or [None] * 3)]
+                    for x in src]
+            rec.log("map/sources", rr.Ellipsoids3D(
+                centers=[x["position_m"] for x in src], half_sizes=half,
+                colors=[IDEAL_RGB], labels=[f"source {i + 1}" for i in range(len(src))]),
+                static=True)
+        ev = md.get("events") or []
+        if ev:
+            rec.log("map/events", rr.Points3D(
+                [[e["x"], e["y"], e["z"]] for e in ev], colors=[style.rgb(style.EVENT_EDGE)],
+                radii=[0.012 * scale],
+                labels=[f"{e['effect'].replace('_', ' ')} {e['start_s']:.0f}-{e['end_s']:.0f} s"
+                        for e in ev]), static=True)
 
 
 def write_rrd(

@@ -1,13 +1,16 @@
 """report.html and summary.html in a real browser: headless Chromium (Debian's package).
 
 ``make chromium`` (run by ``make test``) installs it where apt-get can run as root; elsewhere
-this test is skipped with the reason. The pages are opened from disk with the network cut
-off (they must be self-contained), the DOM is dumped and screenshots are saved in the test's
-folder; the checks are on structure and on screenshot sizes, never on pixel bytes.
+this test is skipped with the reason, except in CI (``.ci/run`` sets
+``MAGALIGN_REQUIRE_BROWSER=1``), where a missing browser fails it. The pages are opened from
+disk with the network cut off (they must be self-contained), the DOM is dumped and
+screenshots are saved in the test's folder; the checks are on structure and on screenshot
+sizes, never on pixel bytes.
 """
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import subprocess
@@ -21,8 +24,11 @@ DATA = HERE / "data"
 BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
 BROWSER = next((b for b in map(shutil.which, BROWSERS) if b), None)
 
+#: Set by .ci/run: there, a missing browser is a failure, not a quiet skip.
+REQUIRED = os.environ.get("MAGALIGN_REQUIRE_BROWSER") == "1"
+
 pytestmark = pytest.mark.skipif(
-    BROWSER is None,
+    BROWSER is None and not REQUIRED,
     reason="no headless Chromium on this machine (make chromium installs Debian's package "
     "when apt-get can run as root)")
 
@@ -30,6 +36,9 @@ WIDTH = 1400
 
 
 def _browser(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
+    if BROWSER is None:
+        pytest.fail("no headless Chromium, and MAGALIGN_REQUIRE_BROWSER=1 (CI) requires one: "
+                    "make chromium installs it where apt-get can run as root")
     cmd = [BROWSER, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
            "--no-first-run", "--disable-extensions", "--mute-audio",
            # nothing may be fetched: every name resolves nowhere
@@ -47,6 +56,7 @@ def _png_size(path: Path) -> tuple[int, int]:
 def campaign(tmp_path_factory) -> Path:
     """A small campaign with reports: a calibration run, a line restored with it, a line alone."""
     tmp = tmp_path_factory.mktemp("browser")
+    moving = _moving(tmp / "moving.mcap")
     toml = tmp / "c.toml"
     toml.write_text(f"""\
 [campaign]
@@ -71,6 +81,9 @@ calibration = "rotation"
 
 [[recordings]]
 path = "{DATA / 'line_disturbed.mcap'}"
+
+[[recordings]]
+path = "{moving}"
 """, encoding="utf-8")
     out = tmp / "out"
     res = subprocess.run([sys.executable, "-m", "pipeline.app.cli", "process", str(toml), "--out",
@@ -78,6 +91,21 @@ path = "{DATA / 'line_disturbed.mcap'}"
                          cwd=HERE.parent)
     assert res.returncode == 0, res.stderr
     return out
+
+
+def _moving(path: Path) -> Path:
+    """A recording with positions (INSPVA fixes) moving through a field gradient."""
+    from pipeline.app.simulate import scenario_from_dict, simulate, write_simulated
+
+    g = [[300.0, 100.0, 0.0], [100.0, -200.0, 50.0], [0.0, 50.0, -100.0]]  # nT/m
+    sc = {"name": "moving", "timing": {"duration_s": 40.0, "mag_rate_hz": 50.0,
+                                       "attitude_rate_hz": 50.0},
+          "motion": {"profile": "multiaxis"}, "field": {"enu_nT": [0.0, 20000.0, -40000.0]},
+          "trajectory": {"amplitude_m": [3.0, 2.0, 0.2]},
+          "effects": {"field_gradient": {"G_nT_per_m": g}}, "noise": {"mag_sigma_nT": 1.0},
+          "output": {"attitude_type": "novatel_oem7_msgs/msg/INSPVA",
+                     "attitude_topic": "/novatel/oem7/inspva"}}
+    return write_simulated(simulate(scenario_from_dict(sc)), path)
 
 
 def _open(page: Path, shot: Path, height: int) -> str:
@@ -89,12 +117,14 @@ def _open(page: Path, shot: Path, height: int) -> str:
     return dom.stdout
 
 
-@pytest.mark.parametrize("name", ["rotation", "line_restored", "line_disturbed"])
+@pytest.mark.parametrize("name", ["rotation", "line_restored", "line_disturbed", "moving"])
 def test_report_in_browser(campaign, name, tmp_path):
     folder = campaign / name
     figs = sorted(folder.glob("fig_*.png"))
+    # a plan view only where the recording has positions
     assert {f.name for f in figs} == {"fig_enu.png", "fig_residual.png", "fig_sphere.png",
-                                      "fig_attitude.png"}
+                                      "fig_attitude.png"} | (
+                                          {"fig_map.png"} if name == "moving" else set())
     dom = _open(folder / "report.html", tmp_path / f"{name}.png", 4000)
     # the verdict box and the headline come first
     body = dom[dom.index("<body"):]
@@ -110,6 +140,21 @@ def test_report_in_browser(campaign, name, tmp_path):
     for f in figs:  # drawn at 100 px per inch: about the size they are shown at
         w, h = _png_size(f)
         assert w >= 1100 and h >= 350, (f.name, w, h)
+    # every sample counted in one place: received = without attitude + restored
+    m = re.search(r'<p id="counts">Of ([\d\u2009]+) magnetometer samples received, '
+                  r'([\d\u2009]+) have no usable attitude and ([\d\u2009]+) are restored', body)
+    assert m is not None
+    n_all, n_without, n_restored = (int(x.replace("\u2009", "")) for x in m.groups())
+    assert n_all == n_without + n_restored
+    # the field the model predicts is drawn, and the caption says what a step means
+    assert "field the fitted model\npredicts" in body or "field the fitted model predicts" in body
+    assert "not a calibration error" in body
+    if name == "moving":
+        sec = body[body.index('id="map"'):]
+        assert re.search(r'<img alt="fig_map.png" src="data:image/png;base64,', sec)
+        assert (folder / "map.json").is_file()
+    else:
+        assert 'id="map"' not in body and not (folder / "map.json").exists()
     w, h = _png_size(tmp_path / f"{name}.png")
     assert (w, h) == (WIDTH, 4000)
     # a page of text, tables and four figures is not blank: a blank one compresses to a few kB
@@ -129,9 +174,15 @@ def test_disturbance_reads_as_one_event(campaign, tmp_path):
 def test_summary_in_browser(campaign, tmp_path):
     dom = _open(campaign / "summary.html", tmp_path / "summary.png", 1000)
     body = dom[dom.index("<tbody>"):]
-    assert body.count("<tr>") == 3  # one row per recording
-    for name in ("rotation", "line_restored", "line_disturbed"):
+    assert body.count("<tr>") == 4  # one row per recording
+    for name in ("rotation", "line_restored", "line_disturbed", "moving"):
         assert f'href="{name}/report.html"' in body
-    assert len(re.findall(r"<img [^>]*src=\"data:image/png;base64,", dom)) == 1  # campaign fig
+    # the campaign figure, and one map: the only recording with positions, with its verdict
+    assert len(re.findall(r"<img [^>]*src=\"data:image/png;base64,", dom)) == 2
+    maps = dom[dom.index('<div class="maps">'):]
+    (fig,) = re.findall(r'<figure class="map" id="map-(\w+)">', maps)
+    assert fig == "moving"
+    assert re.search(r'<span class="verdict v-(OK|QUESTIONABLE|REFUSED)">', maps)
+    assert '<small class="reason">' in maps
     assert _png_size(tmp_path / "summary.png") == (WIDTH, 1000)
     assert (tmp_path / "summary.png").stat().st_size > 50_000

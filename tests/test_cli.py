@@ -192,3 +192,35 @@ def test_summary_title_names_magalign_once():
     title = summary_title(name)
     assert title.lower().count("magalign") == 1, title
     assert summary_title("coast survey 2024") == "magalign: coast survey 2024"
+
+
+def test_final_summary_in_words_within_100_columns(tmp_path):
+    """Each recording's verdict, why, findings and warnings: wrapped, never over 100 columns."""
+    import json as _json
+
+    from pipeline.app.commands.process import WIDTH, recording_summary
+
+    folder = tmp_path / "line_07"
+    folder.mkdir()
+    reason = ("The model leaves 1162 nT, 1.8 times the sensor's noise (632 nT). What to do: "
+              "exclude the stretches the diagnosis names with --exclude, or record again.")
+    (folder / "calibration.json").write_text(_json.dumps({
+        "verdict": {"status": "QUESTIONABLE", "reason": reason},
+        "warnings": ["sample-and-hold: 29 % of the magnetometer messages repeat the previous "
+                     "one (native rate 202.2 Hz, messages 285.7 Hz); the repeats were left out"]
+    }), encoding="utf-8")
+    (folder / "diagnosis.json").write_text(_json.dumps({"findings": [
+        {"effect": "time_offset", "params": {"time_offset_s": 0.0174},
+         "sigma": {"time_offset_s": 0.0005}, "evidence": {}, "where": {}},
+        {"effect": "disturbance", "params": {"windows_s": [[54.9, 67.0]], "peak_nT": 59.3},
+         "sigma": {}, "evidence": {}, "where": {"windows_s": [[54.9, 67.0]]}}]}),
+        encoding="utf-8")
+    line = ("misalignment 0.79 +- 4.35 deg about body [-0.32, +0.19, -0.93]; time offset "
+            "+17.4 ms; residual 1162 nT vs noise 632 nT; QUESTIONABLE")
+    lines = recording_summary({"name": "line_07", "row": {"verdict_line": line}}, {}, tmp_path)
+    assert all(len(x) <= WIDTH for x in lines), lines
+    text = "\n".join(lines)
+    assert lines[0].startswith("line_07: misalignment") and "  why: The model leaves" in text
+    assert "  found: The magnetometer's time stamps are late by 17.4" in text
+    assert "  found: A passing disturbance of 59 nT" in text
+    assert "  warning: sample-and-hold: 29 %" in text

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +37,8 @@ def test_info_json_and_table(tmp_path, capsys):
         ("/temp", "std_msgs/msg/Float64", DEFS["std_msgs/msg/Float64"], t[:10],
          np.ones(10), [""])])
     out = json.loads(_info(capsys, str(p), "--json"))
-    assert set(out) == {"channels", "duration_s", "problems"}
+    assert set(out) == {"channels", "duration_s", "problems", "sample_hold"}
+    assert out["sample_hold"] is None  # every message a new reading
     ch = {c["topic"]: c for c in out["channels"]}
     assert ch["/mag"]["role"] == "magnetometer" and ch["/mag"]["count"] == 500
     assert ch["/mag"]["rate_hz"] == pytest.approx(250.0, rel=1e-9)
@@ -118,3 +120,23 @@ def test_info_json_lists_a_chunk_failing_its_crc_once(tmp_path, capsys):
     assert len(crc) == 1 and crc[0]["count"] > 0
     count = {ch["topic"]: ch["count"] for ch in out["channels"]}
     assert count["/mag"] + count["/att"] == 600 - crc[0]["count"]
+
+
+def test_info_reports_sample_and_hold(tmp_path, capsys):
+    """The repeats of a sensor that converts slower than it sends, and its native rate."""
+    from pipeline.app.simulate import scenario_from_dict, simulate, write_simulated
+
+    sc = {"name": "held", "timing": {"duration_s": 20.0, "mag_rate_hz": 100.0,
+                                      "attitude_rate_hz": 100.0},
+          "motion": {"profile": "multiaxis"}, "field": {"enu_nT": [0.0, 20000.0, -40000.0]},
+          "effects": {"sample_hold": {"native_rate_hz": 70.0}}}
+    p = write_simulated(simulate(scenario_from_dict(sc)), tmp_path / "held.mcap")
+    out = json.loads(_info(capsys, str(p), "--json"))
+    held = out["sample_hold"]
+    assert held["native_rate_hz"] == pytest.approx(70.0, rel=0.02)
+    assert held["repeated_fraction"] == pytest.approx(0.3, abs=0.02)
+    assert held["repeats"] == pytest.approx(0.3 * held["messages"], rel=0.05)
+    table = _info(capsys, str(p))
+    assert re.search(r"sample-and-hold: \d+ of \d+ /mag messages \(\d+\.\d %\) repeat the "
+                     r"previous reading; the sensor\s+converts\s+at about 7\d\.\d Hz", table)
+    assert all(len(line) <= 100 for line in table.splitlines()[1:])  # [0]: the path

@@ -64,7 +64,7 @@ def test_line_names_stage_and_time_left():
         pg.stage("Ingest", 0, 3, ["Ingest", "Diagnose", "Report"])
         pg.stage("Diagnose", 1, 3)
         pg.detail("search 1, candidate 3/9", 0.5, 1.0)
-        line = disp.line()
+        line = disp.line(width=200)
         assert "[0/2]" in line and "line_04: diagnosing (2/3): search 1, candidate 3/9" in line
         assert "left ~" in line and "elapsed 0:10" in line
         # the stage weights decide the fraction: half of the diagnosis is most of this run
@@ -73,6 +73,23 @@ def test_line_names_stage_and_time_left():
         assert f"{100 * expect / 2:3.0f}%" in line
     disp.run_done("line_04")
     assert "[1/2]" in disp.line() and "line_04" not in disp.line()
+
+
+def test_line_fits_80_columns_with_the_time_left():
+    """A long name and stage are shortened; the percentage and both times stay whole."""
+    disp = pg.ProgressDisplay(12, "magalign process", enabled=False)
+    disp.started -= 3725.0
+    sink = pg.DirectSink("a_recording_with_a_very_long_name_2026-11-20", disp.update)
+    with pg.use_sink(sink):
+        pg.stage("Ingest", 0, 3, ["Ingest", "Diagnose", "Report"])
+        pg.stage("Diagnose", 1, 3)
+        pg.detail("search 3, candidate 17/40: local source near 41.2 s", 0.5, 1.0)
+        for width in (79, 60):
+            line = disp.line(width=width)
+            assert len(line) <= width, line
+            assert re.search(r"elapsed 1:02:05  left ~\d+:\d\d:\d\d$", line), line
+            assert "..." in line and "%" in line
+        assert len(disp.line()) <= 79  # the default: 80 columns, less one
 
 
 def test_library_calls_without_sink_do_nothing():

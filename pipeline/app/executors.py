@@ -167,7 +167,7 @@ class LocalExecutor:
 
     def describe(self) -> str:
         """See :class:`Executor`."""
-        return f"{self.workers} local worker process(es)"
+        return f"{self.workers} local worker{'s' if self.workers != 1 else ''}"
 
 
 def _quiet_dask_logs() -> None:

@@ -585,7 +585,8 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
             from stages.report import make_figures
 
             figures = pool.submit(make_figures, report_rec, cal, segments,
-                                  max_gap_s=options.max_gap_s, restored=sample)
+                                  max_gap_s=options.max_gap_s, restored=sample,
+                                  diagnosis=win.diagnosis)
         if rrd is not None:
             rrd.finish(sample, segments=segments, diagnosis=win.diagnosis)
         stack.close()  # flush rerun, finish the corrected MCAP (the helper is idle or drawing)

@@ -94,6 +94,8 @@ def row_for(out_dir: Path, result: Mapping[str, Any]) -> dict[str, Any]:
     row["estimator"] = cal.get("estimator")
     verdict = cal.get("verdict")
     row["verdict"] = verdict.get("status") if isinstance(verdict, Mapping) else None
+    row["verdict_reason"] = verdict.get("reason") if isinstance(verdict, Mapping) else None
+    row["map"] = f"{name}/map.json" if ok and (folder / "map.json").is_file() else None
     # ratio_pct (fluctuation range, whole recording) as the per-recording pipeline reports it;
     # else the first ratio_pct of metrics.json for that component.
     row_ = result.get("row")
@@ -140,7 +142,7 @@ def write_summary(out_dir: str | Path, rows: Sequence[Mapping[str, Any]],
     pq_path = out / "summary.parquet"
     with atomic_path(pq_path) as tmp:
         pq.write_table(table, tmp)
-    html_path = write_text_atomic(out / "summary.html", render_html(rows, cols, title))
+    html_path = write_text_atomic(out / "summary.html", render_html(rows, cols, title, out))
     return pq_path, html_path
 
 
@@ -227,7 +229,8 @@ SHOWN = {"name", "report", "role", "status", "verdict", "calibration_from", "rot
          "rotvec_deg_y", "rotvec_deg_z", "sigma_deg_x", "sigma_deg_y", "sigma_deg_z",
          "offset_nT_x", "offset_nT_y", "offset_nT_z", "time_offset_s", "residual_rms_nT",
          "estimator", "B_enu_nT_x", "B_enu_nT_y", "B_enu_nT_z", "ratio_pct_x", "ratio_pct_y",
-         "ratio_pct_z", "findings", "rrd", "elapsed_s", "error", "input_path"}
+         "ratio_pct_z", "findings", "rrd", "elapsed_s", "error", "input_path",
+         "verdict_reason", "map"}
 #: shown elsewhere in words: the estimator is in each report (the table's would read
 #: "diagnose" for every diagnosed recording)
 SHOWN.add("estimator")
@@ -274,7 +277,56 @@ def campaign_figure(rows: Sequence[Mapping[str, Any]]) -> bytes | None:
     return buf.getvalue()
 
 
-def render_html(rows: Sequence[Mapping[str, Any]], cols: Sequence[str], title: str) -> str:
+def maps_html(rows: Sequence[Mapping[str, Any]], out_dir: Path | None) -> str:
+    """Return the plan views of the recordings with positions, side by side, each with its verdict.
+
+    Each recording's ``map.json`` (written beside its report) is drawn on one colour scale
+    for all, so that the same colour is the same field on every line.
+    """
+    import base64
+
+    from stages.report_map import draw_maps, read_map_json
+
+    if out_dir is None:
+        return ""
+    found = []
+    for r in rows:
+        rel = r.get("map")
+        m = read_map_json(out_dir / str(rel)) if rel else None
+        if m is not None:
+            found.append((r, m))
+    if not found:
+        return ""
+    pngs = draw_maps([(str(r.get("name")), m) for r, m in found])
+    cells = []
+    for (r, _), (_, png) in zip(found, pngs, strict=True):
+        name = html.escape(str(r.get("name")))
+        v = html.escape(str(r.get("verdict") or r.get("status") or ""))
+        reason = html.escape(minus_text(str(r.get("verdict_reason") or "")))
+        src = r.get("calibration_from")
+        whose = (f"<br><small>restored with the calibration of {html.escape(str(src))}</small>"
+                 if src else "")
+        cells.append(
+            f"<figure class=map id=\"map-{name}\"><img alt=\"map of {name}\" "
+            f"src='data:image/png;base64,{base64.b64encode(png).decode('ascii')}'>"
+            f"<figcaption><b>{_link(r.get('report'), str(r.get('name'))) or name}</b> "
+            f"<span class=\"verdict v-{v}\">{v}</span>{whose}"
+            f"<br><small class=reason>{reason}</small></figcaption></figure>")
+    return ("<h2>Where each recording went</h2><p>Each path seen from above, coloured by its "
+            "restored |B| minus that recording's median (one colour scale for all), with its "
+            "own verdict. Crosses: located sources (dashed: 1 sigma); stars: where the sensor "
+            "was during a diagnosed event.</p><div class=maps>" + "".join(cells) + "</div>")
+
+
+def minus_text(text: str) -> str:
+    """Return ``text`` with a true minus sign and a plus-minus sign."""
+    from pipeline.core.style import minus
+
+    return minus(text)
+
+
+def render_html(rows: Sequence[Mapping[str, Any]], cols: Sequence[str], title: str,
+                out_dir: Path | None = None) -> str:
     """Render the self-contained summary: a figure of the calibration runs and a table.
 
     The table groups its columns (recording, misalignment, offset, model, field, effect of
@@ -334,6 +386,11 @@ td.v-OK {{ background: #d4edda; }} td.v-QUESTIONABLE {{ background: #fff3cd; }}
 td.v-REFUSED {{ background: #f8d7da; }}
 tr.err td {{ text-align: left; background: #fff0f0; white-space: normal; }}
 img {{ max-width: 100%; }}
+div.maps {{ display: flex; flex-wrap: wrap; gap: 0.8em; }}
+figure.map {{ margin: 0; width: 440px; }} figure.map img {{ width: 440px; }}
+figure.map figcaption {{ font-size: 13px; }}
+span.verdict {{ padding: 0 0.3em; }} span.v-OK {{ background: #d4edda; }}
+span.v-QUESTIONABLE {{ background: #fff3cd; }} span.v-REFUSED {{ background: #f8d7da; }}
 </style></head><body>
 <h1>{html.escape(title)}</h1>
 <p>{len(rows)} recording(s), {n_fail} failed. Each name links to its report.
@@ -344,5 +401,7 @@ smaller is better).</p>
 {fig}
 <table><thead><tr>{top}</tr><tr>{sub}</tr></thead><tbody>
 {chr(10).join(body)}
-</tbody></table></body></html>
+</tbody></table>
+{maps_html(rows, out_dir)}
+</body></html>
 """

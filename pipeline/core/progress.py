@@ -34,6 +34,12 @@ ENV_DIR = "MAGALIGN_PROGRESS_DIR"
 #: ``auto`` (default: only when stderr is a terminal), ``always`` or ``never``
 ENV_MODE = "MAGALIGN_PROGRESS"
 
+#: the progress line's width when the terminal does not say (the classic 80 columns, less
+#: one: a line as wide as the terminal wraps on some)
+DEFAULT_WIDTH = 79
+#: the widest progress line, however wide the terminal
+MAX_WIDTH = 99
+
 #: Typical relative wall time of each stage (class names; measured on the demo campaign and
 #: the lab recordings). Stages not listed weigh 1.
 STAGE_WEIGHTS: dict[str, float] = {
@@ -354,17 +360,23 @@ class ProgressDisplay:
                     continue
         return [s for s in states if run_fraction(s) < 1.0]
 
-    def line(self, now: float | None = None) -> str:
-        """Return the progress line as it would be drawn now."""
+    def line(self, now: float | None = None, width: int = DEFAULT_WIDTH) -> str:
+        """Return the progress line as it would be drawn now, at most ``width`` characters.
+
+        The percentage, the elapsed time and the estimate of the time left always show in
+        full: when the line is too long, the recording's name and stage are shortened
+        (ending in ``...``), then the title is left out.
+        """
         now = time.time() if now is None else now
         states = self._states()
         with self._lock:
             done = self.done
         frac = min(1.0, (done + sum(run_fraction(s) for s in states)) / self.total)
         elapsed = now - self.started
-        parts = [self.title]
+        head = [self.title]
         if self.total > 1:
-            parts.append(f"[{done}/{self.total}]")
+            head.append(f"[{done}/{self.total}]")
+        where = ""
         if states:
             s = max(states, key=lambda x: x.get("stage_started", 0))
             stages = s.get("stages") or []
@@ -377,12 +389,19 @@ class ProgressDisplay:
                 where = f"{where}: {what}"
             if len(states) > 1:
                 where += f" (+{len(states) - 1} more)"
-            parts.append(where)
-        parts.append(f"{100 * frac:3.0f}%")
-        parts.append(f"elapsed {fmt_duration(elapsed)}")
+        tail = [f"{100 * frac:3.0f}%", f"elapsed {fmt_duration(elapsed)}"]
         if frac > 0.02 and elapsed > 1.0:
-            parts.append(f"left ~{fmt_duration(elapsed * (1 - frac) / frac)}")
-        return "  ".join(parts)
+            tail.append(f"left ~{fmt_duration(elapsed * (1 - frac) / frac)}")
+        fixed = "  ".join(tail)
+        # the title goes before the recording's stage is cut short
+        for h, least in ((head, min(len(where), 48)), (head[1:], 12)):
+            lead = "  ".join(h)
+            room = width - len(fixed) - (len(lead) + 2 if lead else 0) - (2 if where else 0)
+            if not where or len(where) <= room:
+                return "  ".join([x for x in (lead, where, fixed) if x])
+            if room >= least:
+                return "  ".join([x for x in (lead, where[: room - 3] + "...", fixed) if x])
+        return "  ".join([x for x in ("  ".join(head[1:]), fixed) if x])[:width]
 
     def draw(self) -> None:
         """Redraw the line (nothing when disabled)."""
@@ -392,13 +411,13 @@ class ProgressDisplay:
             self._draw()
 
     def _draw(self) -> None:
-        text = self.line()
         try:
             cols = os.get_terminal_size(self.stream.fileno()).columns
         except (OSError, AttributeError, ValueError):
             cols = 0
-        cols = cols if cols > 20 else 100  # a pseudo-terminal may report 0 columns
-        text = text[: cols - 1]
+        cols = cols if cols > 20 else DEFAULT_WIDTH + 1  # a pseudo-terminal may report 0
+        # one column short of the terminal: a full-width line would wrap on some terminals
+        text = self.line(width=min(cols - 1, MAX_WIDTH))
         pad = max(0, self._width - len(text))
         self.stream.write("\r" + text + " " * pad)
         self.stream.flush()

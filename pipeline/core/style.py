@@ -29,6 +29,8 @@ AFTER = "#5b2a86"
 REFERENCE = "#000000"
 #: diagnosis windows (a disturbance, a magnet near the sensor)
 EVENT = "#e8a0a0"
+#: the edge of a diagnosis window (a narrow window stays visible at the scale of hours)
+EVENT_EDGE = "#c0392b"
 #: motion segment shading by kind (pipeline.core.recording.SegmentKind values)
 SEGMENT = {
     "rotation": "#d9d9d9",

@@ -605,7 +605,8 @@ def inspect_recording(path: str | Path) -> dict:
     -------
     dict
         ``{"path", "profile", "channels": [{topic, type, encoding, role, count, rate_hz,
-        start_ns, end_ns}], "duration_s", "problems": [{code, message, count}]}``.
+        start_ns, end_ns}], "duration_s", "problems": [{code, message, count}],
+        "sample_hold"}`` (``sample_hold``: :func:`_sample_hold_info` of the magnetometer).
 
     """
     scan = _scan(path)
@@ -613,6 +614,7 @@ def inspect_recording(path: str | Path) -> dict:
     problems: list[Problem] = []  # per channel; scan.problems grows while chunks are decoded
     stamps: dict[int, np.ndarray] = {}
     chans: list[dict[str, Any]] = []
+    held: dict[str, Any] | None = None
     for cid in sorted(scan.channels):
         c = scan.channels[cid]
         role = _role_of(scan, c)
@@ -625,6 +627,8 @@ def inspect_recording(path: str | Path) -> dict:
             else:
                 t = dec.t_ns
                 problems += _value_problems(scan, role, c.topic, dec)
+                if role is Role.MAGNETOMETER and held is None:
+                    held = _sample_hold_info(c.topic, dec)
         if t is None:
             log = [_record_columns(buf, sel[cid])["log_time_ns"]
                    for buf, sel in _iter_blocks(scan, {cid})]
@@ -664,7 +668,31 @@ def inspect_recording(path: str | Path) -> dict:
         "duration_s": float(duration),
         "problems": [{"code": p.code, "message": p.message, "count": p.count}
                      for p in [*scan.problems, *problems]],
+        "sample_hold": held,
     }
+
+
+def _sample_hold_info(topic: str, dec: Any) -> dict[str, Any] | None:
+    """Sample-and-hold of a magnetometer channel for ``info``, or None when it has none.
+
+    ``{"topic", "repeats", "messages", "repeated_fraction", "native_rate_hz",
+    "message_rate_hz"}``: the messages that repeat the previous reading exactly and the rate
+    the sensor really converts at (:func:`pipeline.model.sample_hold.detect_sample_hold`).
+    """
+    from pipeline.model.sample_hold import detect_sample_hold
+
+    t = np.asarray(dec.t_ns, dtype=np.int64)
+    v = np.asarray(dec.values, dtype=float)
+    ok = np.isfinite(v).all(axis=1)
+    t, v = t[ok], v[ok]
+    order = np.argsort(t, kind="stable")
+    found = detect_sample_hold(t[order], v[order])
+    if found is None:
+        return None
+    return {"topic": topic, "repeats": int(np.count_nonzero(~found.first)),
+            "messages": int(len(t)), "repeated_fraction": float(found.repeated_fraction),
+            "native_rate_hz": float(found.native_rate_hz),
+            "message_rate_hz": float(found.message_rate_hz)}
 
 
 # --------------------------------------------------------------------------- chunked reading

@@ -3,7 +3,14 @@
 With ``--json`` one object is printed (CONVENTIONS)::
 
     {"channels": [{"topic", "type", "role", "count", "rate_hz"}, ...],
-     "duration_s": float, "problems": [{"code", "message", "count"}, ...]}
+     "duration_s": float, "problems": [{"code", "message", "count"}, ...],
+     "sample_hold": null | {"topic", "repeats", "messages", "repeated_fraction",
+                            "native_rate_hz", "message_rate_hz"}}
+
+``sample_hold``: the magnetometer repeats its last conversion in messages that arrive before
+the next one (``repeats`` messages repeat the previous reading exactly); ``native_rate_hz`` is
+the rate it really converts at (``pipeline.model.sample_hold.detect_sample_hold``); null when
+every message is a new reading.
 
 ``role`` is ``magnetometer``, ``attitude``, ``turntable``, ``position`` (a
 ``sensor_msgs/msg/NavSatFix`` channel: GNSS fixes, the recording's positions) or ``other``;
@@ -47,7 +54,18 @@ def to_json(info: dict) -> dict:
         ],
         "duration_s": info["duration_s"],
         "problems": info["problems"],
+        "sample_hold": info.get("sample_hold"),
     }
+
+
+def sample_hold_text(held: dict | None) -> str:
+    """One line on the magnetometer's sample-and-hold repeats and its native rate."""
+    if not held:
+        return "sample-and-hold: none (every magnetometer message is a new reading)"
+    return (f"sample-and-hold: {held['repeats']} of {held['messages']} {held['topic']} messages "
+            f"({100 * held['repeated_fraction']:.1f} %) repeat the previous reading; the sensor "
+            f"converts at about {held['native_rate_hz']:.1f} Hz, its messages come at "
+            f"{held['message_rate_hz']:.1f} Hz")
 
 
 def format_table(info: dict) -> str:
@@ -68,9 +86,18 @@ def format_table(info: dict) -> str:
         if k == 0:
             lines.append("  ".join("-" * w for w in widths))
     lines.append(f"duration: {info['duration_s']:.3f} s")
+    if any(c["role"] == "magnetometer" for c in info["channels"]):
+        import textwrap
+
+        lines += textwrap.wrap(sample_hold_text(info.get("sample_hold")), 100,
+                               subsequent_indent="  ")
     if info["problems"]:
         lines.append(f"problems ({len(info['problems'])}):")
-        lines += [f"  - [{p['code']}] {p['message']}" for p in info["problems"]]
+        import textwrap
+
+        for p in info["problems"]:
+            lines += textwrap.wrap(f"- [{p['code']}] {p['message']}", 100,
+                                   initial_indent="  ", subsequent_indent="    ")
     else:
         lines.append("problems: none")
     return "\n".join(lines)

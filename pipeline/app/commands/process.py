@@ -149,6 +149,49 @@ def _run_with_progress(camp, out: Path, executor, args: argparse.Namespace) -> l
                 os.environ[pg.ENV_DIR] = old_env
 
 
+#: no line of the final summary is longer (paths excepted: they are printed whole)
+WIDTH = 100
+
+
+def _wrapped(text: str, first: str, rest: str) -> list[str]:
+    """Return ``text`` wrapped to :data:`WIDTH` columns, after ``first`` then ``rest``."""
+    import textwrap
+
+    return textwrap.wrap(text, WIDTH, initial_indent=first, subsequent_indent=rest,
+                         break_on_hyphens=False, break_long_words=False) or [first.rstrip()]
+
+
+def recording_summary(result: dict, row: dict, out: Path) -> list[str]:
+    """Return the final summary's lines of one recording: its verdict, findings and warnings.
+
+    The verdict line as the report gives it, then (when it is not OK) why, then each
+    diagnosis finding as the report's sentence (events that touch are one) and each warning
+    of the calibration, all in words, wrapped to :data:`WIDTH` columns.
+    """
+    from pipeline.app.summary import read_json
+    from pipeline.core.style import minus
+
+    name = str(result["name"])
+    line = (result.get("row") or {}).get("verdict_line")
+    if not line:
+        return []
+    lines = _wrapped(f"{name}: {line}", "", "    ")
+    folder = out / name
+    cal = read_json(folder / "calibration.json") or {}
+    verdict = cal.get("verdict") if isinstance(cal.get("verdict"), dict) else {}
+    if verdict and verdict.get("status") != "OK" and verdict.get("reason"):
+        lines += _wrapped(minus(str(verdict["reason"])), "  why: ", "       ")
+    diag = read_json(folder / "diagnosis.json")
+    if diag and diag.get("findings"):
+        from stages.report_text import rows as finding_rows
+
+        for fr in finding_rows(diag, 0):
+            lines += _wrapped(fr.sentence, "  found: ", "         ")
+    for w in cal.get("warnings") or []:
+        lines += _wrapped(minus(str(w)), "  warning: ", "           ")
+    return lines
+
+
 def summary_title(name: str) -> str:
     """Title of summary.html: the campaign's name, after "magalign: " unless it names it."""
     return name if name.lower().startswith("magalign") else f"magalign: {name}"
@@ -196,12 +239,15 @@ def run(args: argparse.Namespace) -> int:
     n_re = sum(r["status"] == "reused" for r in results)
     failures = [(r["name"], r["error"] or "unknown error") for r in results
                 if r["status"] == "failed"]
-    print(f"{len(results)} recording(s): {n_ok} processed, {n_re} reused (unchanged), "
-          f"{len(failures)} failed ({executor.describe()})")
-    for r in results:
-        line = (r.get("row") or {}).get("verdict_line")
-        if line:
-            print(f"{r['name']}: {line}")
+    where = executor.describe()
+    # where the work ran says nothing new for the default single local worker
+    where = "" if where in ("1 local worker", "in this process") else f" ({where})"
+    n = len(results)
+    print(f"{n} recording{'s' if n != 1 else ''}: {n_ok} processed, {n_re} reused "
+          f"(unchanged), {len(failures)} failed{where}")
+    for r, row in zip(results, rows, strict=True):
+        for line in recording_summary(r, row, out_r):
+            print(line)
     print(f"results in {out}:")
     print(f"  summary  {out / html_path.name}   (open in a browser)")
     print(f"  table    {out / pq_path.name}")
