@@ -388,3 +388,22 @@ def test_two_pass_keeps_the_spatial_terms_of_a_survey(tmp_path, monkeypatch):
         assert _angle_to_truth_deg(row, spec) < 0.05
     assert two["residual_rms_nT"] == pytest.approx(mem["residual_rms_nT"], rel=0.05)
     assert two["residual_rms_nT"] < 3.0  # nT, against 1 nT of noise: the dipole restored
+
+
+def test_two_pass_report_maps_the_path(tmp_path, monkeypatch):
+    """The report of a survey processed in two passes draws the path from every k-th
+    position, with the located source on it (map.json beside the report)."""
+    import pipeline.app.process_stream as process_stream
+    from pipeline.app.process_one import ProcessOptions, process_recording
+
+    monkeypatch.setattr(process_stream, "DECIMATED_SAMPLES", 6_000)
+    monkeypatch.setattr(process_stream, "RANGE_MESSAGES", 2_000)
+    path, _ = _survey(tmp_path, "navsatfix")
+    row = process_recording(path, tmp_path / "two", options=ProcessOptions(
+        scale_samples=1_000, write_rerun=False))
+    assert "Restore+outputs" in row["timings_s"]
+    folder = Path(row["paths"]["report.html"]).parent
+    m = json.loads((folder / "map.json").read_text())
+    assert "local_source" in row["findings"]
+    assert len(json.dumps(m)) > 1_000 and "sources" in json.dumps(m)
+    assert 'id=map' in Path(row["paths"]["report.html"]).read_text()

@@ -131,6 +131,9 @@ class _Collector:
         self.att_t: list[np.ndarray] = []
         self.att_q: list[np.ndarray] = []
         self.pos: list[PositionSeries] = []
+        # every step-th position of the whole recording: the report's map of the path
+        self.pos_thin: list[PositionSeries] = []
+        self.n_pos = 0
         self.al: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self.n_aligned = 0
         self.t_first_ns: int | None = None
@@ -157,6 +160,11 @@ class _Collector:
                 self.att_t.append(ch.attitude.t_ns[a])
                 self.att_q.append(ch.attitude.q_enu_body[a])
         if ch.position is not None and len(ch.position):
+            first = (-self.n_pos) % self.step
+            self.pos_thin.append(dataclasses.replace(
+                ch.position, t_ns=ch.position.t_ns[first::self.step].copy(),
+                p_m=ch.position.p_m[first::self.step].copy()))
+            self.n_pos += len(ch.position)
             p = self._inside(ch.position.t_ns, int(WINDOW_MARGIN_S * 1e9))
             if p.any():
                 self.pos.append(dataclasses.replace(ch.position, t_ns=ch.position.t_ns[p],
@@ -174,6 +182,15 @@ class _Collector:
             return AlignedSeries(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 4)))
         q, y, t = (np.concatenate(x) for x in zip(*self.al, strict=True))
         return AlignedSeries(t, y, q)
+
+    def thin_positions(self, header: Recording) -> PositionSeries | None:
+        """Every step-th position of the recording (the report's map), or None."""
+        if header.position is None or not self.pos_thin:
+            return None
+        t = np.concatenate([p.t_ns for p in self.pos_thin])
+        o = np.argsort(t, kind="stable")
+        return dataclasses.replace(self.pos_thin[0], t_ns=t[o], p_m=np.concatenate(
+            [p.p_m for p in self.pos_thin])[o], max_gap_s=None)
 
     def window_recording(self, header: Recording) -> Recording:
         def cat(parts: list[np.ndarray], shape: tuple[int, ...], dtype: Any) -> np.ndarray:
@@ -576,7 +593,7 @@ def process_stream(plan: StreamPlan, path: str | Path, rec_dir: Path, options: A
         report_rec = dataclasses.replace(
             plan.header, mag=VectorSeries(sample.t_ns, sample.raw_mag_nT,
                                           plan.header.mag.frame, plan.header.mag.unit),
-            attitude=None, position=None)
+            attitude=None, position=col.thin_positions(plan.header))
         figures: Future[dict[str, bytes]] | None = None
         if options.write_report:
             # the report's figures need the final model and the kept rows only: drawn on
