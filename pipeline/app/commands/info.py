@@ -3,14 +3,12 @@
 With ``--json`` one object is printed (CONVENTIONS)::
 
     {"channels": [{"topic", "type", "role", "count", "rate_hz"}, ...],
-     "duration_s": float, "problems": [{"code", "message", "count"}, ...],
-     "sample_hold": null | {"topic", "repeats", "messages", "repeated_fraction",
-                            "native_rate_hz", "message_rate_hz"}}
+     "duration_s": float, "problems": [{"code", "message", "count"}, ...]}
 
-``sample_hold``: the magnetometer repeats its last conversion in messages that arrive before
-the next one (``repeats`` messages repeat the previous reading exactly); ``native_rate_hz`` is
-the rate it really converts at (``pipeline.model.sample_hold.detect_sample_hold``); null when
-every message is a new reading.
+exactly (other programs read it). The table also says when the magnetometer repeats its last
+conversion in messages that arrive before the next one (sample-and-hold: how many messages
+repeat the previous reading exactly, and the rate the sensor really converts at,
+``pipeline.model.sample_hold.detect_sample_hold``).
 
 ``role`` is ``magnetometer``, ``attitude``, ``turntable``, ``position`` (a
 ``sensor_msgs/msg/NavSatFix`` channel: GNSS fixes, the recording's positions) or ``other``;
@@ -54,7 +52,6 @@ def to_json(info: dict) -> dict:
         ],
         "duration_s": info["duration_s"],
         "problems": info["problems"],
-        "sample_hold": info.get("sample_hold"),
     }
 
 
