@@ -327,6 +327,61 @@ def _model_values(term: Term, value: np.ndarray, data: FitData) -> dict[str, Any
     return {}
 
 
+#: Prior sizes of the sensor terms a recording's motion cannot determine: the traceless
+#: soft-iron parameters (scale differences and cross-axis coupling, dimensionless) and each
+#: offset component (nT). Typical of MEMS magnetometers, and of the lab sensor, whose full
+#: recordings determine D - I up to 0.02 and offsets of 300-500 nT.
+IRON_PRIOR = {"soft_iron": 0.01, "hard_iron": 500.0}
+
+
+def with_undetermined_iron(cal: Calibration, res: FitResult, data: FitData,
+                           kinds: Sequence[str]) -> Calibration:
+    """Return ``cal`` whose rotation sigmas cover iron the motion cannot determine.
+
+    A recording that does not turn the sensor enough leaves the offset or the soft-iron
+    matrix confounded with the field and the rotation, so the fit leaves them out; a real one
+    then biases R by an amount the noise sigma does not show. In the linearised model the
+    bias of leaving out ``theta`` is ``K theta`` with ``K = -(J'WJ)^-1 J'W J_theta`` (the
+    regression of the left-out columns on the fitted ones, at the final state); over a prior
+    of typical size (:data:`IRON_PRIOR`, ``Sigma``) its covariance is ``K Sigma K'``. Each
+    rotation sigma becomes ``sqrt(sigma^2 + (K Sigma K')_ii)`` and a doubt says so.
+    """
+    st = res.state
+    P0 = res.info.shape[0]
+    for k in kinds:
+        st = st.with_term(Term(EffectKind(k)))
+    ev = evaluate(st, data, jacobian=True)
+    if ev.J is None:
+        return cal
+    J = ev.J if ev.sqrt_w is None else ev.J * ev.sqrt_w[:, None, None]
+    J = J.reshape(-1, J.shape[-1])
+    H = res.info.copy()  # what the fit itself used (its ridge included)
+    cross = J[:, :P0].T @ J[:, P0:]
+    if data.B_known_enu_nT is not None:  # the field is given: not a fitted column
+        H[3:6, :] = 0.0
+        H[:, 3:6] = 0.0
+        H[3:6, 3:6] = np.eye(3)
+        cross[3:6, :] = 0.0
+    K = -np.linalg.pinv(H, rcond=1e-13) @ cross
+    prior = np.concatenate([np.full(Term(EffectKind(k)).n_params(), IRON_PRIOR[k])
+                            for k in kinds])
+    sig_b = np.degrees(np.sqrt(np.clip(np.einsum("ij,j,ij->i", K[:3], prior**2, K[:3]),
+                                       0, None)))
+    sig = np.asarray(cal.sigma_rotvec_deg, float)
+    wider = np.where(np.isfinite(sig), np.hypot(sig, sig_b), sig)
+    names = " or ".join(x.replace("_", " ") for x in kinds)
+    sizes = ", ".join(f"{IRON_PRIOR[k]:g}{' nT' if k == 'hard_iron' else ''} {k.replace('_', ' ')}"
+                      for k in kinds)
+    doubt = (f"the motion cannot determine {names}: the fit leaves it out; the sigmas include "
+             f"what one of typical size ({sizes}) would do to the misalignment (up to "
+             f"{float(np.max(sig_b)):.2f} deg)")
+    return cal.replace(sigma_rotvec_deg=wider, checks={
+        **cal.checks, "undetermined_iron": {"terms": list(kinds),
+                                            "prior": {k: IRON_PRIOR[k] for k in kinds},
+                                            "sigma_rotvec_bias_deg": sig_b.tolist()},
+        "doubts": list(cal.checks.get("doubts", ())) + [doubt]})
+
+
 def calibration_from(res: FitResult, data: FitData, findings: tuple[Finding, ...]) -> Calibration:
     """Return the final model as a Calibration; terms beyond D, o, tau go to ``effects``."""
     st = res.state
@@ -477,14 +532,9 @@ class Diagnose:
             final = final.replace(checks={**final.checks, "split_final": split.to_dict()})
             final = apply_split(final, split, " under the final model")
         iron = [e for e, _ in diag.not_identifiable if e in ("hard_iron", "soft_iron")]
+        iron = [e for e in iron if res.state.value(EffectKind(e)) is None]
         if iron and len(final.unobservable_axes_body) == 0:
-            doubt = (
-                f"the motion cannot determine {' or '.join(x.replace('_', ' ') for x in iron)}"
-                ": the misalignment assumes there is none; a magnetised or soft-magnetic part "
-                "near the sensor would bias it (see the diagnosis)"
-            )
-            final = final.replace(checks={**final.checks, "doubts": list(
-                final.checks.get("doubts", ())) + [doubt]})
+            final = with_undetermined_iron(final, res, data, iron)
         fit_samples: dict[str, Any] = {"n": len(data), "stride": int(data.stride),
                                        "of": int(data.n_available or len(data))}
         if "sample_hold" in extra:
