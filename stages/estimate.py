@@ -256,8 +256,11 @@ def carry_checks(before: Calibration, after: Calibration, *, explained: bool = F
     )
 
 
-def verdict_line(cal: Calibration) -> str:
-    """One line for a person: misalignment angle +- sigma and axis, time offset, verdict."""
+def verdict_line(cal: Calibration, with_status: bool = True) -> str:
+    """One line for a person: misalignment angle +- sigma and axis, time offset, verdict.
+
+    ``with_status``: end with the verdict's status (False where it is shown beside the line).
+    """
     rv = np.asarray(cal.rotvec_body_mag_deg, float)
     sg = np.asarray(cal.sigma_rotvec_deg, float)
     ang = float(np.linalg.norm(rv))
@@ -279,7 +282,8 @@ def verdict_line(cal: Calibration) -> str:
             parts.append(f"residual {v.residual_rms_nT:.0f} nT vs noise {v.sensor_noise_nT:.0f} nT")
         else:
             parts.append(f"residual {v.residual_rms_nT:.0f} nT")
-        parts.append(v.status.value)
+        if with_status:
+            parts.append(v.status.value)
     return "; ".join(parts)
 
 

@@ -891,10 +891,23 @@ def _verdict_html(cal: Any) -> str:
     neff_html = "" if neff is None else (
         f"<p>Uncertainties (\u00b1, 1 sigma) from {neff:.0f} effective independent samples of "
         f"{int(cal.n_samples)} (the residuals are correlated in time).</p>")
-    line = minus(verdict_line(cal).replace("+-", "\u00b1"))
+    line = minus(verdict_line(cal, with_status=False).replace("+-", "\u00b1"))
+    # every doubt and refusal of the checks, in plain words (the reason gives the first)
+    from pipeline.core.verdict import plain_words
+
+    checks = getattr(cal, "checks", None) or {}
+    texts = list(checks.get("refusals", ())) + list(checks.get("doubts", ()))
+    items = []
+    for t in texts:
+        cause, advice = plain_words(str(t))
+        cause = cause[:1].upper() + cause[1:] + "."
+        items.append(f"<li id=doubt>{html.escape(minus(cause))}"
+                     + (f" What to do: {html.escape(advice)}." if advice else "") + "</li>")
+    doubts = (f"<p>What the checks found:</p><ul>{''.join(items)}</ul>"
+              if len(items) > 1 else "")
     return (f"<div class=verdict id=verdict style='background:{colour}'>"
             f"<b>Verdict: {html.escape(status)}</b> &mdash; "
-            f"{html.escape(line)}{reason}{ne}{neff_html}</div>")
+            f"{html.escape(line)}{reason}{doubts}{ne}{neff_html}</div>")
 
 
 def _diagnosis_html(diagnosis: Any, t0_ns: int = 0, options: Any = None

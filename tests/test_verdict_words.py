@@ -84,3 +84,21 @@ def test_ok_and_refused_in_one_sentence_each():
         "The model leaves 4000 nT, 7 times the sensor's noise (600 nT)")
     none = judge(20.0, None)
     assert "record a few seconds without moving" in none.reason
+
+
+def test_the_report_box_says_the_status_once_and_lists_every_doubt():
+    from pipeline.model.calibration import Calibration
+    from stages.report import _verdict_html
+
+    doubts = ["the two halves of the recording disagree by 0.85 deg (chi-square 30 for 3 "
+              "degrees of freedom): the model leaves out physics; sigmas include it",
+              "the motion cannot determine soft iron: the fit leaves it out; the sigmas "
+              "include what one of typical size (0.01 soft iron) would do"]
+    cal = Calibration(R_body_mag=np.eye(3), sigma_rotvec_deg=np.full(3, 0.3),
+                      B_enu_nT=np.array([0.0, 20000.0, -44000.0]), estimator="test",
+                      residual_rms_nT=700.0, n_samples=100, checks={"doubts": doubts})
+    cal = cal.replace(verdict=judge(700.0, 660.0, doubts=doubts))
+    box = _verdict_html(cal)
+    assert box.count("QUESTIONABLE") == 1, box
+    assert box.count("<li id=doubt>") == 2 and "chi-square" not in box
+    assert "(1 more doubt in the report.)" in box
