@@ -857,11 +857,28 @@ def _calibration_html(cal: Any, options: Any = None) -> str:
         ("|B| (nT)", _fmt(float(np.linalg.norm(cal.B_enu_nT)), 1)),
         ("residual rms (nT)", _fmt(float(cal.residual_rms_nT), 2)),
         ("samples", html.escape(samples_text(cal))),
-        ("rotation axes not determined (body)",
-         ", ".join(_vec(a, 3) for a in cal.unobservable_axes_body) or "none"),
+        ("rotation axes not determined (body)", _undetermined_axes(cal)),
     ]
     body = "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in rows)
     return f"<table class=kv>{body}</table>"
+
+
+def _undetermined_axes(cal: Any) -> str:
+    """Return the axes the motion leaves undetermined, and those it determines poorly.
+
+    Poorly: a sigma over the verdict's threshold (:data:`stages.estimate.POOR_AXIS_SIGMA_DEG`);
+    never a bare "none" beside a sigma of degrees.
+    """
+    from stages.estimate import POOR_AXIS_SIGMA_DEG
+
+    out = ", ".join(_vec(a, 3) for a in cal.unobservable_axes_body) or "none"
+    sig = np.asarray(cal.sigma_rotvec_deg, float)
+    poor = [f"{ax} (\u00b1 {s:.1f}\u00b0)" for ax, s in zip("xyz", sig, strict=True)
+            if np.isfinite(s) and s > POOR_AXIS_SIGMA_DEG]
+    if poor:
+        out += (f"; poorly determined (sigma over {POOR_AXIS_SIGMA_DEG:g}\u00b0): "
+                + ", ".join(poor))
+    return out
 
 
 _VERDICT_COLOUR = {"OK": "#d4edda", "QUESTIONABLE": "#fff3cd", "REFUSED": "#f8d7da"}

@@ -102,3 +102,15 @@ def test_the_report_box_says_the_status_once_and_lists_every_doubt():
     assert box.count("QUESTIONABLE") == 1, box
     assert box.count("<li id=doubt>") == 2 and "chi-square" not in box
     assert "(1 more doubt in the report.)" in box
+
+
+def test_the_report_table_names_poorly_determined_axes():
+    from pipeline.model.calibration import Calibration
+    from stages.report import _undetermined_axes
+
+    cal = Calibration(R_body_mag=np.eye(3), sigma_rotvec_deg=np.array([3.58, 0.2, 4.45]),
+                      B_enu_nT=np.array([0.0, 20000.0, -44000.0]), estimator="test",
+                      residual_rms_nT=700.0, n_samples=100)
+    text = _undetermined_axes(cal)
+    assert text.startswith("none; poorly determined") and "x (\u00b1 3.6\u00b0)" in text
+    assert "z (\u00b1 4.5\u00b0)" in text and "y (" not in text
