@@ -590,7 +590,9 @@ def _channel_infos(scan: _Scan, counts: dict[int, int], stamps: dict[int, np.nda
     return tuple(out)
 
 
-def inspect_recording(path: str | Path) -> dict:
+def inspect_recording(path: str | Path, mag_probe: Callable[[str, np.ndarray, np.ndarray],
+                                                             dict[str, Any] | None] | None = None
+                      ) -> dict:
     """Describe a recording for ``magalign info``: channels, counts, rates, problems.
 
     Stamps are header stamps for supported types and log times for other channels.
@@ -606,7 +608,9 @@ def inspect_recording(path: str | Path) -> dict:
     dict
         ``{"path", "profile", "channels": [{topic, type, encoding, role, count, rate_hz,
         start_ns, end_ns}], "duration_s", "problems": [{code, message, count}],
-        "sample_hold"}`` (``sample_hold``: :func:`_sample_hold_info` of the magnetometer).
+        "sample_hold"}`` (``sample_hold``: what ``mag_probe(topic, t_ns, values)`` says of
+        the magnetometer channel's decoded samples, None without a probe; the reader knows
+        no model: ``magalign info`` passes the sample-and-hold detector).
 
     """
     scan = _scan(path)
@@ -627,8 +631,8 @@ def inspect_recording(path: str | Path) -> dict:
             else:
                 t = dec.t_ns
                 problems += _value_problems(scan, role, c.topic, dec)
-                if role is Role.MAGNETOMETER and held is None:
-                    held = _sample_hold_info(c.topic, dec)
+                if role is Role.MAGNETOMETER and held is None and mag_probe is not None:
+                    held = mag_probe(c.topic, dec.t_ns, dec.values)
         if t is None:
             log = [_record_columns(buf, sel[cid])["log_time_ns"]
                    for buf, sel in _iter_blocks(scan, {cid})]
@@ -670,29 +674,6 @@ def inspect_recording(path: str | Path) -> dict:
                      for p in [*scan.problems, *problems]],
         "sample_hold": held,
     }
-
-
-def _sample_hold_info(topic: str, dec: Any) -> dict[str, Any] | None:
-    """Sample-and-hold of a magnetometer channel for ``info``, or None when it has none.
-
-    ``{"topic", "repeats", "messages", "repeated_fraction", "native_rate_hz",
-    "message_rate_hz"}``: the messages that repeat the previous reading exactly and the rate
-    the sensor really converts at (:func:`pipeline.model.sample_hold.detect_sample_hold`).
-    """
-    from pipeline.model.sample_hold import detect_sample_hold
-
-    t = np.asarray(dec.t_ns, dtype=np.int64)
-    v = np.asarray(dec.values, dtype=float)
-    ok = np.isfinite(v).all(axis=1)
-    t, v = t[ok], v[ok]
-    order = np.argsort(t, kind="stable")
-    found = detect_sample_hold(t[order], v[order])
-    if found is None:
-        return None
-    return {"topic": topic, "repeats": int(np.count_nonzero(~found.first)),
-            "messages": int(len(t)), "repeated_fraction": float(found.repeated_fraction),
-            "native_rate_hz": float(found.native_rate_hz),
-            "message_rate_hz": float(found.message_rate_hz)}
 
 
 # --------------------------------------------------------------------------- chunked reading

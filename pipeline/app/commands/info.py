@@ -28,8 +28,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from typing import Any
+
+import numpy as np
 
 from pipeline.io.mcap_read import inspect_recording
+from pipeline.model.sample_hold import detect_sample_hold
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -53,6 +57,28 @@ def to_json(info: dict) -> dict:
         "duration_s": info["duration_s"],
         "problems": info["problems"],
     }
+
+
+def sample_hold_probe(topic: str, t_ns: np.ndarray, values: np.ndarray
+                      ) -> dict[str, Any] | None:
+    """Sample-and-hold of a magnetometer channel, or None when it has none.
+
+    ``{"topic", "repeats", "messages", "repeated_fraction", "native_rate_hz",
+    "message_rate_hz"}``: the messages that repeat the previous reading exactly and the rate
+    the sensor really converts at (:func:`pipeline.model.sample_hold.detect_sample_hold`).
+    """
+    t = np.asarray(t_ns, dtype=np.int64)
+    v = np.asarray(values, dtype=float)
+    ok = np.isfinite(v).all(axis=1)
+    t, v = t[ok], v[ok]
+    order = np.argsort(t, kind="stable")
+    found = detect_sample_hold(t[order], v[order])
+    if found is None:
+        return None
+    return {"topic": topic, "repeats": int(np.count_nonzero(~found.first)),
+            "messages": int(len(t)), "repeated_fraction": float(found.repeated_fraction),
+            "native_rate_hz": float(found.native_rate_hz),
+            "message_rate_hz": float(found.message_rate_hz)}
 
 
 def sample_hold_text(held: dict | None) -> str:
@@ -102,7 +128,7 @@ def format_table(info: dict) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Print the description of one recording."""
-    info = inspect_recording(args.recording)
+    info = inspect_recording(args.recording, mag_probe=sample_hold_probe)
     if args.json:
         json.dump(to_json(info), sys.stdout, indent=2)
         sys.stdout.write("\n")
