@@ -9,7 +9,8 @@ RMS in nT per component (``sqrt(mean(e_x^2 + e_y^2 + e_z^2) / 3)``), with the sa
 each bin on the first line:
 
 - ``final, in-sample``: the final model's residual, every valid message at its own stamp
-  (what ``restore`` leaves);
+  (what ``restore`` left before it timed the conversions as the diagnosis' handling does;
+  with the anchored handling, restore leaves the ``anchor re-stamp`` row in-sample);
 - ``held-out, stamps``: the same stamps, held out (below): the reference for the rows under it;
 - ``held-out, anchor re-stamp``: each conversion sensed at the time the anchor rule below
   gives (no parameter);
