@@ -245,7 +245,7 @@ def rows_html(diagnosis: dict[str, Any], t0_ns: int) -> str:
     body = "".join(
         "<tr>"
         f"<td class=l>{html.escape(r.sentence)}"
-        f"<br><small title='{html.escape(r.explanation)}'>modelled as "
+        f"<br><small title='{html.escape(r.explanation)}'>in diagnosis.json: "
         f"{html.escape(', '.join(r.effects))}</small></td>"
         f"<td class=l>{html.escape(r.when)}</td>"
         f"<td class=l>{html.escape(r.fit)}</td>"

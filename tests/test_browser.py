@@ -135,7 +135,9 @@ def test_report_in_browser(campaign, name, tmp_path):
     imgs = re.findall(r'<img alt="([^"]+)" src="data:image/png;base64,', body)
     assert {"fig_enu.png", "fig_residual.png", "fig_sphere.png", "fig_attitude.png"} <= set(
         imgs)
-    n_findings = body.count("modelled as ")
+    n_findings = body.count("in diagnosis.json: ")
+    # an effect's key is named as the file's, not as words for a person
+    assert not re.search(r"modelled as [a-z]+_[a-z_]+", body)
     assert len(imgs) >= 4 + (1 if n_findings else 0)
     for f in figs:  # drawn at 100 px per inch: about the size they are shown at
         w, h = _png_size(f)
