@@ -105,9 +105,10 @@ def what(f: dict[str, Any]) -> str:
                 f"azimuth {float(p['azimuth_deg']):.0f}\u00b0.")
     if e == "field_gradient":
         g = float(np.linalg.norm(np.asarray(p["G_nT_per_m"], float)))
+        frame = ("the attitude source's own frame" if p.get("position_frame")
+                 == "attitude_source_local" else "local east, north, up")
         return (f"The field varies from place to place: a gradient of {g / 1e3:.2f} \u00b5T/m "
-                f"(Frobenius norm) as the sensor moves (positions in the "
-                f"{p.get('position_frame', '?')} frame).")
+                f"(Frobenius norm) as the sensor moves (positions in {frame}).")
     if e == "heading_drift":
         return (f"The attitude source's heading drifts by {num(float(p['rate_deg_per_h']), 2)}"
                 f"\u00b0/h ({float(p['peak_to_peak_deg']):.2f}\u00b0 peak to peak).")
