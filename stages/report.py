@@ -9,8 +9,8 @@ Figures, written beside the report:
 - ``fig_trajectory.png`` (Li 2020 Fig. 7): the field in the body frame before and after
   calibration beside the ideal one (circles for rotations about one axis);
 - ``fig_attitude.png``: heading, pitch and roll (Li 2020 Euler angles), segments shaded;
-- one figure per diagnosis finding, when DIAGNOSE's ``stages.diagnose.stage.finding_figures``
-  exists (hook: ``finding_figures(diagnosis) -> list[(title, png bytes)]``).
+- one figure per diagnosis finding (:func:`finding_figures`: its signature in the residual,
+  events in time order on the report's time axis).
 
 ``report.html`` embeds every figure as a base64 ``data:`` URI and carries no external
 ``src``/``href``: it opens offline as a single file. Sections: recording, metrics table

@@ -22,7 +22,7 @@ from stages.diagnose.model import EffectKind as K
 from stages.diagnose.model import Term
 from stages.diagnose.result import DiagnoseConfig
 from stages.diagnose.search import diagnose_data
-from stages.diagnose.stage import Diagnose, finding_figures
+from stages.diagnose.stage import Diagnose
 
 CFG = DiagnoseConfig()
 
@@ -115,7 +115,9 @@ def test_wiring_stage_output_format_and_figures():
     cal = out.calibration
     assert abs(cal.time_offset_s - 0.005) < 3e-4
     assert cal.to_dict()["format"] == "magalign.calibration/1"
-    figs = finding_figures(out.diagnosis)
+    from stages.report import finding_figures
+
+    figs = finding_figures(out.diagnosis, t0)
     assert len(figs) == 1 and figs[0][1][:8] == b"\x89PNG\r\n\x1a\n"
     assert "time_offset" in out.diagnosis.table()
 

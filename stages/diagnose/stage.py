@@ -14,7 +14,6 @@ Terms the motion cannot determine go to ``not_identifiable`` with the reason.
 from __future__ import annotations
 
 import dataclasses
-import io
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, cast
@@ -40,7 +39,7 @@ from stages.diagnose.model import (
     term_params,
     term_sigma,
 )
-from stages.diagnose.result import DiagnoseConfig, Diagnosis, Finding, _estimate_text
+from stages.diagnose.result import DiagnoseConfig, Diagnosis, Finding
 from stages.diagnose.search import MAX_LAG_S, diagnose_data
 from stages.diagnose.statistics import _covariance, _n_eff
 
@@ -590,69 +589,3 @@ def left_out_shift(estimate: Calibration, final: Calibration, diag: Diagnosis) -
                            "sigma_rotvec_noise_deg": sig.tolist()},
               "doubts": list(estimate.checks.get("doubts", ())) + [doubt]}
     return estimate.replace(sigma_rotvec_deg=widened, checks=checks)
-
-
-def finding_figures(diagnosis: Diagnosis, dpi: int = 100) -> list[tuple[str, bytes]]:
-    """One PNG per finding showing its signature in the residual.
-
-    Time offset / eddy currents: residual before against the reading's rate of change.
-    Local effects: residual norm against time with the located windows shaded.
-    Others: residual before and the fitted contribution against time, per axis. Colours
-    and fonts are the report's (:mod:`pipeline.core.style`).
-
-    Returns
-    -------
-    list of (title, png bytes)
-
-    """
-    from matplotlib.patches import Patch
-
-    from pipeline.core import style
-
-    plt = style.pyplot()
-
-    out = []
-    for f in diagnosis.findings:
-        s = f.signature
-        if s is None:
-            continue
-        with plt.rc_context(style.rc() | {"savefig.dpi": dpi, "figure.dpi": dpi}):
-            fig, ax = plt.subplots(figsize=(12, 3.8))
-            frame = f.where["frame"]
-            if s.regressor is not None:
-                for i, c in enumerate("xyz"):
-                    ax.plot(s.regressor[:, i], s.residual_before_nT[:, i], ".", ms=2,
-                            alpha=0.4, color=style.AXIS[i], label=f"{frame} {c}")
-                ax.set_xlabel(f"rate of change of the reading ({frame} frame, nT/s)")
-                ax.set_ylabel("residual before (nT)")
-                ax.legend(markerscale=5, ncol=3, loc="upper right")
-            elif f.effect in ("disturbance", "hard_iron_step"):
-                ax.plot(s.t_s, np.linalg.norm(s.residual_before_nT, axis=1), lw=0.7,
-                        color=style.BEFORE, label="|residual| before this term")
-                ax.plot(s.t_s, np.linalg.norm(s.contribution_nT, axis=1), lw=1.6,
-                        color=style.AFTER, label="|fitted term|")
-                for a, b in f.where["windows_s"]:
-                    ax.axvspan(a, b, color=style.EVENT, alpha=0.5, lw=0, zorder=0)
-                h, lab = ax.get_legend_handles_labels()
-                ax.legend(h + [Patch(color=style.EVENT, alpha=0.5)],
-                          lab + ["window found"], loc="upper left", ncol=3)
-                ax.margins(y=0.25)  # room for the key above the curves
-                ax.set_xlabel("time from the first sample (s)")
-                ax.set_ylabel("nT")
-            else:
-                for i, c in enumerate("xyz"):
-                    ax.plot(s.t_s, s.residual_before_nT[:, i], lw=0.5, alpha=0.35,
-                            color=style.AXIS[i], label=f"residual {c}")
-                    ax.plot(s.t_s, s.contribution_nT[:, i], lw=1.6, color=style.AXIS[i],
-                            label=f"fitted term {c}")
-                ax.set_xlabel("time from the first sample (s)")
-                ax.set_ylabel(f"nT ({frame} frame)")
-                ax.legend(ncol=3, loc="upper right")
-            title = style.minus(f"{f.effect}: {_estimate_text(f)}").replace(" uT/m", " \u00b5T/m")
-            ax.set_title(title)
-            fig.tight_layout()
-            buf = io.BytesIO()
-            fig.savefig(buf, format="png")
-            plt.close(fig)
-        out.append((title, buf.getvalue()))
-    return out
