@@ -82,6 +82,19 @@ def rrd_rows(path: Path) -> Counter:
     return rows
 
 
+def rrd_columns(path: Path) -> dict[str, dict[str, list]]:
+    """Every column of an .rrd per entity, read back with rerun's own reader."""
+    from rerun.chunk import RrdReader
+
+    cols: dict[str, dict[str, list]] = {}
+    for ch in RrdReader(str(path)).stream():
+        batch = ch.to_record_batch()
+        for name in batch.schema.names:
+            cols.setdefault(str(ch.entity_path), {}).setdefault(name, []).extend(
+                batch.column(name).to_pylist())
+    return cols
+
+
 @pytest.mark.parametrize("json_family", [False, True], ids=["ros2", "json"])
 def test_corrected_mcap(tmp_path, json_family):
     src, sim = _write(tmp_path, _scenario("rec", ROTATION, 12.0, json_family=json_family))
@@ -184,16 +197,9 @@ def test_rrd_read_back(tmp_path):
     assert "/segments/index" not in rows
     assert any(e.startswith("/view/") for e in rows)  # the default blueprint is stored
     # the values, read back with rerun's own reader: labelled spans, the report's colours
-    from rerun.chunk import RrdReader
-
     from pipeline.core import style
 
-    cols: dict[str, dict[str, list]] = {}
-    for ch in RrdReader(str(rrd)).stream():
-        batch = ch.to_record_batch()
-        for name in batch.schema.names:
-            cols.setdefault(str(ch.entity_path), {}).setdefault(name, []).extend(
-                batch.column(name).to_pylist())
+    cols = rrd_columns(rrd)
     states = cols["/segments/spans"]["StateChange:state"]
     assert states == [["0: rotation 4.0 s"], ["1: static 4.0 s"], []]
     assert cols["/diagnosis/events"]["StateChange:state"] == [["disturbance"], []]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import io
 import os
 import pty
@@ -10,6 +11,7 @@ import select
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -56,14 +58,20 @@ def recording(tmp_path_factory) -> Path:
     return corpus.valid(tmp_path_factory.mktemp("progress"))
 
 
+@contextlib.contextmanager
+def _diagnosing(disp: pg.ProgressDisplay, name: str, detail: str) -> Iterator[None]:
+    """``name`` half-way through its diagnosis (stage 2 of 3), reported to ``disp``."""
+    with pg.use_sink(pg.DirectSink(name, disp.update)):
+        pg.stage("Ingest", 0, 3, ["Ingest", "Diagnose", "Report"])
+        pg.stage("Diagnose", 1, 3)
+        pg.detail(detail, 0.5, 1.0)
+        yield
+
+
 def test_line_names_stage_and_time_left():
     disp = pg.ProgressDisplay(2, "magalign process", enabled=False)
     disp.started -= 10.0
-    sink = pg.DirectSink("line_04", disp.update)
-    with pg.use_sink(sink):
-        pg.stage("Ingest", 0, 3, ["Ingest", "Diagnose", "Report"])
-        pg.stage("Diagnose", 1, 3)
-        pg.detail("search 1, candidate 3/9", 0.5, 1.0)
+    with _diagnosing(disp, "line_04", "search 1, candidate 3/9"):
         line = disp.line(width=200)
         assert "[0/2]" in line and "line_04: diagnosing (2/3): search 1, candidate 3/9" in line
         assert "left ~" in line and "elapsed 0:10" in line
@@ -79,11 +87,8 @@ def test_line_fits_80_columns_with_the_time_left():
     """A long name and stage are shortened; the percentage and both times stay whole."""
     disp = pg.ProgressDisplay(12, "magalign process", enabled=False)
     disp.started -= 3725.0
-    sink = pg.DirectSink("a_recording_with_a_very_long_name_2026-11-20", disp.update)
-    with pg.use_sink(sink):
-        pg.stage("Ingest", 0, 3, ["Ingest", "Diagnose", "Report"])
-        pg.stage("Diagnose", 1, 3)
-        pg.detail("search 3, candidate 17/40: local source near 41.2 s", 0.5, 1.0)
+    with _diagnosing(disp, "a_recording_with_a_very_long_name_2026-11-20",
+                     "search 3, candidate 17/40: local source near 41.2 s"):
         for width in (79, 60):
             line = disp.line(width=width)
             assert len(line) <= width, line

@@ -127,7 +127,7 @@ def test_counts_add_up(moving):
 
 def test_rerun_path_in_3d(moving):
     """The plan view in rerun: the path coloured by the field, sources and events, read back."""
-    from rerun.chunk import RrdReader
+    from test_outputs import rrd_columns
 
     from stages.write_rerun import write_rrd
 
@@ -138,12 +138,7 @@ def test_rerun_path_in_3d(moving):
          "sigma": {"position_m": [0.1, 0.2, 0.3]}, "where": {"windows_s": [[0.0, 30.0]]}}]}
     rrd = write_rrd(ctx.recording, ctx.calibration, tmp / "moving.rrd", diagnosis=diag,
                     restored=ctx.restored)
-    cols: dict[str, dict[str, list]] = {}
-    for ch in RrdReader(str(rrd)).stream():
-        batch = ch.to_record_batch()
-        for name in batch.schema.names:
-            cols.setdefault(str(ch.entity_path), {}).setdefault(name, []).extend(
-                batch.column(name).to_pylist())
+    cols = rrd_columns(rrd)
     (pts,) = cols["/map/path"]["Points3D:positions"]
     (rgb,) = cols["/map/path"]["Points3D:colors"]
     assert 2 <= len(pts) <= 1500 and len(rgb) == len(pts)

@@ -15,12 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import semireal
+from test_stream_process import assert_restores_alike, chunked
 
-from pipeline.io.mcap_read import iter_recording_chunks, read_recording
-from pipeline.model.attitude import AttitudeInterpolator
+from pipeline.io.mcap_read import read_recording
 from pipeline.model.calibration import Calibration
 from pipeline.model.sample_hold import anchored_times_ns, handling_of, repeated
-from stages.restore import ChunkedRestore, restore_samples
+from stages.restore import restore_samples
 
 LAB5 = semireal.REAL_DIR / "lab_05.mcap"
 GOLDEN = Path(__file__).parent / "golden" / "real" / "lab_05" / "calibration.json"
@@ -71,22 +71,7 @@ def test_chunked_restore_times_the_conversions_as_the_whole_recording():
     """Chunk by chunk (each row waits for the messages around it, the positions that
     bracket its sensing time and the attitude its eddy term differences), the rows are the
     whole recording's to 1e-6 nT."""
-    rec = read_recording(LAB5)
     cal = _cal("anchored")
-    whole = restore_samples(rec, cal)
-    it = AttitudeInterpolator.of(rec.attitude)
-    cr = ChunkedRestore(cal, t0_ns=int(rec.mag.t_ns[0]), max_gap_s=it.max_gap_s,
-                        cubic_weight=it.cubic_weight, step_s=it.step_s, positions=True)
-    parts = []
-    chunks = list(iter_recording_chunks(LAB5, max_messages=2_000))
+    rec, parts, _, chunks = chunked(LAB5, cal, 2_000, positions=True)
     assert len(chunks) > 10
-    for ch in chunks:
-        parts.append(cr.add(ch.mag.t_ns, ch.mag.values, ch.attitude.t_ns,
-                            ch.attitude.q_enu_body, ch.position))
-    parts.append(cr.finish())
-    parts = [p for p in parts if p is not None]
-    np.testing.assert_array_equal(np.concatenate([p.t_ns for p in parts]), whole.t_ns)
-    for f in ("enu_nT", "residual_nT"):
-        got = np.concatenate([getattr(p, f) for p in parts])
-        np.testing.assert_array_equal(np.isnan(got), np.isnan(getattr(whole, f)))
-        np.testing.assert_allclose(got, getattr(whole, f), atol=1e-6, equal_nan=True)  # nT
+    assert_restores_alike(parts, restore_samples(rec, cal))

@@ -49,32 +49,44 @@ def _cal(tau_s: float) -> Calibration:
                        residual_rms_nT=0.5, n_samples=0, time_offset_s=tau_s)
 
 
-def _chunked(path, cal, chunk_messages, **kw):
+def chunked(path, cal, chunk_messages, *, positions=False):
+    """Restore ``path`` with ``cal`` chunk by chunk, as pass 2 of a long recording does.
+
+    Returns ``(rec, parts, held, chunks)``: the whole recording, the restored parts, the most
+    samples held between chunks (attitude, waiting rows, positions) and the chunks read.
+    """
     rec = read_recording(path)
     it = AttitudeInterpolator.of(rec.attitude)
     cr = ChunkedRestore(cal, t0_ns=int(rec.mag.t_ns[0]), max_gap_s=it.max_gap_s,
-                        cubic_weight=it.cubic_weight, step_s=it.step_s, **kw)
+                        cubic_weight=it.cubic_weight, step_s=it.step_s, positions=positions)
     parts, held = [], 0
-    for ch in iter_recording_chunks(path, max_messages=chunk_messages):
+    chunks = list(iter_recording_chunks(path, max_messages=chunk_messages))
+    for ch in chunks:
         parts.append(cr.add(ch.mag.t_ns, ch.mag.values, ch.attitude.t_ns,
-                            ch.attitude.q_enu_body))
-        held = max(held, cr.attitude.held)
+                            ch.attitude.q_enu_body, ch.position if positions else None))
+        held = max(held, cr.attitude.held,
+                   0 if cr.positions is None else len(cr.positions._t))
     parts.append(cr.finish())
-    return rec, [p for p in parts if p is not None], held
+    return rec, [p for p in parts if p is not None], held, chunks
+
+
+def assert_restores_alike(parts, whole, fields=("enu_nT", "residual_nT")):
+    """The chunked parts are the whole recording's rows, to 1e-6 nT, NaN where it has NaN."""
+    np.testing.assert_array_equal(np.concatenate([p.t_ns for p in parts]), whole.t_ns)
+    for f in fields:
+        got = np.concatenate([getattr(p, f) for p in parts])
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(getattr(whole, f)))
+        np.testing.assert_allclose(got, getattr(whole, f), atol=1e-6, equal_nan=True)  # nT
 
 
 @pytest.mark.parametrize("tau_s", [0.0, 0.013, -0.031])
 def test_chunked_restore_equals_the_whole_recording_restore(tmp_path, tau_s):
     path, _ = make(tmp_path / "a.mcap", n=9_000, chunk_size=16 << 10)
     cal = _cal(tau_s)
-    rec, parts, held = _chunked(path, cal, 1_500)
+    rec, parts, held, _ = chunked(path, cal, 1_500)
     whole = restore_samples(rec, cal)
     assert len(parts) >= 5
-    np.testing.assert_array_equal(np.concatenate([p.t_ns for p in parts]), whole.t_ns)
-    for f in ("enu_nT", "residual_nT", "calibrated_mag_nT"):
-        got = np.concatenate([getattr(p, f) for p in parts])
-        np.testing.assert_array_equal(np.isnan(got), np.isnan(getattr(whole, f)))
-        np.testing.assert_allclose(got, getattr(whole, f), atol=1e-6, equal_nan=True)  # nT
+    assert_restores_alike(parts, whole, ("enu_nT", "residual_nT", "calibrated_mag_nT"))
     tot = sum((RestoreTotals.of(p) for p in parts), RestoreTotals())
     assert (tot.n_total, tot.n_used) == (whole.n_total, whole.n_used)
     assert tot.residual_rms_nT == pytest.approx(whole.residual_rms_nT, rel=1e-9)
@@ -85,7 +97,7 @@ def test_chunked_restore_equals_the_whole_recording_restore(tmp_path, tau_s):
 def test_metrics_accumulator_equals_compute_metrics(tmp_path):
     path, _ = make(tmp_path / "b.mcap", n=6_000)
     cal = _cal(0.004)
-    rec, parts, _ = _chunked(path, cal, 1_000)
+    rec, parts, _, _ = chunked(path, cal, 1_000)
     t = rec.mag.t_ns
     segs = (Segment(int(t[100]), int(t[2_500]), SegmentKind("rotation")),
             Segment(int(t[2_500]), int(t[-1]) + 1, SegmentKind("static")),
@@ -341,31 +353,16 @@ def test_chunked_restore_with_positions_equals_the_whole_recording_restore(
     assert {"local_source", "field_gradient"} <= set(cal.effects), set(cal.effects)
     cal = cal.replace(effects={**cal.effects,
                                "lever_arm": {"lever_arm_body_m": [0.05, -0.02, 0.3]}})
-    rec = read_recording(path)
+    rec, parts, held, chunks = chunked(path, cal, 300, positions=True)
     assert rec.position is not None
-    whole = restore_samples(rec, cal)
-    it = AttitudeInterpolator.of(rec.attitude)
-    cr = ChunkedRestore(cal, t0_ns=int(rec.mag.t_ns[0]), max_gap_s=it.max_gap_s,
-                        cubic_weight=it.cubic_weight, step_s=it.step_s, positions=True)
-    parts = []
-    chunks = list(iter_recording_chunks(path, max_messages=300))
     assert len(chunks) > 10 and all(c.position is not None for c in chunks)
-    for ch in chunks:
-        parts.append(cr.add(ch.mag.t_ns, ch.mag.values, ch.attitude.t_ns,
-                            ch.attitude.q_enu_body, ch.position))
-        assert cr.positions is not None and len(cr.positions._t) < 2_000  # bounded
-    parts.append(cr.finish())
-    parts = [p for p in parts if p is not None]
-    np.testing.assert_array_equal(np.concatenate([p.t_ns for p in parts]), whole.t_ns)
+    assert held < 2_000  # bounded: about a chunk, not the file
+    whole = restore_samples(rec, cal)
     # the terms matter: without positions the residual differs by far more than 1e-6 nT
-    bare = ChunkedRestore(cal, t0_ns=int(rec.mag.t_ns[0]), max_gap_s=it.max_gap_s,
-                          cubic_weight=it.cubic_weight, step_s=it.step_s).add(
-        rec.mag.t_ns, rec.mag.values, rec.attitude.t_ns, rec.attitude.q_enu_body)
-    assert np.nanmax(np.abs(bare.residual_nT - whole.residual_nT[:len(bare.t_ns)])) > 50.0
-    for f in ("enu_nT", "residual_nT"):
-        got = np.concatenate([getattr(p, f) for p in parts])
-        np.testing.assert_array_equal(np.isnan(got), np.isnan(getattr(whole, f)))
-        np.testing.assert_allclose(got, getattr(whole, f), atol=1e-6, equal_nan=True)  # nT
+    _, bare, _, _ = chunked(path, cal, 300)
+    got = np.concatenate([p.residual_nT for p in bare])
+    assert np.nanmax(np.abs(got - whole.residual_nT)) > 50.0
+    assert_restores_alike(parts, whole)
 
 
 def test_two_pass_keeps_the_spatial_terms_of_a_survey(tmp_path, monkeypatch):
