@@ -39,15 +39,12 @@ from pipeline.core.verdict import (
 )
 from pipeline.model.calibration import Calibration
 from pipeline.model.sample_hold import repeated
-from stages.estimate import fit_calibration
+from stages.estimate import POOR_AXIS_SIGMA_DEG, fit_calibration
 from stages.restore import restore_samples
 
 #: The line's own rotation differs from the calibration's by more than this many combined
 #: sigmas about an axis the line determines: the line contradicts the calibration.
 DISAGREE_SIGMAS = 3.0
-#: A line's refitted rotation counts about an axis only where its sigma is below this (deg):
-#: a straight line determines little, and a sigma of degrees compares nothing.
-DETERMINED_SIGMA_DEG = 1.0
 _RANK = {Status.OK: 0, Status.QUESTIONABLE: 1, Status.REFUSED: 2}
 
 
@@ -74,17 +71,18 @@ def rotation_check(cal: Calibration, refit: Calibration) -> dict[str, Any]:
     -------
     dict
         ``determined_axes`` (body axes ``x``/``y``/``z`` whose refitted sigma is below
-        :data:`DETERMINED_SIGMA_DEG`), ``difference_deg`` [3] (refit minus calibration,
-        rotation vector about body x, y, z), ``z`` [3] (per axis, in combined sigmas; null
-        where not determined), ``max_z`` (null without a determined axis), ``refit_rotvec_deg``
-        and ``refit_sigma_deg``.
+        :data:`stages.estimate.POOR_AXIS_SIGMA_DEG`: a straight line determines little, and
+        a sigma of degrees compares nothing), ``difference_deg`` [3] (refit minus
+        calibration, rotation vector about body x, y, z), ``z`` [3] (per axis, in combined
+        sigmas; null where not determined), ``max_z`` (null without a determined axis),
+        ``refit_rotvec_deg`` and ``refit_sigma_deg``.
 
     """
     a = np.asarray(cal.rotvec_body_mag_deg, float)
     b = np.asarray(refit.rotvec_body_mag_deg, float)
     sa = np.asarray(cal.sigma_rotvec_deg, float)
     sb = np.asarray(refit.sigma_rotvec_deg, float)
-    det = np.isfinite(sb) & (sb < DETERMINED_SIGMA_DEG) & np.isfinite(sa)
+    det = np.isfinite(sb) & (sb < POOR_AXIS_SIGMA_DEG) & np.isfinite(sa)
     if len(refit.unobservable_axes_body):
         u = np.abs(np.asarray(refit.unobservable_axes_body, float))
         det &= ~np.any(u > 0.5, axis=0)  # an axis the motion leaves undetermined
@@ -134,9 +132,9 @@ def applied_verdict(cal: Calibration, residual_rms_nT: float) -> Verdict:
         noise = ap["source_noise_nT"]
         noise_from = ("the sensor noise was measured on the calibration run (this recording "
                       "has no still window)")
-    elif noise is None and src_ok_floor(ap) is not None:
+    elif noise is None and (floor := src_ok_floor(ap)) is not None:
         # neither has a still window: what the accepted model left there is the floor
-        noise = src_ok_floor(ap)
+        noise = floor
         noise_from = ("no still window here or in the calibration run: the floor is the "
                       "calibration run's residual")
     res = float(residual_rms_nT)

@@ -33,6 +33,7 @@ from pipeline.core import style
 from pipeline.core.atomic import atomic_path, write_text_atomic
 from pipeline.core.recording import Context, Recording, Segment
 from pipeline.core.style import minus
+from pipeline.core.verdict import plain_words
 from stages.report_map import (
     EVENT_EFFECTS,
     draw_map,
@@ -910,8 +911,6 @@ def _verdict_html(cal: Any) -> str:
         f"{int(cal.n_samples)} (the residuals are correlated in time).</p>")
     line = minus(verdict_line(cal, with_status=False).replace("+-", "\u00b1"))
     # every doubt and refusal of the checks, in plain words (the reason gives the first)
-    from pipeline.core.verdict import plain_words
-
     checks = getattr(cal, "checks", None) or {}
     texts = list(checks.get("refusals", ())) + list(checks.get("doubts", ()))
     items = []

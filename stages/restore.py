@@ -466,6 +466,17 @@ SENSING_CONTEXT = 256
 SENSING_MARGIN_S = 0.25
 
 
+def _head(parts: list[np.ndarray], n: int) -> np.ndarray:
+    """Return the first ``n`` rows of the parts joined, copying no more than those rows."""
+    out, have = [], 0
+    for p in parts:
+        if have >= n:
+            break
+        out.append(p[:n - have])
+        have += len(out[-1])
+    return np.concatenate(out)
+
+
 class ChunkedPositions:
     """A long recording's positions, chunk by chunk, held back until they bracket the rows.
 
@@ -623,9 +634,8 @@ class ChunkedRestore:
                 break
             t_sensed = None
             if self.handling is not None:
-                after_t = np.concatenate([t[n:], *later])[:SENSING_CONTEXT]
-                after_v = np.concatenate([v[n:], *(w[1] for w in self._waiting[1:])])[
-                    :SENSING_CONTEXT]
+                after_t = _head([t[n:], *later], SENSING_CONTEXT)
+                after_v = _head([v[n:], *(w[1] for w in self._waiting[1:])], SENSING_CONTEXT)
                 t_sensed = self._sensing(t[:n], v[:n], after_t, after_v)
             if n < len(t):
                 self._waiting[0] = (t[n:], v[n:], interp)
