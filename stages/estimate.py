@@ -213,15 +213,19 @@ def with_verdict(cal: Calibration, aligned: AlignedSeries,
     if len(cal.unobservable_axes_body) >= 3:
         refusals.insert(0, "the platform did not rotate: nothing about the misalignment is "
                         "observable; record rotations about at least two different axes")
-    doubts = list(cal.checks.get("doubts", ()))
+    # a doubt about the rotation's own precision, kept beside the checks' (the report lists
+    # them all; judged again, the previous one is replaced)
+    poor = "the rotation about body "
+    doubts = [d for d in cal.checks.get("doubts", ()) if not d.startswith(poor)]
     sig = np.asarray(cal.sigma_rotvec_deg, float)
     if len(cal.unobservable_axes_body) == 0 and np.all(np.isfinite(sig)):
         i = int(np.argmax(sig))
         if sig[i] > POOR_AXIS_SIGMA_DEG:
-            doubts.append(f"the rotation about body {'xyz'[i]} is only known to {sig[i]:.1f} "
-                          "deg: the motion barely turned the sensor about that axis")
+            doubts.append(f"{poor}{'xyz'[i]} is only known to {sig[i]:.1f} deg: the motion "
+                          "barely turned the sensor about that axis")
     return cal.replace(verdict=judge(res, noise, refusals=refusals, doubts=doubts,
-                                     diagnosed=diagnosed))
+                                     diagnosed=diagnosed),
+                       checks={**cal.checks, "doubts": doubts})
 
 
 def carry_checks(before: Calibration, after: Calibration, *, explained: bool = False,

@@ -297,12 +297,12 @@ def explanation(
     if kind is EffectKind.AXIS_TILT:
         text += (
             f". The axis leans {params['tilt_deg']:.3g} deg towards bearing "
-            f"{params['azimuth_deg']:.0f} deg. With R_body_mag estimated, the readings fix only "
-            "the angle between the rotation axis and the field: every axis on that cone around "
-            "B fits equally (a lean across the field's bearing turns B about the axis, which "
-            "R_body_mag absorbs), and the one of least tilt, leaning along the field's bearing, "
-            "is reported. The true tilt is at least this large; a mounting known from another "
-            "calibration would determine its direction"
+            f"{params['azimuth_deg']:.0f} deg. With the misalignment estimated, the readings fix "
+            "only the angle between the rotation axis and the field: every axis on that cone "
+            "around B fits equally (a lean across the field's bearing turns B about the axis, "
+            "which the misalignment absorbs), and the one of least tilt, leaning along the "
+            "field's bearing, is reported. The true tilt is at least this large; a mounting "
+            "known from another calibration would determine its direction"
         )
     return text
 
@@ -479,8 +479,8 @@ def identifiability_reason(
     if kind is EffectKind.AXIS_TILT:
         if data.B_known_enu_nT is None:
             return (
-                "a tilt of the rotation axis is absorbed exactly by R_body_mag and B_enu while "
-                "the field is estimated; give a reference field to determine it"
+                "a tilt of the rotation axis is absorbed exactly by the misalignment and the field "
+                "while the field is estimated; give a reference field to determine it"
             )
     if kind is EffectKind.HARD_IRON and single_axis and data.B_known_enu_nT is None:
         return (
@@ -492,8 +492,8 @@ def identifiability_reason(
     if kind in rate_kinds and single_axis and stats.rate_cv < 0.05:
         return (
             f"rotation at a constant rate about one axis (rate CV {stats.rate_cv:.3f}): a time "
-            "offset equals a fixed heading rotation, absorbed by R_body_mag; vary the rotation "
-            "rate or rotate about more than one axis"
+            "offset equals a fixed heading rotation, absorbed by the misalignment; vary the "
+            "rotation rate or rotate about more than one axis"
         )
     if kind is EffectKind.HEADING_DRIFT:
         if horizontal_fraction is not None and horizontal_fraction < MIN_HORIZONTAL_FRACTION:
@@ -514,9 +514,9 @@ def identifiability_reason(
     if efficiency < CONFOUND_RATIO:
         which = {
             EffectKind.FIELD_DRIFT: "slow attitude changes and the field",
-            EffectKind.SOFT_IRON: "the field magnitude and R_body_mag",
-            EffectKind.EDDY_CURRENT: "the time offset and R_body_mag",
-            EffectKind.HEADING_DRIFT: "the field and R_body_mag",
+            EffectKind.SOFT_IRON: "the field magnitude and the misalignment",
+            EffectKind.EDDY_CURRENT: "the time offset and the misalignment",
+            EffectKind.HEADING_DRIFT: "the field and the misalignment",
         }.get(kind, "terms already in the model")
         return (
             f"the motion leaves this term confounded with {which} (only {efficiency:.1e} of its "

@@ -358,7 +358,7 @@ def diagnose_data(
             if reason is None and st.rot_efficiency < CONFOUND_RATIO \
                     and term.kind not in LOCAL_KINDS:
                 reason = (
-                    f"with it the motion leaves the rotation R_body_mag confounded (only "
+                    f"with it the motion leaves the misalignment confounded (only "
                     f"{st.rot_efficiency:.1e} of its weakest combination stays determined): it "
                     "would trade against the misalignment; rotate through more attitudes"
                 )
