@@ -136,6 +136,53 @@ def hat_basis(t_s: F64, knots_s: F64) -> F64:
     return phi * ((t >= k[0]) & (t < k[-1]))
 
 
+def ramp_modes(ramp_s: tuple[float, float], mode_step_s: float) -> int:
+    """Return the number of sine modes of one transition of a ``hard_iron_step``.
+
+    One mode per ``mode_step_s`` of the transition: the field of a magnet carried onto or
+    off the platform changes shape within a fraction of a second (``1/r^3``), which a
+    straight ramp cannot follow.
+    """
+    return max(1, int(np.ceil((float(ramp_s[1]) - float(ramp_s[0])) / mode_step_s - 1e-9)))
+
+
+def ramp_profile(t_s: F64, window_s: tuple[float, float], ramps_s: Any,
+                 mode_step_s: float) -> tuple[F64, F64]:
+    """Plateau profile and transition basis of one ``hard_iron_step`` event, mag frame.
+
+    The offset of an event in ``window_s = [a, b)`` is ``o s(t) + sum_j phi_j(t) c_j``:
+    ``s`` is 1 on the plateau, 0 outside the window, and runs linearly from 0 at the outer
+    end of each transition (a ramp that starts at ``a`` or ends at ``b``) to 1 at its inner
+    end; ``phi_j = sin(k pi u)``, ``u`` running from 0 to 1 across a transition, are the
+    Laplace eigenfunctions of that interval with both ends held (the offset is 0 before
+    the magnet moves and ``o`` once it rests), whose coefficients ``c_j`` (3 each, mag
+    frame) bend the ramp into the field the magnet made while it moved.
+
+    Returns
+    -------
+    s : ndarray (N,)
+        The plateau profile, dimensionless.
+    phi : ndarray (N, M)
+        The modes of all transitions, in order (:func:`ramp_modes` each).
+
+    """
+    t = np.asarray(t_s, dtype=float)
+    a, b = float(window_s[0]), float(window_s[1])
+    s = ((t >= a) & (t < b)).astype(float)
+    cols = []
+    for r0, r1 in ramps_s or ():
+        r0, r1 = float(r0), float(r1)
+        inside = (t >= r0) & (t < r1)
+        u = (t[inside] - r0) / (r1 - r0)
+        onset = abs(r0 - a) <= abs(r1 - b)
+        s[inside] = u if onset else 1.0 - u
+        k = np.arange(1, ramp_modes((r0, r1), mode_step_s) + 1)
+        phi = np.zeros((t.size, k.size))
+        phi[inside] = np.sin(np.pi * u[:, None] * k[None, :])
+        cols.append(phi)
+    return s, (np.concatenate(cols, axis=1) if cols else np.zeros((t.size, 0)))
+
+
 def in_windows(t_s: F64, windows_s: Any) -> np.ndarray:
     """Half-open window membership, (N,) bool."""
     t = np.asarray(t_s, dtype=float)
@@ -343,8 +390,9 @@ class ForwardModel:
         ``tau``, s (CONVENTIONS sign).
     E_s : ndarray (3, 3) or None
         ``eddy_current``, s.
-    steps : tuple of (windows_s, offset_nT (3,))
-        ``hard_iron_step`` terms.
+    steps : tuple of (windows_s, offset_nT (3,), ramps_s, modes_nT (M, 3), mode_step_s)
+        ``hard_iron_step`` terms: the plateau offset in the windows, and the transitions
+        while the magnet moved (:func:`ramp_profile`; no ramps: a plain step).
     disturbances : tuple of (knots_s (K,), field_nT (K, 3))
         ``disturbance`` fields at their knots, ENU.
     drift : (coef_nT (4, 3), span_s) or None
@@ -413,7 +461,11 @@ class ForwardModel:
             tau = float(p["time_offset_s"]) if p and p.get("time_offset_s") is not None else 0.0
         E = first("eddy_current")
         steps = tuple((tuple(tuple(w) for w in p.get("windows_s") or ()),
-                       np.asarray(p["offset_nT"], dtype=float).reshape(3))
+                       np.asarray(p["offset_nT"], dtype=float).reshape(3),
+                       tuple(tuple(r) for r in p.get("ramps_s") or ()),
+                       np.asarray(p.get("ramp_modes_nT") or np.zeros((0, 3)),
+                                  dtype=float).reshape(-1, 3),
+                       float(p.get("ramp_mode_step_s") or 1.0))
                       for p in _as_list(eff.get("hard_iron_step")))
         unmodelled: list[str] = []
         dist = []
@@ -537,10 +589,15 @@ class ForwardModel:
         return heading_basis(np.asarray(t_s, dtype=float), span) @ coef
 
     def step_offset_nT(self, t_s: F64) -> F64:
-        """``o_step 1[t in windows]`` of (M5), mag frame, (N, 3)."""
-        out = np.zeros((len(t_s), 3))
-        for windows, off in self.steps:
-            out[in_windows(t_s, windows)] += off
+        """``o_step 1[t in windows]`` of (M5), with its transitions, mag frame, (N, 3)."""
+        t = np.asarray(t_s, dtype=float)
+        out = np.zeros((len(t), 3))
+        for windows, off, ramps, modes, mode_step in self.steps:
+            if not ramps:
+                out[in_windows(t, windows)] += off
+                continue
+            s, phi = ramp_profile(t, windows[0], ramps, mode_step)
+            out += s[:, None] * off + phi @ modes
         return out
 
 

@@ -61,6 +61,8 @@ from pipeline.model.forward import (
     field_jacobian,
     hat_basis,
     heading_basis,
+    ramp_modes,
+    ramp_profile,
     reading,
     rot_z,
     rotate_about_up,
@@ -271,7 +273,15 @@ class Term:
     windows_s : tuple of (start, end)
         Half-open windows, s from the first magnetometer sample (local effects only).
     knot_step_s : float
-        Spacing of the linear B-spline (hat) knots of a ``disturbance`` field.
+        Spacing of the linear B-spline (hat) knots of a ``disturbance`` field, and of the
+        sine modes of a ``hard_iron_step``'s transitions (one per ``knot_step_s``).
+    ramps_s : tuple of (start, end)
+        ``hard_iron_step``: the transitions while the magnet moved, each inside the window
+        and touching one of its ends (``pipeline.model.forward.ramp_profile``).
+    ramp_scale_s : float
+        ``hard_iron_step``: the time scale of the GP prior of its transitions' modes, s (how
+        quickly the field of a moving magnet may change shape); their prior's size is
+        ``prior_nT`` and the noise it is weighed against ``noise_nT``.
     yaw_rad : float
         ``field_gradient`` in a position frame rotated about Up: the rotation ``Q = Rz(yaw)``
         from that frame to ENU, located by a search (like a window), not fitted.
@@ -296,6 +306,8 @@ class Term:
     kind: EffectKind
     windows_s: tuple[tuple[float, float], ...] = ()
     knot_step_s: float = 1.0
+    ramps_s: tuple[tuple[float, float], ...] = ()
+    ramp_scale_s: float = 0.0
     yaw_rad: float = 0.0
     fit_yaw: bool = False
     domain_m: tuple[tuple[float, float], ...] = ()
@@ -316,8 +328,30 @@ class Term:
         against the residual noise ``noise_nT``: the fit minimises ``|r|^2 + sum_j
         prec_j w_j^2``, the negative log posterior times ``2 noise^2``.
         """
+        if self.kind is EffectKind.HARD_IRON_STEP:
+            return self._ramp_precision()
         var = self.basis().prior_variance(self.length_scale_m, self.prior_nT)
         return (self.noise_nT**2) / np.maximum(var, 1e-300)
+
+    def _ramp_precision(self) -> F64:
+        """Ridge of a step's parameters, (3 + 3M,): none on the plateau, a GP on the modes.
+
+        The transition's departure from a straight ramp is a squared-exponential GP of
+        time scale ``ramp_scale_s`` and size ``prior_nT`` on each ramp of length ``L``; in
+        the Dirichlet eigenbasis ``sin(k pi u)`` its coefficients are independent with
+        variance ``(2 / L) S(k pi / L)``, ``S(w) = prior^2 sqrt(2 pi) l exp(-w^2 l^2 / 2)``
+        (Solin & Sarkka 2020, Eq. 20, the basis without its ``sqrt(2 / L)`` norm).
+        """
+        out = [np.zeros(3)]
+        ell = self.ramp_scale_s
+        for r0, r1 in self.ramps_s:
+            L = float(r1) - float(r0)
+            k = np.arange(1, ramp_modes((r0, r1), self.knot_step_s) + 1)
+            w = k * np.pi / L
+            var = (2.0 / L) * self.prior_nT**2 * np.sqrt(2 * np.pi) * ell * np.exp(
+                -0.5 * (w * ell) ** 2)
+            out.append(np.repeat(self.noise_nT**2 / np.maximum(var, 1e-300), 3))
+        return np.concatenate(out)
 
     def knots(self) -> list[F64]:
         """Knot times of each disturbance window (hat functions, both ends included)."""
@@ -330,8 +364,10 @@ class Term:
     def n_params(self) -> int:
         """Return the number of parameters of the term."""
         k = self.kind
-        if k in (EffectKind.HARD_IRON, EffectKind.HARD_IRON_STEP):
+        if k is EffectKind.HARD_IRON:
             return 3
+        if k is EffectKind.HARD_IRON_STEP:
+            return 3 + 3 * self.step_profile(np.zeros(1))[1].shape[1]
         if k in (EffectKind.SOFT_IRON, EffectKind.FIELD_GRADIENT):
             return 5
         if k is EffectKind.TIME_OFFSET:
@@ -359,6 +395,22 @@ class Term:
         if not self.windows_s:
             return np.ones(np.shape(t_s))
         return self.indicator(t_s)
+
+    def step_profile(self, t_s: F64) -> tuple[F64, F64]:
+        """``hard_iron_step``: plateau profile (N,) and transition basis (N, M).
+
+        The offset is ``o s(t) + phi(t) c`` (``pipeline.model.forward.ramp_profile``); a step
+        without transitions is ``s = 1[t in window]`` and ``M = 0``.
+        """
+        if not self.ramps_s:
+            return self.indicator(t_s), np.zeros((np.size(t_s), 0))
+        (window,) = self.windows_s
+        return ramp_profile(t_s, window, self.ramps_s, self.knot_step_s)
+
+    def step_offset_nT(self, t_s: F64, value: F64) -> F64:
+        """``hard_iron_step``'s offset at ``t_s``, mag frame, (N, 3)."""
+        s, phi = self.step_profile(t_s)
+        return s[:, None] * value[:3] + phi @ np.asarray(value[3:]).reshape(-1, 3)
 
     def indicator(self, t_s: F64) -> F64:
         """1 inside any window, else 0, shape (N,)."""
@@ -454,11 +506,15 @@ class ModelState:
         squares: the GP prior of the map's weights (:meth:`Term.prior_precision`); every
         other parameter has none (zero).
         """
-        if not any(t.kind is EffectKind.FIELD_MAP for t in self.terms):
+        def has_prior(t: Term) -> bool:
+            return t.kind is EffectKind.FIELD_MAP or (
+                t.kind is EffectKind.HARD_IRON_STEP and bool(t.ramps_s))
+
+        if not any(has_prior(t) for t in self.terms):
             return None
         out = np.zeros(self.n_params())
         for t, i in zip(self.terms, self.offsets(), strict=True):
-            if t.kind is EffectKind.FIELD_MAP:
+            if has_prior(t):
                 out[i : i + t.n_params()] = t.prior_precision()
         return out
 
@@ -769,7 +825,7 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
         if term.kind is EffectKind.HARD_IRON:
             offsets.append(v)
         elif term.kind is EffectKind.HARD_IRON_STEP:
-            offsets.append(term.indicator(t)[:, None] * v)
+            offsets.append(term.step_offset_nT(t, v))
         elif term.kind is EffectKind.EDDY_CURRENT:
             E_term = v.reshape(3, 3)
     rd = reading(Ct, Bp, R, D, offsets, E_term, Cdot)
@@ -803,7 +859,10 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
         if k is EffectKind.HARD_IRON:
             J[:, :, i : i + 3] = np.eye(3)
         elif k is EffectKind.HARD_IRON_STEP:
-            J[:, :, i : i + 3] = term.indicator(t)[:, None, None] * np.eye(3)
+            s_step, phi = term.step_profile(t)
+            J[:, :, i : i + 3] = s_step[:, None, None] * np.eye(3)
+            for j in range(phi.shape[1]):  # the transitions' knots, 3 each
+                J[:, :, i + 3 + 3 * j : i + 6 + 3 * j] = phi[:, j, None, None] * np.eye(3)
         elif k is EffectKind.SOFT_IRON:
             # dy/ds_k = S_k m + E S_k mdot
             J[:, :, i : i + 5] = soft_iron_jacobian(_SOFT_BASIS, m, mdot, E)  # (J4)
@@ -1025,7 +1084,7 @@ def term_params(term: Term, value: F64, state: ModelState, data: FitData) -> dic
         }
     if k is EffectKind.HARD_IRON_STEP:
         return {"windows_s": [[float(a), float(b)] for a, b in term.windows_s],
-                "offset_nT": value.tolist()}
+                "offset_nT": np.asarray(value[:3], dtype=float).tolist()}
     if k is EffectKind.FIELD_GRADIENT:
         ref = np.zeros(3) if data.p_ref_m is None else np.asarray(data.p_ref_m, dtype=float)
         return {"G_nT_per_m": gradient_matrix(value, term.yaw_rad).tolist(),
@@ -1053,7 +1112,7 @@ def term_sigma(term: Term, cov: F64, state: ModelState, data: FitData) -> dict[s
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     k = term.kind
     if k in (EffectKind.HARD_IRON, EffectKind.HARD_IRON_STEP):
-        return {"offset_nT": sd.tolist()}
+        return {"offset_nT": sd[:3].tolist()}
     if k is EffectKind.SOFT_IRON:
         # Var(D_ij) = sum_kl B_k,ij B_l,ij cov_kl
         var = np.einsum("kij,kl,lij->ij", _SOFT_BASIS, cov, _SOFT_BASIS)

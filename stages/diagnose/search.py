@@ -90,6 +90,98 @@ NESTED_SIMPLER = {
 #: Largest time offset the search is built for, s (issue 15: lags up to +-100 ms).
 MAX_LAG_S = 0.1
 
+#: An excess this close to an edge of a ``hard_iron_step`` already in the model is the same
+#: magnet moving (put down, taken away), s: it becomes that step's transition, not a step
+#: of its own.
+RAMP_REACH_S = 1.0
+#: Longest transition modelled as a curve, s: carrying a magnet onto a platform by hand
+#: takes a fraction of a second to a second.
+MAX_RAMP_S = 2.0
+#: Knot spacing of a transition, s: the field of an approaching magnet grows as ``1/r^3``,
+#: most of it in the last tenths of a second.
+RAMP_KNOT_S = 0.1
+#: Margin of a transition around the excess that called for it, s.
+RAMP_PAD_S = 0.1
+
+
+def ramp_candidate(state: ModelState, w: tuple[float, float], noise_nT: float
+                   ) -> tuple[int, Term] | None:
+    """Return the ``hard_iron_step`` whose edge the excess ``w`` touches, with that transition.
+
+    A magnet brought near the sensor, left and taken away is one event: the excess at the
+    edges of its plateau (the field while the magnet moved) is modelled as the step's
+    onset or release (:func:`pipeline.model.forward.ramp_profile`), the window extended to
+    where the transition starts or ends, rather than as further steps.
+
+    Returns
+    -------
+    (index of the step in ``state.terms``, the step with the transition) or None
+        None when ``w`` is near no step's edge, or the transition would be longer than
+        ``MAX_RAMP_S``, overlap the other one, or change nothing.
+
+    """
+    for i, t in enumerate(state.terms):
+        if t.kind is not EffectKind.HARD_IRON_STEP or len(t.windows_s) != 1:
+            continue
+        (a, b), ramps = t.windows_s[0], list(t.ramps_s)
+        on = next((r for r in ramps if abs(r[0] - a) < 1e-9), None)
+        off = next((r for r in ramps if abs(r[1] - b) < 1e-9), None)
+        edge_a = a if on is None else on[1]  # where the plateau starts and ends now
+        edge_b = b if off is None else off[0]
+        for onset, edge, old in ((True, edge_a, on), (False, edge_b, off)):
+            if w[1] < edge - RAMP_REACH_S or w[0] > edge + RAMP_REACH_S:
+                continue
+            r0, r1 = min(w[0], edge) - RAMP_PAD_S, max(w[1], edge) + RAMP_PAD_S
+            if old is not None:
+                r0, r1 = min(r0, old[0]), max(r1, old[1])
+            if onset:
+                r0 = min(r0, a)
+                other = off
+            else:
+                r1 = max(r1, b)
+                other = on
+            if r1 - r0 > MAX_RAMP_S or (other is not None and (
+                    (onset and r1 >= other[0]) or (not onset and r0 <= other[1]))):
+                continue
+            new_ramps = tuple(sorted([r for r in ramps if r is not old] + [(r0, r1)]))
+            window = ((r0, b),) if onset else ((a, r1),)
+            # the prior of the transition's shape: as large as the magnet's own offset, on
+            # the time scale of the modes (a person's hand moving it)
+            new = Term(EffectKind.HARD_IRON_STEP, window, knot_step_s=RAMP_KNOT_S,
+                       ramps_s=new_ramps, ramp_scale_s=RAMP_KNOT_S,
+                       prior_nT=float(np.linalg.norm(state.values[i][:3])),
+                       noise_nT=float(noise_nT))
+            if new.windows_s == t.windows_s and new.ramps_s == t.ramps_s:
+                continue
+            return i, new
+    return None
+
+
+def _ramp_fit(cur: FitResult, i: int, term: Term, data: FitData, cfg: DiagnoseConfig
+              ) -> tuple[float, ScoreTest, FitResult] | None:
+    """Refit with step ``i`` replaced by ``term`` (the same magnet with a transition).
+
+    Returns ``(delta BIC against the current model, statistic, fit)`` with the new step last,
+    when it lowers the BIC by ``bic_margin``; else None. The statistic is the likelihood
+    ratio ``(RSS_cur - RSS_new) / sigma^2`` (the score test needs the step at zero, which a
+    transition of a step in the model is not).
+    """
+    wo = _without(cur.state, i)
+    start = np.zeros(term.n_params())
+    start[:3] = cur.state.values[i][:3]
+    res = fit(dataclasses.replace(wo, terms=wo.terms + (term,), values=wo.values + (start,)),
+              data)
+    if not res.rss < cur.rss:
+        return None
+    n_eff = _n_eff(res, data)
+    dbic = _bic(res.rss, n_eff, res.state.n_params()) - _bic(cur.rss, n_eff,
+                                                              cur.state.n_params())
+    if dbic > -cfg.bic_margin:
+        return None
+    s2 = robust_sigma(cur.residual_nT) ** 2
+    k = term.n_params() - cur.state.terms[i].n_params()
+    return float(dbic), ScoreTest(term, float((cur.rss - res.rss) / s2), 1.0, k), res
+
 
 def _excess_runs(s: np.ndarray, med: float, level: float) -> list[tuple[int, int]]:
     """Index runs where ``s`` stays above half-way to ``level`` and crosses ``level``."""
@@ -302,7 +394,11 @@ def diagnose_data(
         cands: list[Term] = [Term(k) for k in kinds if k not in present]
         taken = [w for t in cur.state.terms if t.kind in LOCAL_KINDS for w in t.windows_s]
         src_start: dict[int, np.ndarray] = {}  # candidate index -> a source's start values
+        ramps: list[tuple[int, Term]] = []  # transitions of steps in the model
         for w in scan_windows(cur.residual_nT, data.t_s, cfg):
+            rc = ramp_candidate(cur.state, refine_step(w, cur.residual_nT, data.t_s), sig)
+            if rc is not None and rc not in ramps:
+                ramps.append(rc)
             if any(w[0] >= a and w[1] <= b for a, b in taken):
                 continue  # inside a window already modelled, not a new event
             # the scan sees where the excess is large; a bell-shaped transient starts and
@@ -311,8 +407,9 @@ def diagnose_data(
             wd = (max(float(data.t_s[0]), w[0] - pad), min(float(data.t_s[-1]), w[1] + pad))
             ks = min(2.0, max(0.75, (wd[1] - wd[0]) / 6))
             cands.append(Term(EffectKind.DISTURBANCE, (wd,), knot_step_s=ks))
-            ws = refine_step(w, cur.residual_nT, data.t_s)
-            cands.append(Term(EffectKind.HARD_IRON_STEP, (ws,)))
+            if rc is None:  # an edge of a step already in the model is its transition
+                cands.append(Term(EffectKind.HARD_IRON_STEP,
+                                  (refine_step(w, cur.residual_nT, data.t_s),)))
             # the same excess as a source fixed in the room: present throughout, or only
             # around the window (put down and taken away)
             loc = locate_source(cur, data, w)
@@ -413,6 +510,16 @@ def diagnose_data(
                 rejected.add((st.term.kind, st.term.windows_s))
                 continue
             fits.append((fr[1], st, fr[0]))
+        replaces: dict[int, int] = {}  # id of a ScoreTest -> the step its fit replaces
+        for i_step, ramp in ramps:
+            if (ramp.kind, ramp.windows_s) in rejected | dropped:
+                continue
+            rf = _ramp_fit(cur, i_step, ramp, data, cfg)
+            if rf is None:
+                rejected.add((ramp.kind, ramp.windows_s))
+                continue
+            replaces[id(rf[1])] = i_step
+            fits.append(rf)
         map_fits = []
         if mc is not None and -mc.test.statistic + mc.test.k * np.log(n) <= 0:
             fr = _refit(cur, mc.test.term, data, cfg)
@@ -439,8 +546,14 @@ def diagnose_data(
                     fr = _refit(cur, Term(simpler_kind), data, cfg)
                     alt_fit = None if fr is None else (fr[1], best[1], fr[0])
                 elif alt_fit is None and simpler_kind is EffectKind.HARD_IRON_STEP:
-                    fr = _refit(cur, Term(simpler_kind, best[1].term.windows_s), data, cfg)
-                    alt_fit = None if fr is None else (fr[1], best[1], fr[0])
+                    rc = ramp_candidate(cur.state, best[1].term.windows_s[0], sig)
+                    if rc is not None:  # at a step's edge: that magnet's transition
+                        alt_fit = _ramp_fit(cur, rc[0], rc[1], data, cfg)
+                        if alt_fit is not None:
+                            replaces[id(alt_fit[1])] = rc[0]
+                    else:
+                        fr = _refit(cur, Term(simpler_kind, best[1].term.windows_s), data, cfg)
+                        alt_fit = None if fr is None else (fr[1], best[1], fr[0])
                 # the pairs of NESTED_SIMPLER are compared with one effective sample count:
                 # with each its own, a time offset lost to eddy currents by the texture of
                 # the residuals alone (issue 15); the window pair keeps its calibrated rule
@@ -485,19 +598,38 @@ def diagnose_data(
                                 fits.insert(k_fit, (fr[1], score_test(cur, look, data, sig),
                                                     fr[0]))
                     continue
-            cv_new = _heldout_ok(cur, res, data, cfg, cv_cur)
+            if id(st) in replaces:
+                # a transition lasts less than a held-out block: it is held out at its own
+                # time scale, the current model on the same blocks (then the usual blocks
+                # for the record)
+                fine = dataclasses.replace(cfg, block_s=RAMP_KNOT_S)
+                ok = _heldout_ok(cur, res, data, fine, heldout_rms(cur.state, data, fine))
+                cv_new = None if ok is None else heldout_rms(res.state, data, cfg)
+            else:
+                cv_new = _heldout_ok(cur, res, data, cfg, cv_cur)
             if cv_new is None:
                 rejected.add((st.term.kind, st.term.windows_s))
                 continue
             term = res.state.terms[-1]
             gone = {t.kind for t in cur.state.terms} - {t.kind for t in res.state.terms}
-            if gone:  # a replacement: the nested term it contains leaves the model
+            if id(st) in replaces:
+                # the step gains a transition: its finding is the whole event's, measured
+                # against the model without the step
+                i_step = replaces[id(st)]
+                findings.pop(i_step)
+                cur = fit(_without(cur.state, i_step), data)
+                cv_cur = heldout_rms(cur.state, data, cfg)
+            elif gone:  # a replacement: the nested term it contains leaves the model
                 findings = [f for f in findings if EffectKind(f.effect) not in gone]
                 cur = fit(dataclasses.replace(res.state, terms=res.state.terms[:-1],
                                               values=res.state.values[:-1]), data)
             findings.append(_finding(cur, res, term, st, dbic, cv_cur, cv_new, data))
             if told:
                 findings[-1] = dataclasses.replace(findings[-1], told_apart=told)
+            if id(st) in replaces:  # the event keeps its place among the findings
+                i_step = replaces[id(st)]
+                findings.insert(i_step, findings.pop())
+                res = fit(_moved_last_to(res.state, i_step), data)
             cur, cv_cur = res, cv_new
             accepted = True
             rejected.clear()
@@ -572,7 +704,7 @@ def diagnose_data(
             params=(p := term_params(cur.state.terms[i], cur.state.values[i], cur.state, data)),
             sigma=_sigma_for(cur, i, cov_final, data),
             explanation=explanation(cur.state.terms[i].kind, p, data.duration_s, note=note)
-            + f.told_apart,
+            + _transition_words(cur.state.terms[i]) + f.told_apart,
         )
         for i, f in enumerate(findings)
     ]
@@ -814,6 +946,27 @@ def _without(state: ModelState, i: int) -> ModelState:
     )
 
 
+def _transition_words(term: Term) -> str:
+    """Words on a step's transitions: when the magnet was carried on and off, s."""
+    if term.kind is not EffectKind.HARD_IRON_STEP or not term.ramps_s:
+        return ""
+    (a, b), parts = term.windows_s[0], []
+    for r0, r1 in term.ramps_s:
+        what = "brought on" if abs(r0 - a) <= abs(r1 - b) else "taken away"
+        parts.append(f"{what} over {r0:.2f}-{r1:.2f} s")
+    return (". One event: the object was " + " and ".join(parts) + "; the field while it "
+            "moved is modelled as a smooth curve from no offset to the plateau (and back), "
+            "not as further steps")
+
+
+def _moved_last_to(state: ModelState, i: int) -> ModelState:
+    """``state`` with its last term moved to position ``i`` (values with it)."""
+    order = list(range(len(state.terms) - 1))
+    order.insert(i, len(state.terms) - 1)
+    return dataclasses.replace(state, terms=tuple(state.terms[k] for k in order),
+                               values=tuple(state.values[k] for k in order))
+
+
 def _source_ok(res: FitResult, data: FitData, i: int = -1) -> bool:
     """Keep a fitted ``local_source`` only where the sensor sampled its ``1/r^3``.
 
@@ -873,12 +1026,8 @@ def _relocate_sources(cur: FitResult, data: FitData) -> FitResult:
         loc = locate_source(without, data, (wins[0][0], wins[-1][1]))
         if loc is None:
             continue
-        trial = with_values(term, loc[0], without)
         # keep the term's place in the model (findings are listed in the model's order)
-        order = list(range(len(trial.terms) - 1))
-        order.insert(i, len(trial.terms) - 1)
-        trial = dataclasses.replace(trial, terms=tuple(trial.terms[k] for k in order),
-                                    values=tuple(trial.values[k] for k in order))
+        trial = _moved_last_to(with_values(term, loc[0], without), i)
         res = fit(trial, data)
         if res.rss < cur.rss and _source_ok(res, data, i):
             cur = res

@@ -304,6 +304,12 @@ def _model_values(term: Term, value: np.ndarray, data: FitData) -> dict[str, Any
             out.append(v[i:i + len(kn)].tolist())
             i += len(kn)
         return {"knots_s": [k.tolist() for k in knots], "knot_field_nT": out}
+    if term.kind is EffectKind.HARD_IRON_STEP and term.ramps_s:
+        # the transitions while the magnet moved: their modes (restore evaluates them with
+        # the same basis, pipeline.model.forward.ramp_profile)
+        return {"ramps_s": [[float(a), float(b)] for a, b in term.ramps_s],
+                "ramp_modes_nT": np.asarray(value[3:], dtype=float).reshape(-1, 3).tolist(),
+                "ramp_mode_step_s": term.knot_step_s}
     if term.kind is EffectKind.FIELD_DRIFT:
         return {"legendre_nT": np.asarray(value, dtype=float).reshape(-1, 3).tolist(),
                 "span_s": _span(data)}

@@ -272,9 +272,20 @@ def _rot_efficiency_H(H: np.ndarray) -> float:
     return float(np.min(live)) if live.size else 1.0
 
 
-def fold_of(t_s: np.ndarray, cfg: DiagnoseConfig) -> np.ndarray:
-    """Fold index of each sample: contiguous blocks of ``block_s`` dealt round-robin."""
+def fold_of(t_s: np.ndarray, cfg: DiagnoseConfig, state: ModelState | None = None
+            ) -> np.ndarray:
+    """Fold index of each sample: contiguous blocks of ``block_s`` dealt round-robin.
+
+    Inside the transitions of a ``hard_iron_step`` of ``state`` the blocks are as short as
+    the transition's own modes (``Term.knot_step_s``): a curve that resolves a tenth of a
+    second is held out at that scale, as every other term is at the scale of a second; a
+    whole transition held out at once would test a magnet's path nobody could predict.
+    """
     blocks = np.floor((t_s - t_s[0]) / cfg.block_s).astype(np.int64)
+    for t in () if state is None else state.terms:
+        for r0, r1 in t.ramps_s if t.kind is EffectKind.HARD_IRON_STEP else ():
+            m = (t_s >= r0) & (t_s < r1)
+            blocks[m] = np.floor((t_s[m] - t_s[0]) / t.knot_step_s).astype(np.int64)
     return blocks % cfg.n_folds
 
 
@@ -286,7 +297,7 @@ def heldout_rms(state: ModelState, data: FitData, cfg: DiagnoseConfig) -> float:
     held-out blocks. Random samples are never held out: neighbouring samples share
     attitude noise and would leak.
     """
-    folds = fold_of(data.t_s, cfg)
+    folds = fold_of(data.t_s, cfg, state)
     sq, cnt = 0.0, 0
     start = dataclasses.replace(
         state,
