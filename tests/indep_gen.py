@@ -659,8 +659,43 @@ def clean_readings(spec: Spec, t_s: np.ndarray) -> np.ndarray:
     if "hard_iron_step" in e:
         p = e["hard_iron_step"]
         (a, b), = p["windows_s"]
-        y = y + ((ts >= a) & (ts < b))[:, None] * np.asarray(p["offset_nT"])
+        if "moment_Am2" in p:
+            y = y + magnet_carried_nT(ts, p)
+        else:
+            y = y + ((ts >= a) & (ts < b))[:, None] * np.asarray(p["offset_nT"])
     return y
+
+
+def magnet_carried_nT(t_s: np.ndarray, p: dict) -> np.ndarray:
+    """Field of a magnet carried onto the platform, left there and carried away, mag frame.
+
+    A point dipole of ``moment_Am2`` (mag frame) rests at ``rest_m`` (mag frame, from the
+    sensor) inside ``windows_s``. Over ``carry_s`` before the window opens it comes in from
+    far away along ``carry_dir_m`` (mag frame, m), at ``rest + carry_dir (1 / s(u) - 1)``
+    with ``s`` a smoothstep of the time ``u`` into the carry, and over ``carry_s`` after the
+    window it leaves the same way: its field turns as well as grows, and it falls to zero
+    smoothly far away (no jump in the field at any time). The field at the sensor is
+    ``100 nT (3 (m.u) u - m) / r^3`` (m in A m^2, r in m, u from the magnet to the sensor),
+    written here without magalign's code.
+    """
+    (a, b), = p["windows_s"]
+    T = float(p["carry_s"])
+    rest = np.asarray(p["rest_m"], dtype=float)
+    m = np.asarray(p["moment_Am2"], dtype=float)
+    lateral = np.asarray(p["carry_dir_m"], dtype=float)
+    sig = np.zeros(len(t_s))
+    sig[(t_s >= a) & (t_s < b)] = 1.0
+    on = (t_s >= a - T) & (t_s < a)
+    sig[on] = _smoothstep((t_s[on] - (a - T)) / T)
+    off = (t_s >= b) & (t_s < b + T)
+    sig[off] = 1.0 - _smoothstep((t_s[off] - b) / T)
+    out = np.zeros((len(t_s), 3))
+    near = sig > 1e-6
+    pos = rest[None, :] + lateral[None, :] * (1.0 / sig[near] - 1.0)[:, None]
+    r = np.linalg.norm(pos, axis=1)
+    u = -pos / r[:, None]
+    out[near] = 100.0 * (3.0 * (u @ m)[:, None] * u - m[None, :]) / r[:, None] ** 3
+    return out
 
 
 def mag_stamps_s(spec: Spec) -> np.ndarray:

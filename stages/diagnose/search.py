@@ -120,6 +120,7 @@ def ramp_candidate(state: ModelState, w: tuple[float, float], noise_nT: float
         ``MAX_RAMP_S``, overlap the other one, or change nothing.
 
     """
+    w0, w1 = float(w[0]), float(w[1])
     for i, t in enumerate(state.terms):
         if t.kind is not EffectKind.HARD_IRON_STEP or len(t.windows_s) != 1:
             continue
@@ -128,32 +129,44 @@ def ramp_candidate(state: ModelState, w: tuple[float, float], noise_nT: float
         off = next((r for r in ramps if abs(r[1] - b) < 1e-9), None)
         edge_a = a if on is None else on[1]  # where the plateau starts and ends now
         edge_b = b if off is None else off[0]
-        for onset, edge, old in ((True, edge_a, on), (False, edge_b, off)):
-            if w[1] < edge - RAMP_REACH_S or w[0] > edge + RAMP_REACH_S:
-                continue
-            r0, r1 = min(w[0], edge) - RAMP_PAD_S, max(w[1], edge) + RAMP_PAD_S
+
+        def near(edge: float) -> bool:
+            return edge - RAMP_REACH_S <= w1 and w0 <= edge + RAMP_REACH_S
+
+        def ramp(edge: float, lo: float, hi: float, old: tuple[float, float] | None,
+                 onset: bool, a: float = a, b: float = b) -> tuple[float, float]:
+            r0, r1 = min(lo, edge) - RAMP_PAD_S, max(hi, edge) + RAMP_PAD_S
             if old is not None:
                 r0, r1 = min(r0, old[0]), max(r1, old[1])
-            if onset:
-                r0 = min(r0, a)
-                other = off
-            else:
-                r1 = max(r1, b)
-                other = on
-            if r1 - r0 > MAX_RAMP_S or (other is not None and (
-                    (onset and r1 >= other[0]) or (not onset and r0 <= other[1]))):
-                continue
-            new_ramps = tuple(sorted([r for r in ramps if r is not old] + [(r0, r1)]))
-            window = ((r0, b),) if onset else ((a, r1),)
-            # the prior of the transition's shape: as large as the magnet's own offset, on
-            # the time scale of the modes (a person's hand moving it)
-            new = Term(EffectKind.HARD_IRON_STEP, window, knot_step_s=RAMP_KNOT_S,
-                       ramps_s=new_ramps, ramp_scale_s=RAMP_KNOT_S,
-                       prior_nT=float(np.linalg.norm(state.values[i][:3])),
-                       noise_nT=float(noise_nT))
-            if new.windows_s == t.windows_s and new.ramps_s == t.ramps_s:
-                continue
-            return i, new
+            return (min(r0, a), r1) if onset else (r0, max(r1, b))
+
+        new_on, new_off = on, off
+        if w1 - w0 <= MAX_RAMP_S and near(edge_a):  # an excess at the onset
+            new_on = ramp(edge_a, w0, w1, on, True)
+        elif w1 - w0 <= MAX_RAMP_S and near(edge_b):  # at the release
+            new_off = ramp(edge_b, w0, w1, off, False)
+        elif abs(w0 - edge_a) <= RAMP_REACH_S and abs(w1 - edge_b) <= RAMP_REACH_S:
+            # the same plateau seen again with slightly different ends: the offset there
+            # was a compromise with the transitions
+            new_on = ramp(edge_a, w0, w0, on, True)
+            new_off = ramp(edge_b, w1, w1, off, False)
+        else:
+            continue
+        got = tuple(r for r in (new_on, new_off) if r is not None)
+        if any(r1 - r0 > MAX_RAMP_S for r0, r1 in got) or (
+                new_on is not None and new_off is not None and new_on[1] >= new_off[0]):
+            continue
+        window = (new_on[0] if new_on is not None else a,
+                  new_off[1] if new_off is not None else b)
+        # the prior of the transition's shape: as large as the magnet's own offset, on
+        # the time scale of the modes (a person's hand moving it)
+        new = Term(EffectKind.HARD_IRON_STEP, (window,), knot_step_s=RAMP_KNOT_S,
+                   ramps_s=got, ramp_scale_s=RAMP_KNOT_S,
+                   prior_nT=float(np.linalg.norm(state.values[i][:3])),
+                   noise_nT=float(noise_nT))
+        if new.windows_s == t.windows_s and new.ramps_s == t.ramps_s:
+            continue
+        return i, new
     return None
 
 
