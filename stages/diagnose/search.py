@@ -90,6 +90,11 @@ NESTED_SIMPLER = {
 #: Largest time offset the search is built for, s (issue 15: lags up to +-100 ms).
 MAX_LAG_S = 0.1
 
+#: Shortest ``hard_iron_step``, s: an object brought near the sensor and left there for a
+#: while. A shorter excess (the closest pass by a magnet in the room, where its dipole
+#: field is least exact; a knock) is no object riding on the platform.
+MIN_STEP_S = 0.5
+
 #: An excess this close to an edge of a ``hard_iron_step`` already in the model is the same
 #: magnet moving (put down, taken away), s: it becomes that step's transition, not a step
 #: of its own.
@@ -420,9 +425,11 @@ def diagnose_data(
             wd = (max(float(data.t_s[0]), w[0] - pad), min(float(data.t_s[-1]), w[1] + pad))
             ks = min(2.0, max(0.75, (wd[1] - wd[0]) / 6))
             cands.append(Term(EffectKind.DISTURBANCE, (wd,), knot_step_s=ks))
-            if rc is None:  # an edge of a step already in the model is its transition
-                cands.append(Term(EffectKind.HARD_IRON_STEP,
-                                  (refine_step(w, cur.residual_nT, data.t_s),)))
+            ws = refine_step(w, cur.residual_nT, data.t_s)
+            # an edge of a step already in the model is its transition; an offset held
+            # for less than MIN_STEP_S is a bump, not an object left near the sensor
+            if rc is None and ws[1] - ws[0] >= MIN_STEP_S:
+                cands.append(Term(EffectKind.HARD_IRON_STEP, (ws,)))
             # the same excess as a source fixed in the room: present throughout, or only
             # around the window (put down and taken away)
             loc = locate_source(cur, data, w)
