@@ -21,6 +21,7 @@ from stages.diagnose.fit import FitResult, fit, wahba_init
 from stages.diagnose.model import (
     CONFOUND_RATIO,
     LOCAL_KINDS,
+    TRACELESS_PROJECTOR,
     EffectKind,
     FitData,
     ModelState,
@@ -531,8 +532,8 @@ def diagnose_data(
             st_wo = _without(cur.state, i)
             res_wo = fit(st_wo, data)
             n_eff = _n_eff(cur, data)
-            bic_cur = _bic(cur.rss, n_eff, cur.state.n_params())
-            keep = bic_cur - _bic(res_wo.rss, n_eff, res_wo.state.n_params())
+            bic_cur = _bic(cur.rss, n_eff, cur.state.n_free())
+            keep = bic_cur - _bic(res_wo.rss, n_eff, res_wo.state.n_free())
             if keep > -cfg.bic_margin:
                 dropped.add((t_i.kind, t_i.windows_s))
                 findings.pop(i)
@@ -542,12 +543,12 @@ def diagnose_data(
             simpler_term = _simpler(t_i)
             if simpler_term is not None and simpler_term.kind not in {t.kind for t in st_wo.terms}:
                 res_s = fit(res_wo.state.with_term(simpler_term), data)
-                if _bic(res_s.rss, n_eff, res_s.state.n_params()) - bic_cur < cfg.bic_margin:
+                if _bic(res_s.rss, n_eff, res_s.state.n_free()) - bic_cur < cfg.bic_margin:
                     # the simpler nested term explains the data as well: it replaces the other
                     cv_s = heldout_rms(res_s.state, data, cfg)
                     st_s = score_test(res_wo, simpler_term, data, robust_sigma(res_wo.residual_nT))
-                    dbic_s = _bic(res_s.rss, n_eff, res_s.state.n_params()) - _bic(
-                        res_wo.rss, n_eff, res_wo.state.n_params())
+                    dbic_s = _bic(res_s.rss, n_eff, res_s.state.n_free()) - _bic(
+                        res_wo.rss, n_eff, res_wo.state.n_free())
                     cv_wo = heldout_rms(res_wo.state, data, cfg)
                     findings.pop(i)
                     findings.append(_finding(res_wo, res_s, simpler_term, st_s, dbic_s, cv_wo, cv_s,
@@ -677,8 +678,8 @@ def _chain_evidence(
         term = after.state.terms[-1]
         st = score_test(before, term, data, robust_sigma(before.residual_nT))
         n_eff = _n_eff(after, data)
-        dbic = _bic(after.rss, n_eff, after.state.n_params()) - _bic(
-            before.rss, n_eff, before.state.n_params())
+        dbic = _bic(after.rss, n_eff, after.state.n_free()) - _bic(
+            before.rss, n_eff, before.state.n_free())
         new = _finding(before, after, term, st, float(dbic), cvs[k], cvs[k + 1], data)
         out.append(dataclasses.replace(new, params=fd.params, sigma=fd.sigma,
                                        told_apart=fd.told_apart))
@@ -712,7 +713,7 @@ def _replacement_fit(
     if not res.rss < cur.rss:
         return None
     n_eff = _n_eff(res, data)
-    dbic = _bic(res.rss, n_eff, res.state.n_params()) - _bic(cur.rss, n_eff, cur.state.n_params())
+    dbic = _bic(res.rss, n_eff, res.state.n_free()) - _bic(cur.rss, n_eff, cur.state.n_free())
     if dbic > -cfg.bic_margin:
         return None
     st = score_test(wo, term, data, robust_sigma(wo.residual_nT))
@@ -720,35 +721,18 @@ def _replacement_fit(
 
 
 def canonical_rate_terms(res: FitResult, data: FitData) -> FitResult:
-    """With ``time_offset`` and ``eddy_current`` both in the model, move ``tr(E_s)/3`` to tau.
+    """With ``time_offset`` and ``eddy_current`` both in the model, store ``E_s`` traceless.
 
-    The two share one direction (``E_s = -tau I`` to first order): the fit leaves it where the
-    iterations stopped. The canonical split gives the time offset the isotropic part, ``tau <-
-    tau - tr(E_s)/3`` and ``E_s <- E_s - tr(E_s)/3 I`` (no refit: a refit drifts back along the
-    shared direction). It is taken unless it worsens the fit by more than one parameter's BIC
-    (``ln N`` noise variances), which the second-order difference of the two terms stays far
-    below.
+    The rate pair's eddy term has no isotropic part
+    (:meth:`~stages.diagnose.model.ModelState.rate_pair`): :func:`evaluate` reads only the
+    traceless part of its values, so removing any trace changes neither the prediction nor
+    the fit (``data``: kept for the callers' signature).
     """
-    from pipeline.model.solve import normal_equations
-
-    kinds = [t.kind for t in res.state.terms]
-    if EffectKind.TIME_OFFSET not in kinds or EffectKind.EDDY_CURRENT not in kinds:
+    if not res.state.rate_pair():
         return res
-    it, ie = kinds.index(EffectKind.TIME_OFFSET), kinds.index(EffectKind.EDDY_CURRENT)
-    vals = list(res.state.values)
-    E = vals[ie].reshape(3, 3)
-    iso = float(np.trace(E)) / 3.0
-    vals[it] = vals[it] - iso
-    vals[ie] = (E - iso * np.eye(3)).ravel()
-    st = dataclasses.replace(res.state, values=tuple(vals))
-    ev = evaluate(st, data)
-    r = data.y_nT - ev.y_nT
-    rss = float(np.sum(r * r))
-    n = max(res.residual_nT.size, 2)
-    if not np.isfinite(rss) or rss - res.rss > np.log(n) * res.rss / n:
-        return res
-    H, _ = normal_equations(ev.jac, r)
-    return FitResult(st, r, rss, H, res.n_iter)
+    vals = tuple(TRACELESS_PROJECTOR @ v if t.kind is EffectKind.EDDY_CURRENT else v
+                 for t, v in zip(res.state.terms, res.state.values, strict=True))
+    return dataclasses.replace(res, state=dataclasses.replace(res.state, values=vals))
 
 
 def split_isotropic_eddy(
@@ -794,8 +778,8 @@ def split_isotropic_eddy(
     ie2 = ie + 1
     wo = canonical_rate_terms(fit(_without(split.state, ie2), data), data)
     n_eff = _n_eff(split, data)
-    keep = _bic(split.rss, n_eff, split.state.n_params()) - _bic(wo.rss, n_eff,
-                                                                   wo.state.n_params())
+    keep = _bic(split.rss, n_eff, split.state.n_free()) - _bic(wo.rss, n_eff,
+                                                                   wo.state.n_free())
     cv_split = heldout_rms(split.state, data, cfg)
     cv_wo = heldout_rms(wo.state, data, cfg)
     if keep > -cfg.bic_margin or _heldout_ok(wo, split, data, cfg, cv_wo) is None:
@@ -945,7 +929,7 @@ def _refit(
     if not res.rss < cur.rss:
         return None
     n_eff = _n_eff(res, data)
-    dbic = _bic(res.rss, n_eff, res.state.n_params()) - _bic(cur.rss, n_eff, cur.state.n_params())
+    dbic = _bic(res.rss, n_eff, res.state.n_free()) - _bic(cur.rss, n_eff, cur.state.n_free())
     if dbic > -cfg.bic_margin:
         return None
     return res, float(dbic)
@@ -962,7 +946,7 @@ def _heldout_ok(
     cv_new = heldout_rms(res.state, data, cfg)
     n_eff = _n_eff(res, data)
     s2 = res.rss / res.residual_nT.size
-    k = res.state.n_params() - cur.state.n_params()
+    k = res.state.n_free() - cur.state.n_free()
     gain = (cv_old**2 - cv_new**2) * n_eff / s2
     if cv_new < cv_old * (1.0 - cfg.heldout_margin) and gain >= k * np.log(n_eff) + cfg.bic_margin:
         return cv_new
