@@ -739,13 +739,23 @@ def split_isotropic_eddy(
     findings: list[Finding], cur: FitResult, cv_cur: float, data: FitData,
     cfg: DiagnoseConfig,
 ) -> tuple[list[Finding], FitResult, float]:
-    """Turn an eddy term with a significant isotropic part into a time offset and the rest.
+    """Name the rate terms of a final model with an eddy term and no time offset.
 
-    The simpler nested term is reported for what it explains: when the final model has
-    ``eddy_current`` but no ``time_offset`` and ``tr(E_s)/3`` differs from zero by more than
-    the BIC gate of one parameter (``z^2 > ln n_eff + bic_margin``), the model is refitted with
-    ``time_offset`` (tau = -tr(E_s)/3) and the traceless remainder of ``E_s``; the remainder is
-    kept only if it still lowers the BIC by ``bic_margin`` and the held-out error.
+    An eddy term with an isotropic part ``tr(E_s)/3`` is, to first order, a time offset
+    (``E_s = -tau I``) and its traceless rest. Three descriptions of the same first-order
+    rate term are compared, each by BIC with one effective sample count:
+
+    - ``time_offset`` alone in place of the eddy term (1 parameter against 9): a lag;
+    - ``eddy_current`` alone (9): an eddy term;
+    - ``time_offset`` and a traceless ``eddy_current`` (1 + 8 = 9): a lag and eddy currents.
+
+    The simpler description is kept unless the next one lowers the BIC by ``bic_margin``:
+    the lag when it explains the data as well as the eddy term (a lag is one parameter);
+    the eddy term alone against the pair (as many parameters, one term fewer) unless the
+    exact lag of the pair ((M1) at ``t - tau``) fits better by the margin, i.e. the data
+    show the lag's second-order terms, which an eddy term's first-order ``E_s dy0/dt``
+    lacks. An isotropic part within the BIC gate of one parameter of zero
+    (``z^2 <= ln n_eff + bic_margin``) leaves the model as it is.
     """
     kinds = [t.kind for t in cur.state.terms]
     if EffectKind.EDDY_CURRENT not in kinds or EffectKind.TIME_OFFSET in kinds:
@@ -760,31 +770,27 @@ def split_isotropic_eddy(
     if var <= 0 or iso * iso / var <= np.log(n_eff) + cfg.bic_margin:
         return findings, cur, cv_cur
     tau = -iso / np.sqrt(3.0)  # E_iso = (iso / sqrt 3) I = -tau I
-    st = dataclasses.replace(
+    lag_only = fit(dataclasses.replace(
+        cur.state, terms=cur.state.terms[:ie] + (Term(EffectKind.TIME_OFFSET),)
+        + cur.state.terms[ie + 1:],
+        values=cur.state.values[:ie] + (np.array([tau]),) + cur.state.values[ie + 1:]), data)
+    placeholder = dataclasses.replace(findings[ie], effect=EffectKind.TIME_OFFSET.value)
+    if _bic_between(lag_only, cur, data) <= cfg.bic_margin:
+        # a lag explains what the eddy term does: the lag is named, no eddy term
+        return (findings[:ie] + [placeholder] + findings[ie + 1:], lag_only,
+                heldout_rms(lag_only.state, data, cfg))
+    # the pair: tau = -tr(E_s)/3 and the traceless rest (the rate pair, 8 free in E_s)
+    split = fit(dataclasses.replace(
         cur.state,
         terms=cur.state.terms[:ie] + (Term(EffectKind.TIME_OFFSET),) + cur.state.terms[ie:],
-        values=cur.state.values[:ie] + (np.array([tau]),) + (
-            (E.reshape(3, 3) + tau * np.eye(3)).ravel(),) + cur.state.values[ie + 1:],
-    )
-    split = canonical_rate_terms(fit(st, data), data)
-    Es = split.state.values[ie + 1]
-    if abs(float(_ISO @ Es)) > 1e-3 * max(float(np.linalg.norm(Es)), 1e-12):
-        # the canonical split was refused: the data tell the isotropic eddy term from a
-        # time offset (second order, fast motion); the eddy term stays as it is
+        values=cur.state.values[:ie] + (np.array([tau]),)
+        + (TRACELESS_PROJECTOR @ E,) + cur.state.values[ie + 1:]), data)
+    if _bic_between(split, cur, data) > -cfg.bic_margin:
+        return findings, cur, cv_cur  # the eddy term alone explains the data as well
+    cv_split = _heldout_ok(cur, split, data, cfg, cv_cur)
+    if cv_split is None:
         return findings, cur, cv_cur
-    placeholder = dataclasses.replace(findings[ie], effect=EffectKind.TIME_OFFSET.value)
-    new_findings = findings[:ie] + [placeholder] + findings[ie:]
-    # does the anisotropic remainder earn its place?
-    ie2 = ie + 1
-    wo = canonical_rate_terms(fit(_without(split.state, ie2), data), data)
-    n_eff = _n_eff(split, data)
-    keep = _bic(split.rss, n_eff, split.state.n_free()) - _bic(wo.rss, n_eff,
-                                                                   wo.state.n_free())
-    cv_split = heldout_rms(split.state, data, cfg)
-    cv_wo = heldout_rms(wo.state, data, cfg)
-    if keep > -cfg.bic_margin or _heldout_ok(wo, split, data, cfg, cv_wo) is None:
-        return new_findings[:ie2] + new_findings[ie2 + 1:], wo, cv_wo
-    return new_findings, split, cv_split
+    return findings[:ie] + [placeholder] + findings[ie:], split, cv_split
 
 
 def _without(state: ModelState, i: int) -> ModelState:
