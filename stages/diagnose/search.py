@@ -88,6 +88,11 @@ NESTED_SIMPLER = {
 }
 
 
+#: The noise model is measured again when a component of it moves by more than this fraction
+#: (its own estimate scatters by a few per cent).
+NOISE_MODEL_RTOL = 0.2
+
+
 #: Largest time offset the search is built for, s (issue 15: lags up to +-100 ms).
 MAX_LAG_S = 0.1
 
@@ -508,15 +513,19 @@ def diagnose_data(
         moved = _relocate_sources(cur, data)
         if moved is not cur:
             cur, cv_cur = moved, heldout_rms(moved.state, data, cfg)
-        if data.noise_model is None:
-            # the attitude noise may only now stand out of what the model leaves
-            nm = estimate_noise_model(
-                cur.residual_nT if cur.raw_residual_nT is None else cur.raw_residual_nT, data,
-                e_int_nT)
-            if nm is not None:
-                data = dataclasses.replace(data, noise_model=nm)
-                cur = fit(cur.state, data)
-                cv_cur = heldout_rms(cur.state, data, cfg)
+        # the noise model is measured on what the model leaves: the attitude noise may only
+        # now stand out of it, and a model measured while an effect of thousands of nT was
+        # unmodelled takes that effect for magnetometer noise. Its weights are then nearly
+        # flat, and a lag gains by reading the noisy attitude where its interpolated noise is
+        # smallest (sample_weights): a shift of tau that fits attitude noise, not a lag
+        nm = estimate_noise_model(
+            cur.residual_nT if cur.raw_residual_nT is None else cur.raw_residual_nT, data,
+            e_int_nT)
+        if nm is not None and (data.noise_model is None or not np.allclose(
+                nm, data.noise_model, rtol=NOISE_MODEL_RTOL)):
+            data = dataclasses.replace(data, noise_model=nm)
+            cur = fit(cur.state, data)
+            cv_cur = heldout_rms(cur.state, data, cfg)
         # backward step: a term chosen earlier, while more was unmodelled, may have stood in
         # for what a later term explains properly; drop it if it no longer earns its margin
         i = 0
