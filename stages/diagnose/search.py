@@ -452,6 +452,8 @@ def diagnose_data(
                 # the residuals alone (issue 15); the window pair keeps its calibrated rule
                 if alt_fit is not None and simpler_kind in NESTED_SIMPLER.values():
                     prefer = _bic_between(alt_fit[2], best[2], data) <= cfg.bic_margin
+                    if not prefer and best[1].term.kind is EffectKind.EDDY_CURRENT:
+                        prefer = _lag_first(best[2], data, cfg)
                 else:
                     prefer = alt_fit is not None and alt_fit[0] <= best[0] + cfg.bic_margin
                 if alt_fit is not None and prefer:
@@ -800,6 +802,23 @@ def split_isotropic_eddy(
     if cv_split is None:
         return findings, cur, cv_cur
     return findings[:ie] + [placeholder] + findings[ie:], split, cv_split
+
+
+def _lag_first(eddy: FitResult, data: FitData, cfg: DiagnoseConfig) -> bool:
+    """Whether the lag inside an eddy term that won its round is to be named first.
+
+    ``eddy``: the model with a new ``eddy_current`` and no ``time_offset``. Its isotropic part
+    is a time offset to first order; when the pair of an exact lag (the attitude at
+    ``t - tau``, ``tau = -tr(E_s)/3``) and the traceless rest fits better by the BIC margin
+    at as many free parameters (1 + 8 against 9), the data show the lag's second-order
+    terms: the time offset is named in this round and the anisotropic rest is tested in the
+    next on its own (as :func:`split_isotropic_eddy` decides for the final model), so the
+    rest does not ride on the lag's evidence.
+    """
+    if eddy.state.value(EffectKind.TIME_OFFSET) is not None:
+        return False
+    pair = fit(eddy.state.with_term(Term(EffectKind.TIME_OFFSET)), data)
+    return _bic_between(pair, eddy, data) < -cfg.bic_margin
 
 
 def _without(state: ModelState, i: int) -> ModelState:
