@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from _diag_sim import make_data
-from indep_gen import Spec, write
+from indep_gen import Spec, effect_params, write
 
 from pipeline.app.commands.diagnose import diagnose_file
 from stages.diagnose.model import EffectKind as K
@@ -74,3 +74,54 @@ def test_independent_large_lag_fast_rotation(tmp_path: Path, tau_s):
     assert set(f) == {"time_offset"}
     assert _close(f["time_offset"].params["time_offset_s"], tau_s,
                   f["time_offset"].sigma["time_offset_s"])
+
+
+# The seam between a lag and eddy currents on independent recordings. The attitude comes at
+# twice or half the magnetometer's rate, so the magnetometer samples fall at one or two places
+# between attitude samples, and its noise (0.03 deg) is large: a fit free to move where it
+# reads the noisy attitude gains by it. A lag of 5-100 ms with 5 % soft iron under slow
+# multi-axis swings must come out as a time offset within its sigma and nothing of eddy
+# currents; an anisotropic, non-symmetric eddy term (traceless, or with a trace that is a
+# lag only to first order) under 1.5-1.7 Hz vibration as eddy currents and no time offset.
+
+_SOFT_D = effect_params("soft_iron", np.random.default_rng(4), 12.5, 20.0)[1]["D"]  # 5 %
+
+_E_ANISO = np.array([[0.003, 0.002, -0.001], [-0.0015, -0.001, 0.0025],
+                     [0.0005, -0.002, -0.002]])  # traceless, not symmetric
+_E_TRACE = _E_ANISO + np.diag([0.002, 0.0, 0.001])  # tr/3 = 1 ms: a lag to first order
+
+
+def _seam_spec(name: str, mag_hz: float, att_hz: float, **kw) -> Spec:
+    return Spec(name=name, seed=kw.pop("seed"), duration_s=20.0, mag_rate_hz=mag_hz,
+                att_rate_hz=att_hz, att_phase_s=0.003, att_noise_deg=0.03, mag_noise_nT=2.0,
+                **kw)
+
+
+@pytest.mark.parametrize("tau_s,att_ratio", [
+    (0.005, 2.0), (-0.005, 0.5), (-0.025, 2.0), (0.025, 0.5),
+    (0.045, 2.0), (-0.045, 0.5), (-0.1, 2.0), (0.1, 0.5)])
+def test_independent_lag_with_soft_iron_is_no_eddy(tmp_path: Path, tau_s, att_ratio):
+    # pose at 100 Hz, the magnetometer at 50 or 200 Hz
+    s = _seam_spec("lag", 100.0 / att_ratio, 100.0, seed=61, freqs_hz=(0.17, 0.22, 0.15),
+                   amps_deg=(30.0, 25.0, 20.0),
+                   effects={"time_offset": {"time_offset_s": tau_s}, "soft_iron": {"D": _SOFT_D}})
+    ctx = diagnose_file(write(s, tmp_path / "lag.mcap"))
+    f = {x.effect: x for x in ctx.diagnosis.findings}
+    assert set(f) in ({"time_offset", "soft_iron"}, {"time_offset"}), list(f)
+    tau, sig = f["time_offset"].params["time_offset_s"], f["time_offset"].sigma["time_offset_s"]
+    assert abs(tau - tau_s) <= 3 * sig, (tau, sig)
+
+
+@pytest.mark.parametrize("E,att_ratio,vib_hz", [
+    (_E_ANISO, 2.0, 1.5), (-_E_ANISO, 0.5, 1.7), (_E_TRACE, 0.5, 1.5), (-_E_TRACE, 2.0, 1.7)],
+    ids=["traceless-att2x", "traceless-neg-att0.5x", "trace-att0.5x", "trace-neg-att2x"])
+def test_independent_anisotropic_eddy_under_vibration_is_no_lag(tmp_path: Path, E, att_ratio,
+                                                                vib_hz):
+    mag_hz = 50.0 if att_ratio == 2.0 else 100.0
+    s = _seam_spec("eddy", mag_hz, mag_hz * att_ratio, seed=62, vib_deg=5.0, vib_hz=vib_hz,
+                   effects={"eddy_current": {"E_s": E.tolist()}})
+    ctx = diagnose_file(write(s, tmp_path / "eddy.mcap"))
+    f = {x.effect: x for x in ctx.diagnosis.findings}
+    assert set(f) == {"eddy_current"}, list(f)
+    # the eddy regressor is a rate over +-3 attitude samples: a few per cent low at 1.5 Hz
+    assert _close(f["eddy_current"].params["E_s"], E, f["eddy_current"].sigma["E_s"])

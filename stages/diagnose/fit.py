@@ -19,7 +19,15 @@ from pipeline.model.solve import (
     minimise,
     normal_equations,
 )
-from stages.diagnose.model import F64, FitData, ModelState, _mv, evaluate
+from stages.diagnose.model import (
+    F64,
+    EffectKind,
+    FitData,
+    ModelState,
+    _mv,
+    evaluate,
+    sample_weights,
+)
 
 
 @dataclass(frozen=True)
@@ -88,8 +96,12 @@ def fit(
         ev = evaluate(st, data, jacobian=with_jacobian)
         r, J = data.y_nT - ev.y_nT, ev.J
         if ev.sqrt_w is not None:  # the likelihood's weights (sample_weights)
+            if J is not None:
+                J = J * ev.sqrt_w[:, None, None]
+                i = _tau_index(st)
+                if i is not None:
+                    J[:, :, i] -= _sqrt_weight_rate(data, st.tau_s())[:, None] * r
             r = r * ev.sqrt_w[:, None]
-            J = None if J is None else J * ev.sqrt_w[:, None, None]
         return r, J
 
     def update(st: ModelState, dx: F64) -> ModelState:
@@ -107,6 +119,36 @@ def fit(
         raw = data.y_nT - evaluate(sol.state, data, jacobian=False).y_nT
     return FitResult(sol.state, sol.residual, sol.rss, sol.info, sol.n_iter, raw,
                      data.noise_model)
+
+
+def _tau_index(state: ModelState) -> int | None:
+    """Index of the time offset in the parameter vector, or None without one."""
+    for t, o in zip(state.terms, state.offsets(), strict=True):
+        if t.kind is EffectKind.TIME_OFFSET:
+            return o
+    return None
+
+
+def _sqrt_weight_rate(data: FitData, tau_s: float) -> F64:
+    """``d sqrt(w) / d tau`` (N,) of :func:`~stages.diagnose.model.sample_weights`, per s.
+
+    The weights follow where ``t - tau`` falls between attitude samples, so the weighted
+    residual ``r_w = sqrt(w(tau)) (y - f(tau))`` depends on tau through them too:
+    ``d r_w / d tau = -sqrt(w) f' + (d sqrt(w) / d tau) (y - f)``. Without the second part
+    the fit stops where ``sum w r f' = 0``, and the attitude noise the prediction reads
+    correlates with its own rate where the samples fall at one place between attitude
+    samples (rates in a ratio of small integers): ``E[n n'] = sigma^2 f'(s) / (2 dt)``
+    with ``f(s)`` the interpolated noise factor. The lag then moves towards where that noise
+    is smallest. With it, the fit minimises the weighted sum of squares itself, whose
+    expectation does not depend on where the samples fall (the weights' purpose). Central
+    difference over a microsecond, within one interval of the polynomial ``f``.
+    """
+    h = 1e-6
+    wp = sample_weights(data, tau_s + h)
+    wm = sample_weights(data, tau_s - h)
+    if wp is None or wm is None:
+        return np.zeros(len(data))
+    return (np.sqrt(wp) - np.sqrt(wm)) / (2.0 * h)
 
 
 def _fit_with_prior(state: ModelState, resid: Any, update: Any, prec: F64, max_iter: int,

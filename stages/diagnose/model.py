@@ -113,6 +113,11 @@ _SOFT_BASIS[1] = np.diag([1.0, 1.0, -2.0]) / np.sqrt(3.0)
 for _k, (_i, _j) in enumerate([(0, 1), (0, 2), (1, 2)]):
     _SOFT_BASIS[2 + _k, _i, _j] = _SOFT_BASIS[2 + _k, _j, _i] = 1.0
 
+#: Projector (9, 9) of a row-major ``E_s`` onto its traceless part, ``E_s - tr(E_s)/3 I``.
+#: Beside a time offset the eddy term has only these 8 directions: its isotropic part is the
+#: time offset's (``E_s = -tau I`` to first order, (M5) against (M1) at ``t - tau``).
+TRACELESS_PROJECTOR = np.eye(9) - np.outer(np.eye(3).ravel(), np.eye(3).ravel()) / 3.0
+
 
 @dataclass(frozen=True)
 class AttitudeTrack:
@@ -480,9 +485,51 @@ class ModelState:
         return 6 + sum(t.n_params() for t in self.terms)
 
     def with_term(self, term: Term) -> ModelState:
-        """Return the state with ``term`` appended at zero (no effect)."""
+        """Return the state with ``term`` appended at zero (no effect).
+
+        A ``time_offset`` appended beside an ``eddy_current`` starts at ``tau = -tr(E_s)/3``
+        with ``E_s`` made traceless (:meth:`rate_pair`): the same prediction to first order.
+        """
         zero = np.zeros(term.n_params())
-        return replace(self, terms=self.terms + (term,), values=self.values + (zero,))
+        st = replace(self, terms=self.terms + (term,), values=self.values + (zero,))
+        return st.canonical() if term.kind is EffectKind.TIME_OFFSET else st
+
+    def rate_pair(self) -> bool:
+        """Whether both ``time_offset`` and ``eddy_current`` are in the model.
+
+        The two share one direction to first order (``E_s = -tau I``). The lag is exact in
+        the model ((M1) at ``t - tau``, the attitude re-interpolated) while the eddy term's
+        regressor is a rate smoothed over neighbouring attitude samples; left free, the
+        shared direction moves ``tau`` and ``tr(E_s)`` together so that the signal stays and
+        only the point where the noisy attitude is read moves (towards where its
+        interpolated noise is smallest). Beside a time offset the eddy term is therefore
+        traceless: 8 free parameters (:meth:`n_free`), its isotropic part held at zero
+        (:data:`TRACELESS_PROJECTOR` in :func:`evaluate` and :meth:`update`).
+        """
+        kinds = {t.kind for t in self.terms}
+        return EffectKind.TIME_OFFSET in kinds and EffectKind.EDDY_CURRENT in kinds
+
+    def n_free(self) -> int:
+        """Free parameters (the BIC's count): :meth:`n_params` less the rate pair's shared one."""
+        return self.n_params() - (1 if self.rate_pair() else 0)
+
+    def canonical(self) -> ModelState:
+        """Return the rate pair with ``tr(E_s)/3`` moved to the time offset (``tau <- tau - tr/3``).
+
+        The same prediction to first order; the state of :meth:`rate_pair` (traceless
+        ``E_s``). Any other state is returned as it is.
+        """
+        if not self.rate_pair():
+            return self
+        kinds = [t.kind for t in self.terms]
+        it, ie = kinds.index(EffectKind.TIME_OFFSET), kinds.index(EffectKind.EDDY_CURRENT)
+        vals = list(self.values)
+        iso = float(np.trace(vals[ie].reshape(3, 3))) / 3.0
+        if iso == 0.0:
+            return self
+        vals[it] = vals[it] - iso
+        vals[ie] = TRACELESS_PROJECTOR @ vals[ie]
+        return replace(self, values=tuple(vals))
 
     def value(self, kind: EffectKind) -> F64 | None:
         """Parameter vector of the first term of ``kind``, or None."""
@@ -538,9 +585,13 @@ class ModelState:
         R = so3_exp(dx[0:3]) @ self.R_body_mag
         B = self.B_enu_nT if fixed_B else self.B_enu_nT + dx[3:6]
         vals, T = [], self.T_enu
+        pair = self.rate_pair()
         for t, v, i in zip(self.terms, self.values, self.offsets(), strict=True):
             # for axis_tilt the values are bookkeeping only; the rotation lives in T_enu
-            vals.append(v + dx[i : i + t.n_params()])
+            d = dx[i : i + t.n_params()]
+            if pair and t.kind is EffectKind.EDDY_CURRENT:
+                d = TRACELESS_PROJECTOR @ d  # the rate pair's E_s stays traceless
+            vals.append(v + d)
         for t, i in zip(self.terms, self.offsets(), strict=True):
             if t.kind is EffectKind.AXIS_TILT:
                 P = _tilt_basis(self)
@@ -827,7 +878,7 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
         elif term.kind is EffectKind.HARD_IRON_STEP:
             offsets.append(term.step_offset_nT(t, v))
         elif term.kind is EffectKind.EDDY_CURRENT:
-            E_term = v.reshape(3, 3)
+            E_term = (TRACELESS_PROJECTOR @ v if state.rate_pair() else v).reshape(3, 3)
     rd = reading(Ct, Bp, R, D, offsets, E_term, Cdot)
     y, b, m = rd.y_nT, rd.b_body_nT, rd.m_nT
     bdot, mdot, ydot0 = rd.bdot_nT_s, rd.mdot_nT_s, rd.ydot0_nT_s
@@ -872,9 +923,11 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             # dbdot/dtau = -bddot for the eddy regressor
             J[:, :, i] = time_offset_jacobian(data.track.omega_body(s), b, bddot, R, D, E)
         elif k is EffectKind.EDDY_CURRENT:
-            # y_i += E_ij ydot0_j (row-major E)
+            # y_i += E_ij ydot0_j (row-major E); beside a time offset only the traceless part
             for r_ in range(3):
                 J[:, r_, i + 3 * r_ : i + 3 * r_ + 3] = ydot0
+            if state.rate_pair():
+                J[:, :, i : i + 9] = J[:, :, i : i + 9] @ TRACELESS_PROJECTOR
         elif k is EffectKind.FIELD_DRIFT:
             P = drift_basis(t, 0.0, _span(data))
             kk = 3 * P.shape[1]

@@ -21,6 +21,7 @@ from stages.diagnose.fit import FitResult, fit, wahba_init
 from stages.diagnose.model import (
     CONFOUND_RATIO,
     LOCAL_KINDS,
+    TRACELESS_PROJECTOR,
     EffectKind,
     FitData,
     ModelState,
@@ -85,6 +86,11 @@ NESTED_SIMPLER = {
     EffectKind.EDDY_CURRENT: EffectKind.TIME_OFFSET,
     EffectKind.FIELD_DRIFT: EffectKind.HEADING_DRIFT,
 }
+
+
+#: The noise model is measured again when a component of it moves by more than this fraction
+#: (its own estimate scatters by a few per cent).
+NOISE_MODEL_RTOL = 0.2
 
 
 #: Largest time offset the search is built for, s (issue 15: lags up to +-100 ms).
@@ -579,6 +585,8 @@ def diagnose_data(
                 # the residuals alone (issue 15); the window pair keeps its calibrated rule
                 if alt_fit is not None and simpler_kind in NESTED_SIMPLER.values():
                     prefer = _bic_between(alt_fit[2], best[2], data) <= cfg.bic_margin
+                    if not prefer and best[1].term.kind is EffectKind.EDDY_CURRENT:
+                        prefer = _lag_first(best[2], data, cfg)
                 else:
                     prefer = alt_fit is not None and alt_fit[0] <= best[0] + cfg.bic_margin
                 if alt_fit is not None and prefer:
@@ -659,15 +667,19 @@ def diagnose_data(
         moved = _relocate_sources(cur, data)
         if moved is not cur:
             cur, cv_cur = moved, heldout_rms(moved.state, data, cfg)
-        if data.noise_model is None:
-            # the attitude noise may only now stand out of what the model leaves
-            nm = estimate_noise_model(
-                cur.residual_nT if cur.raw_residual_nT is None else cur.raw_residual_nT, data,
-                e_int_nT)
-            if nm is not None:
-                data = dataclasses.replace(data, noise_model=nm)
-                cur = fit(cur.state, data)
-                cv_cur = heldout_rms(cur.state, data, cfg)
+        # the noise model is measured on what the model leaves: the attitude noise may only
+        # now stand out of it, and a model measured while an effect of thousands of nT was
+        # unmodelled takes that effect for magnetometer noise. Its weights are then nearly
+        # flat, and a lag gains by reading the noisy attitude where its interpolated noise is
+        # smallest (sample_weights): a shift of tau that fits attitude noise, not a lag
+        nm = estimate_noise_model(
+            cur.residual_nT if cur.raw_residual_nT is None else cur.raw_residual_nT, data,
+            e_int_nT)
+        if nm is not None and (data.noise_model is None or not np.allclose(
+                nm, data.noise_model, rtol=NOISE_MODEL_RTOL)):
+            data = dataclasses.replace(data, noise_model=nm)
+            cur = fit(cur.state, data)
+            cv_cur = heldout_rms(cur.state, data, cfg)
         # backward step: a term chosen earlier, while more was unmodelled, may have stood in
         # for what a later term explains properly; drop it if it no longer earns its margin
         i = 0
@@ -683,8 +695,8 @@ def diagnose_data(
             st_wo = _without(cur.state, i)
             res_wo = fit(st_wo, data)
             n_eff = _n_eff(cur, data)
-            bic_cur = _bic(cur.rss, n_eff, cur.state.n_params())
-            keep = bic_cur - _bic(res_wo.rss, n_eff, res_wo.state.n_params())
+            bic_cur = _bic(cur.rss, n_eff, cur.state.n_free())
+            keep = bic_cur - _bic(res_wo.rss, n_eff, res_wo.state.n_free())
             if keep > -cfg.bic_margin:
                 dropped.add((t_i.kind, t_i.windows_s))
                 findings.pop(i)
@@ -694,12 +706,12 @@ def diagnose_data(
             simpler_term = _simpler(t_i)
             if simpler_term is not None and simpler_term.kind not in {t.kind for t in st_wo.terms}:
                 res_s = fit(res_wo.state.with_term(simpler_term), data)
-                if _bic(res_s.rss, n_eff, res_s.state.n_params()) - bic_cur < cfg.bic_margin:
+                if _bic(res_s.rss, n_eff, res_s.state.n_free()) - bic_cur < cfg.bic_margin:
                     # the simpler nested term explains the data as well: it replaces the other
                     cv_s = heldout_rms(res_s.state, data, cfg)
                     st_s = score_test(res_wo, simpler_term, data, robust_sigma(res_wo.residual_nT))
-                    dbic_s = _bic(res_s.rss, n_eff, res_s.state.n_params()) - _bic(
-                        res_wo.rss, n_eff, res_wo.state.n_params())
+                    dbic_s = _bic(res_s.rss, n_eff, res_s.state.n_free()) - _bic(
+                        res_wo.rss, n_eff, res_wo.state.n_free())
                     cv_wo = heldout_rms(res_wo.state, data, cfg)
                     findings.pop(i)
                     findings.append(_finding(res_wo, res_s, simpler_term, st_s, dbic_s, cv_wo, cv_s,
@@ -829,8 +841,8 @@ def _chain_evidence(
         term = after.state.terms[-1]
         st = score_test(before, term, data, robust_sigma(before.residual_nT))
         n_eff = _n_eff(after, data)
-        dbic = _bic(after.rss, n_eff, after.state.n_params()) - _bic(
-            before.rss, n_eff, before.state.n_params())
+        dbic = _bic(after.rss, n_eff, after.state.n_free()) - _bic(
+            before.rss, n_eff, before.state.n_free())
         new = _finding(before, after, term, st, float(dbic), cvs[k], cvs[k + 1], data)
         out.append(dataclasses.replace(new, params=fd.params, sigma=fd.sigma,
                                        told_apart=fd.told_apart))
@@ -864,7 +876,7 @@ def _replacement_fit(
     if not res.rss < cur.rss:
         return None
     n_eff = _n_eff(res, data)
-    dbic = _bic(res.rss, n_eff, res.state.n_params()) - _bic(cur.rss, n_eff, cur.state.n_params())
+    dbic = _bic(res.rss, n_eff, res.state.n_free()) - _bic(cur.rss, n_eff, cur.state.n_free())
     if dbic > -cfg.bic_margin:
         return None
     st = score_test(wo, term, data, robust_sigma(wo.residual_nT))
@@ -872,48 +884,41 @@ def _replacement_fit(
 
 
 def canonical_rate_terms(res: FitResult, data: FitData) -> FitResult:
-    """With ``time_offset`` and ``eddy_current`` both in the model, move ``tr(E_s)/3`` to tau.
+    """With ``time_offset`` and ``eddy_current`` both in the model, store ``E_s`` traceless.
 
-    The two share one direction (``E_s = -tau I`` to first order): the fit leaves it where the
-    iterations stopped. The canonical split gives the time offset the isotropic part, ``tau <-
-    tau - tr(E_s)/3`` and ``E_s <- E_s - tr(E_s)/3 I`` (no refit: a refit drifts back along the
-    shared direction). It is taken unless it worsens the fit by more than one parameter's BIC
-    (``ln N`` noise variances), which the second-order difference of the two terms stays far
-    below.
+    The rate pair's eddy term has no isotropic part
+    (:meth:`~stages.diagnose.model.ModelState.rate_pair`): :func:`evaluate` reads only the
+    traceless part of its values, so removing any trace changes neither the prediction nor
+    the fit (``data``: kept for the callers' signature).
     """
-    from pipeline.model.solve import normal_equations
-
-    kinds = [t.kind for t in res.state.terms]
-    if EffectKind.TIME_OFFSET not in kinds or EffectKind.EDDY_CURRENT not in kinds:
+    if not res.state.rate_pair():
         return res
-    it, ie = kinds.index(EffectKind.TIME_OFFSET), kinds.index(EffectKind.EDDY_CURRENT)
-    vals = list(res.state.values)
-    E = vals[ie].reshape(3, 3)
-    iso = float(np.trace(E)) / 3.0
-    vals[it] = vals[it] - iso
-    vals[ie] = (E - iso * np.eye(3)).ravel()
-    st = dataclasses.replace(res.state, values=tuple(vals))
-    ev = evaluate(st, data)
-    r = data.y_nT - ev.y_nT
-    rss = float(np.sum(r * r))
-    n = max(res.residual_nT.size, 2)
-    if not np.isfinite(rss) or rss - res.rss > np.log(n) * res.rss / n:
-        return res
-    H, _ = normal_equations(ev.jac, r)
-    return FitResult(st, r, rss, H, res.n_iter)
+    vals = tuple(TRACELESS_PROJECTOR @ v if t.kind is EffectKind.EDDY_CURRENT else v
+                 for t, v in zip(res.state.terms, res.state.values, strict=True))
+    return dataclasses.replace(res, state=dataclasses.replace(res.state, values=vals))
 
 
 def split_isotropic_eddy(
     findings: list[Finding], cur: FitResult, cv_cur: float, data: FitData,
     cfg: DiagnoseConfig,
 ) -> tuple[list[Finding], FitResult, float]:
-    """Turn an eddy term with a significant isotropic part into a time offset and the rest.
+    """Name the rate terms of a final model with an eddy term and no time offset.
 
-    The simpler nested term is reported for what it explains: when the final model has
-    ``eddy_current`` but no ``time_offset`` and ``tr(E_s)/3`` differs from zero by more than
-    the BIC gate of one parameter (``z^2 > ln n_eff + bic_margin``), the model is refitted with
-    ``time_offset`` (tau = -tr(E_s)/3) and the traceless remainder of ``E_s``; the remainder is
-    kept only if it still lowers the BIC by ``bic_margin`` and the held-out error.
+    An eddy term with an isotropic part ``tr(E_s)/3`` is, to first order, a time offset
+    (``E_s = -tau I``) and its traceless rest. Three descriptions of the same first-order
+    rate term are compared, each by BIC with one effective sample count:
+
+    - ``time_offset`` alone in place of the eddy term (1 parameter against 9): a lag;
+    - ``eddy_current`` alone (9): an eddy term;
+    - ``time_offset`` and a traceless ``eddy_current`` (1 + 8 = 9): a lag and eddy currents.
+
+    The simpler description is kept unless the next one lowers the BIC by ``bic_margin``:
+    the lag when it explains the data as well as the eddy term (a lag is one parameter);
+    the eddy term alone against the pair (as many parameters, one term fewer) unless the
+    exact lag of the pair ((M1) at ``t - tau``) fits better by the margin, i.e. the data
+    show the lag's second-order terms, which an eddy term's first-order ``E_s dy0/dt``
+    lacks. An isotropic part within the BIC gate of one parameter of zero
+    (``z^2 <= ln n_eff + bic_margin``) leaves the model as it is.
     """
     kinds = [t.kind for t in cur.state.terms]
     if EffectKind.EDDY_CURRENT not in kinds or EffectKind.TIME_OFFSET in kinds:
@@ -928,31 +933,44 @@ def split_isotropic_eddy(
     if var <= 0 or iso * iso / var <= np.log(n_eff) + cfg.bic_margin:
         return findings, cur, cv_cur
     tau = -iso / np.sqrt(3.0)  # E_iso = (iso / sqrt 3) I = -tau I
-    st = dataclasses.replace(
+    lag_only = fit(dataclasses.replace(
+        cur.state, terms=cur.state.terms[:ie] + (Term(EffectKind.TIME_OFFSET),)
+        + cur.state.terms[ie + 1:],
+        values=cur.state.values[:ie] + (np.array([tau]),) + cur.state.values[ie + 1:]), data)
+    placeholder = dataclasses.replace(findings[ie], effect=EffectKind.TIME_OFFSET.value)
+    if _bic_between(lag_only, cur, data) <= cfg.bic_margin:
+        # a lag explains what the eddy term does: the lag is named, no eddy term
+        return (findings[:ie] + [placeholder] + findings[ie + 1:], lag_only,
+                heldout_rms(lag_only.state, data, cfg))
+    # the pair: tau = -tr(E_s)/3 and the traceless rest (the rate pair, 8 free in E_s)
+    split = fit(dataclasses.replace(
         cur.state,
         terms=cur.state.terms[:ie] + (Term(EffectKind.TIME_OFFSET),) + cur.state.terms[ie:],
-        values=cur.state.values[:ie] + (np.array([tau]),) + (
-            (E.reshape(3, 3) + tau * np.eye(3)).ravel(),) + cur.state.values[ie + 1:],
-    )
-    split = canonical_rate_terms(fit(st, data), data)
-    Es = split.state.values[ie + 1]
-    if abs(float(_ISO @ Es)) > 1e-3 * max(float(np.linalg.norm(Es)), 1e-12):
-        # the canonical split was refused: the data tell the isotropic eddy term from a
-        # time offset (second order, fast motion); the eddy term stays as it is
+        values=cur.state.values[:ie] + (np.array([tau]),)
+        + (TRACELESS_PROJECTOR @ E,) + cur.state.values[ie + 1:]), data)
+    if _bic_between(split, cur, data) > -cfg.bic_margin:
+        return findings, cur, cv_cur  # the eddy term alone explains the data as well
+    cv_split = _heldout_ok(cur, split, data, cfg, cv_cur)
+    if cv_split is None:
         return findings, cur, cv_cur
-    placeholder = dataclasses.replace(findings[ie], effect=EffectKind.TIME_OFFSET.value)
-    new_findings = findings[:ie] + [placeholder] + findings[ie:]
-    # does the anisotropic remainder earn its place?
-    ie2 = ie + 1
-    wo = canonical_rate_terms(fit(_without(split.state, ie2), data), data)
-    n_eff = _n_eff(split, data)
-    keep = _bic(split.rss, n_eff, split.state.n_params()) - _bic(wo.rss, n_eff,
-                                                                   wo.state.n_params())
-    cv_split = heldout_rms(split.state, data, cfg)
-    cv_wo = heldout_rms(wo.state, data, cfg)
-    if keep > -cfg.bic_margin or _heldout_ok(wo, split, data, cfg, cv_wo) is None:
-        return new_findings[:ie2] + new_findings[ie2 + 1:], wo, cv_wo
-    return new_findings, split, cv_split
+    return findings[:ie] + [placeholder] + findings[ie:], split, cv_split
+
+
+def _lag_first(eddy: FitResult, data: FitData, cfg: DiagnoseConfig) -> bool:
+    """Whether the lag inside an eddy term that won its round is to be named first.
+
+    ``eddy``: the model with a new ``eddy_current`` and no ``time_offset``. Its isotropic part
+    is a time offset to first order; when the pair of an exact lag (the attitude at
+    ``t - tau``, ``tau = -tr(E_s)/3``) and the traceless rest fits better by the BIC margin
+    at as many free parameters (1 + 8 against 9), the data show the lag's second-order
+    terms: the time offset is named in this round and the anisotropic rest is tested in the
+    next on its own (as :func:`split_isotropic_eddy` decides for the final model), so the
+    rest does not ride on the lag's evidence.
+    """
+    if eddy.state.value(EffectKind.TIME_OFFSET) is not None:
+        return False
+    pair = fit(eddy.state.with_term(Term(EffectKind.TIME_OFFSET)), data)
+    return _bic_between(pair, eddy, data) < -cfg.bic_margin
 
 
 def _without(state: ModelState, i: int) -> ModelState:
@@ -1114,7 +1132,7 @@ def _refit(
     if not res.rss < cur.rss:
         return None
     n_eff = _n_eff(res, data)
-    dbic = _bic(res.rss, n_eff, res.state.n_params()) - _bic(cur.rss, n_eff, cur.state.n_params())
+    dbic = _bic(res.rss, n_eff, res.state.n_free()) - _bic(cur.rss, n_eff, cur.state.n_free())
     if dbic > -cfg.bic_margin:
         return None
     return res, float(dbic)
@@ -1131,7 +1149,7 @@ def _heldout_ok(
     cv_new = heldout_rms(res.state, data, cfg)
     n_eff = _n_eff(res, data)
     s2 = res.rss / res.residual_nT.size
-    k = res.state.n_params() - cur.state.n_params()
+    k = res.state.n_free() - cur.state.n_free()
     gain = (cv_old**2 - cv_new**2) * n_eff / s2
     if cv_new < cv_old * (1.0 - cfg.heldout_margin) and gain >= k * np.log(n_eff) + cfg.bic_margin:
         return cv_new

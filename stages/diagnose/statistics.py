@@ -334,7 +334,7 @@ def _bic_between(a: FitResult, b: FitResult, data: FitData) -> float:
     the difference measures their fits and parameter counts, not their residuals' texture.
     """
     n = min(_n_eff(a, data), _n_eff(b, data))
-    return _bic(a.rss, n, a.state.n_params()) - _bic(b.rss, n, b.state.n_params())
+    return _bic(a.rss, n, a.state.n_free()) - _bic(b.rss, n, b.state.n_free())
 
 
 #: Orthonormal basis (8, 9) of the traceless 3x3 matrices, row-major: the part of ``E_s``
@@ -354,16 +354,18 @@ def anisotropic_eddy_test(cur: FitResult, data: FitData, sigma: float) -> ScoreT
     """Score test of the anisotropic part of ``eddy_current`` with a time offset in the model.
 
     The isotropic part of ``E_s`` is the time offset's (``E_s = -tau I`` to first order): with
-    ``time_offset`` in the model the eddy term is tested on the 8 traceless directions only,
-    so the nested simpler term keeps what it explains and the eddy term is admitted only for
-    what it cannot (issue 15). ``k`` stays 9 (conservative).
+    ``time_offset`` in the model the eddy term has the 8 traceless directions only
+    (:meth:`~stages.diagnose.model.ModelState.rate_pair`), so the nested simpler term keeps
+    what it explains and the eddy term is admitted only for what it cannot. ``k = 8``, its
+    free parameters there.
     """
     term = Term(EffectKind.EDDY_CURRENT)
     ev = evaluate(cur.state.with_term(term), data)
-    J = ev.jac.reshape(-1, ev.jac.shape[-1])
+    J = ev.jac if ev.sqrt_w is None else ev.jac * ev.sqrt_w[:, None, None]  # as the residual
+    J = J.reshape(-1, J.shape[-1])
     p0 = cur.state.n_params()
     Jt = np.concatenate([J[:, :p0], J[:, p0:] @ _TRACELESS.T], axis=1)
-    return _score_from_J(cur, term, Jt, data, sigma)
+    return dataclasses.replace(_score_from_J(cur, term, Jt, data, sigma), k=len(_TRACELESS))
 
 
 def _covariance(res: FitResult, data: FitData) -> np.ndarray:
