@@ -1,0 +1,254 @@
+"""Stability bench (issue 25, item 1): an injected effect changes only its own finding.
+
+Usage: ``python bench/stability.py [--bases NAME,...] [--cases lag,offset,step] [--seconds S]
+[--limit N] [--work DIR] [--no-record] [--list]``.
+
+Each base (an excerpt of a lab recording, chosen by how it moves, or an independent
+recording of ``tests/indep_gen.py``) is diagnosed once; then each injection of
+``tests/semireal.py`` (a pure lag of +-25 ms, a pure 3000 nT offset in the mag frame, a
+rectangular offset switched on for a few seconds), each proved exact on the written files
+(``semireal.check_injection``). An injection passes when (``semireal.compare``):
+
+- the injected effect is found, its parameter within 3 sigma or 10 %;
+- no other finding is added or lost (windows of ``hard_iron_step`` / ``disturbance`` count
+  one by one);
+- the other findings' parameters and R move by less than their combined sigma (base and
+  injected share their noise: what moves them is the model).
+
+Prints one line per injection, the table of counts per base, each exception with the
+findings before and after, and appends the totals to ``bench/results.csv``. With
+``--work DIR`` the diagnoses are kept there (``*.json``) and reused by a later run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "bench"))
+
+import semireal as sr  # noqa: E402
+from results import record  # noqa: E402
+
+#: Seconds of each base.
+SECONDS = 60.0
+
+
+def _lab(name: str, pick: str) -> Callable[[float], tuple[sr.Real, str]]:
+    """A lab excerpt: ``pick`` ``translating`` (the largest metres per radian, measured from
+    the poses), ``translating2`` (the most translating of those that do not overlap the
+    first), ``rotating`` (the smallest) or a start time in seconds."""
+    def make(seconds: float) -> tuple[sr.Real, str]:
+        r = sr.read_real(sr.REAL_DIR / f"{name}.mcap")
+        if pick.replace(".", "").isdigit():
+            a = float(pick)
+        else:
+            segs = sr.translating_segments(r, seconds, 10.0)
+            if pick == "rotating":
+                a = segs[-1]["start_s"]
+            elif pick == "translating":
+                a = segs[0]["start_s"]
+            else:
+                first = segs[0]["start_s"]
+                a = next(s["start_s"] for s in segs if abs(s["start_s"] - first) >= seconds)
+        m = sr.motion(r, a, a + seconds)
+        return sr.excerpt(r, a, seconds), (
+            f"{name} [{a:.0f}, {a + seconds:.0f}) s: rot rms {m['rot_rms_deg']:.0f} deg, "
+            f"pos rms {m['pos_rms_m']:.2f} m, {m['m_per_rad']:.2f} m/rad")
+    return make
+
+
+def _indep(**kw: Any) -> Callable[[float], tuple[sr.Real, str]]:
+    def make(seconds: float) -> tuple[sr.Real, str]:
+        from indep_gen import Spec
+
+        spec = Spec(name="base", duration_s=seconds, **kw)
+        r = sr.from_indep(spec)
+        m = sr.motion(r)
+        return r, (f"indep {spec.path} mag {spec.mag_rate_hz:g} Hz att {spec.att_rate_hz:g} Hz:"
+                   f" rot rms {m['rot_rms_deg']:.0f} deg, pos rms {m['pos_rms_m']:.2f} m, "
+                   f"{m['m_per_rad']:.2f} m/rad")
+    return make
+
+
+#: Bases: rotation-rich and translating lab excerpts, independent recordings of both kinds.
+BASES: dict[str, Callable[[float], tuple[sr.Real, str]]] = {
+    "lab_03_rot": _lab("lab_03", "rotating"),
+    "lab_05_rot": _lab("lab_05", "rotating"),
+    "lab_01_tr": _lab("lab_01", "translating"),
+    "lab_01_tr2": _lab("lab_01", "translating2"),
+    "indep_rot": _indep(seed=101, mag_rate_hz=100.0, att_rate_hz=100.0, mag_noise_nT=5.0),
+    "indep_tr": _indep(seed=102, path="translate", mag_rate_hz=100.0, att_rate_hz=100.0,
+                       mag_noise_nT=5.0, swing_deg=(2.0, 3.0, 3.0)),
+    "indep_tr_fast": _indep(seed=103, path="translate", mag_rate_hz=200.0, att_rate_hz=100.0,
+                            mag_noise_nT=20.0, swing_deg=(5.0, 4.0, 4.0),
+                            freqs_hz=(0.2, 0.3, 0.25), translate_amp_m=0.3),
+    "indep_survey": _indep(seed=104, path="survey", mag_rate_hz=100.0, att_rate_hz=50.0,
+                           mag_noise_nT=5.0, swing_deg=(3.0, 3.0, 3.0),
+                           survey_calibration_s=20.0),
+}
+
+#: Injections: (label, case of ``semireal.inject``, size, seed, window of a step in s).
+CASES: dict[str, list[tuple[str, str, float, int, float]]] = {
+    "lag": [("lag+25ms", "time_offset", 0.025, 0, 0.0),
+            ("lag-25ms", "time_offset", -0.025, 0, 0.0)],
+    "offset": [(f"offset3000#{k}", "hard_iron", 3000.0, k, 0.0) for k in range(3)],
+    "step": [("step1000x3s", "hard_iron_step", 1000.0, 0, 3.0),
+             ("step2000x5s", "hard_iron_step", 2000.0, 1, 5.0),
+             ("step3000x7s", "hard_iron_step", 3000.0, 2, 7.0)],
+}
+
+
+def _diagnosed(rec: sr.Real, path: Path, cache: Path) -> dict[str, Any]:
+    from pipeline.app.commands.diagnose import diagnose_file
+
+    if cache.exists():
+        return json.loads(cache.read_text())
+    sr.write_real(rec, path)
+    t0 = time.perf_counter()
+    s = sr.summary(diagnose_file(path))
+    s["seconds"] = time.perf_counter() - t0
+    cache.write_text(json.dumps(s))
+    return s
+
+
+def _findings_text(s: dict[str, Any]) -> str:
+    return ", ".join(sr._label(x) for x in sr._items(s)) or "none"
+
+
+def run(bases: list[str], cases: list[str], seconds: float, work: Path,
+        limit: int | None = None) -> list[dict[str, Any]]:
+    rows: list[dict[str, Any]] = []
+    todo = [c for k in cases for c in CASES[k]]
+    for name in bases:
+        rec, what = BASES[name](seconds)
+        d = work / name
+        d.mkdir(parents=True, exist_ok=True)
+        base_path = d / "base.mcap"
+        base = _diagnosed(rec, base_path, d / "base.json")
+        if not base_path.exists():
+            sr.write_real(rec, base_path)
+        print(f"\n{name}: {what}\n  base ({base.get('seconds', 0):.0f} s): "
+              f"{_findings_text(base)}", flush=True)
+        for label, case, size, seed, win in todo:
+            if limit is not None and len(rows) >= limit:
+                return rows
+            inj, rep, truth = sr.inject(rec, case, size, seed=seed, window_s=win or 10.0)
+            path = d / f"{label}.mcap"
+            sr.write_real(inj, path)
+            sr.check_injection(base_path, path, rep, truth)
+            s = _diagnosed(inj, path, d / f"{label}.json")
+            c = sr.compare(base, s, rep, truth)
+            ok = (c["found"] and not c["extra"] and not c["lost"] and c["max_shift"] <= 1.0
+                  and c["r_shift"] <= 1.0)
+            rows.append({"base": name, "case": label, "reported": rep, "truth": truth,
+                         "ok": ok, **c, "findings_before": _findings_text(base),
+                         "findings_after": _findings_text(s),
+                         "seconds": s.get("seconds", 0.0)})
+            shift = max(c["shifts"].items(), key=lambda kv: kv[1] if np.isfinite(kv[1])
+                        else -1, default=("", 0.0))
+            print(f"  {label:14s} {'ok ' if ok else 'EXC'} own {c['own']} "
+                  f"(err {c['param_err_x_tol']:.2f} tol) extra {c['extra']} lost {c['lost']} "
+                  f"max shift {shift[1]:.2f} sigma ({shift[0]}) R {c['r_shift']:.2f} sigma "
+                  f"[{s.get('seconds', 0):.0f} s]", flush=True)
+    return rows
+
+
+def report(rows: list[dict[str, Any]]) -> dict[str, float]:
+    n = len(rows)
+    extra = sum(len(r["extra"]) for r in rows)
+    n_extra = sum(1 for r in rows if r["extra"])
+    lost = sum(len(r["lost"]) for r in rows)
+    missed = sum(1 for r in rows if not r["found"])
+    shifted = sum(1 for r in rows if r["max_shift"] > 1.0)
+    r_moved = sum(1 for r in rows if r["r_shift"] > 1.0)
+    print(f"\n{'base':14s} {'n':>3s} {'extra':>6s} {'lost':>5s} {'missed':>7s} "
+          f"{'param>1sig':>11s} {'R>1sig':>7s}")
+    for b in dict.fromkeys(r["base"] for r in rows):
+        rs = [r for r in rows if r["base"] == b]
+        print(f"{b:14s} {len(rs):3d} {sum(len(r['extra']) for r in rs):6d} "
+              f"{sum(len(r['lost']) for r in rs):5d} {sum(not r['found'] for r in rs):7d} "
+              f"{sum(r['max_shift'] > 1 for r in rs):11d} {sum(r['r_shift'] > 1 for r in rs):7d}")
+    print("\nexceptions (findings before -> after):")
+    for r in rows:
+        if not r["ok"]:
+            why = []
+            if not r["found"]:
+                why.append(f"injected {r['reported']} not found right (own {r['own']}, error "
+                           f"{r['param_err_x_tol']:.2f} x tolerance)")
+            if r["extra"]:
+                why.append(f"extra {r['extra']}")
+            if r["lost"]:
+                why.append(f"lost {r['lost']}")
+            big = {k: round(v, 1) for k, v in r["shifts"].items() if v > 1.0}
+            if big:
+                why.append(f"moved (sigma) {big}")
+            if r["r_shift"] > 1.0:
+                why.append(f"R moved {r['r_shift']:.1f} sigma "
+                           f"({', '.join(f'{x:+.4f}' for x in r['r_change_deg'])} deg)")
+            print(f"  {r['base']}:{r['case']}: {'; '.join(why)}\n"
+                  f"      before: {r['findings_before']}\n      after:  {r['findings_after']}")
+    print(f"\nextra findings: {extra} in {n_extra}/{n} injections (target 0 in >= 60); "
+          f"lost findings: {lost}; injected effect missed or wrong: {missed}; other "
+          f"parameters moved > 1 combined sigma: {shifted}; R moved > 1 combined sigma: "
+          f"{r_moved}; injections passing every check: {sum(r['ok'] for r in rows)}/{n}")
+    return {"injections": n, "extra findings": extra, "injections with extra findings": n_extra,
+            "lost findings": lost, "injected effect missed": missed,
+            "parameters moved": shifted, "R moved": r_moved,
+            "injections passing": sum(r["ok"] for r in rows)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--bases", default=",".join(BASES),
+                    help=f"comma-separated subset of {', '.join(BASES)}")
+    ap.add_argument("--cases", default=",".join(CASES),
+                    help=f"comma-separated subset of {', '.join(CASES)}")
+    ap.add_argument("--seconds", type=float, default=SECONDS, help="length of each base")
+    ap.add_argument("--limit", type=int, default=None, help="stop after N injections")
+    ap.add_argument("--work", type=Path, default=None,
+                    help="keep recordings and diagnoses here (reused when present)")
+    ap.add_argument("--no-record", action="store_true", help="leave bench/results.csv alone")
+    ap.add_argument("--list", action="store_true", help="list bases and cases, then stop")
+    a = ap.parse_args(argv)
+    bases = [b for b in a.bases.split(",") if b]
+    cases = [c for c in a.cases.split(",") if c]
+    if a.list:
+        print("bases:", ", ".join(BASES))
+        for k, v in CASES.items():
+            print(f"{k}: {', '.join(c[0] for c in v)}")
+        return 0
+    bad = [b for b in bases if b not in BASES] + [c for c in cases if c not in CASES]
+    if bad:
+        ap.error(f"unknown {bad}")
+    if any(b.startswith("lab_") for b in bases) and not sr.REAL_DIR.exists():
+        print("lab bases skipped: the real recordings are absent")
+        bases = [b for b in bases if not b.startswith("lab_")]
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        work = a.work or Path(tmp)
+        rows = run(bases, cases, a.seconds, work, a.limit)
+        if a.work:
+            (work / "rows.json").write_text(json.dumps(rows, indent=1, default=str))
+    dt = time.perf_counter() - t0
+    totals = report(rows)
+    print(f"[stability: {dt:.0f} s for {len(bases)} bases, {len(rows)} injections]")
+    if not a.no_record:
+        for k, v in totals.items():
+            record("stability", k, float(v), "1")
+        record("stability", "wall time", dt, "s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
