@@ -27,7 +27,6 @@ import json
 import sys
 import tempfile
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -42,71 +41,6 @@ from results import record  # noqa: E402
 
 #: Seconds of each base.
 SECONDS = 60.0
-
-
-def _lab(name: str, pick: str) -> Callable[[float], tuple[sr.Real, str]]:
-    """A lab excerpt: ``pick`` ``translating`` (the largest metres per radian, measured from
-    the poses), ``translating2`` (the most translating of those that do not overlap the
-    first), ``rotating`` (the smallest) or a start time in seconds."""
-    def make(seconds: float) -> tuple[sr.Real, str]:
-        r = sr.read_real(sr.REAL_DIR / f"{name}.mcap")
-        if pick.replace(".", "").isdigit():
-            a = float(pick)
-        else:
-            segs = sr.translating_segments(r, seconds, 10.0)
-            if pick == "rotating":
-                a = segs[-1]["start_s"]
-            elif pick == "translating":
-                a = segs[0]["start_s"]
-            else:
-                first = segs[0]["start_s"]
-                a = next(s["start_s"] for s in segs if abs(s["start_s"] - first) >= seconds)
-        m = sr.motion(r, a, a + seconds)
-        return sr.excerpt(r, a, seconds), (
-            f"{name} [{a:.0f}, {a + seconds:.0f}) s: rot rms {m['rot_rms_deg']:.0f} deg, "
-            f"pos rms {m['pos_rms_m']:.2f} m, {m['m_per_rad']:.2f} m/rad")
-    return make
-
-
-def _indep(**kw: Any) -> Callable[[float], tuple[sr.Real, str]]:
-    def make(seconds: float) -> tuple[sr.Real, str]:
-        from indep_gen import Spec
-
-        spec = Spec(name="base", duration_s=seconds, **kw)
-        r = sr.from_indep(spec)
-        m = sr.motion(r)
-        return r, (f"indep {spec.path} mag {spec.mag_rate_hz:g} Hz att {spec.att_rate_hz:g} Hz:"
-                   f" rot rms {m['rot_rms_deg']:.0f} deg, pos rms {m['pos_rms_m']:.2f} m, "
-                   f"{m['m_per_rad']:.2f} m/rad")
-    return make
-
-
-#: Bases: rotation-rich and translating lab excerpts, independent recordings of both kinds.
-BASES: dict[str, Callable[[float], tuple[sr.Real, str]]] = {
-    "lab_03_rot": _lab("lab_03", "rotating"),
-    "lab_05_rot": _lab("lab_05", "rotating"),
-    "lab_01_tr": _lab("lab_01", "translating"),
-    "lab_01_tr2": _lab("lab_01", "translating2"),
-    "indep_rot": _indep(seed=101, mag_rate_hz=100.0, att_rate_hz=100.0, mag_noise_nT=5.0),
-    "indep_tr": _indep(seed=102, path="translate", mag_rate_hz=100.0, att_rate_hz=100.0,
-                       mag_noise_nT=5.0, swing_deg=(2.0, 3.0, 3.0)),
-    "indep_tr_fast": _indep(seed=103, path="translate", mag_rate_hz=200.0, att_rate_hz=100.0,
-                            mag_noise_nT=20.0, swing_deg=(5.0, 4.0, 4.0),
-                            freqs_hz=(0.2, 0.3, 0.25), translate_amp_m=0.3),
-    "indep_survey": _indep(seed=104, path="survey", mag_rate_hz=100.0, att_rate_hz=50.0,
-                           mag_noise_nT=5.0, swing_deg=(3.0, 3.0, 3.0),
-                           survey_calibration_s=20.0),
-}
-
-#: Injections: (label, case of ``semireal.inject``, size, seed, window of a step in s).
-CASES: dict[str, list[tuple[str, str, float, int, float]]] = {
-    "lag": [("lag+25ms", "time_offset", 0.025, 0, 0.0),
-            ("lag-25ms", "time_offset", -0.025, 0, 0.0)],
-    "offset": [(f"offset3000#{k}", "hard_iron", 3000.0, k, 0.0) for k in range(3)],
-    "step": [("step1000x3s", "hard_iron_step", 1000.0, 0, 3.0),
-             ("step2000x5s", "hard_iron_step", 2000.0, 1, 5.0),
-             ("step3000x7s", "hard_iron_step", 3000.0, 2, 7.0)],
-}
 
 
 def _diagnosed(rec: sr.Real, path: Path, cache: Path) -> dict[str, Any]:
@@ -129,9 +63,9 @@ def _findings_text(s: dict[str, Any]) -> str:
 def run(bases: list[str], cases: list[str], seconds: float, work: Path,
         limit: int | None = None) -> list[dict[str, Any]]:
     rows: list[dict[str, Any]] = []
-    todo = [c for k in cases for c in CASES[k]]
+    todo = [c for k in cases for c in sr.STABILITY_CASES[k]]
     for name in bases:
-        rec, what = BASES[name](seconds)
+        rec, what = sr.stability_base(name, seconds)
         d = work / name
         d.mkdir(parents=True, exist_ok=True)
         base_path = d / "base.mcap"
@@ -185,7 +119,9 @@ def report(rows: list[dict[str, Any]]) -> dict[str, float]:
             why = []
             if not r["found"]:
                 why.append(f"injected {r['reported']} not found right (own {r['own']}, error "
-                           f"{r['param_err_x_tol']:.2f} x tolerance)")
+                           f"{r['param_err_x_tol']:.2f} x tolerance"
+                           + (", declared not identifiable)" if r.get("not_identifiable")
+                              else ")"))
             if r["extra"]:
                 why.append(f"extra {r['extra']}")
             if r["lost"]:
@@ -210,10 +146,10 @@ def report(rows: list[dict[str, Any]]) -> dict[str, float]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--bases", default=",".join(BASES),
-                    help=f"comma-separated subset of {', '.join(BASES)}")
-    ap.add_argument("--cases", default=",".join(CASES),
-                    help=f"comma-separated subset of {', '.join(CASES)}")
+    ap.add_argument("--bases", default=",".join(sr.STABILITY_BASES),
+                    help=f"comma-separated subset of {', '.join(sr.STABILITY_BASES)}")
+    ap.add_argument("--cases", default=",".join(sr.STABILITY_CASES),
+                    help=f"comma-separated subset of {', '.join(sr.STABILITY_CASES)}")
     ap.add_argument("--seconds", type=float, default=SECONDS, help="length of each base")
     ap.add_argument("--limit", type=int, default=None, help="stop after N injections")
     ap.add_argument("--work", type=Path, default=None,
@@ -224,11 +160,12 @@ def main(argv: list[str] | None = None) -> int:
     bases = [b for b in a.bases.split(",") if b]
     cases = [c for c in a.cases.split(",") if c]
     if a.list:
-        print("bases:", ", ".join(BASES))
-        for k, v in CASES.items():
+        print("bases:", ", ".join(sr.STABILITY_BASES))
+        for k, v in sr.STABILITY_CASES.items():
             print(f"{k}: {', '.join(c[0] for c in v)}")
         return 0
-    bad = [b for b in bases if b not in BASES] + [c for c in cases if c not in CASES]
+    bad = [b for b in bases if b not in sr.STABILITY_BASES] + [
+        c for c in cases if c not in sr.STABILITY_CASES]
     if bad:
         ap.error(f"unknown {bad}")
     if any(b.startswith("lab_") for b in bases) and not sr.REAL_DIR.exists():

@@ -422,6 +422,7 @@ def summary(ctx: Any) -> dict[str, Any]:
     cal = ctx.need_calibration()
     return {"findings": [{"effect": f.effect, "params": f.params, "sigma": f.sigma}
                          for f in ctx.diagnosis.findings],
+            "not_identifiable": [k for k, _ in ctx.diagnosis.not_identifiable],
             "rotvec_deg": [float(x) for x in cal.rotvec_body_mag_deg],
             "sigma_rotvec_deg": [float(x) for x in cal.sigma_rotvec_deg]}
 
@@ -530,7 +531,69 @@ def compare(base: dict[str, Any], injected: dict[str, Any], reported: str,
     s = np.hypot(base["sigma_rotvec_deg"], injected["sigma_rotvec_deg"])
     r_shift = float(np.max(np.abs(d) / np.maximum(s, 1e-300)))
     return {"found": found, "own": None if own is None else _label(own),
+            "not_identifiable": reported in injected.get("not_identifiable", []),
             "param_err_x_tol": param_err, "extra": [_label(x) for x in extra],
             "lost": [_label(x) for x in lost], "shifts": shifts,
             "max_shift": max([v for v in shifts.values() if np.isfinite(v)], default=0.0),
             "r_shift": r_shift, "r_change_deg": d.tolist()}
+
+
+#: Stability bases (``bench/stability.py``, ``tests/test_stability.py``): name -> a lab
+#: recording and which excerpt (``rotating``: the fewest metres per radian of
+#: :func:`translating_segments`; ``translating``: the most; ``translating2``: the most of
+#: those that do not overlap the first), or ``indep`` and the ``indep_gen.Spec`` options.
+STABILITY_BASES: dict[str, tuple[str, Any]] = {
+    "lab_03_rot": ("lab_03", "rotating"),
+    "lab_05_rot": ("lab_05", "rotating"),
+    "lab_01_tr": ("lab_01", "translating"),
+    "lab_01_tr2": ("lab_01", "translating2"),
+    "indep_rot": ("indep", {"seed": 101, "mag_rate_hz": 100.0, "att_rate_hz": 100.0,
+                            "mag_noise_nT": 5.0}),
+    "indep_tr": ("indep", {"seed": 102, "path": "translate", "mag_rate_hz": 100.0,
+                           "att_rate_hz": 100.0, "mag_noise_nT": 5.0,
+                           "swing_deg": (2.0, 3.0, 3.0)}),
+    "indep_tr_fast": ("indep", {"seed": 103, "path": "translate", "mag_rate_hz": 200.0,
+                                "att_rate_hz": 100.0, "mag_noise_nT": 20.0,
+                                "swing_deg": (5.0, 4.0, 4.0), "freqs_hz": (0.2, 0.3, 0.25),
+                                "translate_amp_m": 0.3}),
+    "indep_survey": ("indep", {"seed": 104, "path": "survey", "mag_rate_hz": 100.0,
+                               "att_rate_hz": 50.0, "mag_noise_nT": 5.0,
+                               "swing_deg": (3.0, 3.0, 3.0), "survey_calibration_s": 20.0}),
+}
+
+#: Stability injections by group: (label, case of :func:`inject`, size, seed, step window s).
+STABILITY_CASES: dict[str, list[tuple[str, str, float, int, float]]] = {
+    "lag": [("lag+25ms", "time_offset", 0.025, 0, 0.0),
+            ("lag-25ms", "time_offset", -0.025, 0, 0.0)],
+    "offset": [(f"offset3000#{k}", "hard_iron", 3000.0, k, 0.0) for k in range(3)],
+    "step": [("step1000x3s", "hard_iron_step", 1000.0, 0, 3.0),
+             ("step2000x5s", "hard_iron_step", 2000.0, 1, 5.0),
+             ("step3000x7s", "hard_iron_step", 3000.0, 2, 7.0)],
+}
+
+
+def stability_base(name: str, seconds: float = 60.0) -> tuple[Real, str]:
+    """The base ``name`` of :data:`STABILITY_BASES`, ``seconds`` long, and how it moves."""
+    src, how = STABILITY_BASES[name]
+    if src == "indep":
+        from indep_gen import Spec
+
+        spec = Spec(name=name, duration_s=seconds, **how)
+        r = from_indep(spec)
+        m = motion(r)
+        what = f"indep {spec.path} mag {spec.mag_rate_hz:g} Hz att {spec.att_rate_hz:g} Hz"
+    else:
+        full = read_real(REAL_DIR / f"{src}.mcap")
+        segs = translating_segments(full, seconds, 10.0)
+        if how == "rotating":
+            a = segs[-1]["start_s"]
+        elif how == "translating":
+            a = segs[0]["start_s"]
+        else:
+            a = next(s["start_s"] for s in segs if abs(s["start_s"] - segs[0]["start_s"])
+                     >= seconds)
+        m = motion(full, a, a + seconds)
+        r = excerpt(full, a, seconds)
+        what = f"{src} [{a:.0f}, {a + seconds:.0f}) s"
+    return r, (f"{what}: rot rms {m['rot_rms_deg']:.0f} deg, pos rms {m['pos_rms_m']:.2f} m, "
+               f"{m['m_per_rad']:.2f} m/rad")
