@@ -41,6 +41,7 @@ parameters and R where they were.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -572,6 +573,12 @@ STABILITY_CASES: dict[str, list[tuple[str, str, float, int, float]]] = {
 }
 
 
+@functools.lru_cache(maxsize=2)
+def read_real_cached(stem: str) -> Real:
+    """:func:`read_real` of ``REAL_DIR/<stem>.mcap``, kept for the next caller (read-only)."""
+    return read_real(REAL_DIR / f"{stem}.mcap")
+
+
 def stability_base(name: str, seconds: float = 60.0) -> tuple[Real, str]:
     """The base ``name`` of :data:`STABILITY_BASES`, ``seconds`` long, and how it moves."""
     src, how = STABILITY_BASES[name]
@@ -583,7 +590,7 @@ def stability_base(name: str, seconds: float = 60.0) -> tuple[Real, str]:
         m = motion(r)
         what = f"indep {spec.path} mag {spec.mag_rate_hz:g} Hz att {spec.att_rate_hz:g} Hz"
     else:
-        full = read_real(REAL_DIR / f"{src}.mcap")
+        full = read_real_cached(src)
         segs = translating_segments(full, seconds, 10.0)
         if how == "rotating":
             a = segs[-1]["start_s"]

