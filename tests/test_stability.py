@@ -1,0 +1,134 @@
+"""Stability under injections (issue 25, item 1): an injected effect changes only its finding.
+
+CI-sized part of ``bench/stability.py``: a few of its bases (``semireal.STABILITY_BASES``,
+60 s each, diagnosed once per module) and injections (``semireal.STABILITY_CASES``). Each
+injection must (``semireal.compare``): be found with its parameter within 3 sigma or 10 %;
+add and lose no other finding; leave the other findings' parameters and R within their
+combined sigma. Cases that fail today are marked ``xfail(strict=True)`` with the measured
+cause, so that a fix turns them into failures to unmark.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from indep_gen import Spec
+from semireal import (
+    REAL_DIR,
+    STABILITY_CASES,
+    check_injection,
+    compare,
+    excerpt,
+    from_indep,
+    inject,
+    motion,
+    read_real_cached,
+    stability_base,
+    summary,
+    translating_segments,
+    write_real,
+)
+
+from pipeline.app.commands.diagnose import diagnose_file
+
+HAVE_REAL = (REAL_DIR / "lab_01.mcap").exists()
+REAL = [pytest.mark.real,
+        pytest.mark.skipif(not HAVE_REAL,
+                           reason="real recordings absent: ../shared/data/real not found")]
+CASE = {c[0]: c for group in STABILITY_CASES.values() for c in group}
+
+
+@pytest.fixture(scope="module")
+def bases(tmp_path_factory):
+    """Base name -> (recording, written path, diagnosis summary); each diagnosed once."""
+    cache: dict = {}
+    root = tmp_path_factory.mktemp("stability")
+
+    def get(name):
+        if name not in cache:
+            rec, _ = stability_base(name)
+            path = write_real(rec, root / f"{name}.mcap")
+            cache[name] = (rec, path, summary(diagnose_file(path)))
+        return cache[name]
+    return get
+
+
+def _xfail(reason: str):
+    return pytest.mark.xfail(strict=True, reason=reason)
+
+
+#: (base, injection label); the lab bases need the real recordings. The causes named in the
+#: xfail reasons were measured with bench/stability.py (docs/testing.md, "Stability").
+CI_CASES = [
+    pytest.param("indep_rot", "offset3000#1"),
+    pytest.param("indep_tr", "step2000x5s"),
+    pytest.param("indep_tr", "lag+25ms", marks=_xfail(
+        "a lag on a base that barely turns is named eddy_current (E_s ~ -tau I): with noisy "
+        "attitude samples the eddy term, evaluated at the stamps between attitude samples, "
+        "fits better than a time offset that moves the evaluation onto them (tau alone lands "
+        "at 24.3 ms, 580 in BIC behind), and split_isotropic_eddy's canonical split is "
+        "refused (stages/diagnose/search.py)")),
+    pytest.param("lab_03_rot", "lag+25ms", marks=REAL),
+    pytest.param("lab_03_rot", "offset3000#0", marks=[*REAL, _xfail(
+        "field_gradient moves 6 combined sigma with the same terms in the model: the base's "
+        "fit sits in a local minimum (798.61 nT RMS) its order of rounds led it into; the "
+        "injected solution, offset taken out, fits the base to 797.36 nT")]),
+    pytest.param("lab_01_tr", "offset3000#0", marks=[*REAL, _xfail(
+        "the offset is not identifiable on this base (6 deg RMS of rotation): what B_enu does "
+        "not absorb stands out where the motion stops (24.7-26.4 s) and is named a 900 nT "
+        "hard_iron_step (scan_windows, BIC -51, held-out gain 81 against 47)")]),
+]
+
+
+@pytest.mark.parametrize(("base", "label"), CI_CASES)
+def test_injection_changes_only_its_finding(bases, tmp_path, base, label):
+    rec, base_path, before = bases(base)
+    _, case, size, seed, win = CASE[label]
+    inj, rep, truth = inject(rec, case, size, seed=seed, window_s=win or 10.0)
+    path = write_real(inj, tmp_path / f"{label}.mcap")
+    check_injection(base_path, path, rep, truth)
+    c = compare(before, summary(diagnose_file(path)), rep, truth)
+    assert c["extra"] == [], f"findings added: {c['extra']}"
+    assert c["lost"] == [], f"findings lost: {c['lost']}"
+    assert c["found"], f"{rep} not found right: {c['own']} ({c['param_err_x_tol']:.2f} x tol)"
+    moved = {k: v for k, v in c["shifts"].items() if v > 1.0}
+    assert not moved, f"parameters moved (combined sigmas): {moved}"
+    assert c["r_shift"] <= 1.0, f"R moved {c['r_shift']:.2f} combined sigma"
+
+
+@pytest.mark.parametrize("label", ["lag-25ms", "offset3000#1", "step1000x3s"])
+def test_injection_is_exact_in_the_files(tmp_path, label):
+    """The written recordings differ by the injection only, to the nanosecond and the nT."""
+    rec = from_indep(Spec(name="b", seed=3, duration_s=20.0, path="translate"))
+    base = write_real(rec, tmp_path / "base.mcap")
+    _, case, size, seed, win = CASE[label]
+    inj, rep, truth = inject(rec, case, size, seed=seed, window_s=win or 10.0)
+    assert check_injection(base, write_real(inj, tmp_path / "inj.mcap"), rep, truth) <= 1e-6
+    # and the check sees a difference that is not the injection: the step one sample longer
+    if rep == "hard_iron_step":
+        (a, b), = truth["windows_s"]
+        wrong = {**truth, "windows_s": [[a, b + 0.011]]}
+        with pytest.raises(AssertionError):
+            check_injection(base, tmp_path / "inj.mcap", rep, wrong)
+
+
+def test_excerpt_keeps_the_streams():
+    r = from_indep(Spec(name="b", seed=4, duration_s=20.0))
+    e = excerpt(r, 5.0, 10.0)
+    k = (r.t_mag_s >= 5.0) & (r.t_mag_s < 15.0)
+    assert np.array_equal(e.mag_nT, r.mag_nT[k])
+    assert e.t_mag_s[0] == 0.0 and e.t0_ns == r.t0_ns + int(round(r.t_mag_s[k][0] * 1e9))
+    assert e.t_att_s[0] < 0.0 < e.t_att_s[-1] - e.t_mag_s[-1]  # attitude on both sides
+
+
+@REAL[0]
+@REAL[1]
+def test_translating_base_is_measured_from_the_poses():
+    """lab_01 translates most per radian turned; lab_03's rotating excerpt the least."""
+    r1 = read_real_cached("lab_01")
+    lab1 = translating_segments(r1, 60.0, 10.0)[0]
+    lab3 = translating_segments(read_real_cached("lab_03"), 60.0, 10.0)[-1]
+    assert lab1["m_per_rad"] > 5 * lab3["m_per_rad"]
+    assert lab1["rot_rms_deg"] < 15.0 < lab3["rot_rms_deg"]
+    m = motion(r1, lab1["start_s"], lab1["start_s"] + 60.0)
+    assert m["pos_rms_m"] == pytest.approx(lab1["pos_rms_m"])
