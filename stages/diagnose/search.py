@@ -32,6 +32,7 @@ from stages.diagnose.model import (
     interpolation_error_proxy,
     term_params,
 )
+from stages.diagnose.partial import PARTIAL_KINDS, held_words, partial_candidate
 from stages.diagnose.result import DiagnoseConfig, Diagnosis, Finding, Signature
 from stages.diagnose.sources import (
     MAX_NEAR_FAR_RATIO,
@@ -351,10 +352,18 @@ def diagnose_data(
             else:
                 st = score_test(cur, term, data, sig)
             Bc = cur.state.B_enu_nT
-            reason = identifiability_reason(
-                term.kind, stats, data, st.efficiency,
-                horizontal_fraction=float(np.linalg.norm(Bc[:2]) / max(float(np.linalg.norm(Bc)),
-                                                                        1e-9)))
+            hfrac = float(np.linalg.norm(Bc[:2]) / max(float(np.linalg.norm(Bc)), 1e-9))
+            reason = identifiability_reason(term.kind, stats, data, st.efficiency,
+                                            horizontal_fraction=hfrac)
+            if (reason is not None and term.kind in PARTIAL_KINDS and identifiability_reason(
+                    term.kind, stats, data, 1.0, horizontal_fraction=hfrac) is None):
+                # confounded only in some combinations: tried on the others, which the
+                # motion determines; the words stay for when it is not named
+                part = partial_candidate(cur, term, data, sig)
+                if part is not None:
+                    if not findings:
+                        not_ident.setdefault(term.kind.value, reason)
+                    st, term, reason = part, part.term, None
             if reason is None and st.rot_efficiency < CONFOUND_RATIO \
                     and term.kind not in LOCAL_KINDS:
                 reason = (
@@ -572,7 +581,7 @@ def diagnose_data(
             params=(p := term_params(cur.state.terms[i], cur.state.values[i], cur.state, data)),
             sigma=_sigma_for(cur, i, cov_final, data),
             explanation=explanation(cur.state.terms[i].kind, p, data.duration_s, note=note)
-            + f.told_apart,
+            + held_words(cur, i, data) + f.told_apart,
         )
         for i, f in enumerate(findings)
     ]
