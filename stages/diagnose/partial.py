@@ -284,8 +284,8 @@ def held_words(res: FitResult, i: int, data: FitData) -> str:
         prior = IRON_PRIOR.get(term.kind.value)
         unit = " nT" if offset else ""
         parts.append(
-            f"{what} is not: it adds to {mim} (only {eff[c]:.1e} of it is independent of "
-            f"the other terms), so it is held at {held:g}{unit}"
+            f"{what} is not determined: it adds to {mim} (only {eff[c]:.1e} of it is "
+            f"independent of the other terms), so it is held at {held:g}{unit}"
             + (f" with the prior's sigma, {prior:g}{unit}" if prior else ""))
     need = tilt_to_determine_deg(st, i, data)
     if need is not None:
