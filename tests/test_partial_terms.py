@@ -19,6 +19,7 @@ from indep_gen import Spec, readings, write
 from scipy.spatial.transform import Rotation
 
 from pipeline.app.commands.diagnose import diagnose_file
+from pipeline.core.verdict import plain_words
 from pipeline.model.calibration import Calibration
 from stages.diagnose.fit import fit
 from stages.diagnose.model import (
@@ -170,6 +171,9 @@ def test_the_survey_offset_is_fitted_horizontally_and_its_vertical_part_is_held(
     held = np.asarray(cal.checks["undetermined_iron"]["held"]["hard_iron"])
     assert held.shape == (1, 3) and abs(held[0, 2]) > 0.99
     assert "hard_iron" in cal.checks["undetermined_iron"]["terms"]
+    # the rotation's doubt keeps the words the verdict turns into advice
+    (doubt,) = [d for d in cal.checks["doubts"] if d.startswith("the motion cannot determine")]
+    assert "holds 1 combination" in doubt and plain_words(doubt)[1] is not None
     # the restore applies the calibration's offset (the held part left in the vertical
     # field): over every sample its residual is the fit's
     assert cal.residual_rms_nT == pytest.approx(hi.evidence["rms_after_nT"], rel=0.05)
