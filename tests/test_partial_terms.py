@@ -19,6 +19,7 @@ from indep_gen import Spec, readings, write
 from scipy.spatial.transform import Rotation
 
 from pipeline.app.commands.diagnose import diagnose_file
+from pipeline.app.exports import export_text
 from pipeline.core.verdict import plain_words
 from pipeline.model.calibration import Calibration
 from stages.diagnose.fit import fit
@@ -179,6 +180,10 @@ def test_the_survey_offset_is_fitted_horizontally_and_its_vertical_part_is_held(
     assert cal.residual_rms_nT == pytest.approx(hi.evidence["rms_after_nT"], rel=0.05)
     again = Calibration.from_json(cal.to_json())
     np.testing.assert_allclose(again.offset_nT, cal.offset_nT)
+    # an export says the held component is a reference, not a measurement
+    for fmt in ("yaml", "ardupilot", "magcal"):
+        words = [w for w in export_text(again, fmt).split() if w not in ("#", "%")]
+        assert "was not determined by the motion: it is held at 0 nT" in " ".join(words), fmt
     # diagnosis.json: CONVENTIONS keys only, the params those of hard_iron
     d = json.loads(json.dumps(diag.to_dict()))
     f = d["findings"][effects.index("hard_iron")]
