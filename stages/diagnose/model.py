@@ -1172,6 +1172,23 @@ def held_covariance(term: Term, cov: F64) -> F64:
     return A @ cov @ A.T + s * s * (U @ U.T)
 
 
+def held_directions(term: Term) -> list[Any]:
+    """Return what a partial term holds, in its CONVENTIONS params' terms, unit length.
+
+    ``hard_iron``: mag-frame unit vectors (3,) of the held offset components; ``soft_iron``:
+    symmetric traceless 3x3 matrices (unit Frobenius norm) along which ``D`` is held;
+    otherwise the held combinations of the term's parameters. Lists, JSON-ready.
+    """
+    U = term.undetermined()
+    if term.kind is EffectKind.SOFT_IRON:
+        out = []
+        for u in U.T:
+            M = np.tensordot(u, _SOFT_BASIS, axes=1)
+            out.append((M / np.linalg.norm(M)).tolist())
+        return out
+    return [u.tolist() for u in U.T]
+
+
 def term_sigma(term: Term, cov: F64, state: ModelState, data: FitData) -> dict[str, Any]:
     """1-sigma of the CONVENTIONS params from the term's block of the covariance.
 

@@ -38,6 +38,7 @@ from stages.diagnose.model import (
     ModelState,
     Term,
     evaluate,
+    held_directions,
 )
 from stages.diagnose.statistics import ScoreTest, score_test
 
@@ -45,7 +46,13 @@ from stages.diagnose.statistics import ScoreTest, score_test
 #: determine (no iron), and the rotation's sigma already carries a prior for it
 #: (:data:`~stages.diagnose.model.IRON_PRIOR`); a drift or an eddy term held at zero along
 #: some combinations would be a different effect, not a part of one.
-PARTIAL_KINDS = frozenset({EffectKind.HARD_IRON})
+PARTIAL_KINDS = frozenset({EffectKind.HARD_IRON, EffectKind.SOFT_IRON})
+
+#: A term is fitted in part only when the motion determines at least this fraction of its
+#: combinations. A term the motion leaves mostly undetermined (a line that barely turns: two
+#: of soft iron's five) is better refused whole: its few fitted combinations would take up
+#: whatever else the model lacks, and the rotation's sigma covers it as left out.
+MIN_DETERMINED_FRACTION = 0.5
 
 #: Most samples used to find the combinations and the tilt that would determine them: the
 #: efficiencies are ratios of sums over the motion, which a decimated track keeps.
@@ -120,7 +127,7 @@ def partial_candidate(cur: FitResult, term: Term, data: FitData, sigma: float
     eff, X = _efficiencies(Jb, J[:, p0:])
     k = len(eff)
     n_held = int(np.count_nonzero(eff < CONFOUND_RATIO))
-    while 0 < n_held < k:
+    while 0 < n_held and k - n_held >= MIN_DETERMINED_FRACTION * k:
         # hold the weakest combinations; fit along what is orthogonal to them
         U = np.linalg.qr(X[:, :n_held])[0]
         A = np.linalg.svd(np.eye(k) - U @ U.T)[0][:, : k - n_held]
@@ -222,6 +229,10 @@ def _vec(v: np.ndarray) -> str:
     return "(" + ", ".join(f"{float(x) + 0.0:.2f}" for x in v) + ")"
 
 
+def _mat(M: np.ndarray) -> str:
+    return "[" + ", ".join(_vec(r) for r in M) + "]"
+
+
 def held_words(res: FitResult, i: int, data: FitData) -> str:
     """Words on what a partial term holds: which part, why, and what motion would determine it.
 
@@ -268,6 +279,12 @@ def held_words(res: FitResult, i: int, data: FitData) -> str:
                      "in the body's horizontal plane" if along < 0.3 else "")
             what = (f"its component {where + ' ' if where else ''}(mag-frame direction "
                     f"{_vec(u)}, body {_vec(d)})")
+        elif term.kind is EffectKind.SOFT_IRON:
+            M = np.asarray(held_directions(term)[c])
+            zz = abs(M[2, 2]) > 0.75  # diag(1, 1, -2) / sqrt 6 has 0.82 there
+            what = ("the scale of the mag z axis against x and y" if zz else
+                    "a change of the soft-iron matrix") + (
+                f" (D along {_mat(M)}, unit norm)")
         else:
             what = f"the combination {_vec(u)} of its parameters"
         mim = "the misalignment and the other terms"
@@ -296,5 +313,6 @@ def held_words(res: FitResult, i: int, data: FitData) -> str:
                "about all three axes")
     if data.B_known_enu_nT is None:
         how += ", and so would a reference field (--reference-field)"
-    name = "offset" if offset else "term"
+    name = {EffectKind.HARD_IRON: "offset", EffectKind.SOFT_IRON: "soft-iron matrix"}.get(
+        term.kind, "term")
     return f". Only part of the {name} is determined: " + "; ".join(parts) + "; " + how

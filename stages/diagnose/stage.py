@@ -37,6 +37,7 @@ from stages.diagnose.model import (
     Term,
     _span,
     evaluate,
+    held_directions,
     term_params,
     term_sigma,
 )
@@ -392,10 +393,10 @@ def with_undetermined_iron(cal: Calibration, res: FitResult, data: FitData,
     out: dict[str, Any] = {"terms": terms, "prior": {k: IRON_PRIOR[k] for k in terms},
                            "sigma_rotvec_bias_deg": sig_b.tolist()}
     if held:
-        # the combinations a partial term holds (its parameters' space: mag-frame nT for
-        # the offset), so a reader knows which part of the term in the calibration is a
-        # reference and not a measurement
-        out["held"] = {t.kind.value: t.undetermined().T.tolist() for t in held}
+        # the combinations a partial term holds (mag-frame unit vectors for the offset,
+        # unit symmetric matrices for D), so a reader knows which part of the term in the
+        # calibration is a reference and not a measurement
+        out["held"] = {t.kind.value: held_directions(t) for t in held}
     return cal.replace(sigma_rotvec_deg=wider, checks={
         **cal.checks, "undetermined_iron": out,
         "doubts": list(cal.checks.get("doubts", ())) + [doubt]})
