@@ -215,29 +215,3 @@ def test_a_reference_field_determines_the_whole_offset(tmp_path):
     assert "held" not in ctx.need_calibration().checks.get("undetermined_iron", {})
     assert _rot_err_deg(ctx, spec).max() < 0.01
 
-
-#: scale differences of 1.2 and 0.7 % and cross-axis couplings of 0.4-0.6 %
-D_TYPICAL = [[1.012, 0.006, -0.004], [0.006, 0.993, 0.005], [-0.004, 0.005, 1.0]]
-
-
-def test_the_survey_soft_iron_is_fitted_without_its_vertical_scale(tmp_path):
-    """The same tilts leave the scale of the mag z axis against x and y (D along
-    diag(1, 1, -2)) as the vertical field's: the other four soft-iron combinations are
-    fitted, that one held, and neither an offset nor a step takes up what it leaves."""
-    spec = survey("soft", soft_iron={"D": D_TYPICAL})
-    ctx = diagnose_file(write(spec, tmp_path / "soft.mcap"))
-    assert [f.effect for f in ctx.diagnosis.findings] == ["soft_iron"]
-    fd = ctx.diagnosis.findings[0]
-    D = np.asarray(fd.params["D"])
-    # off the diagonal, and the difference of the horizontal scales, as in the truth
-    T = np.asarray(D_TYPICAL)
-    off = ~np.eye(3, dtype=bool)
-    assert np.all(np.abs(D[off] - T[off]) < 1e-3)
-    assert abs((D[0, 0] - D[1, 1]) - (T[0, 0] - T[1, 1])) < 1e-3
-    assert "the scale of the mag z axis against x and y" in fd.explanation
-    assert "not determined" in fd.explanation
-    cal = ctx.need_calibration()
-    (M,) = np.asarray(cal.checks["undetermined_iron"]["held"]["soft_iron"])
-    assert abs(M[2, 2]) > 0.8  # diag(1, 1, -2) / sqrt 6
-    assert _rot_err_deg(ctx, spec).max() < 0.01
-
