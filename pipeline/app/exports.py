@@ -124,6 +124,29 @@ def _rotation_lines(cal: Calibration) -> list[str]:
             f"its rotation vector about body x, y, z [deg]: {', '.join(parts)}"]
 
 
+def _held_lines(cal: Calibration, key: str) -> list[str]:
+    """Say which part of the offset (``key`` ``offset_nT``) or of ``D`` (``D``) is held.
+
+    The diagnosis fits iron in part when the motion determines only some of its components
+    (``checks.undetermined_iron.held``: mag-frame unit vectors for the offset, unit symmetric
+    matrices for ``D``); the exported value then carries a reference along them (no offset,
+    an identity ``D``), not a measurement.
+    """
+    held = ((cal.checks or {}).get("undetermined_iron") or {}).get("held") or {}
+    if key == "offset_nT" and cal.offset_nT is not None and held.get("hard_iron"):
+        o = np.asarray(cal.offset_nT, dtype=float)
+        return [f"the offset's component along mag-frame {_vec(u, '+.2f')} was not determined "
+                f"by the motion: it is held at {float(o @ np.asarray(u, float)):.0f} nT, not "
+                "measured (sigma_offset_nT gives its prior's sigma); tilt the platform more or "
+                "give a reference field to determine it" for u in held["hard_iron"]]
+    if key == "D" and cal.D is not None and held.get("soft_iron"):
+        return ["D along " + "[" + ", ".join(_vec(r, "+.2f") for r in M) + "] (unit norm) "
+                "was not determined by the motion: it is held at the identity's value there, "
+                "not measured (sigma_D includes its prior's sigma); tilt the platform more or "
+                "give a reference field to determine it" for M in held["soft_iron"]]
+    return []
+
+
 def _effects_line(cal: Calibration, tool: str) -> list[str]:
     if not cal.effects:
         return []
@@ -299,6 +322,8 @@ def to_ardupilot(cal: Calibration, path: str | None = None) -> str:
     else:
         notes.append("COMPASS_OFS_X/Y/Z: the offset in the body frame, negated (ArduPilot "
                      "adds it after the orientation), in milligauss (1 mGauss = 100 nT)")
+        notes += _held_lines(cal, "offset_nT")
+    notes += _held_lines(cal, "D")
     if cal.D is None:
         notes.append("COMPASS_DIA_*, COMPASS_ODI_* and COMPASS_SCALE are left out, so the "
                      "autopilot keeps its own: the soft-iron matrix D was not estimated ("
@@ -376,6 +401,7 @@ def to_magcal(cal: Calibration, path: str | None = None) -> str:
     if b is None:
         notes.append("b is left out, keep your own: the offset was not estimated ("
                      f"{_why_not_estimated(cal, 'offset_nT')}).")
+    notes += _held_lines(cal, "D") + _held_lines(cal, "offset_nT")
     if cal.time_offset_s is not None:
         notes.append(f"time offset {cal.time_offset_s * 1e3:+.1f} ms (positive: the magnetometer "
                      "stamps are late): not part of magcal's model")
@@ -501,6 +527,8 @@ def to_yaml(cal: Calibration, path: str | None = None) -> str:
     for k, v in yaml_dict(cal).items():
         if k in _ESTIMATE_WORD and v is None:
             lines += _comment("#", [f"{k}: not estimated: {_why_not_estimated(cal, k)}"])
+        if k in ("offset_nT", "D"):
+            lines += _comment("#", _held_lines(cal, k))
         if k == "sigma_rotvec_deg" and cal.unobservable_axes_body:
             lines += _comment("#", ["the recording did not determine the rotation about "
                                     "unobservable_axes_body: its sigma is null (unbounded) "

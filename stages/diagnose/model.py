@@ -97,6 +97,13 @@ class EffectKind(str, enum.Enum):
 LOCAL_KINDS = frozenset({EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP})
 
 
+#: Prior sizes of the sensor iron a recording's motion cannot determine, or determines only
+#: in part: the traceless soft-iron parameters (scale differences and cross-axis coupling,
+#: dimensionless) and each offset component (nT). Typical of MEMS magnetometers, and of the
+#: lab sensor, whose full recordings determine D - I up to 0.02 and offsets of 300-500 nT.
+IRON_PRIOR = {"hard_iron": 500.0, "soft_iron": 0.01}
+
+
 #: A term (or the rotation) keeping less than this fraction of the information of its weakest
 #: parameter combination once the other parameters are free is confounded by the motion: its
 #: sigma is over 10 times what it would be alone, and a model error of a tenth of the noise
@@ -305,6 +312,15 @@ class Term:
     noise_nT : float
         ``field_map``: the noise of the residual the prior is weighed against, nT: the
         ridge on weight ``j`` is ``(noise_nT^2 / var(w_j)) w_j^2`` in the fit's sum of squares.
+    determined : tuple of k tuples of m floats
+        A term the motion determines only in part: orthonormal columns ``A`` (k, m)
+        spanning the combinations of its ``k`` parameters that are fitted; the value is
+        ``fixed + A @ z`` with ``z`` the ``m`` fitted parameters, so the combinations
+        outside the span (:meth:`undetermined`) stay at ``fixed``. Empty: every parameter
+        is fitted.
+    fixed : tuple of k floats
+        The value of a partial term at zero fitted parameters (the undetermined combinations
+        are held there); empty: zero.
 
     """
 
@@ -320,6 +336,54 @@ class Term:
     length_scale_m: float = 0.0
     prior_nT: float = 0.0
     noise_nT: float = 0.0
+    determined: tuple[tuple[float, ...], ...] = ()
+    fixed: tuple[float, ...] = ()
+
+    @property
+    def partial(self) -> bool:
+        """Whether only some combinations of the term's parameters are fitted."""
+        return bool(self.determined)
+
+    def determined_matrix(self) -> F64:
+        """Fitted combinations ``A`` (k, m), orthonormal columns; identity for a full term."""
+        if not self.determined:
+            return np.eye(self.full_size())
+        return np.asarray(self.determined, dtype=float)
+
+    def undetermined(self) -> F64:
+        """Orthonormal columns (k, k - m) of the combinations held at ``fixed``.
+
+        The orthogonal complement of :meth:`determined_matrix`, each column signed so that
+        its largest component is positive (k - m = 0 columns for a full term).
+        """
+        B = self.determined_matrix()
+        k, m = B.shape
+        if m == k:
+            return np.zeros((k, 0))
+        U = np.linalg.svd(np.eye(k) - B @ B.T)[0][:, : k - m]
+        big = np.argmax(np.abs(U), axis=0)
+        return U * np.sign(U[big, np.arange(k - m)])
+
+    def null_value(self) -> F64:
+        """Value of the term at zero fitted parameters, (k,): ``fixed`` or zeros."""
+        if self.fixed:
+            return np.asarray(self.fixed, dtype=float)
+        return np.zeros(self.full_size())
+
+    def full_size(self) -> int:
+        """Return the number of parameters of the unrestricted term (``k``)."""
+        return self.unrestricted().n_params() if self.determined else self.n_params()
+
+    def restricted(self, determined: F64, fixed: F64 | None = None) -> Term:
+        """Return the term fitted only along the orthonormal columns ``determined`` (k, m)."""
+        A = np.asarray(determined, dtype=float)
+        f = () if fixed is None else tuple(float(x) for x in fixed)
+        return replace(self, determined=tuple(tuple(float(x) for x in row) for row in A),
+                       fixed=f)
+
+    def unrestricted(self) -> Term:
+        """Return the full term (every parameter fitted)."""
+        return replace(self, determined=(), fixed=())
 
     def basis(self) -> FieldMapBasis:
         """Return the ``field_map`` basis of the term (its box and modes per axis)."""
@@ -367,7 +431,9 @@ class Term:
         return out
 
     def n_params(self) -> int:
-        """Return the number of parameters of the term."""
+        """Return the number of fitted parameters of the term (``m`` for a partial one)."""
+        if self.determined:
+            return len(self.determined[0])
         k = self.kind
         if k is EffectKind.HARD_IRON:
             return 3
@@ -485,13 +551,13 @@ class ModelState:
         return 6 + sum(t.n_params() for t in self.terms)
 
     def with_term(self, term: Term) -> ModelState:
-        """Return the state with ``term`` appended at zero (no effect).
+        """Return the state with ``term`` appended at zero (no effect; ``fixed`` if partial).
 
         A ``time_offset`` appended beside an ``eddy_current`` starts at ``tau = -tr(E_s)/3``
         with ``E_s`` made traceless (:meth:`rate_pair`): the same prediction to first order.
         """
-        zero = np.zeros(term.n_params())
-        st = replace(self, terms=self.terms + (term,), values=self.values + (zero,))
+        st = replace(self, terms=self.terms + (term,),
+                     values=self.values + (term.null_value(),))
         return st.canonical() if term.kind is EffectKind.TIME_OFFSET else st
 
     def rate_pair(self) -> bool:
@@ -531,6 +597,15 @@ class ModelState:
         vals[ie] = TRACELESS_PROJECTOR @ vals[ie]
         return replace(self, values=tuple(vals))
 
+    @property
+    def has_partial(self) -> bool:
+        """Whether a term of the model is fitted only along some combinations."""
+        return any(t.partial for t in self.terms)
+
+    def unrestricted(self) -> ModelState:
+        """Return the same values with every parameter free (the full Jacobian's layout)."""
+        return replace(self, terms=tuple(t.unrestricted() for t in self.terms))
+
     def value(self, kind: EffectKind) -> F64 | None:
         """Parameter vector of the first term of ``kind``, or None."""
         for t, v in zip(self.terms, self.values, strict=True):
@@ -567,8 +642,9 @@ class ModelState:
 
     def flat_values(self) -> F64:
         """Return the parameters as one vector (P,): zeros for ``dR``, ``B_enu`` (perturbations)."""
-        return np.concatenate([np.zeros(6)] + [np.asarray(v, dtype=float).reshape(-1)
-                                               for v in self.values])
+        return np.concatenate([np.zeros(6)] + [_fitted_coordinates(t, v)
+                                               for t, v in zip(self.terms, self.values,
+                                                               strict=True)])
 
     def D(self) -> F64:
         """Soft-iron matrix ``I + S`` (identity without ``soft_iron``)."""
@@ -589,6 +665,8 @@ class ModelState:
         for t, v, i in zip(self.terms, self.values, self.offsets(), strict=True):
             # for axis_tilt the values are bookkeeping only; the rotation lives in T_enu
             d = dx[i : i + t.n_params()]
+            if t.partial:
+                d = t.determined_matrix() @ d
             if pair and t.kind is EffectKind.EDDY_CURRENT:
                 d = TRACELESS_PROJECTOR @ d  # the rate pair's E_s stays traceless
             vals.append(v + d)
@@ -597,6 +675,14 @@ class ModelState:
                 P = _tilt_basis(self)
                 T = so3_exp(P @ dx[i : i + 2]) @ T
         return replace(self, R_body_mag=R, B_enu_nT=B, values=tuple(vals), T_enu=T)
+
+
+def _fitted_coordinates(term: Term, value: F64) -> F64:
+    """Return the fitted parameters ``z`` (m,) of a value: ``A.T (value - fixed)`` if partial."""
+    v = np.asarray(value, dtype=float).reshape(-1)
+    if not term.partial:
+        return v
+    return term.determined_matrix().T @ (v - term.null_value())
 
 
 def _tilt_basis(state: ModelState, axis_enu: F64 | None = None) -> F64:
@@ -623,6 +709,12 @@ class Evaluation:
         Rotation-induced rate of change of the undisturbed reading ``D R.T db/dt``.
     G : ndarray (N, 3, 3)
         d y / d B_enu (per sample).
+    sqrt_w : ndarray (N,) or None
+        Square roots of the likelihood's weights (:func:`sample_weights`).
+    J_held : ndarray (N, 3, Q) or None
+        d y / d (the combinations partial terms hold at ``fixed``, :meth:`Term.undetermined`,
+        in term order): what the model would gain if they were free. None without partial
+        terms or without the Jacobian.
 
     """
 
@@ -631,6 +723,7 @@ class Evaluation:
     ydot0_nT_s: F64
     G: F64
     sqrt_w: F64 | None = None
+    J_held: F64 | None = None
 
     @property
     def jac(self) -> F64:
@@ -813,6 +906,24 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
     Evaluation
 
     """
+    if jacobian and state.has_partial:
+        # the full Jacobian of the same values, then each partial term's block turned to its
+        # fitted combinations (J_full A) and to the held ones (J_full U)
+        full = evaluate(state.unrestricted(), data, jacobian=True)
+        Jf = full.jac
+        blocks, held = [Jf[:, :, :6]], []
+        i = 6
+        for term in state.terms:
+            width = term.full_size()
+            blk = Jf[:, :, i : i + width]
+            if term.partial:
+                blocks.append(blk @ term.determined_matrix())
+                held.append(blk @ term.undetermined())
+            else:
+                blocks.append(blk)
+            i += width
+        return replace(full, J=np.concatenate(blocks, axis=2),
+                       J_held=np.concatenate(held, axis=2))
     t = data.t_s
     n = t.shape[0]
     tau = state.tau_s()
@@ -1160,8 +1271,45 @@ def term_params(term: Term, value: F64, state: ModelState, data: FitData) -> dic
     raise ValueError(k)
 
 
+def held_covariance(term: Term, cov: F64) -> F64:
+    """Covariance (k, k) of every parameter of a term from its fitted block ``cov`` (m, m).
+
+    A partial term: ``A cov A' + s^2 U U'``, its held combinations ``U`` as uncertain as
+    their prior (:data:`IRON_PRIOR`, ``s`` per combination): the data say nothing about
+    them, so the sigma is what is known of such a term before the recording. A full term:
+    ``cov`` itself.
+    """
+    if not term.partial:
+        return cov
+    A, U = term.determined_matrix(), term.undetermined()
+    s = IRON_PRIOR[term.kind.value]
+    return A @ cov @ A.T + s * s * (U @ U.T)
+
+
+def held_directions(term: Term) -> list[Any]:
+    """Return what a partial term holds, in its CONVENTIONS params' terms, unit length.
+
+    ``hard_iron``: mag-frame unit vectors (3,) of the held offset components; ``soft_iron``:
+    symmetric traceless 3x3 matrices (unit Frobenius norm) along which ``D`` is held;
+    otherwise the held combinations of the term's parameters. Lists, JSON-ready.
+    """
+    U = term.undetermined()
+    if term.kind is EffectKind.SOFT_IRON:
+        out = []
+        for u in U.T:
+            M = np.tensordot(u, _SOFT_BASIS, axes=1)
+            out.append((M / np.linalg.norm(M)).tolist())
+        return out
+    return [u.tolist() for u in U.T]
+
+
 def term_sigma(term: Term, cov: F64, state: ModelState, data: FitData) -> dict[str, Any]:
-    """1-sigma of the CONVENTIONS params from the term's block of the covariance."""
+    """1-sigma of the CONVENTIONS params from the term's block of the covariance.
+
+    ``cov``: (m, m) over the fitted parameters; a partial term's held combinations get
+    their prior's sigma (:func:`held_covariance`).
+    """
+    cov = held_covariance(term, cov)
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     k = term.kind
     if k in (EffectKind.HARD_IRON, EffectKind.HARD_IRON_STEP):

@@ -33,6 +33,7 @@ from stages.diagnose.model import (
     interpolation_error_proxy,
     term_params,
 )
+from stages.diagnose.partial import PARTIAL_KINDS, held_words, partial_candidate
 from stages.diagnose.result import DiagnoseConfig, Diagnosis, Finding, Signature
 from stages.diagnose.sources import (
     MAX_NEAR_FAR_RATIO,
@@ -198,8 +199,8 @@ def _ramp_fit(cur: FitResult, i: int, term: Term, data: FitData, cfg: DiagnoseCo
     if not res.rss < cur.rss:
         return None
     n_eff = _n_eff(res, data)
-    dbic = _bic(res.rss, n_eff, res.state.n_params()) - _bic(cur.rss, n_eff,
-                                                              cur.state.n_params())
+    dbic = _bic(res.rss, n_eff, res.state.n_free()) - _bic(cur.rss, n_eff,
+                                                              cur.state.n_free())
     if dbic > -cfg.bic_margin:
         return None
     s2 = robust_sigma(cur.residual_nT) ** 2
@@ -474,10 +475,18 @@ def diagnose_data(
             else:
                 st = score_test(cur, term, data, sig)
             Bc = cur.state.B_enu_nT
-            reason = identifiability_reason(
-                term.kind, stats, data, st.efficiency,
-                horizontal_fraction=float(np.linalg.norm(Bc[:2]) / max(float(np.linalg.norm(Bc)),
-                                                                        1e-9)))
+            hfrac = float(np.linalg.norm(Bc[:2]) / max(float(np.linalg.norm(Bc)), 1e-9))
+            reason = identifiability_reason(term.kind, stats, data, st.efficiency,
+                                            horizontal_fraction=hfrac)
+            if (reason is not None and term.kind in PARTIAL_KINDS and identifiability_reason(
+                    term.kind, stats, data, 1.0, horizontal_fraction=hfrac) is None):
+                # confounded only in some combinations: tried on the others, which the
+                # motion determines; the words stay for when it is not named
+                part = partial_candidate(cur, term, data, sig)
+                if part is not None:
+                    if not findings:
+                        not_ident.setdefault(term.kind.value, reason)
+                    st, term, reason = part, part.term, None
             if reason is None and st.rot_efficiency < CONFOUND_RATIO \
                     and term.kind not in LOCAL_KINDS:
                 reason = (
@@ -736,7 +745,7 @@ def diagnose_data(
             params=(p := term_params(cur.state.terms[i], cur.state.values[i], cur.state, data)),
             sigma=_sigma_for(cur, i, cov_final, data),
             explanation=explanation(cur.state.terms[i].kind, p, data.duration_s, note=note)
-            + _transition_words(cur.state.terms[i]) + f.told_apart,
+            + _transition_words(cur.state.terms[i]) + held_words(cur, i, data) + f.told_apart,
         )
         for i, f in enumerate(findings)
     ]

@@ -28,6 +28,7 @@ from stages.diagnose.catalogue import EFFECTS
 from stages.diagnose.fit import FitResult, fit
 from stages.diagnose.model import (
     F64,
+    IRON_PRIOR,
     LOCAL_KINDS,
     AttitudeTrack,
     EffectKind,
@@ -36,6 +37,7 @@ from stages.diagnose.model import (
     Term,
     _span,
     evaluate,
+    held_directions,
     term_params,
     term_sigma,
 )
@@ -332,58 +334,77 @@ def _model_values(term: Term, value: np.ndarray, data: FitData) -> dict[str, Any
     return {}
 
 
-#: Prior sizes of the sensor terms a recording's motion cannot determine: the traceless
-#: soft-iron parameters (scale differences and cross-axis coupling, dimensionless) and each
-#: offset component (nT). Typical of MEMS magnetometers, and of the lab sensor, whose full
-#: recordings determine D - I up to 0.02 and offsets of 300-500 nT.
-IRON_PRIOR = {"soft_iron": 0.01, "hard_iron": 500.0}
-
-
 def with_undetermined_iron(cal: Calibration, res: FitResult, data: FitData,
                            kinds: Sequence[str]) -> Calibration:
     """Return ``cal`` whose rotation sigmas cover iron the motion cannot determine.
 
     A recording that does not turn the sensor enough leaves the offset or the soft-iron
-    matrix confounded with the field and the rotation, so the fit leaves them out; a real one
-    then biases R by an amount the noise sigma does not show. In the linearised model the
-    bias of leaving out ``theta`` is ``K theta`` with ``K = -(J'WJ)^-1 J'W J_theta`` (the
-    regression of the left-out columns on the fitted ones, at the final state); over a prior
-    of typical size (:data:`IRON_PRIOR`, ``Sigma``) its covariance is ``K Sigma K'``. Each
+    matrix confounded with the field and the rotation, so the fit leaves them out (``kinds``,
+    not in the model) or holds the combinations it cannot determine (a partial term of the
+    model, :meth:`~stages.diagnose.model.Term.restricted`); a real one then biases R by an
+    amount the noise sigma does not show. In the linearised model the bias of leaving out
+    ``theta`` is ``K theta`` with ``K = -(J'WJ)^-1 J'W J_theta`` (the regression of the
+    left-out columns on the fitted ones, at the final state: a left-out term's columns, a
+    partial term's held ones ``J_full U``); over a prior of typical size (:data:`IRON_PRIOR`
+    per parameter or held combination, ``Sigma``) its covariance is ``K Sigma K'``. Each
     rotation sigma becomes ``sqrt(sigma^2 + (K Sigma K')_ii)`` and a doubt says so.
     """
     st = res.state
     P0 = res.info.shape[0]
+    held = [t for t in st.terms if t.partial and t.kind.value in IRON_PRIOR]
+    kinds = list(kinds)
+    if not kinds and not held:
+        return cal
     for k in kinds:
         st = st.with_term(Term(EffectKind(k)))
     ev = evaluate(st, data, jacobian=True)
     if ev.J is None:
         return cal
-    J = ev.J if ev.sqrt_w is None else ev.J * ev.sqrt_w[:, None, None]
+    w = None if ev.sqrt_w is None else ev.sqrt_w[:, None, None]
+    J = ev.J if w is None else ev.J * w
     J = J.reshape(-1, J.shape[-1])
+    left = J[:, P0:]
+    prior = [np.full(Term(EffectKind(k)).n_params(), IRON_PRIOR[k]) for k in kinds]
+    if ev.J_held is not None:
+        Jh = ev.J_held if w is None else ev.J_held * w
+        left = np.concatenate([left, Jh.reshape(-1, Jh.shape[-1])], axis=1)
+        prior += [np.full(t.full_size() - t.n_params(), IRON_PRIOR[t.kind.value])
+                  for t in st.terms if t.partial]
     H = res.info.copy()  # what the fit itself used (its ridge included)
-    cross = J[:, :P0].T @ J[:, P0:]
+    cross = J[:, :P0].T @ left
     if data.B_known_enu_nT is not None:  # the field is given: not a fitted column
         H[3:6, :] = 0.0
         H[:, 3:6] = 0.0
         H[3:6, 3:6] = np.eye(3)
         cross[3:6, :] = 0.0
     K = -np.linalg.pinv(H, rcond=1e-13) @ cross
-    prior = np.concatenate([np.full(Term(EffectKind(k)).n_params(), IRON_PRIOR[k])
-                            for k in kinds])
-    sig_b = np.degrees(np.sqrt(np.clip(np.einsum("ij,j,ij->i", K[:3], prior**2, K[:3]),
+    sd = np.concatenate(prior)
+    sig_b = np.degrees(np.sqrt(np.clip(np.einsum("ij,j,ij->i", K[:3], sd**2, K[:3]),
                                        0, None)))
     sig = np.asarray(cal.sigma_rotvec_deg, float)
     wider = np.where(np.isfinite(sig), np.hypot(sig, sig_b), sig)
-    names = " or ".join(x.replace("_", " ") for x in kinds)
+    terms = [k for k in IRON_PRIOR if k in kinds or any(t.kind.value == k for t in held)]
+    # the verdict's words match the start ("hard iron or soft iron"); a held part is named
+    # after it
+    names = " or ".join(x.replace("_", " ") for x in terms)
+    part = "; ".join(f"of the {t.kind.value.replace('_', ' ')} the fit holds "
+                     f"{t.undetermined().shape[1]} combination(s) it cannot determine"
+                     for t in held)
     sizes = ", ".join(f"{IRON_PRIOR[k]:g}{' nT' if k == 'hard_iron' else ''} {k.replace('_', ' ')}"
-                      for k in kinds)
-    doubt = (f"the motion cannot determine {names}: the fit leaves it out; the sigmas include "
-             f"what one of typical size ({sizes}) would do to the misalignment (up to "
-             f"{float(np.max(sig_b)):.2f} deg)")
+                      for k in terms)
+    doubt = (f"the motion cannot determine {names}"
+             + (": the fit leaves it out" if kinds else "") + (f" ({part})" if part else "")
+             + f"; the sigmas include what one of typical size ({sizes}) would do to the "
+             f"misalignment (up to {float(np.max(sig_b)):.2f} deg)")
+    out: dict[str, Any] = {"terms": terms, "prior": {k: IRON_PRIOR[k] for k in terms},
+                           "sigma_rotvec_bias_deg": sig_b.tolist()}
+    if held:
+        # the combinations a partial term holds (mag-frame unit vectors for the offset,
+        # unit symmetric matrices for D), so a reader knows which part of the term in the
+        # calibration is a reference and not a measurement
+        out["held"] = {t.kind.value: held_directions(t) for t in held}
     return cal.replace(sigma_rotvec_deg=wider, checks={
-        **cal.checks, "undetermined_iron": {"terms": list(kinds),
-                                            "prior": {k: IRON_PRIOR[k] for k in kinds},
-                                            "sigma_rotvec_bias_deg": sig_b.tolist()},
+        **cal.checks, "undetermined_iron": out,
         "doubts": list(cal.checks.get("doubts", ())) + [doubt]})
 
 
@@ -401,7 +422,8 @@ def calibration_from(res: FitResult, data: FitData, findings: tuple[Finding, ...
     for i, t in enumerate(st.terms):
         blk = slice(st.offsets()[i], st.offsets()[i] + t.n_params())
         if t.kind is EffectKind.HARD_IRON:
-            sig["offset"] = sd[blk]
+            # a partial offset's held component carries its prior's sigma (held_covariance)
+            sig["offset"] = np.asarray(term_sigma(t, cov[blk, blk], st, data)["offset_nT"])
         elif t.kind is EffectKind.SOFT_IRON:
             sig["D"] = np.asarray(term_sigma(t, cov[blk, blk], st, data)["D"])
         elif t.kind is EffectKind.TIME_OFFSET:
@@ -538,7 +560,8 @@ class Diagnose:
             final = apply_split(final, split, " under the final model")
         iron = [e for e, _ in diag.not_identifiable if e in ("hard_iron", "soft_iron")]
         iron = [e for e in iron if res.state.value(EffectKind(e)) is None]
-        if iron and len(final.unobservable_axes_body) == 0:
+        partial = any(t.partial and t.kind.value in IRON_PRIOR for t in res.state.terms)
+        if (iron or partial) and len(final.unobservable_axes_body) == 0:
             final = with_undetermined_iron(final, res, data, iron)
         fit_samples: dict[str, Any] = {"n": len(data), "stride": int(data.stride),
                                        "of": int(data.n_available or len(data))}

@@ -141,19 +141,51 @@ def score_test(cur: FitResult, term: Term, data: FitData, sigma: float,
     """
     st = cur.state.with_term(term) if start is None else start
     ev = evaluate(st, data)
-    J = ev.jac if ev.sqrt_w is None else ev.jac * ev.sqrt_w[:, None, None]
-    return _score_from_J(cur, term, J.reshape(-1, J.shape[-1]), data, sigma)
+    w = None if ev.sqrt_w is None else ev.sqrt_w[:, None, None]
+    J = ev.jac if w is None else ev.jac * w
+    held = None
+    if ev.J_held is not None:
+        held = (ev.J_held if w is None else ev.J_held * w).reshape(-1, ev.J_held.shape[-1])
+    return _score_from_J(cur, term, J.reshape(-1, J.shape[-1]), data, sigma,
+                         held=held if held is not None else np.zeros((J.shape[0] * 3, 0)))
+
+
+_HELD_CACHE: list[tuple[Any, np.ndarray | None]] = []
+
+
+def held_columns(state: ModelState, data: FitData) -> np.ndarray | None:
+    """Weighted columns (3N, Q) of the combinations the partial terms of ``state`` hold.
+
+    None without partial terms. Kept for the last (state, data) asked for: every candidate
+    of a search round is tested against the same model.
+    """
+    if not state.has_partial:
+        return None
+    if _HELD_CACHE and _HELD_CACHE[0][0][0] is state and _HELD_CACHE[0][0][1] is data:
+        return _HELD_CACHE[0][1]
+    ev = evaluate(state, data)
+    assert ev.J_held is not None  # the state has partial terms
+    Jh = ev.J_held if ev.sqrt_w is None else ev.J_held * ev.sqrt_w[:, None, None]
+    out = Jh.reshape(-1, Jh.shape[-1])
+    _HELD_CACHE[:] = [((state, data), out)]
+    return out
 
 
 def _score_from_J(
     cur: FitResult, term: Term, J: np.ndarray, data: FitData, sigma: float,
-    prior: np.ndarray | None = None,
+    prior: np.ndarray | None = None, held: np.ndarray | None = None,
 ) -> ScoreTest:
     """Score test from the Jacobian (3N, P) of the model with ``term`` appended.
 
     ``prior``: the ridge of the term's parameters (a ``field_map``'s GP prior, per nT^2,
     :meth:`~stages.diagnose.model.Term.prior_precision`), added to their information: the
     statistic and the rotation's efficiency are then those of the fit, which has it.
+
+    ``held``: weighted columns (3N, Q) of the combinations partial terms hold at their
+    reference (:attr:`~stages.diagnose.model.Evaluation.J_held`); default those of the
+    model of ``cur`` (:func:`held_columns`). They are profiled out like the fitted
+    parameters: what the motion cannot tell from them is no evidence for another term, so
+    a drift, a step or a disturbance cannot take up the part of an offset the fit holds.
     """
     r = cur.residual_nT.reshape(-1)
     p0 = cur.state.n_params()
@@ -162,18 +194,24 @@ def _score_from_J(
     else:
         keep = np.arange(p0)
     Jb, Jc = J[:, keep], J[:, p0:]
+    if held is None:
+        held = held_columns(cur.state, data)
+    n_held = 0 if held is None else held.shape[1]
+    if n_held:
+        Jb = np.concatenate([Jb, held], axis=1)
     Hbb, rot_base = _base_information(Jb)
     Hbc, Hcc = gram(Jb, Jc), gram(Jc, Jc)
     base_prior = cur.state.prior_precision()
     if base_prior is not None:  # a field_map in the model: its ridge is information too
-        Hbb = Hbb + np.diag(base_prior[keep])
+        base_prior = np.r_[base_prior[keep], np.zeros(n_held)]
+        Hbb = Hbb + np.diag(base_prior)
         rot_base = _rot_efficiency_H(Hbb)
     if prior is not None:
         Hcc = Hcc + np.diag(prior)
     g = gram(Jc, r[:, None])[:, 0]
-    gb = gram(Jb, r[:, None])[:, 0]  # ~0 at a converged fit; kept for exactness
+    gb = gram(Jb, r[:, None])[:, 0]  # ~0 at a converged fit (not along held columns)
     if base_prior is not None:  # the posterior's gradient: the ridge pulls too
-        gb = gb - (base_prior * cur.state.flat_values())[keep]
+        gb = gb - base_prior * np.r_[cur.state.flat_values()[keep], np.zeros(n_held)]
     sb = np.sqrt(np.clip(np.diag(Hbb), 1e-30, None))
     Hbb_n = Hbb / np.outer(sb, sb)
     try:

@@ -1,0 +1,217 @@
+"""A term the motion determines only in part: fitted where it is determined, held and named
+where it is not.
+
+A ground survey (tests/indep_gen.py, ``path="survey"``): a calibration manoeuvre at four
+headings with roll +-10 deg and pitch +-5 deg, then lines walked north and south. The sensor
+carries a hard-iron offset of (180, -90, 60) nT. The heading turns determine the offset's
+horizontal components; the small tilts cannot tell its vertical component from the vertical
+field. The diagnosis fits the horizontal part, holds the vertical one at zero with its prior
+as sigma and says so, and names nothing else for what the held part leaves in the residual.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from indep_gen import Spec, readings, write
+from scipy.spatial.transform import Rotation
+
+from pipeline.app.commands.diagnose import diagnose_file
+from pipeline.app.exports import export_text
+from pipeline.core.verdict import plain_words
+from pipeline.model.calibration import Calibration
+from stages.diagnose.fit import fit
+from stages.diagnose.model import (
+    CONFOUND_RATIO,
+    IRON_PRIOR,
+    AttitudeTrack,
+    EffectKind,
+    FitData,
+    ModelState,
+    Term,
+    evaluate,
+)
+from stages.diagnose.partial import _efficiencies, tilt_to_determine_deg
+
+OFFSET = [180.0, -90.0, 60.0]  # nT, mag frame
+
+#: terms that could take up what the held vertical offset leaves in the residual
+ABSORBERS = {"field_drift", "hard_iron_step", "disturbance"}
+
+
+def survey(name: str, noise_nT: float = 1.0, att_rate_hz: float = 20.0, **effects) -> Spec:
+    """A 90 s ground survey: 30 s of calibration turns and tilts, then lines 2 m apart."""
+    return Spec(name, seed=21, duration_s=90.0, mag_rate_hz=50.0, att_rate_hz=att_rate_hz,
+                path="survey", survey_calibration_s=30.0, mag_noise_nT=noise_nT,
+                att_noise_deg=0.002 if noise_nT else 0.0, effects=effects)
+
+
+def fit_data(spec: Spec, every: int = 1) -> FitData:
+    """The generator's readings as the diagnosis fits them (stamps in s from the first sample)."""
+    r = readings(spec)
+    track = AttitudeTrack(r["t_att_s"], r["att"].as_quat())  # scalar-last, as the model's
+    keep = (np.arange(len(r["t_mag_s"])) % every == 0) & (r["t_mag_s"] > 0.2) & (
+        r["t_mag_s"] < spec.duration_s - 0.2)
+    return FitData(r["t_mag_s"][keep], r["mag_nT"][keep], track)
+
+
+def truth_state(spec: Spec, term: Term) -> ModelState:
+    R = Rotation.from_rotvec(np.radians(spec.rotvec_body_mag_deg)).as_matrix()
+    return ModelState(R, np.asarray(spec.B_enu_nT, float), (term,),
+                      (np.asarray(spec.effects["hard_iron"]["offset_nT"], float),))
+
+
+def test_the_generator_without_noise_is_the_model_and_its_tilts_hold_the_vertical_offset():
+    """Noise off, the attitude sampled with the magnetometer (no interpolation): the model at
+    the truth reproduces the survey exactly. The offset's efficiencies against R and B: the
+    vertical one below CONFOUND_RATIO (the tilts of +-10 deg), the horizontal ones above."""
+    spec = survey("quiet", noise_nT=0.0, att_rate_hz=50.0, hard_iron={"offset_nT": OFFSET})
+    data = fit_data(spec, every=2)
+    st = truth_state(spec, Term(EffectKind.HARD_IRON))
+    r = data.y_nT - evaluate(st, data, jacobian=False).y_nT
+    assert np.abs(r).max() < 1e-6  # nT
+    J = evaluate(st, data).jac.reshape(-1, st.n_params())
+    eff, X = _efficiencies(J[:, :6], J[:, 6:9])
+    assert eff[0] < CONFOUND_RATIO < eff[1]
+    assert abs(X[2, 0]) > 0.99  # the weak combination is the mag z axis (body up, R ~ 2 deg)
+
+
+def test_the_restricted_jacobian_is_the_full_one_on_the_fitted_combinations():
+    """``J_full A`` for a partial term and ``J_full U`` for what it holds, checked by central
+    differences of the prediction through the state's own update."""
+    spec = survey("jac", hard_iron={"offset_nT": OFFSET})
+    data = fit_data(spec, every=10)
+    u = np.array([0.02, 0.02, 1.0]) / np.linalg.norm([0.02, 0.02, 1.0])
+    A = np.linalg.svd(np.eye(3) - np.outer(u, u))[0][:, :2]
+    As = np.linalg.qr(np.random.default_rng(1).normal(size=(5, 3)))[0]
+    hi = Term(EffectKind.HARD_IRON).restricted(A, fixed=[1.0, 2.0, 3.0])
+    si = Term(EffectKind.SOFT_IRON).restricted(As)
+    st0 = truth_state(spec, hi).with_term(si)
+    assert float(u @ st0.values[0]) == pytest.approx(float(u @ OFFSET))
+    np.testing.assert_allclose(st0.values[1], 0.0)  # appended at ``fixed``: zero
+    st = st0.update(np.r_[np.zeros(6), 50.0, -30.0, 0.01, 0.003, -0.002])
+    # an update moves the fitted combinations only
+    assert float(u @ st.values[0]) == pytest.approx(float(u @ OFFSET), abs=1e-9)
+    assert float(u @ Term(EffectKind.HARD_IRON).restricted(A, [1.0, 2.0, 3.0]).null_value()) \
+        == pytest.approx(float(u @ [1.0, 2.0, 3.0]))
+    ev = evaluate(st, data)
+    assert ev.jac.shape[2] == 6 + 2 + 3 and ev.J_held is not None
+    assert ev.J_held.shape[2] == 1 + 2
+    for p in range(st.n_params()):
+        h = 1e-6 if p < 3 else (1e-3 if p < 8 else 1e-5)
+        dx = np.zeros(st.n_params())
+        dx[p] = h
+        fd = (evaluate(st.update(dx), data, jacobian=False).y_nT
+              - evaluate(st.update(-dx), data, jacobian=False).y_nT) / (2 * h)
+        assert np.max(np.abs(fd - ev.jac[:, :, p])) < 1e-6 * np.max(np.abs(fd)), p
+    vals = list(st.values)
+    h = 1e-2
+    vals[0] = st.values[0] + h * hi.undetermined()[:, 0]
+    yp = evaluate(ModelState(st.R_body_mag, st.B_enu_nT, st.terms, tuple(vals)), data,
+                  jacobian=False).y_nT
+    vals[0] = st.values[0] - h * hi.undetermined()[:, 0]
+    ym = evaluate(ModelState(st.R_body_mag, st.B_enu_nT, st.terms, tuple(vals)), data,
+                  jacobian=False).y_nT
+    np.testing.assert_allclose((yp - ym) / (2 * h), ev.J_held[:, :, 0], atol=1e-9)
+
+
+def test_more_tilt_would_determine_the_vertical_offset():
+    """The tilt asked for is beyond the recording's +-10 deg roll (plus swings) and below
+    90 deg: the efficiency grows with the square of the tilt."""
+    spec = survey("tilt", hard_iron={"offset_nT": OFFSET})
+    data = fit_data(spec, every=4)
+    u = np.array([0.0, 0.0, 1.0])
+    hi = Term(EffectKind.HARD_IRON).restricted(np.eye(3)[:, :2])
+    st = fit(truth_state(spec, hi), data).state
+    assert hi.undetermined()[:, 0] == pytest.approx(u)
+    need = tilt_to_determine_deg(st, 0, data)
+    assert need is not None and 14.0 < need < 60.0
+
+
+@pytest.fixture(scope="module")
+def surveyed(tmp_path_factory):
+    """The survey with the offset and without it, diagnosed as ``magalign diagnose`` does."""
+    out = {}
+    for name, effects in (("offset", {"hard_iron": {"offset_nT": OFFSET}}), ("clean", {})):
+        spec = survey(name, **effects)
+        path = write(spec, tmp_path_factory.mktemp(name) / f"{name}.mcap")
+        out[name] = (spec, diagnose_file(path))
+    return out
+
+
+def _rot_err_deg(ctx, spec) -> np.ndarray:
+    cal = ctx.need_calibration()
+    return np.abs(np.asarray(cal.rotvec_body_mag_deg) - np.asarray(spec.rotvec_body_mag_deg))
+
+
+def test_the_survey_offset_is_fitted_horizontally_and_its_vertical_part_is_held(surveyed):
+    spec, ctx = surveyed["offset"]
+    diag = ctx.diagnosis
+    effects = [f.effect for f in diag.findings]
+    assert "hard_iron" in effects and not ABSORBERS & set(effects), effects
+    hi = diag.findings[effects.index("hard_iron")]
+    o, s = np.asarray(hi.params["offset_nT"]), np.asarray(hi.sigma["offset_nT"])
+    assert np.all(np.abs(o[:2] - OFFSET[:2]) < 5.0), o  # nT
+    # the vertical part: held near zero (the held combination is along mag z to 2 %), its
+    # sigma the prior's, and said in words with the motion that would determine it
+    assert abs(o[2]) < 10.0 and s[2] == pytest.approx(IRON_PRIOR["hard_iron"], rel=0.01)
+    assert np.all(s[:2] < 50.0)
+    words = hi.explanation
+    assert "vertical" in words and "not determined" in words and "tilting" in words
+    assert "hard_iron" not in dict(diag.not_identifiable)
+    # the misalignment as without the offset, and within its sigma
+    cal = ctx.need_calibration()
+    err = _rot_err_deg(ctx, spec)
+    assert err.max() < 0.01, err  # deg
+    assert np.all(err <= 3 * np.asarray(cal.sigma_rotvec_deg))
+    # the calibration carries the same offset and says which part of it is held
+    np.testing.assert_allclose(cal.offset_nT, o)
+    np.testing.assert_allclose(cal.sigma_offset_nT, s)
+    held = np.asarray(cal.checks["undetermined_iron"]["held"]["hard_iron"])
+    assert held.shape == (1, 3) and abs(held[0, 2]) > 0.99
+    assert "hard_iron" in cal.checks["undetermined_iron"]["terms"]
+    # the rotation's doubt keeps the words the verdict turns into advice
+    (doubt,) = [d for d in cal.checks["doubts"] if d.startswith("the motion cannot determine")]
+    assert "holds 1 combination" in doubt and plain_words(doubt)[1] is not None
+    # the restore applies the calibration's offset (the held part left in the vertical
+    # field): over every sample its residual is the fit's
+    assert cal.residual_rms_nT == pytest.approx(hi.evidence["rms_after_nT"], rel=0.05)
+    again = Calibration.from_json(cal.to_json())
+    np.testing.assert_allclose(again.offset_nT, cal.offset_nT)
+    # an export says the held component is a reference, not a measurement
+    for fmt in ("yaml", "ardupilot", "magcal"):
+        words = [w for w in export_text(again, fmt).split() if w not in ("#", "%")]
+        assert "was not determined by the motion: it is held at 0 nT" in " ".join(words), fmt
+    # diagnosis.json: CONVENTIONS keys only, the params those of hard_iron
+    d = json.loads(json.dumps(diag.to_dict()))
+    f = d["findings"][effects.index("hard_iron")]
+    assert set(f) == {"effect", "params", "sigma", "evidence", "where", "explanation"}
+    assert set(f["params"]) == {"offset_nT"} and set(f["sigma"]) == {"offset_nT"}
+
+
+def test_the_same_survey_without_the_offset_stays_clean(surveyed):
+    spec, ctx = surveyed["clean"]
+    assert [f.effect for f in ctx.diagnosis.findings] == []
+    assert _rot_err_deg(ctx, spec).max() < 0.01  # deg
+    # nothing says there is no offset: it stays listed as not determined, and the sigma
+    # covers one of typical size
+    assert "hard_iron" in dict(ctx.diagnosis.not_identifiable)
+    assert "hard_iron" in ctx.need_calibration().checks["undetermined_iron"]["terms"]
+
+
+def test_a_reference_field_determines_the_whole_offset(tmp_path):
+    """With the field given, the vertical offset no longer reads as the vertical field: the
+    whole offset is fitted and nothing is held."""
+    spec = survey("ref", hard_iron={"offset_nT": OFFSET})
+    ctx = diagnose_file(write(spec, tmp_path / "ref.mcap"),
+                        reference_field_enu_nT=tuple(spec.B_enu_nT))
+    effects = [f.effect for f in ctx.diagnosis.findings]
+    assert "hard_iron" in effects and not ABSORBERS & set(effects), effects
+    hi = ctx.diagnosis.findings[effects.index("hard_iron")]
+    assert np.all(np.abs(np.asarray(hi.params["offset_nT"]) - OFFSET) < 5.0)
+    assert "not determined" not in hi.explanation
+    assert "held" not in ctx.need_calibration().checks.get("undetermined_iron", {})
+    assert _rot_err_deg(ctx, spec).max() < 0.01
+
