@@ -1,4 +1,4 @@
-"""Stability bench (issue 25, item 1): an injected effect changes only its own finding.
+"""Stability bench: an injected effect changes only its own finding.
 
 Usage: ``python bench/stability.py [--bases NAME,...] [--cases lag,offset,step] [--seconds S]
 [--limit N] [--work DIR] [--no-record] [--list]``.

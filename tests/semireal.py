@@ -30,7 +30,7 @@ recorded attitude, SLERP-interpolated at the magnetometer stamps; ``R`` the misa
 A semi-real recording is scored against its base: a finding counts only if the base did not
 have that effect (:func:`new_findings`).
 
-Stability (issue 25, ``bench/stability.py``, ``tests/test_stability.py``): bases are excerpts of
+Stability (``bench/stability.py``, ``tests/test_stability.py``): bases are excerpts of
 the lab recordings (:func:`excerpt`) chosen by how they move (:func:`motion`,
 :func:`translating_segments`: measured from the poses) or independent recordings
 (:func:`from_indep`); :func:`check_injection` proves each injection by plain arithmetic on

@@ -1,4 +1,4 @@
-"""Stability under injections (issue 25, item 1): an injected effect changes only its finding.
+"""Stability under injections: an injected effect changes only its finding.
 
 CI-sized part of ``bench/stability.py``: a few of its bases (``semireal.STABILITY_BASES``,
 60 s each, diagnosed once per module) and injections (``semireal.STABILITY_CASES``). Each
