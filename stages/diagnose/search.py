@@ -649,23 +649,18 @@ def diagnose_data(
                 continue
             term = res.state.terms[-1]
             gone = {t.kind for t in cur.state.terms} - {t.kind for t in res.state.terms}
-            if id(st) in replaces:
-                # the step gains a transition: its finding is the whole event's, measured
-                # against the model without the step
-                i_step = replaces[id(st)]
-                findings.pop(i_step)
-                cur = fit(_without(cur.state, i_step), data)
-                cv_cur = heldout_rms(cur.state, data, cfg)
-            elif gone:  # a replacement: the nested term it contains leaves the model
+            if gone:  # a replacement: the nested term it contains leaves the model
                 findings = [f for f in findings if EffectKind(f.effect) not in gone]
                 cur = fit(dataclasses.replace(res.state, terms=res.state.terms[:-1],
                                               values=res.state.values[:-1]), data)
             findings.append(_finding(cur, res, term, st, dbic, cv_cur, cv_new, data))
             if told:
                 findings[-1] = dataclasses.replace(findings[-1], told_apart=told)
-            if id(st) in replaces:  # the event keeps its place among the findings
+            if id(st) in replaces:
+                # the step gained a transition: its finding is replaced in its place (the
+                # evidence is measured again in the final order, _chain_evidence)
                 i_step = replaces[id(st)]
-                findings.insert(i_step, findings.pop())
+                findings[i_step] = findings.pop()
                 res = fit(_moved_last_to(res.state, i_step), data)
             cur, cv_cur = res, cv_new
             accepted = True
