@@ -255,8 +255,8 @@ def calibrate_vs_diagnose(names: list[str] | None = None) -> list[dict]:
     diagnosis uses (it leaves out the 100 ms at each end of the attitude); the diagnosis
     baseline over those; and their relative difference (target: within 0.1 %).
     """
-    from pipeline.core.recording import Context
     from pipeline.io.mcap_read import read_recording
+    from stages.context import Context
     from stages.diagnose.result import DiagnoseConfig
     from stages.diagnose.search import diagnose_data
     from stages.diagnose.stage import fit_data_from

@@ -2,7 +2,7 @@
 
 For each of ``../shared/data/real/lab_0*.mcap`` (skipped when the folder is absent), through
 the analysis stages that ``calibrate``, ``diagnose`` and ``process`` share
-(:func:`pipeline.app.process_one.analyse`):
+(:func:`pipeline.run.runner.analyse`):
 
 - the answer: rotation vector and sigma, verdict, findings with their held-out RMS, the
   final held-out RMS against the sensor noise measured in still windows;
@@ -30,10 +30,10 @@ ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT.parent / "shared" / "data" / "real"
 sys.path.insert(0, str(ROOT))
 
-from pipeline.app.process_one import ProcessOptions, analyse, analyse_recording  # noqa: E402
 from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec  # noqa: E402
-from pipeline.core.recording import Context, Recording  # noqa: E402
+from pipeline.core.recording import Recording  # noqa: E402
 from pipeline.model.calibration import Calibration  # noqa: E402
+from pipeline.run.runner import ProcessOptions, analyse, analyse_recording  # noqa: E402
 from stages.estimate import Term  # noqa: E402
 
 RESTRICTED = ProcessOptions(terms=frozenset({Term.OFFSET, Term.SOFT_IRON, Term.TIME_OFFSET}),
@@ -89,7 +89,7 @@ def one(name: str, thirds: bool) -> Calibration:
                          f"{p['closest_approach_s']:.1f} s")
             print(f"  {f['effect']}: held-out {ev['heldout_rms_before_nT']:.0f} -> "
                   f"{ev['heldout_rms_after_nT']:.0f} nT{extra}")
-    rec = analyse(Context(source=str(path), recording=ctx.need_recording()), RESTRICTED)
+    rec = analyse(ctx.need_recording(), RESTRICTED)
     rc = rec.need_calibration()
     z = z_between(cal, rc)
     print(f"restricted (offset, soft_iron, time_offset): {_vec(rc.rotvec_body_mag_deg)} +- "
@@ -103,7 +103,7 @@ def one(name: str, thirds: bool) -> Calibration:
         for k in range(3):
             sub = span(r, cuts[k], cuts[k + 1])
             try:
-                c = analyse(Context(source=str(path), recording=sub), DEFAULT).need_calibration()
+                c = analyse(sub, DEFAULT).need_calibration()
             except Exception as exc:  # a third may be refused: that is a result, not a crash
                 print(f"  third {k + 1}: {type(exc).__name__}: {exc}")
                 continue

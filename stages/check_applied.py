@@ -29,7 +29,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.core.errors import DataQualityError
-from pipeline.core.recording import AlignedSeries, Context
+from pipeline.core.recording import AlignedSeries
 from pipeline.core.verdict import (
     QUESTIONABLE_RESIDUAL_RATIO,
     Status,
@@ -39,6 +39,7 @@ from pipeline.core.verdict import (
 )
 from pipeline.model.calibration import Calibration
 from pipeline.model.sample_hold import repeated
+from stages.context import Context
 from stages.estimate import POOR_AXIS_SIGMA_DEG, fit_calibration
 from stages.restore import restore_samples
 
@@ -213,9 +214,8 @@ def check_applied(cal: Calibration, aligned: AlignedSeries, refit: Calibration |
 class CheckApplied:
     """Stage: check a calibration made elsewhere on this recording; its verdict is the line's.
 
-    Provides ``calibration`` (the same model, its verdict, residual and
-    ``checks["applied"]`` this line's) and ``restored`` (the restore it measured, which
-    :class:`stages.restore.Restore` keeps).
+    Provides ``calibration``: the same model, with this line's verdict, residual and
+    ``checks["applied"]``.
 
     Parameters
     ----------
@@ -230,7 +230,7 @@ class CheckApplied:
     max_gap_s: float | None = None
 
     requires: ClassVar[frozenset[str]] = frozenset({"recording", "aligned", "calibration"})
-    provides: ClassVar[frozenset[str]] = frozenset({"calibration", "restored"})
+    provides: ClassVar[frozenset[str]] = frozenset({"calibration"})
 
     def run(self, ctx: Context) -> Context:
         """Return ``ctx`` with the line's own verdict on the calibration."""
@@ -244,4 +244,4 @@ class CheckApplied:
         restored = restore_samples(rec, cal, max_gap_s=self.max_gap_s)
         res = float(restored.residual_rms_nT)
         cal = cal.replace(residual_rms_nT=res, verdict=applied_verdict(cal, res))
-        return ctx.replace(calibration=cal, restored=restored)
+        return ctx.replace(calibration=cal)

@@ -14,8 +14,9 @@ from typing import ClassVar
 import numpy as np
 
 from pipeline.core.errors import EstimationError
-from pipeline.core.recording import AlignedSeries, Context, Recording
+from pipeline.core.recording import AlignedSeries, Recording
 from pipeline.model.calibration import Calibration
+from stages.context import Context
 from stages.estimators.base import (
     Estimator,
     EstimatorKind,

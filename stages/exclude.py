@@ -22,8 +22,8 @@ from typing import ClassVar
 import numpy as np
 
 from pipeline.core.errors import DataQualityError
-from pipeline.core.recording import Context
 from pipeline.model.calibration import Calibration
+from stages.context import Context
 
 _SECONDS = re.compile(r"^\s*([0-9]+(?:\.[0-9]*)?)\s*:\s*([0-9]+(?:\.[0-9]*)?)\s*$")
 _ISO = r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d(?:\.\d+)?(?:Z|[+-]\d\d:\d\d)"
@@ -138,10 +138,17 @@ class NoteExclusions:
     Parameters
     ----------
     windows : tuple of ExcludeWindow
+    t0_ns : int or None
+        The recording's first magnetometer stamp; None: that of the context's recording.
+    n_samples : int or None
+        The recording's samples inside the windows; None: counted in the context's recording
+        (a long recording's analysis sees windows of it: the runner counts them).
 
     """
 
     windows: tuple[ExcludeWindow, ...]
+    t0_ns: int | None = None
+    n_samples: int | None = None
 
     requires: ClassVar[frozenset[str]] = frozenset({"recording", "calibration"})
     provides: ClassVar[frozenset[str]] = frozenset({"calibration"})
@@ -149,8 +156,9 @@ class NoteExclusions:
     def run(self, ctx: Context) -> Context:
         """Return ``ctx`` with the exclusions noted in its calibration."""
         rec = ctx.need_recording()
-        t0 = int(rec.mag.t_ns[0])
-        n = int(np.count_nonzero(excluded_mask(rec.mag.t_ns, self.windows, t0)))
+        t0 = int(rec.mag.t_ns[0]) if self.t0_ns is None else int(self.t0_ns)
+        n = (int(np.count_nonzero(excluded_mask(rec.mag.t_ns, self.windows, t0)))
+             if self.n_samples is None else int(self.n_samples))
         return ctx.replace(calibration=noted(ctx.need_calibration(), self.windows, t0, n))
 
 

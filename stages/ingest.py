@@ -6,8 +6,8 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from pipeline.core.errors import InputError
-from pipeline.core.recording import Context
 from pipeline.io.mcap_read import read_recording
+from stages.context import Context
 
 
 @dataclass(frozen=True)

@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-from pipeline.core.recording import Context
 from pipeline.model.calibration import Calibration
+from stages.context import Context
 
 
 @dataclass(frozen=True)

@@ -7,22 +7,22 @@ For each ENU component x (east), y (north), z (up), calibrated and uncalibrated:
 - ``std_nT``: standard deviation (population, ddof=0);
 - ``ratio_pct``: calibrated / uncalibrated x 100, one per statistic.
 
-*Calibrated* is the restored series (``ctx.restored``, every term of the calibration
+*Calibrated* is the restored series (every term of the calibration
 removed). *Uncalibrated* is the raw magnetometer rotated by the attitude only,
 ``C_enu_body(t) @ y_mag`` (no R, no offset, no D, no time offset). Both are taken over the
 same samples: those with a usable attitude for both. A perfectly calibrated sensor in a
 constant field gives a constant restored vector, so every calibrated statistic tends to the
 noise level.
 
-Scopes: the whole recording (``"all"``) and each segment (``"segment_<i>"``) when
-``ctx.segments`` is set.
+Scopes: the whole recording (``"all"``) and each of the recording's segments
+(``"segment_<i>"``).
 
 For turntable recordings (a single-axis attitude source, Tang et al. 2016) the heading error
 statistics of Tang's Table 2 are added: the heading of the horizontal restored field minus
 that of the reference field ``calibration.B_enu_nT``, in degrees, calibrated and uncalibrated
 (``max_abs_deg``, ``mean_deg``, ``std_deg``, ``rms_deg``, ``peak_to_peak_deg``).
 
-Files (``Metrics(out_dir=...)``):
+Files (:meth:`MetricsResult.write`; the metrics sink of :mod:`stages.sinks`):
 
 ``metrics.json`` (format ``magalign.metrics/1``)::
 
@@ -44,18 +44,21 @@ the paper's headline ratio; the same value on both rows of a pair),
 from __future__ import annotations
 
 import json
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import Any
 
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 
 from pipeline.core.atomic import atomic_path, write_text_atomic
-from pipeline.core.errors import InputError
-from pipeline.core.recording import Context, Recording, Segment
-
-if TYPE_CHECKING:
-    from stages.restore import RestoreResult
+from pipeline.core.errors import OutputError
+from pipeline.core.recording import Segment
+from pipeline.model.tang import heading_error_stats as tang_heading_error_stats
+from pipeline.model.tang import wrap_angle
+from stages.restore import RestoreResult
 
 FORMAT = "magalign.metrics/1"
 COMPONENTS = ("x", "y", "z")
@@ -93,20 +96,15 @@ def scope_components(cal_enu: np.ndarray, raw_enu: np.ndarray) -> dict[str, dict
     return out
 
 
-def heading_error_stats(enu_nT: np.ndarray, B_enu_nT: np.ndarray) -> dict[str, float]:
+def heading_error_stats(heading_rad: np.ndarray, reference_rad: float) -> dict[str, float]:
     """Tang 2016 Table 2 style heading error statistics (deg) of a restored series.
 
-    The heading of a horizontal field vector is ``atan2(east, north)``; the error is the
-    restored heading minus the reference heading, wrapped to (-180, 180]. The statistics are
-    those of :func:`pipeline.model.tang.heading_error_stats`, of which this file keeps
+    The heading of a horizontal field vector is ``atan2(east, north)`` (``heading_rad``); the
+    error is it minus the reference field's heading, wrapped to (-180, 180]. The statistics
+    are those of :func:`pipeline.model.tang.heading_error_stats`, of which this file keeps
     ``max_abs_deg``, ``mean_deg``, ``std_deg``, ``rms_deg`` and ``peak_to_peak_deg``.
     """
-    from pipeline.model.tang import heading_error_stats as tang_stats
-    from pipeline.model.tang import wrap_angle
-
-    ref = np.arctan2(B_enu_nT[0], B_enu_nT[1])
-    h = np.arctan2(enu_nT[:, 0], enu_nT[:, 1])
-    stats = tang_stats(wrap_angle(h - ref))
+    stats = tang_heading_error_stats(wrap_angle(np.asarray(heading_rad) - reference_rad))
     return {k: stats[k] for k in _HEADING_KEYS}
 
 
@@ -199,8 +197,6 @@ class MetricsResult:
 
     def to_table(self) -> Any:  # a pyarrow.Table
         """metrics.parquet as a pyarrow Table (module docstring for the columns)."""
-        import pyarrow as pa
-
         cols: dict[str, list] = {
             k: []
             for k in (
@@ -241,87 +237,12 @@ class MetricsResult:
 
     def write(self, out_dir: str | Path, inputs: tuple[str, ...] = ()) -> tuple[Path, Path]:
         """Write metrics.json and metrics.parquet atomically into ``out_dir``."""
-        import pyarrow.parquet as pq
-
         out = Path(out_dir)
         j = write_text_atomic(out / "metrics.json", json.dumps(self.to_dict(), indent=2))
         pq_path = out / "metrics.parquet"
         with atomic_path(pq_path, inputs) as tmp:
             pq.write_table(self.to_table(), tmp)
         return j, pq_path
-
-
-def compute_metrics(
-    recording: Recording,
-    restored: RestoreResult,
-    segments: tuple[Segment, ...] | None = None,
-    B_enu_nT: np.ndarray | None = None,
-    *,
-    max_gap_s: float | None = None,
-) -> MetricsResult:
-    """Compute the Table 4 metrics (and Tang's heading errors for turntable data).
-
-    Parameters
-    ----------
-    recording : Recording
-        With ``attitude`` filled.
-    restored : RestoreResult
-        Every magnetometer sample restored (what :class:`stages.restore.Restore` provides);
-        its attitude masks give the counts.
-    segments : tuple of Segment, optional
-        Windows for the per-segment scopes.
-    B_enu_nT : ndarray (3,), optional
-        Reference field for the heading errors.
-    max_gap_s : float
-        Not used (the restore result carries its gap rule); kept for callers.
-
-    Returns
-    -------
-    MetricsResult
-
-    """
-    rs = restored
-    t_all = recording.mag.t_ns
-    n = len(t_all)
-    if rs.n_total != n or (n and not np.array_equal(rs.t_ns, t_all)):
-        raise InputError(
-            "restored stamps are not magnetometer stamps of this recording", path=recording.path
-        )
-    used = rs.used
-    cal_enu = np.asarray(rs.enu_nT)[used]
-    # Uncalibrated: attitude only, C_enu_body(t) @ y_mag (Li 2020, Table 4 "before").
-    raw_enu = rs.uncalibrated_enu_nT()[used]
-    t = t_all[used]
-    t0 = int(t_all[0]) if n else 0
-    end_all = float((t_all[-1] - t0) * 1e-9) if n else 0.0
-    scopes = [ScopeMetrics("all", "all", 0.0, end_all, len(t), scope_components(cal_enu, raw_enu))]
-    for i, seg in enumerate(segments or ()):
-        m = seg.contains(t)
-        scopes.append(
-            ScopeMetrics(
-                f"segment_{i}",
-                str(getattr(seg.kind, "value", seg.kind)),
-                float((seg.start_ns - t0) * 1e-9),
-                float((seg.end_ns - t0) * 1e-9),
-                int(np.count_nonzero(m)),
-                scope_components(cal_enu[m], raw_enu[m]),
-            )
-        )
-    heading = None
-    if recording.turntable is not None and B_enu_nT is not None:
-        B = np.asarray(B_enu_nT, dtype=float)
-        heading = {
-            "calibrated": heading_error_stats(cal_enu, B),
-            "uncalibrated": heading_error_stats(raw_enu, B),
-        }
-    return MetricsResult(
-        n_samples=n,
-        n_without_attitude=rs.n_without_attitude,
-        n_used=len(t),
-        n_without_attitude_at_stamp=rs.n_without_attitude_at_stamp,
-        scopes=tuple(scopes),
-        heading_error=heading,
-    )
 
 
 class _Moments:
@@ -391,15 +312,15 @@ class _Moments:
 
 
 class MetricsAccumulator:
-    """The metrics of :func:`compute_metrics`, computed chunk by chunk (long recordings).
+    """The metrics of a recording, computed chunk by chunk (module docstring).
 
     Feed every chunk's :class:`stages.restore.RestoreResult` in time order (:meth:`add`),
-    then :meth:`finish`. Range, mean and standard deviation are merged from per-chunk
-    moments; the mean absolute deviation needs the final mean, so the rows used (stamp,
-    calibrated and uncalibrated ENU) are spilled to an anonymous temporary file in
-    ``spill_dir`` (56 bytes per sample, gone when the accumulator is) and read back block
-    by block. Same definitions as :func:`component_stats`; no turntable heading errors (a
-    turntable recording is never processed in chunks).
+    then :meth:`finish` (a recording held whole is one chunk). Range, mean and standard
+    deviation are merged from per-chunk moments; the mean absolute deviation needs the final
+    mean, so the rows used (stamp, calibrated and uncalibrated ENU) are spilled to an
+    anonymous temporary file in ``spill_dir`` (56 bytes per sample, gone when the
+    accumulator is) and read back block by block. Same definitions as
+    :func:`component_stats`.
 
     Parameters
     ----------
@@ -409,6 +330,8 @@ class MetricsAccumulator:
         First magnetometer stamp of the recording.
     spill_dir : path, optional
         Folder of the temporary file (default: the system's).
+    heading_reference_enu_nT : ndarray (3,), optional
+        The reference field of a turntable recording: Tang's heading errors are added.
 
     """
 
@@ -416,9 +339,10 @@ class MetricsAccumulator:
     _BLOCK = 262_144
 
     def __init__(self, segments: tuple[Segment, ...] | None, t0_ns: int,
-                 spill_dir: str | Path | None = None) -> None:
-        import tempfile
-
+                 spill_dir: str | Path | None = None,
+                 heading_reference_enu_nT: np.ndarray | None = None) -> None:
+        self.heading_B = (None if heading_reference_enu_nT is None
+                          else np.asarray(heading_reference_enu_nT, dtype=float))
         self.segments = tuple(segments or ())
         self.t0_ns = int(t0_ns)
         self.t_last_ns = int(t0_ns)
@@ -462,8 +386,6 @@ class MetricsAccumulator:
         try:
             rows.tofile(self._spill)
         except OSError as exc:
-            from pipeline.core.errors import OutputError
-
             raise OutputError(f"cannot keep the restored rows for the metrics: "
                               f"{exc.strerror or exc}", path=self._spill_dir,
                               hint="free some disk space beside the outputs (56 bytes a "
@@ -474,10 +396,15 @@ class MetricsAccumulator:
         dev = np.zeros((2, 1 + len(self.segments), 3))
         self._spill.flush()
         self._spill.seek(0)
+        # the horizontal field's heading (turntables): calibrated and uncalibrated
+        headings: tuple[list[np.ndarray], list[np.ndarray]] = ([], [])
         while True:
             rows = np.fromfile(self._spill, self._ROW, count=self._BLOCK)
             if not len(rows):
                 break
+            if self.heading_B is not None:
+                headings[0].append(np.arctan2(rows["c"][:, 0], rows["c"][:, 1]))
+                headings[1].append(np.arctan2(rows["r"][:, 0], rows["r"][:, 1]))
             for i, m in enumerate(self._masks(rows["t"])):
                 for j, (name, mo) in enumerate((("c", self._cal), ("r", self._raw))):
                     v = rows[name] if m is None else rows[name][m]
@@ -508,48 +435,30 @@ class MetricsAccumulator:
                 f"segment_{i}", str(getattr(seg.kind, "value", seg.kind)),
                 float((seg.start_ns - t0) * 1e-9), float((seg.end_ns - t0) * 1e-9),
                 int(self._cal.n[i + 1]), components(i + 1)))
+        heading = None
+        if self.heading_B is not None:
+            ref = np.arctan2(self.heading_B[0], self.heading_B[1])
+            heading = {name: heading_error_stats(
+                np.concatenate(h) if h else np.zeros(0), ref)
+                for name, h in zip(("calibrated", "uncalibrated"), headings, strict=True)}
         return MetricsResult(
             n_samples=self.n_samples,
             n_without_attitude=self.n_samples - self.n_valid,
             n_used=self.n_used,
             n_without_attitude_at_stamp=self.n_valid - self.n_used,
             scopes=tuple(scopes),
+            heading_error=heading,
         )
 
 
-@dataclass(frozen=True)
-class Metrics:
-    """Stage: Li 2020 Table 4 metrics of the restored field (module docstring).
+def compute_metrics(restored: RestoreResult, segments: tuple[Segment, ...] | None = None, *,
+                    t0_ns: int | None = None,
+                    heading_reference_enu_nT: np.ndarray | None = None) -> MetricsResult:
+    """Return the metrics of a restore result held whole (one chunk of the accumulator).
 
-    Parameters
-    ----------
-    out_dir : str, optional
-        When given, metrics.json and metrics.parquet are written there (atomically) and listed
-        in ``ctx.outputs``.
-    max_gap_s : float
-        Attitude gap bridged when rotating the raw magnetometer.
-
+    ``t0_ns``: the recording's first magnetometer stamp (default: the first row's).
     """
-
-    out_dir: str | None = None
-    max_gap_s: float | None = None
-
-    requires: ClassVar[frozenset[str]] = frozenset({"recording", "restored"})
-    provides: ClassVar[frozenset[str]] = frozenset({"metrics"})
-
-    def run(self, ctx: Context) -> Context:
-        """Compute (and write) the metrics."""
-        cal = ctx.calibration
-        rec = ctx.need_recording()
-        res = compute_metrics(
-            rec,
-            ctx.need_restored(),
-            ctx.segments,
-            None if cal is None else cal.B_enu_nT,
-            max_gap_s=self.max_gap_s,
-        )
-        outputs = ctx.outputs
-        if self.out_dir is not None:
-            j, p = res.write(self.out_dir, (rec.path,))
-            outputs = outputs + (("metrics.json", str(j)), ("metrics.parquet", str(p)))
-        return ctx.replace(metrics=res, outputs=outputs)
+    t0 = int(restored.t_ns[0]) if t0_ns is None and len(restored.t_ns) else int(t0_ns or 0)
+    acc = MetricsAccumulator(segments, t0, heading_reference_enu_nT=heading_reference_enu_nT)
+    acc.add(restored)
+    return acc.finish()

@@ -20,20 +20,26 @@ Figures, written beside the report:
 from __future__ import annotations
 
 import base64
+import datetime as dt
 import html
 import io
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 
+from pipeline import package_version
 from pipeline.core import style
-from pipeline.core.atomic import atomic_path, write_text_atomic
-from pipeline.core.recording import Context, Recording, Segment
+from pipeline.core.atomic import atomic_path, sha256_file, write_text_atomic
+from pipeline.core.geometry import quat_rotate, quat_to_li2020_euler
+from pipeline.core.recording import Recording, Segment
 from pipeline.core.style import minus
 from pipeline.core.verdict import plain_words
+from pipeline.model.sample_hold import repeated
+from stages.estimate import POOR_AXIS_SIGMA_DEG, verdict_line
+from stages.estimators.registry import DESCRIPTIONS
 from stages.report_map import (
     EVENT_EFFECTS,
     draw_map,
@@ -41,6 +47,9 @@ from stages.report_map import (
     map_data,
     write_map_json,
 )
+from stages.report_text import pm_vec, rows_html, utc
+from stages.report_text import rows as finding_rows
+from stages.restore import RestoreResult, RestoreTotals, restore_samples, view_data
 
 ENU_LABELS = ("east", "north", "up")
 
@@ -58,8 +67,6 @@ def _png(fig: Any) -> bytes:
 
 def utc_text(t_ns: int, with_date: bool = False) -> str:
     """Return the UTC time of ``t_ns`` (ns since the epoch), ``HH:MM:SS[.s]`` (with the date)."""
-    import datetime as dt
-
     sec, frac = divmod(int(t_ns), 1_000_000_000)
     d = dt.datetime.fromtimestamp(sec, tz=dt.timezone.utc)
     text = d.strftime("%Y-%m-%d %H:%M:%S" if with_date else "%H:%M:%S")
@@ -260,9 +267,6 @@ def make_figures(
         positions.
 
     """
-    from pipeline.core.geometry import quat_to_li2020_euler
-    from stages.restore import restore_samples, view_data
-
     plt = _plt()
     if restored is None:
         restored = restore_samples(recording, calibration, max_gap_s=max_gap_s)
@@ -299,8 +303,6 @@ def predicted_field(restored: Any, calibration: Any) -> tuple[np.ndarray, np.nda
     ``|B + F|`` exactly) and turned by the attitude it is the ENU prediction (up to the
     heading-drift turn of the residual, far below a nanotesla). NaN without an attitude.
     """
-    from pipeline.core.geometry import quat_rotate
-
     r = np.asarray(restored.residual_nT, dtype=float)
     D = getattr(calibration, "D", None)
     dr = r if D is None else np.linalg.solve(np.asarray(D, float), r.T).T
@@ -639,18 +641,21 @@ def _n(x: int) -> str:
     return f"{int(x):,}".replace(",", "\u2009")
 
 
-def counts_sentence(restored: Any, calibration: Any, n_received: int | None = None) -> str:
+def counts_sentence(restored: RestoreResult, calibration: Any,
+                    totals: RestoreTotals | None = None) -> str:
     """Where every magnetometer sample went, in one sentence whose counts add up.
 
     Received = without a usable attitude + restored; restored = sample-and-hold repeats +
     new readings (when the sensor repeats its readings); then what uses which: the metrics
     and the residual every restored sample (the before/after comparison those that also have
     an attitude at their own stamp), the fit the new readings outside excluded windows.
+    ``totals``: the counts of every sample when ``restored`` holds only some rows of them.
     """
-    total = int(n_received if n_received is not None else restored.n_total)
-    n_valid = int(restored.n_valid)
+    totals = totals if totals is not None else RestoreTotals.of(restored)
+    total = int(totals.n_total)
+    n_valid = int(totals.n_valid)
     n_without = total - n_valid
-    n_stamp = int(restored.n_without_attitude_at_stamp)
+    n_stamp = int(totals.n_valid - totals.n_used)
     checks = getattr(calibration, "checks", None) or {}
     fs = checks.get("fit_samples") if isinstance(checks.get("fit_samples"), dict) else None
     held = getattr(calibration, "sample_hold", None)
@@ -658,15 +663,13 @@ def counts_sentence(restored: Any, calibration: Any, n_received: int | None = No
              f"attitude and {_n(n_valid)} are restored"]
     n_rep: int | None = None
     if held:
-        if getattr(restored, "is_sample", False):
+        if totals.n_total != len(restored.t_ns):
             frac = float(held.get("repeated_fraction") or 0.0)
             n_rep = round(frac * n_valid)
             parts.append(f"; about {_n(n_rep)} of these ({100 * frac:.0f} %) repeat the "
                          "previous reading (the sensor converts slower than it sends: "
                          "sample-and-hold)")
         else:
-            from pipeline.model.sample_hold import repeated
-
             rep = repeated(np.asarray(restored.raw_mag_nT)) & np.asarray(restored.valid)
             n_rep = int(np.count_nonzero(rep))
             parts.append(f" = {_n(n_rep)} repeats of the previous reading (the sensor "
@@ -739,8 +742,6 @@ def samples_text(cal: Any) -> str:
 
 def _t(t0_ns: int, t_s: float) -> str:
     """Relative time in seconds with the UTC time beside it."""
-    from stages.report_text import utc
-
     return f"{t_s:.1f} s <small>{utc(t0_ns, t_s)}</small>"
 
 
@@ -813,19 +814,19 @@ MAX_SEGMENT_ROWS = 20
 
 
 def _pm(a: Any, sg: Any, nd: int) -> str:
-    from stages.report_text import pm_vec
-
     return "&ndash;" if a is None else html.escape(pm_vec(a, sg, nd))
 
 
-def estimator_text(cal: Any, options: Any = None) -> str:
-    """Say which estimator made the rotation, in words (not the stage's internal name)."""
-    from stages.estimators.registry import DESCRIPTIONS
+def estimator_text(cal: Any, estimator: str | None = None,
+                   calibration_path: str | None = None) -> str:
+    """Say which estimator made the rotation, in words (not the stage's internal name).
 
-    chosen = getattr(options, "estimator", None)
-    name = str(getattr(chosen, "value", chosen) or "ml")
-    if getattr(options, "calibration_path", None):
-        return f"loaded from {Path(options.calibration_path).name} (not estimated here)"
+    ``estimator``: the one asked for (None: the default); ``calibration_path``: the
+    calibration was loaded from there.
+    """
+    name = str(estimator or "ml")
+    if calibration_path:
+        return f"loaded from {Path(calibration_path).name} (not estimated here)"
     est = str(cal.estimator)
     base = f"{name}: {DESCRIPTIONS.get(name, '')}".rstrip(": ")
     if est == "diagnose" or cal.effects:
@@ -836,10 +837,11 @@ def estimator_text(cal: Any, options: Any = None) -> str:
     return base
 
 
-def _calibration_html(cal: Any, options: Any = None) -> str:
+def _calibration_html(cal: Any, estimator: str | None = None,
+                      calibration_path: str | None = None) -> str:
     rv = np.asarray(cal.rotvec_body_mag_deg, float)
     rows = [
-        ("estimator", html.escape(estimator_text(cal, options))),
+        ("estimator", html.escape(estimator_text(cal, estimator, calibration_path))),
         ("rotation vector of R_body_mag (deg, body x, y, z)",
          _pm(rv, cal.sigma_rotvec_deg, 3)),
         ("misalignment angle |rotation| (deg)", _fmt(float(np.linalg.norm(rv)), 3)),
@@ -870,8 +872,6 @@ def _undetermined_axes(cal: Any) -> str:
     Poorly: a sigma over the verdict's threshold (:data:`stages.estimate.POOR_AXIS_SIGMA_DEG`);
     never a bare "none" beside a sigma of degrees.
     """
-    from stages.estimate import POOR_AXIS_SIGMA_DEG
-
     out = ", ".join(_vec(a, 3) for a in cal.unobservable_axes_body) or "none"
     sig = np.asarray(cal.sigma_rotvec_deg, float)
     poor = [f"{ax} (\u00b1 {s:.1f}\u00b0)" for ax, s in zip("xyz", sig, strict=True)
@@ -885,19 +885,17 @@ def _undetermined_axes(cal: Any) -> str:
 _VERDICT_COLOUR = {"OK": "#d4edda", "QUESTIONABLE": "#fff3cd", "REFUSED": "#f8d7da"}
 
 
-def _residual_html(restored: Any) -> str:
-    if restored is None:
+def _residual_html(totals: RestoreTotals | None) -> str:
+    if totals is None:
         return ""
-    rms = f"<span id=residual_rms_nT>{restored.residual_rms_nT:.7g}</span>"
+    rms = f"<span id=residual_rms_nT>{totals.residual_rms_nT:.7g}</span>"
     return (f"<p>Residual of the final model (every term of the calibration, diagnosed effects "
-            f"included): {rms} nT RMS over {restored.n_valid} samples "
+            f"included): {rms} nT RMS over {totals.n_valid} samples "
             "with a usable attitude.</p>")
 
 
 def _verdict_html(cal: Any) -> str:
     """Return the verdict box for the top of the report: one-line summary and reason."""
-    from stages.estimate import verdict_line
-
     v = getattr(cal, "verdict", None)
     status = "not judged" if v is None else v.status.value
     colour = _VERDICT_COLOUR.get(status, "#eee")
@@ -926,12 +924,10 @@ def _verdict_html(cal: Any) -> str:
             f"{html.escape(line)}{reason}{doubts}{ne}{neff_html}</div>")
 
 
-def _diagnosis_html(diagnosis: Any, t0_ns: int = 0, options: Any = None
+def _diagnosis_html(diagnosis: Any, t0_ns: int = 0, calibration_path: str | None = None
                     ) -> tuple[str, list[tuple[str, bytes]]]:
-    from stages.report_text import rows_html
-
     if diagnosis is None:
-        given = getattr(options, "calibration_path", None)
+        given = calibration_path
         if given:
             return ("<p>Not diagnosed: this recording was restored with the calibration from "
                     f"{html.escape(Path(given).name)} (of "
@@ -1079,13 +1075,9 @@ def provenance(recording: Recording, *, command: str | None = None) -> dict[str,
         ``magalign`` program) or this process's arguments otherwise.
 
     """
-    import datetime as dt
     import os
     import shlex
     import sys
-
-    from pipeline import package_version
-    from pipeline.core.atomic import sha256_file
 
     cmd = command or os.environ.get("MAGALIGN_COMMAND") or shlex.join(sys.argv)
     try:
@@ -1107,15 +1099,20 @@ def render_html(
     metrics: Any,
     diagnosis: Any,
     figures: dict[str, bytes],
-    restored: Any = None,
+    restored: RestoreResult | None = None,
     *,
-    options: Any = None,
+    totals: RestoreTotals | None = None,
+    estimator: str | None = None,
+    calibration_path: str | None = None,
     prov: dict[str, str] | None = None,
 ) -> str:
     """Return the self-contained report text (figures inline as base64).
 
-    ``restored``: the restore result; its final-model residual RMS is quoted by the residual
-    figure (the same number as ``diagnosis.json``'s final residual when diagnosed).
+    ``restored``: the restored rows the figures show (every row, or every k-th of a long
+    recording); ``totals``: the counts and residual of every sample (default: those of
+    ``restored``). The final-model residual RMS is quoted by the residual figure (the same
+    number as ``diagnosis.json``'s final residual when diagnosed). ``estimator`` and
+    ``calibration_path``: what was asked for (:func:`estimator_text`).
 
     Order: the verdict and the headline first, then what the diagnosis found (one row per
     physical event, in sentences with units and UTC times), the field before and after,
@@ -1131,7 +1128,9 @@ def render_html(
     probs = "".join(
         f"<li>{html.escape(p.code)}: {html.escape(p.message)}</li>" for p in recording.problems
     )
-    diag_html, diag_figs = _diagnosis_html(diagnosis, t0, options)
+    diag_html, diag_figs = _diagnosis_html(diagnosis, t0, calibration_path)
+    if totals is None and restored is not None:
+        totals = RestoreTotals.of(restored)
     channels = "".join(
         f"<tr><td class=l>{html.escape(c.topic)}</td><td class=l>{html.escape(c.type)}</td>"
         f"<td class=l>{html.escape(str(getattr(c.role, 'value', c.role)))}</td>"
@@ -1142,25 +1141,21 @@ def render_html(
     prov = prov if prov is not None else provenance(recording)
     prov_html = "".join(f"<dt>{html.escape(k)}</dt><dd><code>{html.escape(v)}</code></dd>"
                         for k, v in prov.items())
-    from stages.report_text import utc
-
     start = utc(t0, 0.0)
-    import datetime as dt
-
     day = dt.datetime.fromtimestamp(t0 / 1e9, tz=dt.timezone.utc).strftime("%Y-%m-%d")
     headline = _headline(calibration, metrics, diagnosis)
     counts = ("" if restored is None else
-              f"<p id=counts>{html.escape(counts_sentence(restored, calibration))}</p>")
+              f"<p id=counts>{html.escape(counts_sentence(restored, calibration, totals))}</p>")
     map_html = _map_html(fig_html.get("fig_map.png"), recording)
     # the counts of every sample (a long recording's figures show every k-th row)
     n_samples = metrics.n_samples if metrics is not None else len(recording.mag)
     duration_s = metrics.whole.end_s if metrics is not None else recording.duration_s
     sampled = ""
-    if restored is not None and getattr(restored, "is_sample", False):
-        k = max(2, round(restored.n_total / max(len(restored.t_ns), 1)))
+    if restored is not None and totals is not None and totals.n_total != len(restored.t_ns):
+        k = max(2, round(totals.n_total / max(len(restored.t_ns), 1)))
         nth = f"{k}{'nd' if k == 2 else 'rd' if k == 3 else 'th'}"
         sampled = (f" The recording was processed in chunks: the figures show every {nth} "
-                   f"sample ({len(restored.t_ns)} of {restored.n_total}); every number is "
+                   f"sample ({len(restored.t_ns)} of {totals.n_total}); every number is "
                    "over all samples.")
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>magalign: {html.escape(stem)}</title>
@@ -1192,10 +1187,10 @@ beyond it.</p>
 <h2>Metrics (Li et al. 2020, Table 4)</h2>
 {_metrics_html(metrics, t0)}
 <h2>Calibration</h2>
-{_calibration_html(calibration, options)}
+{_calibration_html(calibration, estimator, calibration_path)}
 {f'<div class=warn><b>Warnings</b><ul>{warn}</ul></div>' if warn else '<p>No warning.</p>'}
 <h2>Residuals</h2>
-{_residual_html(restored)}
+{_residual_html(totals)}
 {fig_html.get('fig_residual.png', '')}
 <p class=caption>What the fitted model leaves unexplained, per magnetometer axis. Against
 heading (right): a residual that repeats with the heading is a calibration term the model
@@ -1240,8 +1235,6 @@ def _map_html(fig: str | None, recording: Recording) -> str:
 
 def _headline(cal: Any, metrics: Any, diagnosis: Any) -> str:
     """Return the result in two sentences: the misalignment, what calibration did to the field."""
-    from stages.report_text import rows
-
     rv = np.asarray(cal.rotvec_body_mag_deg, float)
     ang = float(np.linalg.norm(rv))
     parts = [f"The magnetometer is turned by <b>{ang:.2f}\u00b0</b> against the attitude "
@@ -1258,7 +1251,7 @@ def _headline(cal: Any, metrics: Any, diagnosis: Any) -> str:
                          + ", ".join(vals) + " of what it was.")
     if diagnosis is not None:
         d = diagnosis.to_dict() if hasattr(diagnosis, "to_dict") else dict(diagnosis)
-        n = len(rows(d, 0))
+        n = len(finding_rows(d, 0))
         parts.append("The diagnosis found nothing the model leaves out." if n == 0 else
                      f"The diagnosis found {n} effect{'s' if n > 1 else ''} beyond the "
                      "misalignment (below).")
@@ -1274,18 +1267,18 @@ def write_report(
     segments: tuple[Segment, ...] | None = None,
     *,
     max_gap_s: float | None = None,
-    restored: Any = None,
-    options: Any = None,
+    restored: RestoreResult | None = None,
+    totals: RestoreTotals | None = None,
+    estimator: str | None = None,
+    calibration_path: str | None = None,
     figures: dict[str, bytes] | None = None,
 ) -> Path:
     """Write the figures and ``report.html`` into ``out_dir``; returns the report's path.
 
-    ``restored``: the :class:`stages.restore.RestoreResult` (``ctx.restored``); computed when
-    not given. ``figures``: :func:`make_figures` of the same arguments, when already drawn
-    (the two-pass process draws them while its outputs are closed).
+    ``restored``: the restored rows (:class:`stages.restore.RestoreResult`); computed when
+    not given. ``totals``: the counts of every sample when ``restored`` holds only some rows.
+    ``figures``: :func:`make_figures` of the same arguments, when already drawn.
     """
-    from stages.restore import restore_samples
-
     out = Path(out_dir)
     if restored is None:
         restored = restore_samples(recording, calibration, max_gap_s=max_gap_s)
@@ -1299,31 +1292,5 @@ def write_report(
     if md is not None:  # the campaign summary draws every line's map from it
         write_map_json(out / "map.json", md)
     text = render_html(recording, calibration, metrics, diagnosis, figures, restored=restored,
-                       options=options)
+                       totals=totals, estimator=estimator, calibration_path=calibration_path)
     return write_text_atomic(out / "report.html", text)
-
-
-@dataclass(frozen=True)
-class Report:
-    """Stage: PNG figures and ``report.html`` in ``out_dir`` (module docstring).
-
-    Parameters
-    ----------
-    out_dir : str
-    max_gap_s : float or None
-        Attitude gap bridged by interpolation.
-
-    """
-
-    out_dir: str
-    max_gap_s: float | None = None
-
-    requires: ClassVar[frozenset[str]] = frozenset({"recording", "calibration"})
-    provides: ClassVar[frozenset[str]] = frozenset({"outputs"})
-
-    def run(self, ctx: Context) -> Context:
-        """Write the report and list it in ``ctx.outputs``."""
-        p = write_report(self.out_dir, ctx.need_recording(), ctx.calibration, ctx.metrics,
-                         ctx.diagnosis, ctx.segments, max_gap_s=self.max_gap_s,
-                         restored=ctx.restored, options=ctx.options)
-        return ctx.replace(outputs=ctx.outputs + (("report.html", str(p)),))

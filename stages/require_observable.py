@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from pipeline.core.errors import NotObservableError
-from pipeline.core.recording import Context
+from stages.context import Context
 
 
 @dataclass(frozen=True)

@@ -20,9 +20,10 @@ from typing import ClassVar
 import numpy as np
 
 from pipeline.core.errors import InputError
-from pipeline.core.recording import AlignedSeries, AttitudeSeries, Context
+from pipeline.core.recording import AlignedSeries, AttitudeSeries
 from pipeline.model.attitude import AUTO_GAP_INTERVALS, MIN_AUTO_GAP_S, interpolate_attitude
 from pipeline.model.attitude import auto_max_gap_s as _auto_max_gap_s
+from stages.context import Context
 
 __all__ = ["AUTO_GAP_INTERVALS", "MIN_AUTO_GAP_S", "Resample", "auto_max_gap_s",
            "interpolate_attitude"]

@@ -15,9 +15,9 @@ from the reading. The external-field terms ``field_drift``, ``disturbance`` and
 prediction, so the residual is that of the FINAL model, every diagnosed effect included.
 ``axis_tilt`` concerns the attitude source (the turntable stage applies it).
 
-The :class:`Restore` stage computes all of it once and puts a :class:`RestoreResult` in
-``ctx.restored``; the metrics, the corrected MCAP, the rerun recording and the report read it
-from there.
+The runner (:mod:`pipeline.run`) restores a recording chunk by chunk
+(:class:`ChunkedRestore`; a recording in memory is one chunk) and hands each chunk's
+:class:`RestoreResult` to the outputs.
 
 Sample counts (:class:`RestoreResult`): every magnetometer sample is either *used*, or
 *without a usable attitude* at ``t - tau`` (attitude gap longer than ``max_gap_s`` or outside
@@ -28,21 +28,21 @@ uncalibrated comparison of the metrics) while it has one at ``t - tau``.
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass
 from functools import cached_property
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import Any
 
 import numpy as np
 
 from pipeline.core.errors import InputError
-from pipeline.core.recording import Context, Frame, PositionSeries, Recording, VectorSeries
+from pipeline.core.geometry import quat_conj, quat_rotate
+from pipeline.core.recording import Frame, PositionSeries, Recording, VectorSeries
 from pipeline.model.attitude import AttitudeInterpolator
+from pipeline.model.calibration import Calibration
 from pipeline.model.forward import RATE_STEP_INTERVALS
 from pipeline.model.forward import restore as model_restore
 from pipeline.model.sample_hold import handling_of, sensing_times_ns
-
-if TYPE_CHECKING:
-    from pipeline.model.calibration import Calibration
 
 
 def _readonly(*arrays: np.ndarray) -> None:
@@ -79,8 +79,7 @@ class RestoreResult:
     max_gap_s : float
         Attitude gap rule used.
     model_key : str
-        What the result was computed from (:func:`model_key_of`): a stage that gets the same
-        model and gap rule reuses it instead of restoring again.
+        What the result was computed from (:func:`model_key_of`).
 
     """
 
@@ -96,13 +95,12 @@ class RestoreResult:
     B_enu_nT: np.ndarray
     max_gap_s: float
     model_key: str = ""
-    totals: RestoreTotals | None = None
 
     # ------------------------------------------------------------------ counts
     @property
     def n_total(self) -> int:
-        """Every magnetometer sample of the recording."""
-        return self.totals.n_total if self.totals is not None else int(self.t_ns.shape[0])
+        """Every magnetometer sample of these rows."""
+        return int(self.t_ns.shape[0])
 
     @property
     def used(self) -> np.ndarray:
@@ -112,15 +110,11 @@ class RestoreResult:
     @property
     def n_used(self) -> int:
         """Samples restored and compared with the uncalibrated field."""
-        if self.totals is not None:
-            return self.totals.n_used
         return int(np.count_nonzero(self.used))
 
     @property
     def n_valid(self) -> int:
         """Samples restored (attitude at ``t - tau``)."""
-        if self.totals is not None:
-            return self.totals.n_valid
         return int(np.count_nonzero(self.valid))
 
     @property
@@ -131,8 +125,6 @@ class RestoreResult:
     @property
     def n_without_attitude_at_stamp(self) -> int:
         """Samples restored (attitude at ``t - tau``) but without one at ``t`` itself."""
-        if self.totals is not None:
-            return self.totals.n_valid - self.totals.n_used
         return int(np.count_nonzero(self.valid & ~self.valid0))
 
     # ------------------------------------------------------------------ derived
@@ -144,20 +136,8 @@ class RestoreResult:
     @property
     def residual_rms_nT(self) -> float:
         """RMS over every component of the final model's residual, valid samples, nT."""
-        if self.totals is not None:
-            return self.totals.residual_rms_nT
         r = self.residual_nT[self.valid]
         return float(np.sqrt(np.mean(r * r))) if r.size else float("nan")
-
-    @property
-    def is_sample(self) -> bool:
-        """True when the arrays hold a sample of the recording's rows, not all of them.
-
-        A recording restored chunk by chunk (:class:`ChunkedRestore`) keeps every k-th row
-        for the figures; its counts and residual RMS (:attr:`totals`) are those of every
-        sample.
-        """
-        return self.totals is not None and self.totals.n_total != int(self.t_ns.shape[0])
 
     def uncalibrated_enu_nT(self) -> np.ndarray:
         """Return ``C_enu_body(t) @ y_mag`` (attitude only, Li 2020 Figs. 5, 8 "before"), (N, 3).
@@ -169,8 +149,6 @@ class RestoreResult:
 
     @cached_property
     def _uncalibrated_enu_nT(self) -> np.ndarray:
-        from pipeline.core.geometry import quat_rotate
-
         q0 = np.where(self.valid0[:, None], self.q0_enu_body, _IDENTITY_Q)
         unc = quat_rotate(q0, np.asarray(self.raw_mag_nT, dtype=float))
         unc[~self.valid0] = np.nan
@@ -182,15 +160,14 @@ class RestoreResult:
         return np.where(self.valid[:, None], self.q_enu_body, _IDENTITY_Q)
 
     @classmethod
-    def concat(cls, parts: list[RestoreResult], totals: RestoreTotals | None = None
-               ) -> RestoreResult:
-        """Join results of consecutive rows (chunks); ``totals``: those of every sample."""
+    def concat(cls, parts: list[RestoreResult]) -> RestoreResult:
+        """Join results of consecutive rows (chunks)."""
         arrays: dict[str, Any] = {f: np.concatenate([getattr(p, f) for p in parts])
                                   for f in _ROW_FIELDS}
-        return dataclasses.replace(parts[0], totals=totals, **arrays)
+        return dataclasses.replace(parts[0], **arrays)
 
     def rows(self, sl: slice | np.ndarray, *, copy: bool = True) -> RestoreResult:
-        """Return the result restricted to rows ``sl`` (a slice or index array), no totals.
+        """Return the result restricted to rows ``sl`` (a slice or index array).
 
         ``copy``: the arrays are copies (rows kept while the rest goes, as a long recording's
         sample for the figures: a view would keep the whole arrays alive); ``False``: views
@@ -198,7 +175,7 @@ class RestoreResult:
         """
         arrays: dict[str, Any] = {f: (np.array if copy else np.asarray)(getattr(self, f)[sl])
                                   for f in _ROW_FIELDS}
-        return dataclasses.replace(self, totals=None, **arrays)
+        return dataclasses.replace(self, **arrays)
 
 
 _IDENTITY_Q = np.array([0.0, 0.0, 0.0, 1.0])
@@ -254,8 +231,6 @@ def model_key_of(cal: Calibration, max_gap_s: float | None) -> str:
     Two calibrations with the same key restore a recording identically (the verdict, the
     sigmas, the checks and the warnings do not enter the model).
     """
-    import json
-
     d = cal.to_dict()
     keys = ("R_body_mag", "B_enu_nT", "D", "offset_nT", "time_offset_s", "effects")
     return json.dumps({"model": {k: d[k] for k in keys}, "max_gap_s": max_gap_s},
@@ -409,9 +384,13 @@ class ChunkedAttitude:
         self._mag_v = np.zeros((0, 3))
 
     def add(self, mag_t_ns: np.ndarray, mag_nT: np.ndarray, att_t_ns: np.ndarray | None,
-            q_enu_body: np.ndarray | None
+            q_enu_body: np.ndarray | None, *, last: bool = False
             ) -> tuple[np.ndarray, np.ndarray, AttitudeInterpolator] | None:
-        """Take one chunk; return ``(t_ns, mag_nT, interpolator)`` of the settled rows."""
+        """Take one chunk; return ``(t_ns, mag_nT, interpolator)`` of the settled rows.
+
+        ``last``: no chunk follows, every row is settled (a recording held whole is one
+        chunk: its rows are interpolated at once, over the whole series).
+        """
         if att_t_ns is not None and len(att_t_ns):
             self._att_t = np.concatenate([self._att_t, np.asarray(att_t_ns, np.int64)])
             self._att_q = np.concatenate([self._att_q, np.asarray(q_enu_body, float)])
@@ -423,6 +402,8 @@ class ChunkedAttitude:
         if np.any(np.diff(self._mag_t) < 0):  # a logger's stamps may straddle chunks
             o = np.argsort(self._mag_t, kind="stable")
             self._mag_t, self._mag_v = self._mag_t[o], self._mag_v[o]
+        if last:
+            return self.finish()
         if len(self._att_t) < 4:
             return None
         # settled: the latest query lies before the third-last attitude sample, whose
@@ -600,14 +581,17 @@ class ChunkedRestore:
         self._before_v = np.zeros((0, 3))
 
     def add(self, mag_t_ns: np.ndarray, mag_nT: np.ndarray, att_t_ns: np.ndarray | None,
-            q_enu_body: np.ndarray | None, position: PositionSeries | None = None
-            ) -> RestoreResult | None:
-        """Take one chunk (sorted stamps); return the rows now settled, or None."""
-        rows = self.attitude.add(mag_t_ns, mag_nT, att_t_ns, q_enu_body)
+            q_enu_body: np.ndarray | None, position: PositionSeries | None = None, *,
+            last: bool = False) -> RestoreResult | None:
+        """Take one chunk (sorted stamps); return the rows now settled, or None.
+
+        ``last``: no chunk follows; every row is restored now, as by :meth:`finish`.
+        """
+        rows = self.attitude.add(mag_t_ns, mag_nT, att_t_ns, q_enu_body, last=last)
         if self.positions is not None:
             seen = [int(a[-1]) for a in (mag_t_ns, att_t_ns) if a is not None and len(a)]
             self.positions.add(position, max(seen) if seen else None)
-        return self._drain(rows, final=False)
+        return self._drain(rows, final=last)
 
     def finish(self) -> RestoreResult | None:
         """Return the rows still waiting (the end of the recording)."""
@@ -673,38 +657,6 @@ class ChunkedRestore:
 
 
 @dataclass(frozen=True)
-class Restore:
-    """Stage: every magnetometer sample to ENU by the inverse model (module docstring).
-
-    Parameters
-    ----------
-    max_gap_s : float or None
-        Longest attitude gap (s) bridged by interpolation; samples in longer gaps are left out.
-        ``None``: READER's :func:`stages.resample.auto_max_gap_s` (as :class:`Resample`).
-
-    Provides ``restored``: the :class:`RestoreResult` of the recording and its calibration.
-    When the context already holds the restore result of the same model and gap rule (the
-    ``Diagnose`` stage computes it for the final residual), it is kept, not recomputed.
-
-    """
-
-    max_gap_s: float | None = None
-
-    requires: ClassVar[frozenset[str]] = frozenset({"recording", "calibration"})
-    provides: ClassVar[frozenset[str]] = frozenset({"restored"})
-
-    def run(self, ctx: Context) -> Context:
-        """Restore ``ctx.recording.mag`` with ``ctx.calibration``."""
-        old = ctx.restored
-        cal = ctx.need_calibration()
-        if (old is not None and old.model_key == model_key_of(cal, self.max_gap_s)
-                and old.n_total == len(ctx.need_recording().mag)):
-            return ctx.replace(restored=old)
-        rs = restore_samples(ctx.need_recording(), cal, max_gap_s=self.max_gap_s)
-        return ctx.replace(restored=rs)
-
-
-@dataclass(frozen=True)
 class ViewData:
     """The series the rerun recording and the report figures show (one row per mag sample).
 
@@ -752,8 +704,6 @@ def view_data(restored: RestoreResult, R_body_mag: np.ndarray) -> ViewData:
 
     ``R_body_mag``: the calibration's rotation (for the body-frame "after" series).
     """
-    from pipeline.core.geometry import quat_conj, quat_rotate
-
     rs = restored
     y = np.asarray(rs.raw_mag_nT, dtype=float)
     unc = rs.uncalibrated_enu_nT()

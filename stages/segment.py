@@ -44,7 +44,7 @@ from numpy.typing import NDArray
 
 from pipeline.core.errors import DataQualityError
 from pipeline.core.geometry import quat_conj, quat_mul
-from pipeline.core.recording import AlignedSeries, Context, Segment, SegmentKind
+from pipeline.core.recording import AlignedSeries, Segment, SegmentKind
 from pipeline.model.tang import (
     RotationFit,
     TwistSide,
@@ -53,6 +53,7 @@ from pipeline.model.tang import (
     rotation_angle,
     swing_twist,
 )
+from stages.context import Context
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]

@@ -49,13 +49,7 @@ from pipeline.core.geometry import (
     rotvec_to_quat,
     so3_exp,
 )
-from pipeline.core.recording import (
-    AlignedSeries,
-    AttitudeSeries,
-    Context,
-    Recording,
-    Role,
-)
+from pipeline.core.recording import AlignedSeries, AttitudeSeries, Recording, Role
 from pipeline.model.forward import reading
 from pipeline.model.tang import (
     axis_angle_quat,
@@ -64,6 +58,7 @@ from pipeline.model.tang import (
     twist_angle,
     wrap_angle,
 )
+from stages.context import Context
 
 F64 = NDArray[np.float64]
 

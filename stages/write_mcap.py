@@ -47,15 +47,24 @@ The file is written to a temporary name and renamed when complete (WRITER's
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 
 from pipeline.core.errors import OutputError
-from pipeline.core.recording import Context, EncodingFamily, Recording
-from pipeline.io.messages import schema_for
+from pipeline.core.geometry import matrix_to_quat
+from pipeline.core.recording import EncodingFamily, Recording
+from pipeline.io.mcap_read import PassThrough, iter_raw_channels, pass_through
+from pipeline.io.mcap_write import McapColumnWriter
+from pipeline.io.messages import (
+    encode,
+    encode_field_magnitude_json,
+    encode_tf_static,
+    schema_for,
+)
+from pipeline.model.calibration import Calibration
+from stages.restore import RestoreResult, restore_samples
 
 METADATA_NAME = "magalign.calibration"
 ATTACHMENT_NAME = "calibration.json"
@@ -91,15 +100,12 @@ class CorrectedMcapStream:
         Output file; must not be the input.
     passthrough : PassThrough, optional
         The input's chunks to copy as they are (:func:`pipeline.io.mcap_read.pass_through`);
-        ``None``: the caller copies the input (:func:`write_corrected_mcap`'s damaged-input
-        path) through :attr:`writer`.
+        ``None``: the input is copied by :meth:`copy_input_around`.
 
     """
 
-    def __init__(self, recording: Recording, calibration: Any, dest: str | Path,
-                 passthrough: Any = None) -> None:
-        from pipeline.io.mcap_write import McapColumnWriter
-
+    def __init__(self, recording: Recording, calibration: Calibration, dest: str | Path,
+                 passthrough: PassThrough | None = None) -> None:
         dest = Path(dest)
         src = Path(recording.path)
         if src.exists() and dest.resolve() == src.resolve():
@@ -108,7 +114,8 @@ class CorrectedMcapStream:
         self.msg_type = "sensor_msgs/msg/MagneticField" if self.ros2 else "magalign.Magnetometer"
         self.mag_type = "std_msgs/msg/Float64" if self.ros2 else "magalign.FieldMagnitude"
         self.mag_frame = recording.mag_frame_id or "mag"
-        self.body_frame = getattr(recording, "attitude_frame_id", "") or DEFAULT_BODY_FRAME
+        self.body_frame = recording.attitude_frame_id or DEFAULT_BODY_FRAME
+        self.source = src
         self.topic_base = recording.mag_topic.rstrip("/")
         self.calibration = calibration
         self.cal_text = calibration.to_json()
@@ -163,9 +170,6 @@ class CorrectedMcapStream:
 
         Call before the first flush (any log time may still be written then).
         """
-        from pipeline.core.geometry import matrix_to_quat
-        from pipeline.io.messages import encode_tf_static
-
         self.add_new_channels()
         if self._t_first is not None:
             return
@@ -185,14 +189,57 @@ class CorrectedMcapStream:
             chunks[self._k].release()
             self._k += 1
 
-    def add(self, rs: Any, *, flush: bool = True) -> None:
+    def add_ranges(self, rs: RestoreResult) -> None:
+        """Write ``rs`` (the next samples) range by range, each after the input before it.
+
+        An intact indexed input: its chunks are copied as they are (compressed bytes and
+        message indexes, the input's schema and channel ids kept), nothing decompressed;
+        only the new channels are encoded and compressed, range by range, each range after
+        the input chunks that start before its end (the file stays roughly in time order;
+        chunks may overlap in time, as the MCAP format allows).
+        """
+        for a in range(0, len(rs.t_ns), COPY_RANGE_MESSAGES):
+            self.add(rs.rows(slice(a, a + COPY_RANGE_MESSAGES), copy=False))
+
+    def copy_input_around(self, rs: RestoreResult) -> None:
+        """Copy a damaged or unindexed input range by range, with every new message of ``rs``.
+
+        The input is copied range by range (:func:`pipeline.io.mcap_read.iter_raw_channels`)
+        and the writer flushes each range before the next is read: memory holds one range
+        of input messages, not the whole file. The new channels' messages (log time =
+        stamp) go in with the range whose flush bound they precede, so every call keeps log
+        times after the last flush point.
+        """
+        t_ns = rs.t_ns
+        w = self.writer
+        copied: dict[str, int] = {}
+        done = 0
+        for raw, bound in iter_raw_channels(self.source, max_messages=COPY_RANGE_MESSAGES):
+            for rc in raw:  # every input channel, byte for byte
+                if rc.topic not in copied:
+                    sid = 0  # schemaless channel
+                    if rc.schema_name or rc.schema_encoding or len(rc.schema_data):
+                        sid = w.add_schema(rc.schema_name, rc.schema_encoding,
+                                           bytes(rc.schema_data))
+                    copied[rc.topic] = w.add_channel(rc.topic, rc.message_encoding, sid,
+                                                     dict(rc.metadata))
+                w.add_messages(copied[rc.topic], rc.log_time_ns, rc.data, rc.offsets,
+                               publish_time_ns=rc.publish_time_ns, sequence=rc.sequence)
+            if len(t_ns):
+                self.start(int(t_ns[0]))
+            upto = len(t_ns) if bound is None else int(np.searchsorted(t_ns, bound, "left"))
+            if upto > done:
+                self.add(rs.rows(slice(done, upto), copy=False), flush=False)
+                done = upto
+            if bound is not None:
+                w.flush(bound)
+
+    def add(self, rs: RestoreResult, *, flush: bool = True) -> None:
         """Write the new channels' messages of the restore result ``rs`` (next samples).
 
         With ``flush`` (and an input copied by this stream) everything up to the last
         stamp of ``rs`` is written out: later calls must bring later stamps.
         """
-        from pipeline.io.messages import encode, encode_field_magnitude_json
-
         t_ns = np.asarray(rs.t_ns, dtype=np.int64)
         if not len(t_ns):
             return
@@ -219,8 +266,8 @@ class CorrectedMcapStream:
 
 
 def write_corrected_mcap(
-    recording: Recording, calibration: Any, dest: str | Path, *, max_gap_s: float | None = None,
-    restored: Any = None,
+    recording: Recording, calibration: Calibration, dest: str | Path, *,
+    max_gap_s: float | None = None, restored: RestoreResult | None = None,
 ) -> Path:
     """Write the corrected MCAP of ``recording`` (module docstring for the contents).
 
@@ -235,8 +282,7 @@ def write_corrected_mcap(
     max_gap_s : float
         Attitude gap bridged by interpolation when restoring.
     restored : RestoreResult, optional
-        The restore result of ``recording`` and ``calibration`` (``ctx.restored``); computed
-        when not given.
+        The restore result of ``recording`` and ``calibration``; computed when not given.
 
     Returns
     -------
@@ -244,77 +290,12 @@ def write_corrected_mcap(
         ``dest``.
 
     """
-    from pipeline.io.mcap_read import iter_raw_channels, pass_through
-    from stages.restore import restore_samples
-
-    src = Path(recording.path)
     rs = restored if restored is not None else restore_samples(recording, calibration,
                                                                 max_gap_s=max_gap_s)
-    t_ns = rs.t_ns
-    pt = None if getattr(recording, "problems", ()) else pass_through(src)
+    pt = None if recording.problems else pass_through(recording.path)
     with CorrectedMcapStream(recording, calibration, dest, pt) as out:
         if pt is not None:
-            # An intact indexed input: its chunks are copied as they are (compressed bytes and
-            # message indexes, the input's schema and channel ids kept), nothing decompressed;
-            # only the new channels are encoded and compressed, range by range, each range
-            # after the input chunks that start before its end (the file stays roughly in
-            # time order; chunks may overlap in time, as the MCAP format allows).
-            for a in range(0, len(t_ns), COPY_RANGE_MESSAGES):
-                out.add(rs.rows(slice(a, a + COPY_RANGE_MESSAGES), copy=False))
+            out.add_ranges(rs)
         else:
-            # The input is copied range by range (READER's iter_raw_channels) and the writer
-            # flushes each range before the next is read: memory holds one range of input
-            # messages, not the whole file. The new channels' messages (log time = stamp) go
-            # in with the range whose flush bound they precede, so every call keeps log
-            # times after the last flush point.
-            w = out.writer
-            copied: dict[str, int] = {}
-            done = 0
-            for raw, bound in iter_raw_channels(src, max_messages=COPY_RANGE_MESSAGES):
-                for rc in raw:  # every input channel, byte for byte
-                    if rc.topic not in copied:
-                        sid = 0  # schemaless channel
-                        if rc.schema_name or rc.schema_encoding or len(rc.schema_data):
-                            sid = w.add_schema(rc.schema_name, rc.schema_encoding,
-                                               bytes(rc.schema_data))
-                        copied[rc.topic] = w.add_channel(rc.topic, rc.message_encoding, sid,
-                                                         dict(rc.metadata))
-                    w.add_messages(copied[rc.topic], rc.log_time_ns, rc.data, rc.offsets,
-                                   publish_time_ns=rc.publish_time_ns, sequence=rc.sequence)
-                if len(t_ns):
-                    out.start(int(t_ns[0]))
-                upto = len(t_ns) if bound is None else int(np.searchsorted(t_ns, bound, "left"))
-                if upto > done:
-                    out.add(rs.rows(slice(done, upto), copy=False), flush=False)
-                    done = upto
-                if bound is not None:
-                    w.flush(bound)
+            out.copy_input_around(rs)
     return Path(dest)
-
-
-@dataclass(frozen=True)
-class WriteCorrectedMcap:
-    """Stage: write ``<out_dir>/<stem>.corrected.mcap`` (module docstring).
-
-    Parameters
-    ----------
-    out_dir : str
-        Output folder.
-    max_gap_s : float
-        Attitude gap bridged by interpolation when restoring.
-
-    """
-
-    out_dir: str
-    max_gap_s: float | None = None
-
-    requires: ClassVar[frozenset[str]] = frozenset({"recording", "calibration"})
-    provides: ClassVar[frozenset[str]] = frozenset({"outputs"})
-
-    def run(self, ctx: Context) -> Context:
-        """Write the file and list it in ``ctx.outputs``."""
-        rec = ctx.need_recording()
-        dest = corrected_path(self.out_dir, rec.path)
-        write_corrected_mcap(rec, ctx.calibration, dest, max_gap_s=self.max_gap_s,
-                             restored=ctx.restored)
-        return ctx.replace(outputs=ctx.outputs + (("corrected_mcap", str(dest)),))

@@ -35,16 +35,19 @@ The file is saved to a temporary name and renamed when complete.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 
 from pipeline.core import style
 from pipeline.core.atomic import atomic_path
 from pipeline.core.errors import OutputError
-from pipeline.core.recording import Context, Recording, Segment
+from pipeline.core.geometry import quat_to_li2020_euler
+from pipeline.core.recording import Recording, Segment
+from stages.report import report_map_data
+from stages.report_map import CMAP, colour_limit
+from stages.restore import RestoreResult, restore_samples, view_data
 
 ENU_NAMES = ("east", "north", "up")
 AXES = ("x", "y", "z")
@@ -227,11 +230,9 @@ class RrdStream:
             rec.log(f"attitude/{name}_deg", rr.SeriesLines(colors=[ANGLE_RGB[name]],
                                                            names=[f"{name} (deg)"]), static=True)
 
-    def add(self, restored: Any) -> None:
+    def add(self, restored: RestoreResult) -> None:
         """Send the time series of the restore result ``restored`` (the next samples)."""
         import rerun as rr
-
-        from pipeline.core.geometry import quat_to_li2020_euler
 
         rec = self.rec
         if self._sent:
@@ -274,12 +275,10 @@ class RrdStream:
         for name, ang in (("heading", h), ("pitch", p), ("roll", r)):
             send_scalars(f"attitude/{name}_deg", np.degrees(ang), v)
 
-    def finish(self, sample: Any, *, segments: tuple[Segment, ...] | None = None,
+    def finish(self, sample: RestoreResult, *, segments: tuple[Segment, ...] | None = None,
                diagnosis: Any = None, max_points: int = 20000) -> None:
         """Send the 3D views (from ``sample``, a restore result), segments and diagnosis."""
         import rerun as rr
-
-        from stages.restore import view_data
 
         rec = self.rec
         # The views show at most max_points rows each: view_data computes the body-frame
@@ -381,9 +380,6 @@ class RrdStream:
         its 1-sigma half-sizes) and ``map/events`` (Points3D: where the sensor was during
         each diagnosed event, labelled). Nothing without positions.
         """
-        from stages.report import report_map_data
-        from stages.report_map import CMAP, colour_limit
-
         md = report_map_data(self.recording, sample, self.calibration, diagnosis)
         if md is None:
             return
@@ -455,49 +451,9 @@ def write_rrd(
         ``dest``.
 
     """
-    from stages.restore import restore_samples
-
     if restored is None:
         restored = restore_samples(recording, calibration, max_gap_s=max_gap_s)
     with RrdStream(recording, calibration, dest) as out:
         out.add(restored)
         out.finish(restored, segments=segments, diagnosis=diagnosis, max_points=max_points)
     return Path(dest)
-
-
-@dataclass(frozen=True)
-class WriteRerun:
-    """Stage: write ``<out_dir>/<stem>.rrd`` (module docstring).
-
-    Parameters
-    ----------
-    out_dir : str
-    max_gap_s : float
-        Attitude gap bridged by interpolation.
-    max_points : int
-        Most points per static 3D trajectory.
-
-    """
-
-    out_dir: str
-    max_gap_s: float | None = None
-    max_points: int = 20000
-
-    requires: ClassVar[frozenset[str]] = frozenset({"recording", "calibration"})
-    provides: ClassVar[frozenset[str]] = frozenset({"outputs"})
-
-    def run(self, ctx: Context) -> Context:
-        """Write the .rrd and list it in ``ctx.outputs``."""
-        rec = ctx.need_recording()
-        dest = rrd_path(self.out_dir, rec.path)
-        write_rrd(
-            rec,
-            ctx.calibration,
-            dest,
-            segments=ctx.segments,
-            diagnosis=ctx.diagnosis,
-            max_gap_s=self.max_gap_s,
-            max_points=self.max_points,
-            restored=ctx.restored,
-        )
-        return ctx.replace(outputs=ctx.outputs + (("rrd", str(dest)),))

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 from indep_gen import Spec, write
 
-from pipeline.app.process_one import ProcessOptions, process_recording
 from pipeline.model.calibration import Calibration
+from pipeline.run.runner import ProcessOptions, process_recording
 from stages.estimate import verdict_line
 
 OPTS = dict(write_rerun=False, write_report=False)

@@ -17,9 +17,10 @@ from pipeline.core import geometry as g
 from pipeline.core.atomic import atomic_path, safe_join, write_text_atomic
 from pipeline.core.config import TomlDoc
 from pipeline.core.errors import ConfigError, InputError, OutputError, PipelineBuildError
-from pipeline.core.recording import AttitudeSeries, Context, VectorSeries
+from pipeline.core.recording import AttitudeSeries, VectorSeries
 from pipeline.core.stage import Pipeline
 from pipeline.model.calibration import Calibration
+from stages.context import Context
 
 quats = st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(
     lambda v: np.linalg.norm(v) > 0.1
@@ -100,13 +101,13 @@ class _Make:
     provides: ClassVar[frozenset[str]] = frozenset({"recording"})
 
     def run(self, ctx: Context) -> Context:
-        return ctx.replace(options="made")
+        return ctx.replace(source="made")
 
 
 @dataclass(frozen=True)
 class _NeedsCal:
     requires: ClassVar[frozenset[str]] = frozenset({"calibration"})
-    provides: ClassVar[frozenset[str]] = frozenset({"restored"})
+    provides: ClassVar[frozenset[str]] = frozenset({"diagnosis"})
 
     def run(self, ctx: Context) -> Context:
         return ctx.replace()
@@ -123,7 +124,7 @@ def test_pipeline_build_names_the_stage_that_does_not_fit():
 def test_pipeline_runs_without_mutating_input():
     ctx = Context(source="x")
     out = Pipeline([_Make()]).run(ctx)
-    assert out.options == "made" and ctx.options is None
+    assert out.source == "made" and ctx.source == "x"
 
 
 # ---------------------------------------------------------------- calibration value

@@ -16,8 +16,9 @@ import numpy as np
 import pytest
 from _diag_sim import make_data
 
-from pipeline.core.recording import AlignedSeries, AttitudeSeries, Context, Recording, VectorSeries
+from pipeline.core.recording import AlignedSeries, AttitudeSeries, Recording, VectorSeries
 from pipeline.core.stage import Pipeline
+from stages.context import Context
 from stages.diagnose.model import EffectKind as K
 from stages.diagnose.model import Term
 from stages.diagnose.result import DiagnoseConfig

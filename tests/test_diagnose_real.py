@@ -54,7 +54,7 @@ def _recording(name: str):
 
 @functools.cache
 def _diagnosis(name: str):
-    from pipeline.core.recording import Context
+    from stages.context import Context
     from stages.diagnose.result import DiagnoseConfig
     from stages.diagnose.stage import Diagnose
     from stages.resample import Resample

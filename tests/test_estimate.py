@@ -12,7 +12,8 @@ from hypothesis import strategies as st
 
 from pipeline.core.errors import NotObservableError
 from pipeline.core.geometry import quat_conj, quat_rotate, so3_exp, so3_log
-from pipeline.core.recording import AlignedSeries, Context
+from pipeline.core.recording import AlignedSeries
+from stages.context import Context
 from stages.estimate import Estimate, EstimatorKind, NoiseModel, Term, fit_calibration
 from stages.estimators import ml
 from stages.estimators.base import Problem

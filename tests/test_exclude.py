@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from indep_gen import Spec, write
 
-from pipeline.app.process_one import ProcessOptions, process_recording
+from pipeline.run.runner import ProcessOptions, process_recording
 from stages.exclude import ExcludeWindow
 
 DIST = {"disturbance": {"windows_s": [[20.0, 30.0]], "peak_nT": 3000.0,
@@ -75,18 +75,19 @@ def test_excluding_a_disturbance_removes_it_from_the_fit_not_from_the_restore(tm
     assert cut["n_samples"] == whole["n_samples"]  # restored and measured: every sample
 
 
-def test_the_two_pass_path_excludes_alike(tmp_path, monkeypatch):
-    import pipeline.app.process_stream as process_stream
+def test_a_long_recording_excludes_alike(tmp_path, monkeypatch):
+    import pipeline.run.plan as plan
+    import pipeline.run.source as source
 
-    monkeypatch.setattr(process_stream, "DECIMATED_SAMPLES", 6_000)
-    monkeypatch.setattr(process_stream, "RANGE_MESSAGES", 2_000)
+    monkeypatch.setattr(plan, "DECIMATED_SAMPLES", 6_000)
+    monkeypatch.setattr(source, "RANGE_MESSAGES", 2_000)
     path, spec = _rec(tmp_path)
     rows = {}
     for name, scale in (("mem", None), ("two", 1_000)):
         rows[name] = process_recording(path, tmp_path / name, options=ProcessOptions(
             scale_samples=scale, write_rerun=False, write_report=False,
             exclude=(ExcludeWindow.parse("19.5:30.5"),)))
-    assert "Restore+outputs" in rows["two"]["timings_s"]
+    assert "EstimateFromSums" in rows["two"]["timings_s"]  # analysed as a long recording
     cals = {k: json.loads(Path(r["paths"]["calibration.json"]).read_text())
             for k, r in rows.items()}
     assert cals["two"]["checks"]["excluded_samples"] == cals["mem"]["checks"]["excluded_samples"]

@@ -40,6 +40,7 @@ from pipeline.model.field_map import (
 from pipeline.model.forward import ForwardModel
 from stages.diagnose.fit import fit
 from stages.diagnose.model import EffectKind, ModelState, Term, evaluate
+from stages.restore import restore_samples
 
 pytestmark = pytest.mark.filterwarnings("ignore::pipeline.core.errors.RecoveredDataWarning")
 
@@ -238,8 +239,7 @@ def test_a_survey_through_a_smooth_field_names_the_map_and_restore_keeps_it(tmp_
     assert np.sqrt(np.mean((d - d.mean(axis=0)) ** 2)) < 2.0  # nT, of a 420 nT range
     # restore keeps it in the ENU field (it belongs to the surroundings): the restored field
     # is the background plus the smooth field, to the noise
-    rs = ctx.restored
-    assert rs is not None
+    rs = restore_samples(ctx.recording, ctx.calibration)
     ok = rs.valid
     t_s = (np.asarray(rs.t_ns)[ok] - int(rs.t_ns[0])) * 1e-9
     expect = np.asarray(spec.B_enu_nT) + smooth_field_at(SMOOTH, position_m(spec, t_s))

@@ -228,8 +228,8 @@ def _real(name: str):
     path = REAL / f"{name}.mcap"
     if not path.exists():
         pytest.skip(f"real data folder {REAL.name} is absent (../shared/data/real)")
-    from pipeline.core.recording import Context
     from pipeline.io.mcap_read import read_recording
+    from stages.context import Context
     from stages.resample import Resample
 
     rec = read_recording(path)

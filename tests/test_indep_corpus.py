@@ -12,8 +12,8 @@ from indep_gen import ATTITUDE_TYPES, Spec, null_specs, sized, strength, write
 from scipy.spatial.transform import Rotation
 
 from pipeline.app.commands.diagnose import diagnose_file
-from pipeline.core.recording import Context
 from pipeline.io.mcap_read import read_recording
+from stages.context import Context
 from stages.estimate import fit_calibration
 from stages.resample import Resample
 

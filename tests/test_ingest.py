@@ -13,8 +13,9 @@ from mcap_ros2.decoder import DecoderFactory
 
 from pipeline.core.errors import ChannelError, SchemaError
 from pipeline.core.geometry import li2020_euler_to_quat, novatel_to_quat, quat_rotate
-from pipeline.core.recording import Context, EncodingFamily, Role
+from pipeline.core.recording import EncodingFamily, Role
 from pipeline.io.mcap_read import read_raw_channels, read_recording
+from stages.context import Context
 from stages.ingest import Ingest
 
 MAG = "sensor_msgs/msg/MagneticField"

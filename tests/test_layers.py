@@ -23,7 +23,8 @@ ALLOWED = {
     "io": {"core", "schemas", "io"},
     "model": {"core", "model"},
     "stages": {"core", "schemas", "io", "model", "stages"},
-    "app": {"core", "schemas", "io", "model", "stages", "app"},
+    "run": {"core", "schemas", "io", "model", "stages", "run"},
+    "app": {"core", "schemas", "io", "model", "stages", "run", "app"},
 }
 
 

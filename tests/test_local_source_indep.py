@@ -150,9 +150,8 @@ def test_the_magnet_in_lab_04s_room_is_located_alike_from_each_half():
     own error exceeds its millimetre sigmas (measured: 3.5 cm apart)."""
     import dataclasses
 
-    from pipeline.app.process_one import ProcessOptions, analyse
-    from pipeline.core.recording import Context
     from pipeline.io.mcap_read import read_recording
+    from pipeline.run.runner import ProcessOptions, analyse
 
     rec = read_recording(LAB4)
     ta, tb = int(rec.mag.t_ns[0]), int(rec.mag.t_ns[-1]) + 1
@@ -162,8 +161,7 @@ def test_the_magnet_in_lab_04s_room_is_located_alike_from_each_half():
         half = dataclasses.replace(
             rec, mag=rec.mag.window(a, b), attitude=rec.attitude.window(a - pad, b + pad),
             position=rec.position.window(a - pad, b + pad))
-        ctx = analyse(Context(source=str(LAB4), recording=half),
-                      ProcessOptions(write_rerun=False, write_report=False))
+        ctx = analyse(half, ProcessOptions(write_rerun=False, write_report=False))
         src = _found(ctx, "local_source")
         assert len(src) == 1, [f.effect for f in ctx.diagnosis.findings]
         assert src[0].params["closest_approach_m"] < 0.15

@@ -12,17 +12,15 @@ from hypothesis import strategies as st
 
 from pipeline.core.geometry import quat_normalize, quat_rotate, rotvec_to_quat, so3_exp
 from pipeline.core.recording import (
-    AngleSeries,
     AttitudeSeries,
-    Context,
     Recording,
     Segment,
     SegmentKind,
     VectorSeries,
 )
 from pipeline.model.calibration import Calibration
-from stages.metrics import Metrics, component_stats, heading_error_stats
-from stages.restore import Restore
+from stages.metrics import component_stats, compute_metrics, heading_error_stats
+from stages.restore import restore_samples
 
 B_ENU = np.array([1300.0, 15000.0, -49000.0])
 T0 = 1_767_225_600_000_000_000
@@ -67,9 +65,8 @@ def test_uncalibrated_is_attitude_only_and_calibrated_is_restored(tmp_path):
     rec, cal, q, y, t = _case(noise_nT=0.3)
     seg = (Segment(int(t[0]), int(t[200]), SegmentKind.ROTATION),
            Segment(int(t[200]), int(t[-1]) + 1, SegmentKind.LINE))
-    ctx = Context(recording=rec, calibration=cal, segments=seg)
-    ctx = Metrics(out_dir=str(tmp_path)).run(Restore().run(ctx))
-    m = ctx.metrics
+    m = compute_metrics(restore_samples(rec, cal), seg)
+    j, p = m.write(tmp_path)
     raw_enu = quat_rotate(q, y)  # C_enu_body @ y: no R, no offset, no D
     for k, c in enumerate("xyz"):
         want = component_stats(raw_enu[:, k])
@@ -89,17 +86,17 @@ def test_uncalibrated_is_attitude_only_and_calibrated_is_restored(tmp_path):
     comp = d["scopes"][0]["components"]["y"]
     assert row["fluctuation_range_nT"] == pytest.approx(comp["calibrated"]["fluctuation_range_nT"])
     assert row["ratio_pct"] == pytest.approx(comp["ratio_pct"]["fluctuation_range_nT"])
-    assert ("metrics.parquet", str(tmp_path / "metrics.parquet")) in ctx.outputs
+    assert (j, p) == (tmp_path / "metrics.json", tmp_path / "metrics.parquet")
 
 
 def test_heading_error_for_turntable_data():
     rec, cal, q, y, t = _case(rv=(0.0, 0.0, np.radians(1.0)))
-    rec = Recording(**{**rec.__dict__, "turntable": AngleSeries(t, np.zeros(len(t)))})
-    m = Metrics().run(Restore().run(Context(recording=rec, calibration=cal))).metrics
+    m = compute_metrics(restore_samples(rec, cal), heading_reference_enu_nT=cal.B_enu_nT)
     he = m.heading_error
     # a 1 deg misalignment about body z shows as heading errors of up to ~1 deg before
     # calibration when the body z axis is near vertical, and none after
     assert he["calibrated"]["max_abs_deg"] < 1e-6
     assert 0.3 < he["uncalibrated"]["max_abs_deg"] < 2.0
-    assert heading_error_stats(np.array([[1.0, 1.0, 0.0]]), np.array([0.0, 1.0, 0.0]))[
+    # heading atan2(east, north) of (1, 1) against a field pointing north: 45 deg
+    assert heading_error_stats(np.array([np.arctan2(1.0, 1.0)]), np.arctan2(0.0, 1.0))[
         "mean_deg"] == pytest.approx(45.0)

@@ -14,8 +14,8 @@ from indep_gen import Spec, write
 from scipy.spatial.transform import Rotation
 
 from pipeline.core.geometry import angle_between_deg
-from pipeline.core.recording import Context
 from pipeline.io.mcap_read import read_recording
+from stages.context import Context
 from stages.estimate import Term, fit_calibration
 from stages.resample import Resample
 

@@ -15,14 +15,15 @@ import pytest
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from pipeline.app.process_one import ProcessOptions, process_recording
 from pipeline.app.simulate import scenario_from_dict, simulate, write_simulated
 from pipeline.core.errors import OutputError
-from pipeline.core.recording import Context, Segment, SegmentKind
+from pipeline.core.recording import Segment, SegmentKind
 from pipeline.model.calibration import Calibration
+from pipeline.run.runner import ProcessOptions, process_recording
+from stages.context import Context
 from stages.ingest import Ingest
 from stages.write_mcap import write_corrected_mcap
-from stages.write_rerun import WriteRerun
+from stages.write_rerun import write_rrd
 
 RERUN = str(Path(sys.executable).with_name("rerun"))
 B_ENU = [1300.0, 15000.0, -49000.0]
@@ -174,9 +175,9 @@ def test_rrd_read_back(tmp_path):
             Segment(int(t[len(t) // 2]), int(t[-1]), SegmentKind.STATIC))
     diag = {"findings": [{"effect": "disturbance", "params": {}, "where": {
         "windows_s": [[1.0, 2.0]], "axes": ["x"], "frame": "enu"}}]}
-    ctx = WriteRerun(str(tmp_path / "out")).run(Context(
-        recording=rec, calibration=_truth_cal(sim), segments=segs, diagnosis=diag))
-    rrd = Path(dict(ctx.outputs)["rrd"])
+    (tmp_path / "out").mkdir()
+    rrd = write_rrd(rec, _truth_cal(sim), tmp_path / "out" / "rec.rrd", segments=segs,
+                    diagnosis=diag)
     assert rrd.name == "rec.rrd" and _sha(src) == before
     assert not list(rrd.parent.glob(".*.tmp"))  # the temporary name is gone
     rows = rrd_rows(rrd)

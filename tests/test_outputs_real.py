@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from pipeline.app.process_one import ProcessOptions, process_recording
+from pipeline.run.runner import ProcessOptions, process_recording
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 LAB = REAL / "lab_03.mcap"

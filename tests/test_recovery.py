@@ -18,8 +18,8 @@ from pipeline.core.errors import (
     NotMcapError,
     RecoveredDataWarning,
 )
-from pipeline.core.recording import Context
 from pipeline.io.mcap_read import read_raw_channels, read_recording
+from stages.context import Context
 from stages.resample import Resample
 
 MAG = "sensor_msgs/msg/MagneticField"

@@ -3,18 +3,19 @@
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from pipeline.app.simulate import scenario_from_dict, simulate, write_simulated
-from pipeline.core.recording import Context
 from pipeline.model.calibration import Calibration
 from pipeline.model.forward import ForwardModel, evaluate
+from stages.context import Context
 from stages.ingest import Ingest
 from stages.report import counts_sentence, make_figures, predicted_field, write_report
 from stages.report_map import event_windows, read_map_json
-from stages.restore import Restore
+from stages.restore import restore_samples
 
 G = [[300.0, 100.0, 0.0], [100.0, -200.0, 50.0], [0.0, 50.0, -100.0]]  # nT/m, traceless
 
@@ -41,7 +42,7 @@ def moving(tmp_path_factory):
                       effects={"field_gradient": {"G_nT_per_m": G,
                                                   "reference_position_m": ref.tolist(),
                                                   "position_frame": "attitude_source_local"}})
-    ctx = Restore().run(Context(recording=rec, calibration=cal))
+    ctx = SimpleNamespace(recording=rec, calibration=cal, restored=restore_samples(rec, cal))
     return tmp, ctx
 
 

@@ -9,7 +9,8 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation, Slerp
 
 from pipeline.core.geometry import quat_mul, rotvec_to_quat
-from pipeline.core.recording import AttitudeSeries, Context, Recording, VectorSeries
+from pipeline.core.recording import AttitudeSeries, Recording, VectorSeries
+from stages.context import Context
 from stages.resample import Resample, auto_max_gap_s, interpolate_attitude
 
 T0 = 1_700_000_000 * 1_000_000_000

@@ -10,10 +10,13 @@ from hypothesis import strategies as st
 from pipeline.app.simulate import scenario_from_dict, simulate
 from pipeline.core.errors import PipelineBuildError
 from pipeline.core.geometry import quat_normalize, rotvec_to_quat, so3_exp
-from pipeline.core.recording import AttitudeSeries, Context, Frame, Recording, VectorSeries
+from pipeline.core.recording import AttitudeSeries, Frame, Recording, VectorSeries
 from pipeline.core.stage import Pipeline
 from pipeline.model.calibration import Calibration
-from stages.restore import Restore, restore_samples
+from stages.context import Context
+from stages.estimate import Judge
+from stages.resample import Resample
+from stages.restore import restore_samples
 
 B_ENU = np.array([1300.0, 15000.0, -49000.0])
 T0 = 1_767_225_600_000_000_000
@@ -57,8 +60,7 @@ def test_restore_inverts_the_forward_model(rv, d, o, seed):
     t = T0 + np.arange(n, dtype=np.int64) * 50_000_000
     q = _attitudes(n, seed)
     y = cal.predict(t, AttitudeSeries(t, q))
-    ctx = Restore().run(Context(recording=_recording(t, y, t, q), calibration=cal))
-    series = ctx.restored.series
+    series = restore_samples(_recording(t, y, t, q), cal).series
     assert series.frame is Frame.ENU
     assert len(series) == n
     np.testing.assert_allclose(series.values, np.broadcast_to(B_ENU, (n, 3)), atol=1e-6)
@@ -71,14 +73,13 @@ def test_attitude_gap_samples_are_left_out_and_counted():
     cal = _cal(np.eye(3))
     keep = (np.arange(n) < 60) | (np.arange(n) >= 100)  # a 2 s gap in the attitude
     rec = _recording(t, cal.predict(t, AttitudeSeries(t, q)), t[keep], q[keep])
-    ctx = Restore(max_gap_s=0.2).run(Context(recording=rec, calibration=cal))
     rs = restore_samples(rec, cal, max_gap_s=0.2)
     # the 40 samples with stamps 60..99 lie between attitude samples 59 and 100, 2.05 s apart
     assert rs.n_without_attitude == 40
     assert rs.n_used + rs.n_without_attitude + rs.n_without_attitude_at_stamp == n
-    assert len(ctx.restored.series) == n - 40
+    assert len(rs.series) == n - 40
     assert np.isnan(rs.enu_nT[~rs.valid]).all() and np.isnan(rs.residual_nT[~rs.valid]).all()
-    np.testing.assert_allclose(ctx.restored.series.values, np.broadcast_to(B_ENU, (n - 40, 3)),
+    np.testing.assert_allclose(rs.series.values, np.broadcast_to(B_ENU, (n - 40, 3)),
                                atol=1e-6)
 
 
@@ -143,13 +144,13 @@ def test_simulated_sensor_terms_restore_to_the_true_field():
 
 
 def test_stage_contract():
-    with pytest.raises(PipelineBuildError):
-        Pipeline([Restore()], initial=("recording",))
+    with pytest.raises(PipelineBuildError, match="Judge"):
+        Pipeline([Judge()], initial=("recording",))
     n = 20
     t = T0 + np.arange(n, dtype=np.int64) * 50_000_000
     q = _attitudes(n, 1)
     cal = _cal(np.eye(3))
     ctx = Context(recording=_recording(t, cal.predict(t, AttitudeSeries(t, q)), t, q),
                   calibration=cal)
-    out = Restore().run(ctx)
-    assert out is not ctx and ctx.restored is None and out.restored is not None
+    out = Resample().run(ctx)
+    assert out is not ctx and ctx.aligned is None and out.aligned is not None

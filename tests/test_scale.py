@@ -110,17 +110,15 @@ def test_corrected_mcap_written_range_by_range(tmp_path, monkeypatch):
     from mcap.reader import make_reader
 
     import stages.write_mcap as write_mcap
-    from stages.estimators.streaming import calibrate_streaming
+    from pipeline.run.runner import ProcessOptions, analyse
 
     path, _ = make(tmp_path / "d.mcap", n=5_000)
     rec = read_recording(path)
-    cal = calibrate_streaming(str(path))
+    cal = analyse(rec, ProcessOptions(diagnose=False)).need_calibration()
     monkeypatch.setattr(write_mcap, "COPY_RANGE_MESSAGES", 1_000)
-    import pipeline.io.mcap_read as mcap_read
-
     for copy in ("chunks", "messages"):
         if copy == "messages":
-            monkeypatch.setattr(mcap_read, "pass_through", lambda path: None)
+            monkeypatch.setattr(write_mcap, "pass_through", lambda path: None)
         out = write_mcap.write_corrected_mcap(rec, cal, tmp_path / copy / "d.corrected.mcap")
         got = {r.topic: r for r in read_raw_channels(out)}
         for r in read_raw_channels(path):
@@ -141,52 +139,29 @@ def test_corrected_mcap_written_range_by_range(tmp_path, monkeypatch):
             assert np.all(np.diff(logs) >= 0), topic
 
 
-def test_decimated_stage_does_not_leak_its_restore_result():
-    """A stage run on every k-th sample (OnDecimated) that restores (diagnosis) must not hand
-    its restore result of the decimated samples to the full recording's stages."""
-    from dataclasses import dataclass
-    from typing import ClassVar
-
-    from pipeline.core.recording import Context, Recording, VectorSeries
-    from stages.decimate import OnDecimated
-
-    @dataclass(frozen=True)
-    class Restoring:
-        requires: ClassVar[frozenset[str]] = frozenset({"recording"})
-        provides: ClassVar[frozenset[str]] = frozenset({"calibration", "restored"})
-
-        def run(self, ctx: Context) -> Context:
-            return ctx.replace(calibration="fitted", restored=len(ctx.recording.mag))
-
-    t = np.arange(100, dtype=np.int64)
-    rec = Recording(path="x.mcap", mag=VectorSeries(t, np.zeros((100, 3)), "mag", "nT"),
-                    channels=(), mag_topic="/mag", attitude=None, attitude_topic=None)
-    out = OnDecimated(Restoring(), 4).run(Context(recording=rec))
-    assert out.calibration == "fitted" and out.restored is None
-
-
-@pytest.mark.parametrize("chunked", [True, False], ids=["two-pass", "in-memory"])
+@pytest.mark.parametrize("chunked", [True, False], ids=["file", "in-memory"])
 def test_process_scale_path_matches_the_normal_path(tmp_path, monkeypatch, chunked):
-    """Both paths of a long recording: two passes over the file (an intact file) and the
-    in-memory one with decimated analysis (what a damaged file takes)."""
-    import pipeline.app.process_one as process_one
-    import pipeline.app.process_stream as process_stream
-    from pipeline.app.process_one import ProcessOptions, process_recording
+    """Both sources of a long recording give the whole recording's answer: the file read
+    range by range (an intact file) and the recording read whole, then cut into chunks
+    (what a damaged file takes: its corrected MCAP copied message by message)."""
+    import pipeline.run.plan as plan
+    import pipeline.run.source as source
+    import stages.write_mcap as write_mcap
+    from pipeline.run.runner import ProcessOptions, process_recording
 
-    monkeypatch.setattr(process_one, "DECIMATED_SAMPLES", 2_000)  # every 4th sample
-    monkeypatch.setattr(process_stream, "DECIMATED_SAMPLES", 2_000)
+    monkeypatch.setattr(plan, "DECIMATED_SAMPLES", 2_000)  # every 4th sample
+    monkeypatch.setattr(plan, "CHUNK_SAMPLES", 1_500)
     if not chunked:
-        monkeypatch.setattr(process_stream, "plan_stream", lambda *a: None)
+        monkeypatch.setattr(source, "pass_through", lambda path: None)
+        monkeypatch.setattr(write_mcap, "pass_through", lambda path: None)
 
     path, R = make(tmp_path / "e.mcap", n=8_000)
     base = dict(diagnose=False, write_rerun=False, write_report=False)
     small = process_recording(path, tmp_path / "normal", options=ProcessOptions(**base))
     big = process_recording(path, tmp_path / "scale",
                             options=ProcessOptions(scale_samples=1_000, **base))
-    if chunked:
-        assert "Restore+outputs" in big["timings_s"]
-    else:
-        assert "StreamingEstimate" in big["timings_s"] and "OnDecimated" in big["timings_s"]
+    steps = list(big["timings_s"])
+    assert steps.index("SegmentMotion") < steps.index("Resample")  # windows analysed
     assert big["estimator"] == "ml-streaming"
     rv_small = np.array(small["rotvec_body_mag_deg"])
     rv_big = np.array(big["rotvec_body_mag_deg"])

@@ -10,9 +10,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pipeline.core.geometry import quat_conj, quat_mul, quat_rotate, rotvec_to_quat
-from pipeline.core.recording import AlignedSeries, Context, Segment, SegmentKind
+from pipeline.core.recording import AlignedSeries, Segment, SegmentKind
 from pipeline.core.stage import Pipeline
 from pipeline.model.tang import axis_angle_quat
+from stages.context import Context
 from stages.segment import (
     MotionContext,
     SegmentMotion,

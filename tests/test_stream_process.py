@@ -1,6 +1,6 @@
-"""A long recording processed in two passes over the file (pipeline/app/process_stream.py)
-gives the outputs the in-memory path gives for the same model, in memory that does not grow
-with the recording: restore, metrics, corrected MCAP, rerun recording, report counts."""
+"""A long recording, analysed on windows and read in chunks (pipeline/run), gives the outputs
+it gives analysed and restored whole for the same model, in memory that does not grow with
+the recording: restore, metrics, corrected MCAP, rerun recording, report counts."""
 
 from __future__ import annotations
 
@@ -37,6 +37,12 @@ def _walk(a, b, path=""):
         assert b == pytest.approx(a, rel=1e-6, abs=1e-6), path
     else:
         assert a == b, path
+
+
+def windowed(row) -> bool:
+    """Whether ``process`` analysed windows of the recording: it segments before resampling."""
+    steps = list(row["timings_s"])
+    return steps.index("SegmentMotion") < steps.index("Resample")
 
 
 def _cal(tau_s: float) -> Calibration:
@@ -105,7 +111,7 @@ def test_metrics_accumulator_equals_compute_metrics(tmp_path):
     acc = MetricsAccumulator(segs, int(t[0]), spill_dir=tmp_path)
     for p in parts:
         acc.add(p)
-    _walk(compute_metrics(rec, restore_samples(rec, cal), segs).to_dict(),
+    _walk(compute_metrics(restore_samples(rec, cal), segs).to_dict(),
           acc.finish().to_dict())
 
 
@@ -120,19 +126,21 @@ def _decoded(path: Path, topic: str) -> np.ndarray:
 
 
 @pytest.mark.parametrize("step", [1, 4])
-def test_two_pass_process_gives_the_in_memory_outputs(tmp_path, monkeypatch, step):
+def test_long_recording_gives_the_whole_recordings_outputs(tmp_path, monkeypatch, step):
     """Same model (one calibration file), two paths: every output agrees.
 
-    ``step``: the two-pass path segments (and draws) every ``step``-th sample; with 1 its
-    segments, so every scope of the metrics, are the in-memory path's.
+    ``step``: the long recording's analysis segments (and its report draws) every
+    ``step``-th sample; with 1 its segments, so every scope of the metrics, are the whole
+    recording's.
     """
     from test_outputs import rrd_rows
 
-    import pipeline.app.process_stream as process_stream
-    from pipeline.app.process_one import ProcessOptions, process_recording
+    import pipeline.run.plan as plan
+    import pipeline.run.source as source
+    from pipeline.run.runner import ProcessOptions, process_recording
 
-    monkeypatch.setattr(process_stream, "DECIMATED_SAMPLES", 8_000 // step)
-    monkeypatch.setattr(process_stream, "RANGE_MESSAGES", 3_000)  # several ranges
+    monkeypatch.setattr(plan, "DECIMATED_SAMPLES", 8_000 // step)
+    monkeypatch.setattr(source, "RANGE_MESSAGES", 3_000)  # several ranges
     path, _ = make(tmp_path / "c.mcap", n=8_000)
     first = process_recording(path, tmp_path / "fit",
                               options=ProcessOptions(diagnose=False, write_rerun=False,
@@ -143,7 +151,7 @@ def test_two_pass_process_gives_the_in_memory_outputs(tmp_path, monkeypatch, ste
         rows[name] = process_recording(path, tmp_path / name, options=ProcessOptions(
             calibration_path=cal_path, scale_samples=scale))
     mem, two = rows["mem"], rows["two"]
-    assert "Restore+outputs" in two["timings_s"] and "Restore+outputs" not in mem["timings_s"]
+    assert windowed(two) and not windowed(mem)
     assert set(mem["paths"]) == set(two["paths"])
     assert two["n_samples"] == mem["n_samples"] == 8_000
     for k in ("residual_rms_nT", "ratio_pct_x", "ratio_pct_y", "ratio_pct_z", "duration_s"):
@@ -177,7 +185,7 @@ def test_two_pass_process_gives_the_in_memory_outputs(tmp_path, monkeypatch, ste
 def test_two_pass_fit_is_checked_by_its_halves(tmp_path):
     """The streaming fit's sigmas hold the disagreement of the recording's two halves (the
     attitude here lags the magnetometer by 2 ms, which the rotation-only fit leaves out)."""
-    from pipeline.app.process_one import ProcessOptions, process_recording
+    from pipeline.run.runner import ProcessOptions, process_recording
 
     path, _ = make(tmp_path / "d.mcap", n=8_000)
     row = process_recording(path, tmp_path / "o", options=ProcessOptions(
@@ -195,7 +203,7 @@ def test_two_pass_fit_is_checked_by_its_halves(tmp_path):
 def test_two_pass_estimates_time_offset_and_soft_iron_from_every_sample(tmp_path):
     """--estimate soft_iron,time_offset on a long recording: the streamed sums of every sample
     (stages/estimators/streaming.py) agree with the in-memory ML estimator."""
-    from pipeline.app.process_one import ProcessOptions, process_recording
+    from pipeline.run.runner import ProcessOptions, process_recording
 
     path, R = make(tmp_path / "f.mcap", n=8_000)
     base = dict(terms=frozenset({"time_offset", "soft_iron"}), diagnose=False,
@@ -204,7 +212,7 @@ def test_two_pass_estimates_time_offset_and_soft_iron_from_every_sample(tmp_path
                             options=ProcessOptions(scale_samples=None, **base))
     two = process_recording(path, tmp_path / "two",
                             options=ProcessOptions(scale_samples=1_000, **base))
-    assert two["estimator"] == "ml-streaming" and "Restore+outputs" in two["timings_s"]
+    assert two["estimator"] == "ml-streaming" and windowed(two)
     assert abs(two["time_offset_s"] - mem["time_offset_s"]) < 2e-4  # 0.2 ms
     assert abs(two["time_offset_s"]) > 1e-3  # the 2 ms lag of make() is seen
     cals = [json.loads(Path(r["paths"]["calibration.json"]).read_text()) for r in (mem, two)]
@@ -219,13 +227,14 @@ def test_two_pass_warns_of_physics_between_the_analysed_windows(tmp_path, monkey
     does not fit (UNSEEN_RMS_RATIO)."""
     from test_scale import B_ENU, ROTVEC_DEG
 
-    import pipeline.app.process_stream as process_stream
-    from pipeline.app.process_one import ProcessOptions, process_recording
+    import pipeline.run.plan as plan
+    import pipeline.run.source as source
     from pipeline.core.geometry import li2020_euler_to_quat, quat_conj, quat_rotate, so3_exp
     from pipeline.io.mcap_write import write_recording
+    from pipeline.run.runner import ProcessOptions, process_recording
 
-    monkeypatch.setattr(process_stream, "DECIMATED_SAMPLES", 1_200)  # windows of 2 s
-    monkeypatch.setattr(process_stream, "RANGE_MESSAGES", 1_000)  # chunks of 10 s
+    monkeypatch.setattr(plan, "DECIMATED_SAMPLES", 1_200)  # windows of 2 s
+    monkeypatch.setattr(source, "RANGE_MESSAGES", 1_000)  # chunks of 10 s
     n = 8_000
     s = np.arange(n) / 50.0
     q = li2020_euler_to_quat(2 * np.pi * s / 30.0, np.radians(20) * np.sin(s / 3.0),
@@ -267,18 +276,19 @@ def _indep(tmp_path, name, **effects):
 
 
 def _both(path, tmp_path, monkeypatch, decimated=6_000):
-    import pipeline.app.process_stream as process_stream
-    from pipeline.app.process_one import ProcessOptions, process_recording
+    import pipeline.run.plan as plan
+    import pipeline.run.source as source
+    from pipeline.run.runner import ProcessOptions, process_recording
 
     # 6,000 of 12,000 samples: 12 windows of 5 s
-    monkeypatch.setattr(process_stream, "DECIMATED_SAMPLES", decimated)
-    monkeypatch.setattr(process_stream, "RANGE_MESSAGES", 2_000)
+    monkeypatch.setattr(plan, "DECIMATED_SAMPLES", decimated)
+    monkeypatch.setattr(source, "RANGE_MESSAGES", 2_000)
     base = dict(write_rerun=False, write_report=False)
     mem = process_recording(path, tmp_path / "mem", options=ProcessOptions(
         scale_samples=None, **base))
     two = process_recording(path, tmp_path / "two", options=ProcessOptions(
         scale_samples=1_000, **base))
-    assert "Restore+outputs" in two["timings_s"]
+    assert windowed(two) and not windowed(mem)
     return mem, two
 
 
@@ -390,15 +400,16 @@ def test_two_pass_keeps_the_spatial_terms_of_a_survey(tmp_path, monkeypatch):
 def test_two_pass_report_maps_the_path(tmp_path, monkeypatch):
     """The report of a survey processed in two passes draws the path from every k-th
     position, with the located source on it (map.json beside the report)."""
-    import pipeline.app.process_stream as process_stream
-    from pipeline.app.process_one import ProcessOptions, process_recording
+    import pipeline.run.plan as plan
+    import pipeline.run.source as source
+    from pipeline.run.runner import ProcessOptions, process_recording
 
-    monkeypatch.setattr(process_stream, "DECIMATED_SAMPLES", 6_000)
-    monkeypatch.setattr(process_stream, "RANGE_MESSAGES", 2_000)
+    monkeypatch.setattr(plan, "DECIMATED_SAMPLES", 6_000)
+    monkeypatch.setattr(source, "RANGE_MESSAGES", 2_000)
     path, _ = _survey(tmp_path, "navsatfix")
     row = process_recording(path, tmp_path / "two", options=ProcessOptions(
         scale_samples=1_000, write_rerun=False))
-    assert "Restore+outputs" in row["timings_s"]
+    assert windowed(row)
     folder = Path(row["paths"]["report.html"]).parent
     m = json.loads((folder / "map.json").read_text())
     assert "local_source" in row["findings"]

@@ -20,11 +20,8 @@ from pipeline.core.geometry import (
 from stages.estimators.streaming import (
     SufficientStats,
     _State,
-    accumulate,
-    calibrate_streaming,
     cost,
     fit_stats,
-    iter_aligned_chunks,
     normal_equations,
 )
 
@@ -61,8 +58,8 @@ def test_chunked_sums_equal_whole(cuts):
     """Sums of any split of the samples equal the sums of all of them."""
     q, y, t, _ = synthetic(400, seed=3)
     edges = [0, *sorted(cuts), 400]
-    parts = accumulate((q[a:b], y[a:b], t[a:b]) for a, b in zip(edges[:-1], edges[1:],
-                                                                 strict=True))
+    parts = sum((SufficientStats.from_samples(q[a:b], y[a:b], t[a:b])
+                 for a, b in zip(edges[:-1], edges[1:], strict=True)), SufficientStats())
     whole = SufficientStats.from_samples(q, y, t)
     assert parts.n == whole.n == 400
     for name in ("sum_y", "S", "M", "W"):
@@ -138,28 +135,37 @@ def test_too_few_samples_is_an_estimation_error():
         fit_stats(SufficientStats.from_samples(q, y, t))
 
 
-def test_streaming_from_file_equals_in_memory(tmp_path):
-    """Chunked reading + aligning + sums give the same answer as the whole recording."""
-    from pipeline.io.mcap_read import iter_recording_chunks, read_recording
+def test_streaming_from_file_equals_in_memory(tmp_path, monkeypatch):
+    """The runner's first pass: chunked reading + aligning + sums give the same answer as
+    the whole recording."""
+    import pipeline.run.plan as plan
+    import pipeline.run.source as source
+    from pipeline.io.mcap_read import read_recording
     from pipeline.io.mcap_write import write_recording
+    from pipeline.run.runner import ProcessOptions, first_pass, make_plan, open_source
+    from stages.context import Context
+    from stages.estimate_sums import EstimateFromSums
     from stages.resample import Resample
+
+    monkeypatch.setattr(source, "RANGE_MESSAGES", 2_000)
+    monkeypatch.setattr(plan, "DECIMATED_SAMPLES", 10**9)  # every aligned sample kept
 
     n = 12_000
     q, y, t, R = synthetic(n, offset=OFFSET, seed=7)
     path = write_recording(tmp_path / "r.mcap", mag_t_ns=t, mag_nT=y,
                            attitude_t_ns=t - 3_000_000, q_enu_body=q, mag_log_delay_ns=200_000,
                            attitude_log_delay_ns=900_000, chunk_size=64 << 10)
-    chunks = list(iter_recording_chunks(path, max_messages=2_000))
-    assert len(chunks) > 5
-    aligned = list(iter_aligned_chunks(iter(chunks), max_gap_s=0.1))
-    t_stream = np.concatenate([a[2] for a in aligned])
-    from pipeline.core.recording import Context
-
+    options = ProcessOptions(scale_samples=1_000, max_gap_s=0.1, terms=frozenset({"offset"}))
+    src = open_source(path, options)
+    assert type(src).__name__ == "FileSource"
+    reduced = first_pass(src, make_plan(options, src.n_mag))
+    t_stream = reduced.thin_aligned.t_ns
     ctx = Resample(max_gap_s=0.1).run(Context(recording=read_recording(path)))
     np.testing.assert_array_equal(t_stream, ctx.aligned.t_ns)
     whole = fit_stats(SufficientStats.from_samples(ctx.aligned.q_enu_body, ctx.aligned.mag_nT),
                       estimate_offset=True)
-    cal = calibrate_streaming(str(path), estimate_offset=True, max_messages=2_000)
+    sums = Context(sums=reduced.sums)
+    cal = EstimateFromSums(frozenset({"offset"})).run(sums).need_calibration()
     assert cal.n_samples == len(ctx.aligned)
     assert rot_err_deg(cal.R_body_mag, whole.R_body_mag) < 1e-7
     assert rot_err_deg(cal.R_body_mag, R) < 0.01

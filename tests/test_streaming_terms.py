@@ -19,8 +19,9 @@ import pytest
 import tomllib
 
 from pipeline.core.geometry import quat_to_matrix, so3_exp, so3_log
-from pipeline.core.recording import AlignedSeries, AttitudeSeries, Context
+from pipeline.core.recording import AttitudeSeries
 from pipeline.model.attitude import interpolate_attitude
+from stages.context import Context
 from stages.estimators.base import Problem, Term
 from stages.estimators.ml import MLEstimator
 from stages.estimators.streaming import (
@@ -34,7 +35,6 @@ from stages.estimators.streaming import (
     full_cost,
     full_normal_equations,
 )
-from stages.streaming_estimate import StreamingEstimate
 
 sys.path.insert(0, str(Path(__file__).parent))
 import indep_gen  # noqa: E402
@@ -370,12 +370,15 @@ def test_single_axis_motion_reports_what_is_unobservable():
 
 # ----------------------------------------------------------------------------- stage
 def test_stage_estimates_the_terms_it_supports():
-    assert StreamingEstimate.SUPPORTED_TERMS == ALL
+    from stages.estimate_sums import EstimateFromSums
+    from stages.estimators.streaming import SampleSums
+
+    assert EstimateFromSums.SUPPORTED_TERMS == ALL
     t, y, q, att, D = simulated("simulate", 0.01, True, False)
-    tau0 = 0.004  # aligned at t - tau0: the stage reports tau from the stamps
-    q0, ok = interpolate_attitude(att, t - np.int64(4_000_000), max_gap_s=0.1)
-    al = AlignedSeries(t[ok], y[ok], q0[ok], time_offset_s=tau0)
-    ctx = StreamingEstimate(terms=ALL).run(Context(aligned=al))
+    q0, ok = interpolate_attitude(att, t, max_gap_s=0.1)
+    acc = StreamAccumulator(max_gap_s=0.1)
+    acc.add(q0[ok], y[ok], t[ok])
+    ctx = EstimateFromSums(terms=ALL).run(Context(sums=SampleSums(terms=acc.result())))
     cal = ctx.need_calibration()
     assert cal.estimator == "ml-streaming"
     assert cal.time_offset_s == pytest.approx(0.01, abs=0.02e-3)
@@ -383,9 +386,6 @@ def test_stage_estimates_the_terms_it_supports():
     assert cal.D is not None and cal.sigma_D is not None
     np.testing.assert_allclose(cal.D, D, atol=1e-6)
     np.testing.assert_allclose(cal.offset_nT, OFFSET, atol=0.05)
-    # the older call (offset only, positional) still works and leaves D and tau out
-    old = StreamingEstimate(True).run(Context(aligned=al)).need_calibration()
-    assert old.D is None and old.time_offset_s is None and old.offset_nT is not None
 
 
 def test_rotation_only_sums_are_unchanged():
@@ -399,20 +399,25 @@ def test_rotation_only_sums_are_unchanged():
     np.testing.assert_allclose(a.cov, b.cov, rtol=1e-9, atol=1e-30)
 
 
-def test_from_file_in_chunks_equals_the_whole(tmp_path):
-    """calibrate_streaming: chunked reading, aligning and accumulating give the same D, tau."""
+def test_from_file_in_chunks_equals_the_whole(tmp_path, monkeypatch):
+    """The runner's first pass: chunked reading, aligning and accumulating give the same D,
+    tau as the sums of the whole recording's aligned samples."""
+    import pipeline.run.source as source
     from pipeline.app.simulate import scenario_from_dict, simulate, write_simulated
     from pipeline.io.mcap_read import read_recording
-    from stages.estimators.streaming import calibrate_streaming
+    from pipeline.run.runner import ProcessOptions, analyse_recording
     from stages.resample import Resample
+
+    monkeypatch.setattr(source, "RANGE_MESSAGES", 1_000)
 
     d = tomllib.loads((SCENARIOS / "multiaxis.toml").read_text())
     d["timing"]["duration_s"] = 30.0
     d["effects"] = {"time_offset": {"time_offset_s": 0.01},
                     "soft_iron": {"D": D_TRUE.tolist()}, "hard_iron": {"offset_nT": OFFSET}}
     path = write_simulated(simulate(scenario_from_dict(d), seed=2), tmp_path / "r.mcap")
-    cal = calibrate_streaming(str(path), estimate_offset=True, estimate_soft_iron=True,
-                              estimate_time_offset=True, max_messages=1_000)
+    cal = analyse_recording(path, ProcessOptions(
+        terms=ALL, scale_samples=100, max_gap_s=0.1, diagnose=False)).need_calibration()
+    assert cal.estimator == "ml-streaming"
     al = Resample(max_gap_s=0.1).run(Context(recording=read_recording(path))).need_aligned()
     whole = stream_fit(al.t_ns, al.mag_nT, al.q_enu_body, ALL)
     assert cal.time_offset_s is not None and whole.time_offset_s is not None

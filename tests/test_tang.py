@@ -289,6 +289,6 @@ def test_heading_error_stats_table2_known_answer():
     B = np.array([0.0, 1.0, -1.0])
     h = np.radians([10.0, -5.0])
     enu = np.stack([np.sin(h), np.cos(h), -np.ones(2)], -1)
-    m = metrics_stats(enu, B)
+    m = metrics_stats(np.arctan2(enu[:, 0], enu[:, 1]), float(np.arctan2(B[0], B[1])))
     assert set(m) == {"max_abs_deg", "mean_deg", "std_deg", "rms_deg", "peak_to_peak_deg"}
     assert m["mean_deg"] == pytest.approx(2.5) and m["max_abs_deg"] == pytest.approx(10.0)

@@ -10,9 +10,9 @@ import pytest
 
 from pipeline.core.errors import ChannelError
 from pipeline.core.geometry import quat_conj, quat_mul
-from pipeline.core.recording import Context
 from pipeline.core.stage import Pipeline
 from pipeline.model.tang import exact_eta, rotation_angle
+from stages.context import Context
 from stages.turntable import (
     TurntableAttitude,
     fit_axis_tilt,
@@ -182,8 +182,8 @@ def test_in_memory_simulation_with_noise_and_uncertainty():
 def _processed_tilt3(tmp_path, reference: bool):
     import json
 
-    from pipeline.app.process_one import ProcessOptions, process_recording
     from pipeline.app.simulate import load_scenario, simulate, write_simulated
+    from pipeline.run.runner import ProcessOptions, process_recording
 
     scen = Path(__file__).resolve().parents[1] / "pipeline" / "scenarios" / "turntable_tilt3.toml"
     sim = simulate(load_scenario(scen), seed=1)

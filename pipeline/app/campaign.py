@@ -641,7 +641,7 @@ def finished_row(task: RecordingTask, input_sha256: str | None = None) -> dict[s
 
 def _process_options(task: RecordingTask) -> Any:
     """Build OUTPUTS' ``ProcessOptions`` from a task, passing only the fields it has."""
-    from pipeline.app.process_one import ProcessOptions
+    from pipeline.run.options import ProcessOptions
 
     o = task.options
     names = {f.name for f in dataclasses.fields(ProcessOptions)}
@@ -704,7 +704,7 @@ def run_task(task: RecordingTask) -> dict[str, Any]:
         if folder.is_dir():
             for tmp in folder.glob(".*.tmp"):
                 tmp.unlink(missing_ok=True)
-        from pipeline.app.process_one import process_recording
+        from pipeline.run.runner import process_recording
 
         row = process_recording(task.input_path, task.out_dir, options=_process_options(task))
         row = jsonable(dict(row or {}))

@@ -26,8 +26,8 @@ def reproduce(out_dir: str | Path) -> int:
     from pipeline.app.simulate import load_scenario, simulate, write_simulated
     from pipeline.core.atomic import atomic_path
     from pipeline.core.errors import EstimationError
-    from pipeline.core.recording import Context
     from pipeline.io.mcap_read import read_recording
+    from stages.context import Context
     from stages.estimate import EstimatorKind, fit_calibration
     from stages.resample import Resample
 

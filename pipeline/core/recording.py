@@ -9,23 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 import enum
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, TypeVar
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.core.errors import MagalignError
-
-if TYPE_CHECKING:
-    from pipeline.model.calibration import Calibration
-    from stages.diagnose.result import Diagnosis
-    from stages.metrics import MetricsResult
-    from stages.restore import RestoreResult
-
 I64 = NDArray[np.int64]
 F64 = NDArray[np.float64]
-_T = TypeVar("_T")
 
 
 class Frame(str, enum.Enum):
@@ -454,56 +444,3 @@ class AlignedSeries:
             self.time_offset_s,
             None if self.index is None else self.index[mask],
         )
-
-
-@dataclass(frozen=True)
-class Context:
-    """What stages pass along. Every field is optional; a stage declares what it needs.
-
-    Stages never mutate a context; they return ``ctx.replace(field=new_value)``.
-    """
-
-    source: str | None = None
-    recording: Recording | None = None
-    aligned: AlignedSeries | None = None
-    segments: tuple[Segment, ...] | None = None
-    calibration: Calibration | None = None
-    #: the restore result of the final model, computed once by the Restore stage
-    restored: RestoreResult | None = None
-    metrics: MetricsResult | None = None
-    diagnosis: Diagnosis | None = None
-    outputs: tuple[tuple[str, str], ...] = ()
-    options: Any = field(default=None)
-
-    def need_recording(self) -> Recording:
-        """Return ``recording``, which the calling stage requires (raises when absent)."""
-        return _needed(self.recording, "recording")
-
-    def need_aligned(self) -> AlignedSeries:
-        """Return ``aligned``, which the calling stage requires (raises when absent)."""
-        return _needed(self.aligned, "aligned")
-
-    def need_calibration(self) -> Calibration:
-        """Return ``calibration``, which the calling stage requires (raises when absent)."""
-        return _needed(self.calibration, "calibration")
-
-    def need_restored(self) -> RestoreResult:
-        """Return ``restored``, which the calling stage requires (raises when absent)."""
-        return _needed(self.restored, "restored")
-
-    def replace(self, **changes: Any) -> Context:
-        """Return a new context with ``changes`` applied."""
-        return dataclasses.replace(self, **changes)
-
-    def provided(self) -> frozenset[str]:
-        """Names of the fields that hold a value."""
-        return frozenset(
-            f.name for f in dataclasses.fields(self) if getattr(self, f.name) not in (None, ())
-        )
-
-
-def _needed(value: _T | None, name: str) -> _T:
-    """``value``, or an error naming the missing context field (a stage run out of order)."""
-    if value is None:
-        raise MagalignError(f"the context has no {name!r}: a stage that provides it must run first")
-    return value

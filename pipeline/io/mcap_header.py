@@ -1,6 +1,6 @@
 """What a recording is, without reading its samples: channels, topics, encoding, frame names.
 
-For a recording processed chunk by chunk (:mod:`pipeline.app.process_stream`), whose samples
+For a recording processed chunk by chunk (:mod:`pipeline.run`), whose samples
 never sit in memory at once: :func:`read_recording_header` picks the channels as
 :func:`pipeline.io.mcap_read.read_recording` does, counts their messages from the chunk
 indexes and decodes the first chunk that holds each (for the frame names and rates only,

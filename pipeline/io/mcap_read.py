@@ -544,9 +544,9 @@ def read_recording_warning(path: str | Path, **kw: Any) -> Recording:
     Damage found while scanning the file is warned by the reader itself; what it repaired in
     the data (dropped NaN or duplicated samples, sorted stamps, gaps) is only listed in
     ``Recording.problems``, and the user must still hear what was lost. Used by the
-    ``calibrate`` and ``diagnose`` commands (``pipeline.app.process_one.analyse_recording``);
+    ``calibrate`` and ``diagnose`` commands (``pipeline.run.runner.analyse_recording``);
     ``process`` collects the same messages in its worker processes
-    (:func:`pipeline.app.process_one.process_recording`).
+    (:func:`pipeline.run.runner.process_recording`).
 
     Warns
     -----

@@ -21,9 +21,10 @@ from typing import Any, ClassVar, cast
 import numpy as np
 
 from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
-from pipeline.core.recording import AlignedSeries, Context, Recording
+from pipeline.core.recording import AlignedSeries, Recording
 from pipeline.model.calibration import Calibration
 from pipeline.model.sample_hold import Handling, SampleHold, detect_sample_hold
+from stages.context import Context
 from stages.diagnose.catalogue import EFFECTS
 from stages.diagnose.fit import FitResult, fit
 from stages.diagnose.model import (
@@ -520,7 +521,7 @@ class Diagnose:
     keep_estimate: bool = False
 
     requires: ClassVar[frozenset[str]] = frozenset({"recording", "aligned", "calibration"})
-    provides: ClassVar[frozenset[str]] = frozenset({"diagnosis", "calibration", "restored"})
+    provides: ClassVar[frozenset[str]] = frozenset({"diagnosis", "calibration"})
 
     def run(self, ctx: Context) -> Context:
         """Diagnose ``ctx.recording``; the final model replaces ``ctx.calibration``."""
@@ -587,10 +588,8 @@ class Diagnose:
                 diag = dataclasses.replace(diag, final={**diag.final, "residual_rms_nT": rms})
         if self.keep_estimate and cal is not None:
             # the user's model is the answer; the restore of the diagnosis' model is not its
-            return ctx.replace(diagnosis=diag, calibration=left_out_shift(cal, final, diag),
-                               restored=None)
-        # the restore result of the final model goes along: Restore keeps it (same model)
-        return ctx.replace(diagnosis=diag, calibration=final, restored=restored)
+            return ctx.replace(diagnosis=diag, calibration=left_out_shift(cal, final, diag))
+        return ctx.replace(diagnosis=diag, calibration=final)
 
 
 #: calibration terms of the estimate and the diagnosis effects they stand for

@@ -1,8 +1,8 @@
 """Streaming calibration: the misalignment from fixed-size sufficient statistics.
 
-For a recording too large for memory, the magnetometer and the attitude are read a chunk at
-a time (:func:`pipeline.io.mcap_read.iter_recording_chunks`), brought onto common stamps
-(:func:`iter_aligned_chunks`) and reduced to a fixed set of sums (:class:`SufficientStats`,
+For a recording too large for memory, the runner (:mod:`pipeline.run`) reads the
+magnetometer and the attitude a chunk at a time, brings them onto common stamps and reduces
+them to a fixed set of sums (:class:`SufficientStats`,
 122 numbers whatever the length of the recording). The model is the rotation part of the ML
 model of :mod:`stages.estimators.ml` with isotropic magnetometer noise (CONVENTIONS,
 ``D = I``, ``tau = 0``)::
@@ -85,9 +85,8 @@ samples of about ``2 h``.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
-from typing import Any, cast
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -191,15 +190,6 @@ class SufficientStats:
             t_first_ns=min(firsts) if firsts else None,
             t_last_ns=max(lasts) if lasts else None,
         )
-
-
-def accumulate(chunks: Iterable[tuple[F64, F64] | tuple[F64, F64, NDArray[np.int64]]]
-               ) -> SufficientStats:
-    """Sum :meth:`SufficientStats.from_samples` over ``(q_enu_body, mag_nT[, t_ns])`` chunks."""
-    total = SufficientStats()
-    for chunk in chunks:
-        total = total + SufficientStats.from_samples(*chunk)
-    return total
 
 
 # ------------------------------------------------------------------------------ the model
@@ -620,6 +610,31 @@ def _embed(Wa: F64, Ya: F64) -> tuple[F64, F64]:
 
 
 @dataclass(frozen=True)
+class SampleSums:
+    """The sums of every aligned sample of a long recording, reduced in one pass.
+
+    What :func:`fit_stats` fits the rotation (and the terms asked for) from, without the
+    samples themselves.
+
+    Attributes
+    ----------
+    halves : tuple of two StreamStats, or None
+        The rotation model's sums (per time block) of the recording's first and second
+        halves of equal sample counts: their sum is the whole's, and their fits check its
+        sigmas. None when ``terms`` holds the sums.
+    split_s : float
+        Where the halves meet, s from the first magnetometer sample.
+    terms : StreamStats or None
+        The expanded sums of every sample, for the soft iron and the time offset.
+
+    """
+
+    halves: tuple[StreamStats, StreamStats] | None = None
+    split_s: float = 0.0
+    terms: StreamStats | None = None
+
+
+@dataclass(frozen=True)
 class _Sums:
     """The sums one fit uses: totals and per time block (``None`` without blocks)."""
 
@@ -1027,125 +1042,3 @@ def _fit_terms(stats: SufficientStats | StreamStats, *, estimate_offset: bool,
         sigma_time_offset_s=sig_tau,
         warnings=tuple(warnings),
     )
-
-
-# ------------------------------------------------------------------------------ chunked I/O
-def iter_aligned_chunks(
-    chunks: Iterable, *, max_gap_s: float = 0.1, cubic_weight: float | None = None
-) -> Iterator[tuple[F64, F64, NDArray[np.int64]]]:
-    """Bring chunks of a recording onto the magnetometer stamps, chunk by chunk.
-
-    THE interpolator over the whole series, computed chunk by chunk
-    (:class:`stages.restore.ChunkedAttitude`: the cubic's neighbours are carried from one
-    chunk to the next, so every chunk is interpolated as the whole series would be).
-
-    Parameters
-    ----------
-    chunks : iterable of objects with ``mag`` (VectorSeries) and ``attitude``
-        (AttitudeSeries or None), such as :func:`pipeline.io.mcap_read.iter_recording_chunks`.
-        Within a chunk samples need not be sorted; across chunks stamps must advance.
-    max_gap_s : float
-        Attitude gap bridged by the interpolator, s.
-    cubic_weight : float, optional
-        The blend weight ``lam`` of (A7) (pipeline/model/attitude.py); by default estimated
-        from the first chunk's attitude (a long recording's first range holds ~100,000
-        attitude samples).
-
-    Yields
-    ------
-    (q_enu_body (N, 4), mag_nT (N, 3), t_ns (N,))
-        Magnetometer samples with a usable attitude, in time order. A magnetometer sample
-        waits until the attitude two samples past it has arrived (or the chunks end).
-
-    """
-    from pipeline.model.attitude import estimate_cubic_weight
-    from stages.restore import ChunkedAttitude
-
-    it = iter(chunks)
-    stream: ChunkedAttitude | None = None
-    waiting: list = []  # chunks read before the first attitude sample (lam from it)
-
-    def settled(rows: Any) -> Iterator[tuple[F64, F64, NDArray[np.int64]]]:
-        if rows is None:
-            return
-        t, y, interp = rows
-        at = interp.at(t, 0.0)
-        ok = at.valid
-        if ok.any():
-            yield at.q_enu_body[ok], y[ok], t[ok]
-
-    def feed(ch: Any) -> Iterator[tuple[F64, F64, NDArray[np.int64]]]:
-        assert stream is not None
-        att = ch.attitude
-        yield from settled(stream.add(ch.mag.t_ns, ch.mag.values,
-                                      None if att is None else att.t_ns,
-                                      None if att is None else att.q_enu_body))
-
-    for ch in it:
-        if stream is None:
-            waiting.append(ch)
-            if ch.attitude is None or not len(ch.attitude):
-                continue
-            if cubic_weight is not None:
-                lam = float(cubic_weight)
-            else:
-                o = np.argsort(ch.attitude.t_ns, kind="stable")
-                lam = estimate_cubic_weight(ch.attitude.t_ns[o], ch.attitude.q_enu_body[o])
-            stream = ChunkedAttitude(max_gap_s=max_gap_s, cubic_weight=lam)
-            for w in waiting:
-                yield from feed(w)
-            waiting = []
-            continue
-        yield from feed(ch)
-    if stream is not None:
-        yield from settled(stream.finish())
-    # a recording without any attitude sample: nothing has an attitude
-
-
-def calibrate_streaming(
-    path: str,
-    *,
-    estimate_offset: bool = False,
-    estimate_soft_iron: bool = False,
-    estimate_time_offset: bool = False,
-    reference_field_enu_nT: F64 | None = None,
-    max_messages: int = 200_000,
-    max_gap_s: float = 0.1,
-    mag_topic: str | None = None,
-    attitude_topic: str | None = None,
-) -> Calibration:
-    """Calibrate a recording of any length in bounded memory (one pass over the file).
-
-    Parameters
-    ----------
-    path : str
-        The MCAP recording.
-    estimate_offset : bool
-        Estimate the hard-iron offset.
-    estimate_soft_iron, estimate_time_offset : bool
-        Estimate ``D`` and ``tau`` (:class:`StreamAccumulator`, module docstring).
-    reference_field_enu_nT : ndarray (3,), optional
-        Known background field.
-    max_messages : int
-        Messages decoded per chunk (memory bound: about 100 bytes per message).
-    max_gap_s : float
-        Attitude gap bridged by interpolation.
-    mag_topic, attitude_topic : str, optional
-        Channels, as for :func:`pipeline.io.mcap_read.read_recording`.
-
-    """
-    from pipeline.io.mcap_read import iter_recording_chunks
-
-    chunks = iter_recording_chunks(path, max_messages=max_messages, mag_topic=mag_topic,
-                                   attitude_topic=attitude_topic)
-    aligned = iter_aligned_chunks(chunks, max_gap_s=max_gap_s)
-    if not (estimate_soft_iron or estimate_time_offset):
-        return fit_stats(accumulate(aligned), estimate_offset=estimate_offset,
-                         reference_field_enu_nT=reference_field_enu_nT).to_calibration()
-    acc = StreamAccumulator(max_gap_s=max_gap_s)
-    for q, y, t in aligned:
-        acc.add(q, y, t)
-    return fit_stats(acc.result(), estimate_offset=estimate_offset,
-                     estimate_soft_iron=estimate_soft_iron,
-                     estimate_time_offset=estimate_time_offset,
-                     reference_field_enu_nT=reference_field_enu_nT).to_calibration()

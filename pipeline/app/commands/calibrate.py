@@ -71,12 +71,13 @@ reference_from_args = field_from_args
 def run(args: argparse.Namespace) -> int:
     """Analyse as ``process`` does, write DIR/calibration.json and print a summary.
 
-    The stages are :func:`pipeline.app.process_one.analysis_stages`, the same as ``diagnose``
+    The stages are :meth:`pipeline.run.plan.Plan.analysis_stages`, the same as ``diagnose``
     and ``process``: one recording and one set of options give one answer. Without
     ``--estimate`` (and with the default estimator) the answer is the model the data select;
     with it, the chosen model, its sigma widened by what the terms it leaves out do to R.
     """
-    from pipeline.app.process_one import ProcessOptions, analyse_recording
+    from pipeline.run.options import ProcessOptions
+    from pipeline.run.runner import analyse_recording
     from stages.estimate import EstimatorKind, Term
 
     try:

@@ -44,10 +44,11 @@ def diagnose_file(path: str | Path, *, mag_topic: str | None = None,
                   exclude: tuple = ()):
     """Analyse one recording as ``process`` and ``calibrate`` do; returns the final Context.
 
-    The stages are :func:`pipeline.app.process_one.analysis_stages` (estimate, diagnosis,
+    The stages are :meth:`pipeline.run.plan.Plan.analysis_stages` (estimate, diagnosis,
     verdict): the calibration written is the one ``process`` restores with.
     """
-    from pipeline.app.process_one import ProcessOptions, analyse_recording
+    from pipeline.run.options import ProcessOptions
+    from pipeline.run.runner import analyse_recording
 
     options = ProcessOptions(reference_field_enu_nT=reference_field_enu_nT,
                              mag_topic=mag_topic, attitude_topic=attitude_topic,

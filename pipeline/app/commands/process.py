@@ -103,7 +103,7 @@ def issue_warnings(results: list[dict]) -> None:
 
     The recordings are processed in worker processes (or on Dask workers), whose warnings
     would otherwise be lost or printed there in Python's two-line format; the rows carry
-    them back (``run_warnings``, :func:`pipeline.app.process_one.process_recording`) and each is
+    them back (``run_warnings``, :func:`pipeline.run.runner.process_recording`) and each is
     warned here once, as one ``magalign: warning: ...`` line. A reused result repeats its
     warnings: its outputs were made from the same damaged input.
     """
