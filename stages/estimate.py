@@ -7,15 +7,19 @@
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
 
-from pipeline.core.errors import EstimationError
+from pipeline.core.errors import EstimationError, UsageError
 from pipeline.core.recording import AlignedSeries, Recording
+from pipeline.core.verdict import judge, sensor_noise_nT
 from pipeline.model.calibration import Calibration
+from pipeline.model.forward import MAX_TIME_OFFSET_S
+from pipeline.model.sample_hold import detect_sample_hold, repeated
 from stages.context import Context
 from stages.estimators.base import (
     Estimator,
@@ -25,6 +29,7 @@ from stages.estimators.base import (
     RobustLoss,
     Term,
 )
+from stages.estimators.registry import ESTIMATORS
 
 __all__ = [
     "Estimate",
@@ -54,11 +59,6 @@ def make_estimator(kind: EstimatorKind | str) -> Estimator:
         ``kind`` is not in :data:`stages.estimators.registry.ESTIMATORS`.
 
     """
-    import importlib
-
-    from pipeline.core.errors import UsageError
-    from stages.estimators.registry import ESTIMATORS
-
     name = getattr(kind, "value", kind)
     if name not in ESTIMATORS:
         raise UsageError(f"unknown estimator {name!r}: choose one of {', '.join(ESTIMATORS)}")
@@ -145,7 +145,6 @@ def fit_calibration(
         R_nom = R_nom.reshape(3, 3)
         if not np.allclose(R_nom @ R_nom.T, np.eye(3), atol=1e-6) or np.linalg.det(R_nom) < 0:
             raise EstimationError("the nominal mounting R_nominal_body_mag is not a rotation")
-    from pipeline.model.sample_hold import detect_sample_hold
 
     # Sample-and-hold (CONVENTIONS effect sample_hold): a repeated message carries no new
     # conversion and was sensed up to one native period before its stamp; left out.
@@ -157,7 +156,6 @@ def fit_calibration(
         # tau is estimated within +-MAX_TIME_OFFSET_S (pipeline.model.forward): a sample
         # closer than that to either end of the attitude may be sensed outside it, where the
         # attitude would be a held end sample, not the attitude at t - tau
-        from pipeline.model.forward import MAX_TIME_OFFSET_S
 
         margin = int(round(MAX_TIME_OFFSET_S * 1e9))
         ta = recording.attitude.t_ns
@@ -204,9 +202,6 @@ def with_verdict(cal: Calibration, aligned: AlignedSeries,
     calibration's own (a later, fuller model); ``diagnosed``: the diagnosis ran (the
     verdict's advice points to its findings).
     """
-    from pipeline.core.verdict import judge, sensor_noise_nT
-    from pipeline.model.sample_hold import repeated
-
     keep = ~repeated(aligned.mag_nT)
     noise = sensor_noise_nT(aligned.t_ns, aligned.mag_nT, aligned.q_enu_body, keep)
     res = cal.residual_rms_nT if residual_rms_nT is None else residual_rms_nT

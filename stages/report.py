@@ -23,6 +23,9 @@ import base64
 import datetime as dt
 import html
 import io
+import os
+import shlex
+import sys
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -1075,10 +1078,6 @@ def provenance(recording: Recording, *, command: str | None = None) -> dict[str,
         ``magalign`` program) or this process's arguments otherwise.
 
     """
-    import os
-    import shlex
-    import sys
-
     cmd = command or os.environ.get("MAGALIGN_COMMAND") or shlex.join(sys.argv)
     try:
         digest = sha256_file(recording.path)

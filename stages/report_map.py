@@ -16,6 +16,7 @@ which the campaign summary reads back); :func:`draw_map` and :func:`draw_maps` d
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import warnings
@@ -26,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.core import style
+from pipeline.core.atomic import write_text_atomic
 
 #: most points of a drawn path (runs of consecutive samples, averaged)
 MAX_POINTS = 1500
@@ -188,8 +190,6 @@ def map_data(t_ns: np.ndarray, p_m: np.ndarray, field_nT: np.ndarray, model_nT: 
 
 def write_map_json(path: str | Path, data: Mapping[str, Any]) -> Path:
     """Write ``map.json`` (atomically)."""
-    from pipeline.core.atomic import write_text_atomic
-
     return write_text_atomic(Path(path), json.dumps(data, allow_nan=False, default=_nan_safe))
 
 
@@ -269,8 +269,6 @@ def extent(m: Mapping[str, Any], margin: float = 0.08) -> tuple[float, float, fl
 
 def draw_map(m: Mapping[str, Any], dpi: int = 100) -> bytes:
     """Plan view for the report: restored |B| and the model's |B|, median taken off (PNG)."""
-    import io
-
     plt = style.pyplot()
     lim = colour_limit(m)
     xl, yl = frame_axes(str(m.get("frame")))
@@ -301,8 +299,6 @@ def draw_map(m: Mapping[str, Any], dpi: int = 100) -> bytes:
 
 def draw_small_map(m: Mapping[str, Any], lim: float, title: str, dpi: int = 100) -> bytes:
     """One line's plan view for the campaign summary, on the campaign's colour scale (PNG)."""
-    import io
-
     plt = style.pyplot()
     xl, yl = frame_axes(str(m.get("frame")))
     with plt.rc_context(style.rc() | {"savefig.dpi": dpi, "figure.dpi": dpi}):

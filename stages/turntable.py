@@ -34,11 +34,13 @@ reports unobservable tilt directions with infinite sigma instead of a made-up va
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import least_squares
 
 from pipeline.core.errors import ChannelError, EstimationError
 from pipeline.core.geometry import (
@@ -149,8 +151,6 @@ class TurntableAttitude:
 
     def apply(self, rec: Recording | None) -> Recording:
         """Return the recording with ``attitude`` built from its turntable channel."""
-        import dataclasses
-
         if rec is None or rec.turntable is None or len(rec.turntable) == 0:
             raise ChannelError(
                 "no turntable angle channel to build the attitude from",
@@ -385,8 +385,6 @@ def fit_axis_tilt(
         With too few samples inside the turntable span.
 
     """
-    from scipy.optimize import least_squares
-
     tt = recording.turntable
     if tt is None or len(tt) < 2:
         raise ChannelError(

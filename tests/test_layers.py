@@ -3,10 +3,12 @@
 ``pipeline/core`` (errors, containers, the stage protocol, geometry, files) is imported by
 everything and imports nothing of the project; ``pipeline/io`` (MCAP, CDR, the encoders, with
 ``schemas``) and ``pipeline/model`` (the physics) import only ``core`` and never each other;
-``stages`` import ``core``, ``io`` and ``model``; ``pipeline/app`` (the program, campaigns,
-the simulator) may import anything. Checked on the source of every module (imports inside
-functions included); imports only for the type checker (``if TYPE_CHECKING:``) are exempt,
-as they do not run.
+``stages`` import ``core``, ``io`` and ``model``; ``pipeline/run`` (the runner) imports
+the stages; ``pipeline/app`` (the program, campaigns, the simulator) may import anything.
+Checked on the source of every module, every import statement included (those for the type
+checker too: a type named across layers is a dependency all the same). An import inside a
+function may not cross a layer at all: a module's dependencies on other layers stand at its
+top.
 """
 
 from __future__ import annotations
@@ -48,27 +50,25 @@ def module_name(path: Path) -> str:
     return ".".join(parts)
 
 
-def _type_checking_nodes(tree: ast.AST) -> set[int]:
-    skip: set[int] = set()
+def _in_functions(tree: ast.AST) -> set[int]:
+    inside: set[int] = set()
     for node in ast.walk(tree):
-        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
-            for n in node.body:
-                skip.update(id(x) for x in ast.walk(n))
-    return skip
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            inside.update(id(x) for x in ast.walk(node) if x is not node)
+    return inside
 
 
-def imports_of(path: Path) -> list[tuple[int, str]]:
-    """(line, absolute module) of every runtime import of the project in ``path``."""
+def imports_of(path: Path) -> list[tuple[int, str, bool]]:
+    """(line, absolute module, inside a function) of every import of the project in ``path``."""
     tree = ast.parse(path.read_text(encoding="utf-8"))
-    skip = _type_checking_nodes(tree)
+    inside = _in_functions(tree)
     me = module_name(path).split(".")
     package = me if path.name == "__init__.py" else me[:-1]
     out = []
     for node in ast.walk(tree):
-        if id(node) in skip:
-            continue
+        late = id(node) in inside
         if isinstance(node, ast.Import):
-            out += [(node.lineno, a.name) for a in node.names]
+            out += [(node.lineno, a.name, late) for a in node.names]
         elif isinstance(node, ast.ImportFrom):
             if node.level:
                 base = package[: len(package) - node.level + 1]
@@ -76,7 +76,7 @@ def imports_of(path: Path) -> list[tuple[int, str]]:
             else:
                 mod = node.module or ""
             # ``from pipeline import core``: the names may be modules
-            out += [(node.lineno, f"{mod}.{a.name}") for a in node.names]
+            out += [(node.lineno, f"{mod}.{a.name}", late) for a in node.names]
     return out
 
 
@@ -97,8 +97,53 @@ def test_no_layer_imports_a_higher_one():
     bad = []
     for path in sources():
         mine = layer_of(module_name(path))
-        for line, mod in imports_of(path):
+        for line, mod, _late in imports_of(path):
             other = layer_of(mod)
             if other is not None and other not in ALLOWED[mine]:
                 bad.append(f"{path.relative_to(ROOT)}:{line} ({mine}) imports {mod} ({other})")
+    assert not bad, "\n".join(bad)
+
+
+def test_no_import_inside_a_function_crosses_a_layer():
+    bad = []
+    for path in sources():
+        mine = layer_of(module_name(path))
+        for line, mod, late in imports_of(path):
+            other = layer_of(mod)
+            if late and other is not None and other != mine:
+                bad.append(f"{path.relative_to(ROOT)}:{line} ({mine}) imports {mod} ({other}) "
+                           "inside a function")
+    assert not bad, "\n".join(bad)
+
+
+def test_the_layer_rules_catch_what_they_forbid(tmp_path, monkeypatch):
+    """The checks see an upward import under ``if TYPE_CHECKING:`` and one inside a function."""
+    mod = tmp_path / "pipeline" / "core" / "x.py"
+    mod.parent.mkdir(parents=True)
+    mod.write_text("from typing import TYPE_CHECKING\n"
+                   "if TYPE_CHECKING:\n    from stages.context import Context\n"
+                   "def f():\n    from pipeline.model import forward\n")
+    monkeypatch.setattr(__import__(__name__), "ROOT", tmp_path)
+    got = {(m, late) for _, m, late in imports_of(mod)}
+    assert ("stages.context.Context", False) in got  # counted, not exempt
+    assert ("pipeline.model.forward", True) in got  # inside a function
+
+
+def test_only_the_listed_modules_are_imported_late():
+    """Outside the project, a function imports only what ``LATE_IMPORTS`` lists (and why)."""
+    from pipeline.core.warm import LATE_IMPORTS
+
+    bad = []
+    for path in sources():
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        inside = _in_functions(tree)
+        for node in ast.walk(tree):
+            if id(node) not in inside or not isinstance(node, ast.Import | ast.ImportFrom):
+                continue
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [] if node.level else [node.module or ""])
+            for name in names:
+                if layer_of(name) is None and not any(
+                        name == m or name.startswith(m + ".") for m in LATE_IMPORTS):
+                    bad.append(f"{path.relative_to(ROOT)}:{node.lineno} imports {name}")
     assert not bad, "\n".join(bad)

@@ -17,9 +17,11 @@ Nothing read from disk is ever unpickled: markers and results are JSON.
 from __future__ import annotations
 
 import dataclasses
+import datetime as dt
 import enum
 import glob as globmod
 import hashlib
+import importlib
 import json
 import math
 import re
@@ -32,9 +34,20 @@ from typing import Any, cast
 import numpy as np
 
 from pipeline import __version__
+from pipeline.app.simulate import load_scenario, simulate, write_simulated
 from pipeline.core.atomic import safe_join, sha256_file, write_text_atomic
 from pipeline.core.config import TomlDoc
 from pipeline.core.errors import ConfigError, InputError, MagalignError, UsageError
+from pipeline.model.calibration import Calibration
+from pipeline.model.igrf import igrf_enu_nT
+from pipeline.run.options import ProcessOptions
+from stages.estimators.base import EstimatorKind, Term
+from stages.exclude import ExcludeWindow
+
+#: the analysis a worker runs on each recording: imported by name in the worker, so that the
+#: process that plans the campaign and gathers its rows never loads it (about 2 s of imports:
+#: scipy's signal and spatial modules, the diagnosis)
+RUNNER_MODULE = "pipeline.run.runner"
 
 DONE_MARKER = ".magalign-done.json"
 DONE_FORMAT = "magalign.done/1"
@@ -55,9 +68,6 @@ class ReferenceFieldMode(str, enum.Enum):
     FIXED = "fixed"
     IGRF = "igrf"
 
-
-from stages.estimators.base import EstimatorKind, Term  # noqa: E402
-from stages.exclude import ExcludeWindow  # noqa: E402
 
 # One spelling per option: the estimator kinds come from the registry, the terms from the
 # estimators' own enum (re-exported under the names this module has always used).
@@ -93,9 +103,7 @@ class ReferenceField:
         if self.mode is ReferenceFieldMode.FIXED:
             return self.enu_nT
         if self.mode is ReferenceFieldMode.IGRF:
-            import datetime as dt
 
-            from pipeline.model.igrf import igrf_enu_nT
 
             # the campaign file reader sets the site with the IGRF mode
             assert self.lat_deg is not None and self.lon_deg is not None
@@ -322,7 +330,6 @@ def _parse_options(doc: TomlDoc) -> RecordingOptions:
         lon = doc.number("reference_field.lon_deg", lo=-180, hi=360)
         alt = doc.number("reference_field.alt_m", 0.0, lo=-1e4, hi=1e6)
         date = doc.get("reference_field.date")
-        import datetime as dt
 
         try:
             dt.date.fromisoformat(str(date))
@@ -641,8 +648,6 @@ def finished_row(task: RecordingTask, input_sha256: str | None = None) -> dict[s
 
 def _process_options(task: RecordingTask) -> Any:
     """Build OUTPUTS' ``ProcessOptions`` from a task, passing only the fields it has."""
-    from pipeline.run.options import ProcessOptions
-
     o = task.options
     names = {f.name for f in dataclasses.fields(ProcessOptions)}
     want: dict[str, Any] = {}
@@ -668,8 +673,6 @@ def _process_options(task: RecordingTask) -> Any:
 
 def _generate(task: RecordingTask) -> None:
     """Simulate a scenario recording into the campaign's data folder (atomic write)."""
-    from pipeline.app.simulate import load_scenario, simulate, write_simulated
-
     assert task.scenario is not None  # called for scenario recordings only
     sim = simulate(load_scenario(task.scenario), seed=task.seed)
     Path(task.input_path).parent.mkdir(parents=True, exist_ok=True)
@@ -704,8 +707,8 @@ def run_task(task: RecordingTask) -> dict[str, Any]:
         if folder.is_dir():
             for tmp in folder.glob(".*.tmp"):
                 tmp.unlink(missing_ok=True)
-        from pipeline.run.runner import process_recording
 
+        process_recording = importlib.import_module(RUNNER_MODULE).process_recording
         row = process_recording(task.input_path, task.out_dir, options=_process_options(task))
         row = jsonable(dict(row or {}))
         marker = {
@@ -778,7 +781,6 @@ def run_campaign(
         cp = Path(calibration_path)
         if not cp.is_file():
             raise InputError("calibration file not found", path=cp)
-        from pipeline.model.calibration import Calibration
 
         Calibration.load(cp)  # refuse a bad file before any work
         calibration_path = str(cp.resolve())

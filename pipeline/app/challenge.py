@@ -15,15 +15,19 @@ key and returns a confusion table and the rates the bench reports.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from pipeline.app.simulate import Truth, scenario_from_dict, simulate, write_simulated
 from pipeline.core.atomic import write_text_atomic
 from pipeline.core.errors import InputError
+from pipeline.core.geometry import quat_mul, quat_to_matrix
 from pipeline.model.attitude import mean_interpolation_noise_factor
+from stages.diagnose.model import AttitudeTrack, FitData, ModelState, evaluate
 
 KINDS = (
     "hard_iron",
@@ -104,10 +108,6 @@ def apply_heading_drift(sim: Any, rate_deg_per_h: float) -> Any:
     The attitude source reports ``Rz(h(t)) C_true(t)`` (CONVENTIONS ``heading_drift``), ``t``
     from the first magnetometer sample; the magnetometer and the truth are unchanged.
     """
-    import dataclasses
-
-    from pipeline.core.geometry import quat_mul
-
     att = sim.recording.attitude
     t0 = int(sim.recording.mag.t_ns[0])
     h = np.radians(rate_deg_per_h / 3600.0) * (np.asarray(att.t_ns) - t0) * 1e-9
@@ -156,9 +156,6 @@ def _strength(sim_full: Any, sim_without: Any, kind: str, noise: dict[str, float
 
 def _strength_of(d: np.ndarray, sim_full: Any, kind: str, noise: dict[str, float]) -> float:
     """Strength of a noise-free signature ``d`` (N, 3), mag frame nT (see the module doc)."""
-    from pipeline.app.simulate import Truth
-    from stages.diagnose.model import AttitudeTrack, FitData, ModelState, evaluate
-
     tr: Truth = sim_full.truth
     t_ns = np.asarray(tr.mag_t_ns)
     t_s = (t_ns - t_ns[0]) * 1e-9
@@ -184,8 +181,6 @@ def _heading_strength(sim: Any, rate_deg_per_h: float, noise: dict[str, float]) 
     Its signature is the field turned about Up, ``h(t) (-B_N, B_E, 0)`` in ENU, seen through
     the true attitude.
     """
-    from pipeline.core.geometry import quat_to_matrix
-
     tr = sim.truth
     t_ns = np.asarray(tr.mag_t_ns)
     t_s = (t_ns - t_ns[0]) * 1e-9
@@ -222,8 +217,6 @@ def generate(n: int, seed: int, out_dir: str | Path, *, null_fraction: float = 0
         The key file.
 
     """
-    from pipeline.app.simulate import scenario_from_dict, simulate, write_simulated
-
     rng = np.random.default_rng(seed)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

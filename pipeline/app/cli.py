@@ -60,8 +60,13 @@ EPILOG = "development commands, for checking magalign itself:\n" + "\n".join(
     f"    {k:<13}{v}" for k, v in DEVELOPMENT_COMMANDS.items())
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """Build the argument parser with every available subcommand."""
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """Build the argument parser with every available subcommand.
+
+    ``command``: the subcommand being run; only its module is imported (each imports what
+    it runs at its top: the analysis, rerun, the campaign machinery), the others are named
+    without their options. None: every subcommand in full (the top-level help).
+    """
     parser = _Parser(prog="magalign", description=DESCRIPTION, epilog=EPILOG,
                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version",
@@ -71,6 +76,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
     for name in COMMANDS:
+        if command is not None and name != command:
+            sub.add_parser(name)
+            continue
         try:
             mod = importlib.import_module(f"pipeline.app.commands.{name}")
         except ModuleNotFoundError as exc:
@@ -91,7 +99,8 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``magalign`` console script; returns the exit status."""
     argv = sys.argv[1:] if argv is None else argv
     debug = "--debug" in argv
-    parser = build_parser()
+    named = [a for a in argv if not a.startswith("-")][:1]
+    parser = build_parser(named[0] if named and named[0] in COMMANDS else None)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,

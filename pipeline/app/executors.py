@@ -21,6 +21,9 @@ import os
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any, Protocol, TypeVar
 
+import numpy  # noqa: F401 - loads the BLAS library, which threadpoolctl can only limit once loaded
+from threadpoolctl import threadpool_limits
+
 from pipeline.core.errors import UsageError
 
 T = TypeVar("T")
@@ -79,9 +82,6 @@ def limit_blas_threads(n: int) -> None:
     cores, 2 workers: 80.6 s with the default, 70.8 s with one thread each). Dask's nanny
     does the same for its workers (``distributed.nanny.pre-spawn-environ``).
     """
-    import numpy  # noqa: F401 - loads the BLAS library, which threadpoolctl can only limit once loaded
-    from threadpoolctl import threadpool_limits
-
     threadpool_limits(limits=n, user_api="blas")
 
 

@@ -18,19 +18,20 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.app.simulate import load_scenario, simulate, write_simulated
+from pipeline.core.atomic import atomic_path
+from pipeline.core.errors import EstimationError
+from pipeline.core.geometry import so3_log
+from pipeline.io.mcap_read import read_recording
+from stages.context import Context
+from stages.estimate import EstimatorKind, fit_calibration
+from stages.resample import Resample
+
 PAPER_BOUND_NT = 1.0
 
 
 def reproduce(out_dir: str | Path) -> int:
     """Run the reproduction; writes DIR/li2020.json and DIR/li2020_section41.mcap."""
-    from pipeline.app.simulate import load_scenario, simulate, write_simulated
-    from pipeline.core.atomic import atomic_path
-    from pipeline.core.errors import EstimationError
-    from pipeline.io.mcap_read import read_recording
-    from stages.context import Context
-    from stages.estimate import EstimatorKind, fit_calibration
-    from stages.resample import Resample
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     scen = Path(__file__).resolve().parents[1] / "scenarios" / "li2020_section41.toml"
@@ -98,6 +99,5 @@ def reproduce(out_dir: str | Path) -> int:
 
 
 def _log(C: np.ndarray) -> np.ndarray:
-    from pipeline.core.geometry import so3_log
 
     return so3_log(C)

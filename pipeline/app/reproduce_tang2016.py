@@ -28,9 +28,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from pipeline.app import simulate as sim_mod
 from pipeline.core.atomic import atomic_path
 from pipeline.core.geometry import quat_conj, quat_mul, quat_rotate, so3_exp
 from pipeline.core.recording import AngleSeries, ChannelInfo, Recording, Role, VectorSeries
+from pipeline.core.style import pyplot
 from pipeline.model.tang import (
     HEADING_STATS_KEYS,
     exact_eta,
@@ -38,6 +40,7 @@ from pipeline.model.tang import (
     minor_spin_bound,
     tang_eta,
 )
+from stages.turntable import fit_axis_tilt, tilt_quat, turntable_quat
 
 F64 = NDArray[np.float64]
 
@@ -79,8 +82,6 @@ def simulate_tilted_turntable(
     magnetometer ``R.T C_true.T B + noise`` at ``mag_rate_hz``. The rate varies sinusoidally by
     ``rate_variation`` (relative) so that a time offset would be observable.
     """
-    from stages.turntable import tilt_quat, turntable_quat
-
     rng = np.random.default_rng(seed)
     w0 = np.radians(mean_rate_deg_s)
     duration = turns * 2 * np.pi / w0
@@ -123,7 +124,6 @@ def _scenario_or_memory() -> tuple[TiltedTurntable, str]:
     """Load the tilted turntable from the simulator's scenario when available, else in memory."""
     scen = Path(__file__).resolve().parents[1] / "scenarios" / "turntable_tilt3.toml"
     try:
-        from pipeline.app import simulate as sim_mod
 
         if scen.exists():
             sim = sim_mod.simulate(sim_mod.load_scenario(scen), seed=0)
@@ -161,7 +161,6 @@ def eta_grid(
 
 
 def _figure(grid: dict, path: Path) -> None:
-    from pipeline.core.style import pyplot
 
     plt = pyplot()
 
@@ -184,8 +183,6 @@ def _figure(grid: dict, path: Path) -> None:
 
 def reproduce(out_dir: str | Path) -> int:
     """Write ``tang2016.json`` and the figure into ``out_dir``; print a short table; return 0."""
-    from stages.turntable import fit_axis_tilt
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     grid = eta_grid()

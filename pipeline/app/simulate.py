@@ -64,7 +64,10 @@ from pipeline.core.recording import (
     Role,
     VectorSeries,
 )
+from pipeline.io.mcap_decode import _WGS84_A_M, _WGS84_E2, geodetic_to_local_enu
+from pipeline.io.mcap_write import write_recording
 from pipeline.model.forward import reading
+from pipeline.model.igrf import igrf_enu_nT
 from schemas import MessageRole, types_of
 
 F64 = NDArray[np.float64]
@@ -508,7 +511,6 @@ class FieldSpec:
         """Return the constant background field, ENU, nT."""
         if self.enu_nT is not None:
             return np.array(self.enu_nT, dtype=float)
-        from pipeline.model.igrf import igrf_enu_nT
 
         lat, lon, alt, date = self.igrf  # type: ignore[misc]
         return igrf_enu_nT(lat, lon, alt, date)
@@ -1057,7 +1059,6 @@ class _Model:
                 self.drift = lambda t: 0.5 * ptp * np.sin(
                     2 * math.pi * (t - t0_mag_s) / period)[:, None]
             else:
-                from scipy.interpolate import PchipInterpolator
 
                 lo, hi = t0_mag_s - 1.0, t_last_s + 1.0
                 n = max(20, int((hi - lo) / max((hi - lo) / 200.0, 0.1)))
@@ -1070,6 +1071,8 @@ class _Model:
                 wmin, wmax = walk[inner].min(0), walk[inner].max(0)
                 span = np.where(wmax > wmin, wmax - wmin, 1.0)
                 walk = (walk - wmin) / span * ptp - 0.5 * ptp
+                from scipy.interpolate import PchipInterpolator  # pipeline.core.warm.LATE_IMPORTS
+
                 self.drift = PchipInterpolator(grid, walk, axis=0)
 
     def C_enu_body(self, t_s: F64) -> F64:
@@ -1162,7 +1165,6 @@ def _written_position(sc: Scenario, t_att: F64, att_t_ns: NDArray) -> PositionSe
         return PositionSeries(att_t_ns, p_enu @ tr.Q_enu_local(),
                               PositionFrame.ATTITUDE_SOURCE_LOCAL)
     if sc.output.attitude_type == "novatel_oem7_msgs/msg/INSPVA":
-        from pipeline.io.mcap_decode import geodetic_to_local_enu
 
         lat, lon, h = _geodetic(tr, p_enu)
         return PositionSeries(att_t_ns, geodetic_to_local_enu(lat, lon, h), PositionFrame.ENU)
@@ -1176,8 +1178,6 @@ def _geodetic(tr: Trajectory, p_enu: F64) -> tuple[F64, F64, F64]:
     geodetic_to_local_enu` (exact for it), origin at the trajectory's origin latitude and
     longitude and height 0 m at ENU ``z = 0``.
     """
-    from pipeline.io.mcap_decode import _WGS84_A_M, _WGS84_E2
-
     lat0, lon0 = (math.radians(x) for x in tr.origin_lat_lon_deg)
     w = math.sqrt(1.0 - _WGS84_E2 * math.sin(lat0) ** 2)
     r_n, r_m = _WGS84_A_M / w, _WGS84_A_M * (1.0 - _WGS84_E2) / w**3
@@ -1324,8 +1324,6 @@ def write_simulated(sim: Simulated, path: str | Path) -> Path:
 
     Messages are interleaved by log time (stamp + the scenario's log delays). Returns the path.
     """
-    from pipeline.io.mcap_write import write_recording
-
     rec = sim.recording
     out = sim.scenario.output
     kw: dict[str, Any] = {}

@@ -7,7 +7,9 @@ summary does not depend on how the per-recording pipeline lays out its return va
 
 from __future__ import annotations
 
+import base64
 import html
+import io
 import json
 import math
 from collections.abc import Mapping, Sequence
@@ -17,7 +19,10 @@ from typing import Any
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from pipeline.core import style
 from pipeline.core.atomic import atomic_path, write_text_atomic
+from pipeline.core.style import minus
+from stages.report_map import draw_maps, read_map_json
 
 AXES = ("x", "y", "z")
 
@@ -148,8 +153,6 @@ def write_summary(out_dir: str | Path, rows: Sequence[Mapping[str, Any]],
 
 def _num(v: Any, nd: int) -> str:
     """Return a number with ``nd`` decimals and a true minus sign ("" when missing)."""
-    from pipeline.core.style import minus
-
     f = _f(v)
     return "" if f is None else minus(f"{f:.{nd}f}")
 
@@ -247,9 +250,7 @@ def campaign_figure(rows: Sequence[Mapping[str, Any]]) -> bytes | None:
             and all(_f(r.get(f"rotvec_deg_{a}")) is not None for a in AXES)]
     if not runs:
         return None
-    import io
 
-    from pipeline.core import style
 
     plt = style.pyplot()
 
@@ -283,10 +284,6 @@ def maps_html(rows: Sequence[Mapping[str, Any]], out_dir: Path | None) -> str:
     Each recording's ``map.json`` (written beside its report) is drawn on one colour scale
     for all, so that the same colour is the same field on every line.
     """
-    import base64
-
-    from stages.report_map import draw_maps, read_map_json
-
     if out_dir is None:
         return ""
     found = []
@@ -320,8 +317,6 @@ def maps_html(rows: Sequence[Mapping[str, Any]], out_dir: Path | None) -> str:
 
 def minus_text(text: str) -> str:
     """Return ``text`` with a true minus sign and a plus-minus sign."""
-    from pipeline.core.style import minus
-
     return minus(text)
 
 
@@ -334,8 +329,6 @@ def render_html(rows: Sequence[Mapping[str, Any]], cols: Sequence[str], title: s
     name links to its report. A failed recording's error is a line under its row. Columns
     of ``cols`` the groups do not show are only in ``summary.parquet`` (``input_path``).
     """
-    import base64
-
     groups = _groups()
     extra = [c for c in cols if c not in SHOWN]
     n_cols = sum(len(g) for _, g in groups) + len(extra)

@@ -295,3 +295,9 @@ def quat_to_novatel(q_enu_body: ArrayLike) -> tuple[F64, F64, F64]:
     a = np.arctan2(-C[..., 0, 1], C[..., 1, 1])
     az = np.mod(-np.degrees(a), 360.0)
     return np.degrees(r), np.degrees(p), az
+
+
+def rot_z(yaw_rad: float) -> np.ndarray:
+    """Return the rotation about Up by ``yaw_rad``, (3, 3): ``p_enu = Q @ p_local``."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])

@@ -22,6 +22,7 @@ from typing import Any, Literal, overload
 import numpy as np
 
 from pipeline.core.errors import InputError
+from pipeline.core.geometry import quat_to_matrix, rotvec_to_quat, so3_log
 
 CALIBRATION_FORMAT = "magalign.calibration/1"
 DIAGNOSIS_FORMAT = "magalign.diagnosis/1"
@@ -115,7 +116,6 @@ class _Checker:
 
 
 def _rotvec_matrix(rotvec_deg: np.ndarray) -> np.ndarray:
-    from pipeline.core.geometry import quat_to_matrix, rotvec_to_quat
 
     return quat_to_matrix(rotvec_to_quat(np.radians(rotvec_deg)))
 
@@ -151,7 +151,6 @@ def check_calibration_dict(d: Any, path: str | Path | None = None) -> None:
     R = c.array(d, "R_body_mag", (3, 3))
     c.rotation(R, "R_body_mag")
     rv = c.array(d, "rotvec_body_mag_deg", (3,))
-    from pipeline.core.geometry import so3_log
 
     ang = float(np.degrees(np.linalg.norm(so3_log(_rotvec_matrix(rv) @ R.T))))
     if not ang <= ROTVEC_TOL_DEG:

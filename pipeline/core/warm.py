@@ -1,8 +1,8 @@
-"""Import modules ahead of their use, on a helper thread.
+"""The modules imported late, and importing them ahead of their use on a helper thread.
 
-Importing rerun's SDK takes about a second, matplotlib and pandas about half a second each.
-A process that will need them later and is waiting (on its workers, on reading a file)
-imports them meanwhile, so that the step that uses them does not pay for it.
+Every other import stands at the top of its module. A process that will need one of these
+later and is waiting (on its workers, on reading a file) imports it meanwhile, so that the
+step that uses it does not pay for it.
 """
 
 from __future__ import annotations
@@ -10,6 +10,13 @@ from __future__ import annotations
 import importlib
 import os
 import threading
+
+#: The only modules imported inside functions, where they are first needed, and why: each
+#: would cost every command that never uses it. rerun's SDK (about a second) and matplotlib
+#: (half a second) for the outputs that draw; dask and its ``distributed`` (a second) only
+#: with ``--dask-local`` or ``--scheduler``; ppigrf (0.6 s) only with ``--igrf``;
+#: ``scipy.interpolate`` (0.5 s) only to simulate a scenario's field drift.
+LATE_IMPORTS = ("rerun", "matplotlib", "dask", "distributed", "ppigrf", "scipy.interpolate")
 
 
 def import_quietly(*names: str) -> None:

@@ -13,6 +13,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any, Literal, overload
 
+import jsonschema
 import numpy as np
 from numpy.typing import NDArray
 
@@ -263,7 +264,6 @@ class _Decoder:
             self.paths = self._cdr_paths()
         elif ch.message_encoding == "json":
             if sch.encoding == "jsonschema" and sch.data:
-                import jsonschema
 
                 try:
                     schema_doc = json.loads(sch.data)

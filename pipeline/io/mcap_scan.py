@@ -13,12 +13,16 @@ import struct
 import threading
 import warnings
 import zlib
+from collections import deque
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import lz4.frame
 import numpy as np
+import zstandard
 from numpy.typing import NDArray
 
 from pipeline.core.errors import (
@@ -365,7 +369,6 @@ def _zstd() -> Any:
     """
     d = getattr(_local, "zstd", None)
     if d is None:
-        import zstandard
 
         d = _local.zstd = zstandard.ZstdDecompressor()
     return d
@@ -383,14 +386,12 @@ def _inflate(scan: _Scan, ch: _Chunk) -> tuple[bytes | None, str, str]:
             out = view.tobytes()
         elif ch.compression == "zstd":
             if ch.torn:
-                import zstandard
 
                 out = zstandard.ZstdDecompressor().decompressobj().decompress(view.tobytes())
             else:
                 # straight from the file's bytes (no copy), with this thread's decompressor
                 out = _zstd().decompress(view, max_output_size=ch.uncompressed_size)
         elif ch.compression == "lz4":
-            import lz4.frame
 
             comp = view.tobytes()
             if ch.torn:
@@ -468,8 +469,6 @@ def _decompressed_then(scan: _Scan, chunks: list[_Chunk],
             result, extra = _inflate_then(scan, ch, after)
             yield ch, _report(scan, ch, result), extra
         return
-    from collections import deque
-    from concurrent.futures import ThreadPoolExecutor
 
     with ThreadPoolExecutor(max_workers=DECOMPRESS_THREADS,
                             thread_name_prefix="magalign-inflate") as ex:

@@ -43,7 +43,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any, Protocol, cast
 
+import lz4.frame
 import numpy as np
+import zstandard
 from numpy.typing import ArrayLike, NDArray
 
 from pipeline.core import geometry
@@ -593,7 +595,6 @@ class McapColumnWriter:
     def _compress_pieces(self, pieces: list[np.ndarray], total: int) -> bytes | memoryview:
         """Compress the concatenation of ``pieces`` (``total`` bytes) as one frame."""
         if self.compression is Compression.ZSTD:
-            import zstandard
 
             if self._zstd is None:  # one compressor for all chunks (its context is reused)
                 self._zstd = zstandard.ZstdCompressor(level=self.zstd_level)
@@ -606,7 +607,6 @@ class McapColumnWriter:
             return b"".join(parts)
         joined = pieces[0] if len(pieces) == 1 else np.concatenate(pieces)
         if self.compression is Compression.LZ4:
-            import lz4.frame
 
             return lz4.frame.compress(joined)
         return memoryview(cast("Buffer", joined)).cast("B")

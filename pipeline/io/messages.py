@@ -22,6 +22,7 @@ back to the same float64 (round-trip exact); non-finite values become ``NaN``/``
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
@@ -282,7 +283,6 @@ def _num(a: ArrayLike) -> NDArray[np.bytes_]:
 
 
 def _json_string(s: str) -> bytes:
-    import json
 
     return json.dumps(s).encode("utf-8")
 

@@ -21,6 +21,7 @@ from pipeline.core.errors import InputError
 from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
 from pipeline.core.validate import check_calibration_dict
 from pipeline.core.verdict import Verdict
+from pipeline.model.forward import ForwardModel, predict, restore
 
 if TYPE_CHECKING:
     from pipeline.core.recording import AttitudeSeries, PositionSeries
@@ -183,8 +184,6 @@ class Calibration:
 
     def forward_model(self) -> ForwardModel:
         """Return the measurement model this calibration carries (:mod:`pipeline.model`)."""
-        from pipeline.model.forward import ForwardModel
-
         return ForwardModel.from_calibration(self)
 
     def predict(
@@ -223,8 +222,6 @@ class Calibration:
             Predicted ``y_mag``, nT; NaN where no attitude is available.
 
         """
-        from pipeline.model.forward import predict
-
         return predict(self.forward_model(), t_ns, attitude, t0_ns=t0_ns,
                        max_gap_s=max_gap_s, position=position)
 
@@ -249,8 +246,6 @@ class Calibration:
             the full model, ``valid`` (:class:`pipeline.model.forward.Restoration`).
 
         """
-        from pipeline.model.forward import restore
-
         return restore(self.forward_model(), mag_nT, t_ns, attitude, t0_ns=t0_ns,
                        max_gap_s=max_gap_s, position=position)
 

@@ -51,6 +51,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from pipeline.core.geometry import rot_z
+
 F64 = NDArray[np.float64]
 
 #: Name of the basis (the ``basis`` param of CONVENTIONS ``field_map``).
@@ -230,8 +232,6 @@ class FieldMapBasis:
 
 def map_field_enu(basis: FieldMapBasis, weights: F64, yaw_rad: float, x_m: F64) -> F64:
     """Return the map's field ``Q B_x(x)`` in ENU, nT, (N, 3), at position-frame points ``x_m``."""
-    from pipeline.model.forward import rot_z
-
     B = np.einsum("ndk,k->nd", basis.field(x_m), np.asarray(weights, dtype=float))
     return B @ rot_z(yaw_rad).T
 
@@ -242,8 +242,6 @@ def map_points(p_m: F64, yaw_rad: float, lever_enu_m: F64 | None = None) -> F64:
     The lever arm ``C l`` is in ENU (CONVENTIONS ``lever_arm``); the map's box is in the
     position frame, turned to ENU by ``Q = Rz(yaw)``.
     """
-    from pipeline.model.forward import rot_z
-
     x = np.asarray(p_m, dtype=float)
     if lever_enu_m is None:
         return x

@@ -58,13 +58,14 @@ call it. :func:`field_jacobian` (J2), :func:`soft_iron_jacobian` (J4) and
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
+from pipeline.core.geometry import quat_rotate, quat_to_matrix, rot_z, so3_exp
 from pipeline.model.attitude import AttitudeInterpolator, Interpolated
 from pipeline.model.field_map import FieldMapBasis, map_field_enu, map_points
 
@@ -89,9 +90,15 @@ RATE_STEP_INTERVALS = 3.0
 PARAM_NAMES = ("rot_x", "rot_y", "rot_z", "B_e", "B_n", "B_u", "o_x", "o_y", "o_z",
                "D_xx", "D_yy", "D_zz", "D_xy", "D_xz", "D_yz", "tau")
 
-_SYM6 = np.zeros((6, 3, 3))
+#: symmetric basis of D: three diagonal then three off-diagonal elements
+SOFT_IRON_BASIS = np.zeros((6, 3, 3))
 for _k, (_i, _j) in enumerate([(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]):
-    _SYM6[_k, _i, _j] = _SYM6[_k, _j, _i] = 1.0
+    SOFT_IRON_BASIS[_k, _i, _j] = SOFT_IRON_BASIS[_k, _j, _i] = 1.0
+#: its trace-free part: without a reference field the scale of D trades exactly against |B|,
+#: so D is kept at trace 3 (mean gain 1) and |B| carries the scale
+SOFT_IRON_BASIS_TRACE_FREE = np.concatenate(
+    [np.array([np.diag([1.0, -1.0, 0.0]), np.diag([0.0, 1.0, -1.0])]) / np.sqrt(2.0),
+     SOFT_IRON_BASIS[3:]])
 
 
 def skew_rows(v: F64) -> F64:
@@ -325,12 +332,6 @@ DIPOLE_NT = 100.0
 #: Closest distance (m) at which a point dipole is evaluated: a guard against a fit step that
 #: puts the source on the path (the field there is not a point dipole's anyway)
 MIN_SOURCE_DISTANCE_M = 0.01
-
-
-def rot_z(yaw_rad: float) -> F64:
-    """Return the rotation about Up by ``yaw_rad``, (3, 3): ``p_enu = Q @ p_local``."""
-    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def source_offset_enu(c_m: F64, psi_rad: float, p_m: F64,
@@ -655,7 +656,6 @@ def _interp(attitude: AttitudeSeries | AttitudeInterpolator, max_gap_s: float | 
 
 
 def _Ct(q: F64) -> F64:
-    from pipeline.core.geometry import quat_to_matrix
 
     return np.swapaxes(quat_to_matrix(q), -1, -2)
 
@@ -770,8 +770,6 @@ class Restoration:
 def restore(model: ForwardModel, mag_nT: F64, t_ns: NDArray[np.int64],
             attitude: AttitudeSeries | AttitudeInterpolator, **kw: Any) -> Restoration:
     """Invert the model (M6) and compute the residual of (M1)-(M5); keywords as :func:`evaluate`."""
-    from pipeline.core.geometry import quat_rotate
-
     y = np.asarray(mag_nT, dtype=float)
     ev = evaluate(model, t_ns, attitude, **kw)
     c = y - ev.sensor_nT
@@ -824,7 +822,7 @@ def jacobian(model: ForwardModel, t_ns: NDArray[np.int64],
         Rz[:, 2, 2] = 1.0
         J[:, :, 3:6] = np.matmul(J[:, :, 3:6], Rz)
     J[:, :, 6:9] = np.eye(3)  # (J3)
-    J[:, :, 9:15] = soft_iron_jacobian(_SYM6, m, mdot, E)  # (J4)
+    J[:, :, 9:15] = soft_iron_jacobian(SOFT_IRON_BASIS, m, mdot, E)  # (J4)
     J[:, :, 15] = time_offset_jacobian(ev.omega_body_rad_s, ev.b_body_nT, _mv(Cddot, B),
                                        R, D, E)  # (J5)
     J[~valid] = 0.0
@@ -833,12 +831,8 @@ def jacobian(model: ForwardModel, t_ns: NDArray[np.int64],
 
 def perturbed(model: ForwardModel, dx: F64) -> ForwardModel:
     """Apply a perturbation in the order of :data:`PARAM_NAMES` (right perturbation on R)."""
-    from dataclasses import replace
-
-    from pipeline.core.geometry import so3_exp
-
     dx = np.asarray(dx, dtype=float)
-    D = model.D_or_I + np.tensordot(dx[9:15], _SYM6, axes=1)
+    D = model.D_or_I + np.tensordot(dx[9:15], SOFT_IRON_BASIS, axes=1)
     o = (np.zeros(3) if model.offset_nT is None else model.offset_nT) + dx[6:9]
     return replace(model, R_body_mag=model.R_body_mag @ so3_exp(dx[0:3]),
                    B_enu_nT=model.B_enu_nT + dx[3:6], D=D, offset_nT=o,

@@ -45,6 +45,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
 I64 = NDArray[np.int64]
@@ -321,8 +322,6 @@ def _local_lag_ns(t_first: I64) -> I64:
 
 def _running_min(x: F64, w: int) -> F64:
     """Centred running minimum over ``w`` samples (shrinking at the ends), (N,)."""
-    from numpy.lib.stride_tricks import sliding_window_view
-
     h = w // 2
     pad = np.concatenate([np.full(h, np.inf), x, np.full(w - 1 - h, np.inf)])
     return sliding_window_view(pad, w).min(axis=1)

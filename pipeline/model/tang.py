@@ -47,6 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import least_squares
 
 from pipeline.core.geometry import (
     quat_conj,
@@ -280,8 +281,6 @@ def fit_alpha_from_eta(
         or no sensitivity, e.g. all ``Omega`` = 0).
 
     """
-    from scipy.optimize import least_squares
-
     om = np.asarray(omega_rad, dtype=float).ravel()
     eta = np.asarray(eta_rad, dtype=float).ravel()
     model = exact_eta if exact else tang_eta

@@ -478,8 +478,13 @@ def process(source: Source, rec_dir: Path, options: ProcessOptions, steps: Steps
     warm_in_background(*warm)
     if isinstance(source, FileSource):
         source.spill_to(rec_dir)
-    analysis = analyse_source(source, options, steps)
+    return restore_into_sinks(analyse_source(source, options, steps), rec_dir, steps)
+
+
+def restore_into_sinks(analysis: Analysis, rec_dir: Path, steps: Steps) -> Processed:
+    """Restore every sample of an analysed recording into its plan's sinks (second pass)."""
     source, plan, reduced = analysis.source, analysis.plan, analysis.reduced
+    options = plan.options
     ctx = analysis.ctx
     cal = ctx.need_calibration()
     header = source.header

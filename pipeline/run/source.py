@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import tempfile
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TypeVar
@@ -242,8 +243,12 @@ def open_source(path: str | Path, options: ProcessOptions, *, warn: bool = False
     recovers). ``warn``: what the reader repaired is also warned (``RecoveredDataWarning``).
     """
     if options.scale_samples is not None and options.turntable_topic is None:
-        header = read_recording_header(path, mag_topic=options.mag_topic,
-                                       attitude_topic=options.attitude_topic)
+        # a look at the file's indexes; what it finds wrong the reader says once, below (a
+        # file read in ranges is intact)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            header = read_recording_header(path, mag_topic=options.mag_topic,
+                                           attitude_topic=options.attitude_topic)
         mag = next((c for c in header.channels if c.topic == header.mag_topic), None)
         if mag is not None and mag.count > options.scale_samples and header.attitude is not None:
             pt = pass_through(path)

@@ -51,7 +51,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.core.geometry import quat_to_matrix, skew, so3_exp
-from pipeline.model.attitude import AttitudeInterpolator
+from pipeline.model.attitude import (
+    MEAN_INTERPOLATION_ERROR_SHAPE,
+    AttitudeInterpolator,
+    attitude_noise_rad,
+    interpolation_error_rad,
+    interpolation_error_shape,
+    mean_interpolation_noise_factor,
+)
 from pipeline.model.field_map import BASIS_NAME, FieldMapBasis, map_points
 from pipeline.model.forward import (
     DRIFT_DEGREE,
@@ -755,12 +762,6 @@ def sample_weights(data: FitData, tau_s: float) -> F64 | None:
     """
     if data.noise_model is None:
         return None
-    from pipeline.model.attitude import (
-        MEAN_INTERPOLATION_ERROR_SHAPE,
-        interpolation_error_shape,
-        mean_interpolation_noise_factor,
-    )
-
     s2, c, c_int = data.noise_model
     pos = data.track.position(data.t_s - tau_s)
     f = data.track.interpolator.noise_factor(pos)
@@ -792,8 +793,6 @@ def estimate_noise_model(residual_nT: F64, data: FitData, e_int_nT: float | None
     spacing); ``sigma_mag2`` is what the residual variance leaves (at least 5 % of
     it). None when both are negligible (below 0.1 % of the residual variance).
     """
-    from pipeline.model.attitude import MEAN_INTERPOLATION_ERROR_SHAPE, attitude_noise_rad
-
     var = float(np.mean(np.asarray(residual_nT) ** 2))
     if not np.isfinite(var) or var <= 0:
         return None
@@ -816,8 +815,6 @@ def interpolation_error_nT(data: FitData) -> float:
     interval (``8/15`` of the midway variance), as a component of ``C.T B`` (``2/9 |B|^2``
     per unit squared angle, as the attitude noise of :func:`estimate_noise_model`).
     """
-    from pipeline.model.attitude import MEAN_INTERPOLATION_ERROR_SHAPE, interpolation_error_rad
-
     e = interpolation_error_rad(data.track.interpolator)
     return float(np.sqrt(_angle_variance_nT2(data) * MEAN_INTERPOLATION_ERROR_SHAPE) * e)
 

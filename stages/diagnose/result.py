@@ -6,6 +6,7 @@ What a diagnosis finds (``Signature``, ``Finding``, ``Diagnosis``, format
 
 from __future__ import annotations
 
+import textwrap
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -105,8 +106,6 @@ class Diagnosis:
         Effect, estimate, score statistic, dBIC and held-out RMS before > after; the
         explanations are in diagnosis.json and the report.
         """
-        import textwrap
-
         head = (f"{'effect':<15} {'estimate (1 sigma)':<40} {'stat':>8} {'dBIC':>8} "
                 f"{'held-out nT':>17}")
         lines = [head, "-" * len(head)]

@@ -460,7 +460,6 @@ def final_split(res: FitResult, data: FitData):
     small. A term that the motion barely determines, or physics the final model still leaves
     out, shows up as halves that disagree.
     """
-    from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
     from stages.estimators.checks import SplitCheck, info_halves
 
     if len(data) < 200:

@@ -12,6 +12,7 @@ stage module do not import each other.
 from __future__ import annotations
 
 import enum
+import itertools
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -21,6 +22,7 @@ from numpy.typing import NDArray
 from pipeline.core.errors import EstimationError
 from pipeline.core.geometry import quat_to_matrix, skew
 from pipeline.core.recording import AttitudeSeries
+from pipeline.model.attitude import AttitudeInterpolator
 from pipeline.model.calibration import Calibration
 from stages.estimators.registry import ESTIMATORS
 
@@ -174,8 +176,6 @@ def interpolate_q(attitude: AttitudeSeries, t_ns: NDArray[np.int64], offset_s: f
     THE interpolator (:class:`pipeline.model.attitude.AttitudeInterpolator`), every gap
     bridged: used while iterating on ``tau`` over samples already known to have an attitude.
     """
-    from pipeline.model.attitude import AttitudeInterpolator
-
     it = AttitudeInterpolator.of(attitude, max_gap_s=np.inf, clamp=True)
     return it.at(t_ns, offset_s).q_enu_body
 
@@ -191,8 +191,6 @@ def wahba(a: F64, b: F64, w: F64 | None = None) -> F64:
 
 def cube_rotations() -> F64:
     """Return the 24 proper rotations that permute and flip axes, (24, 3, 3)."""
-    import itertools
-
     out = []
     for perm in itertools.permutations(range(3)):
         for signs in itertools.product((1.0, -1.0), repeat=3):

@@ -26,7 +26,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from pipeline.core.geometry import so3_log
 from stages.diagnose.model import CONFOUND_RATIO
+from stages.estimators.base import RELATIVE_INFO_THRESHOLD
 
 F64 = NDArray[np.float64]
 
@@ -160,8 +162,6 @@ class SplitCheck:
         ``chi2`` weighs the difference by the halves' own rotation variances (the axes with
         a finite, positive variance); ``split_s``: where the halves meet, s.
         """
-        from pipeline.core.geometry import so3_log
-
         d = so3_log(a.R_body_mag @ b.R_body_mag.T)
         var = np.radians(a.sigma_rotvec_deg) ** 2 + np.radians(b.sigma_rotvec_deg) ** 2
         ok = np.isfinite(var) & (var > 0)
@@ -213,8 +213,6 @@ def confounded(ratios: dict[str, F64], names: list[str]) -> dict[str, float]:
         Block name -> its smallest non-null ratio, for the confounded blocks.
 
     """
-    from stages.estimators.base import RELATIVE_INFO_THRESHOLD
-
     out = {}
     for n in names:
         lam = np.asarray(ratios.get(n, np.ones(1)), float)

@@ -20,6 +20,7 @@ from typing import cast
 import numpy as np
 
 from pipeline.core.errors import NotObservableError
+from pipeline.core.geometry import skew
 from pipeline.model.calibration import Calibration
 from stages.estimators.base import (
     F64,
@@ -116,7 +117,6 @@ class EllipsoidEstimator:
         R, B = init_rotation(m, C, B_ref, iterations=30)
         # Rotation-only information of the Wahba step (isotropic noise, scaled by residuals).
         b = np.einsum("nji,j->ni", C, B)
-        from pipeline.core.geometry import skew
 
         J = R.T @ skew(b)  # d(R.T b)/dphi for m = R.T b
         blocks = {"rot": slice(0, 3)}

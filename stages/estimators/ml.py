@@ -37,11 +37,13 @@ from typing import cast
 import numpy as np
 
 from pipeline.core.errors import EstimationError
-from pipeline.core.geometry import quat_to_matrix, skew, so3_exp
+from pipeline.core.geometry import matrix_to_quat, quat_to_matrix, quat_to_rotvec, skew, so3_exp
 from pipeline.core.recording import AttitudeSeries
 from pipeline.model.attitude import AttitudeInterpolator
 from pipeline.model.calibration import Calibration
 from pipeline.model.forward import (
+    SOFT_IRON_BASIS,
+    SOFT_IRON_BASIS_TRACE_FREE,
     Reading,
     field_jacobian,
     reading,
@@ -57,6 +59,7 @@ from stages.estimators.base import (
     Term,
     analyse,
     canonical_axis,
+    cube_rotations,
     init_rotation,
     irls_weights,
     rotation_words,
@@ -72,19 +75,6 @@ from stages.estimators.checks import (
     sandwich_cov,
 )
 from stages.estimators.ellipsoid import fit_ellipsoid
-
-# Symmetric basis of D: three diagonal then three off-diagonal elements.
-_SYM6 = np.zeros((6, 3, 3))
-for _k, (_i, _j) in enumerate([(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]):
-    _SYM6[_k, _i, _j] = _SYM6[_k, _j, _i] = 1.0
-# Trace-free basis: without a reference field the scale of D trades exactly against |B|, so D
-# is kept at trace 3 (mean gain 1) and |B| carries the scale.
-_SYM5 = np.concatenate(
-    [
-        np.array([np.diag([1.0, -1.0, 0.0]), np.diag([0.0, 1.0, -1.0])]) / np.sqrt(2.0),
-        _SYM6[3:],
-    ]
-)
 
 
 @dataclass
@@ -115,7 +105,7 @@ class Model:
         self.with_o = Term.OFFSET in problem.terms
         self.with_D = Term.SOFT_IRON in problem.terms
         self.with_tau = Term.TIME_OFFSET in problem.terms
-        self.basis = _SYM5 if (self.with_D and estimate_B) else _SYM6
+        self.basis = SOFT_IRON_BASIS_TRACE_FREE if (self.with_D and estimate_B) else SOFT_IRON_BASIS
         att = problem.attitude
         if att is None:
             # The aligned samples are the attitude at t - tau0: a series on those stamps.
@@ -403,7 +393,6 @@ class MLEstimator:
         B_ref = p.reference_field_enu_nT
         cands = None
         if p.R_nominal_body_mag is not None:
-            from stages.estimators.base import cube_rotations
 
             cands = np.concatenate([cube_rotations(), p.R_nominal_body_mag[None]])
         R, B = init_rotation(yc, C, B_ref, cands)
@@ -800,8 +789,6 @@ def _decimated(p: Problem, n_max: int) -> Problem:
     The time-offset term re-interpolates the attitude at ``t - tau``; that needs the whole
     series, so when the aligned samples are the only attitude they are kept as the series.
     """
-    from pipeline.core.recording import AttitudeSeries
-
     k = int(np.ceil(p.n / n_max))
     att = p.attitude
     if att is None:
@@ -819,8 +806,6 @@ def _decimated(p: Problem, n_max: int) -> Problem:
 
 def _subset(p: Problem, mask: np.ndarray) -> Problem:
     """Return the samples of ``p`` where ``mask`` is true, with the whole attitude series."""
-    from pipeline.core.recording import AttitudeSeries
-
     att = p.attitude
     if att is None:
         att = AttitudeSeries(p.t_ns - np.int64(round(p.time_offset0_s * 1e9)), p.q_enu_body)
@@ -830,8 +815,6 @@ def _subset(p: Problem, mask: np.ndarray) -> Problem:
 
 def _log(R: F64) -> F64:
     """Return the rotation vector (rad) of a rotation matrix."""
-    from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
-
     return quat_to_rotvec(matrix_to_quat(R))
 
 
@@ -845,7 +828,6 @@ def _inside_attitude_span(p: Problem) -> Problem:
     keep = (p.t_ns >= t_att[0] + margin) & (p.t_ns <= t_att[-1] - margin)
     if att is None:
         # The aligned samples are the attitude series itself: keep it whole for interpolation.
-        from pipeline.core.recording import AttitudeSeries
 
         att = AttitudeSeries(t_att, p.q_enu_body)
     return Problem(

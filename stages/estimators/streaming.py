@@ -94,6 +94,7 @@ from numpy.typing import NDArray
 from pipeline.core.errors import EstimationError
 from pipeline.core.geometry import quat_to_matrix, skew, so3_exp
 from pipeline.model.calibration import Calibration
+from pipeline.model.forward import SOFT_IRON_BASIS, SOFT_IRON_BASIS_TRACE_FREE
 from pipeline.model.solve import Linearised, minimise
 from stages.estimators.base import RELATIVE_INFO_THRESHOLD, analyse, solve_many_truncated
 
@@ -826,9 +827,8 @@ class _Full:
 
 
 def _soft_iron_basis(estimate_B: bool) -> F64:
-    from stages.estimators.ml import _SYM5, _SYM6
 
-    return _SYM5 if estimate_B else _SYM6
+    return SOFT_IRON_BASIS_TRACE_FREE if estimate_B else SOFT_IRON_BASIS
 
 
 class _Design:

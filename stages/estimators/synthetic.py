@@ -17,6 +17,7 @@ from pipeline.core.geometry import (
     quat_mul,
     quat_normalize,
     quat_rotate,
+    quat_to_matrix,
     rotvec_to_quat,
 )
 from pipeline.core.recording import AlignedSeries, AttitudeSeries
@@ -133,8 +134,6 @@ def _profile_at(kind: str, n: int, rate_hz: float, t_s: F64, varying_rate: bool)
 
 def small_rotation(deg_xyz: F64) -> F64:
     """Rotation matrix of a rotation vector given in degrees."""
-    from pipeline.core.geometry import quat_to_matrix
-
     return quat_to_matrix(rotvec_to_quat(np.radians(np.asarray(deg_xyz, float))))
 
 

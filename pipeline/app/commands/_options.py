@@ -15,6 +15,8 @@ import numpy as np
 
 from pipeline.core.errors import UsageError
 from pipeline.io.mcap_format import MAGIC
+from pipeline.io.mcap_scan import check_magic, open_error  # the reader's own words
+from pipeline.model.igrf import igrf_enu_nT
 from stages.exclude import ExcludeWindow
 
 #: The first 8 bytes of every MCAP file (https://mcap.dev/spec).
@@ -91,7 +93,6 @@ def field_from_args(args: argparse.Namespace) -> np.ndarray | None:
         if len(parts) != 4:
             raise UsageError(f"--igrf must be LAT,LON,ALT_M,DATE, got {args.igrf!r}")
         lat, lon, alt = _floats(",".join(parts[:3]), 3, "--igrf LAT,LON,ALT_M")
-        from pipeline.model.igrf import igrf_enu_nT
 
         return np.asarray(igrf_enu_nT(lat, lon, alt, parts[3].strip()), float).reshape(3)
     return None
@@ -110,8 +111,6 @@ def check_mcap_file(path: str | Path) -> None:
         Empty, or not starting with the MCAP magic bytes.
 
     """
-    from pipeline.io.mcap_scan import check_magic, open_error  # the reader's own words
-
     p = Path(path)
     try:
         with open(p, "rb") as fh:

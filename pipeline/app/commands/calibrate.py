@@ -26,6 +26,9 @@ from pipeline.core import progress
 from pipeline.core.atomic import atomic_path
 from pipeline.core.errors import NotObservableError, RefusedError, UsageError
 from pipeline.core.verdict import Status
+from pipeline.run.options import ProcessOptions
+from pipeline.run.runner import analyse_recording
+from stages.estimate import EstimatorKind, Term, verdict_line
 from stages.estimators.registry import DESCRIPTIONS, ESTIMATORS
 
 log = logging.getLogger("magalign")
@@ -76,10 +79,6 @@ def run(args: argparse.Namespace) -> int:
     ``--estimate`` (and with the default estimator) the answer is the model the data select;
     with it, the chosen model, its sigma widened by what the terms it leaves out do to R.
     """
-    from pipeline.run.options import ProcessOptions
-    from pipeline.run.runner import analyse_recording
-    from stages.estimate import EstimatorKind, Term
-
     try:
         terms = frozenset(Term(t.strip()) for t in args.estimate.split(",") if t.strip())
     except ValueError as exc:
@@ -147,7 +146,6 @@ def summary(cal) -> str:
     if cal.n_eff is not None:
         lines.append(f"effective independent samples behind the sigmas: {cal.n_eff:.0f} of "
                      f"{cal.n_samples} (correlated residuals)")
-    from stages.estimate import verdict_line
 
     lines.append(verdict_line(cal))
     if cal.verdict is not None:

@@ -21,6 +21,9 @@ from pipeline.app.commands._options import (
 )
 from pipeline.core import progress
 from pipeline.core.atomic import write_text_atomic
+from pipeline.run.options import ProcessOptions
+from pipeline.run.runner import analyse_recording
+from stages.estimate import verdict_line
 
 log = logging.getLogger("magalign")
 
@@ -47,9 +50,6 @@ def diagnose_file(path: str | Path, *, mag_topic: str | None = None,
     The stages are :meth:`pipeline.run.plan.Plan.analysis_stages` (estimate, diagnosis,
     verdict): the calibration written is the one ``process`` restores with.
     """
-    from pipeline.run.options import ProcessOptions
-    from pipeline.run.runner import analyse_recording
-
     options = ProcessOptions(reference_field_enu_nT=reference_field_enu_nT,
                              mag_topic=mag_topic, attitude_topic=attitude_topic,
                              exclude=tuple(exclude))
@@ -68,7 +68,6 @@ def run(args: argparse.Namespace) -> int:
                             reference_field_enu_nT=None if ref is None
                             else (float(ref[0]), float(ref[1]), float(ref[2])),
                             exclude=exclude)
-        from stages.estimate import verdict_line
 
         cal = ctx.need_calibration()
     log.info("%s: %s", Path(args.recording).stem, progress.timings_text(sink.state.timings))

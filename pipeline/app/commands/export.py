@@ -12,13 +12,14 @@ import argparse
 import sys
 import warnings
 
+from pipeline.app.exports import FORMATS, export_text
 from pipeline.core.errors import QuestionableCalibrationWarning
+from pipeline.core.verdict import Status
+from pipeline.model.calibration import Calibration
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register the subcommand."""
-    from pipeline.app.exports import FORMATS
-
     p = sub.add_parser("export", help="print a calibration in another tool's terms",
                        description="Print a calibration.json in another tool's terms: "
                        "ArduPilot compass parameters, MATLAB magcal A and b, a ROS 2 static "
@@ -39,10 +40,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Load, export (which refuses what must not be exported), print."""
-    from pipeline.app.exports import export_text
-    from pipeline.core.verdict import Status
-    from pipeline.model.calibration import Calibration
-
     path = args.calibration
     cal = Calibration.load(path)
     text = export_text(cal, args.format, path, body_frame=args.body_frame,

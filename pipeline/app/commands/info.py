@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import textwrap
 from typing import Any
 
 import numpy as np
@@ -110,13 +111,11 @@ def format_table(info: dict) -> str:
             lines.append("  ".join("-" * w for w in widths))
     lines.append(f"duration: {info['duration_s']:.3f} s")
     if any(c["role"] == "magnetometer" for c in info["channels"]):
-        import textwrap
 
         lines += textwrap.wrap(sample_hold_text(info.get("sample_hold")), 100,
                                subsequent_indent="  ")
     if info["problems"]:
         lines.append(f"problems ({len(info['problems'])}):")
-        import textwrap
 
         for p in info["problems"]:
             lines += textwrap.wrap(f"- [{p['code']}] {p['message']}", 100,

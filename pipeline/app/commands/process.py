@@ -16,9 +16,19 @@ import logging
 import os
 import sys
 import tempfile
+import textwrap
 import warnings
 from pathlib import Path
 
+from pipeline.app.campaign import (
+    EstimatorName,
+    RecordingOptions,
+    ReferenceField,
+    ReferenceFieldMode,
+    TermName,
+    campaign_for_input,
+    run_campaign,
+)
 from pipeline.app.commands._options import (
     ESTIMATE_HELP,
     add_exclude_option,
@@ -28,16 +38,20 @@ from pipeline.app.commands._options import (
     exclude_from_args,
     field_from_args,
 )
+from pipeline.app.executors import make_executor
+from pipeline.app.summary import read_json, row_for, write_summary
 from pipeline.core import errors
+from pipeline.core import progress as pg
 from pipeline.core.errors import CampaignPartialFailure, InputError, UsageError
+from pipeline.core.style import minus
+from pipeline.core.warm import warm_in_background
+from stages.report_text import rows as finding_rows
 
 log = logging.getLogger("magalign")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register the subcommand."""
-    from pipeline.app.campaign import EstimatorName
-
     p = sub.add_parser("process", help="process a recording, a folder or a campaign TOML",
                        description="The whole pipeline on one recording, a folder of "
                        "recordings or a campaign TOML file.")
@@ -66,8 +80,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def _overrides(args: argparse.Namespace):
     """Options given explicitly on the command line (they win over a campaign file's)."""
-    from pipeline.app.campaign import EstimatorName, ReferenceField, ReferenceFieldMode, TermName
-
     ov: dict = {}
     if args.estimator is not None:
         ov["estimator"] = EstimatorName(args.estimator)
@@ -120,9 +132,6 @@ def _run_with_progress(camp, out: Path, executor, args: argparse.Namespace) -> l
     The workers write their stage into small files in a temporary folder the line reads;
     with ``-v`` the time of each stage of each recording is logged when it finishes.
     """
-    from pipeline.app.campaign import run_campaign
-    from pipeline.core import progress as pg
-
     enabled = pg.enabled_for(sys.stderr, disable=args.no_progress)
     old_env = os.environ.get(pg.ENV_DIR)
     with tempfile.TemporaryDirectory(prefix="magalign-progress-") as folder:
@@ -155,8 +164,6 @@ WIDTH = 100
 
 def _wrapped(text: str, first: str, rest: str) -> list[str]:
     """Return ``text`` wrapped to :data:`WIDTH` columns, after ``first`` then ``rest``."""
-    import textwrap
-
     return textwrap.wrap(text, WIDTH, initial_indent=first, subsequent_indent=rest,
                          break_on_hyphens=False, break_long_words=False) or [first.rstrip()]
 
@@ -168,9 +175,6 @@ def recording_summary(result: dict, row: dict, out: Path) -> list[str]:
     diagnosis finding as the report's sentence (events that touch are one) and each warning
     of the calibration, all in words, wrapped to :data:`WIDTH` columns.
     """
-    from pipeline.app.summary import read_json
-    from pipeline.core.style import minus
-
     name = str(result["name"])
     line = (result.get("row") or {}).get("verdict_line")
     if not line:
@@ -183,7 +187,6 @@ def recording_summary(result: dict, row: dict, out: Path) -> list[str]:
         lines += _wrapped(minus(str(verdict["reason"])), "  why: ", "       ")
     diag = read_json(folder / "diagnosis.json")
     if diag and diag.get("findings"):
-        from stages.report_text import rows as finding_rows
 
         for fr in finding_rows(diag, 0):
             lines += _wrapped(fr.sentence, "  found: ", "         ")
@@ -199,11 +202,6 @@ def summary_title(name: str) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Process; print where the results are; exit 3 when some recordings failed."""
-    from pipeline.app.campaign import RecordingOptions, campaign_for_input
-    from pipeline.app.executors import make_executor
-    from pipeline.app.summary import row_for, write_summary
-    from pipeline.core.warm import warm_in_background
-
     if args.jobs is not None and (args.dask_local is not None or args.scheduler is not None):
         raise UsageError("--jobs is for the local pool; with Dask give --dask-local N only")
     out = Path(args.out)

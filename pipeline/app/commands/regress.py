@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 
+from pipeline.app.regress import REGRESSION, Tolerances, compare, format_table
 from pipeline.core.errors import RegressionFailure
 
 
@@ -28,8 +29,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Compare; print the table; raise RegressionFailure (exit 1) on any regression."""
-    from pipeline.app.regress import REGRESSION, Tolerances, compare, format_table
-
     tol = Tolerances.load(args.tolerances) if args.tolerances else None
     rows = compare(args.results, args.baseline, tol)
     print(format_table(rows, failures_only=args.failures_only))

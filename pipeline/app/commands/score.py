@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from pipeline.app.challenge import confusion_text, score
+
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """Register the subcommand."""
@@ -20,8 +22,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Score and print; returns the exit status."""
-    from pipeline.app.challenge import confusion_text, score
-
     res = score(args.challenge, args.results, args.key)
     if args.json:
         print(json.dumps({k: v for k, v in res.items() if k != "rows"}, indent=2))

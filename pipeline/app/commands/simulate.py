@@ -9,6 +9,10 @@ from __future__ import annotations
 import argparse
 import logging
 
+from pipeline.app.challenge import (
+    generate,  # owned by DIAGNOSE; imported only when asked for
+)
+from pipeline.app.simulate import load_scenario, simulate, write_simulated
 from pipeline.core.errors import UsageError
 
 log = logging.getLogger(__name__)
@@ -36,16 +40,12 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError("give either a SCENARIO file or --challenge N, not both")
         if args.challenge < 1:
             raise UsageError(f"--challenge needs a positive count, got {args.challenge}")
-        from pipeline.app.challenge import (
-            generate,  # owned by DIAGNOSE; imported only when asked for
-        )
 
         generate(args.challenge, 0 if args.seed is None else args.seed, args.out)
         print(f"wrote a challenge of {args.challenge} recordings to {args.out}")
         return 0
     if args.scenario is None:
         raise UsageError("a SCENARIO file is required (or --challenge N)")
-    from pipeline.app.simulate import load_scenario, simulate, write_simulated
 
     sim = simulate(load_scenario(args.scenario), seed=args.seed)
     path = write_simulated(sim, args.out)
