@@ -24,7 +24,7 @@ import numpy as np
 
 from pipeline.core.geometry import so3_log
 from stages.estimate import EstimatorKind, NoiseModel, fit_calibration
-from stages.estimators.base import Problem
+from stages.estimators.base import EstimationProblem
 from stages.estimators.ml import fisher_rotation_crb_deg
 from stages.estimators.synthetic import draw, small_rotation
 
@@ -55,7 +55,7 @@ def main(runs: int = 200) -> int:
             # At the truth: the true attitude, the true R and B (the same for every run).
             al = s.aligned
             crb = fisher_rotation_crb_deg(
-                Problem(al.t_ns, al.mag_nT, s.q_true, noise=noise), R, s.B_enu_nT
+                EstimationProblem(al.t_ns, al.mag_nT, s.q_true, noise=noise), R, s.B_enu_nT
             )
         for k in KINDS:
             t1 = time.perf_counter()

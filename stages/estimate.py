@@ -22,12 +22,12 @@ from pipeline.model.forward import MAX_TIME_OFFSET_S
 from pipeline.model.sample_hold import detect_sample_hold, repeated
 from stages.context import Context
 from stages.estimators.base import (
+    EstimateTerm,
+    EstimationProblem,
     Estimator,
     EstimatorKind,
     NoiseModel,
-    Problem,
     RobustLoss,
-    Term,
 )
 from stages.estimators.registry import ESTIMATORS
 
@@ -40,7 +40,7 @@ __all__ = [
     "EstimatorKind",
     "NoiseModel",
     "RobustLoss",
-    "Term",
+    "EstimateTerm",
     "fit_calibration",
     "make_estimator",
 ]
@@ -66,8 +66,8 @@ def make_estimator(kind: EstimatorKind | str) -> Estimator:
     return getattr(importlib.import_module(module), cls)()
 
 
-def _terms(terms: Iterable[Term | str]) -> frozenset[Term]:
-    return frozenset(Term(t) for t in terms)
+def _terms(terms: Iterable[EstimateTerm | str]) -> frozenset[EstimateTerm]:
+    return frozenset(EstimateTerm(t) for t in terms)
 
 
 def _robust(robust: bool | RobustLoss | str) -> RobustLoss:
@@ -81,7 +81,7 @@ def fit_calibration(
     aligned: AlignedSeries,
     *,
     estimator: EstimatorKind = DEFAULT_ESTIMATOR,
-    terms: Iterable[Term | str] = frozenset(),
+    terms: Iterable[EstimateTerm | str] = frozenset(),
     reference_field_enu_nT: Sequence[float] | np.ndarray | None = None,
     R_nominal_body_mag: np.ndarray | None = None,
     robust: bool | RobustLoss = False,
@@ -100,7 +100,7 @@ def fit_calibration(
         Magnetometer samples (nT, frame mag) with the attitude at ``t - aligned.time_offset_s``.
     estimator : EstimatorKind
         Which method (default maximum likelihood).
-    terms : iterable of Term
+    terms : iterable of EstimateTerm
         Extra terms: ``OFFSET`` (``o``), ``SOFT_IRON`` (``D``), ``TIME_OFFSET`` (``tau``).
     reference_field_enu_nT : array_like (3,), optional
         Known background field (ENU, nT); fixes ``B`` and makes the rotation about a single
@@ -151,7 +151,7 @@ def fit_calibration(
     hold = detect_sample_hold(al.t_ns, al.mag_nT) if drop_repeats else None
     if hold is not None:
         al = al.select(hold.first)
-    if Term.TIME_OFFSET in _terms(terms) and recording is not None and (
+    if EstimateTerm.TIME_OFFSET in _terms(terms) and recording is not None and (
             recording.attitude is not None and len(recording.attitude) >= 2):
         # tau is estimated within +-MAX_TIME_OFFSET_S (pipeline.model.forward): a sample
         # closer than that to either end of the attitude may be sensed outside it, where the
@@ -162,7 +162,7 @@ def fit_calibration(
         inner = (al.t_ns >= int(ta.min()) + margin) & (al.t_ns <= int(ta.max()) - margin)
         if inner.sum() >= 0.5 * len(al):
             al = al.select(inner)
-    problem = Problem(
+    problem = EstimationProblem(
         t_ns=al.t_ns,
         mag_nT=al.mag_nT,
         q_enu_body=al.q_enu_body,

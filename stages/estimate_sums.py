@@ -10,7 +10,7 @@ import numpy as np
 from pipeline.core.errors import EstimationError
 from pipeline.model.calibration import Calibration
 from stages.context import Context
-from stages.estimators.base import Term
+from stages.estimators.base import EstimateTerm
 from stages.estimators.checks import SplitCheck, apply_split
 from stages.estimators.streaming import StreamStats, fit_stats
 
@@ -31,25 +31,25 @@ class EstimateFromSums:
 
     Parameters
     ----------
-    terms : frozenset of Term
+    terms : frozenset of EstimateTerm
         Estimated beside the rotation; at most :attr:`SUPPORTED_TERMS`.
     reference_field_enu_nT : 3-tuple of float, optional
         Known background field (ENU, nT); estimated when None.
 
     """
 
-    terms: frozenset[Term] = frozenset()
+    terms: frozenset[EstimateTerm] = frozenset()
     reference_field_enu_nT: tuple[float, float, float] | None = None
 
     requires: ClassVar[frozenset[str]] = frozenset({"sums"})
     provides: ClassVar[frozenset[str]] = frozenset({"calibration"})
     #: the terms the sums determine besides the rotation and the field
-    SUPPORTED_TERMS: ClassVar[frozenset[Term]] = frozenset(
-        {Term.OFFSET, Term.SOFT_IRON, Term.TIME_OFFSET})
+    SUPPORTED_TERMS: ClassVar[frozenset[EstimateTerm]] = frozenset(
+        {EstimateTerm.OFFSET, EstimateTerm.SOFT_IRON, EstimateTerm.TIME_OFFSET})
 
     def run(self, ctx: Context) -> Context:
         """Fit ``calibration`` from ``ctx.sums``."""
-        terms = frozenset(Term(t) for t in self.terms)
+        terms = frozenset(EstimateTerm(t) for t in self.terms)
         unknown = terms - self.SUPPORTED_TERMS
         if unknown:
             raise EstimationError("the streaming estimator cannot estimate "
@@ -57,12 +57,12 @@ class EstimateFromSums:
         sums = ctx.need_sums()
         ref = self.reference_field_enu_nT
         kw: dict[str, Any] = {
-            "estimate_offset": Term.OFFSET in terms,
+            "estimate_offset": EstimateTerm.OFFSET in terms,
             "reference_field_enu_nT": None if ref is None else np.asarray(ref, float),
             "block_sandwich": True}
         if sums.terms is not None:
-            fit = fit_stats(sums.terms, estimate_soft_iron=Term.SOFT_IRON in terms,
-                            estimate_time_offset=Term.TIME_OFFSET in terms, **kw)
+            fit = fit_stats(sums.terms, estimate_soft_iron=EstimateTerm.SOFT_IRON in terms,
+                            estimate_time_offset=EstimateTerm.TIME_OFFSET in terms, **kw)
             return ctx.replace(calibration=fit.to_calibration())
         if sums.halves is None:
             raise EstimationError("no sums of the recording to fit")

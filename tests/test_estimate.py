@@ -14,9 +14,9 @@ from pipeline.core.errors import NotObservableError
 from pipeline.core.geometry import quat_conj, quat_rotate, so3_exp, so3_log
 from pipeline.core.recording import AlignedSeries
 from stages.context import Context
-from stages.estimate import Estimate, EstimatorKind, NoiseModel, Term, fit_calibration
+from stages.estimate import Estimate, EstimateTerm, EstimatorKind, NoiseModel, fit_calibration
 from stages.estimators import ml
-from stages.estimators.base import Problem
+from stages.estimators.base import EstimationProblem
 from stages.estimators.synthetic import draw, small_rotation
 
 R_SMALL = small_rotation([2.0, -3.0, 1.5])
@@ -95,8 +95,8 @@ def _state(terms):
 @pytest.mark.parametrize("with_ref", [False, True])
 def test_jacobian_matches_finite_differences(with_ref):
     s = draw(kind="multi", n=200, R_body_mag=R_SMALL, varying_rate=True)
-    terms = frozenset({Term.OFFSET, Term.SOFT_IRON, Term.TIME_OFFSET})
-    p = Problem(
+    terms = frozenset({EstimateTerm.OFFSET, EstimateTerm.SOFT_IRON, EstimateTerm.TIME_OFFSET})
+    p = EstimationProblem(
         s.aligned.t_ns,
         s.aligned.mag_nT,
         s.aligned.q_enu_body,
@@ -251,7 +251,7 @@ def test_crb_is_marginal_over_the_field_and_equals_ml_sigma():
     al = s.aligned
 
     def crb(**kw):
-        p = Problem(al.t_ns, al.mag_nT, s.q_true, noise=noise, **kw)
+        p = EstimationProblem(al.t_ns, al.mag_nT, s.q_true, noise=noise, **kw)
         return fisher_rotation_crb_deg(p, R_SMALL, s.B_enu_nT)
 
     unknown, known = crb(), crb(reference_field_enu_nT=s.B_enu_nT)
@@ -266,7 +266,7 @@ def test_crb_is_marginal_over_the_field_and_equals_ml_sigma():
     assert np.all(cal.sigma_rotvec_deg <= unknown * 1.2)
     # A single-axis sweep leaves the rotation about the turning axis undetermined: inf there.
     s1 = draw(kind="single", n=300, R_body_mag=R_SMALL, noise=noise)
-    p1 = Problem(s1.aligned.t_ns, s1.aligned.mag_nT, s1.q_true, noise=noise)
+    p1 = EstimationProblem(s1.aligned.t_ns, s1.aligned.mag_nT, s1.q_true, noise=noise)
     b1 = fisher_rotation_crb_deg(p1, R_SMALL, s1.B_enu_nT)
     assert np.isinf(b1[2]) and np.all(np.isfinite(b1[:2]))
 
@@ -286,14 +286,14 @@ def test_li2020_cayley_jacobian_and_smoothed_tangents():
         # Noise-free: both ways of taking the derivatives are exact (same linear filter on the
         # readings and on the attitude).
         s = draw(kind="multi", n=800, R_body_mag=R_SMALL)
-        p = Problem(s.aligned.t_ns, s.aligned.mag_nT, s.aligned.q_enu_body)
+        p = EstimationProblem(s.aligned.t_ns, s.aligned.mag_nT, s.aligned.q_enu_body)
         assert angle_between_deg(est.fit(p).R_body_mag, R_SMALL) < 1e-8
         errs = []
         for k in range(3):
             s = draw(
                 kind="multi", n=800, R_body_mag=R_SMALL, noise=noise, rng=np.random.default_rng(k)
             )
-            p = Problem(s.aligned.t_ns, s.aligned.mag_nT, s.aligned.q_enu_body)
+            p = EstimationProblem(s.aligned.t_ns, s.aligned.mag_nT, s.aligned.q_enu_body)
             errs.append(angle_between_deg(est.fit(p).R_body_mag, R_SMALL))
         rms[tg] = float(np.sqrt(np.mean(np.square(errs))))
     # Under the paper's INS noise the raw chords are several times worse than the fitted
@@ -333,7 +333,7 @@ def test_offset_soft_iron_time_offset_recovered():
     cal = fit_calibration(
         None,
         s.aligned,
-        terms={Term.OFFSET, Term.SOFT_IRON, Term.TIME_OFFSET},
+        terms={EstimateTerm.OFFSET, EstimateTerm.SOFT_IRON, EstimateTerm.TIME_OFFSET},
         reference_field_enu_nT=s.B_enu_nT,
     )
     assert angle_between_deg(cal.R_body_mag, R_SMALL) < 2e-3
@@ -346,7 +346,7 @@ def test_offset_soft_iron_time_offset_recovered():
 def test_time_offset_unobservable_at_constant_rate_single_axis():
     s = draw(kind="single", n=500, R_body_mag=R_SMALL)
     cal = fit_calibration(
-        None, s.aligned, terms={Term.TIME_OFFSET}, reference_field_enu_nT=s.B_enu_nT
+        None, s.aligned, terms={EstimateTerm.TIME_OFFSET}, reference_field_enu_nT=s.B_enu_nT
     )
     assert cal.sigma_time_offset_s == np.inf
     assert any("vary the rotation rate" in w for w in cal.warnings)
@@ -427,7 +427,8 @@ def test_real_lab_calibration_lowers_restored_std(name):
 
     rec = read_recording(path)
     al = Resample().run(Context(recording=rec)).aligned
-    cal = fit_calibration(rec, al, terms={Term.OFFSET, Term.SOFT_IRON, Term.TIME_OFFSET})
+    cal = fit_calibration(rec, al, terms={EstimateTerm.OFFSET, EstimateTerm.SOFT_IRON,
+                                          EstimateTerm.TIME_OFFSET})
     rs = cal.restore(al.mag_nT, al.t_ns, rec.attitude, max_gap_s=0.1)
     al = al.select(rs.valid)
     before = quat_rotate(al.q_enu_body, al.mag_nT).std(0)

@@ -17,15 +17,15 @@ from pipeline.core.recording import AlignedSeries, AttitudeSeries
 from pipeline.core.verdict import Status, judge, sensor_noise_nT
 from pipeline.model.calibration import Calibration
 from pipeline.model.sample_hold import detect_sample_hold
-from stages.estimate import Term, fit_calibration
-from stages.estimators.base import NoiseModel, Problem
+from stages.estimate import EstimateTerm, fit_calibration
+from stages.estimators.base import EstimationProblem, NoiseModel
 from stages.estimators.checks import block_index, info_halves
 from stages.estimators.ml import fisher_rotation_crb_deg
 from stages.estimators.synthetic import draw, small_rotation
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 R_SMALL = small_rotation(np.array([0.8, -0.5, 1.2]))
-ALL = frozenset({Term.OFFSET, Term.SOFT_IRON, Term.TIME_OFFSET})
+ALL = frozenset({EstimateTerm.OFFSET, EstimateTerm.SOFT_IRON, EstimateTerm.TIME_OFFSET})
 
 
 def _rv_deg(R: np.ndarray) -> np.ndarray:
@@ -41,7 +41,7 @@ def test_white_noise_sigmas_stay_within_20_percent_of_the_bound(seed):
     s = draw(kind="multi", n=3000, R_body_mag=R_SMALL, noise=noise,
              rng=np.random.default_rng(seed))
     al = s.aligned
-    crb = fisher_rotation_crb_deg(Problem(al.t_ns, al.mag_nT, s.q_true, noise=noise),
+    crb = fisher_rotation_crb_deg(EstimationProblem(al.t_ns, al.mag_nT, s.q_true, noise=noise),
                                   R_SMALL, s.B_enu_nT)
     cal = fit_calibration(None, al, noise=noise)
     ratio = cal.sigma_rotvec_deg / crb
@@ -99,7 +99,7 @@ def test_confounded_terms_are_not_estimated_and_said_so():
     y = quat_rotate(quat_conj(q), np.broadcast_to(s.B_enu_nT, (len(q), 3))) @ R_SMALL
     y = y + np.random.default_rng(1).normal(0, 2.0, y.shape)
     al = AlignedSeries(s.aligned.t_ns, y, q, 0.0, np.arange(len(q)))
-    cal = fit_calibration(None, al, terms={Term.OFFSET, Term.SOFT_IRON})
+    cal = fit_calibration(None, al, terms={EstimateTerm.OFFSET, EstimateTerm.SOFT_IRON})
     # a turn about Up keeps the body-frame vertical field constant: the vertical offset and
     # the vertical scale trade against B_up, and 0.3 deg of wobble cannot separate them, so
     # both terms must be left out, each with its reason
@@ -117,7 +117,7 @@ def test_well_posed_fit_keeps_every_term_and_is_ok():
     D = np.diag([1.01, 0.99, 1.0])
     s = draw(kind="multi", n=4000, R_body_mag=R_SMALL, noise=NoiseModel(2.0), D=D,
              offset_nT=np.array([300.0, -200.0, 100.0]), rng=np.random.default_rng(6))
-    cal = fit_calibration(None, s.aligned, terms={Term.OFFSET, Term.SOFT_IRON})
+    cal = fit_calibration(None, s.aligned, terms={EstimateTerm.OFFSET, EstimateTerm.SOFT_IRON})
     assert cal.not_estimated == ()
     assert cal.D is not None and cal.offset_nT is not None
     # What 4000 samples of 2 nT noise on this 37,400 nT field determine: one sample fixes the

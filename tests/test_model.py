@@ -219,13 +219,13 @@ def test_simulator_oracle_and_model_agree_without_noise(tau):
 
 @pytest.mark.parametrize("tau", [0.06, -0.06])
 def test_time_offset_recovered_from_simulated_recording(tau):
-    from stages.estimate import Term, fit_calibration
+    from stages.estimate import EstimateTerm, fit_calibration
     from stages.resample import Resample
 
     sim = _sim(tau, noise=True, effects={"hard_iron": {"offset_nT": [250.0, -120.0, 80.0]},
                                          "time_offset": {"time_offset_s": tau}})
     al = Resample().run(Context(recording=sim.recording)).aligned
-    cal = fit_calibration(sim.recording, al, terms={Term.OFFSET, Term.TIME_OFFSET})
+    cal = fit_calibration(sim.recording, al, terms={EstimateTerm.OFFSET, EstimateTerm.TIME_OFFSET})
     # 0.5 nT noise, ~1500 samples turning at ~1 rad/s: sigma(tau) ~ 10 us; 0.2 ms is 20 sigma
     assert cal.time_offset_s == pytest.approx(tau, abs=2e-4)
     np.testing.assert_allclose(cal.offset_nT, [250.0, -120.0, 80.0], atol=2.0)  # nT
@@ -425,7 +425,7 @@ def test_diagnose_final_residual_is_the_restore_of_its_model():
 def test_wiring_reading_is_what_evaluate_predicts():
     """Wiring: the model against itself (physics: tests/test_model_independent.py)."""
     # forward.reading is (M2)-(M5) from the pieces: with the attitude and the field of an
-    # Evaluation it gives the same prediction, and a constant field (3,) the same as (N, 3).
+    # ForwardEvaluation it gives the same prediction, and a constant field (3,) the same as (N, 3).
     from pipeline.model.forward import reading
 
     att = _fast_attitude(400, 50.0, 1.5)
@@ -447,14 +447,16 @@ def test_wiring_ml_estimator_predicts_with_the_forward_model():
     tests/test_model_independent.py)."""
     # The ML estimator's prediction and Jacobian are the forward model's, (M2)-(M4) + o and
     # (J2)-(J5), for the same R, B, o, D and tau.
-    from stages.estimators.base import Problem, Term
+    from stages.estimators.base import EstimateTerm, EstimationProblem
     from stages.estimators.ml import Model, State
 
     att = _fast_attitude(600, 50.0, 1.5, seed=2)
     t_ns = att.t_ns[30:570] + 7_000_000
     model = dataclasses.replace(_model(0.0123, eddy=False))
-    p = Problem(t_ns=t_ns, mag_nT=np.zeros((len(t_ns), 3)), q_enu_body=np.zeros((len(t_ns), 4)),
-                attitude=att, terms=frozenset({Term.OFFSET, Term.SOFT_IRON, Term.TIME_OFFSET}))
+    p = EstimationProblem(t_ns=t_ns, mag_nT=np.zeros((len(t_ns), 3)),
+                          q_enu_body=np.zeros((len(t_ns), 4)), attitude=att,
+                          terms=frozenset({EstimateTerm.OFFSET, EstimateTerm.SOFT_IRON,
+                                           EstimateTerm.TIME_OFFSET}))
     m = Model(p, estimate_B=True)
     s = State(model.R_body_mag, model.B_enu_nT, model.offset_nT, model.D, model.time_offset_s)
     np.testing.assert_allclose(m.predict(s), evaluate(model, t_ns, att).y_nT, rtol=0, atol=1e-8)

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from pipeline.core.geometry import angle_between_deg
 from pipeline.io.mcap_read import read_recording
 from stages.context import Context
-from stages.estimate import Term, fit_calibration
+from stages.estimate import EstimateTerm, fit_calibration
 from stages.resample import Resample
 
 
@@ -39,7 +39,7 @@ def test_exact_time_offset_on_independent_recordings(tmp_path, tau_s):
                 freqs_hz=(0.3, 0.45, 0.37), amps_deg=(40.0, 30.0, 30.0), att_noise_deg=0.001,
                 mag_noise_nT=1.0, positions=False,
                 effects={"time_offset": {"time_offset_s": tau_s}})
-    rec, cal = _calibrate(write(spec, tmp_path / "r.mcap"), {Term.TIME_OFFSET})
+    rec, cal = _calibrate(write(spec, tmp_path / "r.mcap"), {EstimateTerm.TIME_OFFSET})
     assert abs(cal.time_offset_s - tau_s) < 1e-5, cal.time_offset_s
     R_true = Rotation.from_rotvec(spec.rotvec_body_mag_deg, degrees=True).as_matrix()
     err_deg = float(angle_between_deg(R_true, cal.R_body_mag))

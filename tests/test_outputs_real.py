@@ -25,10 +25,10 @@ def _sha(p: Path) -> str:
 
 
 def test_lab_recording_outputs(tmp_path):
-    from stages.estimate import Term
+    from stages.estimate import EstimateTerm
 
     before = _sha(LAB)
-    terms = frozenset({Term.OFFSET, Term.SOFT_IRON, Term.TIME_OFFSET})
+    terms = frozenset({EstimateTerm.OFFSET, EstimateTerm.SOFT_IRON, EstimateTerm.TIME_OFFSET})
     opts = ProcessOptions(terms=terms, diagnose=False,
                           write_rerun=False, write_report=False)
     row = process_recording(LAB, tmp_path, options=opts)

@@ -52,4 +52,4 @@ def test_cli_and_campaign_choices_come_from_the_registry():
     p = sub.choices["calibrate"]
     act = next(a for a in p._actions if a.dest == "estimator")
     assert list(act.choices) == list(ESTIMATORS)
-    assert [e.value for e in campaign.EstimatorName] == list(ESTIMATORS)
+    assert [e.value for e in campaign.EstimatorKind] == list(ESTIMATORS)

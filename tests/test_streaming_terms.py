@@ -22,7 +22,7 @@ from pipeline.core.geometry import quat_to_matrix, so3_exp, so3_log
 from pipeline.core.recording import AttitudeSeries
 from pipeline.model.attitude import interpolate_attitude
 from stages.context import Context
-from stages.estimators.base import Problem, Term
+from stages.estimators.base import EstimateTerm, EstimationProblem
 from stages.estimators.ml import MLEstimator
 from stages.estimators.streaming import (
     MAX_BLOCKS,
@@ -43,7 +43,7 @@ SCENARIOS = Path(__file__).parents[1] / "pipeline" / "scenarios"
 D_TRUE = np.array([[1.05, 0.02, -0.01], [0.02, 0.97, 0.015], [-0.01, 0.015, 0.98]])
 D_TRUE = D_TRUE * 3.0 / np.trace(D_TRUE)  # trace 3: the normalisation when B is estimated
 OFFSET = [40.0, -20.0, 10.0]
-ALL = frozenset({Term.OFFSET, Term.SOFT_IRON, Term.TIME_OFFSET})
+ALL = frozenset({EstimateTerm.OFFSET, EstimateTerm.SOFT_IRON, EstimateTerm.TIME_OFFSET})
 
 
 def rot_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
@@ -97,13 +97,13 @@ def stream_fit(t, y, q, terms, cuts=None, **kw):
     edges = [0, *(cuts or []), len(t)]
     for a, b in zip(edges[:-1], edges[1:], strict=True):
         acc.add(q[a:b], y[a:b], t[a:b])
-    return fit_stats(acc.result(), estimate_offset=Term.OFFSET in terms,
-                     estimate_soft_iron=Term.SOFT_IRON in terms,
-                     estimate_time_offset=Term.TIME_OFFSET in terms)
+    return fit_stats(acc.result(), estimate_offset=EstimateTerm.OFFSET in terms,
+                     estimate_soft_iron=EstimateTerm.SOFT_IRON in terms,
+                     estimate_time_offset=EstimateTerm.TIME_OFFSET in terms)
 
 
 def ml_fit(t, y, q, att, terms):
-    p = Problem(t_ns=t, mag_nT=y, q_enu_body=q, attitude=att, terms=frozenset(terms))
+    p = EstimationProblem(t_ns=t, mag_nT=y, q_enu_body=q, attitude=att, terms=frozenset(terms))
     return MLEstimator(checks=False).fit(p)
 
 
@@ -275,7 +275,7 @@ GENERATORS = ["simulate", "indep"]
 @pytest.mark.parametrize("noise", [False, True])
 def test_offset_and_soft_iron_agree_with_ml(gen, noise):
     t, y, q, att, D = simulated(gen, 0.0, True, noise)
-    terms = {Term.OFFSET, Term.SOFT_IRON}
+    terms = {EstimateTerm.OFFSET, EstimateTerm.SOFT_IRON}
     f = stream_fit(t, y, q, terms)
     c = ml_fit(t, y, q, att, terms)
     assert f.n_samples == len(t)  # every sample
@@ -298,8 +298,8 @@ def test_offset_and_soft_iron_agree_with_ml(gen, noise):
 def test_time_offset_agrees_with_ml(gen, noise, tau_ms):
     tau = tau_ms * 1e-3
     t, y, q, att, _D = simulated(gen, tau, False, noise)
-    f = stream_fit(t, y, q, {Term.TIME_OFFSET})
-    c = ml_fit(t, y, q, att, {Term.TIME_OFFSET})
+    f = stream_fit(t, y, q, {EstimateTerm.TIME_OFFSET})
+    c = ml_fit(t, y, q, att, {EstimateTerm.TIME_OFFSET})
     assert f.time_offset_s is not None and c.time_offset_s is not None
     assert c.sigma_time_offset_s is not None and f.sigma_time_offset_s is not None
     assert abs(f.time_offset_s - c.time_offset_s) < max(c.sigma_time_offset_s, 0.2e-3)
@@ -362,7 +362,7 @@ def test_single_axis_motion_reports_what_is_unobservable():
     assert np.any(np.isinf(cal.sigma_rotvec_deg))
     assert cal.sigma_D is not None and np.any(np.isinf(cal.sigma_D))
     assert any("soft-iron" in w for w in cal.warnings)
-    f_tau = stream_fit(tm[ok], r["mag_nT"][ok], q[ok], {Term.TIME_OFFSET})
+    f_tau = stream_fit(tm[ok], r["mag_nT"][ok], q[ok], {EstimateTerm.TIME_OFFSET})
     assert f_tau.time_offset_s == pytest.approx(0.01, abs=0.2e-3)
     assert len(f_tau.unobservable_axes_body) == 1
     assert abs(abs(f_tau.unobservable_axes_body[0][2]) - 1.0) < 1e-3
@@ -437,7 +437,7 @@ def test_known_field_carries_the_scale_of_soft_iron():
     acc.add(q, y2, t)
     f = fit_stats(acc.result(), estimate_offset=True, estimate_soft_iron=True,
                   estimate_time_offset=True, reference_field_enu_nT=B)
-    p = Problem(t_ns=t, mag_nT=y2, q_enu_body=q, attitude=att, terms=ALL,
+    p = EstimationProblem(t_ns=t, mag_nT=y2, q_enu_body=q, attitude=att, terms=ALL,
                 reference_field_enu_nT=B)
     c = MLEstimator(checks=False).fit(p)
     assert f.D is not None and f.time_offset_s is not None and c.time_offset_s is not None

@@ -41,7 +41,7 @@ from pipeline.core.errors import ConfigError, InputError, MagalignError, UsageEr
 from pipeline.model.calibration import Calibration
 from pipeline.model.igrf import igrf_enu_nT
 from pipeline.run.options import ProcessOptions
-from stages.estimators.base import EstimatorKind, Term
+from stages.estimators.base import EstimateTerm, EstimatorKind
 from stages.exclude import ExcludeWindow
 
 #: the analysis a worker runs on each recording: imported by name in the worker, so that the
@@ -67,12 +67,6 @@ class ReferenceFieldMode(str, enum.Enum):
     ESTIMATE = "estimate"
     FIXED = "fixed"
     IGRF = "igrf"
-
-
-# One spelling per option: the estimator kinds come from the registry, the terms from the
-# estimators' own enum (re-exported under the names this module has always used).
-EstimatorName = EstimatorKind
-TermName = Term
 
 
 @dataclass(frozen=True)
@@ -121,8 +115,8 @@ class RecordingOptions:
 
     Attributes
     ----------
-    estimator : EstimatorName
-    terms : tuple of TermName
+    estimator : EstimatorKind
+    terms : tuple of EstimateTerm
     reference_field : ReferenceField
     mag_topic, attitude_topic, turntable_topic : str or None
         Channel mapping; None = found by message type.
@@ -136,8 +130,8 @@ class RecordingOptions:
 
     # EstimatorKind is built from the estimator registry: its members are not known to a type
     # checker, so they are looked up by value ("ml" is EstimatorKind.ML)
-    estimator: EstimatorName = EstimatorName("ml")
-    terms: tuple[TermName, ...] = ()
+    estimator: EstimatorKind = EstimatorKind("ml")
+    terms: tuple[EstimateTerm, ...] = ()
     reference_field: ReferenceField = field(default_factory=ReferenceField)
     mag_topic: str | None = None
     attitude_topic: str | None = None
@@ -298,16 +292,16 @@ def _parse_options(doc: TomlDoc) -> RecordingOptions:
     if not isinstance(est, Mapping):
         raise doc.error("estimator", "must be a table")
     doc.check_keys(est, {"kind", "terms"}, "estimator")
-    kind = doc.choice("estimator.kind", EstimatorName, EstimatorName("ml"))
+    kind = doc.choice("estimator.kind", EstimatorKind, EstimatorKind("ml"))
     terms_raw = est.get("terms", [])
     if not isinstance(terms_raw, list):
         raise doc.error("estimator.terms", f"must be a list of term names, got {terms_raw!r}")
     terms = []
     for t in terms_raw:
         try:
-            terms.append(TermName(t))
+            terms.append(EstimateTerm(t))
         except ValueError:
-            allowed = ", ".join(e.value for e in TermName)
+            allowed = ", ".join(e.value for e in EstimateTerm)
             raise doc.error("estimator.terms",
                             f"unknown term {t!r} (allowed: {allowed})") from None
 
@@ -652,7 +646,7 @@ def _process_options(task: RecordingTask) -> Any:
     names = {f.name for f in dataclasses.fields(ProcessOptions)}
     want: dict[str, Any] = {}
     est: Any = EstimatorKind(o.estimator)
-    terms: Any = frozenset(Term(t) for t in o.terms)
+    terms: Any = frozenset(EstimateTerm(t) for t in o.terms)
     want["estimator"] = est
     want["terms"] = terms
     want["mag_topic"] = o.mag_topic

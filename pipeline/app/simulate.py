@@ -404,7 +404,7 @@ class FieldGradient:
 
 
 @dataclass(frozen=True)
-class SampleHold:
+class SimulatedSampleHold:
     """The sensor converts at ``native_rate_hz``; every message repeats the latest conversion."""
 
     native_rate_hz: float
@@ -453,7 +453,7 @@ class Effects:
     hard_iron_step: HardIronStep | None = None
     axis_tilt: AxisTilt | None = None
     field_gradient: FieldGradient | None = None
-    sample_hold: SampleHold | None = None
+    sample_hold: SimulatedSampleHold | None = None
 
     def params(self) -> dict[str, dict[str, Any]]:
         """Effect name -> params in CONVENTIONS form (lists, matrices as lists of rows)."""
@@ -742,7 +742,7 @@ def _parse_effects(doc: TomlDoc) -> Effects:
             ref = None if ref is None else tuple(doc.vector(f"{p}.reference_position_m"))
             kw[name] = FieldGradient(G, ref)
         elif name == "sample_hold":
-            kw[name] = SampleHold(doc.number(f"{p}.native_rate_hz", lo=1e-3))
+            kw[name] = SimulatedSampleHold(doc.number(f"{p}.native_rate_hz", lo=1e-3))
     return Effects(**kw)
 
 

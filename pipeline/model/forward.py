@@ -603,7 +603,7 @@ class ForwardModel:
 
 
 @dataclass(frozen=True)
-class Evaluation:
+class ForwardEvaluation:
     """The model at the magnetometer stamps.
 
     Attributes
@@ -668,7 +668,7 @@ def evaluate(
     t0_ns: int | None = None,
     max_gap_s: float | None = None,
     position: PositionSeries | None = None,
-) -> Evaluation:
+) -> ForwardEvaluation:
     """Evaluate (M1)-(M5) at the magnetometer stamps ``t_ns`` (int64 ns, sorted).
 
     ``t0_ns``: the first magnetometer stamp of the recording (effect windows count from it;
@@ -711,7 +711,8 @@ def evaluate(
         sensor = sensor + ydot0 @ model.E_s.T
     nanv = ~valid
     y[nanv] = np.nan
-    return Evaluation(y, valid, at.q_enu_body, Bt, b, m, ydot0, sensor, at.position, at, h_rad)
+    return ForwardEvaluation(y, valid, at.q_enu_body, Bt, b, m, ydot0, sensor, at.position, at,
+                             h_rad)
 
 
 def rate_matrices(it: AttitudeInterpolator, t_ns: NDArray[np.int64], tau: float

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from stages.estimators.base import EstimatorKind, Term
+from stages.estimators.base import EstimateTerm, EstimatorKind
 from stages.exclude import ExcludeWindow
 
 
@@ -16,7 +16,7 @@ class ProcessOptions:
     ----------
     estimator : EstimatorKind, str or None
         Estimator; ``None`` means the default of :class:`stages.estimate.Estimate` (ML).
-    terms : frozenset of Term or str
+    terms : frozenset of EstimateTerm or str
         Terms estimated beside the rotation (offset, soft_iron, time_offset).
     reference_field_enu_nT : tuple of 3 float, optional
         Known background field (ENU, nT); estimated when ``None``.
@@ -46,7 +46,7 @@ class ProcessOptions:
     """
 
     estimator: EstimatorKind | str | None = None
-    terms: frozenset[Term | str] = frozenset()
+    terms: frozenset[EstimateTerm | str] = frozenset()
     reference_field_enu_nT: tuple[float, float, float] | None = None
     calibration_path: str | None = None
     mag_topic: str | None = None

@@ -26,7 +26,7 @@ from stages.context import Context
 from stages.diagnose.stage import Diagnose
 from stages.estimate import Estimate, Judge
 from stages.estimate_sums import EstimateFromSums
-from stages.estimators.base import EstimatorKind, RobustLoss, Term
+from stages.estimators.base import EstimateTerm, EstimatorKind, RobustLoss
 from stages.exclude import Exclude, NoteExclusions
 from stages.load_calibration import LoadCalibration
 from stages.require_observable import RequireObservable
@@ -133,7 +133,7 @@ class Plan:
                                     max_gap_s=o.max_gap_s)]
         else:
             if first is not None and streams_estimate(o):
-                terms = frozenset(Term(t) for t in o.terms)
+                terms = frozenset(EstimateTerm(t) for t in o.terms)
                 stages.append(EstimateFromSums(terms, reference_field(o)))
             else:
                 stages.append(Estimate(**estimate_kwargs(o)))
@@ -237,4 +237,4 @@ def diagnose_kwargs(options: ProcessOptions) -> dict[str, Any]:
 def streams_estimate(options: ProcessOptions) -> bool:
     """Whether the sums of every sample can make the estimate asked for (ML, its terms)."""
     ml = options.estimator is None or EstimatorKind(options.estimator) is EstimatorKind("ml")
-    return ml and {Term(t) for t in options.terms} <= set(EstimateFromSums.SUPPORTED_TERMS)
+    return ml and {EstimateTerm(t) for t in options.terms} <= set(EstimateFromSums.SUPPORTED_TERMS)

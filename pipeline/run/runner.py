@@ -52,7 +52,7 @@ from pipeline.run.source import FileSource, MemorySource, Source, open_source
 from stages.check_applied import applied_verdict
 from stages.context import Context
 from stages.estimate import verdict_line
-from stages.estimators.base import Term
+from stages.estimators.base import EstimateTerm
 from stages.estimators.streaming import SampleSums, StreamAccumulator
 from stages.exclude import excluded_mask
 from stages.restore import (
@@ -286,13 +286,13 @@ def first_pass(source: Source, plan: Plan) -> Reduced:
     excl = tuple(options.exclude)
     t0_excl: int | None = None
     n_excl = 0
-    terms = {Term(t) for t in options.terms}
+    terms = {EstimateTerm(t) for t in options.terms}
     streamed = options.calibration_path is None and streams_estimate(options)
     # the sums of each half of the recording (split-half check of the sigmas) add up to the
     # whole's; soft iron and time offset: the expanded sums of every sample
     halves = [StreamAccumulator(max_gap_s=rule.max_gap_s, with_tau=False) for _ in range(2)]
     terms_acc = (StreamAccumulator(max_gap_s=rule.max_gap_s)
-                 if streamed and terms - {Term.OFFSET} else None)
+                 if streamed and terms - {EstimateTerm.OFFSET} else None)
     split_ns: int | None = None
     aligner = ChunkedAttitude(max_gap_s=rule.max_gap_s, cubic_weight=rule.cubic_weight)
 

@@ -8,12 +8,12 @@
 
 from stages.estimators.base import (
     RELATIVE_INFO_THRESHOLD,
+    EstimateTerm,
+    EstimationProblem,
     Estimator,
     EstimatorKind,
     NoiseModel,
-    Problem,
     RobustLoss,
-    Term,
 )
 
 __all__ = [
@@ -21,7 +21,7 @@ __all__ = [
     "Estimator",
     "EstimatorKind",
     "NoiseModel",
-    "Problem",
+    "EstimationProblem",
     "RobustLoss",
-    "Term",
+    "EstimateTerm",
 ]

@@ -43,7 +43,7 @@ EstimatorKind = enum.Enum(  # type: ignore[misc]
     "EstimatorKind", {k.upper(): k for k in ESTIMATORS}, type=str, module=__name__)
 
 
-class Term(str, enum.Enum):
+class EstimateTerm(str, enum.Enum):
     """Optional model terms estimated beside the rotation (CONVENTIONS names)."""
 
     OFFSET = "offset"
@@ -102,7 +102,7 @@ class NoiseModel:
 
 
 @dataclass(frozen=True)
-class Problem:
+class EstimationProblem:
     """One estimation problem: aligned samples plus everything the caller asked for.
 
     Attributes
@@ -117,7 +117,7 @@ class Problem:
         The ``tau`` the attitude was interpolated with.
     attitude : AttitudeSeries or None
         The raw attitude series (to re-interpolate at ``t - tau`` when ``tau`` is estimated).
-    terms : frozenset of Term
+    terms : frozenset of EstimateTerm
     reference_field_enu_nT : ndarray (3,) or None
         A known background field; with it ``B`` is fixed.
     R_nominal_body_mag : ndarray (3, 3) or None
@@ -162,9 +162,9 @@ class Problem:
 
 @runtime_checkable
 class Estimator(Protocol):
-    """The plug-in point: anything that turns a :class:`Problem` into a :class:`Calibration`."""
+    """The plug-in point: anything that turns an :class:`EstimationProblem` into a calibration."""
 
-    def fit(self, problem: Problem) -> Calibration:
+    def fit(self, problem: EstimationProblem) -> Calibration:
         """Estimate the calibration."""
         ...
 

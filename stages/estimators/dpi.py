@@ -25,7 +25,7 @@ import numpy as np
 from pipeline.core.geometry import so3_exp
 from pipeline.model.calibration import Calibration
 from stages.estimators.base import (
-    Problem,
+    EstimationProblem,
     analyse,
     canonical_axis,
     init_rotation,
@@ -41,7 +41,7 @@ class DpiEstimator:
     name: str = "dpi"
     max_iter: int = 50
 
-    def fit(self, p: Problem) -> Calibration:
+    def fit(self, p: EstimationProblem) -> Calibration:
         """Estimate ``R_body_mag`` from the invariance of the field's vertical component."""
         m = p.mag_nT
         C = p.C_enu_body

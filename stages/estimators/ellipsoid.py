@@ -24,7 +24,7 @@ from pipeline.core.geometry import skew
 from pipeline.model.calibration import Calibration
 from stages.estimators.base import (
     F64,
-    Problem,
+    EstimationProblem,
     analyse,
     canonical_axis,
     init_rotation,
@@ -104,7 +104,7 @@ class EllipsoidEstimator:
 
     name: str = "ellipsoid"
 
-    def fit(self, p: Problem) -> Calibration:
+    def fit(self, p: EstimationProblem) -> Calibration:
         """Estimate; raises :class:`NotObservableError` on single-axis data."""
         o, D = fit_ellipsoid(p.mag_nT)
         B_ref = p.reference_field_enu_nT

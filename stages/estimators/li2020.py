@@ -68,7 +68,7 @@ from pipeline.core.geometry import skew
 from pipeline.model.calibration import Calibration
 from stages.estimators.base import (
     F64,
-    Problem,
+    EstimationProblem,
     analyse,
     canonical_axis,
     init_rotation,
@@ -210,7 +210,7 @@ class Li2020Estimator:
     tangents: Tangents = Tangents.SMOOTHED
     max_nfev: int = 100
 
-    def fit(self, p: Problem) -> Calibration:
+    def fit(self, p: EstimationProblem) -> Calibration:
         """Estimate ``R_body_mag`` (and the virtual vector ``V`` when no field is given)."""
         m = p.mag_nT
         C = p.C_enu_body

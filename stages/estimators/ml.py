@@ -54,9 +54,9 @@ from pipeline.model.solve import Linearised, minimise
 from stages.estimators.base import (
     F64,
     RELATIVE_INFO_THRESHOLD,
-    Problem,
+    EstimateTerm,
+    EstimationProblem,
     RobustLoss,
-    Term,
     analyse,
     canonical_axis,
     cube_rotations,
@@ -93,18 +93,18 @@ class Model:
 
     Parameters
     ----------
-    problem : Problem
+    problem : EstimationProblem
     estimate_B : bool
         False when a reference field fixes ``B``.
 
     """
 
-    def __init__(self, problem: Problem, estimate_B: bool = True):
+    def __init__(self, problem: EstimationProblem, estimate_B: bool = True):
         self.p = problem
         self.estimate_B = estimate_B
-        self.with_o = Term.OFFSET in problem.terms
-        self.with_D = Term.SOFT_IRON in problem.terms
-        self.with_tau = Term.TIME_OFFSET in problem.terms
+        self.with_o = EstimateTerm.OFFSET in problem.terms
+        self.with_D = EstimateTerm.SOFT_IRON in problem.terms
+        self.with_tau = EstimateTerm.TIME_OFFSET in problem.terms
         self.basis = SOFT_IRON_BASIS_TRACE_FREE if (self.with_D and estimate_B) else SOFT_IRON_BASIS
         att = problem.attitude
         if att is None:
@@ -374,18 +374,18 @@ class MLEstimator:
     name: str = "ml"
     checks: bool = True
 
-    def initial_state(self, p: Problem) -> State:
+    def initial_state(self, p: EstimationProblem) -> State:
         """Closed-form start: ellipsoid (when D is wanted and the data cover 3D), then Wahba."""
         y = p.mag_nT
         C = p.C_enu_body
         D = np.eye(3)
         o = np.zeros(3)
-        if Term.SOFT_IRON in p.terms or Term.OFFSET in p.terms:
+        if EstimateTerm.SOFT_IRON in p.terms or EstimateTerm.OFFSET in p.terms:
             try:
                 o_e, D_e = fit_ellipsoid(y)
-                if Term.OFFSET in p.terms:
+                if EstimateTerm.OFFSET in p.terms:
                     o = o_e
-                if Term.SOFT_IRON in p.terms:
+                if EstimateTerm.SOFT_IRON in p.terms:
                     D = D_e * 3.0 / np.trace(D_e)
             except EstimationError:
                 pass  # single-axis data: start from o = 0, D = I; GN finds what is observable
@@ -396,13 +396,13 @@ class MLEstimator:
 
             cands = np.concatenate([cube_rotations(), p.R_nominal_body_mag[None]])
         R, B = init_rotation(yc, C, B_ref, cands)
-        if B_ref is not None and Term.SOFT_IRON in p.terms:
+        if B_ref is not None and EstimateTerm.SOFT_IRON in p.terms:
             # D was normalised to trace 3; a known |B| restores the scale (D ~ D_tilde R_hat)
             scale = np.median(np.linalg.norm(yc, axis=1)) / np.linalg.norm(B_ref)
             D = D * scale
         return State(R, np.asarray(B, float), o, D, float(p.time_offset0_s))
 
-    def fit(self, p: Problem) -> Calibration:
+    def fit(self, p: EstimationProblem) -> Calibration:
         """Estimate; see :class:`Calibration` for the fields.
 
         With ``checks`` (the default) the fit is checked globally (module ``checks``): terms
@@ -411,7 +411,7 @@ class MLEstimator:
         information is compared; what the checks find goes to ``Calibration.checks``
         (``refusals`` and ``doubts`` for the verdict) and ``not_estimated``.
         """
-        if Term.TIME_OFFSET in p.terms:
+        if EstimateTerm.TIME_OFFSET in p.terms:
             p = _inside_attitude_span(p)
         not_estimated: list[dict] = []
         refusals: list[str] = []
@@ -444,7 +444,8 @@ class MLEstimator:
         info["doubts"] = doubts
         return cal.replace(checks={**cal.checks, **info}, not_estimated=tuple(not_estimated))
 
-    def _solve(self, p: Problem, model: Model, start) -> tuple[GNResult, Problem]:
+    def _solve(self, p: EstimationProblem, model: Model, start
+               ) -> tuple[GNResult, EstimationProblem]:
         """Run coarse-to-fine Gauss-Newton from ``start(problem)``.
 
         Returns the result and the coarse problem.
@@ -457,7 +458,8 @@ class MLEstimator:
         if model.with_tau:
             # Fit without tau first: the rotation must be close before tau's Jacobian is useful.
             m0 = Model(
-                Problem(**{**pc.__dict__, "terms": pc.terms - {Term.TIME_OFFSET}}),
+                EstimationProblem(**{**pc.__dict__,
+                                     "terms": pc.terms - {EstimateTerm.TIME_OFFSET}}),
                 estimate_B=model.estimate_B,
             )
             s0 = gauss_newton(m0, s0, self.max_iter).s
@@ -466,7 +468,8 @@ class MLEstimator:
         return gauss_newton(model, s0, self.max_iter), pc
 
     # ------------------------------------------------------------------ global checks
-    def _determinable(self, p: Problem) -> tuple[Problem, list[dict], str | None, list[dict]]:
+    def _determinable(self, p: EstimationProblem
+                      ) -> tuple[EstimationProblem, list[dict], str | None, list[dict]]:
         """Leave out the requested terms that the motion confounds (``checks.confounded``).
 
         The information of the full requested model is taken at the fit of the rotation and
@@ -477,43 +480,44 @@ class MLEstimator:
         offset when asked for) on the check samples: their solutions are starts of the
         multi-start and their rotations are reported beside the result.
         """
-        extra = [t for t in (Term.SOFT_IRON, Term.OFFSET, Term.TIME_OFFSET) if t in p.terms]
-        pb = Problem(**{**p.__dict__, "terms": frozenset()})
+        extra = [t for t in (EstimateTerm.SOFT_IRON, EstimateTerm.OFFSET,
+                             EstimateTerm.TIME_OFFSET) if t in p.terms]
+        pb = EstimationProblem(**{**p.__dict__, "terms": frozenset()})
         pcb = _decimated(pb, CHECK_SAMPLES) if pb.n > 2 * CHECK_SAMPLES else pb
         mb = Model(pcb, estimate_B=pb.reference_field_enu_nT is None)
         gb = gauss_newton(mb, self.initial_state(pcb), self.max_iter)
         sb = gb.s
         nested = [{"terms": [], "rotvec_deg": _log(sb.R) * 180.0 / np.pi,
                    "residual_rms_nT": float(np.sqrt(np.mean(gb.r**2))), "state": sb}]
-        if Term.OFFSET in p.terms:
+        if EstimateTerm.OFFSET in p.terms:
             # the next nested model, rotation, field and offset: a start of its own
-            po = Problem(**{**pcb.__dict__, "terms": frozenset({Term.OFFSET})})
+            po = EstimationProblem(**{**pcb.__dict__, "terms": frozenset({EstimateTerm.OFFSET})})
             go = gauss_newton(Model(po, estimate_B=mb.estimate_B), sb, self.max_iter)
             nested.append({"terms": ["offset"], "rotvec_deg": _log(go.s.R) * 180.0 / np.pi,
                            "residual_rms_nT": float(np.sqrt(np.mean(go.r**2))),
                            "state": go.s})
-        pcf = Problem(**{**pcb.__dict__, "terms": p.terms})
+        pcf = EstimationProblem(**{**pcb.__dict__, "terms": p.terms})
         sb = State(sb.R, sb.B, np.zeros(3), np.eye(3), float(p.time_offset0_s))
-        if Term.SOFT_IRON in p.terms and pb.reference_field_enu_nT is not None:
+        if EstimateTerm.SOFT_IRON in p.terms and pb.reference_field_enu_nT is not None:
             # a known |B| carries the scale of D: start it at the measured ratio
             yn = np.median(np.linalg.norm(pcb.mag_nT, axis=1))
             sb = State(sb.R, sb.B, sb.o, np.eye(3) * yn / np.linalg.norm(sb.B), sb.tau)
 
         def ratios(terms: frozenset) -> tuple[dict, dict]:
-            m = Model(Problem(**{**pcf.__dict__, "terms": terms}),
+            m = Model(EstimationProblem(**{**pcf.__dict__, "terms": terms}),
                       estimate_B=pb.reference_field_enu_nT is None)
             J = m.jacobian(sb)
             H, _ = _normal(J, m.weights(sb), np.zeros((pcf.n, 3)), np.ones(pcf.n))
             return analyse(H, m.blocks).block_ratio, m.blocks
 
         words = {
-            Term.OFFSET: "the offset trades against the field and the rotation: the field "
+            EstimateTerm.OFFSET: "the offset trades against the field and the rotation: the field "
             "direction in the sensor frame did not cover enough of the sphere (rotate the "
             "sensor through very different attitudes, about at least two axes)",
-            Term.SOFT_IRON: "the soft-iron matrix trades against the rotation: the motion did "
-            "not turn the sensor through enough directions (tumble it about all three axes)",
-            Term.TIME_OFFSET: "the time offset trades against the rotation: the rotation rate "
-            "hardly changed (vary the rotation rate, turn back and forth)",
+            EstimateTerm.SOFT_IRON: "the soft-iron matrix trades against the rotation: the motion "
+            "did not turn the sensor through enough directions (tumble it about all three axes)",
+            EstimateTerm.TIME_OFFSET: "the time offset trades against the rotation: the rotation "
+            "rate hardly changed (vary the rotation rate, turn back and forth)",
         }
         terms = frozenset(extra)
         dropped: list[dict] = []
@@ -551,9 +555,9 @@ class MLEstimator:
                 f"{bad['rot']:.1e} of its information survives the field being unknown): "
                 "rotate about a second, very different axis"
             )
-        return Problem(**{**p.__dict__, "terms": terms}), dropped, note, nested
+        return EstimationProblem(**{**p.__dict__, "terms": terms}), dropped, note, nested
 
-    def _multistart(self, p: Problem, pc: Problem, model: Model, gn: GNResult,
+    def _multistart(self, p: EstimationProblem, pc: EstimationProblem, model: Model, gn: GNResult,
                     cal: Calibration, nested: list[dict] | None = None,
                     ) -> tuple[GNResult, Calibration, str | None, list]:
         """Repeat the fit from other starts; refuse when distinct minima fit about as well.
@@ -629,16 +633,16 @@ class MLEstimator:
                 break
         return gn, cal, note, info
 
-    def _neutral_state(self, p: Problem) -> State:
+    def _neutral_state(self, p: EstimationProblem) -> State:
         """No offset, D = I (trace-scaled when a reference fixes |B|), Wahba on raw readings."""
         R, B = init_rotation(p.mag_nT, p.C_enu_body, p.reference_field_enu_nT)
         D = np.eye(3)
-        if p.reference_field_enu_nT is not None and Term.SOFT_IRON in p.terms:
+        if p.reference_field_enu_nT is not None and EstimateTerm.SOFT_IRON in p.terms:
             D = D * np.median(np.linalg.norm(p.mag_nT, axis=1)) / np.linalg.norm(
                 p.reference_field_enu_nT)
         return State(R, np.asarray(B, float), np.zeros(3), D, float(p.time_offset0_s))
 
-    def _split(self, p: Problem, model: Model, gn: GNResult,
+    def _split(self, p: EstimationProblem, model: Model, gn: GNResult,
                cal: Calibration) -> SplitCheck | None:
         """Fit two contiguous halves of equal rotation information and compare them."""
         if p.n < 200:
@@ -665,7 +669,7 @@ class MLEstimator:
         return SplitCheck.compare(out[0], out[1], t_split)
 
 
-    def finish(self, p: Problem, model: Model, gn: GNResult) -> Calibration:
+    def finish(self, p: EstimationProblem, model: Model, gn: GNResult) -> Calibration:
         """Covariance, observability and the Calibration value."""
         s, w, W, r, H = gn.s, gn.w, gn.W, gn.r, gn.H
         dof = max(3 * p.n - model.n_params, 1)
@@ -783,7 +787,7 @@ COARSE_SAMPLES = 20_000
 CHECK_SAMPLES = 4_000
 
 
-def _decimated(p: Problem, n_max: int) -> Problem:
+def _decimated(p: EstimationProblem, n_max: int) -> EstimationProblem:
     """Every k-th sample of ``p`` (at most ``n_max``), keeping the full attitude series.
 
     The time-offset term re-interpolates the attitude at ``t - tau``; that needs the whole
@@ -793,7 +797,7 @@ def _decimated(p: Problem, n_max: int) -> Problem:
     att = p.attitude
     if att is None:
         att = AttitudeSeries(p.t_ns - np.int64(round(p.time_offset0_s * 1e9)), p.q_enu_body)
-    return Problem(
+    return EstimationProblem(
         **{
             **p.__dict__,
             "t_ns": p.t_ns[::k],
@@ -804,12 +808,12 @@ def _decimated(p: Problem, n_max: int) -> Problem:
     )
 
 
-def _subset(p: Problem, mask: np.ndarray) -> Problem:
+def _subset(p: EstimationProblem, mask: np.ndarray) -> EstimationProblem:
     """Return the samples of ``p`` where ``mask`` is true, with the whole attitude series."""
     att = p.attitude
     if att is None:
         att = AttitudeSeries(p.t_ns - np.int64(round(p.time_offset0_s * 1e9)), p.q_enu_body)
-    return Problem(**{**p.__dict__, "t_ns": p.t_ns[mask], "mag_nT": p.mag_nT[mask],
+    return EstimationProblem(**{**p.__dict__, "t_ns": p.t_ns[mask], "mag_nT": p.mag_nT[mask],
                       "q_enu_body": p.q_enu_body[mask], "attitude": att})
 
 
@@ -818,7 +822,7 @@ def _log(R: F64) -> F64:
     return quat_to_rotvec(matrix_to_quat(R))
 
 
-def _inside_attitude_span(p: Problem) -> Problem:
+def _inside_attitude_span(p: EstimationProblem) -> EstimationProblem:
     att = p.attitude
     if att is None:
         t_att = p.t_ns - np.int64(round(p.time_offset0_s * 1e9))
@@ -830,7 +834,7 @@ def _inside_attitude_span(p: Problem) -> Problem:
         # The aligned samples are the attitude series itself: keep it whole for interpolation.
 
         att = AttitudeSeries(t_att, p.q_enu_body)
-    return Problem(
+    return EstimationProblem(
         **{
             **p.__dict__,
             "t_ns": p.t_ns[keep],
@@ -842,7 +846,7 @@ def _inside_attitude_span(p: Problem) -> Problem:
 
 
 def fisher_information(
-    p: Problem,
+    p: EstimationProblem,
     R: F64,
     B: F64,
     *,
@@ -883,7 +887,7 @@ def fisher_information(
     return H, model.blocks
 
 
-def fisher_rotation_crb_deg(p: Problem, R: F64, B: F64, **truth: object) -> F64:
+def fisher_rotation_crb_deg(p: EstimationProblem, R: F64, B: F64, **truth: object) -> F64:
     """Cramer-Rao bound (1-sigma, deg) of the rotation about body x, y, z at the truth.
 
     The rotation block of the inverse Fisher information (:func:`fisher_information`), i.e.

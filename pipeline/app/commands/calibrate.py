@@ -28,7 +28,7 @@ from pipeline.core.errors import NotObservableError, RefusedError, UsageError
 from pipeline.core.verdict import Status
 from pipeline.run.options import ProcessOptions
 from pipeline.run.runner import analyse_recording
-from stages.estimate import EstimatorKind, Term, verdict_line
+from stages.estimate import EstimateTerm, EstimatorKind, verdict_line
 from stages.estimators.registry import DESCRIPTIONS, ESTIMATORS
 
 log = logging.getLogger("magalign")
@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     with it, the chosen model, its sigma widened by what the terms it leaves out do to R.
     """
     try:
-        terms = frozenset(Term(t.strip()) for t in args.estimate.split(",") if t.strip())
+        terms = frozenset(EstimateTerm(t.strip()) for t in args.estimate.split(",") if t.strip())
     except ValueError as exc:
         raise UsageError(
             f"--estimate takes offset, soft_iron, time_offset; got {args.estimate!r}"

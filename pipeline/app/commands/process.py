@@ -21,11 +21,11 @@ import warnings
 from pathlib import Path
 
 from pipeline.app.campaign import (
-    EstimatorName,
+    EstimateTerm,
+    EstimatorKind,
     RecordingOptions,
     ReferenceField,
     ReferenceFieldMode,
-    TermName,
     campaign_for_input,
     run_campaign,
 )
@@ -65,7 +65,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="start a Dask LocalCluster of N workers")
     g.add_argument("--scheduler", default=None, metavar="ADDR",
                    help="join a Dask scheduler tcp://host:port (trust it like a shell)")
-    p.add_argument("--estimator", choices=[e.value for e in EstimatorName], default=None,
+    p.add_argument("--estimator", choices=[e.value for e in EstimatorKind], default=None,
                    help="estimator (default: the campaign's, else ml)")
     p.add_argument("--estimate", default=None, metavar="TERMS",
                    help=ESTIMATE_HELP)
@@ -82,14 +82,14 @@ def _overrides(args: argparse.Namespace):
     """Options given explicitly on the command line (they win over a campaign file's)."""
     ov: dict = {}
     if args.estimator is not None:
-        ov["estimator"] = EstimatorName(args.estimator)
+        ov["estimator"] = EstimatorKind(args.estimator)
     if args.estimate is not None:
         try:
-            ov["terms"] = tuple(sorted({TermName(t.strip()) for t in args.estimate.split(",")
+            ov["terms"] = tuple(sorted({EstimateTerm(t.strip()) for t in args.estimate.split(",")
                                         if t.strip()}, key=lambda t: t.value))
         except ValueError:
             raise UsageError(f"--estimate {args.estimate!r}: terms are "
-                             + ", ".join(t.value for t in TermName)) from None
+                             + ", ".join(t.value for t in EstimateTerm)) from None
     ref = field_from_args(args)
     if ref is not None:
         ov["reference_field"] = ReferenceField(ReferenceFieldMode.FIXED,
