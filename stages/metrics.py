@@ -82,20 +82,6 @@ def _ratio(a: float, b: float) -> float:
     return float(100.0 * a / b) if b > 0 and np.isfinite(a) and np.isfinite(b) else float("nan")
 
 
-def scope_components(cal_enu: np.ndarray, raw_enu: np.ndarray) -> dict[str, dict]:
-    """Per-component calibrated / uncalibrated statistics and their ratios."""
-    out: dict[str, dict] = {}
-    for k, c in enumerate(COMPONENTS):
-        sc = component_stats(cal_enu[:, k])
-        su = component_stats(raw_enu[:, k])
-        out[c] = {
-            "calibrated": sc,
-            "uncalibrated": su,
-            "ratio_pct": {s: _ratio(sc[s], su[s]) for s in STATS},
-        }
-    return out
-
-
 def heading_error_stats(heading_rad: np.ndarray, reference_rad: float) -> dict[str, float]:
     """Tang 2016 Table 2 style heading error statistics (deg) of a restored series.
 

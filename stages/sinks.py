@@ -9,9 +9,9 @@ helper thread, while the others close) and closes it with what the run ends with
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
-from typing import ClassVar, Protocol
+from typing import ClassVar
 
 from pipeline.core.recording import Recording, Segment
 from pipeline.io.mcap_read import PassThrough
@@ -86,34 +86,33 @@ class RunEnd:
     metrics: MetricsResult | None = None
 
 
-class Sink(Protocol):
-    """An output: opened once, given every restored chunk in time order, closed once."""
+class Sink:
+    """An output: opened once, given every restored chunk in time order, closed once.
+
+    The methods a sink does not need do nothing.
+    """
 
     #: the step name of its closing (progress line and timings)
-    name: ClassVar[str]
+    name: ClassVar[str] = "Output"
 
     def open(self, start: RunStart) -> None:
         """Start the output (nothing is written in place before :meth:`close`)."""
-        ...
 
     def add(self, chunk: RestoreResult) -> None:
         """Take the next restored rows."""
-        ...
 
     def prepare(self, end: RunEnd) -> None:
         """Do what needs none of the other outputs (runs while they close)."""
-        ...
 
     def close(self, end: RunEnd) -> Outputs:
         """Finish the output; return ``(name, path)`` of each file written."""
-        ...
+        raise NotImplementedError
 
     def discard(self) -> None:
         """Drop a run that failed: no output file appears."""
-        ...
 
 
-class MetricsSink:
+class MetricsSink(Sink):
     """``metrics.json`` and ``metrics.parquet`` (:mod:`stages.metrics`)."""
 
     name: ClassVar[str] = "Metrics"
@@ -137,9 +136,6 @@ class MetricsSink:
         assert self._acc is not None
         self._acc.add(chunk)
 
-    def prepare(self, end: RunEnd) -> None:
-        """Nothing to prepare."""
-
     def close(self, end: RunEnd) -> Outputs:
         """Write the metrics; :attr:`result` holds them."""
         assert self._acc is not None
@@ -152,7 +148,7 @@ class MetricsSink:
         self._acc = None
 
 
-class ResultsSink:
+class ResultsSink(Sink):
     """``calibration.json`` and ``diagnosis.json`` (:mod:`stages.write_results`)."""
 
     name: ClassVar[str] = "WriteResults"
@@ -160,24 +156,12 @@ class ResultsSink:
     def __init__(self, out_dir: str | Path) -> None:
         self.out_dir = Path(out_dir)
 
-    def open(self, start: RunStart) -> None:
-        """Nothing to open."""
-
-    def add(self, chunk: RestoreResult) -> None:
-        """Take nothing: the results do not depend on the rows."""
-
-    def prepare(self, end: RunEnd) -> None:
-        """Nothing to prepare."""
-
     def close(self, end: RunEnd) -> Outputs:
         """Write the final calibration and the diagnosis."""
         return write_results(self.out_dir, end.calibration, end.diagnosis)
 
-    def discard(self) -> None:
-        """Nothing was written."""
 
-
-class CorrectedMcapSink:
+class CorrectedMcapSink(Sink):
     """``<stem>.corrected.mcap`` (:mod:`stages.write_mcap`).
 
     An intact indexed input is copied chunk by chunk as the rows come; a damaged one is
@@ -208,9 +192,6 @@ class CorrectedMcapSink:
         else:
             self._stream.add_ranges(chunk)
 
-    def prepare(self, end: RunEnd) -> None:
-        """Nothing to prepare."""
-
     def close(self, end: RunEnd) -> Outputs:
         """Write the rest of the input, the final calibration and the summary."""
         assert self._stream is not None
@@ -228,7 +209,7 @@ class CorrectedMcapSink:
             self._stream.__exit__(RuntimeError, err, None)
 
 
-class RerunSink:
+class RerunSink(Sink):
     """``<stem>.rrd`` (:mod:`stages.write_rerun`).
 
     Parameters
@@ -259,9 +240,6 @@ class RerunSink:
         assert self._stream is not None
         self._stream.add(chunk)
 
-    def prepare(self, end: RunEnd) -> None:
-        """Nothing to prepare."""
-
     def close(self, end: RunEnd) -> Outputs:
         """Send the 3D views, segments and diagnosis; flush and rename the file."""
         stream = self._stream
@@ -279,7 +257,7 @@ class RerunSink:
             self._stream.__exit__(RuntimeError, err, None)
 
 
-class ReportSink:
+class ReportSink(Sink):
     """``report.html`` and its figures (:mod:`stages.report`).
 
     Parameters
@@ -301,12 +279,6 @@ class ReportSink:
         self.calibration_path = calibration_path
         self._figures: dict[str, bytes] | None = None
 
-    def open(self, start: RunStart) -> None:
-        """Nothing to open: the report is drawn from the kept rows."""
-
-    def add(self, chunk: RestoreResult) -> None:
-        """Take nothing: the runner keeps the rows the figures show."""
-
     def prepare(self, end: RunEnd) -> None:
         """Draw the figures (they need neither the metrics nor the other outputs)."""
         self._figures = make_figures(end.recording, end.calibration, end.segments,
@@ -319,11 +291,3 @@ class ReportSink:
                             totals=end.totals, estimator=self.estimator,
                             calibration_path=self.calibration_path, figures=self._figures)
         return (("report.html", str(path)),)
-
-    def discard(self) -> None:
-        """Nothing was written."""
-
-
-def with_metrics(end: RunEnd, metrics: MetricsResult | None) -> RunEnd:
-    """Return ``end`` with the metrics of the run."""
-    return replace(end, metrics=metrics)

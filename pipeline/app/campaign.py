@@ -26,7 +26,7 @@ import json
 import math
 import re
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
@@ -724,11 +724,6 @@ def run_task(task: RecordingTask) -> dict[str, Any]:
     except Exception as exc:  # noqa: BLE001 - one bad recording must not stop the campaign
         return {**base, "status": "failed", "row": None,
                 "error": f"{task.input_path}: internal error {type(exc).__name__}: {exc}"}
-
-
-def task_names(tasks: Sequence[RecordingTask]) -> list[str]:
-    """Names of tasks (for messages)."""
-    return [t.name for t in tasks]
 
 
 # --------------------------------------------------------------------------- orchestration

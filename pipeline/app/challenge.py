@@ -315,12 +315,6 @@ def _param_errors(kind: str, true: dict[str, Any], found: dict[str, Any],
     return []
 
 
-def _window_iou(a: list[list[float]], b: list[list[float]]) -> float:
-    (a0, a1), (b0, b1) = a[0], b[0]
-    inter = max(0.0, min(a1, b1) - max(a0, b0))
-    return inter / max(max(a1, b1) - min(a0, b0), 1e-9)
-
-
 def score(challenge_dir: str | Path, results_dir: str | Path,
           key_file: str | Path | None = None) -> dict[str, Any]:
     """Compare diagnoses with the key.

@@ -94,7 +94,7 @@ def label(name: str) -> str:
 
 # ----------------------------------------------------------------------------- worker side
 
-class _State:
+class _RunState:
     """What one recording's run has done so far (plain JSON)."""
 
     def __init__(self, name: str, stages: list[str] | None = None):
@@ -113,11 +113,11 @@ class _State:
                 "stage_started": self.stage_started, "timings": self.timings}
 
 
-class _Sink:
+class _ProgressSink:
     """Receives a run's progress; subclasses publish it."""
 
     def __init__(self, name: str):
-        self.state = _State(name)
+        self.state = _RunState(name)
 
     def publish(self, force: bool) -> None:  # pragma: no cover - overridden
         """Make the state visible to the display."""
@@ -150,7 +150,7 @@ class _Sink:
         self.publish(False)
 
 
-class FileSink(_Sink):
+class FileSink(_ProgressSink):
     """Writes the state to ``folder/<pid>-<name>.json`` (atomically, at most 5 times a second).
 
     Parameters
@@ -181,7 +181,7 @@ class FileSink(_Sink):
             pass
 
 
-class DirectSink(_Sink):
+class DirectSink(_ProgressSink):
     """Hands the state to ``callback(state_dict)`` in this process."""
 
     def __init__(self, name: str, callback: Callable[[dict[str, Any]], None]):
@@ -196,13 +196,13 @@ class DirectSink(_Sink):
 _local = threading.local()
 
 
-def current() -> _Sink | None:
+def current() -> _ProgressSink | None:
     """Return the sink of this thread, or None."""
     return getattr(_local, "sink", None)
 
 
 @contextmanager
-def use_sink(sink: _Sink | None) -> Iterator[_Sink | None]:
+def use_sink(sink: _ProgressSink | None) -> Iterator[_ProgressSink | None]:
     """Install ``sink`` for the calls to :func:`stage` and :func:`detail` inside the block."""
     old = current()
     _local.sink = sink
@@ -214,7 +214,7 @@ def use_sink(sink: _Sink | None) -> Iterator[_Sink | None]:
         _local.sink = old
 
 
-def sink_from_env(name: str) -> _Sink | None:
+def sink_from_env(name: str) -> _ProgressSink | None:
     """Return a :class:`FileSink` when the parent asked for progress files (:data:`ENV_DIR`)."""
     folder = os.environ.get(ENV_DIR)
     if not folder or not Path(folder).is_dir():

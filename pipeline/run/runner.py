@@ -340,7 +340,7 @@ def first_pass(source: Source, plan: Plan) -> Reduced:
 
 # --------------------------------------------------------------------------- analysis
 @dataclasses.dataclass(frozen=True)
-class Analysis:
+class Analysed:
     """The analysis of a recording: its context, and what the second pass needs.
 
     Attributes
@@ -376,7 +376,7 @@ def _prepared(source: Source, options: ProcessOptions, steps: Steps) -> tuple[So
     return MemorySource(rec, plan.chunk_samples), plan
 
 
-def analyse_source(source: Source, options: ProcessOptions, steps: Steps) -> Analysis:
+def analyse_source(source: Source, options: ProcessOptions, steps: Steps) -> Analysed:
     """Run the first pass (a long recording) and the analysis stages on ``source``."""
     source, plan = _prepared(source, options, steps)
     if not plan.windowed:
@@ -385,7 +385,7 @@ def analyse_source(source: Source, options: ProcessOptions, steps: Steps) -> Ana
         ctx = Context(source=rec.path, recording=rec)
         pipe = Pipeline(plan.analysis_stages(), initial=ctx.provided())
         ctx = steps.pipeline(pipe, ctx)
-        return Analysis(ctx, plan, source, ctx.segments, None)
+        return Analysed(ctx, plan, source, ctx.segments, None)
     reduced = first_pass(source, plan)
     release_free_memory()
     seg_ctx = Context(aligned=reduced.thin_aligned)
@@ -416,7 +416,7 @@ def analyse_source(source: Source, options: ProcessOptions, steps: Steps) -> Ana
         note = (f"long recording processed in chunks: {fitted}; restored, measured and "
                 "written: every sample")
         ctx = ctx.replace(calibration=cal.replace(warnings=cal.warnings + (note,)))
-    return Analysis(ctx, plan, source, segments, reduced)
+    return Analysed(ctx, plan, source, segments, reduced)
 
 
 def analyse(recording: Recording, options: ProcessOptions | None = None) -> Context:
@@ -481,7 +481,7 @@ def process(source: Source, rec_dir: Path, options: ProcessOptions, steps: Steps
     return restore_into_sinks(analyse_source(source, options, steps), rec_dir, steps)
 
 
-def restore_into_sinks(analysis: Analysis, rec_dir: Path, steps: Steps) -> Processed:
+def restore_into_sinks(analysis: Analysed, rec_dir: Path, steps: Steps) -> Processed:
     """Restore every sample of an analysed recording into its plan's sinks (second pass)."""
     source, plan, reduced = analysis.source, analysis.plan, analysis.reduced
     options = plan.options
