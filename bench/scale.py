@@ -9,7 +9,7 @@ else ``ru_maxrss``), also minus the resident memory after the imports (the inter
 numpy, the pipeline):
 
 - ``ingest``: ``read_recording`` (whole file into arrays);
-- ``estimate_stream``: ``calibrate_streaming`` on the file (chunks of 100k messages: the
+- ``estimate_stream``: the runner's streaming estimate on the file (chunks of 100k messages: the
   path for recordings larger than memory; sufficient statistics per chunk);
 - ``restore``: ingest + attitude at the magnetometer stamps + ``restore_samples``;
 - ``write_mcap``: ingest + ``write_corrected_mcap`` (input copied range by range);
@@ -135,7 +135,7 @@ def child(step: str, path: str, work: str) -> None:
 
     from pipeline.io.mcap_read import read_recording
     from pipeline.model.calibration import Calibration
-    from stages.estimators.streaming import calibrate_streaming
+    from pipeline.run.runner import ProcessOptions, analyse_recording
     from stages.restore import restore_samples
     from stages.write_mcap import write_corrected_mcap
     from stages.write_rerun import write_rrd
@@ -150,7 +150,8 @@ def child(step: str, path: str, work: str) -> None:
         rec = read_recording(path)
         n = len(rec.mag)
     elif step == "estimate_stream":
-        cal = calibrate_streaming(path, max_messages=100_000)
+        cal = analyse_recording(path, ProcessOptions(diagnose=False, scale_samples=0)
+                                ).need_calibration()
         n = cal.n_samples
         cal_path.write_text(cal.to_json())
     elif step == "ros2_arrays":

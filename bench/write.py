@@ -205,7 +205,7 @@ def part_outputs(minutes: float, repeat: int, keep: str | None) -> None:
     """Part 2: corrected MCAP and .rrd writing against their zstd ceilings."""
     os.environ.setdefault("RUST_LOG", "off")
     from pipeline.io.mcap_read import read_recording
-    from stages.estimators.streaming import calibrate_streaming
+    from pipeline.run.runner import ProcessOptions, analyse_recording
     from stages.restore import restore_samples
     from stages.write_mcap import write_corrected_mcap
     from stages.write_rerun import write_rrd
@@ -219,7 +219,8 @@ def part_outputs(minutes: float, repeat: int, keep: str | None) -> None:
         if not src.exists():
             make_recording(src, n)
         rec = read_recording(src)
-        cal = calibrate_streaming(src, max_messages=100_000)
+        cal = analyse_recording(src, ProcessOptions(diagnose=False, scale_samples=0)
+                                ).need_calibration()
         rs = restore_samples(rec, cal)
         out_mcap, out_rrd = work / "bench_write.corrected.mcap", work / "bench_write.rrd"
         load = os.getloadavg()[0]

@@ -1,18 +1,6 @@
 """Message schemas magalign reads and writes.
 
-Two kinds of file live here, loaded as package resources (they ship in the wheel):
-
-- ``magalign.<Name>.json``: JSON Schemas (draft 2020-12) of magalign's own JSON channels
-  (schema encoding ``jsonschema``, message encoding ``json``).
-- ``<pkg>.msg.<Type>[.<variant>].msg``: ROS 2 message definitions in the concatenated form
-  that MCAP's ``ros2msg`` schema encoding and ``mcap_ros2`` expect (the main definition, then
-  one ``====...`` separator and ``MSG: pkg/Type`` block per dependency).
-
-``novatel_oem7_msgs/msg/INSPVA`` has variants: its header layout differs between driver
-versions, and readers must take the layout from the schema stored in the file. ``None`` is the
-novatel_oem7_driver layout (``std_msgs/Header header``, ``Oem7Header nov_header``, ...);
-``"no_nov_header"`` has no NovAtel header; ``"novatel_header"`` carries a differently laid out
-NovAtel header (strings, float32 and float64 fields that shift every later offset).
+More in docs/modules.md, ``schemas``.
 """
 
 from __future__ import annotations

@@ -1,23 +1,6 @@
 """Stage: a calibration made on another recording, checked on this one (its own verdict).
 
-A survey line restored with the calibration of a calibration run must not carry that run's
-verdict as its own: the run's residual says nothing about the line. The line gets its own
-check, in two parts:
-
-1. **Residual against the line's own noise.** The calibration's model restores the line; its
-   residual over every sample is compared with the sensor noise measured in the line's still
-   windows (:func:`pipeline.core.verdict.judge`, the rule of every verdict), or, on a line
-   without any, the noise the calibration run measured (the same sensor). Above it is
-   physics the calibration does not hold on this line: a disturbance, a field that varies
-   along the line, a magnet brought aboard.
-2. **The line's own rotation.** Where the line's motion determines the rotation (about the
-   axes it turned about), the rotation alone (and the field) is refitted on the line by the
-   default estimator and compared with the calibration's, axis by axis, in combined sigmas.
-   More than :data:`DISAGREE_SIGMAS` apart, the line contradicts the calibration (the sensor
-   moved on its mount, or the calibration belongs to another installation): a doubt.
-
-The verdict names where the calibration came from and its verdict there; the line's verdict
-is never better than the source's (a QUESTIONABLE calibration gives QUESTIONABLE lines).
+More in docs/modules.md, ``stages.check_applied``.
 """
 
 from __future__ import annotations
@@ -108,7 +91,7 @@ def src_ok_floor(applied: dict[str, Any]) -> float | None:
 
 
 def applied_verdict(cal: Calibration, residual_rms_nT: float) -> Verdict:
-    """Return the verdict of a line restored with ``cal`` (module docstring).
+    """Return the verdict of a line restored with ``cal`` (docs/modules.md).
 
     ``cal.checks["applied"]`` holds what :class:`CheckApplied` measured on the line (the
     source and its verdict, the line's noise and the rotation check); ``residual_rms_nT`` is

@@ -1,15 +1,6 @@
 """Stages: leave out of the analysis the stretches a user knows are bad (``--exclude``).
 
-A surveyor often knows what the data cannot: a vehicle drove past at 12:03, the sensor was
-knocked at 40 s. MagFit's range selection lets them say so; here ``--exclude START:END``
-(repeatable) leaves those stretches out of everything that fits or judges the model (the
-estimate, the diagnosis, the verdict), while the restore, the metrics and the outputs still
-cover every sample: the calibration applies to the excluded stretches too, and what happened
-there is part of the recording.
-
-Windows are half-open ``[START, END)``, as mcap's ``iter_messages``: seconds from the first
-magnetometer sample (``12.5:30``), or UTC times in ISO 8601
-(``2026-11-20T10:03:00Z:2026-11-20T10:04:30Z``).
+More in docs/modules.md, ``stages.exclude``.
 """
 
 from __future__ import annotations
@@ -99,7 +90,7 @@ def excluded_mask(t_ns: np.ndarray, windows: tuple[ExcludeWindow, ...], t0_ns: i
 
 @dataclass(frozen=True)
 class Exclude:
-    """Stage: drop the aligned samples inside the windows (module docstring).
+    """Stage: drop the aligned samples inside the windows (docs/modules.md).
 
     Parameters
     ----------

@@ -1,44 +1,6 @@
 """The paper's quality metrics of the restored field (Li et al. 2020, Table 4).
 
-For each ENU component x (east), y (north), z (up), calibrated and uncalibrated:
-
-- ``fluctuation_range_nT``: max - min;
-- ``absolute_deviation_nT``: mean absolute deviation from the mean;
-- ``std_nT``: standard deviation (population, ddof=0);
-- ``ratio_pct``: calibrated / uncalibrated x 100, one per statistic.
-
-*Calibrated* is the restored series (every term of the calibration
-removed). *Uncalibrated* is the raw magnetometer rotated by the attitude only,
-``C_enu_body(t) @ y_mag`` (no R, no offset, no D, no time offset). Both are taken over the
-same samples: those with a usable attitude for both. A perfectly calibrated sensor in a
-constant field gives a constant restored vector, so every calibrated statistic tends to the
-noise level.
-
-Scopes: the whole recording (``"all"``) and each of the recording's segments
-(``"segment_<i>"``).
-
-For turntable recordings (a single-axis attitude source, Tang et al. 2016) the heading error
-statistics of Tang's Table 2 are added: the heading of the horizontal restored field minus
-that of the reference field ``calibration.B_enu_nT``, in degrees, calibrated and uncalibrated
-(``max_abs_deg``, ``mean_deg``, ``std_deg``, ``rms_deg``, ``peak_to_peak_deg``).
-
-Files (:meth:`MetricsResult.write`; the metrics sink of :mod:`stages.sinks`):
-
-``metrics.json`` (format ``magalign.metrics/1``)::
-
-    {"format", "n_samples", "n_without_attitude", "n_used", "n_without_attitude_at_stamp",
-     "scopes": [{"scope", "kind", "start_s", "end_s", "n_samples",
-                 "components": {"x": {"calibrated": {stat: v}, "uncalibrated": {stat: v},
-                                      "ratio_pct": {stat: v}}, "y": ..., "z": ...}}],
-     "heading_error": null | {"calibrated": {...}, "uncalibrated": {...}}}
-
-``metrics.parquet``: one row per scope x component x calibrated/uncalibrated, columns
-``scope`` (str), ``kind`` (str, segment kind or "all"), ``start_s``, ``end_s`` (float,
-seconds from the first magnetometer sample), ``n_samples`` (int64), ``component`` (str x/y/z),
-``calibrated`` (bool), ``fluctuation_range_nT``, ``absolute_deviation_nT``, ``std_nT``
-(float64), ``ratio_pct`` (float64: calibrated / uncalibrated x 100 of the fluctuation range,
-the paper's headline ratio; the same value on both rows of a pair),
-``ratio_absolute_deviation_pct``, ``ratio_std_pct`` (float64, likewise).
+More in docs/modules.md, ``stages.metrics``.
 """
 
 from __future__ import annotations
@@ -146,7 +108,7 @@ def _nan_to_none(x: Any) -> Any:
 
 @dataclass(frozen=True)
 class MetricsResult:
-    """Frozen result of the metrics stage (module docstring for the layout)."""
+    """Frozen result of the metrics stage (docs/modules.md for the layout)."""
 
     n_samples: int
     n_without_attitude: int
@@ -182,7 +144,7 @@ class MetricsResult:
         )
 
     def to_table(self) -> Any:  # a pyarrow.Table
-        """metrics.parquet as a pyarrow Table (module docstring for the columns)."""
+        """metrics.parquet as a pyarrow Table (docs/modules.md for the columns)."""
         cols: dict[str, list] = {
             k: []
             for k in (
@@ -298,7 +260,7 @@ class _Moments:
 
 
 class MetricsAccumulator:
-    """The metrics of a recording, computed chunk by chunk (module docstring).
+    """The metrics of a recording, computed chunk by chunk (docs/modules.md).
 
     Feed every chunk's :class:`stages.restore.RestoreResult` in time order (:meth:`add`),
     then :meth:`finish` (a recording held whole is one chunk). Range, mean and standard

@@ -1,20 +1,6 @@
 """Figures (PNG, matplotlib Agg) and a self-contained ``report.html`` per recording.
 
-Figures, written beside the report:
-
-- ``fig_enu.png`` (the main figure; Li 2020 Figs. 5 and 8): east, north and up components
-  over time, before (attitude only) and after calibration; the right column shows the
-  calibrated series alone at its own scale;
-- ``fig_residual.png``: residual per mag axis over time, segments shaded;
-- ``fig_trajectory.png`` (Li 2020 Fig. 7): the field in the body frame before and after
-  calibration beside the ideal one (circles for rotations about one axis);
-- ``fig_attitude.png``: heading, pitch and roll (Li 2020 Euler angles), segments shaded;
-- one figure per diagnosis finding (:func:`finding_figures`: its signature in the residual,
-  events in time order on the report's time axis).
-
-``report.html`` embeds every figure as a base64 ``data:`` URI and carries no external
-``src``/``href``: it opens offline as a single file. Sections: recording, metrics table
-(Li 2020 Table 4), calibration with 1-sigma values, warnings (observability), diagnosis.
+More in docs/modules.md, ``stages.report``.
 """
 
 from __future__ import annotations

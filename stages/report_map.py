@@ -1,17 +1,6 @@
 """A plan view of where the sensor went, coloured by the restored field (report, summary, rerun).
 
-A recording with positions (a motion-capture marker, GNSS fixes) shows where the field
-changes: the restored |B| along the path, its median taken off, beside the |B| the fitted
-model predicts there (background field plus the diagnosed field terms). Located sources
-(``local_source`` findings) are drawn with their 1-sigma ellipse; diagnosed events
-(disturbance, hard-iron step) are marked where the sensor was while they lasted.
-
-The path is cut into at most :data:`MAX_POINTS` runs of consecutive samples and each run is
-drawn at its mean position with its mean field: at hundreds of hertz a single sample's noise
-(hundreds of nT on a MEMS sensor) would hide the field's change from place to place.
-
-:func:`map_data` gathers the numbers, JSON-able (written as ``map.json`` beside the report,
-which the campaign summary reads back); :func:`draw_map` and :func:`draw_maps` draw them.
+More in docs/modules.md, ``stages.report_map``.
 """
 
 from __future__ import annotations

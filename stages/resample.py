@@ -1,15 +1,6 @@
 """Resample stage: the attitude onto the magnetometer stamps (THE interpolator).
 
-Time offset (CONVENTIONS): ``tau > 0`` means the magnetometer stamps are late, i.e. the
-sample stamped ``t`` was sensed at ``t - tau``; the attitude is therefore taken at
-``t - tau``.
-
-Gaps: the attitude is not bridged across an interval between two consecutive attitude
-samples longer than ``max_gap_s`` (motion capture loses the markers, an INS drops out).
-The default of :class:`Resample` is ``max(0.05 s, 5 x the median attitude interval)``: five
-missed samples of a fast source, and never less than 50 ms, which at the rotation rates of a
-calibration manoeuvre (tens of deg/s) keeps the interpolation error of a bridged gap well under a
-degree only for short gaps.
+More in docs/modules.md, ``stages.resample``.
 """
 
 from __future__ import annotations

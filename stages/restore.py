@@ -1,28 +1,6 @@
 """Restore every magnetometer sample to ENU by inverting the fitted model, once per recording.
 
-The model of one sample stamped ``t`` (CONVENTIONS, "Measurement model") and its inverse are
-:mod:`pipeline.model.forward` (equations (M1)-(M6) there)::
-
-    y_mag(t) = D @ R_body_mag.T @ C_enu_body(t - tau).T @ (B_enu + F(t)) + o + e(t) + noise
-    b_enu    = C_enu_body(t - tau) @ R_body_mag @ inv(D) @ (y_mag - o - e(t))
-
-Every term the calibration carries is used (:meth:`pipeline.model.calibration.Calibration.restore`):
-``o``, ``D`` and ``tau`` (the attitude re-interpolated at ``t - tau``,
-:mod:`pipeline.model.attitude`), from the calibration's fields or else its ``hard_iron``,
-``soft_iron`` and ``time_offset`` effects; ``eddy_current`` and ``hard_iron_step`` are removed
-from the reading. The external-field terms ``field_drift``, ``disturbance`` and
-``field_gradient`` stay in the restored field (it is meant to show them) but are part of the
-prediction, so the residual is that of the FINAL model, every diagnosed effect included.
-``axis_tilt`` concerns the attitude source (the turntable stage applies it).
-
-The runner (:mod:`pipeline.run`) restores a recording chunk by chunk
-(:class:`ChunkedRestore`; a recording in memory is one chunk) and hands each chunk's
-:class:`RestoreResult` to the outputs.
-
-Sample counts (:class:`RestoreResult`): every magnetometer sample is either *used*, or
-*without a usable attitude* at ``t - tau`` (attitude gap longer than ``max_gap_s`` or outside
-the attitude span), or *without an attitude at its own stamp* (``tau = 0``, needed for the
-uncalibrated comparison of the metrics) while it has one at ``t - tau``.
+More in docs/modules.md, ``stages.restore``.
 """
 
 from __future__ import annotations
@@ -52,7 +30,7 @@ def _readonly(*arrays: np.ndarray) -> None:
 
 @dataclass(frozen=True)
 class RestoreResult:
-    """Every magnetometer sample of a recording, restored where possible (module docstring).
+    """Every magnetometer sample of a recording, restored where possible (docs/modules.md).
 
     Attributes
     ----------

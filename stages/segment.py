@@ -1,35 +1,6 @@
 """Segment stage: which stretches of a recording are static, lines, turns, rotations, manoeuvres.
 
-Everything is decided from the angular rate computed from the attitude (``log(q_k^-1 q_k+1)``
-per interval, smoothed over ``smooth_s`` by a time-weighted moving average), vectorised over
-samples; Python loops run only over runs and segments. One set of defaults serves lab
-recordings (turntables, hand-held manoeuvres) and surveys (lines and turns) alike:
-
-1. **Noise floor.** The white attitude noise is estimated from the data (robust spread of the
-   second differences of the per-sample rotation increments, :func:`attitude_noise_floor`);
-   averaged over ``smooth_s`` it gives the rate noise floor. Thresholds are
-   ``max(fixed minimum, noise_factor * floor)``, so a noisy INS does not look like motion.
-2. **Quiet or moving.** An interval is *quiet* when its smoothed rate is below the still
-   threshold, or when the heading rate (about ENU up) is below the heading threshold and the
-   whole rate stays under ``line_wobble_rate_deg_s`` (pitch/roll wobble on a straight line).
-   Runs shorter than ``min_segment_s`` are absorbed by their neighbours, shortest first
-   (hysteresis: the attitude wobble of a survey line no longer splits it into 1 s pieces).
-3. **Quiet runs**: ``STATIC`` when their RMS rate is below the still threshold (below the
-   noise), ``LINE`` when at least ``min_line_s`` long with a tilt wobble (RMS swing off the
-   ENU vertical) under ``line_max_tilt_deg`` and a heading change under ``turn_min_deg``;
-   otherwise slow motion that joins the neighbouring manoeuvre.
-4. **Moving runs**: a run that as a whole turns by ``turn_min_deg`` ..  ``turn_max_deg`` about
-   an axis within ``turn_vertical_tol_deg`` of ENU up, with a swing under
-   ``turn_max_swing_deg``, is one ``TURN``. Otherwise intervals whose rate direction agrees
-   (within ``axis_tol_deg``) with the direction ``axis_window_s / 2`` before and after are on a
-   *stable axis*; such a stretch is split where the axis strays from its starting direction,
-   and each piece that turns at least ``min_twist_deg`` about its fitted axis is a
-   ``ROTATION``. The rest is ``MANOEUVRE`` (or ``TURN`` by the rule above).
-5. Pieces shorter than ``min_segment_s`` are absorbed by the longer adjacent piece (its kind
-   wins); a short piece between gaps is dropped, so no segment is shorter than the minimum
-   and segments need not cover the whole recording (gaps break them).
-
-Each segment carries the descriptors of :func:`pipeline.model.tang.fit_rotation`.
+More in docs/modules.md, ``stages.segment``.
 """
 
 from __future__ import annotations
@@ -257,7 +228,7 @@ class SegmentMotion:
 
     # ------------------------------------------------------------------ the work
     def segment(self, aligned: AlignedSeries) -> tuple[Segment, ...]:
-        """Segments of one aligned series (see the module docstring)."""
+        """Segments of one aligned series (docs/modules.md)."""
         t = np.asarray(aligned.t_ns, dtype=np.int64)
         q = np.asarray(aligned.q_enu_body, dtype=float)
         if t.shape[0] < 3:

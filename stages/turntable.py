@@ -1,35 +1,6 @@
 """Turntable attitude source, its axis tilt (``axis_tilt``) and the heading error it causes.
 
-A turntable reports only an angle ``Omega(t)`` about its nominal axis. The nominal attitude is
-
-    q_nom(t) = q_align * exp(Omega(t) a_body / 2)
-
-with ``q_align`` the smallest rotation taking the nominal body axis ``a_body`` onto the nominal
-ENU axis ``n_enu`` (so at ``Omega = 0`` the body frame is the ENU frame when both are up).
-
-Tilt model (the same as ``stages.diagnose.model``, CONVENTIONS ``axis_tilt``): the true attitude is
-``q_true(t) = T * q_nom(t)`` with ``T`` the pure tilt (no rotation about the nominal axis) that
-takes ``n_enu`` onto the true axis. The platform then rotates about the tilted axis ``T n_enu``:
-``q_true(t) q_true(0)^-1 = exp((Omega(t) - Omega(0)) T n_enu / 2)``, Tang et al. 2016's
-geometry. ``tilt_deg`` is the angle between the true and the nominal axis; ``azimuth_deg`` is
-the direction the true axis leans to, in the ENU horizontal plane, clockwise from north in
-degrees (``axis_true = (sin t sin az, sin t cos az, cos t)`` for a nominal axis up).
-
-Heading error (Tang's azimuth error): for an attitude series ``q``, the rotation about the
-nominal axis accumulated since the first sample, ``twist_n(q_k q_0^-1)``; the error of an
-attitude source is that twist minus the true one. For the nominal attitude of a tilted table
-it is ``Omega - 2 atan(tan(Omega/2) cos(tilt))`` (exact form of Tang's Eq. 34).
-
-Observability (why :func:`fit_axis_tilt` needs more than the magnetometer): the reading is
-``y = R_body_mag.T C_nom.T T.T B_enu``. With ``B_enu`` unknown, ``T.T B_enu`` is just another
-constant field, so any tilt is absorbed exactly by ``B_enu`` (and ``R_body_mag``). With a known
-reference field the data still only fix ``T.T B_enu`` up to a rotation about the nominal axis
-(which ``R_body_mag`` absorbs): one tilt component, the one towards the horizontal field (the
-angle between the axis and ``B_enu``), is observable, the other is not. With both the field and
-the mounting ``R_body_mag`` known (e.g. from a calibration on a level table or a multi-axis
-manoeuvre), both tilt components are observable. In every case the angle between the true
-rotation axis and the field is determined (``TiltResult.axis_field_angle_deg``). The fit
-reports unobservable tilt directions with infinite sigma instead of a made-up value.
+More in docs/modules.md, ``stages.turntable``.
 """
 
 from __future__ import annotations
@@ -233,7 +204,7 @@ def heading_error(
 
 @dataclass(frozen=True)
 class TiltResult:
-    """Fitted turntable axis tilt with the misalignment (see the module docstring).
+    """Fitted turntable axis tilt with the misalignment (docs/modules.md).
 
     Attributes
     ----------

@@ -1,48 +1,6 @@
 """Write ``<stem>.corrected.mcap``: the input unchanged plus the calibrated channels.
 
-Contents of the output file:
-
-- every channel of the input, schemas, metadata, log/publish times, sequence numbers and
-  payload bytes copied unchanged (READER's :func:`pipeline.io.mcap_read.read_raw_channels`);
-- ``<mag topic>/calibrated``: ``inv(D) @ (y - o - e)``, mag frame (offset, ``D`` and the
-  additive effects of the calibration removed), frame_id = the input's magnetometer frame_id;
-- ``<mag topic>/enu``: the restored field (:mod:`stages.restore`), frame_id ``"enu"``;
-- ``<mag topic>/residual``: measured minus predicted by the fitted forward model, mag frame;
-- ``<mag topic>/magnitude``: the calibrated field magnitude ``|inv(D) @ (y - o - e)|`` in nT
-  (the total field a surveyor maps; independent of the rotation, so present for every
-  sample, also those without an attitude): ``std_msgs/msg/Float64`` whose ``data`` is in
-  **nanotesla** (ROS 2 in; the topic's unit is documented in ``docs/exports.md``), or
-  ``magalign.FieldMagnitude`` ``{t_ns, frame_id, magnitude_nT}`` (JSON in);
-
-one message per input magnetometer sample on each of the four, stamped (header stamp and
-log time) with the magnetometer sample's stamp (``Float64`` has no header: its log time
-carries the stamp). And one ``/tf_static`` message (``tf2_msgs/msg/TFMessage``, ROS 2 CDR in
-either family), logged at the first magnetometer stamp, with one transform: parent
-``header.frame_id`` = the attitude source's body frame (the ``frame_id`` of
-``sensor_msgs/Imu`` messages, else ``"body"``), ``child_frame_id`` = the magnetometer's
-frame_id (else ``"mag"``), rotation = ``R_body_mag`` as a quaternion (the mag frame's
-orientation in the body frame: ``v_body = R_body_mag @ v_mag``), zero translation.
-
-Samples without a usable attitude have no ENU value and no residual: their ``/enu`` and
-``/residual`` messages carry NaN in all three components (IEEE NaN in CDR; ``NaN`` in
-JSON, which Python's ``json`` reads back), so the channels stay one-to-one with the input
-magnetometer.
-
-Encoding follows the input's family: ROS 2 in -> ``sensor_msgs/msg/MagneticField`` in tesla
-(CDR); JSON in -> ``magalign.Magnetometer`` in nT.
-
-The calibration is stored twice: as an MCAP metadata record named ``magalign.calibration``
-with one key ``"json"`` holding the calibration.json text, and as an attachment
-``calibration.json`` (media type ``application/json``).
-
-How the input is copied: when it is an intact indexed MCAP (:func:`pipeline.io.mcap_read.
-pass_through`), its Chunk and MessageIndex records are copied as they are, with its schema and
-channel ids, nothing decompressed or re-encoded; the new channels go into chunks of their own
-beside them (chunks may overlap in time). Otherwise (a damaged or unindexed input) the
-messages that can be read are copied range by range into new chunks.
-
-The file is written to a temporary name and renamed when complete (WRITER's
-:class:`pipeline.io.mcap_write.McapColumnWriter`); writing over an input is refused.
+More in docs/modules.md, ``stages.write_mcap``.
 """
 
 from __future__ import annotations
@@ -82,7 +40,7 @@ def corrected_path(out_dir: str | Path, recording_path: str | Path) -> Path:
 
 
 class CorrectedMcapStream:
-    """The corrected MCAP written chunk by chunk (module docstring for the contents).
+    """The corrected MCAP written chunk by chunk (docs/modules.md for the contents).
 
     Use as a context manager; :meth:`add` takes the restore result of the next magnetometer
     samples in time order (a chunk of a long recording, or a range of a whole one) and
@@ -269,7 +227,7 @@ def write_corrected_mcap(
     recording: Recording, calibration: Calibration, dest: str | Path, *,
     max_gap_s: float | None = None, restored: RestoreResult | None = None,
 ) -> Path:
-    """Write the corrected MCAP of ``recording`` (module docstring for the contents).
+    """Write the corrected MCAP of ``recording`` (docs/modules.md for the contents).
 
     Parameters
     ----------

@@ -1,35 +1,6 @@
 """Write ``<stem>.rrd``: a rerun recording with a default blueprint (rerun-sdk 0.41).
 
-Every time series goes in with ``send_columns`` (whole arrays, in pieces of ``SEND_ROWS``
-rows; no per-sample log call). Timeline ``time`` (timestamps, the magnetometer stamps). Entities:
-
-- ``field/uncalibrated/{east,north,up}`` (Scalars): one row per sample with attitude,
-  ``C_enu_body @ y`` (Li 2020 Figs. 5 and 8, "before");
-- ``field/calibrated/{east,north,up}`` (Scalars): one row per restored sample ("after");
-- ``residual/{x,y,z}`` (Scalars): measured minus predicted, mag frame, nT;
-- ``mag/raw/{x,y,z}`` (Scalars): one row per magnetometer sample, mag frame, nT;
-- ``attitude/{heading,pitch,roll}_deg`` (Scalars): Li 2020 Euler angles at ``t - tau``;
-- ``world/body`` (Transform3D): the attitude rotating the body axes ``world/body/axes``
-  (static arrows, x y z in red green blue); ``world/enu_axes`` (east, north, up);
-- ``world/field/reference`` (Arrows3D, static): the reference field direction in ENU;
-  ``world/body/field_before`` and ``world/body/field_after`` (Arrows3D over time): the
-  measured field in the body frame before and after calibration, carried by the body (they
-  lie on the reference arrow when the calibration is right); unit length x 1.5;
-- ``trajectory/{before,after,ideal}`` (Points3D, static): the field in the body frame (Li 2020
-  Fig. 7 circles), at most ``max_points`` points each;
-- ``segments/spans``, ``diagnosis/events`` (StateChange, with a StateConfiguration of
-  colours): each segment and each diagnosed event in time (a disturbance, a magnet near the
-  sensor) as a labelled span in the state timeline;
-- ``segments/log``, ``diagnosis/log`` (TextLog): one row per segment / diagnosis window start;
-- ``map/path``, ``map/sources``, ``map/events`` (where the recording has positions): the path
-  in 3D coloured by the restored |B| minus its median, located sources as 1-sigma ellipsoids,
-  and where the sensor was during each diagnosed event (:meth:`RrdStream._map`).
-
-Colours are the report's (:mod:`pipeline.style`). The blueprint puts the three ENU
-components (before and after) in a row of plots on top, residuals, attitude and the
-segment / event lanes below, and the 3D views (body and field in ENU, body-frame
-trajectories) beside.
-The file is saved to a temporary name and renamed when complete.
+More in docs/modules.md, ``stages.write_rerun``.
 """
 
 from __future__ import annotations
@@ -154,7 +125,7 @@ def _log_spans(rec: Any, entity: str, items: list[tuple[int, int, str]],
 
 
 class RrdStream:
-    """The rerun recording written chunk by chunk (module docstring for the entities).
+    """The rerun recording written chunk by chunk (docs/modules.md for the entities).
 
     Use as a context manager: :meth:`add` sends the time series of the next magnetometer
     samples (a chunk's :class:`stages.restore.RestoreResult`, in time order), :meth:`finish`
@@ -424,7 +395,7 @@ def write_rrd(
     max_points: int = 20000,
     restored: Any = None,
 ) -> Path:
-    """Write the rerun recording (module docstring for the entities).
+    """Write the rerun recording (docs/modules.md for the entities).
 
     Parameters
     ----------

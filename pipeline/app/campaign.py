@@ -1,17 +1,6 @@
 """Survey campaigns: which recordings to process, with which options, in which order.
 
-A campaign is a TOML file (data, never code; see ``docs/campaigns.md`` for the schema)
-validated with :class:`pipeline.core.config.TomlDoc`, so every error names the file, the key and
-the line. :func:`load_campaign` turns it into a :class:`Campaign`; :func:`campaign_for_input`
-does the same for a single recording or a folder of recordings given on the command line.
-
-Processing one recording is a :class:`RecordingTask` (paths and a small frozen options value,
-cheap to send to another process or machine) run by :func:`run_task`, which returns a small
-JSON-able dict. Finished recordings carry a done-marker ``DIR/<stem>/.magalign-done.json``
-written last and atomically; it stores the SHA-256 of the input bytes and of the
-configuration, so a rerun reuses exactly the outputs whose input and configuration did not
-change, and output without a marker (a run killed midway) is never taken as finished.
-Nothing read from disk is ever unpickled: markers and results are JSON.
+More in docs/modules.md, ``pipeline.app.campaign``.
 """
 
 from __future__ import annotations

@@ -1,16 +1,6 @@
 """Diagnosis challenges: recordings with concealed effects, and scoring against the key.
 
-``generate(n, seed, out_dir)`` writes ``out_dir/rec_000.mcap ...`` (neutral names, no
-metadata beyond what any simulated recording has) and the key in a sibling folder
-``<out_dir>_key/key.json``, never inside ``out_dir``. Each recording gets no effect, one
-effect or a pair, with random magnitude and motion. For each concealed effect the key also
-holds its strength as a multiple of the detection threshold: the amplitude ratio
-``sqrt(lambda / lambda_thr)``, with ``lambda`` the non-centrality of the score test (the part
-of the effect's noise-free signature that the baseline parameters ``R_body_mag, B_enu``
-cannot absorb, over the noise variance) and ``lambda_thr = k ln(3N) + 20`` the BIC gate.
-
-``score(challenge_dir, results_dir)`` compares ``results_dir/<stem>/diagnosis.json`` with the
-key and returns a confusion table and the rates the bench reports.
+More in docs/modules.md, ``pipeline.app.challenge``.
 """
 
 from __future__ import annotations

@@ -1,18 +1,6 @@
 """A calibration in other tools' terms: ArduPilot, MATLAB magcal, ROS 2 tf, YAML.
 
-``magalign export CALIBRATION.json --format ardupilot|magcal|ros-tf|yaml`` prints one of
-these (``docs/exports.md`` describes each). Every function takes a
-:class:`~pipeline.model.calibration.Calibration` and returns the text; none prints.
-
-Our model (CONVENTIONS): ``v_body = R_body_mag @ inv(D) @ (y_mag - o)``, field in nT.
-
-An exported file is loaded into other tools, often over a calibration that is already there,
-so it holds only what magalign estimated: a term that is null in calibration.json is left
-out with a comment saying why (a default such as an identity ``D`` or a zero offset would
-overwrite the tool's own values with numbers nobody measured); where a format cannot leave a
-term out, or would hold nothing, the export is refused. A REFUSED calibration is never
-exported. Every file starts with comments carrying the verdict and its reason, so the file
-says how far it can be trusted wherever it is copied to.
+More in docs/modules.md, ``pipeline.app.exports``.
 """
 
 from __future__ import annotations

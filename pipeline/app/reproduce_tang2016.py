@@ -1,20 +1,6 @@
 """``magalign reproduce tang2016``: Tang et al. 2016, Eq. (34) and Figure 7, and a tilted table.
 
-Writes ``DIR/tang2016.json``::
-
-    {"format": "magalign.tang2016/1",
-     "eta_grid": {"omega_deg": [...], "alpha_deg": [...],
-                  "eta_deg": [[...] one row per alpha],          # Eq. (34)
-                  "eta_exact_deg": [[...] one row per alpha]},   # exact swing-twist geometry
-     "minor_spin": {max_minor_spin_deg, max_eta_eq34_minus_exact_deg, ...},
-     "inverse": {alpha_true_deg, alpha_fit_eq34_deg, alpha_fit_exact_deg},
-     "turntable": {scenario, truth {tilt_deg, azimuth_deg}, fits: {...}}}
-
-and ``DIR/tang2016_fig7.png`` (the azimuth-error surface). The turntable part simulates a
-table tilted 3 deg (scenario ``pipeline/scenarios/turntable_tilt3.toml`` through
-:mod:`pipeline.app.simulate` when that is available, otherwise the same set-up in memory with
-:func:`simulate_tilted_turntable`) and fits the tilt with :func:`stages.turntable.fit_axis_tilt`
-under the three states of knowledge (field unknown; field known; field and mounting known).
+More in docs/modules.md, ``pipeline.app.reproduce_tang2016``.
 """
 
 from __future__ import annotations

@@ -1,29 +1,6 @@
 """Synthetic recordings: scenario files, motion profiles, effects, noise.
 
-A scenario (TOML, loaded with :class:`pipeline.core.config.TomlDoc`) describes the motion, the
-background field, the sensor (misalignment), the effects of the CONVENTIONS effect table, the
-noise, the stream timing and the output message types. :func:`simulate` turns it into an
-in-memory :class:`~pipeline.core.recording.Recording` (exactly what ingest returns for the file
-:func:`write_simulated` writes) and a :class:`Truth` holding every true value.
-
-Measurement model (CONVENTIONS, "Measurement model")::
-
-    y_mag(t) = D @ R_body_mag.T @ C_enu_body(t - tau).T @ B_enu(t) + o + e(t) + noise
-
-``tau > 0``: the magnetometer sample stamped ``t`` was sensed at ``t - tau``. ``e(t)`` holds
-the eddy-current term ``E_s @ d/dt(y_mag)`` (derivative of the noise-free model by a central
-difference with a 0.1 ms step, exact to ~1e-8 relative for the smooth motions here) and the
-``hard_iron_step`` offset; ``field_drift`` and ``disturbance`` enter ``B_enu(t)``.
-
-Misalignment by Euler angles (``misalignment_li2020_deg = [heading, pitch, roll]``): the
-angles describe the magnetometer frame relative to the body frame exactly as an attitude's
-Euler angles describe the body relative to ENU (Li 2020, Eq. 7): ``C_mag_body = E(h, p, r) =
-Ey(roll) @ Ex(pitch) @ Ez(heading)``, hence ``R_body_mag = E.T`` -- the matrix of
-``geometry.li2020_euler_to_quat(h, p, r)``. Li 2020 Section 4.1's magnetometer
-"(beta, gamma) = (-10 deg, 5 deg)" is therefore ``[0, 5, -10]`` (heading 0, pitch 5, roll -10).
-
-Time origin: motion time ``t = 0`` is the scenario start (``timing.start``); effect windows
-(``windows_s``) are seconds from the first magnetometer sample (CONVENTIONS effect table).
+More in docs/modules.md, ``pipeline.app.simulate``.
 """
 
 from __future__ import annotations
@@ -556,7 +533,7 @@ class Output:
 
 @dataclass(frozen=True)
 class Scenario:
-    """A complete simulation scenario (see the module docstring and ``pipeline/scenarios``)."""
+    """A complete simulation scenario (docs/modules.md and ``pipeline/scenarios``)."""
 
     name: str
     motion: Motion
@@ -785,7 +762,7 @@ def li2020_R_body_mag(heading: float, pitch: float, roll: float) -> F64:
 
     The angles describe the magnetometer frame relative to the body frame the way attitude
     angles describe the body relative to ENU (``C_mag_body = Ey(roll) Ex(pitch) Ez(heading)``,
-    Li 2020 Eq. 7), see the module docstring.
+    Li 2020 Eq. 7), see docs/modules.md.
     """
     return li2020_C_body_enu(heading, pitch, roll).T.copy()
 

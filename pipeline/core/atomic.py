@@ -1,20 +1,6 @@
 """Outputs appear only when complete: write to a temporary name, then rename.
 
-A run killed at any point leaves at most a ``.NAME.XXXX.tmp`` file that no reader takes as
-finished.
-
-Test hook
----------
-The kill tests must stop a run at a moment they choose, whatever the speed of the machine.
-With the environment variable ``MAGALIGN_TEST_PAUSE_DIR`` set to a folder, every atomic write
-appends its events to ``DIR/events``, one line each: ``created NAME`` (temporary file
-made), ``written NAME`` (temporary file complete, not yet renamed), ``renamed NAME`` (final
-name in place); ``NAME`` is ``<folder>/<file name>`` of the output. When an event's line
-equals ``MAGALIGN_TEST_PAUSE_AT``, or its number (1-based) does, the process writes its pid
-to ``DIR/pid``, then ``DIR/paused``, and waits until ``DIR/go`` exists (the test kills it
-meanwhile); it pauses only once (not again once ``DIR/paused`` exists, e.g. in a worker
-that retries the recording). Without the variable nothing of this runs. It is a test hook,
-not a feature.
+More in docs/modules.md, ``pipeline.core.atomic``.
 """
 
 from __future__ import annotations
@@ -66,7 +52,7 @@ PAUSE_AT_ENV = "MAGALIGN_TEST_PAUSE_AT"
 
 
 def _test_event(event: str, dest: Path) -> None:
-    """Record an atomic-write event and pause there when asked (see the module docstring)."""
+    """Record an atomic-write event and pause there when asked (docs/modules.md)."""
     folder = os.environ.get(PAUSE_DIR_ENV)
     if not folder:
         return

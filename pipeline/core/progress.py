@@ -1,20 +1,6 @@
 """Progress of long work: per stage, with an estimate of the time left.
 
-Two halves, joined by small JSON files so that they work across processes:
-
-- the **worker side** (:func:`use_sink`, :func:`stage`, :func:`detail`): the code doing the
-  work says which stage it is in and, inside a long stage, how far it got (diagnose's
-  candidate search). Without a sink installed these calls do nothing, so library code may
-  call them freely. :class:`FileSink` writes the state to one file in a folder named by
-  the environment variable :data:`ENV_DIR` (set by the command that started the worker);
-  :class:`DirectSink` hands it to a display in the same process.
-- the **display side** (:class:`ProgressDisplay`): one line on stderr, redrawn a few times
-  a second, ``[done/total] name  stage k/n (detail)  elapsed m:ss  left ~m:ss``. It is shown
-  only when stderr is a terminal, unless the environment variable :data:`ENV_MODE` says
-  ``always`` (or ``never``); nothing at all goes to a stderr that is not a terminal.
-
-The time left is estimated from typical relative costs of the stages (:data:`STAGE_WEIGHTS`)
-scaled by the time the finished work took; it is an estimate, shown with ``~``.
+More in docs/modules.md, ``pipeline.core.progress``.
 """
 
 from __future__ import annotations

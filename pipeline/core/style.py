@@ -1,19 +1,6 @@
 """One colour scheme and type style for every figure: report, diagnosis and rerun.
 
-Meanings, not decoration, decide a colour, and a colour means the same thing everywhere:
-
-- the three axes ``x``, ``y``, ``z`` (mag or body frame) and the ENU components ``east``,
-  ``north``, ``up`` use :data:`AXIS` (red, green, blue, as the axes of a 3D view);
-- the Li 2020 Euler angles use the colour of the axis they turn about: heading (about z)
-  blue, pitch (about x) red, roll (about y) green (:data:`ANGLE`);
-- "before" (uncalibrated, raw) is :data:`BEFORE` (amber), "after" (calibrated) is
-  :data:`AFTER` (purple), the reference field and ideal values :data:`REFERENCE` (black,
-  dashed); these never share a panel with the axis colours;
-- motion segments are shaded light grey by kind (:data:`SEGMENT`, with a key), diagnosis
-  windows light red (:data:`EVENT`).
-
-The colours are from the colour-blind-safe palettes of Okabe & Ito and P. Tol.
-:func:`rc` gives the matplotlib settings (fonts of at least 10 pt, a true minus sign).
+More in docs/modules.md, ``pipeline.core.style``.
 """
 
 from __future__ import annotations

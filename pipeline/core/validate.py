@@ -1,15 +1,6 @@
 """Checks of what magalign reads back from its own output files.
 
-A ``calibration.json`` is read back by ``process --calibration``, by campaigns that restore
-survey lines with a calibration run's result, and by ``regress`` (results and baselines).
-A file edited by hand, damaged, or written by another version must not be used as if it
-were right: :func:`check_calibration_dict` checks every field of CONVENTIONS ("Output
-files") and raises :class:`~pipeline.core.errors.InputError` naming the file and the field
-(exit status 2 at the command line). Fields it does not know are left alone (a newer
-writer may add some).
-
-:func:`check_diagnosis_dict` and :func:`check_metrics_dict` check the parts of
-``diagnosis.json`` and ``metrics.json`` that ``regress`` compares.
+More in docs/modules.md, ``pipeline.core.validate``.
 """
 
 from __future__ import annotations

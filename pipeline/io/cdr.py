@@ -1,16 +1,6 @@
 """Vectorised decoding of ROS 2 CDR messages from the message definition stored in a file.
 
-A ROS 2 MCAP file stores, per schema, the concatenated ``.msg`` text of the message type and
-of every type it uses (sections separated by lines of ``=`` and headed ``MSG: pkg/Type``), as
-``mcap_ros2`` and rosbag2 write it. :func:`parse_definition` turns that text into a tree of
-fields; :class:`CdrLayout` then walks the tree over *all* messages at once: each field's
-position is an int64 array (one entry per message) that advances by the field size, aligned
-relative to the end of the 4-byte encapsulation header (XCDR1 rules). Variable-length strings
-and sequences (``header.frame_id``, ``Oem7Header.message_name``) have their length read per
-message with one vectorised gather, so nothing loops over messages in Python.
-
-Offsets are never hard-coded: the INSPVA header layout, for instance, differs between
-novatel_oem7 driver versions and is derived from whatever definition the file carries.
+More in docs/modules.md, ``pipeline.io.cdr``.
 """
 
 from __future__ import annotations

@@ -1,37 +1,6 @@
 """Vectorised MCAP reading, the reader's API: chunks straight into numpy, recovery of damaged files.
 
-``read_recording``, ``read_recording_warning``, ``inspect_recording``, ``read_raw_channels``,
-``iter_raw_channels`` and ``iter_recording_chunks`` are here; the work is done by
-:mod:`pipeline.io.mcap_scan` (scan and recovery, chunks), :mod:`pipeline.io.mcap_decode`
-(message decoding, channel roles) and :mod:`pipeline.io.mcap_checks` (checks of the decoded
-channels).
-
-How a file is read
-------------------
-1. **Scan** the top-level records from the start (``mcap_scan._scan``). The file is in memory and
-   only record headers are touched (a chunk is skipped by its length), so this costs a few
-   hundred Python steps for a file of millions of messages. It finds schemas and channels
-   (in the data section or the summary), chunk records and the ``MessageIndex`` records
-   that follow each chunk, and top-level messages of non-chunked files. The same scan serves
-   an intact file and a damaged one: a file cut by a crash (no footer, no summary, a torn
-   last record) is read up to its last complete record, a torn last chunk is decompressed as
-   far as its bytes go (streaming zstd/lz4) and its complete records are kept.
-2. **Decode** chunk by chunk (``mcap_scan._iter_blocks``): decompress (zstd, lz4 or none), check
-   the CRC, take message record offsets from the message indexes (``numpy.frombuffer`` of
-   ``(u64 log_time, u64 offset)`` pairs) or, when the indexes are missing, walk the chunk's
-   records; then gather the payload fields of all messages of a channel at once with
-   fancy indexing (:class:`pipeline.io.cdr.CdrLayout`). No Python object is made per message
-   for ROS 2 CDR channels; JSON channels are parsed with one ``json.loads`` per chunk. For
-   :func:`read_recording`, a chunk whose records of a channel all share one layout (length,
-   CDR encapsulation, string lengths: a structured comparison with a template) is read from
-   the records' first bytes, gathered on the inflating thread, each field one strided copy
-   (``mcap_decode._batches``); the same arrays, problems and warnings as the general path.
-
-Everything lost is listed as a :class:`~pipeline.core.recording.Problem` and announced with a
-:class:`~pipeline.core.errors.RecoveredDataWarning`. Data that cannot be trusted raises an
-:class:`~pipeline.core.errors.InputError` subclass (exit status 2 at the command line).
-
-Stamps are header stamps (CONVENTIONS), ``log_time`` only for messages without a header.
+More in docs/modules.md, ``pipeline.io.mcap_read``.
 """
 
 from __future__ import annotations

@@ -214,7 +214,7 @@ RELEASE_EVERY = 32 << 20
 
 
 def _scan(path: str | Path) -> _Scan:
-    """Read the file and list its top-level records (see the module docstring)."""
+    """Read the file and list its top-level records (docs/modules.md)."""
     p = Path(path)
     try:
         raw = _map_file(p)

@@ -1,32 +1,6 @@
 """Vectorised MCAP writing: whole channels of messages in, a complete indexed MCAP file out.
 
-:class:`McapColumnWriter` takes each channel's messages as columns (stamps, one byte array of
-all payloads and their offsets) and writes the MCAP format itself (https://mcap.dev/spec):
-magic, Header, the Schema and Channel records, Chunks (zstd, lz4 or none, each with the CRC of
-its uncompressed records) each followed by one MessageIndex per channel, Metadata,
-Attachments (with CRC), DataEnd (with the data section CRC), and a summary section with
-Schema, Channel, Statistics, ChunkIndex, AttachmentIndex and MetadataIndex records, their
-SummaryOffsets, the Footer (with the summary CRC) and the closing magic.
-
-Cost is per chunk, not per message: the 31-byte Message record headers of a whole
-``add_messages`` block are written through one numpy structured view, next to the payloads
-(a 2-D row copy when the block's messages all have one length, an index gather otherwise).
-At a flush all messages are merged in log-time order (stable sort) and cut into chunks of
-``chunk_size`` bytes; inside a chunk the records are grouped by block (call order), each
-block's in log-time order, so a chunk is a few slices of the blocks' records, never copied
-together: a helper thread computes the CRC and compresses them slice by slice (zlib and zstd
-release the GIL) while the next chunk is laid out. Each channel's records stay in log-time
-order and equal log times keep the call order; across channels the file order within a
-chunk is by block (readers in log-time order go by the message indexes).
-
-:meth:`McapColumnWriter.add_chunk_record` writes another file's Chunk record and its
-MessageIndex records as they are (compressed bytes untouched), for copying an intact input.
-
-Long recordings need not be held in memory: :meth:`McapColumnWriter.flush` writes every message
-logged before a given time and forgets it, so a caller can feed stretch after stretch.
-
-The file is written under a temporary name (:func:`pipeline.atomic.atomic_path`) and renamed
-only when it is complete; writing over an input is refused.
+More in docs/modules.md, ``pipeline.io.mcap_write``.
 """
 
 from __future__ import annotations

@@ -1,23 +1,6 @@
 """Vectorised message encoders: ROS 2 CDR and magalign's JSON channels, whole columns at once.
 
-Every encoder turns columns (one numpy array per quantity, one row per message) into
-``(data, offsets)``: all payloads concatenated in one ``uint8`` array and ``offsets`` of shape
-``(N + 1,)`` int64 such that message ``i`` is ``data[offsets[i]:offsets[i + 1]]``. This is the
-layout :class:`pipeline.io.mcap_write.McapColumnWriter` takes, so no Python object is made per
-message.
-
-CDR (ROS 2, XCDR1 little-endian): a 4-byte encapsulation header ``00 01 00 00``, then the
-fields in definition order, each primitive aligned to its own size counted from the end of
-the encapsulation header; strings are a uint32 length including the terminating NUL, the
-bytes and the NUL; fixed arrays (``float64[9]``) have no length prefix. With the frame_id fixed
-per channel every message of a channel has the same length, so the messages are rows of one
-``(N, L)`` byte matrix: a template row with the constant parts, and a numpy structured view
-(explicit, possibly unaligned, field offsets) through which each column is written at once.
-
-JSON: numbers are formatted by numpy's float-to-string cast, the shortest string that parses
-back to the same float64 (round-trip exact); non-finite values become ``NaN``/``Infinity``/
-``-Infinity`` as Python's :mod:`json` writes and reads them. Rows are assembled with
-``np.char`` and flattened with a length mask.
+More in docs/modules.md, ``pipeline.io.messages``.
 """
 
 from __future__ import annotations

@@ -1,64 +1,6 @@
 """THE attitude interpolator: a C1 cubic on SO(3) between the attitude samples, with the gap rule.
 
-Every user of an attitude between its samples goes through :class:`AttitudeInterpolator`
-(resampling onto the magnetometer stamps, the estimators while they iterate on ``tau``, the
-diagnosis fit, restoring and the forward model), so that the same recording and model give
-the same prediction everywhere.
-
-Between two attitude samples ``q_i`` (at ``t_i``) and ``q_{i+1}`` (at ``t_{i+1}``), with
-``dt_i = t_{i+1} - t_i`` and ``s = (t - t_i) / dt_i``::
-
-    q(t)   = q_i (x) Exp(r(s))                                       (A1)
-    r(s)   = h10(s) a_i + h01(s) phi_i + h11(s) b_i                    cubic Hermite  (A2)
-    phi_i  = Log(q_i^* (x) q_{i+1})                                   short way round (A3)
-    a_i    = dt_i w_i,   b_i = dt_i Jr^-1(phi_i) w_{i+1}                              (A4)
-    w_k    = (dt_{k-1} phi_k / dt_k + dt_k phi_{k-1} / dt_{k-1}) / (dt_{k-1} + dt_k)   (A5)
-
-(right-``Exp`` of the Lie-group note: Sola, Deray & Atchuthan, "A micro Lie theory for state
-estimation in robotics", 2018, Sect. III, right plus ``q (+) phi = q (x) Exp(phi)``; ``Jr``
-its right Jacobian, Eq. (143)). ``h10 = s^3 - 2 s^2 + s``, ``h01 = 3 s^2 - 2 s^3``,
-``h11 = s^3 - s^2``. ``w_k`` is the body angular velocity at sample ``k`` from the
-three-point derivative (exact for a quadratic in time; ``phi_{k-1}`` is the same vector in
-the frames ``k - 1`` and ``k``); at the ends of the track or beside a gap it is the one-sided
-``phi / dt``. The curve passes through every sample, with the angular velocity ``w_k`` there
-(C1), and its error is ``O(dt^3)`` against SLERP's ``alpha dt^2 / 8`` (``alpha`` the angular
-acceleration): at an attitude rate of 25-50 Hz and hand-held motion of 1-2 Hz SLERP errs by
-0.1 deg (~100 nT) and that error, quadratic in the motion, looks like a hard-iron offset and
-a soft-iron scale; the cubic's is below a nT.
-
-The angular velocity of the interpolated attitude is exact, since ``d/dt Exp(r) =
-Exp(r) [Jr(r) r']x``::
-
-    omega_body(t) = Jr(r(s)) r'(s) / dt_i                                           (A6)
-
-(rad/s, body frame), which is what the time-offset Jacobian of :mod:`pipeline.model.forward`
-uses.
-
-The cubic's tangents carry the noise of the neighbouring samples: white attitude noise of
-variance ``sigma^2`` reaches the interpolated attitude with ``2/3 sigma^2`` through SLERP and
-``57/70 sigma^2`` through the cubic (averages over ``s``). The tangents are therefore blended,
-``a = lam a_cubic + (1 - lam) phi`` (and ``b``; ``lam = 0`` is SLERP exactly). SLERP's error
-``s (1 - s) alpha dt^2 / 2`` is systematic (it follows the motion, and its mean square over an
-interval is ``M / 120`` with ``M = E|alpha dt^2|^2``): it biases every fitted parameter, while
-the interpolated noise only adds to their variance, ``/ N`` over ``N`` samples. ``lam``
-minimises the resulting error of a fitted parameter::
-
-    MSE(lam) = (1 - lam)^2 M / 120 + (2/3 + 2 lam / 15 + lam^2 / 70) sigma^2 / N       (A7)
-    lam      = clip((M / 120 - sigma^2 / (15 N)) / (M / 120 + sigma^2 / (70 N)), 0, 1)
-
-(the noise terms are the integrals of the squared interpolation weights). In practice
-``lam`` is 1 whenever the motion bends between samples at all and 0 for a still or
-uniformly turning attitude. ``M`` and
-``sigma^2`` come from the track itself: second differences of the rotation at lags 1 and 2
-have ``E|d1|^2 = 6 sigma^2 + M`` and ``E|d2|^2 = 6 sigma^2 + 16 M`` (white noise does not
-grow with the lag, the motion's curvature grows with its square; ``M`` counts only beyond three
-standard errors of its estimate). A fast motion sampled
-slowly gets the cubic, a slow motion with a noisy attitude gets SLERP; every user of the same
-attitude series gets the same ``lam``.
-
-Gap rule: two consecutive attitude samples further apart than ``max_gap_s`` are not
-interpolated between; a query inside such a gap, or outside the span of the samples, is not
-valid (a query that falls exactly on a sample is valid even beside a gap).
+More in docs/modules.md, ``pipeline.model.attitude``.
 """
 
 from __future__ import annotations
@@ -224,7 +166,7 @@ class Interpolated:
 
 
 class AttitudeInterpolator:
-    """The C1 cubic of ``q_enu_body`` samples (module docstring), built once per series.
+    """The C1 cubic of ``q_enu_body`` samples (docs/modules.md), built once per series.
 
     Parameters
     ----------

@@ -1,45 +1,6 @@
 """``field_map``: a smooth curl-free field from a scalar potential, in a reduced-rank basis.
 
-The field of the surroundings is minus the gradient of a scalar potential (no currents where
-the sensor moves: curl B = 0), and the potential is given a Gaussian-process prior (Solin,
-Kok, Wahlstrom, Schon & Sarkka 2018, "Modeling and interpolation of the ambient magnetic field
-by Gaussian processes", IEEE T-RO 34(4), Sect. III: ``B = -grad phi``, ``phi ~ GP``). The
-GP is approximated in the eigenfunctions of the Laplace operator on a box with Dirichlet
-boundary conditions (ibid. Sect. IV, the Hilbert-space reduced-rank method of Solin & Sarkka,
-"Hilbert space methods for reduced-rank Gaussian process regression", Stat. Comput. 30,
-2020). The forms used here, written out::
-
-    box          Omega = [a_1, b_1] x [a_2, b_2] x [a_3, b_3]   (position frame, m)
-    half widths  L_d = (b_d - a_d) / 2
-    modes        j <-> (n_1, n_2, n_3), n_d = 1 .. N_d, ordered with n_3 fastest
-    wavenumbers  k_jd = pi n_d / (2 L_d)                              rad/m
-    eigenvalues  lambda_j = k_j1^2 + k_j2^2 + k_j3^2                  (-lap phi_j = lambda_j phi_j)
-    Solin's      phi_j(x) = prod_d L_d^-1/2 sin(k_jd (x_d - a_d))     (zero on the box's faces)
-
-(``x_d - a_d = x_d + L_d`` for a box centred on the origin, as the papers write it). The
-basis here is rescaled so that a weight is a field in nT::
-
-    psi_j(x) = prod_d sin(k_jd (x_d - a_d)) / sqrt(lambda_j)          m
-    phi(x)   = sum_j w_j psi_j(x)                                     nT m
-    B_x(x)   = -grad phi(x) = sum_j w_j g_j(x),  g_j = -grad psi_j    nT, position-frame axes
-
-so each ``|g_j| <= 1`` (``|grad prod sin| <= |k_j|``). ``B_x`` is curl-free by construction
-(a gradient); the truncated basis is not harmonic (``lap psi_j = -lambda_j psi_j``), as in the
-papers, so divergence is not enforced. In ENU the field is ``Q B_x`` with ``Q = Rz(yaw)`` the
-position frame's bearing.
-
-Prior: ``phi ~ GP(0, sigma_phi^2 exp(-|x - x'|^2 / (2 l^2)))`` with spectral density
-``S(omega) = sigma_phi^2 (2 pi l^2)^(3/2) exp(-omega^2 l^2 / 2)``; the coefficients of Solin's
-``phi_j`` are independent with variance ``S(sqrt(lambda_j))`` (the reduced-rank approximation
-of the covariance, ``k(x, x') ~ sum_j S(sqrt(lambda_j)) phi_j(x) phi_j(x')``), so the weights
-here have::
-
-    var(w_j) = S(sqrt(lambda_j)) lambda_j / (L_1 L_2 L_3)
-
-and ``sigma_phi = sigma_B l`` gives each field component the prior standard deviation
-``sigma_B`` (the squared-exponential's second derivative at zero lag is ``sigma_phi^2 / l^2``).
-The diagnosis uses the prior as a ridge on the weights (:func:`prior_variance`), so the fit is
-well posed where the path leaves combinations of the basis unobserved.
+More in docs/modules.md, ``pipeline.model.field_map``.
 """
 
 from __future__ import annotations
@@ -132,7 +93,7 @@ def length_scale_for(domain_m: F64, n: int) -> float:
 
 @dataclass(frozen=True)
 class FieldMapBasis:
-    """The basis of one ``field_map`` (module docstring): a box and the modes per axis.
+    """The basis of one ``field_map`` (docs/modules.md): a box and the modes per axis.
 
     Attributes
     ----------
@@ -220,7 +181,7 @@ class FieldMapBasis:
         """Prior variance of each weight, nT^2, (K,): ``S(sqrt(lambda_j)) lambda_j / prod L_d``.
 
         ``S`` is the squared-exponential's spectral density in three dimensions with
-        ``sigma_phi = sigma_B l`` (module docstring): each field component then has the prior
+        ``sigma_phi = sigma_B l`` (docs/modules.md): each field component then has the prior
         standard deviation ``sigma_B_nT`` where the box is large against ``l``.
         """
         ell = float(length_scale_m)

@@ -1,59 +1,6 @@
 """THE measurement model: prediction, Jacobian and restore (inverse), written once.
 
-One magnetometer sample stamped ``t`` (CONVENTIONS, "Measurement model"; the rotation is
-``R_body_mag`` of Li et al. 2020, Eq. (1), ``v_body = R_body_mag @ v_mag``)::
-
-    (M1)  B(t)   = B_enu + F(t)                                   ENU field, nT
-    (M1h) B'(t)  = Rz(h(t)) @ B(t)                                heading_drift, nT
-    (M2)  b(t)   = C_enu_body(t - tau).T @ B'(t)                  body frame, nT
-    (M3)  m(t)   = R_body_mag.T @ b(t)                            mag frame, nT
-    (M4)  y0(t)  = D @ m(t)
-    (M5)  y(t)   = y0(t) + o + o_step 1[t in windows] + E_s @ ydot0(t)
-
-``F(t)`` is the sum of the diagnosed external-field terms (``field_drift``: Legendre
-P1..P4 in time; ``disturbance``: linear B-splines in its windows; ``field_gradient``:
-``G (p(t) - p_ref)`` with the attitude source's position ``p``; ``local_source``: point
-dipoles; ``field_map``: ``-grad phi`` of a potential in a reduced-rank basis,
-:mod:`pipeline.model.field_map`). ``h(t)`` is the attitude
-source's heading error (``heading_drift``: Legendre P1..P2 in time, rad): the source reports
-``Rz(h) C_true``, so the field it sees is turned about Up by ``h``. ``C_enu_body(t - tau)`` is
-the attitude re-interpolated at the sensing time ``t - tau`` (C1 cubic on SO(3),
-:mod:`pipeline.model.attitude`): the time offset is exact, not a first-order equivalent.
-``ydot0`` is the rotation-induced rate of the undisturbed reading,
-``D R.T (C(s + h).T - C(s - h).T) / (2 h) B(t)`` with ``s = t - tau`` and ``h`` three
-attitude intervals (the regressor of the ``eddy_current`` term; sharing no attitude sample
-with the reading's own interpolation, it cannot fit attitude noise).
-
-Restoring (CONVENTIONS) inverts (M2)-(M5) for the sensor terms and leaves ``F(t)`` in the
-restored field (the series is meant to show the external field); the heading error is an
-attitude term and is taken out::
-
-    (M6)  b_enu(t) = Rz(-h(t)) C_enu_body(t - tau) R_body_mag inv(D) (y - o - o_step - E_s ydot0)
-
-Jacobian (:func:`jacobian`) with respect to the calibration parameters, at the current
-values; the rotation is perturbed on the right, ``R_body_mag <- R_body_mag Exp([d]x)``
-(Sola, Deray & Atchuthan 2018, "A micro Lie theory for state estimation in robotics",
-Sect. III, right plus; the Jacobian of the action ``R.T v`` follows from
-``Exp(d).T ~ I - [d]x``)::
-
-    (J1)  dy/dd     = D [m]x + E_s D [mdot]x          mdot = R.T (C'.T B)
-    (J2)  dy/dB     = D R.T C.T + E_s D R.T C'.T
-    (J3)  dy/do     = I
-    (J4)  dy/dD_kl  = S_kl m + E_s S_kl mdot          (S_kl: symmetric unit basis, k <= l)
-    (J5)  dy/dtau   = D R.T (omega_body x b) - E_s D R.T C''.T B
-
-where ``omega_body`` is the angular velocity of the interpolated attitude at ``t - tau`` (exact,
-(A6) there): ``d/dt C.T B = -omega x (C.T B)``, so ``d b(t - tau)/dtau = omega x b``. The
-columns are checked against finite differences in ``tests/test_model.py``.
-
-Who computes what: :func:`reading` is (M2)-(M5) from the pieces (attitude matrices at
-``t - tau``, the field ``B'(t)``, the sensor terms) and returns the intermediate quantities
-(``b``, ``m``, ``C'.T B'``, ``ydot0``); :func:`evaluate` (calibration, restore), the
-diagnosis (:func:`stages.diagnose.model.evaluate`), the ML estimator
-(:class:`stages.estimators.ml.Model`), the axis-tilt fit and the simulator's fast path all
-call it. :func:`field_jacobian` (J2), :func:`soft_iron_jacobian` (J4) and
-:func:`time_offset_jacobian` (J5) serve :func:`jacobian`, the diagnosis and the ML estimator;
-(J1) differs by the side of the rotation's perturbation and stays with each.
+More in docs/modules.md, ``pipeline.model.forward``.
 """
 
 from __future__ import annotations

@@ -1,42 +1,6 @@
 """Sample-and-hold timing: a sensor that samples slower than its messages.
 
-A magnetometer read out faster than it converts repeats its last conversion in the messages
-that arrive before the next one. Every copy after the first carries a stamp later than the
-moment the field was sensed, by up to one native period; the first copy itself is stamped at
-the first read-out after the conversion, up to one message period late. Fitted against an
-attitude that is interpolated at the stamps, the repeats look like noise that grows with the
-rotation rate (a 29 % repeat rate at 285.7 Hz costs about 130 nT RMS on fast hand-held motion).
-
-Model (CONVENTIONS effect ``sample_hold``, params ``native_rate_hz`` and
-``repeated_fraction``)::
-
-    y(s_j) = y_true(t_k(j)),   t_k = a + k / f_native,   s_j >= t_k(j)
-
-with ``s_j`` the stamp of message ``j``, ``k(j)`` the conversion it carries (the same for a run
-of identical messages) and ``f_native`` the native rate. :func:`detect_sample_hold` finds the
-runs, estimates ``f_native`` from the count of distinct conversions over time, and re-stamps
-each conversion on the native grid by its lower envelope (the earliest stamp is the closest to
-the conversion), over short windows so that a wandering sensor clock is followed. The
-constant part of the lag is not determined by the stamps alone: it is the time offset ``tau``
-that the estimators fit.
-
-Anchored sensing times (the MEMS magnetometer of the lab recordings): its 285.714 Hz messages
-repeat a conversion in runs of 1 or 3 messages (rarely 5, almost never 2), so the conversions are
-not on a regular grid and the lower-envelope re-stamping falls back to the first copy's stamp.
-The sensor appears to convert at half its conversion rate (about 101 Hz) and to insert a
-midpoint between each pair of raw conversions: the inserted conversions carry half the noise
-variance of the raw ones, and neighbouring conversions correlate (0.67 at lag 1). Measured
-against the attitude on held-out data (``bench/turn_rate.py``), a conversion held over three
-messages was sensed at its middle message, and the conversions between two such runs are evenly
-spaced between their middles.
-:func:`anchored_times_ns` writes this down (the anchor rule); a plain sample-and-hold (runs of 1
-and 2 only) has no anchors and keeps the first copy's stamp. Which timing predicts better is
-decided on held-out data by the diagnosis, not here.
-
-Identifiability: exact repeats of all three components happen by chance only when the field
-does not change between messages (a still, noise-free or coarsely quantised sensor). A repeat
-is evidence of sample-and-hold only where the reading is changing; the detector counts the
-repeats among moving samples and reports nothing below :data:`MIN_MOVING_REPEAT_FRACTION`.
+More in docs/modules.md, ``pipeline.model.sample_hold``.
 """
 
 from __future__ import annotations
@@ -231,7 +195,7 @@ def detect_sample_hold(t_ns: I64, mag_nT: F64) -> SampleHold | None:
 def anchored_times_ns(t_ns: I64, first: B8) -> I64:
     """Sensing time of every message's conversion by the anchor rule, ns, (N,).
 
-    The rule (module docstring: a sensor converting at half the rate with a midpoint inserted
+    The rule (docs/modules.md: a sensor converting at half the rate with a midpoint inserted
     between each pair, read out faster than it converts):
 
     1. The messages split into runs of identical readings (``first`` marks each run's first

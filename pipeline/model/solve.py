@@ -1,23 +1,6 @@
 """THE damped Gauss-Newton (Levenberg-Marquardt) core of every fit of the model.
 
-:func:`minimise` minimises a cost ``sum_i r_i(x)^T W_i r_i(x)`` (the caller's ``linearise``
-gives it with the normal equations ``J^T W J``, ``J^T W r``) over a state ``x`` that may live
-on a manifold (rotations are updated by ``Exp``, the rest additively: the caller's
-``update``). Each iteration solves the damped normal equations (Marquardt 1963; Nocedal &
-Wright 2006, Sect. 10.3)::
-
-    (J^T W J + lambda diag(J^T W J)) dx = J^T W r
-
-accepts ``dx`` when the cost does not increase (then ``lambda <- lambda / 4``), else
-``lambda <- 5 lambda`` and tries again (the schedule is a parameter); stops when the
-relative decrease of the cost falls below ``rtol``, when the caller's ``converged`` says
-so, or when no step decreases it.
-
-Its users: the diagnosis fit (:func:`levenberg_marquardt`, unweighted rows, the Jacobian of
-:func:`stages.diagnose.model.evaluate`), the ML estimator (:mod:`stages.estimators.ml`:
-per-sample weights, IRLS outside, steps by a truncated pseudo-inverse, a stop in units of
-the parameters' sigmas), the streaming estimator (:mod:`stages.estimators.streaming`: the
-normal equations from sufficient statistics, its own damping schedule).
+More in docs/modules.md, ``pipeline.model.solve``.
 """
 
 from __future__ import annotations
@@ -126,7 +109,7 @@ def minimise(
     lam_down: float = 4.0,
     lam_min: float = 1e-9,
 ) -> Minimum:
-    """Minimise by damped Gauss-Newton (module docstring): THE core every fit of the model runs.
+    """Minimise by damped Gauss-Newton (docs/modules.md): THE core every fit of the model runs.
 
     Parameters
     ----------

@@ -1,43 +1,6 @@
 """Rotation decomposition (Tang et al. 2016): swing-twist, fitted rotation axes, octonions.
 
-Tang, Wang, Yang and Liu, "Calibration error analysis of inertially stabilized platforms using
-quaternions and octonions in rotation decomposition", Proc IMechE Part B 230(9), 2016.
-
-A rotation by ``Omega`` about an axis tilted by ``alpha`` from its nominal direction is split
-into a rotation about the nominal axis (what a turntable or an autocollimator reports as
-azimuth) and the rest. With half angle ``theta = Omega / 2`` and the tilt in the plane of the
-nominal axis ``k`` and a perpendicular axis ``i``::
-
-    q = cos(theta) + sin(theta) (cos(alpha) k + sin(alpha) i)
-
-the paper writes ``q ~ (cos(delta) + sin(delta) k) (cos(gamma) + sin(gamma) i)`` with
-
-    2 delta = 2 asin(sin(theta) cos(alpha)),  2 gamma = 2 asin(sin(theta) sin(alpha))  (Eq. 33)
-
-and the azimuth error ``eta = Omega - 2 delta`` (Eq. 34). Expanding the product leaves the
-term ``sin(delta) sin(gamma) (k i) = sin(delta) sin(gamma) j``: a "minor spin" about the third
-axis that the paper neglects (the product then has norm above 1 and a scalar part that no
-longer equals ``cos(theta)``). The exact split (swing-twist about ``k``) has the twist
-``2 atan2(sin(theta) cos(alpha), cos(theta))``. Over ``Omega`` in [-40, 40] deg and ``alpha``
-in [-20, 20] deg (the paper's Figure 7):
-
-- the minor spin ``2 asin(|sin(delta) sin(gamma)|)`` reaches 4.31 deg (Omega = 40, alpha = 20);
-- Eq. (34) differs from the exact azimuth error by at most 0.27 deg there (eta by Eq. 34 is
-  2.51 deg, exact 2.24 deg). For small tilts Eq. (34) gives ``alpha^2 tan(Omega/2)`` and the
-  exact geometry ``(alpha^2 / 2) sin(Omega)`` (rad): they differ by the factor
-  ``cos^2(Omega/2)`` (0.88 at 40 deg), so Eq. (34) overstates the error slightly.
-
-These figures are recomputed by :func:`minor_spin_bound` and by
-``pipeline.app.reproduce_tang2016``.
-
-Octonions. The paper's Table 1 could not be consulted here; :func:`octonion_mul` is the
-standard Cayley-Dickson doubling of quaternion pairs ``(a, b)(c, d) = (ac - d* b, da + b c*)``
-(so ``e^2 = -1`` for the new unit ``e = (0, 1)``), which is what the paper's construction
-rests on. Its properties (norm multiplicativity, alternativity, the quaternion subalgebra
-composing rotations) are what the tests check in place of Eqs. (20)-(22) and (30)-(32).
-
-Conventions: quaternions are Hamilton, scalar-last ``[x, y, z, w]`` as everywhere in magalign;
-octonions are arrays ``(..., 8)`` holding the pair ``(a, b)`` as two scalar-last quaternions.
+More in docs/modules.md, ``pipeline.model.tang``.
 """
 
 from __future__ import annotations

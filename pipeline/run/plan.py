@@ -82,7 +82,7 @@ class Plan:
     n_mag : int
         Magnetometer samples of the recording.
     windowed : bool
-        The analysis sees windows of the recording (module docstring), not all of it.
+        The analysis sees windows of the recording (docs/modules.md), not all of it.
     chunk_samples : int or None
         Magnetometer samples per chunk of a recording held in memory; None: one chunk.
     prepare : tuple of Stage

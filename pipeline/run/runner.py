@@ -1,17 +1,6 @@
 """The runner: every command's one way through a recording.
 
-1. **Read and reduce** (first pass, :func:`first_pass`): the source's chunks in time order
-   (:mod:`pipeline.run.source`; a recording held in memory is one chunk). A long recording
-   (:mod:`pipeline.run.plan`) is reduced to what its analysis needs: the sums of every
-   aligned sample, every k-th aligned sample and full-rate windows.
-2. **Analyse**: the plan's stages through the checked :class:`~pipeline.core.stage.Pipeline`,
-   on the whole recording or on the first pass's windows.
-3. **Restore and write** (second pass, :func:`process`): every chunk restored with the final
-   model (:class:`stages.restore.ChunkedRestore`) into the sinks (:mod:`stages.sinks`);
-   every k-th row is kept for the figures and the 3D views. A long recording's final model
-   is checked on every sample against the analysed ones (:func:`unseen_check`).
-
-Only the runner decides the order of the stages and the sinks.
+More in docs/modules.md, ``pipeline.run.runner``.
 """
 
 from __future__ import annotations
@@ -272,7 +261,7 @@ def _settled(rows: tuple[np.ndarray, np.ndarray, AttitudeInterpolator] | None
 
 
 def first_pass(source: Source, plan: Plan) -> Reduced:
-    """Read a long recording's chunks once and reduce them (module docstring)."""
+    """Read a long recording's chunks once and reduce them (docs/modules.md)."""
     options = plan.options
     kept = _Kept(windows_ns(source.start_ns, source.end_ns, source.n_mag), plan.keep_every)
     chunks = source.chunks()
@@ -466,7 +455,7 @@ class Processed:
 
 
 def process(source: Source, rec_dir: Path, options: ProcessOptions, steps: Steps) -> Processed:
-    """Analyse ``source`` and restore every sample into the outputs (module docstring)."""
+    """Analyse ``source`` and restore every sample into the outputs (docs/modules.md)."""
     # rerun's SDK (about a second) and matplotlib imported on the other core while the
     # first pass and the analysis run
     warm = []

@@ -1,22 +1,6 @@
 """Global checks of a fit: honest covariance, determinability, multi-start, split halves.
 
-Real recordings break the textbook assumptions behind ``cov = s^2 (J^T W J)^-1``: residuals
-are correlated in time (attitude samples shared by neighbouring magnetometer samples,
-sample-and-hold timing, fields the model leaves out that change as the sensor moves), and a
-term that the motion barely determines soaks up whatever the model leaves out and drags the
-rotation with it. This module holds the pieces :class:`stages.estimators.ml.MLEstimator`
-uses to stay honest:
-
-* :func:`sandwich_cov`: the batch-means (block) sandwich covariance
-  ``H^+ (sum_b G_b G_b^T) H^+`` with ``G_b = sum_{i in block b} J_i^T W_i r_i`` the score of
-  one block of :data:`BLOCK_S` seconds: exact for any correlation shorter than a block
-  (Newey-West with a flat kernel); never reported below the white-noise covariance.
-* :func:`confounded`: which requested terms the motion cannot tell from the rotation or from
-  each other (fraction of information kept after marginalisation below
-  :data:`CONFOUND_RATIO`, from :func:`stages.estimators.base.analyse`).
-* :func:`info_halves`: a split of the samples into two contiguous halves of equal rotation
-  information, for the split-half consistency check whose disagreement, when significant,
-  is added to the covariance (:func:`split_inflation`).
+More in docs/modules.md, ``stages.estimators.checks``.
 """
 
 from __future__ import annotations

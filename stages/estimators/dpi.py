@@ -1,19 +1,6 @@
 """Dot-product invariance (DPI) baseline.
 
-In a constant field the angle between the field and the vertical does not change, so with the
-up direction implied by the attitude, ``u_i = C_enu_body_i.T @ e_up`` (body frame), the
-restored magnetometer vector keeps a constant vertical component::
-
-    (R @ m_i) . u_i = B_up        for every sample
-
-The unknowns are ``R`` (left perturbation ``exp(phi^) R``) and ``B_up`` (fixed when a reference
-field is given). The first-order sensitivity to a rotation ``phi`` is
-``d r_i / d phi = (R m_i x u_i) . phi``: the data see a rotation only about the directions
-``b_i x u_i``, the magnetic east in the body frame. A rotation about any axis orthogonal to all
-magnetic-east directions the body visits is unobservable: for level motion (heading changes
-only, as Li 2020 Section 4.1) that is the body vertical, whatever the reference field. DPI also
-ignores the horizontal field entirely, which is why it is less precise than ``ml``.
-Offset, D and time offset are not estimated by this baseline.
+More in docs/modules.md, ``stages.estimators.dpi``.
 """
 
 from __future__ import annotations
@@ -36,7 +23,7 @@ from stages.estimators.base import (
 
 @dataclass(frozen=True)
 class DpiEstimator:
-    """Dot-product invariance with the vertical (see the module docstring)."""
+    """Dot-product invariance with the vertical (docs/modules.md)."""
 
     name: str = "dpi"
     max_iter: int = 50

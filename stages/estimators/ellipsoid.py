@@ -1,15 +1,6 @@
 """Magnetometer-only hard/soft-iron fit (algebraic ellipsoid), and a two-step baseline.
 
-The corrected readings ``D^-1 (y - o)`` of a sensor turned in a constant field lie on a sphere,
-so the raw readings lie on the ellipsoid ``(y - o).T A (y - o) = 1`` with ``A = D^-2``. The
-algebraic fit finds the general quadric ``y.T Q y + q.T y + c = 0`` (10 coefficients, the
-right singular vector of the smallest singular value), then ``o = -Q^-1 q / 2``,
-``A = Q / (o.T Q o - c)`` and ``D`` as the symmetric square root of ``A^-1``.
-
-The magnetometer alone never tells the rotation: the :class:`EllipsoidEstimator` baseline is
-the classical two-step method, ellipsoid first, then the rotation by Wahba (SVD) of the
-corrected readings against the field (alternating with ``B = mean(C R m)`` when no reference
-field is given). Its sigmas come from the rotation-only information of that second step.
+More in docs/modules.md, ``stages.estimators.ellipsoid``.
 """
 
 from __future__ import annotations

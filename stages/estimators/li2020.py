@@ -1,56 +1,6 @@
 """Li et al. 2020, Section 3: misalignment from the measured and a virtual trajectory.
 
-S. Li, D. Cheng, Q. Gao et al., "An Improved Calibration Method for the Misalignment Error of
-a Triaxial Magnetometer and Inertial Navigation System in a Three-Component Magnetic Survey
-System", Applied Sciences 10(19) 6707, 2020.
-
-The steps, with the paper's equations:
-
-1. Virtual auxiliary vector (Eqs. 4-9). An ENU vector ``V`` is carried into the body frame by
-   the INS attitude ``E = Ey(roll) Ex(pitch) Ez(heading)`` (Eq. 7, ``E = C_body_enu``):
-   ``v_i = E_i V``. The points ``v_i`` form the virtual trajectory; the magnetometer readings
-   ``m_i`` form the measured trajectory. With the right ``R`` (Eq. 1: ``v_body = R v_mag``)
-   and ``V = B``, ``R m_i = v_i``.
-2. Normal and tangent vectors of both trajectories (Eqs. 10-13): the tangent is the direction
-   of the trajectory's first derivative, ``t_i = unit(x'_i)``, the normal that of the local
-   trajectory plane, ``n_i = unit(x'_i x x''_i)``. With raw finite differences of stride
-   ``k`` (``x' ~ x_{i+k} - x_{i-k}``, ``x' x x'' ~ (x_i - x_{i-k}) x (x_{i+k} - x_i)``) these
-   are the paper's chord constructions; by default the derivatives are taken from a local
-   cubic fit (Savitzky-Golay) of the trajectory instead (:class:`Tangents`).
-3. Angle and rotation between the measured and the virtual normals and tangents
-   (Eqs. 14-16): here as one least-squares rotation (Wahba / SVD) over all normal and tangent
-   pairs, the rotation that brings the measured trajectory's frame onto the virtual one. It is
-   the starting value ``R0``.
-4. Objective (Eq. 24): the sum over samples of ``|R n^m_i - n^v_i|^2 + |R t^m_i - t^v_i|^2 +
-   |R m_i - E_i V|^2 / |V|^2``, minimised over ``R`` and (without a known field) ``V`` by
-   nonlinear least squares (``scipy.optimize.least_squares``, Levenberg-Marquardt with the
-   analytic Jacobian), with ``R`` written through the Cayley transform
-   ``R = (I - S)^-1 (I + S)`` of an antisymmetric ``S`` (Eq. 3).
-
-Choices where the paper text was not available or is ambiguous (ours, not the paper's):
-
-- The virtual vector ``V`` is the reference field when one is given, otherwise it is
-  estimated together with ``R`` (started from the mean restored field). Under a single-axis
-  rotation without a reference, the rotation about that axis is then not determined; it is
-  reported as unobservable rather than fixed by an arbitrary ``V``.
-- The Cayley transform cannot represent rotations of 180 deg (axis permutations such as
-  ``[[-1,0,0],[0,0,1],[0,1,0]]``), so the unknown is the correction ``R = cay(S) @ R0`` on
-  top of the closed-form start of step 3, itself started from a Wahba multi-start.
-- Derivatives of the trajectories. The virtual trajectory carries the INS attitude noise
-  (0.06 deg of heading is ~50 nT on a 50,000 nT field), so raw chords between samples give
-  noisy tangents and very noisy normals. The default (``Tangents.SMOOTHED``) takes ``x'`` and
-  ``x''`` from a cubic Savitzky-Golay fit over a window in which the measured trajectory turns
-  by about ``SMOOTH_TURN_DEG``. The same linear filter is applied to the measured readings and
-  to the attitude matrices ``E_i`` (so that ``v' = E' V``): for noise-free data
-  ``R m' = v'`` then holds exactly, whatever the window, and the smoothing adds no bias; it
-  only averages the noise. ``Tangents.FINITE_DIFFERENCE`` keeps the raw chords with a stride
-  ``k`` chosen so that the median angle between ``x_i`` and ``x_{i+k}`` is at least 2 deg.
-- The three groups of residuals are unweighted (dimensionless). The paper gives no
-  uncertainty; ours is the sandwich ``H^-1 S H^-1`` (``H = J.T J``) with the covariance ``S``
-  of the score ``J.T r`` estimated from the residuals themselves (Newey-West, Bartlett weights
-  over twice the derivative window): tangents and normals of neighbouring samples share data,
-  so their residuals are correlated and the plain ``s^2 H^-1`` would be several times too
-  small.
+More in docs/modules.md, ``stages.estimators.li2020``.
 """
 
 from __future__ import annotations
@@ -195,7 +145,7 @@ def _unit_jac(a: F64) -> F64:
 
 @dataclass(frozen=True)
 class Li2020Estimator:
-    """The method of Li et al. 2020, Section 3 (see the module docstring for our choices).
+    """The method of Li et al. 2020, Section 3 (docs/modules.md for our choices).
 
     Attributes
     ----------

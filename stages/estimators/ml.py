@@ -1,32 +1,6 @@
 """Joint maximum likelihood of the misalignment, the field and the optional terms (default).
 
-Model: (M2)-(M5) of :mod:`pipeline.model.forward` without the diagnosed terms,
-predicted by :func:`pipeline.model.forward.reading` (:meth:`Model.predict`)::
-
-    y_i = D @ R.T @ b_i + o,    b_i = C_enu_body(t_i - tau).T @ B_enu,    R = R_body_mag
-
-with ``C_enu_body(t - tau)`` from THE interpolator (:mod:`pipeline.model.attitude`). Fitted
-by THE solver core (:func:`pipeline.model.solve.minimise`, damped Gauss-Newton, each step
-solved by the truncated pseudo-inverse) on SO(3) with the left perturbation
-``R = exp(phi^) @ R_bar`` (phi in the body frame). Then
-``R.T = R_bar.T @ exp(-phi^) ~ R_bar.T (I - phi^)`` and
-``-D R_bar.T [phi]x b = D R_bar.T [b]x phi``, so (the other blocks are (J2)-(J5) of
-:mod:`pipeline.model.forward`, without the eddy term)::
-
-    dy/dphi = D @ R_bar.T @ [b]x                     (3 x 3)
-    dy/dB   = D @ R_bar.T @ C.T                      (J2)
-    dy/do   = I                                      (J3)
-    dy/dd_k = E_k @ R_bar.T @ b                      (J4, symmetric basis E_k of D)
-    dy/dtau = D @ R_bar.T @ (omega_body x b)         (J5, b at t - tau)
-
-(The note "Misalignment Error Computation" writes ``-D (R_bar m)^`` for its own convention
-where the rotation acts on the magnetometer vector; with CONVENTIONS' ``y = D R.T C.T B`` the
-expression above is the one that the numerical checks in the tests confirm.)
-
-Each sample is weighted by the inverse of its covariance
-``sigma_m^2 I + D R.T [b]x Sigma_att [b]x.T R D.T``: an attitude error ``delta`` (body frame)
-changes the predicted body field by ``b x delta``; at 50,000 nT, 0.015 deg of pitch is
-13 nT, far above the magnetometer's 0.1 nT, so the attitude dominates the weighting.
+More in docs/modules.md, ``stages.estimators.ml``.
 """
 
 from __future__ import annotations
@@ -170,7 +144,7 @@ class Model:
     def jacobian(self, s: State) -> F64:
         """dy/dparams, (N, 3, P), in the order of ``blocks`` ((J2)-(J5) of the forward model).
 
-        The rotation block is the left perturbation ``R <- exp([phi]x) R`` (module docstring):
+        The rotation block is the left perturbation ``R <- exp([phi]x) R`` (docs/modules.md):
         ``D R.T [b]x``.
         """
         Ct = self.Ct(s.tau)
@@ -359,7 +333,7 @@ def _gn_fixed_weights(model: Model, s: State, w: F64, max_iter: int
 
 @dataclass(frozen=True)
 class MLEstimator:
-    """Joint maximum likelihood (see the module docstring).
+    """Joint maximum likelihood (docs/modules.md).
 
     Attributes
     ----------

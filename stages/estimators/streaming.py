@@ -1,86 +1,6 @@
 """Streaming calibration: the misalignment from fixed-size sufficient statistics.
 
-For a recording too large for memory, the runner (:mod:`pipeline.run`) reads the
-magnetometer and the attitude a chunk at a time, brings them onto common stamps and reduces
-them to a fixed set of sums (:class:`SufficientStats`,
-122 numbers whatever the length of the recording). The model is the rotation part of the ML
-model of :mod:`stages.estimators.ml` with isotropic magnetometer noise (CONVENTIONS,
-``D = I``, ``tau = 0``)::
-
-    y_i = R_body_mag.T @ C_enu_body_i.T @ B_enu + o + e_i,    e_i ~ N(0, sigma^2 I)
-
-(Li 2020, Eq. 1, with the hard-iron offset ``o`` of CONVENTIONS). Because ``C_i`` and ``R``
-are orthogonal, ``|r_i|^2 = |C_i R (y_i - o) - B|^2``, so the cost, its gradient and the
-Gauss-Newton normal equations ``J^T J``, ``J^T r`` at *any* state are linear in
-
-- ``n``, ``sum_y = sum y_i``, ``sum_yy = sum |y_i|^2``,
-- ``S = sum C_i`` (3x3), ``M[a, b, c] = sum C_i[a, b] y_i[c]`` (3x3x3),
-- ``W[a, b, c, d] = sum C_i[a, b] C_i[c, d]`` (3x3x3x3).
-
-One pass over the data accumulates them (chunks are merged by addition, so chunks may also
-be reduced in parallel); Gauss-Newton then iterates on the sums alone, without touching the
-data again. The solution is the least-squares (= ML under isotropic Gaussian magnetometer
-noise) estimate; the in-memory ML estimator additionally weights each sample by the
-attitude noise, which this reduction leaves out.
-
-Soft iron and time offset (:class:`StreamAccumulator`, :func:`fit_stats`)
-------------------------------------------------------------------------
-The full model of CONVENTIONS (``D`` symmetric, ``tau > 0`` when the magnetometer stamps are
-late, so the sample stamped ``t`` sees the attitude at ``t - tau``)::
-
-    y_i = D @ R.T @ C_i(t_i - tau).T @ B + o + e_i
-
-is bilinear (``D R.T`` times ``C.T B``), so its cost is still quadratic in the attitude.
-The attitude at ``t - tau`` is expanded to second order about the stamp::
-
-    C_i(t_i - tau) ~ P_i(tau) = G0_i + tau G1_i + tau^2 G2_i,
-    G0 = C_i,   G1 = -dC/dt (t_i),   G2 = d2C/dt2 (t_i) / 2,
-
-the derivatives from the aligned attitudes of neighbouring samples: the three-point
-(Lagrange) derivatives through the samples ``L``, ``i``, ``R``, with ``L`` the last sample at
-least ``h`` (``baseline_s``) before ``t_i`` and ``R`` the first at least ``h`` after it. A
-sample without both neighbours in the same gap-free stretch (the ends of the recording and
-of every gap longer than ``max_gap_s``) is left out of these sums. With the 28-vector
-``g_i = [1, vec G0_i, vec G1_i, vec G2_i]`` the prediction and its Jacobian at any state
-(``R``, ``B``, ``o``, ``D``, ``tau``) are *linear* in ``g_i``::
-
-    m_i = sum_g g_ig k_g,      dm_i/dx = sum_g g_ig K_g
-
-(``k_g``, ``K_g`` the prediction and Jacobian of the basis vector ``e_g``), so with the sums
-``Wg = sum g_i g_i.T`` (28 x 28), ``Yg = sum g_i y_i.T`` (28 x 3) and ``yy = sum |y_i|^2``::
-
-    cost     = yy - 2 sum_g k_g . Yg_g + sum_gh Wg_gh k_g . k_h
-    J.T J    = sum_gh Wg_gh K_g.T K_h
-    J.T r    = sum_g K_g.T Yg_g - sum_gh Wg_gh K_g.T k_h
-
-exactly (no approximation beyond the expansion): the cost is a polynomial of degree 4 in
-``tau`` whose coefficients are these sums. The Jacobian of the prediction (``v = R.T P.T B``
-the field in the mag frame before ``D``; ``phi`` the right perturbation ``R <- R exp([phi]x)``,
-``E_k`` the symmetric basis of ``D``: trace-free when ``B`` is estimated, since the scale of
-``D`` trades against ``|B|``)::
-
-    dm/dphi = D [v]x
-    dm/dB   = D R.T P(tau).T
-    dm/do   = I
-    dm/dd_k = E_k v
-    dm/dtau = D R.T (G1 + 2 tau G2).T B
-
-Truncation. The expansion leaves ``C(t - tau) - P(tau) = -tau^3/6 d3C/dt3 + O(tau^4)``, a
-reading error of at most ``|B| |tau|^3 |d3C/dt3| / 6`` (``|d3C/dt3| ~ |omega|^3`` for a steady
-turn): 0.2 nT at 40 ms and 0.7 rad/s in a 50,000 nT field. For a steady turn it scales the
-first-order term (``sin(omega tau) ~ omega tau``), so the estimate is ``tau (1 - omega^2
-tau^2 / 6)``: a relative error of 3e-4 at 40 ms and 0.7 rad/s, 0.01 ms. The three-point
-derivatives add ``h^2/6 d3C/dt3`` to ``dC/dt`` (for a steady turn a relative error
-``+(omega h)^2 / 6`` of tau: 2e-4 at the default ``h = 0.05 s`` and 0.7 rad/s; 3.5e-4 of tau,
-0.0035 ms at 10 ms, measured on the noise-free multi-axis simulations of the tests, whose
-rates reach 0.9 rad/s) and smooth the attitude noise (the noise of ``tau G1 + tau^2 G2``
-is below that of ``C`` itself when ``|tau| < h``).
-
-The accumulator is stateful only to find the neighbours: it carries the samples of the last
-``h`` (and those still waiting for a neighbour) from one block to the next, so any split of
-the data into blocks, given in order, yields the same sums (up to the order of additions).
-Its memory is fixed: 28 x 28 + 28 x 3 sums, the 122 of :class:`SufficientStats` and the
-samples of about ``2 h``.
+More in docs/modules.md, ``stages.estimators.streaming``.
 """
 
 from __future__ import annotations
@@ -384,7 +304,7 @@ def fit_stats(
         Estimate the symmetric soft-iron matrix ``D`` (trace 3 when ``B`` is estimated).
     estimate_time_offset : bool
         Estimate ``tau`` (s, relative to the aligned samples' stamps) from the second-order
-        expansion of the attitude (module docstring); only the samples with both stencil
+        expansion of the attitude (docs/modules.md); only the samples with both stencil
         neighbours are used then.
     reference_field_enu_nT : ndarray (3,), optional
         Known background field; estimated when ``None``.
@@ -520,9 +440,9 @@ def _nearest_about_axis(st: SufficientStats, s: _State, axis_body: F64, R_nomina
 
 
 # ------------------------------------------------------------------------------ soft iron, tau
-#: length of the expanded attitude vector g = [1, vec G0, vec G1, vec G2] (module docstring)
+#: length of the expanded attitude vector g = [1, vec G0, vec G1, vec G2] (docs/modules.md)
 NG = 28
-#: default baseline of the three-point attitude derivatives, s (module docstring)
+#: default baseline of the three-point attitude derivatives, s (docs/modules.md)
 DERIVATIVE_BASELINE_S = 0.05
 #: most time blocks kept for the block sandwich covariance (fixed memory): the block length
 #: starts at :data:`stages.estimators.checks.BLOCK_S` and doubles when the recording outgrows
@@ -541,7 +461,7 @@ class StreamStats:
     base : SufficientStats
         The sums of the rotation model over every sample.
     Wg : ndarray (28, 28)
-        ``sum g_i g_i.T`` over the samples with both stencil neighbours (module docstring);
+        ``sum g_i g_i.T`` over the samples with both stencil neighbours (docs/modules.md);
         ``Wg[0, 0]`` is their count.
     Yg : ndarray (28, 3)
         ``sum g_i y_i.T``, nT.
@@ -707,7 +627,7 @@ class StreamAccumulator:
     ``acc = StreamAccumulator(); acc.add(q_enu_body, mag_nT, t_ns) ...; stats = acc.result()``.
     Blocks must come in time order (stamps non-decreasing across and within blocks). The
     attitude derivatives of a sample are taken once its neighbour ``baseline_s`` later has
-    arrived; the samples they still need are carried to the next block (module docstring), so
+    arrived; the samples they still need are carried to the next block (docs/modules.md), so
     the sums do not depend on how the data are split. The sums are also kept per time block
     (at most :data:`MAX_BLOCKS`, from the first stamp; adjacent blocks merge when the
     recording outgrows them) for the block sandwich covariance.

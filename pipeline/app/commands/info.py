@@ -1,26 +1,6 @@
 """``magalign info REC.mcap [--json]``: channels, roles, counts, rates, duration, problems.
 
-With ``--json`` one object is printed (CONVENTIONS)::
-
-    {"channels": [{"topic", "type", "role", "count", "rate_hz"}, ...],
-     "duration_s": float, "problems": [{"code", "message", "count"}, ...]}
-
-exactly (other programs read it). The table also says when the magnetometer repeats its last
-conversion in messages that arrive before the next one (sample-and-hold: how many messages
-repeat the previous reading exactly, and the rate the sensor really converts at,
-``pipeline.model.sample_hold.detect_sample_hold``).
-
-``role`` is ``magnetometer``, ``attitude``, ``turntable``, ``position`` (a
-``sensor_msgs/msg/NavSatFix`` channel: GNSS fixes, the recording's positions) or ``other``;
-``rate_hz`` is ``1 / median stamp interval`` (header stamps; log times for channels of other
-types) or null with fewer than two messages; ``duration_s`` spans the magnetometer stamps (all
-channels when there is no magnetometer). ``problems`` lists what was found wrong and
-handled (a cut file, chunks skipped for a bad CRC or compression, stamps backwards or
-duplicated, gaps) and what reading would repair or refuse in the values (the same checks as
-``calibrate`` and ``process``: NaN/Inf samples, zero or non-unit quaternions, clock jumps,
-samples pinned at a rail, position fixes lost (``position_lost``) or none valid at all
-(``no_position_fix``); code ``unusable`` for what they would refuse): ``code`` is a short
-fixed identifier, ``message`` says it in words, ``count`` how many samples or bytes.
+More in docs/modules.md, ``pipeline.app.commands.info``.
 """
 
 from __future__ import annotations
