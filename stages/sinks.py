@@ -108,8 +108,11 @@ class Sink:
         """Finish the output; return ``(name, path)`` of each file written."""
         raise NotImplementedError
 
-    def discard(self) -> None:
-        """Drop a run that failed: no output file appears."""
+    def discard(self, exc: BaseException) -> None:
+        """Drop a run that failed with ``exc``: no output file appears.
+
+        Raises the error the output makes of ``exc`` (a full disk is an ``OutputError``).
+        """
 
 
 class MetricsSink(Sink):
@@ -143,7 +146,7 @@ class MetricsSink(Sink):
         j, pq = self.result.write(self.out_dir, (self._input,))
         return (("metrics.json", str(j)), ("metrics.parquet", str(pq)))
 
-    def discard(self) -> None:
+    def discard(self, exc: BaseException) -> None:
         """Drop the accumulator's temporary file."""
         self._acc = None
 
@@ -202,11 +205,11 @@ class CorrectedMcapSink(Sink):
         self._stream.__exit__(None, None, None)
         return (("corrected_mcap", str(self._dest)),)
 
-    def discard(self) -> None:
+    def discard(self, exc: BaseException) -> None:
         """Drop the temporary file."""
         if self._stream is not None:
-            err = RuntimeError("run failed")
-            self._stream.__exit__(RuntimeError, err, None)
+            stream, self._stream = self._stream, None
+            stream.__exit__(type(exc), exc, exc.__traceback__)
 
 
 class RerunSink(Sink):
@@ -226,35 +229,40 @@ class RerunSink(Sink):
         self.out_dir = Path(out_dir)
         self.max_points = max_points
         self._stream: RrdStream | None = None
+        self._start: RunStart | None = None
         self._dest = Path()
 
     def open(self, start: RunStart) -> None:
-        """Open the recording stream (rerun writes to a temporary name)."""
+        """Name the file; rerun opens it with the first rows (after the other outputs')."""
         self._dest = rrd_path(self.out_dir, start.recording.path)
-        stream = RrdStream(start.recording, start.calibration, self._dest)
-        stream.__enter__()
-        self._stream = stream
+        self._start = start
+
+    def _opened(self) -> RrdStream:
+        if self._stream is None:
+            assert self._start is not None, "open() first"
+            stream = RrdStream(self._start.recording, self._start.calibration, self._dest)
+            stream.__enter__()
+            self._stream = stream
+        return self._stream
 
     def add(self, chunk: RestoreResult) -> None:
         """Send the chunk's time series."""
-        assert self._stream is not None
-        self._stream.add(chunk)
+        self._opened().add(chunk)
 
     def close(self, end: RunEnd) -> Outputs:
         """Send the 3D views, segments and diagnosis; flush and rename the file."""
-        stream = self._stream
-        assert stream is not None
+        stream = self._opened()
         stream.recording, stream.calibration = end.recording, end.calibration
         stream.finish(end.sample, segments=end.segments, diagnosis=end.diagnosis,
                       max_points=self.max_points)
         stream.__exit__(None, None, None)
         return (("rrd", str(self._dest)),)
 
-    def discard(self) -> None:
+    def discard(self, exc: BaseException) -> None:
         """Drop the temporary file."""
         if self._stream is not None:
-            err = RuntimeError("run failed")
-            self._stream.__exit__(RuntimeError, err, None)
+            stream, self._stream = self._stream, None
+            stream.__exit__(type(exc), exc, exc.__traceback__)
 
 
 class ReportSink(Sink):

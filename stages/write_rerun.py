@@ -29,9 +29,12 @@ IDEAL_RGB = style.rgb(style.REFERENCE)
 AXIS_RGB = tuple(style.rgb(c) for c in style.AXIS)
 ANGLE_RGB = {k: style.rgb(c) for k, c in style.ANGLE.items()}
 #: rows per send_columns call of a long series: rerun encodes pieces of this size while the
-#: next ones are sent (write_rrd on 2 h: one call of 1.44M rows per series 5.2-5.5 s, pieces
-#: of 200k 2.7-3.5 s, of 25k-100k 2.0-2.4 s, under the same load)
+#: next ones are sent (one call per series waits on one encoder; docs/performance.md)
 SEND_ROWS = 50_000
+#: how long a failed run waits for rerun to write what it holds, s
+FLUSH_TIMEOUT_S = 5.0
+#: rerun streams whose file writer stopped (RrdStream.__exit__)
+_STOPPED_STREAMS: list[Any] = []
 #: length of the unit field arrows against the body axes (length 1) in the 3D view
 FIELD_ARROW = 1.5
 
@@ -182,6 +185,15 @@ class RrdStream:
                                 hint="free some disk space and run again")
                 self._atomic.__exit__(OutputError, e, None)
                 raise e from err
+        elif self.rec is not None:
+            # a run that failed: rerun blocks for good dropping a stream whose file writer
+            # stopped (a full disk), so such a stream is kept until the process ends
+            try:
+                self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S)
+                self.rec.disconnect()
+            except RuntimeError:
+                _STOPPED_STREAMS.append(self.rec)
+        self.rec = None
         self._atomic.__exit__(exc_type, exc, tb)
 
     def _styles(self, rr: Any) -> None:

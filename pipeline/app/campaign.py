@@ -34,8 +34,8 @@ from stages.estimators.base import EstimateTerm, EstimatorKind
 from stages.exclude import ExcludeWindow
 
 #: the analysis a worker runs on each recording: imported by name in the worker, so that the
-#: process that plans the campaign and gathers its rows never loads it (about 2 s of imports:
-#: scipy's signal and spatial modules, the diagnosis)
+#: process that plans the campaign and gathers its rows never loads it (scipy's signal and
+#: spatial modules, the diagnosis: slow to import)
 RUNNER_MODULE = "pipeline.run.runner"
 
 DONE_MARKER = ".magalign-done.json"
@@ -630,7 +630,7 @@ def finished_row(task: RecordingTask, input_sha256: str | None = None) -> dict[s
 
 
 def _process_options(task: RecordingTask) -> Any:
-    """Build OUTPUTS' ``ProcessOptions`` from a task, passing only the fields it has."""
+    """Build the ``ProcessOptions`` of a task, passing only the fields it has."""
     o = task.options
     names = {f.name for f in dataclasses.fields(ProcessOptions)}
     want: dict[str, Any] = {}

@@ -41,7 +41,7 @@ from pipeline.core.recording import (
     Role,
     VectorSeries,
 )
-from pipeline.io.mcap_decode import _WGS84_A_M, _WGS84_E2, geodetic_to_local_enu
+from pipeline.io.mcap_decode import WGS84_A_M, WGS84_E2, geodetic_to_local_enu
 from pipeline.io.mcap_write import write_recording
 from pipeline.model.forward import reading
 from pipeline.model.igrf import igrf_enu_nT
@@ -1156,8 +1156,8 @@ def _geodetic(tr: Trajectory, p_enu: F64) -> tuple[F64, F64, F64]:
     longitude and height 0 m at ENU ``z = 0``.
     """
     lat0, lon0 = (math.radians(x) for x in tr.origin_lat_lon_deg)
-    w = math.sqrt(1.0 - _WGS84_E2 * math.sin(lat0) ** 2)
-    r_n, r_m = _WGS84_A_M / w, _WGS84_A_M * (1.0 - _WGS84_E2) / w**3
+    w = math.sqrt(1.0 - WGS84_E2 * math.sin(lat0) ** 2)
+    r_n, r_m = WGS84_A_M / w, WGS84_A_M * (1.0 - WGS84_E2) / w**3
     # the reader's origin is the first fix: make the first fix the stated origin
     h0 = float(p_enu[0, 2])
     d = p_enu - p_enu[0]

@@ -11,11 +11,11 @@ import importlib
 import os
 import threading
 
-#: The only modules imported inside functions, where they are first needed, and why: each
-#: would cost every command that never uses it. rerun's SDK (about a second) and matplotlib
-#: (half a second) for the outputs that draw; dask and its ``distributed`` (a second) only
-#: with ``--dask-local`` or ``--scheduler``; ppigrf (0.6 s) only with ``--igrf``;
-#: ``scipy.interpolate`` (0.5 s) only to simulate a scenario's field drift.
+#: The only modules imported inside functions, where they are first needed: each is slow to
+#: import (docs/performance.md) and would cost every command that never uses it. rerun and
+#: matplotlib for the outputs that draw; dask and its ``distributed`` only with
+#: ``--dask-local`` or ``--scheduler``; ppigrf only with ``--igrf``; ``scipy.interpolate``
+#: only to simulate a scenario's field drift.
 LATE_IMPORTS = ("rerun", "matplotlib", "dask", "distributed", "ppigrf", "scipy.interpolate")
 
 

@@ -73,10 +73,10 @@ _CDR_FIX_STATUS = {t.short_name: t.fix_status for t in MESSAGE_TYPES.values() if
 
 
 #: WGS84 semi-major axis (m) and first eccentricity squared
-_WGS84_A_M = 6378137.0
+WGS84_A_M = 6378137.0
 
 
-_WGS84_E2 = 6.69437999014e-3
+WGS84_E2 = 6.69437999014e-3
 
 
 # --------------------------------------------------------------------------- decoding
@@ -164,7 +164,7 @@ def geodetic_to_local_enu(lat_deg: np.ndarray, lon_deg: np.ndarray, h_m: np.ndar
     ok = _valid_fixes(lat, lon, h)
     if o is None or not ok.any():
         return out
-    e2, a = _WGS84_E2, _WGS84_A_M
+    e2, a = WGS84_E2, WGS84_A_M
     phi0, h0 = np.radians(o.lat_deg), float(o.height_m)
     phi, dlam, hh = np.radians(lat[ok]), np.radians(lon[ok] - o.lon_deg), h[ok]
     dlam = (dlam + np.pi) % (2 * np.pi) - np.pi  # across the antimeridian
@@ -216,7 +216,7 @@ def local_enu_to_geodetic(p_enu_m: np.ndarray, origin: GeodeticOrigin
 
     """
     p = np.asarray(p_enu_m, dtype=float).reshape(-1, 3)
-    e2, a = _WGS84_E2, _WGS84_A_M
+    e2, a = WGS84_E2, WGS84_A_M
     phi0, lam0, h0 = np.radians(origin.lat_deg), np.radians(origin.lon_deg), origin.height_m
     s0, c0, sl, cl = np.sin(phi0), np.cos(phi0), np.sin(lam0), np.cos(lam0)
     n0 = a / np.sqrt(1.0 - e2 * s0**2)
@@ -577,7 +577,7 @@ def _batches(scan: _Scan, want: set[int], decoders: dict[int, _Decoder]
     ``(None, {channel id: [(rows, shape), ...]})`` for a batch whose chunks all hold records
     of one shape per channel (:class:`_Shape`): only the bytes up to the last wanted field of
     each record are gathered, once, from the decompressed chunk, and every field is then a
-    strided copy of those rows (issue 18). The batches, the chunks' checks, the problems
+    strided copy of those rows. The batches, the chunks' checks, the problems
     noted and the decoded arrays are those of :func:`_iter_blocks` and
     :meth:`_Decoder.decode`: a chunk whose records differ is selected by :func:`_select`
     (which validates each offset and walks a chunk whose index is damaged), and a batch

@@ -599,7 +599,7 @@ def _iter_blocks(scan: _Scan, want: set[int], batch_bytes: int = 0
 
     ``batch_bytes`` > 0 joins consecutive chunks into blocks of about that many decompressed
     bytes (whole-recording reads: a logger's chunks hold a few hundred kB, and decoding each
-    on its own spent most of the time in per-call overhead, issue 18); 0 yields one block per
+    on its own spends most of the time in per-call overhead); 0 yields one block per
     chunk (the chunked readers, whose memory bound is a chunk).
     """
     for cid in sorted(want & scan.top_messages.keys()):
@@ -650,8 +650,8 @@ def _compact_records(buf: NDArray[np.uint8], rec: np.ndarray
 
     A sensor's messages usually have one size. One gather of whole records (each a ``V{n}``
     value) then replaces a dozen field gathers scattered over a large buffer: the field reads
-    that follow walk a compact array in order, which the CPU's caches serve (issue 18: 2-3x
-    faster ingest). Records of several sizes are returned as they are.
+    that follow walk a compact array in order, which the CPU's caches serve. Records of
+    several sizes are returned as they are.
     """
     if len(rec) < 2:
         return buf, rec

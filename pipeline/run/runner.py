@@ -19,7 +19,7 @@ import numpy as np
 
 from pipeline.core import progress
 from pipeline.core.atomic import safe_join
-from pipeline.core.errors import InputError, RecoveredDataWarning
+from pipeline.core.errors import InputError, MagalignError, RecoveredDataWarning
 from pipeline.core.memory import release_free_memory
 from pipeline.core.recording import (
     AlignedSeries,
@@ -456,8 +456,8 @@ class Processed:
 
 def process(source: Source, rec_dir: Path, options: ProcessOptions, steps: Steps) -> Processed:
     """Analyse ``source`` and restore every sample into the outputs (docs/modules.md)."""
-    # rerun's SDK (about a second) and matplotlib imported on the other core while the
-    # first pass and the analysis run
+    # rerun's SDK and matplotlib (slow to import) imported on the other core while the first
+    # pass and the analysis run
     warm = []
     if options.write_rerun:
         os.environ.setdefault("RUST_LOG", "off")  # as stages.write_rerun sets it
@@ -567,9 +567,17 @@ def restore_into_sinks(analysis: Analysed, rec_dir: Path, steps: Steps) -> Proce
                 opened.remove(s)
                 if isinstance(s, MetricsSink):
                     end = dataclasses.replace(end, metrics=s.result)
-        except BaseException:
+        except BaseException as exc:
+            # each output drops its temporary file; what it makes of the error (a full disk:
+            # an OutputError naming the folder) is what the user hears
+            said: MagalignError | None = None
             for s in opened:
-                s.discard()
+                try:
+                    s.discard(exc)
+                except MagalignError as err:
+                    said = said or err
+            if said is not None and said is not exc:
+                raise said from exc
             raise
     return Processed(shown, cal, ctx.diagnosis, end.metrics, outputs, header.problems)
 

@@ -220,7 +220,7 @@ def run(args: argparse.Namespace) -> int:
     executor = make_executor(jobs=args.jobs, dask_local=args.dask_local,
                              scheduler=args.scheduler)
     # the summary's imports (pandas through pyarrow's conversions, matplotlib for its
-    # figure: about a second) while the workers run, in the cycles they leave idle
+    # figure) while the workers run, in the cycles they leave idle
     warm = warm_in_background("pyarrow.parquet", "pandas", "pipeline.core.style:pyplot",
                               idle=True)
     results = _run_with_progress(camp, out, executor, args)
