@@ -18,7 +18,8 @@ from pipeline.core.geometry import (
     so3_log,
 )
 from stages.estimators.streaming import (
-    SufficientStats,
+    StreamAccumulator,
+    StreamStats,
     _State,
     cost,
     fit_stats,
@@ -58,21 +59,22 @@ def test_chunked_sums_equal_whole(cuts):
     """Sums of any split of the samples equal the sums of all of them."""
     q, y, t, _ = synthetic(400, seed=3)
     edges = [0, *sorted(cuts), 400]
-    parts = sum((SufficientStats.from_samples(q[a:b], y[a:b], t[a:b])
-                 for a, b in zip(edges[:-1], edges[1:], strict=True)), SufficientStats())
-    whole = SufficientStats.from_samples(q, y, t)
+    acc = StreamAccumulator(with_tau=False)
+    for a, b in zip(edges[:-1], edges[1:], strict=True):
+        acc.add(q[a:b], y[a:b], t[a:b])
+    parts = acc.result()
+    whole = StreamStats.of(q, y, t)
     assert parts.n == whole.n == 400
     for name in ("sum_y", "S", "M", "W"):
         np.testing.assert_allclose(getattr(parts, name), getattr(whole, name), rtol=1e-10,
                                    atol=1e-6)
     assert parts.sum_yy == pytest.approx(whole.sum_yy, rel=1e-12)
-    assert (parts.t_first_ns, parts.t_last_ns) == (int(t[0]), int(t[-1]))
 
 
 def test_cost_and_normal_equations_match_the_samples():
     """Cost, J^T J and J^T r from the sums equal their sample-by-sample definitions."""
-    q, y, _t, R = synthetic(300, seed=5, offset=OFFSET)
-    stats = SufficientStats.from_samples(q, y)
+    q, y, t, R = synthetic(300, seed=5, offset=OFFSET)
+    stats = StreamStats.of(q, y, t)
     s = _State(R @ so3_exp([0.01, -0.02, 0.015]), B_ENU + [30.0, -10.0, 5.0], OFFSET - 3.0)
     C = quat_to_matrix(q)
     m = np.einsum("ab,nca,c->nb", s.R, C, s.B)  # R.T C.T B per sample
@@ -91,7 +93,7 @@ def test_cost_and_normal_equations_match_the_samples():
 
 def test_fit_recovers_rotation_field_and_offset():
     q, y, t, R = synthetic(20_000, noise_nT=1.0, offset=OFFSET)
-    fit = fit_stats(SufficientStats.from_samples(q, y, t), estimate_offset=True)
+    fit = fit_stats(StreamStats.of(q, y, t), estimate_offset=True)
     assert rot_err_deg(fit.R_body_mag, R) < 0.005
     np.testing.assert_allclose(fit.offset_nT, OFFSET, atol=0.5)
     np.testing.assert_allclose(fit.B_enu_nT, B_ENU, atol=0.5)
@@ -109,14 +111,14 @@ def test_fit_with_known_field_and_far_start():
     q, y, t, R = synthetic(5_000, noise_nT=0.5)
     R_big = so3_exp(np.radians([0.0, 0.0, 170.0])) @ R
     y_big = np.einsum("ba,nb->na", R.T @ R_big, y)  # a sensor mounted ~180 deg about z
-    fit = fit_stats(SufficientStats.from_samples(q, y_big, t), reference_field_enu_nT=B_ENU)
+    fit = fit_stats(StreamStats.of(q, y_big, t), reference_field_enu_nT=B_ENU)
     assert rot_err_deg(fit.R_body_mag, R_big) < 0.01
     np.testing.assert_allclose(fit.B_enu_nT, B_ENU)
 
 
 def test_heading_only_motion_leaves_the_vertical_axis_unobservable():
     q, y, t, R = synthetic(5_000, heading_only=True)
-    fit = fit_stats(SufficientStats.from_samples(q, y, t))
+    fit = fit_stats(StreamStats.of(q, y, t))
     assert len(fit.unobservable_axes_body) == 1
     assert abs(abs(fit.unobservable_axes_body[0][2]) - 1.0) < 1e-6
     assert np.isinf(fit.sigma_rotvec_deg[2]) and np.all(np.isfinite(fit.sigma_rotvec_deg[:2]))
@@ -132,7 +134,7 @@ def test_too_few_samples_is_an_estimation_error():
 
     q, y, t, _ = synthetic(5)
     with pytest.raises(EstimationError):
-        fit_stats(SufficientStats.from_samples(q, y, t))
+        fit_stats(StreamStats.of(q, y, t))
 
 
 def test_streaming_from_file_equals_in_memory(tmp_path, monkeypatch):
@@ -162,7 +164,8 @@ def test_streaming_from_file_equals_in_memory(tmp_path, monkeypatch):
     t_stream = reduced.thin_aligned.t_ns
     ctx = Resample(max_gap_s=0.1).run(Context(recording=read_recording(path)))
     np.testing.assert_array_equal(t_stream, ctx.aligned.t_ns)
-    whole = fit_stats(SufficientStats.from_samples(ctx.aligned.q_enu_body, ctx.aligned.mag_nT),
+    whole = fit_stats(StreamStats.of(ctx.aligned.q_enu_body, ctx.aligned.mag_nT,
+                                     ctx.aligned.t_ns),
                       estimate_offset=True)
     sums = Context(sums=reduced.sums)
     cal = EstimateFromSums(frozenset({"offset"})).run(sums).need_calibration()
@@ -179,7 +182,7 @@ def test_agrees_with_the_in_memory_ml_estimator():
 
     q, y, t, R = synthetic(4_000, noise_nT=0.5, seed=11)
     ml = fit_calibration(None, AlignedSeries(t, y, q), estimator=EstimatorKind.ML)
-    fit = fit_stats(SufficientStats.from_samples(q, y, t))
+    fit = fit_stats(StreamStats.of(q, y, t))
     assert rot_err_deg(fit.R_body_mag, ml.R_body_mag) < 0.01
     assert rot_err_deg(fit.R_body_mag, R) < 0.01
 

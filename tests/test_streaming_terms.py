@@ -28,7 +28,7 @@ from stages.estimators.streaming import (
     MAX_BLOCKS,
     NG,
     StreamAccumulator,
-    SufficientStats,
+    StreamStats,
     _Design,
     _Full,
     fit_stats,
@@ -389,12 +389,13 @@ def test_stage_estimates_the_terms_it_supports():
 
 
 def test_rotation_only_sums_are_unchanged():
-    """fit_stats on the accumulator's sums equals the existing fit on SufficientStats."""
+    """The rotation-only fit is the same on the expanded accumulator's sums and on the
+    rotation sums alone."""
     t, y, q, _att, _D = simulated("indep", 0.0, False, True)
     acc = StreamAccumulator()
     acc.add(q, y, t)
     a = fit_stats(acc.result(), estimate_offset=True)
-    b = fit_stats(SufficientStats.from_samples(q, y, t), estimate_offset=True)
+    b = fit_stats(StreamStats.of(q, y, t), estimate_offset=True)
     assert rot_deg(a.R_body_mag, b.R_body_mag) < 1e-9
     np.testing.assert_allclose(a.cov, b.cov, rtol=1e-9, atol=1e-30)
 

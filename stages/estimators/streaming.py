@@ -5,7 +5,8 @@ More in docs/modules.md, ``stages.estimators.streaming``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from functools import cached_property
 from typing import cast
 
 import numpy as np
@@ -25,94 +26,6 @@ UNOBSERVABLE_RATIO = 1e-8
 ESTIMATOR_NAME = "ml-streaming"
 
 
-def _zeros(*shape: int) -> F64:
-    return np.zeros(shape)
-
-
-@dataclass(frozen=True)
-class SufficientStats:
-    """Sums over samples that determine the least-squares cost at every state.
-
-    Attributes
-    ----------
-    n : int
-        Number of samples.
-    sum_y : ndarray (3,)
-        Sum of the magnetometer readings, nT, mag frame.
-    sum_yy : float
-        Sum of their squared norms, nT^2.
-    S : ndarray (3, 3)
-        Sum of ``C_enu_body``.
-    M : ndarray (3, 3, 3)
-        ``M[a, b, c] = sum C_enu_body[a, b] * y[c]``, nT.
-    W : ndarray (3, 3, 3, 3)
-        ``W[a, b, c, d] = sum C_enu_body[a, b] * C_enu_body[c, d]``.
-    t_first_ns, t_last_ns : int
-        First and last stamp seen (for reporting only).
-
-    """
-
-    n: int = 0
-    sum_y: F64 = field(default_factory=lambda: _zeros(3))
-    sum_yy: float = 0.0
-    S: F64 = field(default_factory=lambda: _zeros(3, 3))
-    M: F64 = field(default_factory=lambda: _zeros(3, 3, 3))
-    W: F64 = field(default_factory=lambda: _zeros(3, 3, 3, 3))
-    t_first_ns: int | None = None
-    t_last_ns: int | None = None
-
-    @classmethod
-    def from_samples(
-        cls, q_enu_body: F64, mag_nT: F64, t_ns: NDArray[np.int64] | None = None
-    ) -> SufficientStats:
-        """Reduce one chunk of aligned samples.
-
-        Parameters
-        ----------
-        q_enu_body : ndarray (N, 4)
-            Attitude at the magnetometer stamps, scalar-last.
-        mag_nT : ndarray (N, 3)
-            Magnetometer readings, nT, mag frame.
-        t_ns : ndarray (N,) of int64, optional
-            Stamps, only to remember the span.
-
-        """
-        q = np.asarray(q_enu_body, dtype=float).reshape(-1, 4)
-        y = np.asarray(mag_nT, dtype=float).reshape(-1, 3)
-        if len(q) != len(y):
-            raise EstimationError(f"{len(q)} attitudes for {len(y)} magnetometer samples")
-        C = quat_to_matrix(q).reshape(-1, 9)  # (N, 9): C_enu_body row-major
-        span: tuple[int, int] | tuple[None, None] = (None, None)
-        if t_ns is not None and len(t_ns):
-            span = (int(np.min(t_ns)), int(np.max(t_ns)))
-        return cls(
-            n=len(y),
-            sum_y=y.sum(axis=0),
-            sum_yy=float(np.einsum("ij,ij->", y, y)),
-            S=C.sum(axis=0).reshape(3, 3),
-            # (9, N) @ (N, 3) and (9, N) @ (N, 9): BLAS, no (N, 27) or (N, 81) temporaries
-            M=(C.T @ y).reshape(3, 3, 3),
-            W=(C.T @ C).reshape(3, 3, 3, 3),
-            t_first_ns=span[0],
-            t_last_ns=span[1],
-        )
-
-    def __add__(self, other: SufficientStats) -> SufficientStats:
-        """Merge the sums of two disjoint sets of samples."""
-        firsts = [t for t in (self.t_first_ns, other.t_first_ns) if t is not None]
-        lasts = [t for t in (self.t_last_ns, other.t_last_ns) if t is not None]
-        return SufficientStats(
-            n=self.n + other.n,
-            sum_y=self.sum_y + other.sum_y,
-            sum_yy=self.sum_yy + other.sum_yy,
-            S=self.S + other.S,
-            M=self.M + other.M,
-            W=self.W + other.W,
-            t_first_ns=min(firsts) if firsts else None,
-            t_last_ns=max(lasts) if lasts else None,
-        )
-
-
 # ------------------------------------------------------------------------------ the model
 @dataclass(frozen=True)
 class _State:
@@ -121,12 +34,12 @@ class _State:
     o: F64  # offset_nT (zeros when not estimated)
 
 
-def _T(st: SufficientStats, R: F64) -> F64:
+def _T(st: StreamStats, R: F64) -> F64:
     """``sum_i C_i @ R @ y_i`` (3,)."""
     return np.einsum("abc,bc->a", st.M, R)
 
 
-def cost(st: SufficientStats, R: F64, B: F64, o: F64) -> float:
+def cost(st: StreamStats, R: F64, B: F64, o: F64) -> float:
     """Sum of squared residuals ``sum |y_i - o - R.T C_i.T B|^2``, nT^2, from the sums."""
     SRo = st.S @ R @ o
     c = (st.sum_yy - 2.0 * o @ st.sum_y + st.n * o @ o
@@ -134,7 +47,7 @@ def cost(st: SufficientStats, R: F64, B: F64, o: F64) -> float:
     return max(float(c), 0.0)
 
 
-def normal_equations(st: SufficientStats, s: _State) -> tuple[F64, F64]:
+def normal_equations(st: StreamStats, s: _State) -> tuple[F64, F64]:
     """Gauss-Newton ``(J^T J, J^T r)`` over ``[phi (3), B (3), o (3)]`` at state ``s``.
 
     ``phi`` perturbs the rotation on the right, ``R <- R @ exp([phi]x)``, so the predicted
@@ -169,13 +82,13 @@ def _eps() -> F64:
     return e
 
 
-def _sum_m_cross_y(st: SufficientStats, R: F64, B: F64) -> F64:
+def _sum_m_cross_y(st: StreamStats, R: F64, B: F64) -> F64:
     """``sum_i m_i x y_i`` with ``m_i = R.T C_i.T B``: ``P[k, l] = sum_i m_ik y_il``."""
     P = np.einsum("ak,b,bal->kl", R, B, st.M)
     return np.einsum("jkl,kl->j", _eps(), P)
 
 
-def _solve_linear(st: SufficientStats, R: F64, B_fixed: F64 | None, with_offset: bool
+def _solve_linear(st: StreamStats, R: F64, B_fixed: F64 | None, with_offset: bool
                   ) -> tuple[F64, F64]:
     """Best ``B`` (unless fixed) and ``o`` (if estimated) for a given ``R`` (linear LS)."""
     n, T, SR = st.n, _T(st, R), st.S @ R
@@ -281,7 +194,7 @@ class StreamingFit:
 
 
 def fit_stats(
-    st: SufficientStats | StreamStats,
+    st: StreamStats,
     *,
     estimate_offset: bool = False,
     estimate_soft_iron: bool = False,
@@ -295,9 +208,8 @@ def fit_stats(
 
     Parameters
     ----------
-    st : SufficientStats or StreamStats
-        Sums over all samples (a :class:`StreamStats` from :class:`StreamAccumulator` for the
-        time offset).
+    st : StreamStats
+        Sums over all samples (:class:`StreamAccumulator`).
     estimate_offset : bool
         Estimate the hard-iron offset ``o`` (mag frame, nT).
     estimate_soft_iron : bool
@@ -334,8 +246,6 @@ def fit_stats(
                           estimate_soft_iron=estimate_soft_iron,
                           estimate_time_offset=estimate_time_offset, B_fixed=B_fixed,
                           R_nominal=R_nominal_body_mag, max_iter=max_iter)
-    if isinstance(st, StreamStats):
-        st = st.base
     starts = [np.asarray(R_nominal_body_mag, float)] if R_nominal_body_mag is not None \
         else _cube_rotations()
     best: _State | None = None
@@ -419,7 +329,7 @@ def fit_stats(
     )
 
 
-def _nearest_about_axis(st: SufficientStats, s: _State, axis_body: F64, R_nominal: F64 | None,
+def _nearest_about_axis(st: StreamStats, s: _State, axis_body: F64, R_nominal: F64 | None,
                        B_fixed: F64 | None, with_offset: bool) -> _State:
     """Turn ``s.R`` about ``axis_body`` to the angle nearest ``R_nominal`` (identity)."""
     Rn = np.eye(3) if R_nominal is None else np.asarray(R_nominal, float)
@@ -456,10 +366,11 @@ NA = 10
 class StreamStats:
     """Sums of :class:`StreamAccumulator`: everything :func:`fit_stats` needs, fixed size.
 
+    The rotation model's sums over every sample (``n``, ``sum_y``, ``sum_yy``, ``S``, ``M``,
+    ``W``) are the totals of its per-block sums ``block_Wa``, ``block_Ya``, ``block_yya``.
+
     Attributes
     ----------
-    base : SufficientStats
-        The sums of the rotation model over every sample.
     Wg : ndarray (28, 28)
         ``sum g_i g_i.T`` over the samples with both stencil neighbours (docs/modules.md);
         ``Wg[0, 0]`` is their count.
@@ -477,7 +388,6 @@ class StreamStats:
 
     """
 
-    base: SufficientStats
     Wg: F64
     Yg: F64
     yy: float
@@ -490,10 +400,42 @@ class StreamStats:
     baseline_s: float = DERIVATIVE_BASELINE_S
     block_s: float = 1.0
 
-    @property
+    @classmethod
+    def of(cls, q_enu_body: F64, mag_nT: F64, t_ns: NDArray[np.int64]) -> StreamStats:
+        """Return the rotation model's sums of aligned samples (one block of a stream)."""
+        acc = StreamAccumulator(with_tau=False)
+        acc.add(q_enu_body, mag_nT, t_ns)
+        return acc.result()
+
+    @cached_property
     def n(self) -> int:
         """Number of samples (all of them)."""
-        return self.base.n
+        return int(round(float(self.block_Wa[:, 0, 0].sum())))
+
+    @cached_property
+    def sum_y(self) -> F64:
+        """Sum of the magnetometer readings (3,), nT, mag frame."""
+        return cast(F64, self.block_Ya[:, 0, :].sum(axis=0))
+
+    @cached_property
+    def sum_yy(self) -> float:
+        """Sum of their squared norms, nT^2."""
+        return float(self.block_yya.sum())
+
+    @cached_property
+    def S(self) -> F64:  # noqa: N802 - the sum's name in the model
+        """Sum of ``C_enu_body`` (3, 3)."""
+        return cast(F64, self.block_Wa[:, 0, 1:].sum(axis=0).reshape(3, 3))
+
+    @cached_property
+    def M(self) -> F64:  # noqa: N802 - the sum's name in the model
+        """``M[a, b, c] = sum C_enu_body[a, b] * y[c]`` (3, 3, 3), nT."""
+        return cast(F64, self.block_Ya[:, 1:, :].sum(axis=0).reshape(3, 3, 3))
+
+    @cached_property
+    def W(self) -> F64:  # noqa: N802 - the sum's name in the model
+        """``W[a, b, c, d] = sum C_enu_body[a, b] * C_enu_body[c, d]`` (3, 3, 3, 3)."""
+        return cast(F64, self.block_Wa[:, 1:, 1:].sum(axis=0).reshape(3, 3, 3, 3))
 
     @property
     def n_tau(self) -> int:
@@ -510,7 +452,7 @@ class StreamStats:
             return np.concatenate([a, b])
 
         return StreamStats(
-            base=self.base + other.base, Wg=self.Wg + other.Wg, Yg=self.Yg + other.Yg,
+            Wg=self.Wg + other.Wg, Yg=self.Yg + other.Yg,
             yy=self.yy + other.yy,
             block_Wg=cat(self.block_Wg, other.block_Wg),
             block_Yg=cat(self.block_Yg, other.block_Yg),
@@ -567,24 +509,14 @@ class _Sums:
     block_Yg: F64 | None = None
 
 
-def _expanded_sums(stats: SufficientStats | StreamStats, with_tau: bool) -> _Sums:
+def _expanded_sums(stats: StreamStats, with_tau: bool) -> _Sums:
     """Return the sums of the samples a fit uses (rotation sums embedded when tau is fixed)."""
     if with_tau:
-        if not isinstance(stats, StreamStats):
-            raise EstimationError("the time offset needs the sums of a StreamAccumulator")
         return _Sums(stats.Wg, stats.Yg, stats.yy, stats.n_tau, stats.block_Wg,
                      stats.block_Yg)
-    st = stats.base if isinstance(stats, StreamStats) else stats
-    Wa = np.zeros((NA, NA))
-    Wa[0, 0] = st.n
-    Wa[0, 1:] = Wa[1:, 0] = st.S.reshape(9)
-    Wa[1:, 1:] = st.W.reshape(9, 9)
-    Ya = np.concatenate([st.sum_y[None], st.M.reshape(9, 3)])
-    Wg, Yg = _embed(Wa, Ya)
-    if not isinstance(stats, StreamStats):
-        return _Sums(Wg, Yg, st.sum_yy, st.n)
+    Wg, Yg = _embed(stats.block_Wa.sum(axis=0), stats.block_Ya.sum(axis=0))
     bW, bY = _embed(stats.block_Wa, stats.block_Ya)
-    return _Sums(Wg, Yg, st.sum_yy, st.n, bW, bY)
+    return _Sums(Wg, Yg, stats.sum_yy, stats.n, bW, bY)
 
 
 def _stencil_weights(a: F64, c: F64) -> tuple[F64, F64]:
@@ -656,7 +588,6 @@ class StreamAccumulator:
         self._gap = int(round(max_gap_s * 1e9))
         self._blk = max(int(round(block_s * 1e9)), 1)
         self._t0: int | None = None
-        self._base = SufficientStats()
         self._g = _Blocks(NG)
         self._a = _Blocks(NA)
         # carried samples: the first ``_done`` of them are already decided
@@ -686,7 +617,6 @@ class StreamAccumulator:
             raise EstimationError("the stamps of the stream must not decrease")
         if self._t0 is None:
             self._t0 = int(t[0])
-        self._base = self._base + SufficientStats.from_samples(q, y, t)
         C = quat_to_matrix(q).reshape(-1, 9)
         self._a.add(self._block_of(t), np.concatenate([np.ones((len(t), 1)), C], axis=1), y)
         if not self.with_tau:
@@ -730,7 +660,7 @@ class StreamAccumulator:
         k = int(used[-1]) + 1 if len(used) else 0
         g, a = self._g, self._a
         return StreamStats(
-            base=self._base, Wg=g.W.sum(axis=0), Yg=g.Y.sum(axis=0), yy=float(g.yy.sum()),
+            Wg=g.W.sum(axis=0), Yg=g.Y.sum(axis=0), yy=float(g.yy.sum()),
             block_Wg=g.W[:k].copy(), block_Yg=g.Y[:k].copy(), block_yy=g.yy[:k].copy(),
             block_Wa=a.W[:k].copy(), block_Ya=a.Y[:k].copy(), block_yya=a.yy[:k].copy(),
             baseline_s=self.baseline_s, block_s=self._blk * 1e-9,
@@ -871,12 +801,11 @@ def _block_sandwich(bW: F64, bY: F64, design: _Design, s: _Full, H_pinv: F64,
     return cast(F64, cov * f[:, None] * f[None, :])
 
 
-def _fit_terms(stats: SufficientStats | StreamStats, *, estimate_offset: bool,
+def _fit_terms(stats: StreamStats, *, estimate_offset: bool,
                estimate_soft_iron: bool, estimate_time_offset: bool, B_fixed: F64 | None,
                R_nominal: F64 | None, max_iter: int) -> StreamingFit:
     """Soft iron and / or time offset: staged Gauss-Newton on the expanded sums."""
-    base = stats.base if isinstance(stats, StreamStats) else stats
-    first = fit_stats(base, estimate_offset=estimate_offset, reference_field_enu_nT=B_fixed,
+    first = fit_stats(stats, estimate_offset=estimate_offset, reference_field_enu_nT=B_fixed,
                       R_nominal_body_mag=R_nominal, max_iter=max_iter)
     sums = _expanded_sums(stats, estimate_time_offset)
     Wg, Yg, yy, n = sums.Wg, sums.Yg, sums.yy, sums.n
