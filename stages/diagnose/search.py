@@ -257,15 +257,14 @@ def scan_windows(
     s = (c[hi] - c[lo]) / (hi - lo)
     med = float(np.median(s))
     mad = float(1.4826 * np.median(np.abs(s - med))) + 1e-12
-    level = med + cfg.scan_sigma * mad
     # a window needs a real excess, not just a little above a very quiet median, and above
     # the level noise alone reaches with the residual's own correlation: the moving mean of
     # z over w samples is chi-square over its nu degrees of freedom, 3 per independent
     # sample, and w samples are w / c independent ones, c the variance inflation of their
     # mean (a bound: squares are less correlated than the residual itself)
     nu = 9.0 * sig * sig / max(block_mean_var(residual_nT, w), 1e-30)
-    level = max(level, med + 2.0,
-                med * float(chi2.isf(_false_alarm(n, w), nu) / chi2.median(nu)))
+    level_emp = max(med + cfg.scan_sigma * mad, med + 2.0)
+    level = max(level_emp, med * float(chi2.isf(_false_alarm(n, w), nu) / chi2.median(nu)))
 
     def windows(runs: list[tuple[int, int]]) -> list[tuple[float, float]]:
         merged: list[list[int]] = []
@@ -287,10 +286,15 @@ def scan_windows(
     wins = windows(_excess_runs(s, med, level))
     if wins:
         return wins
+    if windows(_excess_runs(s, med, level_emp)):
+        # the norm stands out, but no more than the residual's own correlation explains: the
+        # residual is not quiet, and the weaker excess of a moving mean is no event either
+        return []
     # a weak offset held for seconds (a hard-iron step) barely lifts the squared norm but
-    # moves the mean of the residual vector: when the norm opens no window, the same scan
-    # on the moving mean over four smoothing widths, in units of its white-noise spread
-    # (only then: its windows would otherwise crowd the few refits of each round)
+    # moves the mean of the residual vector: when the norm of a quiet residual opens no
+    # window, the same scan on the moving mean over four smoothing widths, in units of its
+    # white-noise spread (only then: its windows would otherwise crowd the few refits of each
+    # round)
     wk = min(n, 4 * w)
     lo4 = np.clip(np.arange(n) - wk // 2, 0, n)
     hi4 = np.clip(np.arange(n) + wk // 2 + 1, 0, n)
