@@ -209,9 +209,14 @@ def _ramp_fit(cur: FitResult, i: int, term: Term, data: FitData, cfg: DiagnoseCo
     return float(dbic), ScoreTest(term, float((cur.rss - res.rss) / s2), 1.0, k), res
 
 
-def _excess_runs(s: np.ndarray, med: float, level: float) -> list[tuple[int, int]]:
-    """Index runs where ``s`` stays above half-way to ``level`` and crosses ``level``."""
-    above = s > level
+def _excess_runs(s: np.ndarray, med: float, level: float, open_level: float | None = None
+                 ) -> list[tuple[int, int]]:
+    """Index runs where ``s`` stays above half-way to ``level`` and crosses ``open_level``.
+
+    ``open_level`` (default ``level``) decides whether there is an event; ``level`` how far
+    it extends, so that a higher bar to open a window does not also shorten it.
+    """
+    above = s > (level if open_level is None else max(open_level, level))
     if not above.any():
         return []
     low_mask = s > med + 0.5 * (level - med)
@@ -231,8 +236,9 @@ def scan_windows(
     (:func:`block_mean_var`, the chi-square tail at :data:`SCAN_FALSE_ALARM` shared by the
     recording's windows): a residual correlated over many samples averages over fewer
     independent ones, and its smoothed norm strays further by chance. A window opens where the
-    smoothed statistic crosses that level and is widened to where it falls back to the
-    half-way level; windows closer than one smoothing width are merged.
+    smoothed statistic crosses that level and is widened to where it falls back to half-way
+    to the empirical level (the higher bar decides whether there is an event, not how long it
+    lasts); windows closer than one smoothing width are merged.
 
     Returns
     -------
@@ -283,7 +289,7 @@ def scan_windows(
             out.append((start, end))
         return out
 
-    wins = windows(_excess_runs(s, med, level))
+    wins = windows(_excess_runs(s, med, level_emp, level))
     if wins:
         return wins
     if windows(_excess_runs(s, med, level_emp)):
@@ -308,8 +314,8 @@ def scan_windows(
     # chi-square(3) / 3
     spread = wk * block_mean_var(residual_nT, wk) / (3 * sig * sig)
     lev_c = spread * float(chi2.isf(_false_alarm(n, wk), 3)) / 3.0
-    return windows(_excess_runs(sv, med_v, max(med_v + cfg.scan_sigma * mad_v, med_v + 2.0,
-                                               lev_c)))
+    lev_v = max(med_v + cfg.scan_sigma * mad_v, med_v + 2.0)
+    return windows(_excess_runs(sv, med_v, lev_v, lev_c))
 
 
 #: Chance that noise alone opens a window anywhere in a recording, per scan.
