@@ -2,7 +2,7 @@
 
 The scan (``stages.diagnose.search.scan_windows``) proposes the windows of transient terms.
 On noise alone it must open none: its level is set by the residual's correlation time
-(``correlated_level``, the moving means' chi-square tail shared by the recording's windows),
+(``block_mean_var``, the moving means' chi-square tail shared by the recording's windows),
 so a residual correlated over a third of a second does not pass for an event. Two steps that
 abut and hold one offset are one event (``_merged_pieces``); two that hold different offsets
 stay two.
