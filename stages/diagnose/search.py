@@ -11,6 +11,7 @@ import dataclasses
 from typing import Any
 
 import numpy as np
+from scipy.stats import chi2
 
 from pipeline.core import progress
 from pipeline.core.errors import EstimationError
@@ -208,9 +209,14 @@ def _ramp_fit(cur: FitResult, i: int, term: Term, data: FitData, cfg: DiagnoseCo
     return float(dbic), ScoreTest(term, float((cur.rss - res.rss) / s2), 1.0, k), res
 
 
-def _excess_runs(s: np.ndarray, med: float, level: float) -> list[tuple[int, int]]:
-    """Index runs where ``s`` stays above half-way to ``level`` and crosses ``level``."""
-    above = s > level
+def _excess_runs(s: np.ndarray, med: float, level: float, open_level: float | None = None
+                 ) -> list[tuple[int, int]]:
+    """Index runs where ``s`` stays above half-way to ``level`` and crosses ``open_level``.
+
+    ``open_level`` (default ``level``) decides whether there is an event; ``level`` how far
+    it extends, so that a higher bar to open a window does not also shorten it.
+    """
+    above = s > (level if open_level is None else max(open_level, level))
     if not above.any():
         return []
     low_mask = s > med + 0.5 * (level - med)
@@ -226,9 +232,13 @@ def scan_windows(
 
     The squared residual norm is normalised by a robust noise scale, smoothed over
     ``scan_smooth_s``, and compared with its own median plus ``scan_sigma`` robust sigmas of
-    the smoothed series (so correlated noise raises the bar). A window opens where the
-    smoothed statistic crosses that level and is widened to where it falls back to the
-    half-way level; windows closer than one smoothing width are merged.
+    the smoothed series, and with the level the residual's own correlation gives
+    (:func:`block_mean_var`, the chi-square tail at :data:`SCAN_FALSE_ALARM` shared by the
+    recording's windows): a residual correlated over many samples averages over fewer
+    independent ones, and its smoothed norm strays further by chance. A window opens where the
+    smoothed statistic crosses that level and is widened to where it falls back to half-way
+    to the empirical level (the higher bar decides whether there is an event, not how long it
+    lasts); windows closer than one smoothing width are merged.
 
     Returns
     -------
@@ -253,9 +263,15 @@ def scan_windows(
     s = (c[hi] - c[lo]) / (hi - lo)
     med = float(np.median(s))
     mad = float(1.4826 * np.median(np.abs(s - med))) + 1e-12
-    level = med + cfg.scan_sigma * mad
-    # a window needs a real excess, not just a little above a very quiet median
-    level = max(level, med + 2.0)
+    # a window needs a real excess, not just a little above a very quiet median, and above
+    # the level noise alone reaches with the residual's own correlation: the moving mean of
+    # z over w samples is chi-square over its nu degrees of freedom, 3 per independent
+    # sample, and w samples are w / c independent ones, c the variance inflation of their
+    # mean (a bound: squares are less correlated than the residual itself)
+    nu = 9.0 * sig * sig / max(block_mean_var(residual_nT, w), 1e-30)
+    level_emp = max(med + cfg.scan_sigma * mad, med + 2.0)
+    level = max(level_emp, med * float(chi2.isf(_false_alarm(n, w), nu) / chi2.median(nu)))
+
     def windows(runs: list[tuple[int, int]]) -> list[tuple[float, float]]:
         merged: list[list[int]] = []
         for a, b in runs:
@@ -273,13 +289,18 @@ def scan_windows(
             out.append((start, end))
         return out
 
-    wins = windows(_excess_runs(s, med, level))
+    wins = windows(_excess_runs(s, med, level_emp, level))
     if wins:
         return wins
+    if windows(_excess_runs(s, med, level_emp)):
+        # the norm stands out, but no more than the residual's own correlation explains: the
+        # residual is not quiet, and the weaker excess of a moving mean is no event either
+        return []
     # a weak offset held for seconds (a hard-iron step) barely lifts the squared norm but
-    # moves the mean of the residual vector: when the norm opens no window, the same scan
-    # on the moving mean over four smoothing widths, in units of its white-noise spread
-    # (only then: its windows would otherwise crowd the few refits of each round)
+    # moves the mean of the residual vector: when the norm of a quiet residual opens no
+    # window, the same scan on the moving mean over four smoothing widths, in units of its
+    # white-noise spread (only then: its windows would otherwise crowd the few refits of each
+    # round)
     wk = min(n, 4 * w)
     lo4 = np.clip(np.arange(n) - wk // 2, 0, n)
     hi4 = np.clip(np.arange(n) + wk // 2 + 1, 0, n)
@@ -288,7 +309,44 @@ def scan_windows(
     sv = np.sum(m * m, axis=1) * (hi4 - lo4) / (3 * sig * sig)
     med_v = float(np.median(sv))
     mad_v = float(1.4826 * np.median(np.abs(sv - med_v))) + 1e-12
-    return windows(_excess_runs(sv, med_v, max(med_v + cfg.scan_sigma * mad_v, med_v + 2.0)))
+    # in units of the moving mean's spread under the residual's own correlation (a mean over
+    # wk correlated samples varies more than white noise says): sv is then that spread times
+    # chi-square(3) / 3
+    spread = wk * block_mean_var(residual_nT, wk) / (3 * sig * sig)
+    lev_c = spread * float(chi2.isf(_false_alarm(n, wk), 3)) / 3.0
+    lev_v = max(med_v + cfg.scan_sigma * mad_v, med_v + 2.0)
+    return windows(_excess_runs(sv, med_v, lev_v, lev_c))
+
+
+#: Chance that noise alone opens a window anywhere in a recording, per scan.
+SCAN_FALSE_ALARM = 1e-3
+
+
+def _false_alarm(n: int, w: int) -> float:
+    """Per-window tail probability: SCAN_FALSE_ALARM shared by the ``n / w`` windows."""
+    return SCAN_FALSE_ALARM / max(1.0, n / max(w, 1))
+
+
+#: Lag, in blocks, of the block-mean differences :func:`block_mean_var` measures.
+BLOCK_LAG = 4
+
+
+def block_mean_var(x: np.ndarray, w: int) -> float:
+    """Variance of a mean over ``w`` consecutive samples of ``x`` (n, m), summed over columns.
+
+    Measured robustly (MAD) from the differences of block means ``BLOCK_LAG`` blocks apart,
+    far enough for the residual's correlation to have faded: an event held for many blocks
+    disturbs only the differences that straddle its edges, so what is measured is the
+    residual's own correlation, not the events the scan looks for. A mean over ``w``
+    correlated samples varies more than ``var / w``; this is how much more.
+    """
+    n = len(x) // max(w, 1)
+    if n < 4 * BLOCK_LAG:
+        return float(np.sum(np.var(x, axis=0))) / max(w, 1)
+    m = np.asarray(x, dtype=float)[: n * w].reshape(n, w, -1).mean(axis=1)
+    d = m[BLOCK_LAG:] - m[:-BLOCK_LAG]
+    mad = 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0)
+    return float(np.sum(mad * mad) / 2.0)
 
 
 def refine_step(
@@ -724,6 +782,15 @@ def diagnose_data(
                     cur, cv_cur = res_s, cv_s
                     continue
             i += 1
+        # pieces of one offset that abut along seconds (a magnet moved a little while it
+        # rested, or an offset the scan saw in parts) are one event when one offset across
+        # them fits within the margin: the simpler of a nested pair, as everywhere
+        while (mp := _merged_pieces(cur, data, cfg)) is not None:
+            j_m, res_m = mp
+            dropped.add((EffectKind.HARD_IRON_STEP, cur.state.terms[j_m].windows_s))
+            findings.pop(j_m)
+            cur = res_m
+            cv_cur = heldout_rms(cur.state, data, cfg)
     # the evidence of each finding was measured against the model of the moment it was added;
     # later rounds may have dropped or replaced terms before it. Re-measure it as a build-up in
     # the final order so that the numbers chain from the baseline to the final model.
@@ -999,6 +1066,60 @@ def _transition_words(term: Term) -> str:
     return (". One event: the object was " + " and ".join(parts) + "; the field while it "
             "moved is modelled as a smooth curve from no offset to the plateau (and back), "
             "not as further steps")
+
+
+#: Steps whose windows lie closer than this are candidates for one event, s.
+ABUT_S = RAMP_REACH_S
+
+
+def _merged_pieces(cur: FitResult, data: FitData, cfg: DiagnoseConfig
+                   ) -> tuple[int, FitResult] | None:
+    """Merge the first pair of abutting ``hard_iron_step`` terms that one step explains.
+
+    Two steps whose windows touch or overlap (within :data:`ABUT_S`) are replaced by one
+    step over both: the onset of the earlier and the release of the later are kept as its
+    transitions, its offset starts at their duration-weighted mean. The pair is nested in
+    the one step plus a second offset, so the merged step is kept when the BIC it loses is
+    within ``bic_margin`` (both with one effective sample count).
+
+    Returns
+    -------
+    (index of the piece removed, the refitted merged model) or None
+        The merged step takes the place of the piece earlier in the model.
+
+    """
+    steps = [k for k, t in enumerate(cur.state.terms)
+             if t.kind is EffectKind.HARD_IRON_STEP and len(t.windows_s) == 1]
+    for ii, i in enumerate(steps):
+        for j in steps[ii + 1:]:
+            (a_i, b_i), (a_j, b_j) = cur.state.terms[i].windows_s[0], \
+                cur.state.terms[j].windows_s[0]
+            if a_j - b_i > ABUT_S or a_i - b_j > ABUT_S:
+                continue
+            first, last = (i, j) if a_i <= a_j else (j, i)
+            t_f, t_l = cur.state.terms[first], cur.state.terms[last]
+            a, b = t_f.windows_s[0][0], max(b_i, b_j)
+            on = [r for r in t_f.ramps_s if abs(r[0] - t_f.windows_s[0][0]) < 1e-9]
+            off = [r for r in t_l.ramps_s if abs(r[1] - t_l.windows_s[0][1]) < 1e-9]
+            ramps = tuple(on + off)
+            if len(ramps) == 2 and ramps[0][1] >= ramps[1][0]:
+                continue
+            with_ramps = t_f if t_f.ramps_s else t_l
+            term = (Term(EffectKind.HARD_IRON_STEP, ((a, b),)) if not ramps else
+                    dataclasses.replace(with_ramps, windows_s=((a, b),), ramps_s=ramps))
+            d_i, d_j = max(b_i - a_i, 1e-9), max(b_j - a_j, 1e-9)
+            start = np.zeros(term.n_params())
+            start[:3] = (d_i * cur.state.values[i][:3] + d_j * cur.state.values[j][:3]) / (
+                d_i + d_j)
+            wo = _without(cur.state, max(i, j))
+            k = min(i, j)
+            merged = dataclasses.replace(
+                wo, terms=wo.terms[:k] + (term,) + wo.terms[k + 1:],
+                values=wo.values[:k] + (start,) + wo.values[k + 1:])
+            res = fit(merged, data)
+            if _bic_between(res, cur, data) <= cfg.bic_margin:
+                return max(i, j), res
+    return None
 
 
 def _moved_last_to(state: ModelState, i: int) -> ModelState:
