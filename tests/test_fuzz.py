@@ -59,7 +59,7 @@ def outcomes() -> Counter:
 
 def test_bases_are_valid_and_cover_the_reader_paths(tmp_path):
     from pipeline.io.mcap_read import read_recording
-    from pipeline.io.mcap_scan import _prepare, _scan
+    from pipeline.io.mcap_scan import index_chunks, scan_file
 
     layouts = {}
     for name, make in fz.BASES.items():
@@ -68,9 +68,9 @@ def test_bases_are_valid_and_cover_the_reader_paths(tmp_path):
             warnings.simplefilter("error")
             rec = read_recording(p)
         assert len(rec.mag) >= 400 and rec.attitude is not None, name
-        scan = _scan(p)
+        scan = scan_file(p)
         indexed = [c.index_trusted for c in scan.chunks]
-        _prepare(scan)
+        index_chunks(scan)
         layouts[name] = (len(scan.chunks), bool(scan.top_messages), all(indexed))
     assert layouts["indexed"][0] > 5 and layouts["indexed"][2]
     assert layouts["unindexed_lz4"][0] > 5 and not any(layouts["unindexed_lz4"][1:])

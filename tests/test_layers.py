@@ -7,8 +7,7 @@ everything and imports nothing of the project; ``pipeline/io`` (MCAP, CDR, the e
 the stages; ``pipeline/app`` (the program, campaigns, the simulator) may import anything.
 Checked on the source of every module, every import statement included (those for the type
 checker too: a type named across layers is a dependency all the same). An import inside a
-function may not cross a layer at all: a module's dependencies on other layers stand at its
-top.
+function may not import the project at all, and no module imports another's private name.
 """
 
 from __future__ import annotations
@@ -104,15 +103,27 @@ def test_no_layer_imports_a_higher_one():
     assert not bad, "\n".join(bad)
 
 
-def test_no_import_inside_a_function_crosses_a_layer():
+def test_no_project_import_inside_a_function():
+    """A module's dependencies on the project, its own layer included, stand at its top."""
     bad = []
     for path in sources():
         mine = layer_of(module_name(path))
         for line, mod, late in imports_of(path):
             other = layer_of(mod)
-            if late and other is not None and other != mine:
+            if late and other is not None:
                 bad.append(f"{path.relative_to(ROOT)}:{line} ({mine}) imports {mod} ({other}) "
                            "inside a function")
+    assert not bad, "\n".join(bad)
+
+
+def test_no_private_name_is_imported_from_another_module():
+    """A name another module needs is public: ``_name`` is its own module's business."""
+    bad = []
+    for path in sources():
+        for line, mod, _late in imports_of(path):
+            name = mod.rsplit(".", 1)[-1]
+            if name.startswith("_") and not name.startswith("__"):
+                bad.append(f"{path.relative_to(ROOT)}:{line} imports {mod}")
     assert not bad, "\n".join(bad)
 
 

@@ -1,6 +1,6 @@
 """One recording, one answer: ``calibrate``, ``diagnose`` and ``process`` agree (issue 29).
 
-The three commands run the same analysis stages (``pipeline.app.process_one.analysis_stages``);
+The three commands run the same analysis stages (``pipeline.run.plan.Plan.analysis_stages``);
 these tests run the installed program on recordings of the independent generator and read
 back what each wrote. A model the user restricts with ``--estimate`` stays the answer, but
 its sigma carries the shift that the terms the data select and it leaves out cause.

@@ -53,7 +53,7 @@ def test_scan_chunk_times_on_lab_recordings(name):
     """On files another tool wrote, the scan's chunk start and end times (which the long
     recording's plan and pass-through use instead of re-reading the mapping) are the chunk
     indexes mcap's own reader gives."""
-    from pipeline.io.mcap_scan import _scan
+    from pipeline.io.mcap_scan import scan_file
 
     p = REAL / name
     if not p.is_file():
@@ -61,5 +61,5 @@ def test_scan_chunk_times_on_lab_recordings(name):
     with open(p, "rb") as fh:
         idx = {ci.chunk_start_offset: (ci.message_start_time, ci.message_end_time)
                for ci in make_reader(fh).get_summary().chunk_indexes}
-    scan = _scan(p)
+    scan = scan_file(p)
     assert idx and {ch.offset: (ch.start_ns, ch.end_ns) for ch in scan.chunks} == idx

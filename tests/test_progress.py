@@ -158,7 +158,7 @@ def test_diagnose_reports_candidate_search(recording):
         diagnose_file(recording)
     names = [s["stages"][s["index"]] for s in seen if 0 <= s["index"] < len(s["stages"])]
     steps = [n for i, n in enumerate(names) if i == 0 or n != names[i - 1]]
-    # the analysis calibrate, diagnose and process share (process_one.analysis_stages)
+    # the analysis calibrate, diagnose and process share (Plan.analysis_stages)
     assert steps == ["Ingest", "Resample", "SegmentMotion", "Estimate", "RequireObservable",
                      "Diagnose", "Judge"]
     assert any(s["detail"].startswith("search 1, candidate 1/") for s in seen)

@@ -7,13 +7,13 @@ import pytest
 
 from pipeline.core.errors import DataQualityError
 from pipeline.io.mcap_checks import _check_mag, _check_quaternions
-from pipeline.io.mcap_decode import _Decoded
+from pipeline.io.mcap_decode import DecodedColumns
 
 
-def _dec(v: np.ndarray) -> _Decoded:
+def _dec(v: np.ndarray) -> DecodedColumns:
     n = len(v)
     t = np.arange(n, dtype=np.int64) * 5_000_000
-    return _Decoded(t, v, t.copy(), "f")
+    return DecodedColumns(t, v, t.copy(), "f")
 
 
 @pytest.mark.parametrize("rail", [0.0, -0.0])

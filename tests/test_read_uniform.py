@@ -2,8 +2,8 @@
 
 ``mcap_decode._batches`` gathers only the first bytes of records that share one layout and
 reads each field with a strided copy; anything else (records of several lengths, strings
-whose length varies, big-endian CDR, a damaged index) goes through ``_select`` and
-``_Decoder.decode``. Both must give the same arrays, bit for bit, the same frame ids and the
+whose length varies, big-endian CDR, a damaged index) goes through ``select_messages`` and
+``ChannelDecoder.decode``. Both must give the same arrays, bit for bit, the same frame ids and the
 same problems.
 """
 
@@ -18,9 +18,9 @@ import pytest
 from _reader_fixtures import DEFS, INSPVA_DEFS, motion, write_ros2
 
 from pipeline.io import mcap_decode
-from pipeline.io.mcap_decode import _decode_channels
+from pipeline.io.mcap_decode import decode_channels
 from pipeline.io.mcap_read import read_recording
-from pipeline.io.mcap_scan import _prepare, _scan
+from pipeline.io.mcap_scan import index_chunks, scan_file
 from pipeline.io.mcap_write import write_recording
 
 MAG = "sensor_msgs/msg/MagneticField"
@@ -31,9 +31,9 @@ INSPVA = "novatel_oem7_msgs/msg/INSPVA"
 def _decode_all(path: Path) -> tuple[dict, list]:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        scan = _scan(path)
-        _prepare(scan)
-        dec = _decode_channels(scan, sorted(scan.channels))
+        scan = scan_file(path)
+        index_chunks(scan)
+        dec = decode_channels(scan, sorted(scan.channels))
     return dec, list(scan.problems)
 
 
@@ -108,7 +108,7 @@ def test_damaged_index_found_and_read_record_by_record(tmp_path: Path,
     write_recording(p, mag_t_ns=t, mag_nT=mag_T * 1e9, attitude_t_ns=t + 1_300_000,
                     q_enu_body=q, mag_log_delay_ns=200_000, attitude_log_delay_ns=900_000)
     good = read_recording(p)
-    scan = _scan(p)
+    scan = scan_file(p)
     ch = scan.chunks[len(scan.chunks) // 2]
     cid, mi = next(iter(ch.mi_pos.items()))
     data = bytearray(p.read_bytes())

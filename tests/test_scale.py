@@ -91,10 +91,10 @@ def test_copy_ranges_equals_slicing(spans):
         pos += ln
     start_a, length_a = np.array(start), np.array(length)
     want = np.concatenate([buf[a:a + n] for a, n in zip(start, length, strict=True)])
-    np.testing.assert_array_equal(mcap_scan._copy_ranges(buf, start_a, length_a), want)
+    np.testing.assert_array_equal(mcap_scan.copy_ranges(buf, start_a, length_a), want)
     rev = np.concatenate([buf[a:a + n] for a, n in zip(start[::-1], length[::-1], strict=True)])
     np.testing.assert_array_equal(
-        mcap_scan._copy_ranges(buf, start_a[::-1].copy(), length_a[::-1].copy()), rev)
+        mcap_scan.copy_ranges(buf, start_a[::-1].copy(), length_a[::-1].copy()), rev)
 
 
 def test_corrected_mcap_written_range_by_range(tmp_path, monkeypatch):

@@ -531,7 +531,7 @@ def test_pass_through_chunk_times_are_the_chunk_indexes(tmp_path):
     """Each pass-through chunk's start and end times (kept by the scan from the chunk records)
     are those mcap's own reader gives for the chunk at the same offset."""
     from pipeline.io.mcap_read import pass_through
-    from pipeline.io.mcap_scan import _scan
+    from pipeline.io.mcap_scan import scan_file
 
     t_mag, mag, t_att, q = _sim(2000, 1000, seed=5)
     src = write_recording(tmp_path / "in.mcap", mag_t_ns=t_mag, mag_nT=mag, attitude_t_ns=t_att,
@@ -539,7 +539,7 @@ def test_pass_through_chunk_times_are_the_chunk_indexes(tmp_path):
     with open(src, "rb") as fh:
         idx = {ci.chunk_start_offset: (ci.message_start_time, ci.message_end_time)
                for ci in make_reader(fh).get_summary().chunk_indexes}
-    scan = _scan(src)
+    scan = scan_file(src)
     assert len(idx) > 5 and len(scan.chunks) == len(idx)
     assert {ch.offset: (ch.start_ns, ch.end_ns) for ch in scan.chunks} == idx
     pt = pass_through(src)

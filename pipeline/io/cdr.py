@@ -384,7 +384,7 @@ class _NoPlan(Exception):
     pass
 
 
-def _plan(layout: CdrLayout, payload: bytes, paths: list[str]) -> UniformPlan | None:
+def uniform_plan(layout: CdrLayout, payload: bytes, paths: list[str]) -> UniformPlan | None:
     """Return the field positions of one little-endian CDR payload, walked as ``decode`` does.
 
     None when :meth:`CdrLayout.decode` would refuse the message or when a wanted field is not

@@ -18,8 +18,8 @@ from pipeline.core.recording import (
     Problem,
     Role,
 )
-from pipeline.io.mcap_decode import _Decoded
-from pipeline.io.mcap_scan import _Scan
+from pipeline.io.mcap_decode import DecodedColumns
+from pipeline.io.mcap_scan import Scan
 
 #: Plausible range of the median field magnitude. The Earth's field is 20,000-70,000 nT; an
 #: indoor MEMS sensor near steel reads somewhat off that (the lab data: ~43,800 nT), so only
@@ -52,8 +52,8 @@ MIN_ATTITUDE_SAMPLES = 2
 
 
 # --------------------------------------------------------------------------- checks
-def _sort_dedupe(name: str, dec: _Decoded, problems: list[Problem], path: str
-                 ) -> _Decoded:
+def _sort_dedupe(name: str, dec: DecodedColumns, problems: list[Problem], path: str
+                 ) -> DecodedColumns:
     """Drop clock jumps, sort by stamp, drop duplicated stamps; count all in problems."""
     t, log = dec.t_ns, dec.log_time_ns
     if len(t) > 2:
@@ -92,7 +92,7 @@ def _sort_dedupe(name: str, dec: _Decoded, problems: list[Problem], path: str
     return dec
 
 
-def _finite_rows(values: np.ndarray) -> np.ndarray:
+def finite_rows(values: np.ndarray) -> np.ndarray:
     """Return True for each sample (row, or element of a 1-D column) with finite values.
 
     Also for a channel with no readable message (shape ``(0,)`` or ``(0, k)``), where a
@@ -102,11 +102,11 @@ def _finite_rows(values: np.ndarray) -> np.ndarray:
     return fin if fin.ndim == 1 else fin.all(axis=tuple(range(1, fin.ndim)))
 
 
-def _drop_nonfinite(name: str, dec: _Decoded, problems: list[Problem]) -> _Decoded:
+def _drop_nonfinite(name: str, dec: DecodedColumns, problems: list[Problem]) -> DecodedColumns:
     with np.errstate(over="ignore", invalid="ignore"):
         if np.isfinite(np.sum(dec.values)):
             return dec  # a finite sum has no NaN or Inf term (an overflow checks row by row)
-    ok = _finite_rows(dec.values)
+    ok = finite_rows(dec.values)
     if ok.all():
         return dec
     k = int((~ok).sum())
@@ -115,7 +115,7 @@ def _drop_nonfinite(name: str, dec: _Decoded, problems: list[Problem]) -> _Decod
     return dec.take(ok)
 
 
-def _quat_norm(q: np.ndarray) -> np.ndarray:
+def quat_norm(q: np.ndarray) -> np.ndarray:
     """Norm of each quaternion without overflow or underflow (damaged values reach 1e308)."""
     with np.errstate(over="ignore", invalid="ignore"):
         n = np.sqrt(np.einsum("ij,ij->i", q, q))
@@ -126,9 +126,9 @@ def _quat_norm(q: np.ndarray) -> np.ndarray:
     return m * np.linalg.norm(q / safe[:, None], axis=1)
 
 
-def _check_quaternions(name: str, dec: _Decoded, problems: list[Problem]) -> _Decoded:
+def _check_quaternions(name: str, dec: DecodedColumns, problems: list[Problem]) -> DecodedColumns:
     q = dec.values
-    n = _quat_norm(q)
+    n = quat_norm(q)
     lo, hi = (float(n.min()), float(n.max())) if len(n) else (1.0, 1.0)
     zero = n < 1e-6 if not lo >= 1e-6 else None  # (the extremes say when none can be)
     if zero is not None and zero.any():
@@ -153,7 +153,8 @@ def _check_quaternions(name: str, dec: _Decoded, problems: list[Problem]) -> _De
     return dataclasses.replace(dec, values=q)
 
 
-def _check_mag(path: str, name: str, dec: _Decoded, problems: list[Problem]) -> _Decoded:
+def _check_mag(path: str, name: str, dec: DecodedColumns, problems: list[Problem]
+               ) -> DecodedColumns:
     """Refuse unusable magnetometer data; return ``dec`` without samples pinned at a rail.
 
     A saturated axis reports its extreme value again and again while the true field is
@@ -194,7 +195,7 @@ def _check_mag(path: str, name: str, dec: _Decoded, problems: list[Problem]) -> 
         problems.append(Problem("impossible_value", f"{name}: {k} samples more than "
                                 f"{SPIKE_FACTOR:g} times the median field magnitude were "
                                 "dropped (damaged values)", k))
-        dec = _Decoded(dec.t_ns[~wild], v[~wild], dec.log_time_ns[~wild], dec.frame_id)
+        dec = DecodedColumns(dec.t_ns[~wild], v[~wild], dec.log_time_ns[~wild], dec.frame_id)
         v = dec.values
         if len(v) < MIN_MAG_SAMPLES:
             raise DataQualityError(f"{name}: only {len(v)} usable magnetometer samples",
@@ -229,11 +230,11 @@ def _check_mag(path: str, name: str, dec: _Decoded, problems: list[Problem]) -> 
         "saturated", f"{name}: {k} samples pinned at the rail of a saturated sensor ({where}) "
         "were dropped", k))
     keep = ~pinned
-    return _Decoded(dec.t_ns[keep], v[keep], dec.log_time_ns[keep], dec.frame_id)
+    return DecodedColumns(dec.t_ns[keep], v[keep], dec.log_time_ns[keep], dec.frame_id)
 
 
-def _clean_position(name: str, dec: _Decoded, problems: list[Problem], path: str
-                    ) -> _Decoded:
+def _clean_position(name: str, dec: DecodedColumns, problems: list[Problem], path: str
+                    ) -> DecodedColumns:
     """Check a position channel's fixes: clock jumps and duplicates dropped, stamps sorted.
 
     Rows without a valid fix (the decoder made them NaN: no fix, non-finite or out-of-range
@@ -244,7 +245,7 @@ def _clean_position(name: str, dec: _Decoded, problems: list[Problem], path: str
     """
     dec = _sort_dedupe(name, dec, problems, path)
     n = len(dec.t_ns)
-    lost = int(np.count_nonzero(~_finite_rows(dec.values)))
+    lost = int(np.count_nonzero(~finite_rows(dec.values)))
     if n == 0:
         problems.append(Problem("no_position_fix", f"{name}: no readable position message: "
                                 "the channel gives no positions", 0))
@@ -260,8 +261,8 @@ def _clean_position(name: str, dec: _Decoded, problems: list[Problem], path: str
     return dec
 
 
-def _clean(role: Role, name: str, dec: _Decoded, problems: list[Problem], path: str
-           ) -> _Decoded:
+def check_channel(role: Role, name: str, dec: DecodedColumns, problems: list[Problem], path: str
+           ) -> DecodedColumns:
     """Run the reader's value checks of one channel, in the order :func:`read_recording` needs.
 
     Non-finite samples dropped; quaternions (attitude) checked and normalised; clock jumps
@@ -287,8 +288,9 @@ def _clean(role: Role, name: str, dec: _Decoded, problems: list[Problem], path: 
     return dec
 
 
-def _gap_problems(name: str, t: np.ndarray, problems: list[Problem], min_gap_s: float = 1.0
+def gap_problems(name: str, t: np.ndarray, problems: list[Problem], min_gap_s: float = 1.0
                   ) -> None:
+    """Note the gaps of a channel longer than ``min_gap_s`` (s) and 100 median spacings."""
     if len(t) < 3:
         return
     dt = np.diff(t)
@@ -365,7 +367,7 @@ def attitude_gaps(t_ns: np.ndarray, span_ns: tuple[int, int] | None = None) -> d
     return out if out["missing_samples"] else None
 
 
-def _attitude_gap_problems(name: str, t_ns: np.ndarray, problems: list[Problem],
+def attitude_gap_problems(name: str, t_ns: np.ndarray, problems: list[Problem],
                            span_ns: tuple[int, int] | None = None) -> None:
     """Add an ``attitude_gaps`` problem when the attitude lost samples (:func:`attitude_gaps`)."""
     g = attitude_gaps(t_ns, span_ns)
@@ -388,18 +390,18 @@ def _attitude_gap_problems(name: str, t_ns: np.ndarray, problems: list[Problem],
         f"attitude): " + "; ".join(where), g["missing_samples"]))
 
 
-#: problem codes of :func:`_clean` that :func:`inspect_recording` finds itself for every
+#: problem codes of :func:`check_channel` that :func:`inspect_recording` finds itself for every
 #: channel (stamps backwards, duplicated), in words that describe the file, not the repair
 _INFO_OWN_CODES = frozenset({"out_of_order", "duplicate"})
 
 
-def _value_problems(scan: _Scan, role: Role, name: str, dec: _Decoded) -> list[Problem]:
+def value_problems(scan: Scan, role: Role, name: str, dec: DecodedColumns) -> list[Problem]:
     """List what :func:`read_recording` would repair or refuse in one decoded channel."""
     found: list[Problem] = []
-    # _clean may normalise quaternions in place; the caller needs only the stamps, and
+    # check_channel may normalise quaternions in place; the caller needs only the stamps, and
     # those are never modified
     try:
-        _clean(role, name, dec, found, scan.path)
+        check_channel(role, name, dec, found, scan.path)
     except DataQualityError as exc:
         msg = exc.message + (f" ({exc.hint})" if exc.hint else "")
         found.append(Problem("unusable", msg))

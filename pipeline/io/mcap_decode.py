@@ -26,20 +26,27 @@ from pipeline.core.recording import (
     GeodeticOrigin,
     Role,
 )
-from pipeline.io.cdr import CdrLayout, UniformPlan, _plan, decode_uniform, normalise_type, stamp_ns
+from pipeline.io.cdr import (
+    CdrLayout,
+    UniformPlan,
+    decode_uniform,
+    normalise_type,
+    stamp_ns,
+    uniform_plan,
+)
 from pipeline.io.mcap_format import Opcode
 from pipeline.io.mcap_scan import (
     BATCH_BYTES,
-    _Channel,
-    _Chunk,
-    _compact_records,
-    _copy_ranges,
-    _decompressed_then,
-    _join_blocks,
-    _record_columns,
-    _release,
-    _Scan,
-    _select,
+    ChannelRecord,
+    ChunkRecord,
+    Scan,
+    compact_records,
+    copy_ranges,
+    decompressed_then,
+    join_blocks,
+    record_columns,
+    release_pages,
+    select_messages,
 )
 from schemas import MESSAGE_TYPES, MessageRole, types_of
 
@@ -81,7 +88,7 @@ WGS84_E2 = 6.69437999014e-3
 
 # --------------------------------------------------------------------------- decoding
 @dataclass
-class _Decoded:
+class DecodedColumns:
     """Decoded columns of one channel (stamps in file order)."""
 
     t_ns: np.ndarray
@@ -93,11 +100,11 @@ class _Decoded:
     position: np.ndarray | None = None
     position_kind: str = ""  # "local" (metres, the source's frame) or "geodetic"
 
-    def take(self, idx: np.ndarray, values: np.ndarray | None = None) -> _Decoded:
+    def take(self, idx: np.ndarray, values: np.ndarray | None = None) -> DecodedColumns:
         """Rows ``idx`` (mask or indices) of every column; ``values`` replaces the values."""
         v = self.values[idx] if values is None else values
         pos = None if self.position is None else self.position[idx]
-        return _Decoded(self.t_ns[idx], v, self.log_time_ns[idx], self.frame_id, pos,
+        return DecodedColumns(self.t_ns[idx], v, self.log_time_ns[idx], self.frame_id, pos,
                         self.position_kind)
 
 
@@ -236,10 +243,10 @@ def local_enu_to_geodetic(p_enu_m: np.ndarray, origin: GeodeticOrigin
     return np.degrees(lat), lon, h
 
 
-class _Decoder:
+class ChannelDecoder:
     """Decoder of one channel's payloads, built from the schema stored in the file."""
 
-    def __init__(self, scan: _Scan, ch: _Channel):
+    def __init__(self, scan: Scan, ch: ChannelRecord):
         self.path = scan.path
         self.topic = ch.topic
         sch = scan.schemas.get(ch.schema_id)
@@ -306,9 +313,10 @@ class _Decoder:
         raise SchemaError(f"channel {self.topic}: message type {self.type} is not supported",
                           path=self.path, hint=_SUPPORTED_HINT)
 
-    def decode(self, buf: NDArray[np.uint8], rec: np.ndarray) -> _Decoded:
-        buf, rec = _compact_records(buf, rec)
-        cols = _record_columns(buf, rec)
+    def decode(self, buf: NDArray[np.uint8], rec: np.ndarray) -> DecodedColumns:
+        """Decode the channel's records of one decompressed chunk into columns."""
+        buf, rec = compact_records(buf, rec)
+        cols = record_columns(buf, rec)
         log = cols["log_time_ns"]
         if self.layout is not None:
             try:
@@ -320,27 +328,27 @@ class _Decoder:
         return self._from_json(buf, cols, log)
 
     def _from_cdr(self, f: dict[str, np.ndarray], log: np.ndarray, buf: np.ndarray
-                  ) -> _Decoded:
+                  ) -> DecodedColumns:
         t = self.type
         if t == "std_msgs/Float64":
-            return _Decoded(log, f["data"].astype(float), log)  # no header: log time
+            return DecodedColumns(log, f["data"].astype(float), log)  # no header: log time
         t_ns = stamp_ns(f["header.stamp.sec"], f["header.stamp.nanosec"])
         if t == "sensor_msgs/MagneticField":
             v = np.stack([f[f"magnetic_field.{k}"] for k in "xyz"], axis=-1) * 1e9
             s0, n0 = f["header.frame_id"][0]
             frame = bytes(buf[s0 : s0 + max(n0 - 1, 0)]).decode("utf-8", "replace")
-            return _Decoded(t_ns, v, log, frame)
+            return DecodedColumns(t_ns, v, log, frame)
         if t == "sensor_msgs/Imu":  # its frame_id names the IMU's own (body) frame
             s0, n0 = f["header.frame_id"][0]
             frame = bytes(buf[s0 : s0 + max(n0 - 1, 0)]).decode("utf-8", "replace")
-            return _Decoded(t_ns, np.stack([f[f"orientation.{k}"] for k in "xyzw"], axis=-1),
+            return DecodedColumns(t_ns, np.stack([f[f"orientation.{k}"] for k in "xyzw"], axis=-1),
                             log, frame)
         if t in _CDR_QUAT:
             qp = _CDR_QUAT[t]
             pp = _CDR_POSITION.get(t)
             pos = (np.stack([f[f"{pp}.{k}"] for k in "xyz"], axis=-1)
                    if pp is not None and f"{pp}.x" in f else None)
-            return _Decoded(t_ns, np.stack([f[f"{qp}.{k}"] for k in "xyzw"], axis=-1), log,
+            return DecodedColumns(t_ns, np.stack([f[f"{qp}.{k}"] for k in "xyzw"], axis=-1), log,
                             position=pos, position_kind="local" if pos is not None else "")
         if t in POSITION_TYPES:
             # a fix the receiver flags as none (NavSatStatus.status < 0), non-finite or out of
@@ -348,16 +356,16 @@ class _Decoder:
             fix = np.stack([f[k] for k in _CDR_GEODETIC[t]], axis=-1).astype(float)
             lost = (f[_CDR_FIX_STATUS[t]] < 0) | ~_valid_fixes(fix[:, 0], fix[:, 1], fix[:, 2])
             fix[lost] = np.nan
-            return _Decoded(t_ns, fix, log, position=fix, position_kind="geodetic")
+            return DecodedColumns(t_ns, fix, log, position=fix, position_kind="geodetic")
         q = novatel_to_quat(f["roll"], f["pitch"], f["azimuth"])
         geo = _CDR_GEODETIC[t]
         if geo[0] in f:
             fix = np.stack([f[k] for k in geo], axis=-1).astype(float)
-            return _Decoded(t_ns, q, log, position=fix, position_kind="geodetic")
-        return _Decoded(t_ns, q, log)
+            return DecodedColumns(t_ns, q, log, position=fix, position_kind="geodetic")
+        return DecodedColumns(t_ns, q, log)
 
-    def _from_json(self, buf: np.ndarray, cols: dict, log: np.ndarray) -> _Decoded:
-        joined = _copy_ranges(buf, cols["start"], cols["length"], sep=ord(","))
+    def _from_json(self, buf: np.ndarray, cols: dict, log: np.ndarray) -> DecodedColumns:
+        joined = copy_ranges(buf, cols["start"], cols["length"], sep=ord(","))
         try:
             text = b"[" + joined[:-1].tobytes() + b"]"
             objs = json.loads(text)
@@ -378,17 +386,17 @@ class _Decoder:
             if t == "magalign.Magnetometer":
                 v = np.array([o["mag_nT"] for o in objs], dtype=float).reshape(-1, 3)
                 frame = str(objs[0].get("frame_id", "")) if objs else ""
-                return _Decoded(t_ns, v, log, frame)
+                return DecodedColumns(t_ns, v, log, frame)
             if t == "magalign.AttitudeQuaternion":
                 q = np.array([o["q_enu_body"] for o in objs], dtype=float).reshape(-1, 4)
-                return _Decoded(t_ns, q, log)
+                return DecodedColumns(t_ns, q, log)
             if t == "magalign.AttitudeEuler":
                 hpr = np.array([[o["heading_deg"], o["pitch_deg"], o["roll_deg"]]
                                 for o in objs], dtype=float).reshape(-1, 3)
                 r = np.radians(hpr)
-                return _Decoded(t_ns, li2020_euler_to_quat(r[:, 0], r[:, 1], r[:, 2]), log)
+                return DecodedColumns(t_ns, li2020_euler_to_quat(r[:, 0], r[:, 1], r[:, 2]), log)
             if t == "magalign.Turntable":
-                return _Decoded(t_ns, np.array([o["angle_deg"] for o in objs], dtype=float),
+                return DecodedColumns(t_ns, np.array([o["angle_deg"] for o in objs], dtype=float),
                                 log)
         except (KeyError, TypeError, ValueError) as exc:
             raise SchemaError(f"channel {self.topic}: message lacks field {exc}",
@@ -418,7 +426,7 @@ class _Shape:
     those bytes, ``template`` the template's values: one comparison checks a whole chunk.
     """
 
-    decoder: _Decoder
+    decoder: ChannelDecoder
     plan: UniformPlan
     width: int
     record: int
@@ -429,7 +437,7 @@ class _Shape:
         """Return the first ``width`` bytes of the records at ``off`` (sorted), or None.
 
         None also when a record is not whole inside ``buf``: the caller then validates the
-        offsets one by one (:func:`_select`) and reads them the general way.
+        offsets one by one (:func:`select_messages`) and reads them the general way.
         """
         n = len(buf)
         if int(off[0]) < 0 or int(off[-1]) + self.record > n:
@@ -442,8 +450,8 @@ class _Shape:
             return None
         return rows
 
-    def decode(self, rows: np.ndarray) -> _Decoded:
-        """:meth:`_Decoder.decode` of records gathered by :meth:`rows` (the same arrays)."""
+    def decode(self, rows: np.ndarray) -> DecodedColumns:
+        """:meth:`ChannelDecoder.decode` of records gathered by :meth:`rows` (the same arrays)."""
         raw = rows.view(np.uint8)
         n, w = len(rows), self.width
         dec = self.decoder
@@ -463,7 +471,7 @@ class _Shape:
         """:meth:`decode` for the types of ``_DIRECT``, written straight into output slices.
 
         ``t``, ``v`` and ``log`` (``len(rows)`` rows each) receive the stamps, values and log
-        times :meth:`_Decoder._from_cdr` computes, with the same arithmetic in place (no
+        times :meth:`ChannelDecoder._from_cdr` computes, with the same arithmetic in place (no
         temporary arrays); returns the first message's frame id.
         """
         raw = rows.view(np.uint8)
@@ -491,14 +499,14 @@ class _Shape:
 
 
 #: types :meth:`_Shape.decode_into` writes straight into the output columns: the value
-#: field, its components and the factor to nT (as :meth:`_Decoder._from_cdr`)
+#: field, its components and the factor to nT (as :meth:`ChannelDecoder._from_cdr`)
 _DIRECT: dict[str, tuple[str, str, float | None]] = {
     "sensor_msgs/MagneticField": ("magnetic_field", "xyz", 1e9),
     "sensor_msgs/Imu": ("orientation", "xyzw", None),
 }
 
 
-def _shape_at(decoder: _Decoder, cid: int, buf: NDArray[np.uint8], o: int) -> _Shape | None:
+def _shape_at(decoder: ChannelDecoder, cid: int, buf: NDArray[np.uint8], o: int) -> _Shape | None:
     """Return the :class:`_Shape` of the record at ``o``, or None.
 
     None when it is not a whole record of channel ``cid`` or its layout is not one
@@ -513,7 +521,7 @@ def _shape_at(decoder: _Decoder, cid: int, buf: NDArray[np.uint8], o: int) -> _S
             or int.from_bytes(head[9:11], "little") != cid):
         return None
     payload = buf[o + _RECORD_HEAD : o + 9 + length].tobytes()
-    plan = _plan(decoder.layout, payload, decoder.paths)
+    plan = uniform_plan(decoder.layout, payload, decoder.paths)
     if plan is None:
         return None
     width = _RECORD_HEAD + 4 + plan.end
@@ -533,7 +541,7 @@ def _shape_at(decoder: _Decoder, cid: int, buf: NDArray[np.uint8], o: int) -> _S
 class _Uniform:
     """The fast path's state for one CDR channel: the shape of its last chunk's records."""
 
-    def __init__(self, decoder: _Decoder, cid: int):
+    def __init__(self, decoder: ChannelDecoder, cid: int):
         self.decoder = decoder
         self.cid = cid
         self.shape: _Shape | None = None
@@ -569,17 +577,18 @@ def _aligned_rows(parts: list[np.ndarray], width: int) -> np.ndarray:
     return out
 
 
-def _batches(scan: _Scan, want: set[int], decoders: dict[int, _Decoder]
+def _batches(scan: Scan, want: set[int], decoders: dict[int, ChannelDecoder]
              ) -> Iterator[tuple[NDArray[np.uint8] | None, dict[int, Any]]]:
-    """:func:`_iter_blocks` with ``BATCH_BYTES``, reading uniform records the fast way.
+    """:func:`iter_blocks` with ``BATCH_BYTES``, reading uniform records the fast way.
 
-    Yields ``(buffer, {channel id: record offsets})`` as :func:`_iter_blocks` does, or
+    Yields ``(buffer, {channel id: record offsets})`` as :func:`iter_blocks` does, or
     ``(None, {channel id: [(rows, shape), ...]})`` for a batch whose chunks all hold records
     of one shape per channel (:class:`_Shape`): only the bytes up to the last wanted field of
     each record are gathered, once, from the decompressed chunk, and every field is then a
     strided copy of those rows. The batches, the chunks' checks, the problems
-    noted and the decoded arrays are those of :func:`_iter_blocks` and
-    :meth:`_Decoder.decode`: a chunk whose records differ is selected by :func:`_select`
+    noted and the decoded arrays are those of :func:`iter_blocks` and
+    :meth:`ChannelDecoder.decode`: a chunk whose records differ is selected by
+    :func:`select_messages`
     (which validates each offset and walks a chunk whose index is damaged), and a batch
     holding such a chunk is decoded the general way.
     """
@@ -594,7 +603,7 @@ def _batches(scan: _Scan, want: set[int], decoders: dict[int, _Decoder]
 
     def flush() -> tuple[NDArray[np.uint8] | None, dict[int, Any]]:
         if any(got is None for _, _, got in entries):
-            return _join_blocks([b for b, _, _ in entries], [s for _, s, _ in entries])
+            return join_blocks([b for b, _, _ in entries], [s for _, s, _ in entries])
         groups: dict[int, list[tuple[list[np.ndarray], _Shape]]] = {}
         for _, _, got in entries:
             assert got is not None
@@ -607,7 +616,7 @@ def _batches(scan: _Scan, want: set[int], decoders: dict[int, _Decoder]
         return None, {cid: [(_aligned_rows(r, shape.width), shape) for r, shape in gs]
                       for cid, gs in groups.items()}
 
-    def uniform_rows(ch: _Chunk, b: bytes) -> dict[int, Any] | None:
+    def uniform_rows(ch: ChunkRecord, b: bytes) -> dict[int, Any] | None:
         """Return each wanted channel's records as rows of one shape, or None.
 
         Runs on the inflating thread: it only reads the chunk and the shapes (which any
@@ -619,20 +628,20 @@ def _batches(scan: _Scan, want: set[int], decoders: dict[int, _Decoder]
         for cid in want & ch.index.keys():
             off = ch.index[cid]
             if not len(off):
-                continue  # nothing to read (_select leaves it out too)
+                continue  # nothing to read (select_messages leaves it out too)
             r = fast[cid].rows(buf, off) if cid in fast else None
             if r is None:
                 return None
             rows[cid] = r
         return rows
 
-    for ch, b, got in _decompressed_then(scan, todo, uniform_rows):
+    for ch, b, got in decompressed_then(scan, todo, uniform_rows):
         if b is None:
             continue
         assert ch.index is not None
         sel = ({cid: ch.index[cid] for cid in got} if got is not None
-               else _select(scan, ch, np.frombuffer(b, dtype=np.uint8), want))
-        _release(scan, ch.data_start, ch.data_len)  # decompressed: the bytes are not needed
+               else select_messages(scan, ch, np.frombuffer(b, dtype=np.uint8), want))
+        release_pages(scan, ch.data_start, ch.data_len)  # decompressed: the bytes are not needed
         if not sel:
             continue
         entries.append((b, sel, got))
@@ -644,8 +653,9 @@ def _batches(scan: _Scan, want: set[int], decoders: dict[int, _Decoder]
         yield flush()
 
 
-def _decode_channels(scan: _Scan, cids: list[int]) -> dict[int, _Decoded]:
-    decoders = {cid: _Decoder(scan, scan.channels[cid]) for cid in cids}
+def decode_channels(scan: Scan, cids: list[int]) -> dict[int, DecodedColumns]:
+    """Decode the channels ``cids`` of the whole file, chunk by chunk, into columns."""
+    decoders = {cid: ChannelDecoder(scan, scan.channels[cid]) for cid in cids}
     # Upper bound of each channel's message count, from the message indexes: the columns are
     # filled chunk by chunk into arrays of that size (one copy of the data, where collecting
     # the chunks' columns and concatenating them held two).
@@ -668,7 +678,7 @@ def _decode_channels(scan: _Scan, cids: list[int]) -> dict[int, _Decoded]:
                          for c in cols[cid]]
         return cols[cid]
 
-    def put(cid: int, d: _Decoded, first: bool = True) -> None:
+    def put(cid: int, d: DecodedColumns, first: bool = True) -> None:
         k, i = len(d.t_ns), fill[cid]
         parts: tuple[np.ndarray, ...] = (d.t_ns, d.values, d.log_time_ns)
         if d.position is not None:
@@ -705,22 +715,23 @@ def _decode_channels(scan: _Scan, cids: list[int]) -> dict[int, _Decoded]:
         if cid not in cols:
             typ = decoders[cid].type
             if typ in POSITION_TYPES:  # no message: no fix, in the columns of one
-                out[cid] = _Decoded(np.zeros(0, np.int64), np.zeros((0, 3)),
+                out[cid] = DecodedColumns(np.zeros(0, np.int64), np.zeros((0, 3)),
                                     np.zeros(0, np.int64), position=np.zeros((0, 3)),
                                     position_kind="geodetic")
                 continue
             width = {"sensor_msgs/MagneticField": 3, "magalign.Magnetometer": 3}.get(typ, 4)
             shape = (0,) if typ in TURNTABLE_TYPES else (0, width)
-            out[cid] = _Decoded(np.zeros(0, np.int64), np.zeros(shape), np.zeros(0, np.int64))
+            out[cid] = DecodedColumns(np.zeros(0, np.int64), np.zeros(shape), np.zeros(0, np.int64))
             continue
         n = fill[cid]
         t, v, log, *pos = (c if n == c.shape[0] else c[:n].copy() for c in cols[cid])
-        out[cid] = _Decoded(t, v, log, frames[cid], pos[0] if pos else None, kinds[cid])
+        out[cid] = DecodedColumns(t, v, log, frames[cid], pos[0] if pos else None, kinds[cid])
     return out
 
 
 # --------------------------------------------------------------------------- roles
-def _role_of(scan: _Scan, ch: _Channel) -> Role:
+def role_of(scan: Scan, ch: ChannelRecord) -> Role:
+    """Return the role (magnetometer, attitude, position) a channel's schema type gives it."""
     sch = scan.schemas.get(ch.schema_id)
     t = normalise_type(sch.name) if sch else ""
     if t in MAG_TYPES:
@@ -734,7 +745,8 @@ def _role_of(scan: _Scan, ch: _Channel) -> Role:
     return Role.OTHER
 
 
-def _type_of(scan: _Scan, ch: _Channel) -> str:
+def type_of(scan: Scan, ch: ChannelRecord) -> str:
+    """Return the channel's schema name as stored in the file ("?" without a schema)."""
     sch = scan.schemas.get(ch.schema_id)
     return sch.name if sch else "?"
 
@@ -753,14 +765,14 @@ _ROLE_TYPES = {Role.MAGNETOMETER: MAG_TYPES, Role.ATTITUDE: ATTITUDE_TYPES,
 
 
 @overload
-def _pick(scan: _Scan, role: Role, topic: str | None, required: Literal[True]) -> int: ...
+def pick_channel(scan: Scan, role: Role, topic: str | None, required: Literal[True]) -> int: ...
 
 
 @overload
-def _pick(scan: _Scan, role: Role, topic: str | None, required: bool) -> int | None: ...
+def pick_channel(scan: Scan, role: Role, topic: str | None, required: bool) -> int | None: ...
 
 
-def _pick(scan: _Scan, role: Role, topic: str | None, required: bool) -> int | None:
+def pick_channel(scan: Scan, role: Role, topic: str | None, required: bool) -> int | None:
     """Channel id for a role: by explicit topic, else the single channel of a matching type."""
     opt, flag = _OPTION[role]
     if topic is not None:
@@ -770,12 +782,12 @@ def _pick(scan: _Scan, role: Role, topic: str | None, required: bool) -> int | N
             raise ChannelError(f"no channel with topic {topic} (topics: {topics})",
                                role=role.value, path=scan.path)
         c = hits[0]
-        if normalise_type(_type_of(scan, c)) not in _ROLE_TYPES[role]:
-            raise SchemaError(f"channel {topic} has type {_type_of(scan, c)}, which is not a "
+        if normalise_type(type_of(scan, c)) not in _ROLE_TYPES[role]:
+            raise SchemaError(f"channel {topic} has type {type_of(scan, c)}, which is not a "
                               f"supported {role.value} type", path=scan.path,
                               hint=_SUPPORTED_HINT)
         return c.id
-    cands = [c for c in scan.channels.values() if _role_of(scan, c) is role]
+    cands = [c for c in scan.channels.values() if role_of(scan, c) is role]
     if len(cands) > 1:
         names = " and ".join(sorted(c.topic for c in cands))
         how = f"{flag} TOPIC ({opt}=...)" if flag is not None else f"{opt}=TOPIC"
@@ -784,7 +796,7 @@ def _pick(scan: _Scan, role: Role, topic: str | None, required: bool) -> int | N
     if not cands:
         if not required:
             return None
-        listing = ", ".join(f"{c.topic} ({_type_of(scan, c)})"
+        listing = ", ".join(f"{c.topic} ({type_of(scan, c)})"
                             for c in scan.channels.values()) or "no channels"
         raise ChannelError(f"no {role.value} channel found (channels: {listing})",
                            role=role.value, path=scan.path, hint=_SUPPORTED_HINT)

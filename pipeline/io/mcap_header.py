@@ -22,9 +22,9 @@ from pipeline.core.recording import (
     Role,
     VectorSeries,
 )
-from pipeline.io.mcap_decode import _Decoded, _Decoder, _pick, _type_of
-from pipeline.io.mcap_read import _channel_infos, _pick_position, _position_series
-from pipeline.io.mcap_scan import _iter_blocks, _prepare, _scan
+from pipeline.io.mcap_decode import ChannelDecoder, DecodedColumns, pick_channel, type_of
+from pipeline.io.mcap_read import channel_infos, pick_position, position_series
+from pipeline.io.mcap_scan import index_chunks, iter_blocks, scan_file
 
 
 def read_recording_header(
@@ -60,23 +60,23 @@ def read_recording_header(
     NotMcapError, CorruptRecordingError, ChannelError, SchemaError
 
     """
-    scan = _scan(path)
-    _prepare(scan)
-    mag_id = _pick(scan, Role.MAGNETOMETER, mag_topic, True)
-    att_id = _pick(scan, Role.ATTITUDE, attitude_topic, False)
+    scan = scan_file(path)
+    index_chunks(scan)
+    mag_id = pick_channel(scan, Role.MAGNETOMETER, mag_topic, True)
+    att_id = pick_channel(scan, Role.ATTITUDE, attitude_topic, False)
     problems: list[Problem] = []
-    pos_id = _pick_position(scan, position_topic, problems)
+    pos_id = pick_position(scan, position_topic, problems)
     ids = [i for i in (mag_id, att_id, pos_id) if i is not None]
     counts: dict[int, int] = {}
     for ch in scan.chunks:
         if not ch.bad and ch.index:
             for cid, offs in ch.index.items():
                 counts[cid] = counts.get(cid, 0) + len(offs)
-    first: dict[int, _Decoded] = {}
-    for buf, sel in _iter_blocks(scan, set(ids)):
+    first: dict[int, DecodedColumns] = {}
+    for buf, sel in iter_blocks(scan, set(ids)):
         for cid, rec in sel.items():
             if cid not in first and len(rec):
-                first[cid] = _Decoder(scan, scan.channels[cid]).decode(buf, rec)
+                first[cid] = ChannelDecoder(scan, scan.channels[cid]).decode(buf, rec)
         if len(first) == len(ids):
             break
     stamps = {cid: d.t_ns for cid, d in first.items()}
@@ -85,19 +85,19 @@ def read_recording_header(
     att_frame = ""
     attitude = position = None
     if att_id is not None and att_id in first:
-        if _type_of(scan, scan.channels[att_id]).replace("/msg/", "/") == "sensor_msgs/Imu":
+        if type_of(scan, scan.channels[att_id]).replace("/msg/", "/") == "sensor_msgs/Imu":
             att_frame = first[att_id].frame_id
         attitude = AttitudeSeries(first[att_id].t_ns, first[att_id].values)
-        position = _position_series(first[att_id])
+        position = position_series(first[att_id])
     if pos_id is not None and pos_id in first:
         # sorted by stamp as read_recording sorts (the origin is the first valid fix)
         d = first[pos_id].take(np.argsort(first[pos_id].t_ns, kind="stable"))
-        fixes = _position_series(d, fixes=True, keep_lost=True)
+        fixes = position_series(d, fixes=True, keep_lost=True)
         if fixes is not None:  # the position channel wins, as in read_recording
             position = fixes
     return Recording(
         path=scan.path,
-        channels=_channel_infos(scan, counts, stamps),
+        channels=channel_infos(scan, counts, stamps),
         mag=VectorSeries(np.zeros(0, np.int64) if d_mag is None else d_mag.t_ns,
                          np.zeros((0, 3)) if d_mag is None else d_mag.values, Frame.MAG, "nT"),
         mag_topic=mag_ch.topic,

@@ -38,35 +38,35 @@ from pipeline.core.recording import (
 from pipeline.io.mcap_checks import (
     ABSURD_NT,
     MIN_ATTITUDE_SAMPLES,
-    _attitude_gap_problems,
-    _clean,
-    _finite_rows,
-    _gap_problems,
-    _quat_norm,
-    _value_problems,
+    attitude_gap_problems,
+    check_channel,
+    finite_rows,
+    gap_problems,
+    quat_norm,
+    value_problems,
 )
 from pipeline.io.mcap_decode import (
-    _decode_channels,
-    _Decoded,
-    _Decoder,
-    _pick,
-    _role_of,
-    _type_of,
+    ChannelDecoder,
+    DecodedColumns,
+    decode_channels,
     first_valid_fix,
     geodetic_to_local_enu,
+    pick_channel,
+    role_of,
+    type_of,
 )
 from pipeline.io.mcap_scan import (
-    _Chunk,
-    _copy_ranges,
-    _decompress,
-    _iter_blocks,
-    _prepare,
-    _record_columns,
-    _release,
-    _Scan,
-    _scan,
-    _Schema,
-    _select,
+    ChunkRecord,
+    Scan,
+    SchemaRecord,
+    copy_ranges,
+    decompress_chunk,
+    index_chunks,
+    iter_blocks,
+    record_columns,
+    release_pages,
+    scan_file,
+    select_messages,
 )
 
 
@@ -107,12 +107,12 @@ class RawChannel:
 
 
 # --------------------------------------------------------------------------- raw channels
-def _raw_from_parts(scan: _Scan, parts: dict[int, list[dict[str, np.ndarray]]]
+def _raw_from_parts(scan: Scan, parts: dict[int, list[dict[str, np.ndarray]]]
                     ) -> list[RawChannel]:
     out = []
     for cid in sorted(scan.channels):
         c = scan.channels[cid]
-        s = scan.schemas.get(c.schema_id, _Schema(0, "", "", b""))
+        s = scan.schemas.get(c.schema_id, SchemaRecord(0, "", "", b""))
         ps = parts[cid]
 
         def cat(key: str, dtype: Any, ps: list = ps) -> np.ndarray:
@@ -148,18 +148,18 @@ def read_raw_channels(path: str | Path) -> list[RawChannel]:
         One per channel, in channel id order; messages in file order.
 
     """
-    scan = _scan(path)
-    _prepare(scan)
+    scan = scan_file(path)
+    index_chunks(scan)
     parts: dict[int, list[dict[str, np.ndarray]]] = {cid: [] for cid in scan.channels}
-    for buf, sel in _iter_blocks(scan, set(scan.channels)):
+    for buf, sel in iter_blocks(scan, set(scan.channels)):
         for cid, rec in sel.items():
-            cols = _record_columns(buf, rec)
-            cols["data"] = _copy_ranges(buf, cols["start"], cols["length"])
+            cols = record_columns(buf, rec)
+            cols["data"] = copy_ranges(buf, cols["start"], cols["length"])
             parts[cid].append(cols)
     return _raw_from_parts(scan, parts)
 
 
-def _chunk_start_ns(scan: _Scan, ch: _Chunk) -> int:
+def _chunk_start_ns(scan: Scan, ch: ChunkRecord) -> int:
     """Return the chunk record's ``message_start_time`` (as the scan read it)."""
     return int(ch.start_ns)
 
@@ -178,8 +178,8 @@ def iter_raw_channels(
         flush everything before it (:meth:`pipeline.io.mcap_write.McapColumnWriter.flush`).
 
     """
-    scan = _scan(path)
-    _prepare(scan)
+    scan = scan_file(path)
+    index_chunks(scan)
     # smallest start time of the chunks after each chunk (suffix minimum)
     good = [ch for ch in scan.chunks if not ch.bad and ch.index]
     starts = np.array([_chunk_start_ns(scan, ch) for ch in good], dtype=np.uint64)
@@ -190,8 +190,8 @@ def iter_raw_channels(
 
     def add(buf: NDArray[np.uint8], sel: dict[int, np.ndarray]) -> int:
         for cid, rec in sel.items():
-            cols = _record_columns(buf, rec)
-            cols["data"] = _copy_ranges(buf, cols["start"], cols["length"])
+            cols = record_columns(buf, rec)
+            cols["data"] = copy_ranges(buf, cols["start"], cols["length"])
             parts[cid].append(cols)
         return sum(len(r) for r in sel.values())
 
@@ -201,13 +201,13 @@ def iter_raw_channels(
         count += add(scan.buf, {cid: np.asarray(scan.top_messages[cid], dtype=np.int64)})
     pending = count > 0
     for ch in good:
-        # the same steps as _iter_blocks, chunk by chunk, to know where each range ends
-        b = _decompress(scan, ch)
+        # the same steps as iter_blocks, chunk by chunk, to know where each range ends
+        b = decompress_chunk(scan, ch)
         if b is not None:
             buf = np.frombuffer(b, dtype=np.uint8)
-            count += add(buf, _select(scan, ch, buf, set(scan.channels)))
+            count += add(buf, select_messages(scan, ch, buf, set(scan.channels)))
             pending = True
-        _release(scan, ch.data_start, ch.data_len)
+        release_pages(scan, ch.data_start, ch.data_len)
         bound = next_of[id(ch)]
         if count >= max_messages and bound is not None and not scan.top_messages:
             yield _raw_from_parts(scan, parts), bound
@@ -265,7 +265,7 @@ def pass_through(path: str | Path) -> PassThrough | None:
     """
     with warnings.catch_warnings():  # a damaged file is reported by the other path
         warnings.simplefilter("ignore")
-        scan = _scan(path)
+        scan = scan_file(path)
     if scan.problems or scan.top_messages or not scan.chunks:
         return None
     if 0 in scan.schemas or 0 in scan.channels:
@@ -281,8 +281,8 @@ def pass_through(path: str | Path) -> PassThrough | None:
         if min(ch.mi_pos.values()) != end:
             return None  # something between the chunk and its indexes
 
-        def release(ch: _Chunk = ch) -> None:
-            _release(scan, ch.offset, ch.mi_end - ch.offset)
+        def release(ch: ChunkRecord = ch) -> None:
+            release_pages(scan, ch.offset, ch.mi_end - ch.offset)
 
         chunks.append(PassThroughChunk(
             record=scan.buf[ch.offset:end], message_indexes=scan.buf[end:ch.mi_end],
@@ -296,7 +296,7 @@ def pass_through(path: str | Path) -> PassThrough | None:
     # and the pages read to find the chunks are not needed any more
     for ch in scan.chunks:
         ch.index = None
-    _release(scan, 0, len(scan.buf))
+    release_pages(scan, 0, len(scan.buf))
     return PassThrough(
         schemas={i: (x.name, x.encoding, bytes(x.data)) for i, x in scan.schemas.items()},
         channels={i: (c.topic, c.message_encoding, c.schema_id, dict(c.metadata))
@@ -348,14 +348,14 @@ def read_recording(
         When a damaged file was read only in part (the message says what was lost).
 
     """
-    scan = _scan(path)
-    _prepare(scan)
+    scan = scan_file(path)
+    index_chunks(scan)
     p = scan.path
-    pos_id = _pick_position(scan, position_topic, scan.problems)
-    mag_id = _pick(scan, Role.MAGNETOMETER, mag_topic, True)
-    att_id = _pick(scan, Role.ATTITUDE, attitude_topic, False)
+    pos_id = pick_position(scan, position_topic, scan.problems)
+    mag_id = pick_channel(scan, Role.MAGNETOMETER, mag_topic, True)
+    att_id = pick_channel(scan, Role.ATTITUDE, attitude_topic, False)
     try:
-        tt_id = _pick(scan, Role.TURNTABLE, turntable_topic, att_id is None)
+        tt_id = pick_channel(scan, Role.TURNTABLE, turntable_topic, att_id is None)
     except ChannelError as exc:
         if att_id is not None:
             tt_id = None
@@ -366,13 +366,13 @@ def read_recording(
         else:
             raise
     ids = [i for i in (mag_id, att_id, tt_id, pos_id) if i is not None]
-    dec = _decode_channels(scan, ids)
+    dec = decode_channels(scan, ids)
     counts = {cid: len(dec[cid].t_ns) for cid in ids}
     stamps = {cid: dec[cid].t_ns for cid in ids}
     # The body frame's name: an Imu message's frame_id is the IMU's own frame (REP-145); the
     # frame_id of a pose, a quaternion or an INS solution names the reference frame instead.
     att_frame = ("" if att_id is None
-                 or _type_of(scan, scan.channels[att_id]).replace("/msg/", "/") != "sensor_msgs/Imu"
+                 or type_of(scan, scan.channels[att_id]).replace("/msg/", "/") != "sensor_msgs/Imu"
                  else dec[att_id].frame_id)
     problems = scan.problems
     d_mag = dec.pop(mag_id)  # popped: checks that copy the columns free the originals
@@ -381,39 +381,39 @@ def read_recording(
                                     f"{scan.channels[mag_id].topic}", path=p,
                                     hint="the recording is damaged or empty")
     mag_name = scan.channels[mag_id].topic
-    d_mag = _clean(Role.MAGNETOMETER, mag_name, d_mag, problems, p)
+    d_mag = check_channel(Role.MAGNETOMETER, mag_name, d_mag, problems, p)
     mag = VectorSeries(d_mag.t_ns, d_mag.values, Frame.MAG, "nT")
-    _gap_problems(mag_name, mag.t_ns, problems)
+    gap_problems(mag_name, mag.t_ns, problems)
     attitude = None
     position = None
     if att_id is not None:
         name = scan.channels[att_id].topic
-        d = _clean(Role.ATTITUDE, name, dec.pop(att_id), problems, p)
+        d = check_channel(Role.ATTITUDE, name, dec.pop(att_id), problems, p)
         if len(d.t_ns) < MIN_ATTITUDE_SAMPLES:
             raise DataQualityError(f"{name}: only {len(d.t_ns)} usable attitude samples",
                                    path=p, hint="the recording is too short to calibrate")
         attitude = AttitudeSeries(d.t_ns, d.values)
-        position = _position_series(d)
-        _gap_problems(name, attitude.t_ns, problems, min_gap_s=0.1)
+        position = position_series(d)
+        gap_problems(name, attitude.t_ns, problems, min_gap_s=0.1)
     turntable = None
     if tt_id is not None:
         name = scan.channels[tt_id].topic
-        d = _clean(Role.TURNTABLE, name, dec.pop(tt_id), problems, p)
+        d = check_channel(Role.TURNTABLE, name, dec.pop(tt_id), problems, p)
         if attitude is None and len(d.t_ns) < MIN_ATTITUDE_SAMPLES:
             raise DataQualityError(f"{name}: only {len(d.t_ns)} usable turntable samples",
                                    path=p, hint="the recording is too short to calibrate")
         turntable = AngleSeries(d.t_ns, np.unwrap(np.radians(d.values)))
     if pos_id is not None:
         name = scan.channels[pos_id].topic
-        d = _clean(Role.POSITION, name, dec.pop(pos_id), problems, p)
-        _gap_problems(name, d.t_ns, problems)
-        fixes = _position_series(d, fixes=True)
+        d = check_channel(Role.POSITION, name, dec.pop(pos_id), problems, p)
+        gap_problems(name, d.t_ns, problems)
+        fixes = position_series(d, fixes=True)
         if fixes is not None:  # the position channel wins over the attitude's positions
             position = fixes
     mag_ch = scan.channels[mag_id]
     return Recording(
         path=p,
-        channels=_channel_infos(scan, counts, stamps),
+        channels=channel_infos(scan, counts, stamps),
         mag=mag,
         mag_topic=mag_ch.topic,
         attitude=attitude,
@@ -428,7 +428,7 @@ def read_recording(
     )
 
 
-def _pick_position(scan: _Scan, topic: str | None, problems: list[Problem]) -> int | None:
+def pick_position(scan: Scan, topic: str | None, problems: list[Problem]) -> int | None:
     """Channel id of the position channel, or None.
 
     By ``topic`` (an error naming the file when it is absent or not a position type), else
@@ -437,7 +437,7 @@ def _pick_position(scan: _Scan, topic: str | None, problems: list[Problem]) -> i
     option to choose one yet, and the recording calibrates without positions).
     """
     try:
-        return _pick(scan, Role.POSITION, topic, False)
+        return pick_channel(scan, Role.POSITION, topic, False)
     except ChannelError as exc:
         if topic is not None:
             raise
@@ -446,7 +446,7 @@ def _pick_position(scan: _Scan, topic: str | None, problems: list[Problem]) -> i
         return None
 
 
-def _position_series(d: _Decoded, *, fixes: bool = False, keep_lost: bool = False
+def position_series(d: DecodedColumns, *, fixes: bool = False, keep_lost: bool = False
                      ) -> PositionSeries | None:
     """Return a channel's positions (NaN rows kept), or None without any.
 
@@ -548,13 +548,14 @@ def _rate_hz(t: np.ndarray) -> float | None:
     return float(1e9 / np.median(dt, overwrite_input=True))
 
 
-def _channel_infos(scan: _Scan, counts: dict[int, int], stamps: dict[int, np.ndarray]
+def channel_infos(scan: Scan, counts: dict[int, int], stamps: dict[int, np.ndarray]
                    ) -> tuple[ChannelInfo, ...]:
+    """Return what ``info`` lists of each channel: topic, type, role, count and rate."""
     out = []
     for cid in sorted(scan.channels):
         c = scan.channels[cid]
-        out.append(ChannelInfo(c.topic, _type_of(scan, c), c.message_encoding,
-                               _role_of(scan, c), counts.get(cid, -1) if cid in counts else -1,
+        out.append(ChannelInfo(c.topic, type_of(scan, c), c.message_encoding,
+                               role_of(scan, c), counts.get(cid, -1) if cid in counts else -1,
                                _rate_hz(stamps[cid]) if cid in stamps else None))
     return tuple(out)
 
@@ -582,29 +583,29 @@ def inspect_recording(path: str | Path, mag_probe: Callable[[str, np.ndarray, np
         no model: ``magalign info`` passes the sample-and-hold detector).
 
     """
-    scan = _scan(path)
-    _prepare(scan)
+    scan = scan_file(path)
+    index_chunks(scan)
     problems: list[Problem] = []  # per channel; scan.problems grows while chunks are decoded
     stamps: dict[int, np.ndarray] = {}
     chans: list[dict[str, Any]] = []
     held: dict[str, Any] | None = None
     for cid in sorted(scan.channels):
         c = scan.channels[cid]
-        role = _role_of(scan, c)
+        role = role_of(scan, c)
         t = None
         if role is not Role.OTHER:
             try:
-                dec = _decode_channels(scan, [cid])[cid]
+                dec = decode_channels(scan, [cid])[cid]
             except InputError as exc:
                 problems.append(Problem("undecodable", exc.message))
             else:
                 t = dec.t_ns
-                problems += _value_problems(scan, role, c.topic, dec)
+                problems += value_problems(scan, role, c.topic, dec)
                 if role is Role.MAGNETOMETER and held is None and mag_probe is not None:
                     held = mag_probe(c.topic, dec.t_ns, dec.values)
         if t is None:
-            log = [_record_columns(buf, sel[cid])["log_time_ns"]
-                   for buf, sel in _iter_blocks(scan, {cid})]
+            log = [record_columns(buf, sel[cid])["log_time_ns"]
+                   for buf, sel in iter_blocks(scan, {cid})]
             t = np.concatenate(log) if log else np.zeros(0, np.int64)
         stamps[cid] = t
         back = int(np.count_nonzero(np.diff(t) < 0))
@@ -615,10 +616,10 @@ def inspect_recording(path: str | Path, mag_probe: Callable[[str, np.ndarray, np
         dup = int(np.count_nonzero(np.diff(ts) == 0))
         if dup:
             problems.append(Problem("duplicate", f"{c.topic}: {dup} duplicated stamps", dup))
-        _gap_problems(c.topic, ts, problems, min_gap_s=1.0 if role is Role.MAGNETOMETER
+        gap_problems(c.topic, ts, problems, min_gap_s=1.0 if role is Role.MAGNETOMETER
                       else 0.1)
         chans.append({
-            "topic": c.topic, "type": _type_of(scan, c), "encoding": c.message_encoding,
+            "topic": c.topic, "type": type_of(scan, c), "encoding": c.message_encoding,
             "role": role.value, "count": int(len(t)), "rate_hz": _rate_hz(t),
             "start_ns": int(ts[0]) if len(ts) else None,
             "end_ns": int(ts[-1]) if len(ts) else None,
@@ -629,7 +630,7 @@ def inspect_recording(path: str | Path, mag_probe: Callable[[str, np.ndarray, np
     span = (mags[0]["start_ns"], mags[0]["end_ns"]) if mags else None
     for cid, row in zip(sorted(scan.channels), chans, strict=True):
         if row["role"] == Role.ATTITUDE.value:
-            _attitude_gap_problems(row["topic"], np.sort(stamps[cid]), problems, span)
+            attitude_gap_problems(row["topic"], np.sort(stamps[cid]), problems, span)
     if mags:
         duration = (mags[0]["end_ns"] - mags[0]["start_ns"]) * 1e-9
     else:
@@ -677,20 +678,20 @@ class RecordingChunk:
     position: PositionSeries | None = None
 
 
-def _chunk_part(dec: _Decoded | None, quat: bool) -> _Decoded | None:
+def _chunk_part(dec: DecodedColumns | None, quat: bool) -> DecodedColumns | None:
     if dec is None:
         return None
-    ok = _finite_rows(dec.values)
+    ok = finite_rows(dec.values)
     if not quat and dec.values.ndim == 2 and dec.position_kind != "geodetic":
         # damaged values (a flipped exponent bit) would overflow the streaming sums
         with np.errstate(over="ignore", invalid="ignore"):
             ok &= np.abs(dec.values).max(axis=1, initial=0.0) < ABSURD_NT
     if quat:
-        norm = _quat_norm(np.where(ok[:, None], dec.values, 0.0))
+        norm = quat_norm(np.where(ok[:, None], dec.values, 0.0))
         ok &= norm > 1e-6
     kept = dec.take(ok)
     if quat:
-        kept = _Decoded(kept.t_ns, kept.values / norm[ok][:, None], kept.log_time_ns,
+        kept = DecodedColumns(kept.t_ns, kept.values / norm[ok][:, None], kept.log_time_ns,
                         kept.frame_id, kept.position, kept.position_kind)
     return kept.take(np.argsort(kept.t_ns, kind="stable"))
 
@@ -706,7 +707,7 @@ class _ChunkPositions:
     def __init__(self) -> None:
         self.origin: GeodeticOrigin | None = None
 
-    def series(self, d: _Decoded | None) -> PositionSeries | None:
+    def series(self, d: DecodedColumns | None) -> PositionSeries | None:
         if d is None or d.position is None or not len(d.t_ns):
             return None
         if d.position_kind != "geodetic":
@@ -758,23 +759,23 @@ def iter_recording_chunks(
     NotMcapError, CorruptRecordingError, ChannelError, SchemaError
 
     """
-    scan = _scan(path)
-    _prepare(scan)
-    mag_id = _pick(scan, Role.MAGNETOMETER, mag_topic, True)
-    att_id = _pick(scan, Role.ATTITUDE, attitude_topic, False)
+    scan = scan_file(path)
+    index_chunks(scan)
+    mag_id = pick_channel(scan, Role.MAGNETOMETER, mag_topic, True)
+    att_id = pick_channel(scan, Role.ATTITUDE, attitude_topic, False)
     tt_id = None
     if att_id is None or turntable_topic is not None:
-        tt_id = _pick(scan, Role.TURNTABLE, turntable_topic, att_id is None)
+        tt_id = pick_channel(scan, Role.TURNTABLE, turntable_topic, att_id is None)
     # positions are optional: an ambiguous choice is the header's problem to report
-    pos_id = _pick_position(scan, position_topic, [])
+    pos_id = pick_position(scan, position_topic, [])
     ids = [i for i in (mag_id, att_id, tt_id, pos_id) if i is not None]
-    decoders = {cid: _Decoder(scan, scan.channels[cid]) for cid in ids}
-    parts: dict[int, list[_Decoded]] = {cid: [] for cid in ids}
+    decoders = {cid: ChannelDecoder(scan, scan.channels[cid]) for cid in ids}
+    parts: dict[int, list[DecodedColumns]] = {cid: [] for cid in ids}
     count, index = 0, 0
     positions = _ChunkPositions()
 
     def emit() -> RecordingChunk:
-        cat: dict[int, _Decoded | None] = {}
+        cat: dict[int, DecodedColumns | None] = {}
         for cid in ids:
             ps = parts[cid]
             if not ps:
@@ -782,7 +783,7 @@ def iter_recording_chunks(
                 continue
             pos = (np.concatenate([p.position for p in ps])
                    if all(p.position is not None for p in ps) else None)
-            cat[cid] = _Decoded(np.concatenate([p.t_ns for p in ps]),
+            cat[cid] = DecodedColumns(np.concatenate([p.t_ns for p in ps]),
                                 np.concatenate([p.values for p in ps]),
                                 np.concatenate([p.log_time_ns for p in ps]), ps[0].frame_id,
                                 pos, ps[0].position_kind)
@@ -801,7 +802,7 @@ def iter_recording_chunks(
             position=positions.series(fx if pos_id is not None else a),
         )
 
-    for buf, sel in _iter_blocks(scan, set(ids)):
+    for buf, sel in iter_blocks(scan, set(ids)):
         for cid, rec in sel.items():
             d = decoders[cid].decode(buf, rec)
             parts[cid].append(d)

@@ -1,6 +1,6 @@
 """MCAP scanning and recovery.
 
-The file mapped and walked record by record (``_scan``): schemas, channels, chunks and their
+The file mapped and walked record by record (``scan_file``): schemas, channels, chunks and their
 message indexes; a cut or damaged file recovered up to its last readable record; chunks
 inflated on two threads ahead of the decoding and their message records selected in batches.
 """
@@ -38,7 +38,9 @@ from pipeline.io.mcap_format import MAGIC, MAX_OPCODE, Opcode
 
 
 @dataclass
-class _Schema:
+class SchemaRecord:
+    """A Schema record of the file."""
+
     id: int
     name: str
     encoding: str
@@ -46,7 +48,9 @@ class _Schema:
 
 
 @dataclass
-class _Channel:
+class ChannelRecord:
+    """A Channel record of the file."""
+
     id: int
     schema_id: int
     topic: str
@@ -55,7 +59,9 @@ class _Channel:
 
 
 @dataclass
-class _Chunk:
+class ChunkRecord:
+    """A Chunk record of the file: where its records lie and what its index says."""
+
     offset: int  # file offset of the chunk record
     compression: str
     data_start: int  # file offset of the (compressed) records
@@ -78,13 +84,15 @@ class _Chunk:
 
 
 @dataclass
-class _Scan:
+class Scan:
+    """The file mapped in memory and its top-level records, as :func:`scan_file` lists them."""
+
     path: str
     buf: NDArray[np.uint8]
     profile: str = ""
-    schemas: dict[int, _Schema] = field(default_factory=dict)
-    channels: dict[int, _Channel] = field(default_factory=dict)
-    chunks: list[_Chunk] = field(default_factory=list)
+    schemas: dict[int, SchemaRecord] = field(default_factory=dict)
+    channels: dict[int, ChannelRecord] = field(default_factory=dict)
+    chunks: list[ChunkRecord] = field(default_factory=list)
     top_messages: dict[int, list[int]] = field(default_factory=dict)
     problems: list[Problem] = field(default_factory=list)
     complete_bytes: int = 0  # bytes up to the end of the last complete record
@@ -95,7 +103,7 @@ class _Scan:
 FAULT_AROUND_BYTES = 128 << 10
 
 
-def _release(scan: _Scan, start: int, length: int) -> None:
+def release_pages(scan: Scan, start: int, length: int) -> None:
     """Drop the mapped pages of ``[start, start + length)`` from this process's memory.
 
     The file stays mapped (a later access reads the pages again, usually from the page
@@ -131,15 +139,15 @@ def _str(b: bytes | mmap.mmap, p: int) -> tuple[str, int]:
     return b[p + 4 : p + 4 + n].decode("utf-8", "replace"), p + 4 + n
 
 
-def _parse_schema(b: bytes | mmap.mmap, p: int) -> _Schema:
+def _parse_schema(b: bytes | mmap.mmap, p: int) -> SchemaRecord:
     (sid,) = struct.unpack_from("<H", b, p)
     name, p = _str(b, p + 2)
     enc, p = _str(b, p)
     (n,) = struct.unpack_from("<I", b, p)
-    return _Schema(sid, name, enc, bytes(b[p + 4 : p + 4 + n]))
+    return SchemaRecord(sid, name, enc, bytes(b[p + 4 : p + 4 + n]))
 
 
-def _parse_channel(b: bytes | mmap.mmap, p: int) -> _Channel:
+def _parse_channel(b: bytes | mmap.mmap, p: int) -> ChannelRecord:
     cid, sid = struct.unpack_from("<HH", b, p)
     topic, p = _str(b, p + 4)
     enc, p = _str(b, p)
@@ -151,7 +159,7 @@ def _parse_channel(b: bytes | mmap.mmap, p: int) -> _Channel:
         k, p = _str(b, p)
         v, p = _str(b, p)
         meta[k] = v
-    return _Channel(cid, sid, topic, enc, meta)
+    return ChannelRecord(cid, sid, topic, enc, meta)
 
 
 def _problem(scan_problems: list[Problem], code: str, message: str, count: int = 0,
@@ -213,7 +221,7 @@ def check_magic(head: bytes, path: str | Path) -> None:
 RELEASE_EVERY = 32 << 20
 
 
-def _scan(path: str | Path) -> _Scan:
+def scan_file(path: str | Path) -> Scan:
     """Read the file and list its top-level records (docs/modules.md)."""
     p = Path(path)
     try:
@@ -222,12 +230,12 @@ def _scan(path: str | Path) -> _Scan:
         raise open_error(p, exc) from None
     size = len(raw)
     check_magic(raw[: len(MAGIC)], p)
-    scan = _Scan(str(p), np.frombuffer(raw, dtype=np.uint8),
+    scan = Scan(str(p), np.frombuffer(raw, dtype=np.uint8),
                  mapped=raw if isinstance(raw, mmap.mmap) else None)
     pos = 8
     ended = False  # footer seen
     data_end = False
-    last_chunk: _Chunk | None = None
+    last_chunk: ChunkRecord | None = None
     last_chunk_index: dict[int, np.ndarray] = {}
     saw_header = False
     released = 0  # file pages before this offset were dropped
@@ -276,7 +284,7 @@ def _scan(path: str | Path) -> _Scan:
                 scan.chunks.append(last_chunk)
                 if pos - released > RELEASE_EVERY:
                     # the message indexes read so far (16 bytes a message): drop their pages
-                    _release(scan, released, pos - released)
+                    release_pages(scan, released, pos - released)
                     released = pos
             elif op == Opcode.MESSAGE_INDEX and last_chunk is not None:
                 (cid, n) = struct.unpack_from("<HI", raw, body)
@@ -310,17 +318,18 @@ def _scan(path: str | Path) -> _Scan:
                         data_end=data_end)
 
 
-def _chunk_header(raw: bytes | mmap.mmap, pos: int, body: int, length: int, size: int) -> _Chunk:
+def _chunk_header(raw: bytes | mmap.mmap, pos: int, body: int, length: int, size: int
+                  ) -> ChunkRecord:
     start_t, end_t, usize, crc = struct.unpack_from("<QQQI", raw, body)
     comp, p = _str(raw, body + 28)
     (rlen,) = struct.unpack_from("<Q", raw, p)
     avail = min(rlen, size - (p + 8))
-    return _Chunk(pos, comp, p + 8, avail, usize, crc, torn=avail < rlen, start_ns=start_t,
+    return ChunkRecord(pos, comp, p + 8, avail, usize, crc, torn=avail < rlen, start_ns=start_t,
                   end_ns=end_t)
 
 
-def _finish_scan(scan: _Scan, last_chunk: _Chunk | None, last_index: dict, pos: int,
-                 size: int, truncated: bool, data_end: bool = False) -> _Scan:
+def _finish_scan(scan: Scan, last_chunk: ChunkRecord | None, last_index: dict, pos: int,
+                 size: int, truncated: bool, data_end: bool = False) -> Scan:
     raw = scan.buf
     if last_chunk is not None:
         # a chunk whose index list may have been cut: walk the chunk instead
@@ -353,7 +362,7 @@ def _finish_scan(scan: _Scan, last_chunk: _Chunk | None, last_index: dict, pos: 
         _problem(scan.problems, "truncated", msg, lost)
     # walking the records touched pages across the whole file: drop them (those a reader
     # needs come back from the page cache, one chunk at a time)
-    _release(scan, 0, len(raw))
+    release_pages(scan, 0, len(raw))
     return scan
 
 
@@ -374,7 +383,7 @@ def _zstd() -> Any:
     return d
 
 
-def _inflate(scan: _Scan, ch: _Chunk) -> tuple[bytes | None, str, str]:
+def _inflate(scan: Scan, ch: ChunkRecord) -> tuple[bytes | None, str, str]:
     """Decompress a chunk and check its CRC: ``(bytes or None, problem kind, detail)``.
 
     Touches nothing shared (it runs on worker threads, see :func:`_decompressed`); a torn
@@ -410,7 +419,7 @@ def _inflate(scan: _Scan, ch: _Chunk) -> tuple[bytes | None, str, str]:
     return out, "", ""
 
 
-def _report(scan: _Scan, ch: _Chunk, result: tuple[bytes | None, str, str]) -> bytes | None:
+def _report(scan: Scan, ch: ChunkRecord, result: tuple[bytes | None, str, str]) -> bytes | None:
     """Note the problem of an inflated chunk (in file order, on the reading thread)."""
     out, kind, detail = result
     if out is not None:
@@ -425,7 +434,7 @@ def _report(scan: _Scan, ch: _Chunk, result: tuple[bytes | None, str, str]) -> b
     return None
 
 
-def _decompress(scan: _Scan, ch: _Chunk) -> bytes | None:
+def decompress_chunk(scan: Scan, ch: ChunkRecord) -> bytes | None:
     """Decompress a chunk's records (None, with its problem noted, when it cannot be read)."""
     return _report(scan, ch, _inflate(scan, ch))
 
@@ -438,17 +447,18 @@ DECOMPRESS_AHEAD = 8
 """Chunks inflated ahead of the one being decoded (memory: that many chunks)."""
 
 
-def _decompressed(scan: _Scan, chunks: list[_Chunk]) -> Iterator[tuple[_Chunk, bytes | None]]:
+def _decompressed(scan: Scan, chunks: list[ChunkRecord]
+                  ) -> Iterator[tuple[ChunkRecord, bytes | None]]:
     """``(chunk, its records or None)`` in file order, inflated on threads ahead of use.
 
     Problems are noted here, in file order, so that messages come out the same whatever the
     threads' timing.
     """
-    for ch, b, _ in _decompressed_then(scan, chunks, None):
+    for ch, b, _ in decompressed_then(scan, chunks, None):
         yield ch, b
 
 
-def _inflate_then(scan: _Scan, ch: _Chunk, after: Callable[[_Chunk, bytes], Any] | None
+def _inflate_then(scan: Scan, ch: ChunkRecord, after: Callable[[ChunkRecord, bytes], Any] | None
                   ) -> tuple[tuple[bytes | None, str, str], Any]:
     result = _inflate(scan, ch)
     if after is None or result[0] is None:
@@ -456,9 +466,9 @@ def _inflate_then(scan: _Scan, ch: _Chunk, after: Callable[[_Chunk, bytes], Any]
     return result, after(ch, result[0])
 
 
-def _decompressed_then(scan: _Scan, chunks: list[_Chunk],
-                       after: Callable[[_Chunk, bytes], Any] | None
-                       ) -> Iterator[tuple[_Chunk, bytes | None, Any]]:
+def decompressed_then(scan: Scan, chunks: list[ChunkRecord],
+                       after: Callable[[ChunkRecord, bytes], Any] | None
+                       ) -> Iterator[tuple[ChunkRecord, bytes | None, Any]]:
     """:func:`_decompressed`, with ``after(chunk, records)`` run on the inflating thread.
 
     ``after`` must note nothing and change nothing shared that the reading thread uses (its
@@ -484,13 +494,13 @@ def _decompressed_then(scan: _Scan, chunks: list[_Chunk],
             yield ch, _report(scan, ch, result), extra
 
 
-def _index_count(ch: _Chunk) -> int | str:
+def _index_count(ch: ChunkRecord) -> int | str:
     if ch.index is None:
         return "(unknown number of)"
     return int(sum(len(v) for v in ch.index.values()))
 
 
-def _walk(scan: _Scan, b: bytes) -> tuple[dict[int, np.ndarray], int]:
+def _walk(scan: Scan, b: bytes) -> tuple[dict[int, np.ndarray], int]:
     """Walk the records of a decompressed chunk: schemas/channels and message offsets.
 
     Returns the message record offsets by channel and the end of the last complete record.
@@ -521,7 +531,7 @@ def _walk(scan: _Scan, b: bytes) -> tuple[dict[int, np.ndarray], int]:
     return {k: np.asarray(v, dtype=np.int64) for k, v in msgs.items()}, pos
 
 
-def _prepare(scan: _Scan) -> None:
+def index_chunks(scan: Scan) -> None:
     """Walk the chunks whose message indexes are missing, unsure, or name unknown channels.
 
     Fills ``chunk.index`` so that every chunk can then be decoded from offsets alone, and
@@ -533,7 +543,7 @@ def _prepare(scan: _Scan) -> None:
         unknown = ch.index is not None and any(c not in scan.channels for c in ch.index)
         if ch.index_trusted and not unknown and not ch.torn:
             continue
-        b = _decompress(scan, ch)
+        b = decompress_chunk(scan, ch)
         if b is None:
             continue
         idx, end = _walk(scan, b)
@@ -564,7 +574,7 @@ def _valid_records(buf: NDArray[np.uint8], off: np.ndarray, cid: int) -> np.ndar
     return ok
 
 
-def _select(scan: _Scan, ch: _Chunk, buf: NDArray[np.uint8], want: set[int]
+def select_messages(scan: Scan, ch: ChunkRecord, buf: NDArray[np.uint8], want: set[int]
             ) -> dict[int, np.ndarray]:
     """Message record offsets of the wanted channels in one decompressed chunk.
 
@@ -593,7 +603,7 @@ def _select(scan: _Scan, ch: _Chunk, buf: NDArray[np.uint8], want: set[int]
     return {cid: idx[cid] for cid in want & idx.keys() if len(idx[cid])}
 
 
-def _iter_blocks(scan: _Scan, want: set[int], batch_bytes: int = 0
+def iter_blocks(scan: Scan, want: set[int], batch_bytes: int = 0
                  ) -> Iterator[tuple[NDArray[np.uint8], dict[int, np.ndarray]]]:
     """Yield ``(buffer, {channel id: message record offsets})`` for the wanted channels.
 
@@ -612,25 +622,25 @@ def _iter_blocks(scan: _Scan, want: set[int], batch_bytes: int = 0
     for ch, b in _decompressed(scan, todo):
         if b is None:
             continue
-        sel = _select(scan, ch, np.frombuffer(b, dtype=np.uint8), want)
-        _release(scan, ch.data_start, ch.data_len)  # decompressed: the bytes are not needed
+        sel = select_messages(scan, ch, np.frombuffer(b, dtype=np.uint8), want)
+        release_pages(scan, ch.data_start, ch.data_len)  # decompressed: the bytes are not needed
         if not sel:
             continue
         bufs.append(b)
         sels.append(sel)
         size += len(b)
         if size >= batch_bytes:
-            yield _join_blocks(bufs, sels)
+            yield join_blocks(bufs, sels)
             bufs, sels, size = [], [], 0
     if bufs:
-        yield _join_blocks(bufs, sels)
+        yield join_blocks(bufs, sels)
 
 
 BATCH_BYTES = 8 << 20
 """Decompressed bytes decoded at once (memory: about twice this, whatever the file size)."""
 
 
-def _join_blocks(bufs: list[bytes], sels: list[dict[int, np.ndarray]]
+def join_blocks(bufs: list[bytes], sels: list[dict[int, np.ndarray]]
                  ) -> tuple[NDArray[np.uint8], dict[int, np.ndarray]]:
     """One buffer of several decompressed chunks, with their record offsets shifted into it."""
     if len(bufs) == 1:
@@ -644,7 +654,7 @@ def _join_blocks(bufs: list[bytes], sels: list[dict[int, np.ndarray]]
     return buf, {cid: np.concatenate(v) for cid, v in joined.items()}
 
 
-def _compact_records(buf: NDArray[np.uint8], rec: np.ndarray
+def compact_records(buf: NDArray[np.uint8], rec: np.ndarray
                      ) -> tuple[NDArray[np.uint8], np.ndarray]:
     """Copy the records at ``rec`` side by side when they all have one length.
 
@@ -665,7 +675,7 @@ def _compact_records(buf: NDArray[np.uint8], rec: np.ndarray
     return compact, np.arange(len(rec), dtype=np.int64) * n
 
 
-def _record_columns(buf: NDArray[np.uint8], rec: np.ndarray) -> dict[str, np.ndarray]:
+def record_columns(buf: NDArray[np.uint8], rec: np.ndarray) -> dict[str, np.ndarray]:
     """Message record fields at record offsets ``rec`` (opcode position), vectorised."""
     reclen = _u(buf, rec + 1, "<u8").astype(np.int64)
     return {
@@ -694,7 +704,7 @@ def ranges_mask(size: int, start: np.ndarray, length: np.ndarray) -> np.ndarray:
     return np.repeat(pattern, runs)
 
 
-def _copy_ranges(buf: NDArray[np.uint8], start: np.ndarray, length: np.ndarray,
+def copy_ranges(buf: NDArray[np.uint8], start: np.ndarray, length: np.ndarray,
                  sep: int | None = None) -> NDArray[np.uint8]:
     """Concatenate ``buf[start_i:start_i + length_i]``, each followed by ``sep`` if given."""
     n = len(start)

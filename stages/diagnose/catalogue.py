@@ -19,8 +19,8 @@ from stages.diagnose.model import (
     MIN_HORIZONTAL_FRACTION,
     EffectKind,
     FitData,
-    _span,
     drift_basis,
+    drift_span,
     rot_z,
 )
 
@@ -335,7 +335,7 @@ def position_confounding(data: FitData) -> tuple[float, float]:
         return 0.0, 0.0
     dp = data.dp_m
     spread = float(np.sqrt(np.mean(np.sum(dp**2, axis=1))))
-    P = np.column_stack([np.ones(len(data)), drift_basis(data.t_s, 0.0, _span(data))])
+    P = np.column_stack([np.ones(len(data)), drift_basis(data.t_s, 0.0, drift_span(data))])
     coef, *_ = np.linalg.lstsq(P, dp, rcond=None)
     left = dp - P @ coef
     tot = float(np.sum((dp - dp.mean(axis=0)) ** 2))

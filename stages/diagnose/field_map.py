@@ -48,7 +48,7 @@ from stages.diagnose.catalogue import (
 from stages.diagnose.fit import FitResult
 from stages.diagnose.model import F64, EffectKind, FitData, Term, evaluate
 from stages.diagnose.result import DiagnoseConfig
-from stages.diagnose.statistics import ScoreTest, _score_from_J, fold_of
+from stages.diagnose.statistics import ScoreTest, fold_of, score_from_J
 
 #: Complexities tried: modes along the box's longest axis.
 COMPLEXITIES = (2, 3, 4, 5, 6, 7, 8)
@@ -214,7 +214,7 @@ def map_candidate(cur: FitResult, data: FitData, sigma: float,
         return None
     term = terms[best]
     Jc = J.reshape(-1, J.shape[-1])[:, np.r_[np.arange(p0), p0 + idx[best]]]
-    st = _score_from_J(cur, term, Jc, data, sigma, prior=term.prior_precision())
+    st = score_from_J(cur, term, Jc, data, sigma, prior=term.prior_precision())
     tried = ", ".join(f"{n} ({int(np.prod(terms[n].n_axis))} functions) {cv[n]:.3g} nT"
                       for n in ladder)
     words = (

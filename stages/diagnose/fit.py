@@ -24,8 +24,8 @@ from stages.diagnose.model import (
     EffectKind,
     FitData,
     ModelState,
-    _mv,
     evaluate,
+    matvec_rows,
     sample_weights,
 )
 
@@ -196,7 +196,7 @@ def wahba_init(data: FitData, n_iter: int = 10) -> ModelState:
         B = data.B_known_enu_nT
         for _ in range(n_iter):
             if data.B_known_enu_nT is None:
-                B = np.mean(_mv(C, y @ R.T), axis=0)
+                B = np.mean(matvec_rows(C, y @ R.T), axis=0)
             assert B is not None  # known, or the mean just computed
             b = B @ C  # rows C.T @ B
             # Wahba: R = argmin sum |b - R y|^2 (Kabsch)

@@ -859,7 +859,7 @@ def _CT(track: AttitudeTrack, t_s: F64, key: tuple | None = None, owners: Any = 
     return out
 
 
-def _mv(M: F64, v: F64) -> F64:
+def matvec_rows(M: F64, v: F64) -> F64:
     """Per-sample matrix-vector product (N,3,3) x (N,3) -> (N,3)."""
     return np.matmul(M, v[:, :, None])[:, :, 0]
 
@@ -945,7 +945,7 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
     Bt = np.broadcast_to(state.B_enu_nT, (n, 3)).copy()
     for term, v in zip(state.terms, state.values, strict=True):
         if term.kind is EffectKind.FIELD_DRIFT:
-            P = drift_basis(t, 0.0, _span(data))
+            P = drift_basis(t, 0.0, drift_span(data))
             Bt += P @ v.reshape(-1, 3)
         elif term.kind is EffectKind.DISTURBANCE:
             Phi = np.concatenate([hat_basis(t, k) for k in term.knots()], axis=1)
@@ -969,7 +969,7 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
     h_rad = None
     for term, v in zip(state.terms, state.values, strict=True):
         if term.kind is EffectKind.HEADING_DRIFT:
-            h_rad = heading_basis(t, _span(data)) @ v
+            h_rad = heading_basis(t, drift_span(data)) @ v
             Bt_unturned = Bt
             Bt = rotate_about_up(Bt, h_rad)
     TT = state.T_enu.T
@@ -1012,7 +1012,7 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             Rz[:, 0, 1] = -np.sin(h_rad)
             Rz[:, 2, 2] = 1.0
             J[:, :, 3:6] = np.matmul(G, Rz)
-    bddot = _mv(Cddot, Bp)
+    bddot = matvec_rows(Cddot, Bp)
     for term, i, v in zip(state.terms, state.offsets(), state.values, strict=True):
         k = term.kind
         if k is EffectKind.HARD_IRON:
@@ -1037,7 +1037,7 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             if state.rate_pair():
                 J[:, :, i : i + 9] = J[:, :, i : i + 9] @ TRACELESS_PROJECTOR
         elif k is EffectKind.FIELD_DRIFT:
-            P = drift_basis(t, 0.0, _span(data))
+            P = drift_basis(t, 0.0, drift_span(data))
             kk = 3 * P.shape[1]
             J[:, :, i : i + kk] = (P[:, :, None, None] * G[:, None, :, :]).transpose(
                 0, 2, 1, 3
@@ -1068,7 +1068,7 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             if term.fit_yaw:
                 r_p = source_offset_enu(term, v, data.p_m)
                 ez_r = np.stack([-r_p[:, 1], r_p[:, 0], np.zeros(n)], axis=1)
-                dB[:, :, 6] = _mv(K, ez_r)
+                dB[:, :, 6] = matvec_rows(K, ez_r)
             J[:, :, i : i + term.n_params()] = np.matmul(G, pres * dB)
         elif k is EffectKind.FIELD_MAP and data.p_m is not None:
             # linear in the weights: dB/dw_j = Q g_j(x)
@@ -1097,8 +1097,8 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             assert h_rad is not None  # computed above: the model has the heading_drift term
             dB = rotate_about_up(Bt_unturned, h_rad + 0.5 * np.pi)
             dB[:, 2] = 0.0
-            P = heading_basis(t, _span(data))
-            J[:, :, i : i + P.shape[1]] = _mv(G, dB)[:, :, None] * P[:, None, :]
+            P = heading_basis(t, drift_span(data))
+            J[:, :, i : i + P.shape[1]] = matvec_rows(G, dB)[:, :, None] * P[:, None, :]
         elif k is EffectKind.AXIS_TILT:
             # T.T <- T.T exp(-[d]x): d(T.T B)/dd = T.T [B]x, d = basis @ (2 params)
             Pb = _tilt_basis(state)
@@ -1106,7 +1106,7 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
     return Evaluation(y, J, ydot0, G, sqrt_w)
 
 
-def _span(data: FitData) -> float:
+def drift_span(data: FitData) -> float:
     """Time span used to scale the drift basis (fixed per recording, not per subset)."""
     return float(data.track.t_s[-1]) if data.track.t_s[-1] > 0 else 1.0
 
@@ -1118,7 +1118,7 @@ def heading_drift_params(value: F64, data: FitData) -> dict[str, Any]:
     counter-clockwise seen from above (the reported heading ahead of the true one, ENU yaw):
     ``rate_deg_per_h = (h(end) - h(start)) / T``, ``peak_to_peak_deg = max h - min h``.
     """
-    span = _span(data)
+    span = drift_span(data)
     tt = np.linspace(0.0, span, 512)
     h = np.degrees(heading_basis(tt, span) @ value)
     return {"rate_deg_per_h": float((h[-1] - h[0]) / max(span / 3600.0, 1e-12)),
@@ -1154,7 +1154,7 @@ def source_params(term: Term, value: F64, data: FitData,
     source was there, and when (s from the first magnetometer sample).
     """
     windows = ([[float(a), float(b)] for a, b in term.windows_s] if term.windows_s
-               else [[0.0, _span(data)]])
+               else [[0.0, drift_span(data)]])
     out: dict[str, Any] = {
         "position_m": np.asarray(value[0:3], dtype=float).tolist(),
         "position_frame": data.position_frame or "enu",
@@ -1232,8 +1232,8 @@ def term_params(term: Term, value: F64, state: ModelState, data: FitData) -> dic
     if k is EffectKind.EDDY_CURRENT:
         return {"E_s": value.reshape(3, 3).tolist()}
     if k is EffectKind.FIELD_DRIFT:
-        tt = np.linspace(0.0, _span(data), 512)
-        f = drift_basis(tt, 0.0, _span(data)) @ value.reshape(-1, 3)
+        tt = np.linspace(0.0, drift_span(data), 512)
+        f = drift_basis(tt, 0.0, drift_span(data)) @ value.reshape(-1, 3)
         return {"peak_to_peak_nT": (f.max(axis=0) - f.min(axis=0)).tolist()}
     if k is EffectKind.DISTURBANCE:
         tt = np.concatenate([np.linspace(a, b, 200, endpoint=False) for a, b in term.windows_s])
@@ -1331,7 +1331,7 @@ def term_sigma(term: Term, cov: F64, state: ModelState, data: FitData) -> dict[s
     if k is EffectKind.HEADING_DRIFT:
         # rate: h(end) - h(start) = 2 v1 (P1 runs from -1 to 1, P2 is 1 at both ends);
         # range: first order, as for field_drift (each polynomial swings by at most 2)
-        T_h = max(_span(data), 1e-9) / 3600.0
+        T_h = max(drift_span(data), 1e-9) / 3600.0
         return {"rate_deg_per_h": float(np.degrees(2.0 * sd[0]) / T_h),
                 "peak_to_peak_deg": float(np.degrees(2.0 * np.sqrt(np.sum(sd**2))))}
     if k is EffectKind.LEVER_ARM:

@@ -16,7 +16,7 @@ below :data:`~stages.diagnose.model.CONFOUND_RATIO` are held at their reference 
 iron) and reported; the term is fitted along the orthogonal complement
 (:meth:`stages.diagnose.model.Term.restricted`, Jacobian ``J_full A``). The held combinations
 stay nuisance parameters of every later score test (``held`` of
-:func:`~stages.diagnose.statistics._score_from_J`), so no other term is named for what they
+:func:`~stages.diagnose.statistics.score_from_J`), so no other term is named for what they
 could explain, and the rotation's sigma includes what one of typical size would do to it
 (:func:`stages.diagnose.stage.with_undetermined_iron`).
 """

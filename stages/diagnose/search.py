@@ -47,20 +47,20 @@ from stages.diagnose.sources import (
     with_values,
 )
 from stages.diagnose.statistics import (
-    _ISO,
     INTERP_MARGIN,
+    ISO_DIRECTION,
     ScoreTest,
-    _bic,
-    _bic_between,
-    _covariance,
-    _n_eff,
-    _sigma_for,
     anisotropic_eddy_test,
+    bic,
+    bic_between,
+    effective_samples,
     gradient_candidate,
     heldout_rms,
     interp_reason,
+    param_covariance,
     robust_sigma,
     score_test,
+    sigma_for,
 )
 
 GLOBAL_KINDS = (
@@ -199,8 +199,8 @@ def _ramp_fit(cur: FitResult, i: int, term: Term, data: FitData, cfg: DiagnoseCo
               data)
     if not res.rss < cur.rss:
         return None
-    n_eff = _n_eff(res, data)
-    dbic = _bic(res.rss, n_eff, res.state.n_free()) - _bic(cur.rss, n_eff,
+    n_eff = effective_samples(res, data)
+    dbic = bic(res.rss, n_eff, res.state.n_free()) - bic(cur.rss, n_eff,
                                                               cur.state.n_free())
     if dbic > -cfg.bic_margin:
         return None
@@ -651,7 +651,7 @@ def diagnose_data(
                 # with each its own, a time offset lost to eddy currents by the texture of
                 # the residuals alone (issue 15); the window pair keeps its calibrated rule
                 if alt_fit is not None and simpler_kind in NESTED_SIMPLER.values():
-                    prefer = _bic_between(alt_fit[2], best[2], data) <= cfg.bic_margin
+                    prefer = bic_between(alt_fit[2], best[2], data) <= cfg.bic_margin
                     if not prefer and best[1].term.kind is EffectKind.EDDY_CURRENT:
                         prefer = _lag_first(best[2], data, cfg)
                 else:
@@ -756,9 +756,9 @@ def diagnose_data(
                 continue
             st_wo = _without(cur.state, i)
             res_wo = fit(st_wo, data)
-            n_eff = _n_eff(cur, data)
-            bic_cur = _bic(cur.rss, n_eff, cur.state.n_free())
-            keep = bic_cur - _bic(res_wo.rss, n_eff, res_wo.state.n_free())
+            n_eff = effective_samples(cur, data)
+            bic_cur = bic(cur.rss, n_eff, cur.state.n_free())
+            keep = bic_cur - bic(res_wo.rss, n_eff, res_wo.state.n_free())
             if keep > -cfg.bic_margin:
                 dropped.add((t_i.kind, t_i.windows_s))
                 findings.pop(i)
@@ -768,11 +768,11 @@ def diagnose_data(
             simpler_term = _simpler(t_i)
             if simpler_term is not None and simpler_term.kind not in {t.kind for t in st_wo.terms}:
                 res_s = fit(res_wo.state.with_term(simpler_term), data)
-                if _bic(res_s.rss, n_eff, res_s.state.n_free()) - bic_cur < cfg.bic_margin:
+                if bic(res_s.rss, n_eff, res_s.state.n_free()) - bic_cur < cfg.bic_margin:
                     # the simpler nested term explains the data as well: it replaces the other
                     cv_s = heldout_rms(res_s.state, data, cfg)
                     st_s = score_test(res_wo, simpler_term, data, robust_sigma(res_wo.residual_nT))
-                    dbic_s = _bic(res_s.rss, n_eff, res_s.state.n_free()) - _bic(
+                    dbic_s = bic(res_s.rss, n_eff, res_s.state.n_free()) - bic(
                         res_wo.rss, n_eff, res_wo.state.n_free())
                     cv_wo = heldout_rms(res_wo.state, data, cfg)
                     findings.pop(i)
@@ -799,13 +799,13 @@ def diagnose_data(
         cur, cv_cur = canon, heldout_rms(canon.state, data, cfg)
     findings, cur, cv_cur = split_isotropic_eddy(findings, cur, cv_cur, data, cfg)
     findings = _chain_evidence(findings, cur, base_fit, cv_base, cv_cur, data, cfg)
-    cov_final = _covariance(cur, data)
+    cov_final = param_covariance(cur, data)
     note = _gradient_note(cur, data, not_ident)
     findings = [
         dataclasses.replace(
             f,
             params=(p := term_params(cur.state.terms[i], cur.state.values[i], cur.state, data)),
-            sigma=_sigma_for(cur, i, cov_final, data),
+            sigma=sigma_for(cur, i, cov_final, data),
             explanation=explanation(cur.state.terms[i].kind, p, data.duration_s, note=note)
             + _transition_words(cur.state.terms[i]) + held_words(cur, i, data) + f.told_apart,
         )
@@ -911,8 +911,8 @@ def _chain_evidence(
         before, after = fits[k], fits[k + 1]
         term = after.state.terms[-1]
         st = score_test(before, term, data, robust_sigma(before.residual_nT))
-        n_eff = _n_eff(after, data)
-        dbic = _bic(after.rss, n_eff, after.state.n_free()) - _bic(
+        n_eff = effective_samples(after, data)
+        dbic = bic(after.rss, n_eff, after.state.n_free()) - bic(
             before.rss, n_eff, before.state.n_free())
         new = _finding(before, after, term, st, float(dbic), cvs[k], cvs[k + 1], data)
         out.append(dataclasses.replace(new, params=fd.params, sigma=fd.sigma,
@@ -946,8 +946,8 @@ def _replacement_fit(
     res = fit(wo.state.with_term(term), data)
     if not res.rss < cur.rss:
         return None
-    n_eff = _n_eff(res, data)
-    dbic = _bic(res.rss, n_eff, res.state.n_free()) - _bic(cur.rss, n_eff, cur.state.n_free())
+    n_eff = effective_samples(res, data)
+    dbic = bic(res.rss, n_eff, res.state.n_free()) - bic(cur.rss, n_eff, cur.state.n_free())
     if dbic > -cfg.bic_margin:
         return None
     st = score_test(wo, term, data, robust_sigma(wo.residual_nT))
@@ -996,11 +996,11 @@ def split_isotropic_eddy(
         return findings, cur, cv_cur
     ie = kinds.index(EffectKind.EDDY_CURRENT)
     o = cur.state.offsets()[ie]
-    cov = _covariance(cur, data)[o : o + 9, o : o + 9]
+    cov = param_covariance(cur, data)[o : o + 9, o : o + 9]
     E = cur.state.values[ie]
-    iso = float(_ISO @ E)
-    var = float(_ISO @ cov @ _ISO)
-    n_eff = _n_eff(cur, data)
+    iso = float(ISO_DIRECTION @ E)
+    var = float(ISO_DIRECTION @ cov @ ISO_DIRECTION)
+    n_eff = effective_samples(cur, data)
     if var <= 0 or iso * iso / var <= np.log(n_eff) + cfg.bic_margin:
         return findings, cur, cv_cur
     tau = -iso / np.sqrt(3.0)  # E_iso = (iso / sqrt 3) I = -tau I
@@ -1009,7 +1009,7 @@ def split_isotropic_eddy(
         + cur.state.terms[ie + 1:],
         values=cur.state.values[:ie] + (np.array([tau]),) + cur.state.values[ie + 1:]), data)
     placeholder = dataclasses.replace(findings[ie], effect=EffectKind.TIME_OFFSET.value)
-    if _bic_between(lag_only, cur, data) <= cfg.bic_margin:
+    if bic_between(lag_only, cur, data) <= cfg.bic_margin:
         # a lag explains what the eddy term does: the lag is named, no eddy term
         return (findings[:ie] + [placeholder] + findings[ie + 1:], lag_only,
                 heldout_rms(lag_only.state, data, cfg))
@@ -1019,7 +1019,7 @@ def split_isotropic_eddy(
         terms=cur.state.terms[:ie] + (Term(EffectKind.TIME_OFFSET),) + cur.state.terms[ie:],
         values=cur.state.values[:ie] + (np.array([tau]),)
         + (TRACELESS_PROJECTOR @ E,) + cur.state.values[ie + 1:]), data)
-    if _bic_between(split, cur, data) > -cfg.bic_margin:
+    if bic_between(split, cur, data) > -cfg.bic_margin:
         return findings, cur, cv_cur  # the eddy term alone explains the data as well
     cv_split = _heldout_ok(cur, split, data, cfg, cv_cur)
     if cv_split is None:
@@ -1041,7 +1041,7 @@ def _lag_first(eddy: FitResult, data: FitData, cfg: DiagnoseConfig) -> bool:
     if eddy.state.value(EffectKind.TIME_OFFSET) is not None:
         return False
     pair = fit(eddy.state.with_term(Term(EffectKind.TIME_OFFSET)), data)
-    return _bic_between(pair, eddy, data) < -cfg.bic_margin
+    return bic_between(pair, eddy, data) < -cfg.bic_margin
 
 
 def _without(state: ModelState, i: int) -> ModelState:
@@ -1117,7 +1117,7 @@ def _merged_pieces(cur: FitResult, data: FitData, cfg: DiagnoseConfig
                 wo, terms=wo.terms[:k] + (term,) + wo.terms[k + 1:],
                 values=wo.values[:k] + (start,) + wo.values[k + 1:])
             res = fit(merged, data)
-            if _bic_between(res, cur, data) <= cfg.bic_margin:
+            if bic_between(res, cur, data) <= cfg.bic_margin:
                 return max(i, j), res
     return None
 
@@ -1215,7 +1215,7 @@ def _told_apart(cur: FitResult, res: FitResult, data: FitData
                       (Term(EffectKind.DISTURBANCE, ((a, b),), knot_step_s=ks),
                        "a field changing in time, the same everywhere nearby")):
         other = fit(cur.state.with_term(alt), data)
-        d = _bic_between(other, res, data)
+        d = bic_between(other, res, data)
         worst = min(worst, d)
         if d < 0:
             better.append(alt)
@@ -1240,7 +1240,7 @@ def _map_explains(map_res: FitResult, res: FitResult, data: FitData,
                                                  for t in map_res.state.terms):
         return False
     both = fit(with_values(term, res.state.values[-1], map_res), data)
-    return _bic_between(both, map_res, data) > -cfg.bic_margin
+    return bic_between(both, map_res, data) > -cfg.bic_margin
 
 
 def _refit(
@@ -1256,8 +1256,8 @@ def _refit(
                                    data), data)
     if not res.rss < cur.rss:
         return None
-    n_eff = _n_eff(res, data)
-    dbic = _bic(res.rss, n_eff, res.state.n_free()) - _bic(cur.rss, n_eff, cur.state.n_free())
+    n_eff = effective_samples(res, data)
+    dbic = bic(res.rss, n_eff, res.state.n_free()) - bic(cur.rss, n_eff, cur.state.n_free())
     if dbic > -cfg.bic_margin:
         return None
     return res, float(dbic)
@@ -1272,7 +1272,7 @@ def _heldout_ok(
     same bar as the BIC: a term that only fits noise does not predict new blocks.
     """
     cv_new = heldout_rms(res.state, data, cfg)
-    n_eff = _n_eff(res, data)
+    n_eff = effective_samples(res, data)
     s2 = res.rss / res.residual_nT.size
     k = res.state.n_free() - cur.state.n_free()
     gain = (cv_old**2 - cv_new**2) * n_eff / s2

@@ -36,7 +36,7 @@ from stages.diagnose.model import (
     FitData,
     ModelState,
     Term,
-    _span,
+    drift_span,
     evaluate,
     held_directions,
     term_params,
@@ -44,7 +44,10 @@ from stages.diagnose.model import (
 )
 from stages.diagnose.result import DiagnoseConfig, Diagnosis, Finding
 from stages.diagnose.search import MAX_LAG_S, diagnose_data
-from stages.diagnose.statistics import _covariance, _n_eff
+from stages.diagnose.statistics import effective_samples, param_covariance
+from stages.estimate import carry_checks
+from stages.estimators.checks import SplitCheck, apply_split, info_halves
+from stages.restore import restore_samples
 
 
 def fit_data_from(
@@ -253,7 +256,7 @@ def sample_hold_finding(
     res_h = fit(res.state, train)
     r_new = test.y_nT - evaluate(res_h.state, test, jacobian=False).y_nT
     rss_new = float(np.sum(r_new * r_new))
-    n_eff = _n_eff(res, data)
+    n_eff = effective_samples(res, data)
     s2 = res.rss / res.residual_nT.size
     span = float(mag_t[-1] - mag_t[0]) * 1e-9
     p = sh.params()
@@ -315,10 +318,10 @@ def _model_values(term: Term, value: np.ndarray, data: FitData) -> dict[str, Any
                 "ramp_mode_step_s": term.knot_step_s}
     if term.kind is EffectKind.FIELD_DRIFT:
         return {"legendre_nT": np.asarray(value, dtype=float).reshape(-1, 3).tolist(),
-                "span_s": _span(data)}
+                "span_s": drift_span(data)}
     if term.kind is EffectKind.HEADING_DRIFT:
         return {"legendre_rad": np.asarray(value, dtype=float).reshape(-1).tolist(),
-                "span_s": _span(data)}
+                "span_s": drift_span(data)}
     if term.kind is EffectKind.LOCAL_SOURCE:
         # the bearing of the position frame the source was fitted in (not a CONVENTIONS
         # param: the model needs it to place the source in ENU)
@@ -412,7 +415,7 @@ def with_undetermined_iron(cal: Calibration, res: FitResult, data: FitData,
 def calibration_from(res: FitResult, data: FitData, findings: tuple[Finding, ...]) -> Calibration:
     """Return the final model as a Calibration; terms beyond D, o, tau go to ``effects``."""
     st = res.state
-    cov = _covariance(res, data)
+    cov = param_covariance(res, data)
     sd = np.sqrt(np.clip(np.diag(cov), 0, None))
     sig_rot = np.degrees(sd[0:3])
     D = st.D() if st.value(EffectKind.SOFT_IRON) is not None else None
@@ -460,8 +463,6 @@ def final_split(res: FitResult, data: FitData):
     small. A term that the motion barely determines, or physics the final model still leaves
     out, shows up as halves that disagree.
     """
-    from stages.estimators.checks import SplitCheck, info_halves
-
     if len(data) < 200:
         return None
     ev = evaluate(res.state, data)
@@ -473,7 +474,7 @@ def final_split(res: FitResult, data: FitData):
         if len(sub) < 50:
             return None
         r = fit(res.state, sub)
-        cov = _covariance(r, sub)
+        cov = param_covariance(r, sub)
         out.append((r.state.R_body_mag, np.clip(np.diag(cov)[0:3], 0.0, None)))
     (Ra, va), (Rb, vb) = out
 
@@ -547,11 +548,9 @@ class Diagnose:
         final = calibration_from(res, data, diag.findings)
         if extra:
             final = dataclasses.replace(final, effects={**(final.effects or {}), **extra})
-        from stages.estimators.checks import apply_split
 
         split = final_split(res, data)
         if cal is not None:
-            from stages.estimate import carry_checks
 
             # the findings explained the halves' disagreement when the final model's halves
             # agree, or agree better than the estimate's did: then the final split's own
@@ -578,7 +577,6 @@ class Diagnose:
         final = final.replace(checks={**final.checks, "fit_samples": fit_samples})
         restored = None
         if rec.attitude is not None and len(rec.attitude) >= 2:
-            from stages.restore import restore_samples
 
             restored = restore_samples(rec, final, max_gap_s=self.max_gap_s)
             rms = restored.residual_rms_nT

@@ -27,6 +27,7 @@ from stages.diagnose.model import (
     term_sigma,
 )
 from stages.diagnose.result import DiagnoseConfig
+from stages.estimators.base import RELATIVE_INFO_THRESHOLD, analyse
 
 #: Yaw grid of the search for a position frame rotated about Up (``field_gradient``), deg.
 YAW_GRID_DEG = np.arange(0.0, 360.0, 10.0)
@@ -118,7 +119,7 @@ def gradient_candidate(cur: FitResult, data: FitData, sigma: float) -> ScoreTest
     def at(deg: float) -> ScoreTest:
         a = np.radians(deg)
         J = np.concatenate([Jb, np.cos(a) * A + np.sin(a) * Bm + C], axis=1)
-        return _score_from_J(cur, Term(EffectKind.FIELD_GRADIENT, yaw_rad=float(a)), J, data,
+        return score_from_J(cur, Term(EffectKind.FIELD_GRADIENT, yaw_rad=float(a)), J, data,
                              sigma)
 
     tests = [at(d) for d in YAW_GRID_DEG]
@@ -146,7 +147,7 @@ def score_test(cur: FitResult, term: Term, data: FitData, sigma: float,
     held = None
     if ev.J_held is not None:
         held = (ev.J_held if w is None else ev.J_held * w).reshape(-1, ev.J_held.shape[-1])
-    return _score_from_J(cur, term, J.reshape(-1, J.shape[-1]), data, sigma,
+    return score_from_J(cur, term, J.reshape(-1, J.shape[-1]), data, sigma,
                          held=held if held is not None else np.zeros((J.shape[0] * 3, 0)))
 
 
@@ -171,7 +172,7 @@ def held_columns(state: ModelState, data: FitData) -> np.ndarray | None:
     return out
 
 
-def _score_from_J(
+def score_from_J(
     cur: FitResult, term: Term, J: np.ndarray, data: FitData, sigma: float,
     prior: np.ndarray | None = None, held: np.ndarray | None = None,
 ) -> ScoreTest:
@@ -303,8 +304,6 @@ def _rot_efficiency(J: np.ndarray) -> float:
 
 def _rot_efficiency_H(H: np.ndarray) -> float:
     """:func:`_rot_efficiency` from the information ``J.T J`` (rotation in its first 3 rows)."""
-    from stages.estimators.base import RELATIVE_INFO_THRESHOLD, analyse
-
     lam = analyse(H, {"rot": slice(0, 3)}).block_ratio["rot"]
     live = lam[lam >= RELATIVE_INFO_THRESHOLD]
     return float(np.min(live)) if live.size else 1.0
@@ -356,23 +355,25 @@ def heldout_rms(state: ModelState, data: FitData, cfg: DiagnoseConfig) -> float:
     return float(np.sqrt(sq / max(cnt, 1)))
 
 
-def _bic(rss: float, n_eff: float, k: int) -> float:
+def bic(rss: float, n_eff: float, k: int) -> float:
+    """Return the BIC of a fit: ``rss`` (nT^2) over ``n_eff`` samples, ``k`` parameters."""
     return n_eff * np.log(rss / n_eff) + k * np.log(n_eff)
 
 
-def _n_eff(res: FitResult, data: FitData) -> float:
+def effective_samples(res: FitResult, data: FitData) -> float:
+    """Return a fit's independent samples: its residual's size over the correlation inflation."""
     return res.residual_nT.size / inflation(res.residual_nT, data.t_s)
 
 
-def _bic_between(a: FitResult, b: FitResult, data: FitData) -> float:
+def bic_between(a: FitResult, b: FitResult, data: FitData) -> float:
     """BIC of fit ``a`` minus BIC of fit ``b``, both with one effective sample count.
 
     Each candidate's delta BIC is discounted by the correlation of its own residual; two
     candidates are compared with the smaller of their two counts (the conservative one), so
     the difference measures their fits and parameter counts, not their residuals' texture.
     """
-    n = min(_n_eff(a, data), _n_eff(b, data))
-    return _bic(a.rss, n, a.state.n_free()) - _bic(b.rss, n, b.state.n_free())
+    n = min(effective_samples(a, data), effective_samples(b, data))
+    return bic(a.rss, n, a.state.n_free()) - bic(b.rss, n, b.state.n_free())
 
 
 #: Orthonormal basis (8, 9) of the traceless 3x3 matrices, row-major: the part of ``E_s``
@@ -385,7 +386,7 @@ _TRACELESS = np.array(
 
 
 #: The isotropic direction of ``E_s`` (row-major), unit length.
-_ISO = np.eye(3).ravel() / np.sqrt(3.0)
+ISO_DIRECTION = np.eye(3).ravel() / np.sqrt(3.0)
 
 
 def anisotropic_eddy_test(cur: FitResult, data: FitData, sigma: float) -> ScoreTest:
@@ -403,10 +404,10 @@ def anisotropic_eddy_test(cur: FitResult, data: FitData, sigma: float) -> ScoreT
     J = J.reshape(-1, J.shape[-1])
     p0 = cur.state.n_params()
     Jt = np.concatenate([J[:, :p0], J[:, p0:] @ _TRACELESS.T], axis=1)
-    return dataclasses.replace(_score_from_J(cur, term, Jt, data, sigma), k=len(_TRACELESS))
+    return dataclasses.replace(score_from_J(cur, term, Jt, data, sigma), k=len(_TRACELESS))
 
 
-def _covariance(res: FitResult, data: FitData) -> np.ndarray:
+def param_covariance(res: FitResult, data: FitData) -> np.ndarray:
     """Parameter covariance: ``s^2 (J'J)^-1`` times the residual-correlation inflation."""
     P = res.info.shape[0]
     dof = max(res.residual_nT.size - P, 1)
@@ -421,12 +422,13 @@ def _covariance(res: FitResult, data: FitData) -> np.ndarray:
         # tr(E_s) = 0 (canonical_rate_terms): the shared direction belongs to tau
         o = res.state.offsets()[kinds.index(EffectKind.EDDY_CURRENT)]
         a = np.zeros(P)
-        a[o : o + 9] = _ISO
+        a[o : o + 9] = ISO_DIRECTION
         H = H + float(np.max(np.diag(H))) * np.outer(a, a)
     return s2 * np.linalg.pinv(H, rcond=1e-13)
 
 
-def _sigma_for(res: FitResult, i: int, cov: np.ndarray, data: FitData) -> dict[str, Any]:
+def sigma_for(res: FitResult, i: int, cov: np.ndarray, data: FitData) -> dict[str, Any]:
+    """Return the 1-sigma report of term ``i`` from the parameter covariance ``cov``."""
     term = res.state.terms[i]
     o = res.state.offsets()[i]
     blk = cov[o : o + term.n_params(), o : o + term.n_params()]
