@@ -95,7 +95,7 @@ NESTED_SIMPLER = {
 NOISE_MODEL_RTOL = 0.2
 
 
-#: Largest time offset the search is built for, s (issue 15: lags up to +-100 ms).
+#: Largest time offset the search is built for, s (lags up to +-100 ms).
 MAX_LAG_S = 0.1
 
 #: Shortest ``hard_iron_step``, s: an object brought near the sensor and left there for a
@@ -649,7 +649,7 @@ def diagnose_data(
                         alt_fit = None if fr is None else (fr[1], best[1], fr[0])
                 # the pairs of NESTED_SIMPLER are compared with one effective sample count:
                 # with each its own, a time offset lost to eddy currents by the texture of
-                # the residuals alone (issue 15); the window pair keeps its calibrated rule
+                # the residuals alone; the window pair keeps its calibrated rule
                 if alt_fit is not None and simpler_kind in NESTED_SIMPLER.values():
                     prefer = bic_between(alt_fit[2], best[2], data) <= cfg.bic_margin
                     if not prefer and best[1].term.kind is EffectKind.EDDY_CURRENT:
