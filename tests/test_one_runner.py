@@ -20,28 +20,13 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from test_outputs import rrd_columns
 from test_scale import make
+from test_stream_process import walk_json
 
 from pipeline.run.options import ProcessOptions
 from pipeline.run.runner import Steps, analyse_source, restore_into_sinks
 from pipeline.run.source import MemorySource, open_source
 
 LAB5 = semireal.REAL_DIR / "lab_05.mcap"
-
-
-def _walk(a, b, path=""):
-    """Every number of two JSON documents alike (rounding only), everything else equal."""
-    if isinstance(a, dict):
-        assert set(a) == set(b), path
-        for k in a:
-            _walk(a[k], b[k], f"{path}/{k}")
-    elif isinstance(a, list):
-        assert len(a) == len(b), path
-        for i, (x, y) in enumerate(zip(a, b, strict=True)):
-            _walk(x, y, f"{path}[{i}]")
-    elif isinstance(a, float) and isinstance(b, float):
-        assert b == pytest.approx(a, rel=1e-9, abs=1e-6), path  # nT, deg, s, %
-    else:
-        assert a == b, path
 
 
 def _channels(path: Path) -> dict[str, np.ndarray]:
@@ -94,8 +79,8 @@ def _compare(out: dict[str, dict[str, str]]) -> None:
     assert set(one) == set(many)
     for name in ("calibration.json", "diagnosis.json", "metrics.json"):
         if name in one:
-            _walk(json.loads(Path(one[name]).read_text()),
-                  json.loads(Path(many[name]).read_text()))
+            walk_json(json.loads(Path(one[name]).read_text()),
+                      json.loads(Path(many[name]).read_text()), rel=1e-9)
     a, b = _channels(Path(one["corrected_mcap"])), _channels(Path(many["corrected_mcap"]))
     assert set(a) == set(b) and len(a) == 4
     for topic in a:
@@ -116,8 +101,9 @@ def _compare(out: dict[str, dict[str, str]]) -> None:
                        _report_text(Path(many["report.html"])))
         map_one = Path(one["report.html"]).parent / "map.json"
         if map_one.exists():
-            _walk(json.loads(map_one.read_text()),
-                  json.loads((Path(many["report.html"]).parent / "map.json").read_text()))
+            walk_json(json.loads(map_one.read_text()),
+                      json.loads((Path(many["report.html"]).parent / "map.json").read_text()),
+                      rel=1e-9)
 
 
 def test_one_chunk_and_many_chunks_give_every_output_alike(tmp_path):

@@ -21,20 +21,19 @@ from stages.metrics import MetricsAccumulator, compute_metrics
 from stages.restore import ChunkedRestore, RestoreTotals, restore_samples
 
 
-def _walk(a, b, path=""):
-    """Every number of two JSON documents within 1e-6 (nT, or relative), everything else equal."""
+def walk_json(a, b, rel: float = 1e-6, path: str = "") -> None:
+    """Every number of two JSON documents within ``rel`` or 1e-6 absolute (nT, deg, s, %),
+    everything else equal."""
     if isinstance(a, dict):
         assert set(a) == set(b), path
         for k in a:
-            _walk(a[k], b[k], f"{path}/{k}")
+            walk_json(a[k], b[k], rel, f"{path}/{k}")
     elif isinstance(a, list):
         assert len(a) == len(b), path
         for i, (x, y) in enumerate(zip(a, b, strict=True)):
-            _walk(x, y, f"{path}[{i}]")
+            walk_json(x, y, rel, f"{path}[{i}]")
     elif isinstance(a, float) and isinstance(b, float):
-        # nT, or a ratio of nT: a range of ~1 nT over ~50,000 nT readings takes the
-        # interpolation's rounding (1e-9 nT) at 1e-9 of itself
-        assert b == pytest.approx(a, rel=1e-6, abs=1e-6), path
+        assert b == pytest.approx(a, rel=rel, abs=1e-6), path
     else:
         assert a == b, path
 
@@ -111,7 +110,7 @@ def test_metrics_accumulator_equals_compute_metrics(tmp_path):
     acc = MetricsAccumulator(segs, int(t[0]), spill_dir=tmp_path)
     for p in parts:
         acc.add(p)
-    _walk(compute_metrics(restore_samples(rec, cal), segs).to_dict(),
+    walk_json(compute_metrics(restore_samples(rec, cal), segs).to_dict(),
           acc.finish().to_dict())
 
 
@@ -158,9 +157,9 @@ def test_long_recording_gives_the_whole_recordings_outputs(tmp_path, monkeypatch
         assert two[k] == pytest.approx(mem[k], rel=1e-6), k
     d = {n: json.loads(Path(r["paths"]["metrics.json"]).read_text()) for n, r in rows.items()}
     if step == 1:
-        _walk(d["mem"], d["two"])
+        walk_json(d["mem"], d["two"])
     else:  # segments of every 4th sample differ: the whole recording's scope agrees
-        _walk(d["mem"]["scopes"][0], d["two"]["scopes"][0])
+        walk_json(d["mem"]["scopes"][0], d["two"]["scopes"][0])
         for k in ("n_samples", "n_used", "n_without_attitude"):
             assert d["mem"][k] == d["two"][k]
     for suffix in ("calibrated", "enu", "residual"):
