@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import semireal
 from _diag_sim import make_data
 from indep_gen import Spec, effect_params, write
 
@@ -125,3 +126,19 @@ def test_independent_anisotropic_eddy_under_vibration_is_no_lag(tmp_path: Path, 
     assert set(f) == {"eddy_current"}, list(f)
     # the eddy regressor is a rate over +-3 attitude samples: a few per cent low at 1.5 Hz
     assert _close(f["eddy_current"].params["E_s"], E, f["eddy_current"].sigma["E_s"])
+
+
+@pytest.mark.parametrize("tau_s", [0.025, -0.025])
+def test_independent_lag_on_a_sensor_that_barely_turns_is_no_eddy(tmp_path: Path, tau_s):
+    # The stability corpus' indep_tr: swings of 2-3 deg while the platform translates,
+    # attitude and magnetometer at 100 Hz with their noise, the lag injected by stamping
+    # the readings late. db/dt is then perpendicular to b, where a traceless eddy term along
+    # I/3 - b b.T reads as a third of a lag: the pair could trade along it. The lag stays one
+    # time offset, not a shorter lag and the eddy term that makes up the rest
+    rec, _ = semireal.stability_base("indep_tr")
+    inj, _, _ = semireal.inject(rec, "time_offset", tau_s)
+    semireal.write_real(inj, tmp_path / "lag.mcap")
+    ctx = diagnose_file(tmp_path / "lag.mcap")
+    f = {x.effect: x for x in ctx.diagnosis.findings}
+    assert set(f) == {"time_offset"}, list(f)
+    assert abs(f["time_offset"].params["time_offset_s"] - tau_s) <= 0.1 * abs(tau_s)

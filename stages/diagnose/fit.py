@@ -125,7 +125,7 @@ def _tau_index(state: ModelState) -> int | None:
     """Index of the time offset in the parameter vector, or None without one."""
     for t, o in zip(state.terms, state.offsets(), strict=True):
         if t.kind is EffectKind.TIME_OFFSET:
-            return o
+            return o if t.n_params() else None  # held: no column of its own
     return None
 
 

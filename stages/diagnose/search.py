@@ -693,6 +693,10 @@ def diagnose_data(
                                 fits.insert(k_fit, (fr[1], score_test(cur, look, data, sig),
                                                     fr[0]))
                     continue
+            if (st.term.kind is EffectKind.EDDY_CURRENT and EffectKind.TIME_OFFSET in present
+                    and not _eddy_beside_held_lag(cur, res, data, cfg)):
+                rejected.add((st.term.kind, st.term.windows_s))
+                continue
             if id(st) in replaces:
                 # a transition lasts less than a held-out block: it is held out at its own
                 # time scale, the current model on the same blocks (then the usual blocks
@@ -1042,6 +1046,33 @@ def _lag_first(eddy: FitResult, data: FitData, cfg: DiagnoseConfig) -> bool:
         return False
     pair = fit(eddy.state.with_term(Term(EffectKind.TIME_OFFSET)), data)
     return bic_between(pair, eddy, data) < -cfg.bic_margin
+
+
+def _eddy_beside_held_lag(cur: FitResult, res: FitResult, data: FitData,
+                          cfg: DiagnoseConfig) -> bool:
+    """Whether a traceless eddy term earns its margin with the time offset held where it was.
+
+    ``cur``: the model with a ``time_offset``; ``res``: the same with an ``eddy_current``
+    beside it, both refitted. To first order the two are orthogonal (the eddy term is
+    traceless beside a lag), except where the motion makes them alike: a sensor that barely
+    turns sees ``db/dt`` perpendicular to ``b`` only, where the traceless ``I/3 - b b.T`` acts
+    as a third of the identity, a lag. There the pair trades along that combination, and
+    the lag's second-order terms, the interpolation's error and the attitude's noise decide
+    the split, not eddy currents. Refitted with ``tau`` held at its value in ``cur``, an eddy
+    term that is there still gains the BIC margin at its 8 parameters; one that gained only
+    by moving the lag does not.
+    """
+    states = list(res.state.terms)
+    i = next(k for k, t in enumerate(states) if t.kind is EffectKind.TIME_OFFSET)
+    tau = cur.state.tau_s()
+    held_term = states[i].restricted(np.zeros((1, 0)), fixed=np.array([tau]))
+    vals = list(res.state.values)
+    vals[i] = np.array([tau])
+    states[i] = held_term
+    held = fit(dataclasses.replace(res.state, terms=tuple(states), values=tuple(vals)), data)
+    n = min(effective_samples(held, data), effective_samples(cur, data))
+    k = cur.state.n_free() + 8
+    return bic(held.rss, n, k) - bic(cur.rss, n, cur.state.n_free()) <= -cfg.bic_margin
 
 
 def _without(state: ModelState, i: int) -> ModelState:
