@@ -62,11 +62,7 @@ def _xfail(reason: str):
 CI_CASES = [
     pytest.param("indep_rot", "offset3000#1"),
     pytest.param("indep_tr", "step2000x5s"),
-    pytest.param("indep_tr", "lag+25ms", marks=_xfail(
-        "a lag on a base that barely turns (3 deg RMS): the time offset is named first now, "
-        "but lands at 21.5 +- 0.1 ms for 25 ms, and a traceless eddy_current takes up the "
-        "rest (BIC -338): with so little rotation the lag's signal is of the order of the "
-        "attitude noise's, which the likelihood's weights only partly cancel")),
+    pytest.param("indep_tr", "lag+25ms"),
     pytest.param("lab_03_rot", "lag+25ms", marks=REAL),
     pytest.param("lab_03_rot", "offset3000#0", marks=[*REAL, _xfail(
         "field_gradient moves 6 combined sigma with the same terms in the model: the base's "

@@ -185,6 +185,11 @@ class DiagnoseConfig:
     heldout_margin : float
         Required relative decrease of the held-out RMS.
     max_findings : int
+        Most rounds of the forward search that name a term. A bound on the work, not a
+        prior: the BIC and the held-out blocks decide what is named. Set above what the
+        real recordings need (at most 5 terms from the search), so that an event added to
+        a recording cannot push out its last term: pieces of a magnet named while the map
+        was still missing are merged and dropped once the map is in.
     n_refit : int
         How many of the strongest score-test candidates are refitted per round.
     max_samples : int
@@ -202,7 +207,7 @@ class DiagnoseConfig:
     block_s: float = 1.0
     bic_margin: float = 20.0
     heldout_margin: float = 0.002
-    max_findings: int = 6
+    max_findings: int = 10
     max_samples: int = 12000
     n_refit: int = 3
     scan_smooth_s: float = 0.5
