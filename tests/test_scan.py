@@ -18,7 +18,7 @@ from scipy.signal import lfilter
 from stages.diagnose.fit import fit
 from stages.diagnose.model import EffectKind, ModelState, Term
 from stages.diagnose.result import DiagnoseConfig
-from stages.diagnose.search import _merged_pieces, scan_windows
+from stages.diagnose.search import _merged_pieces, _step_for_disturbance, scan_windows
 
 RATE_HZ = 285.714  # the lab magnetometer's rate
 
@@ -81,3 +81,35 @@ def test_abutting_pieces_of_one_offset_are_one_step():
 def test_abutting_pieces_of_different_offsets_stay_two():
     _, data, cur = _two_pieces([800.0, -400.0, 300.0], [300.0, -100.0, 600.0])
     assert _merged_pieces(cur, data, DiagnoseConfig()) is None
+
+
+def _disturbance_fitted_to(truth_term, truth_value):
+    data, truth = make_data((truth_term,), (np.asarray(truth_value, float),), duration_s=50.0,
+                            noise_nT=20.0, seed=5)
+    dist = Term(EffectKind.DISTURBANCE, ((18.25, 28.75),), knot_step_s=1.75)
+    start = ModelState(truth.R_body_mag, truth.B_enu_nT, (dist,), (np.zeros(dist.n_params()),))
+    return data, fit(start, data)
+
+
+def test_a_disturbance_that_holds_a_sensor_frame_offset_becomes_a_step():
+    """A magnet's 7 s offset first named as an ENU disturbance over its padded window."""
+    data, cur = _disturbance_fitted_to(Term(EffectKind.HARD_IRON_STEP, ((20.0, 27.0),)),
+                                       [800.0, -1500.0, -1000.0])
+    got = _step_for_disturbance(cur, data, DiagnoseConfig())
+    assert got is not None
+    i, _, last = got
+    assert i == 0
+    (a, b), = last.state.terms[-1].windows_s
+    assert abs(a - 20.0) <= 0.05 and abs(b - 27.0) <= 0.05  # s, the 50 Hz spacing is 0.02 s
+    np.testing.assert_allclose(last.state.values[-1][:3], [800.0, -1500.0, -1000.0],
+                               atol=10.0)  # nT
+
+
+def test_a_disturbance_of_the_field_stays_a_disturbance():
+    """A smooth ENU bump while the sensor tumbles: no offset in its frame explains it."""
+    dist = Term(EffectKind.DISTURBANCE, ((20.0, 27.0),), knot_step_s=1.75)
+    k = dist.n_params() // 3
+    bump = np.sin(np.pi * np.arange(1, k + 1) / (k + 1))[:, None] * np.array([600.0, -300.0,
+                                                                                  740.0])
+    data, cur = _disturbance_fitted_to(dist, bump.ravel())
+    assert _step_for_disturbance(cur, data, DiagnoseConfig()) is None

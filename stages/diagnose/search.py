@@ -795,6 +795,19 @@ def diagnose_data(
             findings.pop(j_m)
             cur = res_m
             cv_cur = heldout_rms(cur.state, data, cfg)
+        # a disturbance named while other terms were missing may be a magnet's step: the
+        # nested pair is compared again with the model of the moment, the simpler kept
+        while (sw := _step_for_disturbance(cur, data, cfg)) is not None:
+            i_d, without, last = sw
+            dropped.add((EffectKind.DISTURBANCE, cur.state.terms[i_d].windows_s))
+            step = last.state.terms[-1]
+            findings[i_d] = _finding(
+                without, last, step, score_test(without, step, data,
+                                                robust_sigma(without.residual_nT)),
+                bic_between(last, without, data), heldout_rms(without.state, data, cfg),
+                heldout_rms(last.state, data, cfg), data)
+            cur = fit(_moved_last_to(last.state, i_d), data)
+            cv_cur = heldout_rms(cur.state, data, cfg)
     # the evidence of each finding was measured against the model of the moment it was added;
     # later rounds may have dropped or replaced terms before it. Re-measure it as a build-up in
     # the final order so that the numbers chain from the baseline to the final model.
@@ -1150,6 +1163,37 @@ def _merged_pieces(cur: FitResult, data: FitData, cfg: DiagnoseConfig
             res = fit(merged, data)
             if bic_between(res, cur, data) <= cfg.bic_margin:
                 return max(i, j), res
+    return None
+
+
+def _step_for_disturbance(cur: FitResult, data: FitData, cfg: DiagnoseConfig
+                          ) -> tuple[int, FitResult, FitResult] | None:
+    """Return the first ``disturbance`` of the model that a ``hard_iron_step`` explains as well.
+
+    A disturbance is free in ENU over its window; a step is one offset in the sensor's
+    frame, nested in it where the platform holds its attitude. When the disturbance was
+    named, other terms may still have been missing (a drift taking up part of the offset,
+    no gradient yet) and the step lost; the two are compared again with the model of the
+    moment. The step's edges are searched over the disturbance's padded window (it was
+    widened by a quarter of its length on each side) in the residual without it, and the
+    step is kept when it loses no more than ``bic_margin`` (the simpler of a nested pair).
+
+    Returns
+    -------
+    (index of the disturbance, the model without it, the same with the step last) or None
+
+    """
+    for i, t in enumerate(cur.state.terms):
+        if t.kind is not EffectKind.DISTURBANCE or len(t.windows_s) != 1:
+            continue
+        without = fit(_without(cur.state, i), data)
+        a, b = t.windows_s[0]
+        w = refine_step((a, b), without.residual_nT, data.t_s, reach_s=0.3 * (b - a) + 1.0)
+        if w[1] - w[0] < MIN_STEP_S:
+            continue
+        last = fit(without.state.with_term(Term(EffectKind.HARD_IRON_STEP, (w,))), data)
+        if bic_between(last, cur, data) <= cfg.bic_margin:
+            return i, without, last
     return None
 
 
