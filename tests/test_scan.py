@@ -97,7 +97,7 @@ def test_a_disturbance_that_holds_a_sensor_frame_offset_becomes_a_step():
                                        [800.0, -1500.0, -1000.0])
     got = _step_for_disturbance(cur, data, DiagnoseConfig())
     assert got is not None
-    i, _, last = got
+    i, last = got
     assert i == 0
     (a, b), = last.state.terms[-1].windows_s
     assert abs(a - 20.0) <= 0.05 and abs(b - 27.0) <= 0.05  # s, the 50 Hz spacing is 0.02 s

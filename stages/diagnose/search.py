@@ -798,14 +798,12 @@ def diagnose_data(
         # a disturbance named while other terms were missing may be a magnet's step: the
         # nested pair is compared again with the model of the moment, the simpler kept
         while (sw := _step_for_disturbance(cur, data, cfg)) is not None:
-            i_d, without, last = sw
+            i_d, last = sw
             dropped.add((EffectKind.DISTURBANCE, cur.state.terms[i_d].windows_s))
-            step = last.state.terms[-1]
-            findings[i_d] = _finding(
-                without, last, step, score_test(without, step, data,
-                                                robust_sigma(without.residual_nT)),
-                bic_between(last, without, data), heldout_rms(without.state, data, cfg),
-                heldout_rms(last.state, data, cfg), data)
+            # its evidence, window and signature are measured in the final order
+            # (_chain_evidence), as for every finding
+            findings[i_d] = dataclasses.replace(
+                findings[i_d], effect=EffectKind.HARD_IRON_STEP.value, told_apart="")
             cur = fit(_moved_last_to(last.state, i_d), data)
             cv_cur = heldout_rms(cur.state, data, cfg)
     # the evidence of each finding was measured against the model of the moment it was added;
@@ -1075,14 +1073,12 @@ def _eddy_beside_held_lag(cur: FitResult, res: FitResult, data: FitData,
     term that is there still gains the BIC margin at its 8 parameters; one that gained only
     by moving the lag does not.
     """
-    states = list(res.state.terms)
-    i = next(k for k, t in enumerate(states) if t.kind is EffectKind.TIME_OFFSET)
+    terms, vals = list(res.state.terms), list(res.state.values)
+    i = next(k for k, t in enumerate(terms) if t.kind is EffectKind.TIME_OFFSET)
     tau = cur.state.tau_s()
-    held_term = states[i].restricted(np.zeros((1, 0)), fixed=np.array([tau]))
-    vals = list(res.state.values)
+    terms[i] = terms[i].restricted(np.zeros((1, 0)), fixed=np.array([tau]))  # none fitted
     vals[i] = np.array([tau])
-    states[i] = held_term
-    held = fit(dataclasses.replace(res.state, terms=tuple(states), values=tuple(vals)), data)
+    held = fit(dataclasses.replace(res.state, terms=tuple(terms), values=tuple(vals)), data)
     n = min(effective_samples(held, data), effective_samples(cur, data))
     k = cur.state.n_free() + 8
     return bic(held.rss, n, k) - bic(cur.rss, n, cur.state.n_free()) <= -cfg.bic_margin
@@ -1167,7 +1163,7 @@ def _merged_pieces(cur: FitResult, data: FitData, cfg: DiagnoseConfig
 
 
 def _step_for_disturbance(cur: FitResult, data: FitData, cfg: DiagnoseConfig
-                          ) -> tuple[int, FitResult, FitResult] | None:
+                          ) -> tuple[int, FitResult] | None:
     """Return the first ``disturbance`` of the model that a ``hard_iron_step`` explains as well.
 
     A disturbance is free in ENU over its window; a step is one offset in the sensor's
@@ -1180,7 +1176,7 @@ def _step_for_disturbance(cur: FitResult, data: FitData, cfg: DiagnoseConfig
 
     Returns
     -------
-    (index of the disturbance, the model without it, the same with the step last) or None
+    (index of the disturbance, the model with the step in its place but last) or None
 
     """
     for i, t in enumerate(cur.state.terms):
@@ -1193,7 +1189,7 @@ def _step_for_disturbance(cur: FitResult, data: FitData, cfg: DiagnoseConfig
             continue
         last = fit(without.state.with_term(Term(EffectKind.HARD_IRON_STEP, (w,))), data)
         if bic_between(last, cur, data) <= cfg.bic_margin:
-            return i, without, last
+            return i, last
     return None
 
 
