@@ -116,6 +116,37 @@ def map_term(data: FitData, domain_m: F64, n: int, yaw_rad: float, prior_nT: flo
                 prior_nT=float(prior_nT), noise_nT=float(noise_nT))
 
 
+def _ladder(dom: F64, data: FitData) -> list[int]:
+    """Return the complexities a map on the box ``dom`` may have, ascending.
+
+    Each is within the basis cap and revisited at its length scale.
+    """
+    cap = min(MAX_BASIS, len(data) // MIN_SAMPLES_PER_BASIS)
+    ladder: list[int] = []
+    for n in COMPLEXITIES:
+        if int(np.prod(axis_counts(dom, n, positions_extent(data)))) > cap:
+            break
+        if revisited_fraction(data, length_scale_for(dom, n)) < MIN_REVISITED:
+            break
+        ladder.append(n)
+    return ladder
+
+
+def finer_map_term(term: Term, data: FitData) -> Term | None:
+    """Return the map one complexity finer than ``term`` (its box, prior, noise), or None.
+
+    The ladder is :func:`map_candidate`'s (the same cap and revisit rule), so the finer map is
+    one the candidate could have chosen.
+    """
+    dom = np.asarray(term.domain_m, dtype=float)
+    ladder = _ladder(dom, data)
+    now = [n for n in ladder if np.isclose(length_scale_for(dom, n), term.length_scale_m)]
+    if not now or now[0] == ladder[-1]:
+        return None
+    n = ladder[ladder.index(now[0]) + 1]
+    return map_term(data, dom, n, term.yaw_rad, term.prior_nT, term.noise_nT)
+
+
 @dataclass(frozen=True)
 class MapCandidate:
     """A ``field_map`` candidate: its score test and how its complexity was chosen.
@@ -153,14 +184,7 @@ def map_candidate(cur: FitResult, data: FitData, sigma: float,
     dom = domain_for(np.asarray(data.p_m))
     r = cur.residual_nT
     prior_nT = PRIOR_FACTOR * float(np.sqrt(np.mean(r * r)))
-    cap = min(MAX_BASIS, len(data) // MIN_SAMPLES_PER_BASIS)
-    ladder: list[int] = []
-    for n in COMPLEXITIES:
-        if int(np.prod(axis_counts(dom, n, positions_extent(data)))) > cap:
-            break
-        if revisited_fraction(data, length_scale_for(dom, n)) < MIN_REVISITED:
-            break
-        ladder.append(n)
+    ladder = _ladder(dom, data)
     if not ladder:
         return (
             "the path visits its places once at the scale of a field map (fewer than "

@@ -17,7 +17,7 @@ from pipeline.core import progress
 from pipeline.core.errors import EstimationError
 from pipeline.core.geometry import quat_to_matrix
 from stages.diagnose.catalogue import EFFECTS, explanation, identifiability_reason, motion_stats
-from stages.diagnose.field_map import MapCandidate, map_candidate
+from stages.diagnose.field_map import MapCandidate, finer_map_term, map_candidate
 from stages.diagnose.fit import FitResult, fit, wahba_init
 from stages.diagnose.model import (
     CONFOUND_RATIO,
@@ -697,6 +697,25 @@ def diagnose_data(
                     and not _eddy_beside_held_lag(cur, res, data, cfg)):
                 rejected.add((st.term.kind, st.term.windows_s))
                 continue
+            if (st.term.kind in LOCAL_KINDS and EffectKind.FIELD_MAP in present
+                    and id(st) not in replaces):
+                finer = _finer_map_explains(cur, res, data, cfg, cv_cur)
+                if finer is not None:
+                    # the transient was the field where the sensor was at the time: the
+                    # finer map, which the held-out blocks cannot tell from the chosen one,
+                    # takes its place and the transient is not tried again
+                    dropped.add((st.term.kind, st.term.windows_s))
+                    i_map = [t.kind for t in cur.state.terms].index(EffectKind.FIELD_MAP)
+                    w0, w1 = st.term.windows_s[0]
+                    n_fn = int(np.prod(finer[0].state.terms[i_map].n_axis))
+                    findings[i_map] = dataclasses.replace(findings[i_map], told_apart=(
+                        findings[i_map].told_apart + f"; refined to {n_fn} functions when it "
+                        f"explained a {st.term.kind.value} at {w0:.1f}-{w1:.1f} s as well (the "
+                        "field where the sensor was then), no worse on the held-out blocks"))
+                    cur, cv_cur = finer
+                    accepted = True
+                    rejected.clear()
+                    break
             if id(st) in replaces:
                 # a transition lasts less than a held-out block: it is held out at its own
                 # time scale, the current model on the same blocks (then the usual blocks
@@ -1312,6 +1331,39 @@ def _map_explains(map_res: FitResult, res: FitResult, data: FitData,
         return False
     both = fit(with_values(term, res.state.values[-1], map_res), data)
     return bic_between(both, map_res, data) > -cfg.bic_margin
+
+
+def _finer_map_explains(cur: FitResult, res: FitResult, data: FitData, cfg: DiagnoseConfig,
+                        cv_cur: float) -> tuple[FitResult, float] | None:
+    """Return the fit with the map one complexity finer and its held-out RMS, or None.
+
+    None unless that map explains the transient ``res`` adds.
+
+    The map's complexity is the one the held-out blocks liked best when it came in, often by
+    a hair over the next. A residual bump in time where the sensor passed a place the chosen
+    map resolves too coarsely then earns a step's or a disturbance's margin, and which
+    complexity won decides whether it is named (an injected offset that tips the choice made
+    a step appear). The transient is the field when the finer map (:func:`~stages.diagnose.
+    field_map.finer_map_term`) predicts the held-out blocks no worse than the current model
+    (within ``heldout_margin``) and the transient, added to it at its fitted values, no
+    longer lowers the BIC by the margin. A magnet's step where the sensor came back without
+    it keeps its margin beside any map.
+    """
+    i_map = [t.kind for t in cur.state.terms].index(EffectKind.FIELD_MAP)
+    finer = finer_map_term(cur.state.terms[i_map], data)
+    if finer is None:
+        return None
+    st = cur.state
+    rich = fit(dataclasses.replace(
+        st, terms=st.terms[:i_map] + (finer,) + st.terms[i_map + 1:],
+        values=st.values[:i_map] + (finer.null_value(),) + st.values[i_map + 1:]), data)
+    cv_rich = heldout_rms(rich.state, data, cfg)
+    if cv_rich > cv_cur * (1.0 + cfg.heldout_margin):
+        return None
+    both = fit(with_values(res.state.terms[-1], res.state.values[-1], rich), data)
+    if bic_between(both, rich, data) <= -cfg.bic_margin:
+        return None
+    return rich, cv_rich
 
 
 def _refit(
