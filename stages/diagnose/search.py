@@ -1333,6 +1333,27 @@ def _map_explains(map_res: FitResult, res: FitResult, data: FitData,
     return bic_between(both, map_res, data) > -cfg.bic_margin
 
 
+def _finer_map(cur: FitResult, data: FitData, cfg: DiagnoseConfig
+               ) -> tuple[FitResult, float] | None:
+    """Return the fit with the map one complexity finer and its held-out RMS.
+
+    None without a map or at the top of its ladder (:func:`~stages.diagnose.field_map.
+    finer_map_term`). The finer map takes the map's place among the terms.
+    """
+    kinds = [t.kind for t in cur.state.terms]
+    if EffectKind.FIELD_MAP not in kinds:
+        return None
+    i_map = kinds.index(EffectKind.FIELD_MAP)
+    finer = finer_map_term(cur.state.terms[i_map], data)
+    if finer is None:
+        return None
+    st = cur.state
+    rich = fit(dataclasses.replace(
+        st, terms=st.terms[:i_map] + (finer,) + st.terms[i_map + 1:],
+        values=st.values[:i_map] + (finer.null_value(),) + st.values[i_map + 1:]), data)
+    return rich, heldout_rms(rich.state, data, cfg)
+
+
 def _finer_map_explains(cur: FitResult, res: FitResult, data: FitData, cfg: DiagnoseConfig,
                         cv_cur: float) -> tuple[FitResult, float] | None:
     """Return the fit with the map one complexity finer and its held-out RMS, or None.
@@ -1349,15 +1370,10 @@ def _finer_map_explains(cur: FitResult, res: FitResult, data: FitData, cfg: Diag
     longer lowers the BIC by the margin. A magnet's step where the sensor came back without
     it keeps its margin beside any map.
     """
-    i_map = [t.kind for t in cur.state.terms].index(EffectKind.FIELD_MAP)
-    finer = finer_map_term(cur.state.terms[i_map], data)
-    if finer is None:
+    fm = _finer_map(cur, data, cfg)
+    if fm is None:
         return None
-    st = cur.state
-    rich = fit(dataclasses.replace(
-        st, terms=st.terms[:i_map] + (finer,) + st.terms[i_map + 1:],
-        values=st.values[:i_map] + (finer.null_value(),) + st.values[i_map + 1:]), data)
-    cv_rich = heldout_rms(rich.state, data, cfg)
+    rich, cv_rich = fm
     if cv_rich > cv_cur * (1.0 + cfg.heldout_margin):
         return None
     both = fit(with_values(res.state.terms[-1], res.state.values[-1], rich), data)
