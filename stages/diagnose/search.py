@@ -781,7 +781,7 @@ def diagnose_data(
             res_wo = fit(st_wo, data)
             n_eff = effective_samples(cur, data)
             bic_cur = bic(cur.rss, n_eff, cur.state.n_free())
-            keep = bic_between(cur, res_wo, data)
+            keep = bic_cur - bic(res_wo.rss, n_eff, res_wo.state.n_free())
             if keep > -cfg.bic_margin:
                 dropped.add((t_i.kind, t_i.windows_s))
                 findings.pop(i)
