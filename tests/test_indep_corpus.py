@@ -6,9 +6,11 @@ Small versions only: the full corpus (>= 60 nulls, every effect at three sizes) 
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
-from indep_gen import ATTITUDE_TYPES, Spec, null_specs, sized, strength, write
+from indep_gen import ATTITUDE_TYPES, Spec, effect_specs, null_specs, sized, strength, write
 from scipy.spatial.transform import Rotation
 
 from pipeline.app.commands.diagnose import diagnose_file
@@ -167,3 +169,28 @@ def test_every_effect_is_named_and_measured_on_independent_recordings(tmp_path, 
         assert np.all(ok), (key, est, tru, sig)
         checked += 1
     assert checked >= 1, (case, exp, f.params)
+
+
+def test_a_drift_beside_a_magnet_is_named_when_it_is_there(tmp_path):
+    """A real drift and a step in the middle of one recording: both named, both measured.
+
+    A drift beside a transient must earn its margin with the transient held where it was
+    without the drift (search._drift_beside_held_transients): on a lab excerpt the pair had
+    traded a 3000 nT magnet's offset for a drift the recording does not have. A drift that
+    is there keeps its margin under that check.
+    """
+    drift, _, exp_drift, _ = effect_specs(31, targets=(15.0,), cases=("field_drift",))[0]
+    step, _, exp_step, _ = effect_specs(33, targets=(15.0,), cases=("hard_iron_step",))[0]
+    spec = dataclasses.replace(drift, effects={**drift.effects, **step.effects})
+    diag = diagnose_file(write(spec, tmp_path / "both.mcap")).diagnosis
+    fs = {f.effect: f for f in diag.findings}
+    assert set(fs) == {"field_drift", "hard_iron_step"}, sorted(fs)
+    (ta, tb), = exp_step["windows_s"]
+    (fa, fb), = fs["hard_iron_step"].params["windows_s"]
+    assert abs(fa - ta) < 0.5 and abs(fb - tb) < 0.5  # s
+    f_step = fs["hard_iron_step"]
+    true, est = np.asarray(exp_step["offset_nT"]), np.asarray(f_step.params["offset_nT"])
+    sig = np.asarray(f_step.sigma["offset_nT"])
+    assert np.all(np.abs(est - true) <= 0.1 * np.abs(true).max() + 3 * sig)  # nT
+    ptp = np.asarray(fs["field_drift"].params["peak_to_peak_nT"])
+    assert np.allclose(ptp, exp_drift["peak_to_peak_nT"], rtol=0.1, atol=5.0)  # nT
