@@ -707,9 +707,10 @@ def diagnose_data(
                     dropped.add((st.term.kind, st.term.windows_s))
                     i_map = [t.kind for t in cur.state.terms].index(EffectKind.FIELD_MAP)
                     w0, w1 = st.term.windows_s[0]
-                    n_fn = int(np.prod(finer[0].state.terms[i_map].n_axis))
+                    n_axis = finer[0].state.terms[i_map].n_axis
                     findings[i_map] = dataclasses.replace(findings[i_map], told_apart=(
-                        findings[i_map].told_apart + f"; refined to {n_fn} functions when it "
+                        findings[i_map].told_apart + f"; refined to {max(n_axis)} modes along "
+                        f"the longest axis ({int(np.prod(n_axis))} functions) when it "
                         f"explained a {st.term.kind.value} at {w0:.1f}-{w1:.1f} s as well (the "
                         "field where the sensor was then), no worse on the held-out blocks"))
                     cur, cv_cur = finer
