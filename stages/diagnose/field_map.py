@@ -139,11 +139,9 @@ def finer_map_term(term: Term, data: FitData) -> Term | None:
     one the candidate could have chosen.
     """
     dom = np.asarray(term.domain_m, dtype=float)
-    ladder = _ladder(dom, data)
-    now = [n for n in ladder if np.isclose(length_scale_for(dom, n), term.length_scale_m)]
-    if not now or now[0] == ladder[-1]:
+    n = max(term.n_axis) + 1  # the complexity is the modes along the box's longest axis
+    if n not in _ladder(dom, data):
         return None
-    n = ladder[ladder.index(now[0]) + 1]
     return map_term(data, dom, n, term.yaw_rad, term.prior_nT, term.noise_nT)
 
 

@@ -671,6 +671,7 @@ def diagnose_data(
                 (later if _map_explains(map_fits[0][2], f[2], data, cfg) else first).append(f)
             fits = first + map_fits + later
         accepted = False
+        rich_round: list[FitResult | None] = []  # the model with a finer map, once asked
         k_fit = 0
         while k_fit < len(fits):
             dbic, st, res = fits[k_fit]
@@ -699,21 +700,24 @@ def diagnose_data(
                 continue
             if (st.term.kind in LOCAL_KINDS and EffectKind.FIELD_MAP in present
                     and id(st) not in replaces):
-                finer = _finer_map_explains(cur, res, data, cfg, cv_cur)
-                if finer is not None:
+                if not rich_round:  # fitted once a round, for whichever transient asks
+                    rich_round.append(_with_finer_map(cur, data))
+                rich = rich_round[0]
+                cv_rich = _finer_map_explains(rich, res, data, cfg, cv_cur)
+                if rich is not None and cv_rich is not None:
                     # the transient was the field where the sensor was at the time: the
                     # finer map, which the held-out blocks cannot tell from the chosen one,
                     # takes its place and the transient is not tried again
                     dropped.add((st.term.kind, st.term.windows_s))
                     i_map = [t.kind for t in cur.state.terms].index(EffectKind.FIELD_MAP)
                     w0, w1 = st.term.windows_s[0]
-                    n_axis = finer[0].state.terms[i_map].n_axis
+                    n_axis = rich.state.terms[i_map].n_axis
                     findings[i_map] = dataclasses.replace(findings[i_map], told_apart=(
                         findings[i_map].told_apart + f"; refined to {max(n_axis)} modes along "
                         f"the longest axis ({int(np.prod(n_axis))} functions) when it "
                         f"explained a {st.term.kind.value} at {w0:.1f}-{w1:.1f} s as well (the "
                         "field where the sensor was then), no worse on the held-out blocks"))
-                    cur, cv_cur = finer
+                    cur, cv_cur = rich, cv_rich
                     accepted = True
                     rejected.clear()
                     break
@@ -788,11 +792,11 @@ def diagnose_data(
             n_eff = effective_samples(cur, data)
             bic_cur = bic(cur.rss, n_eff, cur.state.n_free())
             keep = bic_cur - bic(res_wo.rss, n_eff, res_wo.state.n_free())
-            if keep <= -cfg.bic_margin and t_i.kind in DRIFT_KINDS and any(
-                    t.kind in LOCAL_KINDS for t in cur.state.terms) and \
-                    not _drift_beside_held_transients(cur, res_wo, data, cfg):
-                keep = 0.0  # it earned its margin only by trading with a transient
-            if keep > -cfg.bic_margin:
+            # a drift that earned its margin only by trading with a transient goes as well
+            if keep > -cfg.bic_margin or (
+                    t_i.kind in DRIFT_KINDS
+                    and any(t.kind in LOCAL_KINDS for t in cur.state.terms)
+                    and not _drift_beside_held_transients(cur, res_wo, data, cfg)):
                 dropped.add((t_i.kind, t_i.windows_s))
                 findings.pop(i)
                 cur = res_wo
@@ -1088,6 +1092,30 @@ def _lag_first(eddy: FitResult, data: FitData, cfg: DiagnoseConfig) -> bool:
     return bic_between(pair, eddy, data) < -cfg.bic_margin
 
 
+def _gains_with_held(with_new: FitResult, without: FitResult, i_new: int,
+                     held: frozenset[EffectKind], data: FitData, cfg: DiagnoseConfig) -> bool:
+    """Whether term ``i_new`` of ``with_new`` earns its margin with the ``held`` kinds fixed.
+
+    ``without``: the same model without that term (the others in the same order), refitted.
+    The terms of the kinds ``held`` are fixed at their values in ``without`` (a partial term
+    with no combination fitted) and the rest refitted; the new term is named only if that fit
+    still lowers the BIC by the margin at the new term's own parameters (the count of
+    ``with_new``), both with the smaller effective sample count. A term that gained only by
+    moving a look-alike along what the two share does not.
+    """
+    terms, vals = list(with_new.state.terms), list(with_new.state.values)
+    for k, t in enumerate(terms):
+        if k != i_new and t.kind in held:
+            v = np.asarray(without.state.values[k - (k > i_new)], dtype=float)
+            terms[k] = t.restricted(np.zeros((v.size, 0)), fixed=v)  # none fitted
+            vals[k] = v
+    fixed = fit(dataclasses.replace(with_new.state, terms=tuple(terms), values=tuple(vals)),
+                data)
+    n = min(effective_samples(fixed, data), effective_samples(without, data))
+    return bic(fixed.rss, n, with_new.state.n_free()) - bic(
+        without.rss, n, without.state.n_free()) <= -cfg.bic_margin
+
+
 def _eddy_beside_held_lag(cur: FitResult, res: FitResult, data: FitData,
                           cfg: DiagnoseConfig) -> bool:
     """Whether a traceless eddy term earns its margin with the time offset held where it was.
@@ -1102,15 +1130,8 @@ def _eddy_beside_held_lag(cur: FitResult, res: FitResult, data: FitData,
     term that is there still gains the BIC margin at its 8 parameters; one that gained only
     by moving the lag does not.
     """
-    terms, vals = list(res.state.terms), list(res.state.values)
-    i = next(k for k, t in enumerate(terms) if t.kind is EffectKind.TIME_OFFSET)
-    tau = cur.state.tau_s()
-    terms[i] = terms[i].restricted(np.zeros((1, 0)), fixed=np.array([tau]))  # none fitted
-    vals[i] = np.array([tau])
-    held = fit(dataclasses.replace(res.state, terms=tuple(terms), values=tuple(vals)), data)
-    n = min(effective_samples(held, data), effective_samples(cur, data))
-    k = cur.state.n_free() + 8
-    return bic(held.rss, n, k) - bic(cur.rss, n, cur.state.n_free()) <= -cfg.bic_margin
+    return _gains_with_held(res, cur, len(res.state.terms) - 1,
+                            frozenset({EffectKind.TIME_OFFSET}), data, cfg)
 
 
 #: Slow terms: functions of time over the whole recording, which span part of a transient's
@@ -1128,22 +1149,12 @@ def _drift_beside_held_transients(with_drift: FitResult, without: FitResult, dat
     texture with the transient's amplitude as a free hand: on a lab excerpt a 3000 nT x 7 s
     magnet came out 500 nT off beside a drift that the same recording without the magnet
     does not earn. What a term local in time explains is its own (as with the map, which
-    comes last); refitted with every transient held at its value in ``without``, a drift that
-    is there still gains the BIC margin at its own parameters, one that gained only by moving
-    the transient does not. The counts as :func:`_eddy_beside_held_lag`.
+    comes last); with every transient held at its value in ``without`` (:func:`_gains_with_held`),
+    a drift that is there still gains the BIC margin, one that gained only by moving the
+    transient does not.
     """
     i_d = next(k for k, t in enumerate(with_drift.state.terms) if t.kind in DRIFT_KINDS)
-    terms, vals = list(with_drift.state.terms), list(with_drift.state.values)
-    for k, t in enumerate(terms):
-        if t.kind in LOCAL_KINDS:
-            v = np.asarray(without.state.values[k - (k > i_d)], dtype=float)
-            terms[k] = t.restricted(np.zeros((v.size, 0)), fixed=v)  # none fitted
-            vals[k] = v
-    held = fit(dataclasses.replace(with_drift.state, terms=tuple(terms), values=tuple(vals)),
-               data)
-    n = min(effective_samples(held, data), effective_samples(without, data))
-    k = without.state.n_free() + with_drift.state.terms[i_d].n_params()
-    return bic(held.rss, n, k) - bic(without.rss, n, without.state.n_free()) <= -cfg.bic_margin
+    return _gains_with_held(with_drift, without, i_d, LOCAL_KINDS, data, cfg)
 
 
 def _without(state: ModelState, i: int) -> ModelState:
@@ -1376,53 +1387,43 @@ def _map_explains(map_res: FitResult, res: FitResult, data: FitData,
     return bic_between(both, map_res, data) > -cfg.bic_margin
 
 
-def _finer_map(cur: FitResult, data: FitData, cfg: DiagnoseConfig
-               ) -> tuple[FitResult, float] | None:
-    """Return the fit with the map one complexity finer and its held-out RMS.
+def _with_finer_map(cur: FitResult, data: FitData) -> FitResult | None:
+    """Return ``cur`` refitted with its map one complexity finer in the map's place, or None.
 
-    None without a map or at the top of its ladder (:func:`~stages.diagnose.field_map.
-    finer_map_term`). The finer map takes the map's place among the terms.
+    None at the top of the map's ladder (:func:`~stages.diagnose.field_map.finer_map_term`).
     """
-    kinds = [t.kind for t in cur.state.terms]
-    if EffectKind.FIELD_MAP not in kinds:
-        return None
-    i_map = kinds.index(EffectKind.FIELD_MAP)
-    finer = finer_map_term(cur.state.terms[i_map], data)
+    st = cur.state
+    i_map = [t.kind for t in st.terms].index(EffectKind.FIELD_MAP)
+    finer = finer_map_term(st.terms[i_map], data)
     if finer is None:
         return None
-    st = cur.state
-    rich = fit(dataclasses.replace(
+    return fit(dataclasses.replace(
         st, terms=st.terms[:i_map] + (finer,) + st.terms[i_map + 1:],
         values=st.values[:i_map] + (finer.null_value(),) + st.values[i_map + 1:]), data)
-    return rich, heldout_rms(rich.state, data, cfg)
 
 
-def _finer_map_explains(cur: FitResult, res: FitResult, data: FitData, cfg: DiagnoseConfig,
-                        cv_cur: float) -> tuple[FitResult, float] | None:
-    """Return the fit with the map one complexity finer and its held-out RMS, or None.
+def _finer_map_explains(rich: FitResult | None, res: FitResult, data: FitData,
+                        cfg: DiagnoseConfig, cv_cur: float) -> float | None:
+    """Return the held-out RMS of ``rich`` if its finer map explains the transient, else None.
 
-    None unless that map explains the transient ``res`` adds.
-
-    The map's complexity is the one the held-out blocks liked best when it came in, often by
-    a hair over the next. A residual bump in time where the sensor passed a place the chosen
-    map resolves too coarsely then earns a step's or a disturbance's margin, and which
-    complexity won decides whether it is named (an injected offset that tips the choice made
-    a step appear). The transient is the field when the finer map (:func:`~stages.diagnose.
-    field_map.finer_map_term`) predicts the held-out blocks no worse than the current model
-    (within ``heldout_margin``) and the transient, added to it at its fitted values, no
-    longer lowers the BIC by the margin. A magnet's step where the sensor came back without
-    it keeps its margin beside any map.
+    ``rich``: the current model with its map one complexity finer (:func:`_with_finer_map`);
+    ``res``: the current model with the transient added. The map's complexity is the one the
+    held-out blocks liked best when it came in, often by a hair over the next. A residual
+    bump in time where the sensor passed a place the chosen map resolves too coarsely then
+    earns a step's or a disturbance's margin, and which complexity won decides whether it is
+    named (an injected offset that tips the choice made a step appear). The transient is the
+    field when, added to the finer map at its fitted values, it no longer lowers the BIC by
+    the margin, and that map predicts the held-out blocks no worse than the current model
+    (within ``heldout_margin``). A magnet's step where the sensor came back without it keeps
+    its margin beside any map.
     """
-    fm = _finer_map(cur, data, cfg)
-    if fm is None:
-        return None
-    rich, cv_rich = fm
-    if cv_rich > cv_cur * (1.0 + cfg.heldout_margin):
+    if rich is None:
         return None
     both = fit(with_values(res.state.terms[-1], res.state.values[-1], rich), data)
     if bic_between(both, rich, data) <= -cfg.bic_margin:
-        return None
-    return rich, cv_rich
+        return None  # the transient keeps its margin: no need for the held-out refits
+    cv_rich = heldout_rms(rich.state, data, cfg)
+    return cv_rich if cv_rich <= cv_cur * (1.0 + cfg.heldout_margin) else None
 
 
 def _refit(
