@@ -15,12 +15,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _diag_sim import make_data
 from indep_gen import Spec, magnet_carried_nT, write
 
 from pipeline.app.commands.diagnose import diagnose_file
 from pipeline.model.forward import ForwardModel
+from stages.diagnose.fit import fit
 from stages.diagnose.model import EffectKind as K
-from stages.diagnose.model import Term
+from stages.diagnose.model import ModelState, Term
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 
@@ -129,3 +131,24 @@ def test_real_lab_02_magnet_is_one_event_with_its_transitions(tmp_path):
     assert diag.final["heldout_rms_nT"] < 1000.0, diag.final
     cal = ctx.calibration
     assert dataclasses.asdict(cal)["effects"]["hard_iron_step"]["ramps_s"]
+
+
+def test_a_step_with_transitions_can_be_held_while_a_drift_is_fitted():
+    """A held step (no combination fitted) has no ridge: the fit runs and keeps it in place.
+
+    A real recording with a magnet fixed near the sensor reached this through the test of a
+    drift beside the transients held at their values: the step's transition prior (33
+    entries) was written into the held term's empty block.
+    """
+    v = np.zeros(STEP.n_params())
+    v[:3] = [1500.0, -800.0, 400.0]
+    data, truth = make_data((STEP,), (v,), duration_s=10.0, rate_hz=100.0, noise_nT=10.0)
+    held = STEP.restricted(np.zeros((v.size, 0)), fixed=v)
+    assert held.n_params() == 0
+    state = ModelState(truth.R_body_mag, truth.B_enu_nT, (held, Term(K.FIELD_DRIFT)),
+                       (v, Term(K.FIELD_DRIFT).null_value()))
+    prec = state.prior_precision()
+    assert prec is not None and prec.shape == (state.n_params(),)
+    res = fit(state, data)
+    np.testing.assert_allclose(res.state.values[0], v, atol=1e-9)  # held where it was
+    assert res.rms_nT < 1.5 * 10.0

@@ -644,7 +644,13 @@ class ModelState:
         out = np.zeros(self.n_params())
         for t, i in zip(self.terms, self.offsets(), strict=True):
             if has_prior(t):
-                out[i : i + t.n_params()] = t.prior_precision()
+                prec = t.unrestricted().prior_precision()
+                if t.partial:
+                    # the ridge acts on the fitted coordinates z of ``fixed + A z``: the
+                    # diagonal of A.T diag(prec) A (none for a term held whole, m = 0)
+                    A = t.determined_matrix()
+                    prec = np.einsum("km,k,km->m", A, prec, A)
+                out[i : i + t.n_params()] = prec
         return out
 
     def flat_values(self) -> F64:
