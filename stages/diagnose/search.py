@@ -1279,7 +1279,7 @@ def _source_ok(res: FitResult, data: FitData, i: int = -1) -> bool:
 
     Other terms pass. A source the fit moved far from the path, so that the sensor's
     distance to it hardly changes where it acts, describes a smooth field, not an object;
-    one seen on a single pass is a bump in time that a disturbance fits as well.
+    one whose field never stands above the noise is not seen at all.
     """
     term = res.state.terms[i]
     if term.kind is not EffectKind.LOCAL_SOURCE:

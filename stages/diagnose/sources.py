@@ -161,9 +161,11 @@ def near_far_ratio(term: Term, value: F64, data: FitData) -> float:
     return float(d.min() / max(float(d.max()), 1e-12))
 
 
-#: approaches to a source needed to tell it from a transient: one approach is a single bump
-#: in time, which a disturbance (a free field in time) fits as well
-MIN_VISITS = 2
+#: approaches to a source whose field stands above the noise: at least one. A single pass
+#: can locate an object (three components along a tracked path sample its 1/r^3 and its
+#: direction); whether a bump in time (a step, a disturbance) fits as well is decided by the
+#: evidence of those look-alikes against it (``_told_apart`` in the search), not by a count
+MIN_VISITS = 1
 
 
 def source_visits(term: Term, value: F64, data: FitData, floor_nT: float = 0.0) -> int:
