@@ -23,7 +23,8 @@ import time
 import numpy as np
 
 from pipeline.core.geometry import so3_log
-from stages.estimate import EstimatorKind, NoiseModel, fit_calibration
+from pipeline.core.vocabulary import EstimatorKind
+from stages.estimate import NoiseModel, fit_calibration
 from stages.estimators.base import EstimationProblem
 from stages.estimators.ml import fisher_rotation_crb_deg
 from stages.estimators.synthetic import draw, small_rotation

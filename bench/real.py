@@ -32,9 +32,9 @@ sys.path.insert(0, str(ROOT))
 
 from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec  # noqa: E402
 from pipeline.core.recording import Recording  # noqa: E402
+from pipeline.core.vocabulary import EstimateTerm  # noqa: E402
 from pipeline.model.calibration import Calibration  # noqa: E402
 from pipeline.run.runner import ProcessOptions, analyse, analyse_recording  # noqa: E402
-from stages.estimate import EstimateTerm  # noqa: E402
 
 RESTRICTED = ProcessOptions(terms=frozenset({EstimateTerm.OFFSET, EstimateTerm.SOFT_IRON,
                                              EstimateTerm.TIME_OFFSET}),

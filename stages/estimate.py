@@ -17,37 +17,27 @@ import numpy as np
 from pipeline.core.errors import EstimationError, UsageError
 from pipeline.core.recording import AlignedSeries, Recording
 from pipeline.core.verdict import judge, sensor_noise_nT
+from pipeline.core.vocabulary import EstimateTerm, EstimatorKind, RobustLoss
 from pipeline.model.calibration import Calibration
 from pipeline.model.forward import MAX_TIME_OFFSET_S
 from pipeline.model.sample_hold import detect_sample_hold, repeated
 from stages.context import Context
-from stages.estimators.base import (
-    EstimateTerm,
-    EstimationProblem,
-    Estimator,
-    EstimatorKind,
-    NoiseModel,
-    RobustLoss,
-)
+from stages.estimators.base import EstimationProblem, Estimator, NoiseModel
 from stages.estimators.registry import ESTIMATORS
 
 __all__ = [
     "Estimate",
     "Judge",
     "carry_checks",
-    "verdict_line",
     "with_verdict",
-    "EstimatorKind",
     "NoiseModel",
-    "RobustLoss",
-    "EstimateTerm",
     "fit_calibration",
     "make_estimator",
 ]
 
 
 #: the estimator used when none is named
-DEFAULT_ESTIMATOR: EstimatorKind = EstimatorKind("ml")
+DEFAULT_ESTIMATOR: EstimatorKind = EstimatorKind.ML
 
 
 def make_estimator(kind: EstimatorKind | str) -> Estimator:
@@ -254,37 +244,6 @@ def carry_checks(before: Calibration, after: Calibration, *, explained: bool = F
         n_eff=before.n_eff if after.n_eff is None else after.n_eff,
         warnings=tuple(dict.fromkeys(before.warnings + after.warnings)),
     )
-
-
-def verdict_line(cal: Calibration, with_status: bool = True) -> str:
-    """One line for a person: misalignment angle +- sigma and axis, time offset, verdict.
-
-    ``with_status``: end with the verdict's status (False where it is shown beside the line).
-    """
-    rv = np.asarray(cal.rotvec_body_mag_deg, float)
-    sg = np.asarray(cal.sigma_rotvec_deg, float)
-    ang = float(np.linalg.norm(rv))
-    u = rv / ang if ang > 0 else np.array([0.0, 0.0, 1.0])
-    s_ang = float(np.sqrt(np.sum((u * sg) ** 2))) if np.all(np.isfinite(sg)) else float("inf")
-    # the sigma to two significant digits, the angle to the same decimals (never "+- 0.00")
-    dec = 2
-    if np.isfinite(s_ang) and s_ang > 0:
-        dec = int(min(max(2, 1 - np.floor(np.log10(s_ang))), 6))
-    parts = [
-        f"misalignment {ang:.{dec}f} +- {s_ang:.{dec}f} deg about body ["
-        + ", ".join(f"{c:+.2f}" for c in u) + "]"
-    ]
-    if cal.time_offset_s is not None:
-        parts.append(f"time offset {cal.time_offset_s * 1e3:+.1f} ms")
-    if cal.verdict is not None:
-        v = cal.verdict
-        if v.sensor_noise_nT is not None:
-            parts.append(f"residual {v.residual_rms_nT:.0f} nT vs noise {v.sensor_noise_nT:.0f} nT")
-        else:
-            parts.append(f"residual {v.residual_rms_nT:.0f} nT")
-        if with_status:
-            parts.append(v.status.value)
-    return "; ".join(parts)
 
 
 @dataclass(frozen=True)

@@ -8,9 +8,9 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.core.errors import EstimationError
+from pipeline.core.vocabulary import EstimateTerm
 from pipeline.model.calibration import Calibration
 from stages.context import Context
-from stages.estimators.base import EstimateTerm
 from stages.estimators.checks import SplitCheck, apply_split
 from stages.estimators.streaming import StreamStats, fit_stats
 

@@ -1,80 +1,20 @@
 """Stages: leave out of the analysis the stretches a user knows are bad (``--exclude``).
 
-More in docs/modules.md, ``stages.exclude``.
+The windows are the framework's :class:`pipeline.core.vocabulary.ExcludeWindow`. More in
+docs/modules.md, ``stages.exclude``.
 """
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
-from datetime import datetime, timezone
 from typing import ClassVar
 
 import numpy as np
 
 from pipeline.core.errors import DataQualityError
+from pipeline.core.vocabulary import ExcludeWindow
 from pipeline.model.calibration import Calibration
 from stages.context import Context
-
-_SECONDS = re.compile(r"^\s*([0-9]+(?:\.[0-9]*)?)\s*:\s*([0-9]+(?:\.[0-9]*)?)\s*$")
-_ISO = r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d(?:\.\d+)?(?:Z|[+-]\d\d:\d\d)"
-_UTC = re.compile(rf"^\s*({_ISO})\s*:\s*({_ISO})\s*$")
-
-
-@dataclass(frozen=True)
-class ExcludeWindow:
-    """One stretch left out of the analysis, half-open ``[start, end)``.
-
-    Attributes
-    ----------
-    start, end : float
-        Seconds from the first magnetometer sample, or (``utc``) seconds since the Unix
-        epoch.
-    utc : bool
-
-    """
-
-    start: float
-    end: float
-    utc: bool = False
-
-    @classmethod
-    def parse(cls, text: str) -> ExcludeWindow:
-        """Read ``START:END`` (seconds, or two ISO 8601 UTC times); ValueError says why."""
-        m = _SECONDS.match(text)
-        if m:
-            a, b, utc = float(m.group(1)), float(m.group(2)), False
-        else:
-            m = _UTC.match(text)
-            if not m:
-                raise ValueError(f"{text!r} is not START:END in seconds from the first "
-                                 "magnetometer sample (12.5:30) or in UTC "
-                                 "(2026-11-20T10:03:00Z:2026-11-20T10:04:30Z)")
-            a, b = (datetime.fromisoformat(g.replace("Z", "+00:00")).timestamp()
-                    for g in m.groups())
-            utc = True
-        if not b > a:
-            raise ValueError(f"{text!r}: the end must come after the start")
-        return cls(a, b, utc)
-
-    def ns(self, t0_ns: int) -> tuple[int, int]:
-        """Return the window in ns since the Unix epoch, given the first magnetometer stamp."""
-        if self.utc:
-            return int(round(self.start * 1e9)), int(round(self.end * 1e9))
-        return t0_ns + int(round(self.start * 1e9)), t0_ns + int(round(self.end * 1e9))
-
-    def seconds(self, t0_ns: int) -> list[float]:
-        """Return ``[start, end]`` in seconds from the first magnetometer sample."""
-        a, b = self.ns(t0_ns)
-        return [(a - t0_ns) * 1e-9, (b - t0_ns) * 1e-9]
-
-    def text(self) -> str:
-        """Return the window as the command line spells it."""
-        if not self.utc:
-            return f"{self.start:g}:{self.end:g}"
-        a, b = (datetime.fromtimestamp(x, tz=timezone.utc).isoformat().replace("+00:00", "Z")
-                for x in (self.start, self.end))
-        return f"{a}:{b}"
 
 
 def excluded_mask(t_ns: np.ndarray, windows: tuple[ExcludeWindow, ...], t0_ns: int

@@ -25,9 +25,9 @@ from pipeline.core.atomic import atomic_path, sha256_file, write_text_atomic
 from pipeline.core.geometry import quat_rotate, quat_to_li2020_euler
 from pipeline.core.recording import Recording, Segment
 from pipeline.core.style import minus
-from pipeline.core.verdict import plain_words
+from pipeline.core.verdict import plain_words, verdict_line
 from pipeline.model.sample_hold import repeated
-from stages.estimate import POOR_AXIS_SIGMA_DEG, verdict_line
+from stages.estimate import POOR_AXIS_SIGMA_DEG
 from stages.estimators.registry import DESCRIPTIONS
 from stages.report_map import (
     EVENT_EFFECTS,

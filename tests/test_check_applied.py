@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 from indep_gen import Spec, write
 
+from pipeline.core.verdict import verdict_line
 from pipeline.model.calibration import Calibration
 from pipeline.run.runner import ProcessOptions, process_recording
-from stages.estimate import verdict_line
 
 OPTS = dict(write_rerun=False, write_report=False)
 

@@ -13,8 +13,9 @@ from hypothesis import strategies as st
 from pipeline.core.errors import NotObservableError
 from pipeline.core.geometry import quat_conj, quat_rotate, so3_exp, so3_log
 from pipeline.core.recording import AlignedSeries
+from pipeline.core.vocabulary import EstimateTerm, EstimatorKind
 from stages.context import Context
-from stages.estimate import Estimate, EstimateTerm, EstimatorKind, NoiseModel, fit_calibration
+from stages.estimate import Estimate, NoiseModel, fit_calibration
 from stages.estimators import ml
 from stages.estimators.base import EstimationProblem
 from stages.estimators.synthetic import draw, small_rotation

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from indep_gen import Spec, write
 
+from pipeline.core.vocabulary import ExcludeWindow
 from pipeline.run.runner import ProcessOptions, process_recording
-from stages.exclude import ExcludeWindow
 
 DIST = {"disturbance": {"windows_s": [[20.0, 30.0]], "peak_nT": 3000.0,
                         "direction_enu": [0.6, 0.0, 0.8]}}

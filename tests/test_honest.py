@@ -15,9 +15,10 @@ import pytest
 from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
 from pipeline.core.recording import AlignedSeries, AttitudeSeries
 from pipeline.core.verdict import Status, judge, sensor_noise_nT
+from pipeline.core.vocabulary import EstimateTerm
 from pipeline.model.calibration import Calibration
 from pipeline.model.sample_hold import detect_sample_hold
-from stages.estimate import EstimateTerm, fit_calibration
+from stages.estimate import fit_calibration
 from stages.estimators.base import EstimationProblem, NoiseModel
 from stages.estimators.checks import block_index, info_halves
 from stages.estimators.ml import fisher_rotation_crb_deg

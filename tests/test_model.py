@@ -219,7 +219,8 @@ def test_simulator_oracle_and_model_agree_without_noise(tau):
 
 @pytest.mark.parametrize("tau", [0.06, -0.06])
 def test_time_offset_recovered_from_simulated_recording(tau):
-    from stages.estimate import EstimateTerm, fit_calibration
+    from pipeline.core.vocabulary import EstimateTerm
+    from stages.estimate import fit_calibration
     from stages.resample import Resample
 
     sim = _sim(tau, noise=True, effects={"hard_iron": {"offset_nT": [250.0, -120.0, 80.0]},
@@ -447,7 +448,8 @@ def test_wiring_ml_estimator_predicts_with_the_forward_model():
     tests/test_model_independent.py)."""
     # The ML estimator's prediction and Jacobian are the forward model's, (M2)-(M4) + o and
     # (J2)-(J5), for the same R, B, o, D and tau.
-    from stages.estimators.base import EstimateTerm, EstimationProblem
+    from pipeline.core.vocabulary import EstimateTerm
+    from stages.estimators.base import EstimationProblem
     from stages.estimators.ml import Model, State
 
     att = _fast_attitude(600, 50.0, 1.5, seed=2)

@@ -14,9 +14,10 @@ from indep_gen import Spec, write
 from scipy.spatial.transform import Rotation
 
 from pipeline.core.geometry import angle_between_deg
+from pipeline.core.vocabulary import EstimateTerm
 from pipeline.io.mcap_read import read_recording
 from stages.context import Context
-from stages.estimate import EstimateTerm, fit_calibration
+from stages.estimate import fit_calibration
 from stages.resample import Resample
 
 

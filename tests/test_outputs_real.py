@@ -25,7 +25,7 @@ def _sha(p: Path) -> str:
 
 
 def test_lab_recording_outputs(tmp_path):
-    from stages.estimate import EstimateTerm
+    from pipeline.core.vocabulary import EstimateTerm
 
     before = _sha(LAB)
     terms = frozenset({EstimateTerm.OFFSET, EstimateTerm.SOFT_IRON, EstimateTerm.TIME_OFFSET})

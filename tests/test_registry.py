@@ -1,13 +1,19 @@
-"""The estimator registry: one table feeds the enum, the CLI, the campaign validation."""
+"""The estimator registry: the framework's kinds, each with its class; they feed the CLI and the
+campaign validation."""
 
 from __future__ import annotations
 
 import argparse
+import enum
+import importlib.util
 
 import pytest
 
+import pipeline.core.vocabulary as vocabulary
 from pipeline.core.errors import UsageError
-from stages.estimate import EstimatorKind, make_estimator
+from pipeline.core.vocabulary import EstimatorKind
+from stages.estimate import make_estimator
+from stages.estimators import registry
 from stages.estimators.base import Estimator
 from stages.estimators.registry import DESCRIPTIONS, ESTIMATORS
 
@@ -52,4 +58,25 @@ def test_cli_and_campaign_choices_come_from_the_registry():
     p = sub.choices["calibrate"]
     act = next(a for a in p._actions if a.dest == "estimator")
     assert list(act.choices) == list(ESTIMATORS)
-    assert [e.value for e in campaign.EstimatorKind] == list(ESTIMATORS)
+    # the campaign validates against the framework's kinds, which are the registry's
+    assert campaign.EstimatorKind is EstimatorKind
+    assert [e.value for e in EstimatorKind] == list(ESTIMATORS)
+
+
+def test_the_registry_implements_exactly_the_frameworks_kinds():
+    """One list of names (core's EstimatorKind); the registry maps and describes each, in order."""
+    kinds = [k.value for k in EstimatorKind]
+    assert list(ESTIMATORS) == kinds
+    assert list(DESCRIPTIONS) == kinds
+
+
+def test_a_registry_that_disagrees_with_the_framework_does_not_load(monkeypatch):
+    """A kind the options can spell but nothing implements stops the import, not a later run."""
+    more = enum.Enum("EstimatorKind", {**{k.name: k.value for k in EstimatorKind},
+                                       "KALMAN": "kalman"}, type=str)
+    monkeypatch.setattr(vocabulary, "EstimatorKind", more)
+    spec = importlib.util.spec_from_file_location("registry_copy", registry.__file__)
+    assert spec is not None and spec.loader is not None
+    copy = importlib.util.module_from_spec(spec)  # never put in sys.modules
+    with pytest.raises(RuntimeError, match="kalman"):
+        spec.loader.exec_module(copy)

@@ -178,7 +178,8 @@ def test_streaming_from_file_equals_in_memory(tmp_path, monkeypatch):
 def test_agrees_with_the_in_memory_ml_estimator():
     """Same data, the ESTIMATE engineer's ML estimator and the streaming one agree."""
     from pipeline.core.recording import AlignedSeries
-    from stages.estimate import EstimatorKind, fit_calibration
+    from pipeline.core.vocabulary import EstimatorKind
+    from stages.estimate import fit_calibration
 
     q, y, t, R = synthetic(4_000, noise_nT=0.5, seed=11)
     ml = fit_calibration(None, AlignedSeries(t, y, q), estimator=EstimatorKind.ML)

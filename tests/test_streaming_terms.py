@@ -20,9 +20,10 @@ import tomllib
 
 from pipeline.core.geometry import quat_to_matrix, so3_exp, so3_log
 from pipeline.core.recording import AttitudeSeries
+from pipeline.core.vocabulary import EstimateTerm
 from pipeline.model.attitude import interpolate_attitude
 from stages.context import Context
-from stages.estimators.base import EstimateTerm, EstimationProblem
+from stages.estimators.base import EstimationProblem
 from stages.estimators.ml import MLEstimator
 from stages.estimators.streaming import (
     MAX_BLOCKS,

@@ -27,11 +27,10 @@ from pipeline.app.simulate import load_scenario, simulate, write_simulated
 from pipeline.core.atomic import safe_join, sha256_file, write_text_atomic
 from pipeline.core.config import TomlDoc
 from pipeline.core.errors import ConfigError, InputError, MagalignError, UsageError
+from pipeline.core.vocabulary import EstimateTerm, EstimatorKind, ExcludeWindow
 from pipeline.model.calibration import Calibration
 from pipeline.model.igrf import igrf_enu_nT
 from pipeline.run.options import ProcessOptions
-from stages.estimators.base import EstimateTerm, EstimatorKind
-from stages.exclude import ExcludeWindow
 
 #: the analysis a worker runs on each recording: imported by name in the worker, so that the
 #: process that plans the campaign and gathers its rows never loads it (scipy's signal and
@@ -113,13 +112,11 @@ class RecordingOptions:
         Output switches of the ``[outputs]`` table (e.g. ``("rerun", True)``).
     exclude : tuple of str
         Stretches left out of the fit and the verdict, ``START:END`` as the command line's
-        ``--exclude`` (:class:`stages.exclude.ExcludeWindow`).
+        ``--exclude`` (:class:`pipeline.core.vocabulary.ExcludeWindow`).
 
     """
 
-    # EstimatorKind is built from the estimator registry: its members are not known to a type
-    # checker, so they are looked up by value ("ml" is EstimatorKind.ML)
-    estimator: EstimatorKind = EstimatorKind("ml")
+    estimator: EstimatorKind = EstimatorKind.ML
     terms: tuple[EstimateTerm, ...] = ()
     reference_field: ReferenceField = field(default_factory=ReferenceField)
     mag_topic: str | None = None
@@ -281,7 +278,7 @@ def _parse_options(doc: TomlDoc) -> RecordingOptions:
     if not isinstance(est, Mapping):
         raise doc.error("estimator", "must be a table")
     doc.check_keys(est, {"kind", "terms"}, "estimator")
-    kind = doc.choice("estimator.kind", EstimatorKind, EstimatorKind("ml"))
+    kind = doc.choice("estimator.kind", EstimatorKind, EstimatorKind.ML)
     terms_raw = est.get("terms", [])
     if not isinstance(terms_raw, list):
         raise doc.error("estimator.terms", f"must be a list of term names, got {terms_raw!r}")

@@ -22,9 +22,10 @@ from pipeline.app.simulate import load_scenario, simulate, write_simulated
 from pipeline.core.atomic import atomic_path
 from pipeline.core.errors import EstimationError
 from pipeline.core.geometry import so3_log
+from pipeline.core.vocabulary import EstimatorKind
 from pipeline.io.mcap_read import read_recording
 from stages.context import Context
-from stages.estimate import EstimatorKind, fit_calibration
+from stages.estimate import fit_calibration
 from stages.resample import Resample
 
 PAPER_BOUND_NT = 1.0

@@ -4,6 +4,7 @@ The sensor's own noise is measured where the platform stands still (the attitude
 within one second and the reading is steady). The final residual is compared with it: a model
 that explains everything but the sensor's noise leaves a residual at that floor; what lies
 above it is physics the model leaves out (CONVENTIONS, ``calibration.json`` ``verdict``).
+:func:`verdict_line` says a calibration and its verdict in one line for a person.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import enum
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -269,3 +270,72 @@ def judge(residual_rms_nT: float, sensor_noise: float | None, *,
         return Verdict(Status.QUESTIONABLE, _sentence(cause, advice, len(doubts) - 1),
                        sensor_noise, res)
     return Verdict(Status.OK, _sentence(fit_words, None, 0), sensor_noise, res)
+
+
+class StatedCalibration(Protocol):
+    """What :func:`verdict_line` reads of a calibration.
+
+    ``pipeline.model.calibration.Calibration`` has all of it; the framework names only these
+    attributes, so the line stays beside the verdict without the framework knowing the model.
+    """
+
+    @property
+    def rotvec_body_mag_deg(self) -> np.ndarray:
+        """Rotation vector of ``R_body_mag``, deg (3,)."""
+        ...
+
+    @property
+    def sigma_rotvec_deg(self) -> np.ndarray:
+        """Its 1-sigma per body axis, deg (3,); inf about an unobservable axis."""
+        ...
+
+    @property
+    def time_offset_s(self) -> float | None:
+        """The estimated time offset ``tau``, s; None when not estimated."""
+        ...
+
+    @property
+    def verdict(self) -> Verdict | None:
+        """The verdict; None before the calibration is judged."""
+        ...
+
+
+def verdict_line(cal: StatedCalibration, with_status: bool = True) -> str:
+    """One line for a person: misalignment angle +- sigma and axis, time offset, verdict.
+
+    Parameters
+    ----------
+    cal : StatedCalibration
+        A calibration (``pipeline.model.calibration.Calibration``).
+    with_status : bool
+        End with the verdict's status (False where it is shown beside the line).
+
+    Returns
+    -------
+    str
+
+    """
+    rv = np.asarray(cal.rotvec_body_mag_deg, float)
+    sg = np.asarray(cal.sigma_rotvec_deg, float)
+    ang = float(np.linalg.norm(rv))
+    u = rv / ang if ang > 0 else np.array([0.0, 0.0, 1.0])
+    s_ang = float(np.sqrt(np.sum((u * sg) ** 2))) if np.all(np.isfinite(sg)) else float("inf")
+    # the sigma to two significant digits, the angle to the same decimals (never "+- 0.00")
+    dec = 2
+    if np.isfinite(s_ang) and s_ang > 0:
+        dec = int(min(max(2, 1 - np.floor(np.log10(s_ang))), 6))
+    parts = [
+        f"misalignment {ang:.{dec}f} +- {s_ang:.{dec}f} deg about body ["
+        + ", ".join(f"{c:+.2f}" for c in u) + "]"
+    ]
+    if cal.time_offset_s is not None:
+        parts.append(f"time offset {cal.time_offset_s * 1e3:+.1f} ms")
+    if cal.verdict is not None:
+        v = cal.verdict
+        if v.sensor_noise_nT is not None:
+            parts.append(f"residual {v.residual_rms_nT:.0f} nT vs noise {v.sensor_noise_nT:.0f} nT")
+        else:
+            parts.append(f"residual {v.residual_rms_nT:.0f} nT")
+        if with_status:
+            parts.append(v.status.value)
+    return "; ".join(parts)

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from stages.estimators.base import EstimateTerm, EstimatorKind
-from stages.exclude import ExcludeWindow
+from pipeline.core.vocabulary import EstimateTerm, EstimatorKind, ExcludeWindow
 
 
 @dataclass(frozen=True)

@@ -20,13 +20,13 @@ import numpy as np
 
 from pipeline.core.recording import Recording
 from pipeline.core.stage import Stage
+from pipeline.core.vocabulary import EstimateTerm, EstimatorKind, RobustLoss
 from pipeline.run.options import ProcessOptions
 from stages.check_applied import CheckApplied, calibration_source
 from stages.context import Context
 from stages.diagnose.stage import Diagnose
 from stages.estimate import Estimate, Judge
 from stages.estimate_sums import EstimateFromSums
-from stages.estimators.base import EstimateTerm, EstimatorKind, RobustLoss
 from stages.exclude import Exclude, NoteExclusions
 from stages.load_calibration import LoadCalibration
 from stages.require_observable import RequireObservable
@@ -209,7 +209,7 @@ def restricted_model(options: ProcessOptions) -> bool:
     the rotation that the terms the data select, but the choice leaves out, would cause.
     """
     other = (options.estimator is not None
-             and EstimatorKind(options.estimator) is not EstimatorKind("ml"))
+             and EstimatorKind(options.estimator) is not EstimatorKind.ML)
     return bool(options.terms) or other or RobustLoss(options.robust) is not RobustLoss.NONE
 
 
@@ -236,5 +236,5 @@ def diagnose_kwargs(options: ProcessOptions) -> dict[str, Any]:
 
 def streams_estimate(options: ProcessOptions) -> bool:
     """Whether the sums of every sample can make the estimate asked for (ML, its terms)."""
-    ml = options.estimator is None or EstimatorKind(options.estimator) is EstimatorKind("ml")
+    ml = options.estimator is None or EstimatorKind(options.estimator) is EstimatorKind.ML
     return ml and {EstimateTerm(t) for t in options.terms} <= set(EstimateFromSums.SUPPORTED_TERMS)

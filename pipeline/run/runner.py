@@ -31,6 +31,8 @@ from pipeline.core.recording import (
     VectorSeries,
 )
 from pipeline.core.stage import Pipeline, stage_name
+from pipeline.core.verdict import verdict_line
+from pipeline.core.vocabulary import EstimateTerm
 from pipeline.core.warm import warm_in_background
 from pipeline.io.mcap_read import RecordingChunk, problem_warnings
 from pipeline.model.attitude import AttitudeInterpolator, auto_max_gap_s, estimate_cubic_weight
@@ -40,8 +42,6 @@ from pipeline.run.plan import FirstPass, Plan, make_plan, streams_estimate, wind
 from pipeline.run.source import FileSource, MemorySource, Source, open_source
 from stages.check_applied import applied_verdict
 from stages.context import Context
-from stages.estimate import verdict_line
-from stages.estimators.base import EstimateTerm
 from stages.estimators.streaming import SampleSums, StreamAccumulator
 from stages.exclude import excluded_mask
 from stages.restore import (

@@ -4,14 +4,13 @@ The measurement model is the one of CONVENTIONS::
 
     y_mag(t) = D @ R_body_mag.T @ C_enu_body(t - tau).T @ B_enu + o + noise
 
-An estimator is anything with ``fit(problem) -> Calibration`` (:class:`Estimator`). The enums
-live here (and are re-exported by :mod:`stages.estimate`) so that the estimator modules and the
-stage module do not import each other.
+An estimator is anything with ``fit(problem) -> Calibration`` (:class:`Estimator`). What the
+options name (``EstimatorKind``, ``EstimateTerm``, ``RobustLoss``) is the framework's, in
+:mod:`pipeline.core.vocabulary`.
 """
 
 from __future__ import annotations
 
-import enum
 import itertools
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
@@ -22,9 +21,9 @@ from numpy.typing import NDArray
 from pipeline.core.errors import EstimationError
 from pipeline.core.geometry import quat_to_matrix, skew
 from pipeline.core.recording import AttitudeSeries
+from pipeline.core.vocabulary import RobustLoss
 from pipeline.model.attitude import AttitudeInterpolator
 from pipeline.model.calibration import Calibration
-from stages.estimators.registry import ESTIMATORS
 
 F64 = NDArray[np.float64]
 
@@ -35,28 +34,6 @@ F64 = NDArray[np.float64]
 #: noise of 0.015 deg on a single-axis sweep leaves ratios near 1e-7, real wobble of >= 0.1 deg
 #: gives >= 1e-5.
 RELATIVE_INFO_THRESHOLD = 1e-6
-
-
-#: Which estimator :func:`stages.estimate.fit_calibration` uses: one member per entry of the
-#: registry (:data:`stages.estimators.registry.ESTIMATORS`), e.g. ``EstimatorKind.ML``.
-EstimatorKind = enum.Enum(  # type: ignore[misc]
-    "EstimatorKind", {k.upper(): k for k in ESTIMATORS}, type=str, module=__name__)
-
-
-class EstimateTerm(str, enum.Enum):
-    """Optional model terms estimated beside the rotation (CONVENTIONS names)."""
-
-    OFFSET = "offset"
-    SOFT_IRON = "soft_iron"
-    TIME_OFFSET = "time_offset"
-
-
-class RobustLoss(enum.Enum):
-    """Loss on the whitened per-sample residual norm (IRLS weights)."""
-
-    NONE = "none"
-    HUBER = "huber"
-    CAUCHY = "cauchy"
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ import numpy as np
 from pipeline.core.errors import EstimationError
 from pipeline.core.geometry import matrix_to_quat, quat_to_matrix, quat_to_rotvec, skew, so3_exp
 from pipeline.core.recording import AttitudeSeries
+from pipeline.core.vocabulary import EstimateTerm, RobustLoss
 from pipeline.model.attitude import AttitudeInterpolator
 from pipeline.model.calibration import Calibration
 from pipeline.model.forward import (
@@ -28,9 +29,7 @@ from pipeline.model.solve import Linearised, minimise
 from stages.estimators.base import (
     F64,
     RELATIVE_INFO_THRESHOLD,
-    EstimateTerm,
     EstimationProblem,
-    RobustLoss,
     analyse,
     canonical_axis,
     cube_rotations,

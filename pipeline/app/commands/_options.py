@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.core.errors import UsageError
+from pipeline.core.vocabulary import ExcludeWindow
 from pipeline.io.mcap_format import MAGIC
 from pipeline.io.mcap_scan import check_magic, open_error  # the reader's own words
 from pipeline.model.igrf import igrf_enu_nT
-from stages.exclude import ExcludeWindow
 
 #: The first 8 bytes of every MCAP file (https://mcap.dev/spec).
 

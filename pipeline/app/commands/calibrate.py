@@ -25,10 +25,10 @@ from pipeline.app.commands._options import (
 from pipeline.core import progress
 from pipeline.core.atomic import atomic_path
 from pipeline.core.errors import NotObservableError, RefusedError, UsageError
-from pipeline.core.verdict import Status
+from pipeline.core.verdict import Status, verdict_line
+from pipeline.core.vocabulary import EstimateTerm, EstimatorKind
 from pipeline.run.options import ProcessOptions
 from pipeline.run.runner import analyse_recording
-from stages.estimate import EstimateTerm, EstimatorKind, verdict_line
 from stages.estimators.registry import DESCRIPTIONS, ESTIMATORS
 
 log = logging.getLogger("magalign")

@@ -21,9 +21,9 @@ from pipeline.app.commands._options import (
 )
 from pipeline.core import progress
 from pipeline.core.atomic import write_text_atomic
+from pipeline.core.verdict import verdict_line
 from pipeline.run.options import ProcessOptions
 from pipeline.run.runner import analyse_recording
-from stages.estimate import verdict_line
 
 log = logging.getLogger("magalign")
 

@@ -21,8 +21,6 @@ import warnings
 from pathlib import Path
 
 from pipeline.app.campaign import (
-    EstimateTerm,
-    EstimatorKind,
     RecordingOptions,
     ReferenceField,
     ReferenceFieldMode,
@@ -44,6 +42,7 @@ from pipeline.core import errors
 from pipeline.core import progress as pg
 from pipeline.core.errors import CampaignPartialFailure, InputError, UsageError
 from pipeline.core.style import minus
+from pipeline.core.vocabulary import EstimateTerm, EstimatorKind
 from pipeline.core.warm import warm_in_background
 from stages.report_text import rows as finding_rows
 
