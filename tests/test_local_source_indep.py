@@ -217,3 +217,25 @@ def test_a_road_survey_without_an_object_names_nothing(tmp_path):
     spec = _road_survey(5.0, 0.0, "novatel_oem7_msgs/msg/INSPVA", "inspva", 10.0)
     ctx = diagnose_file(write(spec, tmp_path / "null.mcap"))
     assert [f.effect for f in ctx.diagnosis.findings] == []
+
+
+def test_an_object_passed_for_a_second_in_a_two_hour_survey_is_located(tmp_path):
+    """Two hours at 5 m/s (180 lines of 200 m, a 1 nT sensor at 50 Hz): the diagnosis fits a
+    sample of every 30th reading, which keeps one or two of the 64 nT pass over an object
+    1 m under one line. The pass is found in every sample and kept at full rate; the
+    object is located, and nothing else is named in the two hours."""
+    spec = Spec("long", seed=5, duration_s=7200.0, mag_rate_hz=50.0, att_rate_hz=20.0,
+                att_type="novatel_oem7_msgs/msg/INSPVA", path="survey", position_type="inspva",
+                survey_calibration_s=30.0, survey_line_m=200.0, survey_spacing_m=5.0,
+                survey_speed_m_s=5.0, mag_noise_nT=1.0, att_noise_deg=0.002,
+                effects={"local_source": {"position_m": [450.0, 100.0, -1.0],
+                                          "moment_Am2": [0.0, 0.75, -2.5]}})
+    tr = truth(spec)["effects"]["local_source"]
+    ctx = diagnose_file(write(spec, tmp_path / "long.mcap"))
+    fs = ctx.calibration.checks["fit_samples"]
+    assert fs["stride"] >= 20  # decimated: the pass would hold one or two samples
+    assert [f.effect for f in ctx.diagnosis.findings] == ["local_source"]
+    p = ctx.diagnosis.findings[0].params
+    assert np.linalg.norm(np.subtract(p["position_m"], tr["position_m"])) < 0.5
+    assert p["closest_approach_s"] == pytest.approx(tr["closest_approach_s"], abs=1.0)
+    assert np.all(_rot_err_deg(ctx, spec) < 0.05)

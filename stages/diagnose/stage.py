@@ -26,7 +26,7 @@ from pipeline.model.calibration import Calibration
 from pipeline.model.sample_hold import Handling, SampleHold, detect_sample_hold
 from stages.context import Context
 from stages.diagnose.catalogue import EFFECTS
-from stages.diagnose.fit import FitResult, fit
+from stages.diagnose.fit import FitResult, fit, wahba_init
 from stages.diagnose.model import (
     F64,
     IRON_PRIOR,
@@ -43,7 +43,7 @@ from stages.diagnose.model import (
     term_sigma,
 )
 from stages.diagnose.result import DiagnoseConfig, Diagnosis, Finding
-from stages.diagnose.search import MAX_LAG_S, diagnose_data
+from stages.diagnose.search import MAX_LAG_S, diagnose_data, scan_windows
 from stages.diagnose.statistics import effective_samples, param_covariance
 from stages.estimate import carry_checks
 from stages.estimators.checks import SplitCheck, apply_split, info_halves
@@ -56,12 +56,15 @@ def fit_data_from(
     *,
     reference_field_enu_nT: Sequence[float] | np.ndarray | None = None,
     max_samples: int | None = None,
+    full_rate_s: Sequence[tuple[float, float]] = (),
 ) -> FitData:
     """Build the fitting data: stamps in s from the first magnetometer sample.
 
     The attitude track is the recording's attitude channel (so a time offset re-interpolates
     it); without one (turntable), the aligned attitude shifted back by the ``tau`` it was
-    interpolated with.
+    interpolated with. A recording longer than ``max_samples`` is decimated evenly, except
+    inside the half-open windows ``full_rate_s`` (s), where every sample is kept: an event
+    there is briefer than the decimated data resolve (:func:`brief_events`).
     """
     t0 = int(recording.mag.t_ns[0]) if len(recording.mag) else int(aligned.t_ns[0])
     t_s = (np.asarray(aligned.t_ns, dtype=np.int64) - t0) * 1e-9
@@ -95,15 +98,70 @@ def fit_data_from(
     n_avail, stride = len(t_s), 1
     if max_samples is not None and len(t_s) > max_samples:
         stride = int(np.ceil(len(t_s) / max_samples))
-        t_s, y = t_s[::stride], y[::stride]
+        keep = np.zeros(len(t_s), dtype=bool)
+        keep[::stride] = True
+        for a, b in full_rate_s:
+            keep |= (t_s >= a) & (t_s < b)
+        t_s, y = t_s[keep], y[keep]
         if pos:
-            pos["p_m"] = pos["p_m"][::stride]
+            pos["p_m"] = pos["p_m"][keep]
     B = None if reference_field_enu_nT is None else np.asarray(reference_field_enu_nT, float)
     origin = getattr(recording.position, "origin", None) if pos else None
     if origin is not None:
         pos["position_origin"] = origin.to_dict()
     return FitData(cast(F64, t_s), y, track, B_known_enu_nT=B, stride=stride,
                    n_available=n_avail, **pos)
+
+
+#: Samples across an event that the decimated data must hold to resolve it: enough for the
+#: shape of a pass by a dipole (six parameters) or a transient's few knots.
+MIN_EVENT_SAMPLES = 20
+
+
+def brief_events(recording: Recording, aligned: AlignedSeries, data: FitData,
+                 init: ModelState | None, cfg: DiagnoseConfig,
+                 reference_field_enu_nT: Sequence[float] | np.ndarray | None = None,
+                 ) -> tuple[tuple[float, float], ...]:
+    """Windows of events briefer than the decimated ``data`` resolve, found in every sample.
+
+    A recording decimated to the sample budget keeps every ``stride``-th sample: an object
+    passed for a second in a two-hour survey leaves one or two of them, which no scan tells
+    from noise. The baseline model (``R_body_mag``, ``B_enu``) fitted on ``data`` predicts
+    every sample; what its residual holds on time scales shorter than ``MIN_EVENT_SAMPLES``
+    decimated samples (the residual less its moving mean over that span: what the decimated
+    data could still follow is theirs) is scanned at full rate by the same detector
+    (:func:`~stages.diagnose.search.scan_windows`, its false-alarm rate shared over every
+    sample). Each window it opens that is shorter than those samples span, padded as the
+    search pads a transient, is returned.
+
+    Returns
+    -------
+    tuple of (start_s, end_s)
+        Half-open, s from the first magnetometer sample; empty when ``data`` is not decimated.
+
+    """
+    if data.stride <= 1:
+        return ()
+    full = fit_data_from(recording, aligned, reference_field_enu_nT=reference_field_enu_nT)
+    start = wahba_init(data) if init is None else ModelState(init.R_body_mag, init.B_enu_nT)
+    base = fit(start, data)
+    r = full.y_nT - evaluate(base.state, full, jacobian=False).y_nT
+    span = MIN_EVENT_SAMPLES * data.stride
+    if len(r) < 4 * span:
+        return ()
+    c = np.concatenate([np.zeros((1, 3)), np.cumsum(r, axis=0)])
+    i = np.arange(len(r))
+    lo, hi = np.clip(i - span // 2, 0, len(r)), np.clip(i + span // 2 + 1, 0, len(r))
+    brief = r - (c[hi] - c[lo]) / (hi - lo)[:, None]
+    t = full.t_s
+    resolved_s = MIN_EVENT_SAMPLES * float(np.median(np.diff(data.t_s)))
+    out = []
+    for a, b in scan_windows(brief, t, cfg):
+        if b - a >= resolved_s:
+            continue  # the decimated data hold enough of it: the search's own scan sees it
+        pad = max(0.5, 0.25 * (b - a))
+        out.append((max(float(t[0]), a - pad), min(float(t[-1]) + 1e-6, b + pad)))
+    return tuple(out)
 
 
 #: Positions are used only when at least this fraction of the samples has one.
@@ -534,6 +592,11 @@ class Diagnose:
         cal = ctx.calibration
         if cal is not None:
             init = ModelState(np.asarray(cal.R_body_mag), np.asarray(cal.B_enu_nT))
+        brief = brief_events(rec, al, data, init, self.config,
+                             reference_field_enu_nT=self.reference_field_enu_nT)
+        if brief:
+            data = fit_data_from(rec, al, reference_field_enu_nT=self.reference_field_enu_nT,
+                                 max_samples=self.config.max_samples, full_rate_s=brief)
         diag, res = diagnose_data(data, init, self.config, turntable=rec.turntable is not None)
         data = dataclasses.replace(data, noise_model=res.noise_model)
         sh = detect_sample_hold(rec.mag.t_ns, rec.mag.values)
