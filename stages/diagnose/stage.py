@@ -26,7 +26,7 @@ from pipeline.model.calibration import Calibration
 from pipeline.model.sample_hold import Handling, SampleHold, detect_sample_hold
 from stages.context import Context
 from stages.diagnose.catalogue import EFFECTS
-from stages.diagnose.fit import FitResult, fit, wahba_init
+from stages.diagnose.fit import FitResult, fit
 from stages.diagnose.model import (
     F64,
     IRON_PRIOR,
@@ -113,26 +113,36 @@ def fit_data_from(
                    n_available=n_avail, **pos)
 
 
-#: Samples across an event that the decimated data must hold to resolve it: enough for the
-#: shape of a pass by a dipole (six parameters) or a transient's few knots.
-MIN_EVENT_SAMPLES = 20
+def resolved_s(data: FitData, cfg: DiagnoseConfig) -> float:
+    """Shortest event the search's scan resolves in ``data``, s.
+
+    The scan (:func:`~stages.diagnose.search.scan_windows`) smooths over ``scan_smooth_s``
+    and at least three samples: on data decimated to a coarser spacing, an event shorter
+    than three samples is averaged with noise and lost.
+    """
+    dt = float(np.median(np.diff(data.t_s))) if len(data) > 1 else 0.0
+    return max(cfg.scan_smooth_s, 3.0 * dt)
 
 
 def brief_events(recording: Recording, aligned: AlignedSeries, data: FitData,
-                 init: ModelState | None, cfg: DiagnoseConfig,
+                 state: ModelState, cfg: DiagnoseConfig,
                  reference_field_enu_nT: Sequence[float] | np.ndarray | None = None,
                  ) -> tuple[tuple[float, float], ...]:
     """Windows of events briefer than the decimated ``data`` resolve, found in every sample.
 
     A recording decimated to the sample budget keeps every ``stride``-th sample: an object
     passed for a second in a two-hour survey leaves one or two of them, which no scan tells
-    from noise. The baseline model (``R_body_mag``, ``B_enu``) fitted on ``data`` predicts
-    every sample; what its residual holds on time scales shorter than ``MIN_EVENT_SAMPLES``
-    decimated samples (the residual less its moving mean over that span: what the decimated
-    data could still follow is theirs) is scanned at full rate by the same detector
-    (:func:`~stages.diagnose.search.scan_windows`, its false-alarm rate shared over every
-    sample). Each window it opens that is shorter than those samples span, padded as the
-    search pads a transient, is returned.
+    from noise. The model ``state`` the search selected on ``data`` predicts every sample;
+    what its residual holds on time scales shorter than the scan resolves in ``data``
+    (:func:`resolved_s`; the residual less its moving mean over that span: what the
+    decimated data still follow is the search's own) is scanned at full rate by the same
+    detector (:func:`~stages.diagnose.search.scan_windows`, its false-alarm rate shared over
+    every sample). Each window it opens, padded as the search pads a transient, is
+    returned. Only where the decimation coarsens the scan beyond its own smoothing
+    (``scan_smooth_s``: three decimated samples span more) is this needed: finer data
+    resolve what the scan was built to see, and are left as they are. The selected model,
+    not the baseline: a baseline that lacks a magnet of tens of microtesla is wrong in its
+    rotation too, and its residual then follows every quick turn.
 
     Returns
     -------
@@ -140,25 +150,21 @@ def brief_events(recording: Recording, aligned: AlignedSeries, data: FitData,
         Half-open, s from the first magnetometer sample; empty when ``data`` is not decimated.
 
     """
-    if data.stride <= 1:
-        return ()
+    shortest_s = resolved_s(data, cfg)
+    if data.stride <= 1 or shortest_s <= cfg.scan_smooth_s:
+        return ()  # the decimated data resolve what the scan was built to see
     full = fit_data_from(recording, aligned, reference_field_enu_nT=reference_field_enu_nT)
-    start = wahba_init(data) if init is None else ModelState(init.R_body_mag, init.B_enu_nT)
-    base = fit(start, data)
-    r = full.y_nT - evaluate(base.state, full, jacobian=False).y_nT
-    span = MIN_EVENT_SAMPLES * data.stride
+    r = full.y_nT - evaluate(state, full, jacobian=False).y_nT
+    t = full.t_s
+    span = max(3, int(round(shortest_s / float(np.median(np.diff(t))))))
     if len(r) < 4 * span:
         return ()
     c = np.concatenate([np.zeros((1, 3)), np.cumsum(r, axis=0)])
     i = np.arange(len(r))
     lo, hi = np.clip(i - span // 2, 0, len(r)), np.clip(i + span // 2 + 1, 0, len(r))
     brief = r - (c[hi] - c[lo]) / (hi - lo)[:, None]
-    t = full.t_s
-    resolved_s = MIN_EVENT_SAMPLES * float(np.median(np.diff(data.t_s)))
     out = []
     for a, b in scan_windows(brief, t, cfg):
-        if b - a >= resolved_s:
-            continue  # the decimated data hold enough of it: the search's own scan sees it
         pad = max(0.5, 0.25 * (b - a))
         out.append((max(float(t[0]), a - pad), min(float(t[-1]) + 1e-6, b + pad)))
     return tuple(out)
@@ -592,12 +598,15 @@ class Diagnose:
         cal = ctx.calibration
         if cal is not None:
             init = ModelState(np.asarray(cal.R_body_mag), np.asarray(cal.B_enu_nT))
-        brief = brief_events(rec, al, data, init, self.config,
+        turntable = rec.turntable is not None
+        diag, res = diagnose_data(data, init, self.config, turntable=turntable)
+        brief = brief_events(rec, al, data, res.state, self.config,
                              reference_field_enu_nT=self.reference_field_enu_nT)
         if brief:
+            # the search again, on data that hold every sample of those events
             data = fit_data_from(rec, al, reference_field_enu_nT=self.reference_field_enu_nT,
                                  max_samples=self.config.max_samples, full_rate_s=brief)
-        diag, res = diagnose_data(data, init, self.config, turntable=rec.turntable is not None)
+            diag, res = diagnose_data(data, init, self.config, turntable=turntable)
         data = dataclasses.replace(data, noise_model=res.noise_model)
         sh = detect_sample_hold(rec.mag.t_ns, rec.mag.values)
         extra: dict[str, Any] = {}
