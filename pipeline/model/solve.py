@@ -5,7 +5,9 @@ More in docs/modules.md, ``pipeline.model.solve``.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import contextlib
+import functools
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any, cast
 
@@ -15,14 +17,34 @@ from numpy.typing import NDArray
 F64 = NDArray[np.float64]
 
 
-def gram(A: F64, B: F64) -> F64:
-    """``A.T @ B`` for tall matrices, without multi-threaded BLAS.
+@functools.cache
+def _blas_controller() -> Any:
+    """Return the process' BLAS libraries as threadpoolctl sees them (scanned on first use)."""
+    from threadpoolctl import ThreadpoolController
 
-    On a loaded machine a threaded BLAS call for these small products can stall for tenths
-    of a second (threads spinning for cores others hold); einsum's single-threaded loop is
-    predictable and fast enough for (3N, P) with P up to ~50.
+    return ThreadpoolController()
+
+
+@contextlib.contextmanager
+def one_blas_thread() -> Iterator[None]:
+    """Run the block with BLAS and LAPACK on one thread (restored on exit).
+
+    On a loaded machine a threaded BLAS call for the products and factorizations of a fit
+    can stall for tenths of a second (threads spinning for cores others hold); one thread is
+    predictable. Changing the limit costs microseconds.
     """
-    return np.einsum("np,nq->pq", A, B)
+    with _blas_controller().limit(limits=1, user_api="blas"):
+        yield
+
+
+def gram(A: F64, B: F64) -> F64:
+    """``A.T @ B`` for tall matrices, on one BLAS thread (:func:`one_blas_thread`).
+
+    BLAS rather than einsum's loop: for the diagnosis' Jacobians (3N, P) with P in the
+    hundreds (a step's transitions, a field map) einsum is several times slower.
+    """
+    with one_blas_thread():
+        return cast(F64, A.T @ B)
 
 
 def normal_equations(J: F64, r: F64) -> tuple[F64, F64]:

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -54,6 +55,7 @@ from pipeline.core.geometry import quat_to_matrix, skew, so3_exp
 from pipeline.model.attitude import (
     MEAN_INTERPOLATION_ERROR_SHAPE,
     AttitudeInterpolator,
+    Interpolated,
     attitude_noise_rad,
     interpolation_error_rad,
     interpolation_error_shape,
@@ -197,9 +199,9 @@ class AttitudeTrack:
         return self._interp.noise_factor(self.position(t_s))
 
 
-    @property
+    @cached_property
     def step_s(self) -> float:
-        """Median sample spacing, s."""
+        """Median sample spacing, s (computed once: every evaluation asks for it)."""
         return float(np.median(np.diff(self.t_s))) if len(self.t_s) > 1 else 0.01
 
 
@@ -439,6 +441,11 @@ class Term:
 
     def n_params(self) -> int:
         """Return the number of fitted parameters of the term (``m`` for a partial one)."""
+        return self._n_params
+
+    @cached_property
+    def _n_params(self) -> int:
+        """:meth:`n_params`, counted once per term (a step counts its transitions' modes)."""
         if self.determined:
             return len(self.determined[0])
         k = self.kind
@@ -768,8 +775,14 @@ def sample_weights(data: FitData, tau_s: float) -> F64 | None:
     """
     if data.noise_model is None:
         return None
+    return _weights_at(data, data.track.position(data.t_s - tau_s))
+
+
+def _weights_at(data: FitData, pos: F64) -> F64 | None:
+    """:func:`sample_weights` from where the sensing times fall between attitude samples."""
+    if data.noise_model is None:
+        return None
     s2, c, c_int = data.noise_model
-    pos = data.track.position(data.t_s - tau_s)
     f = data.track.interpolator.noise_factor(pos)
     g = interpolation_error_shape(pos)
     v_mean = (s2 + mean_interpolation_noise_factor(data.track.cubic_weight) * c
@@ -844,11 +857,25 @@ def interpolation_error_proxy(state: ModelState, data: FitData) -> F64:
     return (y_half - y_full) / (2.0**p - 1.0)
 
 
-_CT_CACHE: dict[tuple, tuple[Any, F64]] = {}
+_CT_CACHE: dict[tuple, tuple[Any, _Attitude]] = {}
 
 
-def _CT(track: AttitudeTrack, t_s: F64, key: tuple | None = None, owners: Any = None) -> F64:
-    """``C_enu_body(t).T`` (N, 3, 3); cached per (track, stamps, shift) during a fit.
+@dataclass(frozen=True)
+class _Attitude:
+    """The attitude at some sensing times: ``C.T`` (N, 3, 3) and the interpolation itself.
+
+    The interpolation (:class:`pipeline.model.attitude.Interpolated`) also gives where each
+    time falls between two attitude samples and, computed on first use, the angular velocity
+    there: the weights and the time offset's column of the same evaluation read them.
+    """
+
+    Ct: F64
+    at: Interpolated
+
+
+def _attitude(track: AttitudeTrack, t_s: F64, key: tuple | None = None,
+              owners: Any = None) -> _Attitude:
+    """Return the attitude of ``track`` at ``t_s``; cached per (track, stamps, shift) in a fit.
 
     The cache keeps a reference to the objects whose ids form the key (``owners``), so an id
     cannot be reused by another array while its entry lives.
@@ -857,12 +884,20 @@ def _CT(track: AttitudeTrack, t_s: F64, key: tuple | None = None, owners: Any = 
         hit = _CT_CACHE.get(key)
         if hit is not None and all(a is b for a, b in zip(hit[0], owners, strict=True)):
             return hit[1]
-    out = np.ascontiguousarray(np.swapaxes(quat_to_matrix(track.at(t_s)), -1, -2))
+    tq = np.asarray(t_s, dtype=float) - float(track.t_s[0])  # as AttitudeTrack.at
+    at = track.interpolator.at_rel_s(tq)
+    out = _Attitude(np.ascontiguousarray(np.swapaxes(quat_to_matrix(at.q_enu_body), -1, -2)),
+                    at)
     if key is not None:
         if len(_CT_CACHE) > 48:
             _CT_CACHE.clear()  # bounded: the cache only spans the iterations of one fit
         _CT_CACHE[key] = (owners, out)
     return out
+
+
+def _CT(track: AttitudeTrack, t_s: F64, key: tuple | None = None, owners: Any = None) -> F64:
+    """``C_enu_body(t).T`` (N, 3, 3); cached per (track, stamps, shift) during a fit."""
+    return _attitude(track, t_s, key, owners).Ct
 
 
 def matvec_rows(M: F64, v: F64) -> F64:
@@ -936,7 +971,8 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
     s = t - tau  # sensing time (CONVENTIONS: tau > 0 means stamps are late)
     base = (id(data.track), id(t), n, tau, h)
     own = (data.track, t)
-    Ct = _CT(data.track, s, base + (0,), own)
+    att = _attitude(data.track, s, base + (0,), own)
+    Ct = att.Ct
     Cp = _CT(data.track, s + h, base + (1,), own)
     Cm = _CT(data.track, s - h, base + (-1,), own)
     Cdot = (Cp - Cm) / (2.0 * h)  # d/dt C.T, central difference of the interpolated track
@@ -1001,7 +1037,8 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
     DRt = D @ R.T
     Gp = field_jacobian(Ct, R, D, E, Cdot)  # (J2), before the tilt
     G = Gp @ TT
-    w = sample_weights(data, tau)
+    # the positions of the interpolation at t - tau, as sample_weights(data, tau) finds them
+    w = _weights_at(data, att.at.position) if data.noise_model is not None else None
     sqrt_w = None if w is None else np.sqrt(w)
     if not jacobian:
         return Evaluation(y, None, ydot0, G, sqrt_w)
@@ -1025,9 +1062,10 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             J[:, :, i : i + 3] = np.eye(3)
         elif k is EffectKind.HARD_IRON_STEP:
             s_step, phi = term.step_profile(t)
-            J[:, :, i : i + 3] = s_step[:, None, None] * np.eye(3)
-            for j in range(phi.shape[1]):  # the transitions' knots, 3 each
-                J[:, :, i + 3 + 3 * j : i + 6 + 3 * j] = phi[:, j, None, None] * np.eye(3)
+            # component r_ of the plateau's offset and of each transition mode's (3 each)
+            for r_ in range(3):
+                J[:, r_, i + r_] = s_step
+                J[:, r_, i + 3 + r_ : i + 3 + 3 * phi.shape[1] : 3] = phi
         elif k is EffectKind.SOFT_IRON:
             # dy/ds_k = S_k m + E S_k mdot
             J[:, :, i : i + 5] = soft_iron_jacobian(_SOFT_BASIS, m, mdot, E)  # (J4)
@@ -1035,7 +1073,7 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             # b(t - tau) with the attitude re-interpolated at t - tau: db/dtau = omega x b with
             # omega the exact interpolated rate at t - tau (pipeline.model.forward, (J5));
             # dbdot/dtau = -bddot for the eddy regressor
-            J[:, :, i] = time_offset_jacobian(data.track.omega_body(s), b, bddot, R, D, E)
+            J[:, :, i] = time_offset_jacobian(att.at.omega_body_rad_s, b, bddot, R, D, E)
         elif k is EffectKind.EDDY_CURRENT:
             # y_i += E_ij ydot0_j (row-major E); beside a time offset only the traceless part
             for r_ in range(3):

@@ -23,7 +23,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.signal import find_peaks
 
-from pipeline.model.forward import dipole_matrix
+from pipeline.model.forward import DIPOLE_NT, MIN_SOURCE_DISTANCE_M, dipole_matrix
 from stages.diagnose.fit import FitResult
 from stages.diagnose.model import (
     F64,
@@ -120,20 +120,11 @@ def locate_source(cur: FitResult, data: FitData, window_s: tuple[float, float],
         if level:
             cands = np.vstack([centre[None, :], cands])
         for psi in (yaws if level == 0 or best is None else np.array([best[2]])):
-            Q = rot_z(float(psi))
-            for c in cands:
-                X = np.matmul(G, dipole_matrix((p - c) @ Q.T))  # (n, 3, 3): dy/dm, m in ENU
-                Xc = X.reshape(-1, 3)  # (3n, 3), rows as r's
-                Xc = Xc - Qn @ (Qn.T @ Xc)
-                A = Xc.T @ Xc
-                g = Xc.T @ r_perp.reshape(-1)
-                try:
-                    m = np.linalg.solve(A + 1e-12 * np.trace(A) * np.eye(3), g)
-                except np.linalg.LinAlgError:
-                    continue
-                gain = float(g @ m)
-                if best is None or gain > best[0]:
-                    best = (gain, np.r_[c, m], float(psi))
+            gains, moments = _dipole_fits(G, p, cands, float(psi), Qn, r_perp)
+            # the first of the largest gains, as a scan in candidate order keeps it
+            k = int(np.argmax(gains))
+            if np.isfinite(gains[k]) and (best is None or gains[k] > best[0]):
+                best = (float(gains[k]), np.r_[cands[k], moments[k]], float(psi))
         if best is None:
             return None
         centre = best[1][:3]
@@ -143,6 +134,62 @@ def locate_source(cur: FitResult, data: FitData, window_s: tuple[float, float],
         return None
     value = best[1] if not fit_yaw else np.r_[best[1], best[2]]
     return value, fit_yaw
+
+
+def _dipole_fits(G: F64, p: F64, cands: F64, psi: float, Qn: F64, r_perp: F64,
+                 batch: int = 32) -> tuple[F64, F64]:
+    """Moment and gain of a dipole at each candidate place, the nuisance columns taken out.
+
+    For each candidate ``c`` (K, 3) in the position frame turned by ``psi``: the columns
+    ``X = G P(r)`` (3n, 3) of the moment, ``r = Rz(psi) (p - c)`` and ``P`` of
+    :func:`pipeline.model.forward.dipole_matrix` (so ``X = 100 (3 (G u) u' - G) / |r|^3``),
+    less their projection on the orthonormal nuisance columns ``Qn`` (3n, q); the moment
+    ``m`` solving ``(X'X + 1e-12 tr(X'X) I) m = X' r_perp``; the gain ``m' X' r_perp``, the
+    decrease of the residual sum of squares. Candidates are handled ``batch`` at a time, their
+    columns side by side so that the projection is one product. Returns the gains (K,),
+    ``-inf`` where the system is singular, and the moments (K, 3), A m^2 in ENU.
+    """
+    n, K = len(p), len(cands)
+    Q = rot_z(psi)
+    Gt = np.swapaxes(G, 1, 2)
+    rf = r_perp.reshape(-1)
+    gains = np.full(K, -np.inf)
+    moments = np.zeros((K, 3))
+    for k0 in range(0, K, batch):
+        c = cands[k0 : k0 + batch]
+        b = len(c)
+        r = (p[:, None, :] - c[None, :, :]) @ Q.T  # (n, b, 3)
+        d = np.maximum(np.sqrt(np.sum(r * r, axis=2)), MIN_SOURCE_DISTANCE_M)  # (n, b)
+        u = r / d[:, :, None]
+        Gu = np.matmul(u, Gt)  # (n, b, 3): G_n u
+        # X[n, i, b, k] = 100 (3 (G u)_i u_k - G_ik) / d^3: rows as r's, 3 columns each
+        X = 3.0 * np.swapaxes(Gu, 1, 2)[:, :, :, None] * u[:, None, :, :]
+        X -= G[:, :, None, :]
+        X *= (DIPOLE_NT / d**3)[:, None, :, None]
+        Xc = X.reshape(3 * n, 3 * b)
+        Xc = Xc - Qn @ (Qn.T @ Xc)
+        Xb = Xc.reshape(3 * n, b, 3)
+        A = np.empty((b, 3, 3))
+        for i in range(3):
+            for j in range(i, 3):
+                A[:, i, j] = A[:, j, i] = np.sum(Xb[:, :, i] * Xb[:, :, j], axis=0)
+        g = (rf @ Xc).reshape(b, 3)
+        Ar = A + (1e-12 * np.trace(A, axis1=1, axis2=2))[:, None, None] * np.eye(3)
+        try:
+            m = np.linalg.solve(Ar, g[:, :, None])[:, :, 0]
+            ok = np.ones(b, dtype=bool)
+        except np.linalg.LinAlgError:  # one singular system: solve them one by one
+            m, ok = np.zeros((b, 3)), np.zeros(b, dtype=bool)
+            for j in range(b):
+                try:
+                    m[j] = np.linalg.solve(Ar[j], g[j])
+                    ok[j] = True
+                except np.linalg.LinAlgError:
+                    continue
+        gain = np.sum(g * m, axis=1)
+        gains[k0 : k0 + b] = np.where(ok & np.isfinite(gain), gain, -np.inf)
+        moments[k0 : k0 + b] = m
+    return gains, moments
 
 
 def near_far_ratio(term: Term, value: F64, data: FitData) -> float:

@@ -24,6 +24,7 @@ from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
 from pipeline.core.recording import AlignedSeries, Recording
 from pipeline.model.calibration import Calibration
 from pipeline.model.sample_hold import Handling, SampleHold, detect_sample_hold
+from pipeline.model.solve import one_blas_thread
 from stages.context import Context
 from stages.diagnose.catalogue import EFFECTS
 from stages.diagnose.fit import FitResult, fit
@@ -589,6 +590,13 @@ class Diagnose:
 
     def run(self, ctx: Context) -> Context:
         """Diagnose ``ctx.recording``; the final model replaces ``ctx.calibration``."""
+        # hundreds of fits of a few hundred parameters: their factorizations run on one BLAS
+        # thread (pipeline.model.solve.one_blas_thread)
+        with one_blas_thread():
+            return self._run(ctx)
+
+    def _run(self, ctx: Context) -> Context:
+        """:meth:`run` itself."""
         rec, al = ctx.need_recording(), ctx.need_aligned()
         data = fit_data_from(
             rec, al, reference_field_enu_nT=self.reference_field_enu_nT,

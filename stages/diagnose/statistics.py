@@ -27,7 +27,7 @@ from stages.diagnose.model import (
     term_sigma,
 )
 from stages.diagnose.result import DiagnoseConfig
-from stages.estimators.base import RELATIVE_INFO_THRESHOLD, analyse
+from stages.estimators.base import RELATIVE_INFO_THRESHOLD, information_ratio
 
 #: Yaw grid of the search for a position frame rotated about Up (``field_gradient``), deg.
 YAW_GRID_DEG = np.arange(0.0, 360.0, 10.0)
@@ -192,9 +192,11 @@ def score_from_J(
     p0 = cur.state.n_params()
     if data.B_known_enu_nT is not None:
         keep = np.r_[0:3, 6:p0]
+        Jb = J[:, keep]
     else:
         keep = np.arange(p0)
-    Jb, Jc = J[:, keep], J[:, p0:]
+        Jb = J[:, :p0]  # the same columns, without a copy
+    Jc = J[:, p0:]
     if held is None:
         held = held_columns(cur.state, data)
     n_held = 0 if held is None else held.shape[1]
@@ -253,12 +255,9 @@ def score_from_J(
         ze = V.T @ ((ge - (Hbc / sb[:, None]).T @ xbe) / sc)
         stat_int = float(np.sum(ze[good] ** 2 / w[good])) / sigma**2
     k = int(np.count_nonzero(good)) if partial else term.n_params()
-    if prior is None and base_prior is None:
-        rot_with = _rot_efficiency(np.concatenate([Jb, Jc], 1))
-    else:
-        # with a field_map (its ridge included), from the blocks already formed: the map's
-        # columns make the full product the costliest step of the test
-        rot_with = _rot_efficiency_H(np.block([[Hbb, Hbc], [Hbc.T, Hcc]]))
+    # from the blocks already formed (with a field_map's ridge when there is one): the full
+    # product of [Jb, Jc] would be the costliest step of the test
+    rot_with = _rot_efficiency_H(np.block([[Hbb, Hbc], [Hbc.T, Hcc]]))
     # what the term itself costs the rotation: below 1 when it trades against R
     rot_eff = rot_with if rot_with < 0.5 * rot_base else 1.0
     return ScoreTest(term, stat, max(eff, 0.0), max(k, 1), rot_eff, stat_int)
@@ -292,7 +291,7 @@ def _base_information(Jb: np.ndarray) -> tuple[np.ndarray, float]:
             and np.array_equal(_BASE_CACHE[0][0], Jb):
         return _BASE_CACHE[0][1], _BASE_CACHE[0][2]
     H = gram(Jb, Jb)
-    rot = _rot_efficiency(Jb)
+    rot = _rot_efficiency_H(H)
     _BASE_CACHE[:] = [(Jb.copy(), H, rot)]
     return H, rot
 
@@ -304,7 +303,7 @@ def _rot_efficiency(J: np.ndarray) -> float:
 
 def _rot_efficiency_H(H: np.ndarray) -> float:
     """:func:`_rot_efficiency` from the information ``J.T J`` (rotation in its first 3 rows)."""
-    lam = analyse(H, {"rot": slice(0, 3)}).block_ratio["rot"]
+    lam = information_ratio(H, slice(0, 3))
     live = lam[lam >= RELATIVE_INFO_THRESHOLD]
     return float(np.min(live)) if live.size else 1.0
 

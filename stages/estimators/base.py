@@ -312,34 +312,13 @@ def analyse(
         b = idx[sl]
         if b.size == 0:
             continue
-        o = np.setdiff1d(idx, b)
-        Hbb = H[np.ix_(b, b)]
-        if o.size:
-            Hoo = H[np.ix_(o, o)]
-            Hob = H[np.ix_(o, b)]
-            Ho_inv = solve_many_truncated(Hoo, Hob, threshold)
-            M = Hbb - Hob.T @ Ho_inv
-        else:
-            M = Hbb
-        M = 0.5 * (M + M.T)
-        hd = np.diag(Hbb)
-        zero_info = hd <= 1e-20 * max(float(np.max(np.diag(H))), 1e-300)
         nb = len(b)
-        lam_all = np.zeros(nb)
+        lam_all, vec, live, zero_info = _block_eig(H, b, threshold)
         nul_list = [np.eye(nb)[:, i] for i in np.flatnonzero(zero_info)]
-        live = np.flatnonzero(~zero_info)
-        if live.size:
-            db = np.sqrt(hd[live])
-            Bn = Hbb[np.ix_(live, live)] / db[:, None] / db[None, :]
-            Mn = M[np.ix_(live, live)] / db[:, None] / db[None, :]
-            lam, vec = _eigh_generalised(Mn, Bn + 1e-12 * np.eye(live.size))
-            vec = vec / db[:, None]
-            vec = vec / np.linalg.norm(vec, axis=0, keepdims=True)
-            lam_all[live] = lam
-            for j in np.flatnonzero(lam < threshold):
-                full = np.zeros(nb)
-                full[live] = vec[:, j]
-                nul_list.append(full)
+        for j in np.flatnonzero(lam_all[live] < threshold):
+            full = np.zeros(nb)
+            full[live] = vec[:, j]
+            nul_list.append(full)
         block_ratio[name] = np.sort(lam_all)
         # Directions with no information at all (H v = 0 inside the block) make the
         # generalised problem 0 = lambda * 0; take them from the null space of the full H.
@@ -355,6 +334,50 @@ def analyse(
             nul = U[:, sv > 1e-6 * sv[0]]
         block_null[name] = nul
     return Analysis(cov, null, block_null, block_ratio)
+
+
+def _block_eig(H: F64, b: np.ndarray, threshold: float) -> tuple[F64, F64, np.ndarray,
+                                                                 np.ndarray]:
+    """Solve the generalised eigenproblem ``M_b v = lambda H_bb v`` of block ``b`` (analyse).
+
+    Returns ``lambda`` per coordinate of the block (zero where it has no information at
+    all), the unit eigenvectors of the informed coordinates, their indices and the mask of
+    the uninformed ones.
+    """
+    idx = np.arange(H.shape[0])
+    o = np.setdiff1d(idx, b)
+    Hbb = H[np.ix_(b, b)]
+    if o.size:
+        Hoo = H[np.ix_(o, o)]
+        Hob = H[np.ix_(o, b)]
+        Ho_inv = solve_many_truncated(Hoo, Hob, threshold)
+        M = Hbb - Hob.T @ Ho_inv
+    else:
+        M = Hbb
+    M = 0.5 * (M + M.T)
+    hd = np.diag(Hbb)
+    zero_info = hd <= 1e-20 * max(float(np.max(np.diag(H))), 1e-300)
+    lam_all = np.zeros(len(b))
+    live = np.flatnonzero(~zero_info)
+    vec = np.zeros((0, 0))
+    if live.size:
+        db = np.sqrt(hd[live])
+        Bn = Hbb[np.ix_(live, live)] / db[:, None] / db[None, :]
+        Mn = M[np.ix_(live, live)] / db[:, None] / db[None, :]
+        lam, vec = _eigh_generalised(Mn, Bn + 1e-12 * np.eye(live.size))
+        vec = vec / db[:, None]
+        vec = vec / np.linalg.norm(vec, axis=0, keepdims=True)
+        lam_all[live] = lam
+    return lam_all, vec, live, zero_info
+
+
+def information_ratio(H: F64, block: slice, threshold: float = RELATIVE_INFO_THRESHOLD) -> F64:
+    """``analyse(H, {name: block}).block_ratio[name]`` without the covariance and null space.
+
+    The same numbers (the same computation), for callers that need only how much of a
+    block's information survives the other parameters (one factorization of ``H`` less).
+    """
+    return np.sort(_block_eig(H, np.arange(H.shape[0])[block], threshold)[0])
 
 
 def solve_many_truncated(H: F64, G: F64, threshold: float) -> F64:
