@@ -233,8 +233,8 @@ def scan_windows(
     The squared residual norm is normalised by a robust noise scale, smoothed over
     ``scan_smooth_s``, and compared with its own median plus ``scan_sigma`` robust sigmas of
     the smoothed series, and with the level the residual's own correlation gives
-    (:func:`block_mean_cov`, the chi-square tail at :data:`SCAN_FALSE_ALARM` shared by the
-    recording's positions): a residual correlated over many samples averages over fewer
+    (:func:`block_mean_var`, the chi-square tail at :data:`SCAN_FALSE_ALARM` shared by the
+    recording's windows): a residual correlated over many samples averages over fewer
     independent ones, and its smoothed norm strays further by chance. A window opens where the
     smoothed statistic crosses that level and is widened to where it falls back to half-way
     to the empirical level (the higher bar decides whether there is an event, not how long it
@@ -267,11 +267,8 @@ def scan_windows(
     # the level noise alone reaches with the residual's own correlation: the moving mean of
     # z over w samples is chi-square over its nu degrees of freedom, 3 per independent
     # sample, and w samples are w / c independent ones, c the variance inflation of their
-    # mean (a bound: squares are less correlated than the residual itself); 3 only if the
-    # spread is the same along every direction (see the moving-mean scan below): attitude
-    # noise crossed with the field has 2
-    cov_w = block_mean_cov(residual_nT, w)
-    nu = 3.0 * _directions(cov_w) * sig * sig / max(float(np.trace(cov_w)), 1e-30)
+    # mean (a bound: squares are less correlated than the residual itself)
+    nu = 9.0 * sig * sig / max(block_mean_var(residual_nT, w), 1e-30)
     level_emp = max(med + cfg.scan_sigma * mad, med + 2.0)
     level = max(level_emp, med * float(chi2.isf(_false_alarm(n, w), nu) / chi2.median(nu)))
 
@@ -314,22 +311,11 @@ def scan_windows(
     mad_v = float(1.4826 * np.median(np.abs(sv - med_v))) + 1e-12
     # in units of the moving mean's spread under the residual's own correlation (a mean over
     # wk correlated samples varies more than white noise says): sv is then that spread times
-    # chi-square(3) / 3 only if the spread is the same along every direction; attitude noise
-    # crossed with the field lies in the plane normal to it, and a quadratic form of unequal
-    # variances has a longer tail, that of chi-square over its effective degrees of freedom
-    # (sum of the variances)^2 / (sum of their squares), between 1 and 3
-    cov = block_mean_cov(residual_nT, wk)
-    spread = wk * float(np.trace(cov)) / (3 * sig * sig)
-    nu_v = _directions(cov)
-    lev_c = spread * float(chi2.isf(_false_alarm(n, wk), nu_v)) / nu_v
+    # chi-square(3) / 3
+    spread = wk * block_mean_var(residual_nT, wk) / (3 * sig * sig)
+    lev_c = spread * float(chi2.isf(_false_alarm(n, wk), 3)) / 3.0
     lev_v = max(med_v + cfg.scan_sigma * mad_v, med_v + 2.0)
     return windows(_excess_runs(sv, med_v, lev_v, lev_c))
-
-
-def _directions(cov: np.ndarray) -> float:
-    """Effective number of directions (1-3) of a spread: (trace)^2 / (sum of squares)."""
-    return float(np.clip(np.trace(cov) ** 2 / max(float(np.sum(cov * cov)), 1e-30), 1.0,
-                         float(len(cov))))
 
 
 #: Chance that noise alone opens a window anywhere in a recording, per scan.
@@ -337,16 +323,8 @@ SCAN_FALSE_ALARM = 1e-3
 
 
 def _false_alarm(n: int, w: int) -> float:
-    """Tail probability at each sample: SCAN_FALSE_ALARM shared by the ``n`` positions.
-
-    The moving mean over ``w`` samples is compared with its level at every sample, not at
-    ``n / w`` disjoint windows: its maximum over a recording exceeds a level many times more
-    often than ``n / w`` independent tails say (the sliding window peaks between the disjoint
-    windows' centres). Shared by every position, the bound holds whatever their overlap, and
-    the tail is so steep that the level rises little.
-    """
-    del w  # the union bound does not depend on the overlap of the windows
-    return SCAN_FALSE_ALARM / max(1.0, float(n))
+    """Per-window tail probability: SCAN_FALSE_ALARM shared by the ``n / w`` windows."""
+    return SCAN_FALSE_ALARM / max(1.0, n / max(w, 1))
 
 
 #: Lag, in blocks, of the block-mean differences :func:`block_mean_var` measures.
@@ -362,34 +340,13 @@ def block_mean_var(x: np.ndarray, w: int) -> float:
     residual's own correlation, not the events the scan looks for. A mean over ``w``
     correlated samples varies more than ``var / w``; this is how much more.
     """
-    return float(np.trace(block_mean_cov(x, w)))
-
-
-def _mad(d: np.ndarray) -> np.ndarray:
-    """Robust spread (1.4826 MAD) of ``d`` along its first axis."""
-    return np.asarray(1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0))
-
-
-def block_mean_cov(x: np.ndarray, w: int) -> np.ndarray:
-    """Covariance (m, m) of a mean over ``w`` consecutive samples of ``x`` (n, m).
-
-    Measured as :func:`block_mean_var` (its trace); the covariances robustly too, from the
-    spreads of the sums and differences of the standardised columns (Gnanadesikan-Kettenring).
-    """
     n = len(x) // max(w, 1)
     if n < 4 * BLOCK_LAG:
-        return np.atleast_2d(np.cov(np.asarray(x, dtype=float), rowvar=False,
-                                        bias=True)) / max(w, 1)
+        return float(np.sum(np.var(x, axis=0))) / max(w, 1)
     m = np.asarray(x, dtype=float)[: n * w].reshape(n, w, -1).mean(axis=1)
     d = m[BLOCK_LAG:] - m[:-BLOCK_LAG]
-    s = _mad(d)
-    cov = np.diag(s * s)
-    u = d / np.maximum(s, 1e-300)
-    for i in range(d.shape[1]):
-        for j in range(i):
-            plus, minus = float(_mad(u[:, i] + u[:, j])), float(_mad(u[:, i] - u[:, j]))
-            cov[i, j] = cov[j, i] = s[i] * s[j] * (plus * plus - minus * minus) / 4.0
-    return np.asarray(cov / 2.0)
+    mad = 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0)
+    return float(np.sum(mad * mad) / 2.0)
 
 
 def refine_step(
