@@ -13,6 +13,7 @@ from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
+from threadpoolctl import ThreadpoolController
 
 F64 = NDArray[np.float64]
 
@@ -20,8 +21,6 @@ F64 = NDArray[np.float64]
 @functools.cache
 def _blas_controller() -> Any:
     """Return the process' BLAS libraries as threadpoolctl sees them (scanned on first use)."""
-    from threadpoolctl import ThreadpoolController
-
     return ThreadpoolController()
 
 
