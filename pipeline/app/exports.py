@@ -124,7 +124,7 @@ def _held_lines(cal: Calibration, key: str) -> list[str]:
     if key == "offset_nT" and cal.offset_nT is not None and held.get("hard_iron"):
         o = np.asarray(cal.offset_nT, dtype=float)
         return [f"the offset's component along mag-frame {_vec(u, '+.2f')} was not determined "
-                f"by the motion: it is held at {float(o @ np.asarray(u, float)):.0f} nT, not "
+                f"by the motion: it is held at {round(float(o @ np.asarray(u, float)))} nT, not "
                 "measured (sigma_offset_nT gives its prior's sigma); tilt the platform more or "
                 "give a reference field to determine it" for u in held["hard_iron"]]
     if key == "D" and cal.D is not None and held.get("soft_iron"):
