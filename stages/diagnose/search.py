@@ -34,6 +34,13 @@ from stages.diagnose.model import (
     interpolation_error_proxy,
     term_params,
 )
+from stages.diagnose.nested import (
+    MIN_STEP_S,
+    RAMP_REACH_S,
+    refine_step,
+    simplest,
+    without_term,
+)
 from stages.diagnose.partial import PARTIAL_KINDS, held_words, partial_candidate
 from stages.diagnose.result import DiagnoseConfig, Diagnosis, Finding, Signature
 from stages.diagnose.sources import (
@@ -98,15 +105,6 @@ NOISE_MODEL_RTOL = 0.2
 #: Largest time offset the search is built for, s (lags up to +-100 ms).
 MAX_LAG_S = 0.1
 
-#: Shortest ``hard_iron_step``, s: an object brought near the sensor and left there for a
-#: while. A shorter excess (the closest pass by a magnet in the room, where its dipole
-#: field is least exact; a knock) is no object riding on the platform.
-MIN_STEP_S = 0.5
-
-#: An excess this close to an edge of a ``hard_iron_step`` already in the model is the same
-#: magnet moving (put down, taken away), s: it becomes that step's transition, not a step
-#: of its own.
-RAMP_REACH_S = 1.0
 #: Longest transition modelled as a curve, s: carrying a magnet onto a platform by hand
 #: takes a fraction of a second to a second.
 MAX_RAMP_S = 2.0
@@ -192,7 +190,7 @@ def _ramp_fit(cur: FitResult, i: int, term: Term, data: FitData, cfg: DiagnoseCo
     ratio ``(RSS_cur - RSS_new) / sigma^2`` (the score test needs the step at zero, which a
     transition of a step in the model is not).
     """
-    wo = _without(cur.state, i)
+    wo = without_term(cur.state, i)
     start = np.zeros(term.n_params())
     start[:3] = cur.state.values[i][:3]
     res = fit(dataclasses.replace(wo, terms=wo.terms + (term,), values=wo.values + (start,)),
@@ -347,31 +345,6 @@ def block_mean_var(x: np.ndarray, w: int) -> float:
     d = m[BLOCK_LAG:] - m[:-BLOCK_LAG]
     mad = 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0)
     return float(np.sum(mad * mad) / 2.0)
-
-
-def refine_step(
-    w: tuple[float, float], residual_nT: np.ndarray, t_s: np.ndarray, reach_s: float = 1.0
-) -> tuple[float, float]:
-    """Change-point refinement of an offset window: maximise the explained residual energy.
-
-    For a constant offset in ``[a, b)`` the least-squares gain is ``|sum r|^2 / n``; both
-    edges are searched within ``reach_s`` of the scan's window using cumulative sums.
-    """
-    n = len(t_s)
-    c = np.vstack([np.zeros(3), np.cumsum(residual_nT, axis=0)])
-    ia = np.flatnonzero((t_s >= w[0] - reach_s) & (t_s <= w[0] + reach_s))
-    ib = np.flatnonzero((t_s >= w[1] - reach_s) & (t_s <= w[1] + reach_s)) + 1
-    if ia.size == 0 or ib.size == 0:
-        return w
-    ia = ia[:: max(1, ia.size // 150)]
-    ib = ib[:: max(1, ib.size // 150)]
-    S = c[ib][None, :, :] - c[ia][:, None, :]
-    cnt = (ib[None, :] - ia[:, None]).astype(float)
-    gain = np.where(cnt > 0, np.sum(S * S, axis=-1) / np.maximum(cnt, 1.0), -np.inf)
-    i, j = np.unravel_index(int(np.argmax(gain)), gain.shape)
-    a = float(t_s[ia[i]])
-    b = float(t_s[ib[j]]) if ib[j] < n else float(t_s[-1]) + 1e-6
-    return (a, b) if b > a else w
 
 
 def _axes(x: np.ndarray) -> list[str]:
@@ -787,7 +760,7 @@ def diagnose_data(
                 # otherwise pay for it)
                 i += 1
                 continue
-            st_wo = _without(cur.state, i)
+            st_wo = without_term(cur.state, i)
             res_wo = fit(st_wo, data)
             n_eff = effective_samples(cur, data)
             bic_cur = bic(cur.rss, n_eff, cur.state.n_free())
@@ -802,42 +775,12 @@ def diagnose_data(
                 cur = res_wo
                 cv_cur = heldout_rms(cur.state, data, cfg)
                 continue
-            simpler_term = _simpler(t_i)
-            if simpler_term is not None and simpler_term.kind not in {t.kind for t in st_wo.terms}:
-                res_s = fit(res_wo.state.with_term(simpler_term), data)
-                if bic(res_s.rss, n_eff, res_s.state.n_free()) - bic_cur < cfg.bic_margin:
-                    # the simpler nested term explains the data as well: it replaces the other
-                    cv_s = heldout_rms(res_s.state, data, cfg)
-                    st_s = score_test(res_wo, simpler_term, data, robust_sigma(res_wo.residual_nT))
-                    dbic_s = bic(res_s.rss, n_eff, res_s.state.n_free()) - bic(
-                        res_wo.rss, n_eff, res_wo.state.n_free())
-                    cv_wo = heldout_rms(res_wo.state, data, cfg)
-                    findings.pop(i)
-                    findings.append(_finding(res_wo, res_s, simpler_term, st_s, dbic_s, cv_wo, cv_s,
-                                             data))
-                    dropped.add((t_i.kind, t_i.windows_s))
-                    cur, cv_cur = res_s, cv_s
-                    continue
             i += 1
-        # pieces of one offset that abut along seconds (a magnet moved a little while it
-        # rested, or an offset the scan saw in parts) are one event when one offset across
-        # them fits within the margin: the simpler of a nested pair, as everywhere
-        while (mp := _merged_pieces(cur, data, cfg)) is not None:
-            j_m, res_m = mp
-            dropped.add((EffectKind.HARD_IRON_STEP, cur.state.terms[j_m].windows_s))
-            findings.pop(j_m)
-            cur = res_m
-            cv_cur = heldout_rms(cur.state, data, cfg)
-        # a disturbance named while other terms were missing may be a magnet's step: the
-        # nested pair is compared again with the model of the moment, the simpler kept
-        while (sw := _step_for_disturbance(cur, data, cfg)) is not None:
-            i_d, last = sw
-            dropped.add((EffectKind.DISTURBANCE, cur.state.terms[i_d].windows_s))
-            # its evidence, window and signature are measured in the final order
-            # (_chain_evidence), as for every finding
-            findings[i_d] = dataclasses.replace(
-                findings[i_d], effect=EffectKind.HARD_IRON_STEP.value, told_apart="")
-            cur = fit(_moved_last_to(last.state, i_d), data)
+        # a term named while other terms were missing may contain a simpler description
+        # that now explains the data as well (a disturbance that is a magnet's step, two
+        # pieces of one offset, a time offset inside an eddy term): the simpler is kept
+        while (sm := simplest(cur, findings, data, cfg, dropped)) is not None:
+            cur, findings = sm
             cv_cur = heldout_rms(cur.state, data, cfg)
     # the evidence of each finding was measured against the model of the moment it was added;
     # later rounds may have dropped or replaced terms before it. Re-measure it as a build-up in
@@ -968,18 +911,6 @@ def _chain_evidence(
     return out
 
 
-def _simpler(term: Term) -> Term | None:
-    """Return the simplest nested special case of ``term``, or None.
-
-    A time offset inside eddy currents, a mag-frame step inside a free ENU disturbance.
-    """
-    if term.kind in NESTED_SIMPLER:
-        return Term(NESTED_SIMPLER[term.kind])
-    if term.kind is EffectKind.DISTURBANCE:
-        return Term(EffectKind.HARD_IRON_STEP, term.windows_s)
-    return None
-
-
 def _replacement_fit(
     cur: FitResult, simple: EffectKind, term: Term, data: FitData, cfg: DiagnoseConfig
 ) -> tuple[float, ScoreTest, FitResult] | None:
@@ -990,7 +921,7 @@ def _replacement_fit(
     is made against the model without ``simple``.
     """
     i = next(k for k, t in enumerate(cur.state.terms) if t.kind is simple)
-    wo = fit(_without(cur.state, i), data)
+    wo = fit(without_term(cur.state, i), data)
     res = fit(wo.state.with_term(term), data)
     if not res.rss < cur.rss:
         return None
@@ -1157,17 +1088,6 @@ def _drift_beside_held_transients(with_drift: FitResult, without: FitResult, dat
     return _gains_with_held(with_drift, without, i_d, LOCAL_KINDS, data, cfg)
 
 
-def _without(state: ModelState, i: int) -> ModelState:
-    """``state`` without its ``i``-th term."""
-    t = state.terms[i]
-    return dataclasses.replace(
-        state,
-        terms=state.terms[:i] + state.terms[i + 1:],
-        values=state.values[:i] + state.values[i + 1:],
-        T_enu=np.eye(3) if t.kind is EffectKind.AXIS_TILT else state.T_enu,
-    )
-
-
 def _transition_words(term: Term) -> str:
     """Words on a step's transitions: when the magnet was carried on and off, s."""
     if term.kind is not EffectKind.HARD_IRON_STEP or not term.ramps_s:
@@ -1179,91 +1099,6 @@ def _transition_words(term: Term) -> str:
     return (". One event: the object was " + " and ".join(parts) + "; the field while it "
             "moved is modelled as a smooth curve from no offset to the plateau (and back), "
             "not as further steps")
-
-
-#: Steps whose windows lie closer than this are candidates for one event, s.
-ABUT_S = RAMP_REACH_S
-
-
-def _merged_pieces(cur: FitResult, data: FitData, cfg: DiagnoseConfig
-                   ) -> tuple[int, FitResult] | None:
-    """Merge the first pair of abutting ``hard_iron_step`` terms that one step explains.
-
-    Two steps whose windows touch or overlap (within :data:`ABUT_S`) are replaced by one
-    step over both: the onset of the earlier and the release of the later are kept as its
-    transitions, its offset starts at their duration-weighted mean. The pair is nested in
-    the one step plus a second offset, so the merged step is kept when the BIC it loses is
-    within ``bic_margin`` (both with one effective sample count).
-
-    Returns
-    -------
-    (index of the piece removed, the refitted merged model) or None
-        The merged step takes the place of the piece earlier in the model.
-
-    """
-    steps = [k for k, t in enumerate(cur.state.terms)
-             if t.kind is EffectKind.HARD_IRON_STEP and len(t.windows_s) == 1]
-    for ii, i in enumerate(steps):
-        for j in steps[ii + 1:]:
-            (a_i, b_i), (a_j, b_j) = cur.state.terms[i].windows_s[0], \
-                cur.state.terms[j].windows_s[0]
-            if a_j - b_i > ABUT_S or a_i - b_j > ABUT_S:
-                continue
-            first, last = (i, j) if a_i <= a_j else (j, i)
-            t_f, t_l = cur.state.terms[first], cur.state.terms[last]
-            a, b = t_f.windows_s[0][0], max(b_i, b_j)
-            on = [r for r in t_f.ramps_s if abs(r[0] - t_f.windows_s[0][0]) < 1e-9]
-            off = [r for r in t_l.ramps_s if abs(r[1] - t_l.windows_s[0][1]) < 1e-9]
-            ramps = tuple(on + off)
-            if len(ramps) == 2 and ramps[0][1] >= ramps[1][0]:
-                continue
-            with_ramps = t_f if t_f.ramps_s else t_l
-            term = (Term(EffectKind.HARD_IRON_STEP, ((a, b),)) if not ramps else
-                    dataclasses.replace(with_ramps, windows_s=((a, b),), ramps_s=ramps))
-            d_i, d_j = max(b_i - a_i, 1e-9), max(b_j - a_j, 1e-9)
-            start = np.zeros(term.n_params())
-            start[:3] = (d_i * cur.state.values[i][:3] + d_j * cur.state.values[j][:3]) / (
-                d_i + d_j)
-            wo = _without(cur.state, max(i, j))
-            k = min(i, j)
-            merged = dataclasses.replace(
-                wo, terms=wo.terms[:k] + (term,) + wo.terms[k + 1:],
-                values=wo.values[:k] + (start,) + wo.values[k + 1:])
-            res = fit(merged, data)
-            if bic_between(res, cur, data) <= cfg.bic_margin:
-                return max(i, j), res
-    return None
-
-
-def _step_for_disturbance(cur: FitResult, data: FitData, cfg: DiagnoseConfig
-                          ) -> tuple[int, FitResult] | None:
-    """Return the first ``disturbance`` of the model that a ``hard_iron_step`` explains as well.
-
-    A disturbance is free in ENU over its window; a step is one offset in the sensor's
-    frame, nested in it where the platform holds its attitude. When the disturbance was
-    named, other terms may still have been missing (a drift taking up part of the offset,
-    no gradient yet) and the step lost; the two are compared again with the model of the
-    moment. The step's edges are searched over the disturbance's padded window (it was
-    widened by a quarter of its length on each side) in the residual without it, and the
-    step is kept when it loses no more than ``bic_margin`` (the simpler of a nested pair).
-
-    Returns
-    -------
-    (index of the disturbance, the model with the step in its place but last) or None
-
-    """
-    for i, t in enumerate(cur.state.terms):
-        if t.kind is not EffectKind.DISTURBANCE or len(t.windows_s) != 1:
-            continue
-        without = fit(_without(cur.state, i), data)
-        a, b = t.windows_s[0]
-        w = refine_step((a, b), without.residual_nT, data.t_s, reach_s=0.3 * (b - a) + 1.0)
-        if w[1] - w[0] < MIN_STEP_S:
-            continue
-        last = fit(without.state.with_term(Term(EffectKind.HARD_IRON_STEP, (w,))), data)
-        if bic_between(last, cur, data) <= cfg.bic_margin:
-            return i, last
-    return None
 
 
 def _moved_last_to(state: ModelState, i: int) -> ModelState:
@@ -1329,7 +1164,7 @@ def _relocate_sources(cur: FitResult, data: FitData) -> FitResult:
         if term.kind is not EffectKind.LOCAL_SOURCE:
             continue
         wins = active_windows(term, cur.state.values[i], data)
-        without = fit(_without(cur.state, i), data, max_iter=10)
+        without = fit(without_term(cur.state, i), data, max_iter=10)
         loc = locate_source(without, data, (wins[0][0], wins[-1][1]))
         if loc is None:
             continue

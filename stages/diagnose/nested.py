@@ -1,0 +1,211 @@
+"""Simpler descriptions nested in a model's terms, and the one move that prefers them.
+
+A term may contain a simpler description of what it fits as a special case: an eddy term
+``E_s = -tau I`` is a time offset; a field drift along ``(-B_N, B_E, 0)`` is the field
+turned about Up, a heading drift; a disturbance free in ENU over a window is, where the
+platform holds its attitude, one offset in the sensor's frame, a ``hard_iron_step``; two
+abutting steps are one step with a second offset beside it. Each kind of term declares its
+nested descriptions here (:data:`NESTED`); the search has one move for all of them
+(:func:`simplest`): a description that loses no more than the BIC margin replaces what it
+is nested in (the simpler of a nested pair, Occam's razor with one criterion).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from stages.diagnose.fit import FitResult, fit
+from stages.diagnose.model import F64, EffectKind, FitData, ModelState, Term
+from stages.diagnose.result import DiagnoseConfig, Finding
+from stages.diagnose.statistics import bic_between
+
+#: Shortest ``hard_iron_step``, s: an object brought near the sensor and left there for a
+#: while. A shorter excess (the closest pass by a magnet in the room, where its dipole
+#: field is least exact; a knock) is no object riding on the platform.
+MIN_STEP_S = 0.5
+
+#: An excess this close to an edge of a ``hard_iron_step`` already in the model is the same
+#: magnet moving (put down, taken away), s: it becomes that step's transition, not a step
+#: of its own; steps whose windows lie closer than this are candidates for one event.
+RAMP_REACH_S = 1.0
+
+
+def refine_step(
+    w: tuple[float, float], residual_nT: np.ndarray, t_s: np.ndarray, reach_s: float = 1.0
+) -> tuple[float, float]:
+    """Change-point refinement of an offset window: maximise the explained residual energy.
+
+    For a constant offset in ``[a, b)`` the least-squares gain is ``|sum r|^2 / n``; both
+    edges are searched within ``reach_s`` of the scan's window using cumulative sums.
+    """
+    n = len(t_s)
+    c = np.vstack([np.zeros(3), np.cumsum(residual_nT, axis=0)])
+    ia = np.flatnonzero((t_s >= w[0] - reach_s) & (t_s <= w[0] + reach_s))
+    ib = np.flatnonzero((t_s >= w[1] - reach_s) & (t_s <= w[1] + reach_s)) + 1
+    if ia.size == 0 or ib.size == 0:
+        return w
+    ia = ia[:: max(1, ia.size // 150)]
+    ib = ib[:: max(1, ib.size // 150)]
+    S = c[ib][None, :, :] - c[ia][:, None, :]
+    cnt = (ib[None, :] - ia[:, None]).astype(float)
+    gain = np.where(cnt > 0, np.sum(S * S, axis=-1) / np.maximum(cnt, 1.0), -np.inf)
+    i, j = np.unravel_index(int(np.argmax(gain)), gain.shape)
+    a = float(t_s[ia[i]])
+    b = float(t_s[ib[j]]) if ib[j] < n else float(t_s[-1]) + 1e-6
+    return (a, b) if b > a else w
+
+
+def without_term(state: ModelState, i: int) -> ModelState:
+    """``state`` without its ``i``-th term."""
+    t = state.terms[i]
+    return dataclasses.replace(
+        state,
+        terms=state.terms[:i] + state.terms[i + 1:],
+        values=state.values[:i] + state.values[i + 1:],
+        T_enu=np.eye(3) if t.kind is EffectKind.AXIS_TILT else state.T_enu,
+    )
+
+
+@dataclass(frozen=True)
+class Simpler:
+    """A simpler description of part of a model.
+
+    Attributes
+    ----------
+    i : int
+        The term it replaces, in that term's place.
+    term : Term
+        The simpler term.
+    start : ndarray
+        Its starting values.
+    also : int or None
+        A second term it replaces as well (removed: two pieces become one).
+
+    """
+
+    i: int
+    term: Term
+    start: F64
+    also: int | None = None
+
+    def state(self, st: ModelState) -> ModelState:
+        """``st`` with this description in place (refit it to compare)."""
+        terms, values = list(st.terms), list(st.values)
+        terms[self.i], values[self.i] = self.term, self.start
+        if self.also is not None:
+            del terms[self.also], values[self.also]
+        out = dataclasses.replace(st, terms=tuple(terms), values=tuple(values))
+        if st.terms[self.i].kind is EffectKind.AXIS_TILT:
+            out = dataclasses.replace(out, T_enu=np.eye(3))
+        return out
+
+
+def _as_kind(kind: EffectKind) -> Callable[[FitResult, int, FitData], Iterator[Simpler]]:
+    """Describe the whole term by one term of ``kind`` (no window), from zero."""
+    def gen(cur: FitResult, i: int, data: FitData) -> Iterator[Simpler]:
+        t = Term(kind)
+        yield Simpler(i, t, t.null_value())
+    return gen
+
+
+def _step_in_disturbance(cur: FitResult, i: int, data: FitData) -> Iterator[Simpler]:
+    """Describe a disturbance as one offset in the sensor's frame over its window.
+
+    The disturbance's window was widened by a quarter of its length on each side around the
+    scan's excess, so the step's edges are searched over it in the residual without it; an
+    offset held for less than :data:`MIN_STEP_S` is a bump, not an object left near the
+    sensor.
+    """
+    t = cur.state.terms[i]
+    if len(t.windows_s) != 1:
+        return
+    without = fit(without_term(cur.state, i), data)
+    a, b = t.windows_s[0]
+    w = refine_step((a, b), without.residual_nT, data.t_s, reach_s=0.3 * (b - a) + 1.0)
+    if w[1] - w[0] >= MIN_STEP_S:
+        step = Term(EffectKind.HARD_IRON_STEP, (w,))
+        yield Simpler(i, step, step.null_value())
+
+
+def _one_step_for_two(cur: FitResult, i: int, data: FitData) -> Iterator[Simpler]:
+    """Step ``i`` and a later step whose windows touch or overlap as one step over both.
+
+    Pieces of one offset that abut along seconds are one event (a magnet moved a little while
+    it rested, or an offset the scan saw in parts). The onset of the earlier and the release
+    of the later are kept as the merged step's transitions; its offset starts at the pieces'
+    duration-weighted mean.
+    """
+    st = cur.state
+    if len(st.terms[i].windows_s) != 1:
+        return
+    for j in range(i + 1, len(st.terms)):
+        if st.terms[j].kind is not EffectKind.HARD_IRON_STEP or len(st.terms[j].windows_s) != 1:
+            continue
+        (a_i, b_i), (a_j, b_j) = st.terms[i].windows_s[0], st.terms[j].windows_s[0]
+        if a_j - b_i > RAMP_REACH_S or a_i - b_j > RAMP_REACH_S:
+            continue
+        first, last = (i, j) if a_i <= a_j else (j, i)
+        t_f, t_l = st.terms[first], st.terms[last]
+        a, b = t_f.windows_s[0][0], max(b_i, b_j)
+        on = [r for r in t_f.ramps_s if abs(r[0] - t_f.windows_s[0][0]) < 1e-9]
+        off = [r for r in t_l.ramps_s if abs(r[1] - t_l.windows_s[0][1]) < 1e-9]
+        ramps = tuple(on + off)
+        if len(ramps) == 2 and ramps[0][1] >= ramps[1][0]:
+            continue
+        with_ramps = t_f if t_f.ramps_s else t_l
+        term = (Term(EffectKind.HARD_IRON_STEP, ((a, b),)) if not ramps else
+                dataclasses.replace(with_ramps, windows_s=((a, b),), ramps_s=ramps))
+        d_i, d_j = max(b_i - a_i, 1e-9), max(b_j - a_j, 1e-9)
+        start = np.zeros(term.n_params())
+        start[:3] = (d_i * st.values[i][:3] + d_j * st.values[j][:3]) / (d_i + d_j)
+        yield Simpler(i, term, start, also=j)
+
+
+#: The simpler descriptions each kind of term contains (the nested special cases).
+NESTED: dict[EffectKind, Callable[[FitResult, int, FitData], Iterator[Simpler]]] = {
+    EffectKind.EDDY_CURRENT: _as_kind(EffectKind.TIME_OFFSET),  # E_s = -tau I
+    EffectKind.FIELD_DRIFT: _as_kind(EffectKind.HEADING_DRIFT),  # the field turned about Up
+    EffectKind.DISTURBANCE: _step_in_disturbance,
+    EffectKind.HARD_IRON_STEP: _one_step_for_two,
+}
+
+
+def simplest(cur: FitResult, findings: list[Finding], data: FitData, cfg: DiagnoseConfig,
+             dropped: set[tuple]) -> tuple[FitResult, list[Finding]] | None:
+    """Replace the first term whose nested simpler description explains the data as well.
+
+    Each description is refitted with the rest of the model and kept when it loses no more
+    than ``bic_margin`` against the current model, both with one effective sample count
+    (:func:`~stages.diagnose.statistics.bic_between`). A term of a kind already in the model
+    is not offered again (one time offset, one heading drift). The replaced terms go into
+    ``dropped`` (never re-added); the finding of the replaced term takes the simpler kind in
+    its place (its evidence is measured again in the final order).
+
+    Returns
+    -------
+    (the refitted model, its findings) or None when no description is simpler.
+
+    """
+    for i, t in enumerate(cur.state.terms):
+        gen = NESTED.get(t.kind)
+        if gen is None:
+            continue
+        for s in gen(cur, i, data):
+            if not s.term.windows_s and any(u.kind is s.term.kind for u in cur.state.terms):
+                continue
+            res = fit(s.state(cur.state), data)
+            if bic_between(res, cur, data) > cfg.bic_margin:
+                continue
+            dropped.add((t.kind, t.windows_s))
+            out = list(findings)
+            out[i] = dataclasses.replace(out[i], effect=s.term.kind.value, told_apart="")
+            if s.also is not None:
+                other = cur.state.terms[s.also]
+                dropped.add((other.kind, other.windows_s))
+                del out[s.also]
+            return res, out
+    return None
