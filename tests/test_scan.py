@@ -4,8 +4,9 @@ The scan (``stages.diagnose.search.scan_windows``) proposes the windows of trans
 On noise alone it must open none: its level is set by the residual's correlation time
 (``block_mean_var``, the moving means' chi-square tail shared by the recording's windows),
 so a residual correlated over a third of a second does not pass for an event. Two steps that
-abut and hold one offset are one event (``_merged_pieces``); two that hold different offsets
-stay two.
+abut and hold one offset are one event, a disturbance that holds one offset in the sensor's
+frame is a step (the nested simpler descriptions, ``stages.diagnose.nested.simplest``); two
+steps that hold different offsets stay two, and a field's bump stays a disturbance.
 """
 
 from __future__ import annotations
@@ -17,8 +18,9 @@ from scipy.signal import lfilter
 
 from stages.diagnose.fit import fit
 from stages.diagnose.model import EffectKind, ModelState, Term
-from stages.diagnose.result import DiagnoseConfig
-from stages.diagnose.search import _merged_pieces, _step_for_disturbance, scan_windows
+from stages.diagnose.nested import simplest
+from stages.diagnose.result import DiagnoseConfig, Finding
+from stages.diagnose.search import scan_windows
 
 RATE_HZ = 285.714  # the lab magnetometer's rate
 
@@ -56,6 +58,13 @@ def test_a_held_offset_in_correlated_noise_still_opens_its_window(tau_s):
     assert any(a < 21.5 < b for a, b in wins), wins
 
 
+def _simplest(cur, data):
+    """The nested move on ``cur`` with a placeholder finding per term."""
+    findings = [Finding(effect=t.kind.value, params={}, sigma={}, evidence={}, where={},
+                        explanation="") for t in cur.state.terms]
+    return simplest(cur, findings, data, DiagnoseConfig(), set())
+
+
 def _two_pieces(offset_a, offset_b):
     step = Term(EffectKind.HARD_IRON_STEP, ((20.0, 30.0),))
     truth_terms = (Term(EffectKind.HARD_IRON_STEP, ((20.0, 25.0),)),
@@ -70,17 +79,17 @@ def _two_pieces(offset_a, offset_b):
 
 def test_abutting_pieces_of_one_offset_are_one_step():
     step, data, cur = _two_pieces([800.0, -400.0, 300.0], [800.0, -400.0, 300.0])
-    got = _merged_pieces(cur, data, DiagnoseConfig())
+    got = _simplest(cur, data)
     assert got is not None
-    removed, res = got
-    assert removed == 1
+    res, findings = got
+    assert [f.effect for f in findings] == ["hard_iron_step"]
     assert [t.windows_s for t in res.state.terms] == [step.windows_s]
     np.testing.assert_allclose(res.state.values[0], [800.0, -400.0, 300.0], atol=5.0)  # nT
 
 
 def test_abutting_pieces_of_different_offsets_stay_two():
     _, data, cur = _two_pieces([800.0, -400.0, 300.0], [300.0, -100.0, 600.0])
-    assert _merged_pieces(cur, data, DiagnoseConfig()) is None
+    assert _simplest(cur, data) is None
 
 
 def _disturbance_fitted_to(truth_term, truth_value):
@@ -95,10 +104,10 @@ def test_a_disturbance_that_holds_a_sensor_frame_offset_becomes_a_step():
     """A magnet's 7 s offset first named as an ENU disturbance over its padded window."""
     data, cur = _disturbance_fitted_to(Term(EffectKind.HARD_IRON_STEP, ((20.0, 27.0),)),
                                        [800.0, -1500.0, -1000.0])
-    got = _step_for_disturbance(cur, data, DiagnoseConfig())
+    got = _simplest(cur, data)
     assert got is not None
-    i, last = got
-    assert i == 0
+    last, findings = got
+    assert [f.effect for f in findings] == ["hard_iron_step"]
     (a, b), = last.state.terms[-1].windows_s
     assert abs(a - 20.0) <= 0.05 and abs(b - 27.0) <= 0.05  # s, the 50 Hz spacing is 0.02 s
     np.testing.assert_allclose(last.state.values[-1][:3], [800.0, -1500.0, -1000.0],
@@ -112,4 +121,4 @@ def test_a_disturbance_of_the_field_stays_a_disturbance():
     bump = np.sin(np.pi * np.arange(1, k + 1) / (k + 1))[:, None] * np.array([600.0, -300.0,
                                                                                   740.0])
     data, cur = _disturbance_fitted_to(dist, bump.ravel())
-    assert _step_for_disturbance(cur, data, DiagnoseConfig()) is None
+    assert _simplest(cur, data) is None
