@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.core.geometry import quat_mul, quat_normalize, rotvec_to_quat, so3_exp
-from stages.diagnose.model import AttitudeTrack, EffectKind, FitData, ModelState, Term, evaluate
+from pipeline.core.vocabulary import EffectKind
+from stages.diagnose.model import AttitudeTrack, FitData, ModelState, Term, evaluate
 
 B_ENU = np.array([1500.0, 21000.0, -43000.0])
 

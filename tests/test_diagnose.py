@@ -18,8 +18,8 @@ from _diag_sim import make_data
 
 from pipeline.core.recording import AlignedSeries, AttitudeSeries, Recording, VectorSeries
 from pipeline.core.stage import Pipeline
+from pipeline.core.vocabulary import EffectKind as K
 from stages.context import Context
-from stages.diagnose.model import EffectKind as K
 from stages.diagnose.model import Term
 from stages.diagnose.result import DiagnoseConfig
 from stages.diagnose.search import diagnose_data

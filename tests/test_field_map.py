@@ -29,6 +29,7 @@ from indep_gen import (
 from test_effects import G_TRUE, _gradient_value, _numeric_jacobian
 
 from pipeline.app.commands.diagnose import diagnose_file
+from pipeline.core.vocabulary import EffectKind
 from pipeline.model.calibration import Calibration
 from pipeline.model.field_map import (
     FieldMapBasis,
@@ -39,7 +40,7 @@ from pipeline.model.field_map import (
 )
 from pipeline.model.forward import ForwardModel
 from stages.diagnose.fit import fit
-from stages.diagnose.model import EffectKind, ModelState, Term, evaluate
+from stages.diagnose.model import ModelState, Term, evaluate
 from stages.restore import restore_samples
 
 pytestmark = pytest.mark.filterwarnings("ignore::pipeline.core.errors.RecoveredDataWarning")

@@ -18,9 +18,9 @@ from _diag_sim import make_data
 from indep_gen import Spec, sized, write
 
 from pipeline.app.commands.diagnose import diagnose_file
+from pipeline.core.vocabulary import EffectKind
 from stages.diagnose.catalogue import explanation, identifiability_reason, motion_stats
 from stages.diagnose.model import (
-    EffectKind,
     ModelState,
     Term,
     evaluate,

@@ -11,9 +11,10 @@ import pytest
 from _diag_sim import lissajous_m, make_data
 from test_effects import _numeric_jacobian
 
+from pipeline.core.vocabulary import EffectKind
 from pipeline.model.forward import dipole_gradient, dipole_matrix
 from stages.diagnose.fit import fit
-from stages.diagnose.model import EffectKind, ModelState, Term, evaluate, term_params
+from stages.diagnose.model import ModelState, Term, evaluate, term_params
 
 
 def test_dipole_field_on_axis_and_equator():

@@ -19,9 +19,9 @@ from _diag_sim import make_data
 from indep_gen import Spec, magnet_carried_nT, write
 
 from pipeline.app.commands.diagnose import diagnose_file
+from pipeline.core.vocabulary import EffectKind as K
 from pipeline.model.forward import ForwardModel
 from stages.diagnose.fit import fit
-from stages.diagnose.model import EffectKind as K
 from stages.diagnose.model import ModelState, Term
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"

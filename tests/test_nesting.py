@@ -23,7 +23,7 @@ from _diag_sim import make_data
 from indep_gen import Spec, effect_params, write
 
 from pipeline.app.commands.diagnose import diagnose_file
-from stages.diagnose.model import EffectKind as K
+from pipeline.core.vocabulary import EffectKind as K
 from stages.diagnose.model import Term
 from stages.diagnose.search import diagnose_data
 

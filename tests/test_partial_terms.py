@@ -21,13 +21,13 @@ from scipy.spatial.transform import Rotation
 from pipeline.app.commands.diagnose import diagnose_file
 from pipeline.app.exports import export_text
 from pipeline.core.verdict import plain_words
+from pipeline.core.vocabulary import EffectKind
 from pipeline.model.calibration import Calibration
 from stages.diagnose.fit import fit
 from stages.diagnose.model import (
     CONFOUND_RATIO,
     IRON_PRIOR,
     AttitudeTrack,
-    EffectKind,
     FitData,
     ModelState,
     Term,

@@ -16,8 +16,9 @@ import pytest
 from _diag_sim import make_data
 from scipy.signal import lfilter
 
+from pipeline.core.vocabulary import EffectKind
 from stages.diagnose.fit import fit
-from stages.diagnose.model import EffectKind, ModelState, Term
+from stages.diagnose.model import ModelState, Term
 from stages.diagnose.nested import simplest
 from stages.diagnose.result import DiagnoseConfig, Finding
 from stages.diagnose.search import scan_windows

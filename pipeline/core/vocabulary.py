@@ -103,3 +103,26 @@ class ExcludeWindow:
         a, b = (datetime.fromtimestamp(x, tz=timezone.utc).isoformat().replace("+00:00", "Z")
                 for x in (self.start, self.end))
         return f"{a}:{b}"
+
+
+class EffectKind(str, enum.Enum):
+    """The effects ``diagnose`` can name, spelled as in CONVENTIONS ("Effects").
+
+    The key of the effect registry (``pipeline.model.effects.EFFECTS``: one module per
+    member); the diagnosis' findings and ``calibration.json`` carry the values.
+    """
+
+    HARD_IRON = "hard_iron"
+    SOFT_IRON = "soft_iron"
+    TIME_OFFSET = "time_offset"
+    EDDY_CURRENT = "eddy_current"
+    FIELD_DRIFT = "field_drift"
+    DISTURBANCE = "disturbance"
+    HARD_IRON_STEP = "hard_iron_step"
+    AXIS_TILT = "axis_tilt"
+    FIELD_GRADIENT = "field_gradient"
+    SAMPLE_HOLD = "sample_hold"  # a timing effect handled on the data, not a model term
+    HEADING_DRIFT = "heading_drift"
+    LOCAL_SOURCE = "local_source"
+    LEVER_ARM = "lever_arm"
+    FIELD_MAP = "field_map"

@@ -1,7 +1,7 @@
 """The catalogue of effects: names, explanations, identifiability.
 
-What each effect is called, how it shows, what to do about it
-(``EffectInfo``, ``EFFECTS``, ``explanation``), and whether the motion of a recording can
+How a finding is explained (``explanation``; what each effect is and how it shows are its
+module's, ``pipeline.model.effects``), and whether the motion of a recording can
 determine it (``motion_stats``, ``identifiability_reason``).
 """
 
@@ -13,168 +13,17 @@ from typing import Any
 import numpy as np
 
 from pipeline.core.geometry import quat_to_matrix
+from pipeline.core.vocabulary import EffectKind
+from pipeline.model.effects import EFFECTS
 from stages.diagnose.model import (
     CONFOUND_RATIO,
     F64,
     MIN_HORIZONTAL_FRACTION,
-    EffectKind,
     FitData,
     drift_basis,
     drift_span,
     rot_z,
 )
-
-
-@dataclass(frozen=True)
-class EffectInfo:
-    """Words about one effect.
-
-    Attributes
-    ----------
-    kind : EffectKind
-    physics : str
-        What on a survey platform causes it.
-    signature : str
-        How it shows in the residual.
-    frame : str
-        Frame in which its residual lives (``mag`` or ``enu``).
-    identifiable_in_part : bool
-        Some of its directions are confounded with the model's other parameters by nature,
-        and the rest still carry the physics: the term is admitted on its best-determined
-        direction and fitted there (the confounded directions stay at zero), instead of
-        being refused on its weakest one.
-
-    """
-
-    kind: EffectKind
-    physics: str
-    signature: str
-    frame: str
-    identifiable_in_part: bool = False
-
-
-EFFECTS: dict[EffectKind, EffectInfo] = {
-    EffectKind.HARD_IRON: EffectInfo(
-        EffectKind.HARD_IRON,
-        "a permanent field fixed to the sensor: magnetised steel or a battery near the "
-        "magnetometer, or the sensor's own bias; it turns with the platform",
-        "a constant residual in the mag frame, the same whatever the heading",
-        "mag",
-    ),
-    EffectKind.SOFT_IRON: EffectInfo(
-        EffectKind.SOFT_IRON,
-        "induced magnetisation of soft-magnetic parts near the sensor and unequal axis "
-        "gains or non-orthogonal axes of the sensor: the sphere of readings becomes an ellipsoid",
-        "a residual that grows with the field component along some mag axes and flips sign "
-        "with it (twice per turn)",
-        "mag",
-    ),
-    EffectKind.TIME_OFFSET: EffectInfo(
-        EffectKind.TIME_OFFSET,
-        "unsynchronised clocks or a transport/filter delay between the magnetometer and the "
-        "attitude source: the reading is stamped later (or earlier) than it was sensed",
-        "a residual proportional to the rate of change of the field in the sensor frame",
-        "mag",
-    ),
-    EffectKind.EDDY_CURRENT: EffectInfo(
-        EffectKind.EDDY_CURRENT,
-        "currents induced in conducting parts of the airframe by the changing field as it "
-        "rotates; their field lags and differs per axis (a time offset is the isotropic case)",
-        "a residual linear in the rate of change of the reading, with different gains per axis",
-        "mag",
-    ),
-    EffectKind.FIELD_DRIFT: EffectInfo(
-        EffectKind.FIELD_DRIFT,
-        "slow change of the field around the sensor during the recording. Outdoors: diurnal "
-        "variation, a geomagnetic storm or another external drift of the background field. "
-        "Indoors, or on a platform that moves through a non-uniform field (steel in floors "
-        "and walls, a survey line crossing a regional gradient): the field varying with the "
-        "sensor's position, which appears as a change in time as the sensor moves",
-        "a slow trend common to all headings once rotated to ENU",
-        "enu",
-    ),
-    EffectKind.DISTURBANCE: EffectInfo(
-        EffectKind.DISTURBANCE,
-        "a transient external field: a vehicle or a person with steel passing, a lift, "
-        "power cables switched on near the survey",
-        "a bump in the residual confined to a time window, fixed in ENU",
-        "enu",
-    ),
-    EffectKind.HARD_IRON_STEP: EffectInfo(
-        EffectKind.HARD_IRON_STEP,
-        "a magnetised object moved close to the sensor for a while (a tool, a phone, a "
-        "payload switched on): an offset that turns with the platform, present only then",
-        "a constant mag-frame residual inside a time window",
-        "mag",
-    ),
-    EffectKind.AXIS_TILT: EffectInfo(
-        EffectKind.AXIS_TILT,
-        "the turntable's rotation axis is not where its nominal axis says (mechanical tilt of "
-        "the table), so the attitude derived from its angle is wrong (Tang et al. 2016)",
-        "a once-per-turn residual that a known reference field exposes",
-        "enu",
-        # With a known field only the angle between the axis and B is determined (Tang 2016):
-        # a lean across the field's bearing turns B about the axis, which R_body_mag absorbs.
-        identifiable_in_part=True,
-    ),
-    EffectKind.FIELD_GRADIENT: EffectInfo(
-        EffectKind.FIELD_GRADIENT,
-        "a field that varies from place to place (steel in floors, walls, desks and "
-        "equipment indoors; a regional anomaly outdoors), seen as the sensor moves through it",
-        "a residual fixed in ENU that follows the sensor's position, not the time",
-        "enu",
-    ),
-    EffectKind.HEADING_DRIFT: EffectInfo(
-        EffectKind.HEADING_DRIFT,
-        "the attitude source's heading error changes during the recording (an INS or AHRS "
-        "integrating a gyro bias between heading fixes, a motion-capture frame creeping): the "
-        "attitude is turned about Up by a slowly growing angle",
-        "a slow ENU residual in which East and North change in the ratio -B_N : B_E while Up "
-        "and |B| stay unchanged (the field turning about the vertical)",
-        "enu",
-    ),
-    EffectKind.SAMPLE_HOLD: EffectInfo(
-        EffectKind.SAMPLE_HOLD,
-        "the sensor converts slower than its messages are sent: a message repeats the last "
-        "conversion, stamped up to one native period after the field was sensed",
-        "exact repeats of the reading, and a residual that grows with the rate of change of "
-        "the reading (the repeats are late)",
-        "mag",
-    ),
-    EffectKind.LOCAL_SOURCE: EffectInfo(
-        EffectKind.LOCAL_SOURCE,
-        "a compact magnetised object fixed in the surroundings (a magnet or a tool on a "
-        "table, buried steel, a parked vehicle): it stays where it is while the sensor moves",
-        "an ENU residual that grows steeply (as the cube of the inverse distance) wherever "
-        "the sensor comes near one place, whenever that is",
-        "enu",
-        # tested at zero moment, where the position has no gradient: the moment carries the
-        # evidence (the position is fitted once the moment is there)
-        identifiable_in_part=True,
-    ),
-    EffectKind.FIELD_MAP: EffectInfo(
-        EffectKind.FIELD_MAP,
-        "a field that varies smoothly but not linearly over the area the sensor covers "
-        "(steel in the building's structure, a distant vehicle or pipe, a geological "
-        "anomaly): the gradient is only its first order",
-        "an ENU residual, left after the linear gradient, that follows the sensor's position "
-        "and repeats wherever the sensor comes back, smooth over the whole area",
-        "enu",
-        # a map along a path leaves combinations of its basis unobserved (the GP prior holds
-        # them): admitted on its best-determined directions
-        identifiable_in_part=True,
-    ),
-    EffectKind.LEVER_ARM: EffectInfo(
-        EffectKind.LEVER_ARM,
-        "the magnetometer is not at the point whose position the attitude source reports "
-        "(a motion-capture marker body, an INS's reference point): as the platform turns, "
-        "the sensor swings around that point through a field that varies in space",
-        "a residual that follows the attitude times the field's spatial gradient (strongest "
-        "near a local source)",
-        "enu",
-    ),
-}
-
 
 # Rate of change of the geomagnetic field: about 0.1 nT/min for the quiet diurnal variation,
 # rarely above 10 nT/min at mid latitudes even in a storm. A fitted drift much faster than

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from pipeline.core.vocabulary import EffectKind
 from pipeline.model.field_map import (
     axis_counts,
     domain_for,
@@ -46,7 +47,7 @@ from stages.diagnose.catalogue import (
     position_confounding,
 )
 from stages.diagnose.fit import FitResult
-from stages.diagnose.model import F64, EffectKind, FitData, Term, evaluate
+from stages.diagnose.model import F64, FitData, Term, evaluate
 from stages.diagnose.result import DiagnoseConfig
 from stages.diagnose.statistics import ScoreTest, fold_of, score_from_J
 

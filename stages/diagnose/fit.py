@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.core.geometry import quat_to_matrix, so3_exp
+from pipeline.core.vocabulary import EffectKind
 from pipeline.model.solve import (
     Linearised,
     Solution,
@@ -19,15 +20,7 @@ from pipeline.model.solve import (
     minimise,
     normal_equations,
 )
-from stages.diagnose.model import (
-    F64,
-    EffectKind,
-    FitData,
-    ModelState,
-    evaluate,
-    matvec_rows,
-    sample_weights,
-)
+from stages.diagnose.model import F64, FitData, ModelState, evaluate, matvec_rows, sample_weights
 
 
 @dataclass(frozen=True)

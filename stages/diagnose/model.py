@@ -43,7 +43,6 @@ and the state stores the rotation matrices.
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any
@@ -52,6 +51,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.core.geometry import quat_to_matrix, skew, so3_exp
+from pipeline.core.vocabulary import EffectKind
 from pipeline.model.attitude import (
     MEAN_INTERPOLATION_ERROR_SHAPE,
     AttitudeInterpolator,
@@ -61,10 +61,9 @@ from pipeline.model.attitude import (
     interpolation_error_shape,
     mean_interpolation_noise_factor,
 )
+from pipeline.model.effects import EFFECTS
 from pipeline.model.field_map import BASIS_NAME, FieldMapBasis, map_points
 from pipeline.model.forward import (
-    DRIFT_DEGREE,
-    HEADING_DEGREE,
     dipole_gradient,
     dipole_matrix,
     field_jacobian,
@@ -82,25 +81,6 @@ from pipeline.model.forward import drift_basis as forward_drift_basis
 from pipeline.model.forward import source_offset_enu as forward_source_offset
 
 F64 = NDArray[np.float64]
-
-
-class EffectKind(str, enum.Enum):
-    """CONVENTIONS effect names."""
-
-    HARD_IRON = "hard_iron"
-    SOFT_IRON = "soft_iron"
-    TIME_OFFSET = "time_offset"
-    EDDY_CURRENT = "eddy_current"
-    FIELD_DRIFT = "field_drift"
-    DISTURBANCE = "disturbance"
-    HARD_IRON_STEP = "hard_iron_step"
-    AXIS_TILT = "axis_tilt"
-    FIELD_GRADIENT = "field_gradient"
-    SAMPLE_HOLD = "sample_hold"  # a timing effect handled on the data, not a model term
-    HEADING_DRIFT = "heading_drift"
-    LOCAL_SOURCE = "local_source"
-    LEVER_ARM = "lever_arm"
-    FIELD_MAP = "field_map"
 
 
 LOCAL_KINDS = frozenset({EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP})
@@ -448,32 +428,8 @@ class Term:
         """:meth:`n_params`, counted once per term (a step counts its transitions' modes)."""
         if self.determined:
             return len(self.determined[0])
-        k = self.kind
-        if k is EffectKind.HARD_IRON:
-            return 3
-        if k is EffectKind.HARD_IRON_STEP:
-            return 3 + 3 * self.step_profile(np.zeros(1))[1].shape[1]
-        if k in (EffectKind.SOFT_IRON, EffectKind.FIELD_GRADIENT):
-            return 5
-        if k is EffectKind.TIME_OFFSET:
-            return 1
-        if k is EffectKind.EDDY_CURRENT:
-            return 9
-        if k is EffectKind.FIELD_DRIFT:
-            return 3 * DRIFT_DEGREE
-        if k is EffectKind.AXIS_TILT:
-            return 2
-        if k is EffectKind.DISTURBANCE:
-            return 3 * sum(len(kn) for kn in self.knots())
-        if k is EffectKind.HEADING_DRIFT:
-            return HEADING_DEGREE
-        if k is EffectKind.LOCAL_SOURCE:
-            return 7 if self.fit_yaw else 6
-        if k is EffectKind.LEVER_ARM:
-            return 3
-        if k is EffectKind.FIELD_MAP:
-            return int(np.prod(self.n_axis))
-        raise ValueError(k)
+        # the effect's module counts them (a step its transitions' modes, a map its basis)
+        return EFFECTS[self.kind].n_params(self)
 
     def presence(self, t_s: F64) -> F64:
         """1 where the term acts: inside its windows, or everywhere without windows, (N,)."""

@@ -18,8 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.core.vocabulary import EffectKind
 from stages.diagnose.fit import FitResult, fit
-from stages.diagnose.model import F64, EffectKind, FitData, ModelState, Term
+from stages.diagnose.model import F64, FitData, ModelState, Term
 from stages.diagnose.result import DiagnoseConfig, Finding
 from stages.diagnose.statistics import bic_between
 

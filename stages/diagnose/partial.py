@@ -28,6 +28,7 @@ import dataclasses
 import numpy as np
 
 from pipeline.core.geometry import matrix_to_quat, quat_to_matrix, so3_exp
+from pipeline.core.vocabulary import EffectKind
 from pipeline.model.solve import gram
 from stages.diagnose.fit import FitResult
 from stages.diagnose.model import (
@@ -35,7 +36,6 @@ from stages.diagnose.model import (
     F64,
     IRON_PRIOR,
     AttitudeTrack,
-    EffectKind,
     FitData,
     ModelState,
     Term,

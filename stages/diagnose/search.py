@@ -16,14 +16,15 @@ from scipy.stats import chi2
 from pipeline.core import progress
 from pipeline.core.errors import EstimationError
 from pipeline.core.geometry import quat_to_matrix
-from stages.diagnose.catalogue import EFFECTS, explanation, identifiability_reason, motion_stats
+from pipeline.core.vocabulary import EffectKind
+from pipeline.model.effects import EFFECTS
+from stages.diagnose.catalogue import explanation, identifiability_reason, motion_stats
 from stages.diagnose.field_map import MapCandidate, finer_map_term, map_candidate
 from stages.diagnose.fit import FitResult, fit, wahba_init
 from stages.diagnose.model import (
     CONFOUND_RATIO,
     LOCAL_KINDS,
     TRACELESS_PROJECTOR,
-    EffectKind,
     FitData,
     ModelState,
     Term,

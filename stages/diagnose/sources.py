@@ -23,18 +23,10 @@ from dataclasses import replace
 import numpy as np
 from scipy.signal import find_peaks
 
+from pipeline.core.vocabulary import EffectKind
 from pipeline.model.forward import DIPOLE_NT, MIN_SOURCE_DISTANCE_M, dipole_matrix
 from stages.diagnose.fit import FitResult
-from stages.diagnose.model import (
-    F64,
-    EffectKind,
-    FitData,
-    ModelState,
-    Term,
-    evaluate,
-    rot_z,
-    source_offset_enu,
-)
+from stages.diagnose.model import F64, FitData, ModelState, Term, evaluate, rot_z, source_offset_enu
 
 #: distances (m) of the grid's shells from the place of the strongest residual
 SHELLS_M = (0.02, 0.04, 0.07, 0.12, 0.2, 0.35, 0.6, 1.0, 1.7, 3.0)

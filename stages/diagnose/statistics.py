@@ -13,12 +13,12 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.core.vocabulary import EffectKind
+from pipeline.model.effects import EFFECTS
 from pipeline.model.solve import gram
-from stages.diagnose.catalogue import EFFECTS
 from stages.diagnose.fit import FitResult, fit
 from stages.diagnose.model import (
     LOCAL_KINDS,
-    EffectKind,
     FitData,
     ModelState,
     Term,
@@ -235,7 +235,7 @@ def score_from_J(
         effs = np.linalg.eigvalsh(Li @ In @ Li.T)
     except np.linalg.LinAlgError:
         effs = ev_all
-    # e.g. a tilted turntable axis with a known field (see EffectInfo.identifiable_in_part)
+    # e.g. a tilted turntable axis with a known field (see Effect.identifiable_in_part)
     partial = EFFECTS[term.kind].identifiable_in_part
     eff = float(effs[-1] if partial else effs[0])
     # pseudo-inverse with a relative floor: confounded directions carry no evidence

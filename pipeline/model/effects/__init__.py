@@ -1,0 +1,35 @@
+"""The effects as plug-ins: one module per effect, each registered under its kind.
+
+Importing this package imports every effect module once; each module's ``@register`` puts
+its :class:`~pipeline.model.effects.base.Effect` into :data:`EFFECTS`. A new effect is one
+module in this package and one line in the import list below (and its name in
+:class:`~pipeline.core.vocabulary.EffectKind`, the CONVENTIONS vocabulary).
+"""
+
+from __future__ import annotations
+
+from pipeline.core.vocabulary import EffectKind
+from pipeline.model.effects import (  # noqa: F401  (imported for their registration)
+    axis_tilt,
+    disturbance,
+    eddy_current,
+    field_drift,
+    field_gradient,
+    field_map,
+    hard_iron,
+    hard_iron_step,
+    heading_drift,
+    lever_arm,
+    local_source,
+    sample_hold,
+    soft_iron,
+    time_offset,
+)
+from pipeline.model.effects.base import EFFECTS, Effect, TermShape
+
+# Every CONVENTIONS name has exactly one module: a missing or extra one fails at import,
+# not at the first recording that needs it.
+if set(EFFECTS) != set(EffectKind):
+    raise ImportError(f"effect modules do not match EffectKind: {set(EffectKind) ^ set(EFFECTS)}")
+
+__all__ = ["EFFECTS", "Effect", "TermShape"]

@@ -1,0 +1,31 @@
+"""``local_source``: a compact magnetised object fixed in the surroundings (a dipole, ``F(t)``)."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+from pipeline.core.vocabulary import EffectKind
+from pipeline.model.effects.base import Effect, TermShape, register
+
+
+@register
+class LocalSource(Effect):
+    """The ``local_source`` effect (see :class:`~pipeline.model.effects.base.Effect`)."""
+
+    kind: ClassVar[EffectKind] = EffectKind.LOCAL_SOURCE
+    physics: ClassVar[str] = (
+        "a compact magnetised object fixed in the surroundings (a magnet or a tool on a "
+        "table, buried steel, a parked vehicle): it stays where it is while the sensor moves"
+    )
+    signature: ClassVar[str] = (
+        "an ENU residual that grows steeply (as the cube of the inverse distance) wherever "
+        "the sensor comes near one place, whenever that is"
+    )
+    frame: ClassVar[str] = "enu"
+    # tested at zero moment, where the position has no gradient: the moment carries the
+    # evidence (the position is fitted once the moment is there)
+    identifiable_in_part: ClassVar[bool] = True
+
+    def n_params(self, term: TermShape) -> int:
+        """Return position (3) and moment (3), plus the bearing of the position frame."""
+        return 7 if term.fit_yaw else 6
