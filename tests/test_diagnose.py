@@ -225,9 +225,9 @@ G_ENU = np.array([[1200.0, -800.0, 1500.0], [-800.0, -3000.0, 600.0], [1500.0, 6
 
 
 def _grad_value(G):
-    from stages.diagnose.model import _SOFT_BASIS
+    from pipeline.model.effects.soft_iron import SOFT_BASIS
 
-    v, *_ = np.linalg.lstsq(_SOFT_BASIS.reshape(5, 9).T, G.ravel(), rcond=None)
+    v, *_ = np.linalg.lstsq(SOFT_BASIS.reshape(5, 9).T, G.ravel(), rcond=None)
     return v
 
 

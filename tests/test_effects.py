@@ -153,9 +153,9 @@ G_TRUE = np.array([[1200.0, -800.0, 1500.0], [-800.0, -3000.0, 600.0], [1500.0, 
 
 def _gradient_value(G: np.ndarray) -> np.ndarray:
     """Coefficients of G on the symmetric traceless basis."""
-    from stages.diagnose.model import _SOFT_BASIS
+    from pipeline.model.effects.soft_iron import SOFT_BASIS
 
-    A = _SOFT_BASIS.reshape(5, 9).T
+    A = SOFT_BASIS.reshape(5, 9).T
     v, *_ = np.linalg.lstsq(A, G.ravel(), rcond=None)
     assert np.allclose(A @ v, G.ravel())
     return v
@@ -239,3 +239,15 @@ def test_field_drift_explanation_with_positions_says_what_the_gradient_test_foun
     text = explanation(EffectKind.FIELD_DRIFT, {"peak_to_peak_nT": [300.0, 1700.0, 900.0]},
                        180.0, note=note)
     assert note in text and "cannot be separated" not in text
+
+
+def test_every_model_term_writes_its_own_params_and_sigmas():
+    # the registry, not a switch, answers for the outputs: every term of the forward model
+    # (sample_hold is handled on the data) overrides both
+    from pipeline.model.effects import Effect
+
+    for kind, eff in EFFECTS.items():
+        if kind is EffectKind.SAMPLE_HOLD:
+            continue
+        assert type(eff).params is not Effect.params, kind
+        assert type(eff).sigma is not Effect.sigma, kind

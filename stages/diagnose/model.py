@@ -62,6 +62,9 @@ from pipeline.model.attitude import (
     mean_interpolation_noise_factor,
 )
 from pipeline.model.effects import EFFECTS
+from pipeline.model.effects.field_gradient import gradient_matrix
+from pipeline.model.effects.heading_drift import heading_drift_params as heading_params_over
+from pipeline.model.effects.soft_iron import SOFT_BASIS
 from pipeline.model.field_map import BASIS_NAME, FieldMapBasis, map_points
 from pipeline.model.forward import (
     dipole_gradient,
@@ -100,14 +103,6 @@ IRON_PRIOR = {"hard_iron": 500.0, "soft_iron": 0.01}
 #: diagnose alike.
 CONFOUND_RATIO = 1e-2
 
-
-# Symmetric traceless basis of the soft-iron deviation S (5 matrices): the trace of D is the
-# field magnitude's job when B_enu is free (D = s I and B/s predict the same readings).
-_SOFT_BASIS = np.zeros((5, 3, 3))
-_SOFT_BASIS[0] = np.diag([1.0, -1.0, 0.0])
-_SOFT_BASIS[1] = np.diag([1.0, 1.0, -2.0]) / np.sqrt(3.0)
-for _k, (_i, _j) in enumerate([(0, 1), (0, 2), (1, 2)]):
-    _SOFT_BASIS[2 + _k, _i, _j] = _SOFT_BASIS[2 + _k, _j, _i] = 1.0
 
 #: Projector (9, 9) of a row-major ``E_s`` onto its traceless part, ``E_s - tr(E_s)/3 I``.
 #: Beside a time offset the eddy term has only these 8 directions: its isotropic part is the
@@ -474,16 +469,6 @@ def source_offset_enu(term: Term, value: F64, p_m: F64, lever_enu: F64 | None = 
     return forward_source_offset(value[0:3], psi, p_m, lever_enu)
 
 
-def gradient_matrix(value: F64, yaw_rad: float = 0.0) -> F64:
-    """``G_enu @ Q`` (3, 3), nT/m: ENU field change per metre along the position axes.
-
-    ``G_enu = sum_k value_k S_k`` with ``S_k`` the symmetric traceless basis (a field in free
-    space is curl-free, ``G = G.T``, and divergence-free, ``trace G = 0``: 5 parameters),
-    ``Q = rot_z(yaw_rad)`` the rotation from the position frame to ENU.
-    """
-    return np.tensordot(value, _SOFT_BASIS, axes=1) @ rot_z(yaw_rad)
-
-
 def drift_basis(t_s: F64, t0_s: float, t1_s: float) -> F64:
     """Legendre P1..P4 of the time scaled to [-1, 1] over the recording, shape (N, 4).
 
@@ -625,7 +610,7 @@ class ModelState:
     def D(self) -> F64:
         """Soft-iron matrix ``I + S`` (identity without ``soft_iron``)."""
         s = self.value(EffectKind.SOFT_IRON)
-        return np.eye(3) if s is None else np.eye(3) + np.tensordot(s, _SOFT_BASIS, axes=1)
+        return np.eye(3) if s is None else np.eye(3) + np.tensordot(s, SOFT_BASIS, axes=1)
 
     def tau_s(self) -> float:
         """Time offset, s (0 without ``time_offset``)."""
@@ -1024,7 +1009,7 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
                 J[:, r_, i + 3 + r_ : i + 3 + 3 * phi.shape[1] : 3] = phi
         elif k is EffectKind.SOFT_IRON:
             # dy/ds_k = S_k m + E S_k mdot
-            J[:, :, i : i + 5] = soft_iron_jacobian(_SOFT_BASIS, m, mdot, E)  # (J4)
+            J[:, :, i : i + 5] = soft_iron_jacobian(SOFT_BASIS, m, mdot, E)  # (J4)
         elif k is EffectKind.TIME_OFFSET:
             # b(t - tau) with the attitude re-interpolated at t - tau: db/dtau = omega x b with
             # omega the exact interpolated rate at t - tau (pipeline.model.forward, (J5));
@@ -1053,7 +1038,7 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             dpq = data.dp_m @ rot_z(term.yaw_rad).T  # Q (p - p_ref) per row
             if lever_enu is not None:
                 dpq = dpq + lever_enu
-            dB = np.einsum("kij,nj->nik", _SOFT_BASIS, dpq)  # (N, 3, 5)
+            dB = np.einsum("kij,nj->nik", SOFT_BASIS, dpq)  # (N, 3, 5)
             J[:, :, i : i + 5] = np.matmul(G, dB)
         elif k is EffectKind.LOCAL_SOURCE and data.p_m is not None:
             # r = Rz(psi) (p - c) + C l, B = P(r) m: dB/dc = -K Rz(psi), dB/dm = P(r),
@@ -1112,17 +1097,8 @@ def drift_span(data: FitData) -> float:
 
 
 def heading_drift_params(value: F64, data: FitData) -> dict[str, Any]:
-    """CONVENTIONS params of ``heading_drift``: mean rate and range of ``h(t)``.
-
-    ``h(t) = sum_k v_k P_k(x(t))`` (rad) is the heading error of the attitude source, positive
-    counter-clockwise seen from above (the reported heading ahead of the true one, ENU yaw):
-    ``rate_deg_per_h = (h(end) - h(start)) / T``, ``peak_to_peak_deg = max h - min h``.
-    """
-    span = drift_span(data)
-    tt = np.linspace(0.0, span, 512)
-    h = np.degrees(heading_basis(tt, span) @ value)
-    return {"rate_deg_per_h": float((h[-1] - h[0]) / max(span / 3600.0, 1e-12)),
-            "peak_to_peak_deg": float(h.max() - h.min())}
+    """CONVENTIONS params of ``heading_drift`` over ``data``'s span (the module's formula)."""
+    return heading_params_over(value, drift_span(data))
 
 
 def heading_signature_fraction(v_enu_nT: F64, B_enu_nT: F64) -> float:
@@ -1220,52 +1196,74 @@ def map_params(term: Term, value: F64, state: ModelState, data: FitData) -> dict
     }
 
 
+@dataclass(frozen=True)
+class FitContext:
+    """The fit a term's outputs are read from: the diagnosis' side of ``FitView``.
+
+    The effect modules (:mod:`pipeline.model.effects`) write each term's CONVENTIONS
+    ``params`` and sigmas; the pieces only the diagnosis evaluates (a dipole's closest
+    approach, a map's range over the samples) they ask of this view.
+    """
+
+    state: ModelState
+    data: FitData
+
+    @property
+    def span_s(self) -> float:
+        """Time span of the drift polynomials, s (:func:`drift_span`)."""
+        return drift_span(self.data)
+
+    @property
+    def p_ref_m(self) -> F64 | None:
+        """The positions' reference point, m."""
+        return self.data.p_ref_m
+
+    @property
+    def position_frame(self) -> str | None:
+        """The frame the positions are given in."""
+        return self.data.position_frame
+
+    @property
+    def D(self) -> F64:
+        """The fitted soft-iron matrix."""
+        return self.state.D()
+
+    @property
+    def T_enu(self) -> F64:
+        """The fitted turntable-axis tilt."""
+        return self.state.T_enu
+
+    def source_params(self, term: Term, value: F64) -> dict[str, Any]:
+        """Return a ``local_source``'s params (:func:`source_params`)."""
+        return source_params(term, value, self.data, self.state.value(EffectKind.LEVER_ARM),
+                             self.state.tau_s())
+
+    def map_params(self, term: Term, value: F64) -> dict[str, Any]:
+        """Return a ``field_map``'s params (:func:`map_params`)."""
+        return map_params(term, value, self.state, self.data)
+
+    def map_range_sigma(self, term: Term, cov: F64) -> list[float]:
+        """Return the first-order sigma of a ``field_map``'s range per ENU component.
+
+        The range of each component is ``f(x_max) - f(x_min)`` at the samples where the
+        fitted map is largest and smallest: the weights' covariance on the difference of
+        the two samples' basis rows.
+        """
+        if self.data.p_m is None or not len(self.data):
+            return [0.0, 0.0, 0.0]
+        A = _map_columns(term, self.state, self.data)  # (N, 3, K)
+        v = self.state.values[list(self.state.terms).index(term)]
+        f = np.einsum("ndk,k->nd", A, v)
+        p2p = []
+        for d in range(3):
+            a = A[int(np.argmax(f[:, d])), d] - A[int(np.argmin(f[:, d])), d]
+            p2p.append(float(np.sqrt(max(float(a @ cov @ a), 0.0))))
+        return p2p
+
+
 def term_params(term: Term, value: F64, state: ModelState, data: FitData) -> dict[str, Any]:
-    """CONVENTIONS ``params`` of a fitted term (arrays as lists)."""
-    k = term.kind
-    if k is EffectKind.HARD_IRON:
-        return {"offset_nT": value.tolist()}
-    if k is EffectKind.SOFT_IRON:
-        return {"D": state.D().tolist()}
-    if k is EffectKind.TIME_OFFSET:
-        return {"time_offset_s": float(value[0])}
-    if k is EffectKind.EDDY_CURRENT:
-        return {"E_s": value.reshape(3, 3).tolist()}
-    if k is EffectKind.FIELD_DRIFT:
-        tt = np.linspace(0.0, drift_span(data), 512)
-        f = drift_basis(tt, 0.0, drift_span(data)) @ value.reshape(-1, 3)
-        return {"peak_to_peak_nT": (f.max(axis=0) - f.min(axis=0)).tolist()}
-    if k is EffectKind.DISTURBANCE:
-        tt = np.concatenate([np.linspace(a, b, 200, endpoint=False) for a, b in term.windows_s])
-        Phi = np.concatenate([hat_basis(tt, kn) for kn in term.knots()], axis=1)
-        f = Phi @ value.reshape(-1, 3)
-        return {
-            "windows_s": [[float(a), float(b)] for a, b in term.windows_s],
-            "peak_nT": float(np.max(np.linalg.norm(f, axis=1))),
-        }
-    if k is EffectKind.HARD_IRON_STEP:
-        return {"windows_s": [[float(a), float(b)] for a, b in term.windows_s],
-                "offset_nT": np.asarray(value[:3], dtype=float).tolist()}
-    if k is EffectKind.FIELD_GRADIENT:
-        ref = np.zeros(3) if data.p_ref_m is None else np.asarray(data.p_ref_m, dtype=float)
-        return {"G_nT_per_m": gradient_matrix(value, term.yaw_rad).tolist(),
-                "position_frame": data.position_frame or "enu",
-                "reference_position_m": ref.tolist()}
-    if k is EffectKind.HEADING_DRIFT:
-        return heading_drift_params(value, data)
-    if k is EffectKind.LOCAL_SOURCE:
-        return source_params(term, value, data, state.value(EffectKind.LEVER_ARM),
-                             state.tau_s())
-    if k is EffectKind.LEVER_ARM:
-        return {"lever_arm_body_m": np.asarray(value, dtype=float).tolist()}
-    if k is EffectKind.FIELD_MAP:
-        return map_params(term, value, state, data)
-    if k is EffectKind.AXIS_TILT:
-        axis_true = state.T_enu @ np.array([0.0, 0.0, 1.0])
-        tilt = float(np.degrees(np.arccos(np.clip(axis_true[2], -1.0, 1.0))))
-        az = float(np.degrees(np.arctan2(axis_true[0], axis_true[1])) % 360.0)
-        return {"tilt_deg": tilt, "azimuth_deg": az}
-    raise ValueError(k)
+    """CONVENTIONS ``params`` of a fitted term (arrays as lists): its effect module's."""
+    return EFFECTS[term.kind].params(term, value, FitContext(state, data))
 
 
 def held_covariance(term: Term, cov: F64) -> F64:
@@ -1294,7 +1292,7 @@ def held_directions(term: Term) -> list[Any]:
     if term.kind is EffectKind.SOFT_IRON:
         out = []
         for u in U.T:
-            M = np.tensordot(u, _SOFT_BASIS, axes=1)
+            M = np.tensordot(u, SOFT_BASIS, axes=1)
             out.append((M / np.linalg.norm(M)).tolist())
         return out
     return [u.tolist() for u in U.T]
@@ -1304,58 +1302,7 @@ def term_sigma(term: Term, cov: F64, state: ModelState, data: FitData) -> dict[s
     """1-sigma of the CONVENTIONS params from the term's block of the covariance.
 
     ``cov``: (m, m) over the fitted parameters; a partial term's held combinations get
-    their prior's sigma (:func:`held_covariance`).
+    their prior's sigma (:func:`held_covariance`); the effect module turns the parameters'
+    covariance into its params' sigmas.
     """
-    cov = held_covariance(term, cov)
-    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    k = term.kind
-    if k in (EffectKind.HARD_IRON, EffectKind.HARD_IRON_STEP):
-        return {"offset_nT": sd[:3].tolist()}
-    if k is EffectKind.SOFT_IRON:
-        # Var(D_ij) = sum_kl B_k,ij B_l,ij cov_kl
-        var = np.einsum("kij,kl,lij->ij", _SOFT_BASIS, cov, _SOFT_BASIS)
-        return {"D": np.sqrt(np.clip(var, 0, None)).tolist()}
-    if k is EffectKind.TIME_OFFSET:
-        return {"time_offset_s": float(sd[0])}
-    if k is EffectKind.EDDY_CURRENT:
-        return {"E_s": sd.reshape(3, 3).tolist()}
-    if k is EffectKind.FIELD_DRIFT:
-        # first-order sigma of the range: max - min of the fitted curve differs by the
-        # coefficients' errors times the basis swing (2 for each Legendre polynomial)
-        s = sd.reshape(-1, 3)
-        return {"peak_to_peak_nT": (2.0 * np.sqrt(np.sum(s**2, axis=0))).tolist()}
-    if k is EffectKind.DISTURBANCE:
-        return {"peak_nT": float(np.sqrt(np.max(np.sum(sd.reshape(-1, 3) ** 2, axis=1))))}
-    if k is EffectKind.AXIS_TILT:
-        return {"tilt_deg": float(np.degrees(np.max(sd)))}
-    if k is EffectKind.HEADING_DRIFT:
-        # rate: h(end) - h(start) = 2 v1 (P1 runs from -1 to 1, P2 is 1 at both ends);
-        # range: first order, as for field_drift (each polynomial swings by at most 2)
-        T_h = max(drift_span(data), 1e-9) / 3600.0
-        return {"rate_deg_per_h": float(np.degrees(2.0 * sd[0]) / T_h),
-                "peak_to_peak_deg": float(np.degrees(2.0 * np.sqrt(np.sum(sd**2))))}
-    if k is EffectKind.LEVER_ARM:
-        return {"lever_arm_body_m": sd.tolist()}
-    if k is EffectKind.LOCAL_SOURCE:
-        return {"position_m": sd[0:3].tolist(), "moment_Am2": sd[3:6].tolist(),
-                "closest_approach_m": float(np.linalg.norm(sd[0:3]))}
-    if k is EffectKind.FIELD_MAP:
-        # the range of each component is f(x_max) - f(x_min) at the samples where the
-        # fitted map is largest and smallest: first order, the weights' covariance on the
-        # difference of the two samples' basis rows
-        if data.p_m is None or not len(data):
-            return {"weights": sd.tolist(), "peak_to_peak_nT": [0.0, 0.0, 0.0]}
-        A = _map_columns(term, state, data)  # (N, 3, K)
-        v = state.values[list(state.terms).index(term)]
-        f = np.einsum("ndk,k->nd", A, v)
-        p2p = []
-        for d in range(3):
-            a = A[int(np.argmax(f[:, d])), d] - A[int(np.argmin(f[:, d])), d]
-            p2p.append(float(np.sqrt(max(float(a @ cov @ a), 0.0))))
-        return {"weights": sd.tolist(), "peak_to_peak_nT": p2p}
-    if k is EffectKind.FIELD_GRADIENT:
-        # M = sum_k g_k S_k Q: Var(M_ij) = sum_kl (S_k Q)_ij cov_kl (S_l Q)_ij
-        SQ = _SOFT_BASIS @ rot_z(term.yaw_rad)
-        var = np.einsum("kij,kl,lij->ij", SQ, cov, SQ)
-        return {"G_nT_per_m": np.sqrt(np.clip(var, 0, None)).tolist()}
-    raise ValueError(k)
+    return EFFECTS[term.kind].sigma(term, held_covariance(term, cov), FitContext(state, data))

@@ -18,6 +18,7 @@ from pipeline.core.errors import EstimationError
 from pipeline.core.geometry import quat_to_matrix
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects import EFFECTS
+from pipeline.model.effects.field_gradient import gradient_matrix
 from stages.diagnose.catalogue import explanation, identifiability_reason, motion_stats
 from stages.diagnose.field_map import MapCandidate, finer_map_term, map_candidate
 from stages.diagnose.fit import FitResult, fit, wahba_init
@@ -30,7 +31,6 @@ from stages.diagnose.model import (
     Term,
     estimate_noise_model,
     evaluate,
-    gradient_matrix,
     interpolation_error_nT,
     interpolation_error_proxy,
     term_params,

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
+
+import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import Effect, register
+from pipeline.model.effects.base import F64, Effect, FitView, register
 
 
 @register
@@ -25,3 +27,15 @@ class AxisTilt(Effect):
     # a lean across the field's bearing turns B about the axis, which R_body_mag absorbs.
     identifiable_in_part: ClassVar[bool] = True
     n_fixed: ClassVar[int | None] = 2
+
+    def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
+        """Return the CONVENTIONS params (see :meth:`Effect.params`)."""
+        axis_true = fit.T_enu @ np.array([0.0, 0.0, 1.0])
+        tilt = float(np.degrees(np.arccos(np.clip(axis_true[2], -1.0, 1.0))))
+        az = float(np.degrees(np.arctan2(axis_true[0], axis_true[1])) % 360.0)
+        return {"tilt_deg": tilt, "azimuth_deg": az}
+
+    def sigma(self, term: Any, cov: F64, fit: FitView) -> dict[str, Any]:
+        """Return their 1-sigma (see :meth:`Effect.sigma`)."""
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        return {"tilt_deg": float(np.degrees(np.max(sd)))}

@@ -10,7 +10,7 @@ registry instead, so that adding an effect is one module plus one line in
 
 from __future__ import annotations
 
-from typing import ClassVar, Protocol
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,6 +29,16 @@ class TermShape(Protocol):
 
     # read-only: the terms are frozen dataclasses
     @property
+    def windows_s(self) -> tuple[tuple[float, float], ...]:
+        """Half-open windows of a local effect, s from the first sample."""
+        ...
+
+    @property
+    def yaw_rad(self) -> float:
+        """Bearing of a ``field_gradient``'s position frame about Up."""
+        ...
+
+    @property
     def fit_yaw(self) -> bool:
         """Whether a ``local_source`` fits the bearing of the position frame."""
         ...
@@ -44,6 +54,52 @@ class TermShape(Protocol):
 
     def step_profile(self, t_s: F64) -> tuple[F64, F64]:
         """Return a ``hard_iron_step``'s plateau profile (N,) and transition basis (N, M)."""
+        ...
+
+
+class FitView(Protocol):
+    """What a term's outputs need of the fit it came from (the diagnosis' state and data).
+
+    ``stages.diagnose.model.FitContext`` implements it. The dipole and the map are evaluated
+    by the diagnosis, which the effect modules do not import: their ``params`` and
+    ``sigma`` ask the view for those pieces.
+    """
+
+    @property
+    def span_s(self) -> float:
+        """Time from the first to the last sample, s (the drift polynomials' domain)."""
+        ...
+
+    @property
+    def p_ref_m(self) -> F64 | None:
+        """The positions' reference point, m, or None without positions."""
+        ...
+
+    @property
+    def position_frame(self) -> str | None:
+        """The frame the positions are given in."""
+        ...
+
+    @property
+    def D(self) -> F64:
+        """The fitted soft-iron matrix ``I + S`` (3, 3)."""
+        ...
+
+    @property
+    def T_enu(self) -> F64:
+        """The fitted turntable-axis tilt (3, 3)."""
+        ...
+
+    def source_params(self, term: Any, value: F64) -> dict[str, Any]:
+        """Return a ``local_source``'s CONVENTIONS params (position, moment, approach)."""
+        ...
+
+    def map_params(self, term: Any, value: F64) -> dict[str, Any]:
+        """Return a ``field_map``'s CONVENTIONS params (weights, basis, range)."""
+        ...
+
+    def map_range_sigma(self, term: Any, cov: F64) -> list[float]:
+        """Return the first-order sigma of a ``field_map``'s range per ENU component."""
         ...
 
 
@@ -100,6 +156,46 @@ class Effect:
         if self.n_fixed is None:
             raise ValueError(f"{self.kind.value} is not a term of the forward model")
         return self.n_fixed
+
+    def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
+        """Return the CONVENTIONS ``params`` of a fitted term (arrays as lists, JSON-ready).
+
+        Parameters
+        ----------
+        term : Term
+            The term (``stages.diagnose.model.Term``: windows, options).
+        value : ndarray (k,)
+            Its fitted parameters.
+        fit : FitView
+            The fit it belongs to.
+
+        Returns
+        -------
+        dict
+            Named as in CONVENTIONS ("Effects").
+
+        """
+        raise ValueError(f"{self.kind.value} is not a term of the forward model")
+
+    def sigma(self, term: Any, cov: F64, fit: FitView) -> dict[str, Any]:
+        """Return the 1-sigma of :meth:`params` from the term's covariance.
+
+        Parameters
+        ----------
+        term : Term
+            The term.
+        cov : ndarray (k, k)
+            Covariance of all its parameters (a partial term's held ones at their prior).
+        fit : FitView
+            The fit it belongs to.
+
+        Returns
+        -------
+        dict
+            The keys of :meth:`params` that have a sigma.
+
+        """
+        raise ValueError(f"{self.kind.value} is not a term of the forward model")
 
 
 #: kind -> its effect, filled by :func:`register` as the modules are imported

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
+
+import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import Effect, TermShape, register
+from pipeline.model.effects.base import F64, Effect, FitView, TermShape, register
+from pipeline.model.forward import hat_basis
 
 
 @register
@@ -25,3 +28,18 @@ class Disturbance(Effect):
     def n_params(self, term: TermShape) -> int:
         """Return 3 field components per knot of every window (linear B-spline hats)."""
         return 3 * sum(len(kn) for kn in term.knots())
+
+    def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
+        """Return the CONVENTIONS params (see :meth:`Effect.params`)."""
+        tt = np.concatenate([np.linspace(a, b, 200, endpoint=False) for a, b in term.windows_s])
+        Phi = np.concatenate([hat_basis(tt, kn) for kn in term.knots()], axis=1)
+        f = Phi @ value.reshape(-1, 3)
+        return {
+            "windows_s": [[float(a), float(b)] for a, b in term.windows_s],
+            "peak_nT": float(np.max(np.linalg.norm(f, axis=1))),
+        }
+
+    def sigma(self, term: Any, cov: F64, fit: FitView) -> dict[str, Any]:
+        """Return their 1-sigma (see :meth:`Effect.sigma`)."""
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        return {"peak_nT": float(np.sqrt(np.max(np.sum(sd.reshape(-1, 3) ** 2, axis=1))))}

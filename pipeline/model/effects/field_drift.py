@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
+
+import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import Effect, register
-from pipeline.model.forward import DRIFT_DEGREE
+from pipeline.model.effects.base import F64, Effect, FitView, register
+from pipeline.model.forward import DRIFT_DEGREE, drift_basis
 
 
 @register
@@ -26,3 +28,17 @@ class FieldDrift(Effect):
     )
     frame: ClassVar[str] = "enu"
     n_fixed: ClassVar[int | None] = 3 * DRIFT_DEGREE
+
+    def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
+        """Return the CONVENTIONS params (see :meth:`Effect.params`)."""
+        tt = np.linspace(0.0, fit.span_s, 512)
+        f = drift_basis(tt, fit.span_s) @ value.reshape(-1, 3)
+        return {"peak_to_peak_nT": (f.max(axis=0) - f.min(axis=0)).tolist()}
+
+    def sigma(self, term: Any, cov: F64, fit: FitView) -> dict[str, Any]:
+        """Return their 1-sigma (see :meth:`Effect.sigma`)."""
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        # first-order sigma of the range: max - min of the fitted curve differs by the
+        # coefficients' errors times the basis swing (2 for each Legendre polynomial)
+        s = sd.reshape(-1, 3)
+        return {"peak_to_peak_nT": (2.0 * np.sqrt(np.sum(s**2, axis=0))).tolist()}

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import Effect, TermShape, register
+from pipeline.model.effects.base import F64, Effect, FitView, TermShape, register
 
 
 @register
@@ -32,3 +32,12 @@ class FieldMap(Effect):
     def n_params(self, term: TermShape) -> int:
         """Return one weight per basis function (the product of the modes per axis)."""
         return int(np.prod(term.n_axis))
+
+    def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
+        """Return the CONVENTIONS params (see :meth:`Effect.params`)."""
+        return fit.map_params(term, value)
+
+    def sigma(self, term: Any, cov: F64, fit: FitView) -> dict[str, Any]:
+        """Return their 1-sigma (see :meth:`Effect.sigma`)."""
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        return {"weights": sd.tolist(), "peak_to_peak_nT": fit.map_range_sigma(term, cov)}

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import Effect, TermShape, register
+from pipeline.model.effects.base import F64, Effect, FitView, TermShape, register
 
 
 @register
@@ -27,3 +27,13 @@ class HardIronStep(Effect):
     def n_params(self, term: TermShape) -> int:
         """Return 3 for the plateau's offset plus 3 per mode of the transitions."""
         return 3 + 3 * term.step_profile(np.zeros(1))[1].shape[1]
+
+    def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
+        """Return the CONVENTIONS params (see :meth:`Effect.params`)."""
+        return {"windows_s": [[float(a), float(b)] for a, b in term.windows_s],
+                "offset_nT": np.asarray(value[:3], dtype=float).tolist()}
+
+    def sigma(self, term: Any, cov: F64, fit: FitView) -> dict[str, Any]:
+        """Return their 1-sigma (see :meth:`Effect.sigma`)."""
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        return {"offset_nT": sd[:3].tolist()}

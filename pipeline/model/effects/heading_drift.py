@@ -2,11 +2,27 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
+
+import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import Effect, register
-from pipeline.model.forward import HEADING_DEGREE
+from pipeline.model.effects.base import F64, Effect, FitView, register
+from pipeline.model.forward import HEADING_DEGREE, heading_basis
+
+
+def heading_drift_params(value: F64, span_s: float) -> dict[str, Any]:
+    """CONVENTIONS params of ``heading_drift``: mean rate and range of ``h(t)``.
+
+    ``h(t) = sum_k v_k P_k(x(t))`` (rad) is the heading error of the attitude source, positive
+    counter-clockwise seen from above (the reported heading ahead of the true one, ENU yaw):
+    ``rate_deg_per_h = (h(end) - h(start)) / T``, ``peak_to_peak_deg = max h - min h``; the
+    polynomials run over ``span_s``, s.
+    """
+    tt = np.linspace(0.0, span_s, 512)
+    h = np.degrees(heading_basis(tt, span_s) @ value)
+    return {"rate_deg_per_h": float((h[-1] - h[0]) / max(span_s / 3600.0, 1e-12)),
+            "peak_to_peak_deg": float(h.max() - h.min())}
 
 
 @register
@@ -25,3 +41,16 @@ class HeadingDrift(Effect):
     )
     frame: ClassVar[str] = "enu"
     n_fixed: ClassVar[int | None] = HEADING_DEGREE
+
+    def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
+        """Return the CONVENTIONS params (see :meth:`Effect.params`)."""
+        return heading_drift_params(value, fit.span_s)
+
+    def sigma(self, term: Any, cov: F64, fit: FitView) -> dict[str, Any]:
+        """Return their 1-sigma (see :meth:`Effect.sigma`)."""
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        # rate: h(end) - h(start) = 2 v1 (P1 runs from -1 to 1, P2 is 1 at both ends);
+        # range: first order, as for field_drift (each polynomial swings by at most 2)
+        T_h = max(fit.span_s, 1e-9) / 3600.0
+        return {"rate_deg_per_h": float(np.degrees(2.0 * sd[0]) / T_h),
+                "peak_to_peak_deg": float(np.degrees(2.0 * np.sqrt(np.sum(sd**2))))}

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
+
+import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import Effect, TermShape, register
+from pipeline.model.effects.base import F64, Effect, FitView, TermShape, register
 
 
 @register
@@ -29,3 +31,13 @@ class LocalSource(Effect):
     def n_params(self, term: TermShape) -> int:
         """Return position (3) and moment (3), plus the bearing of the position frame."""
         return 7 if term.fit_yaw else 6
+
+    def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
+        """Return the CONVENTIONS params (see :meth:`Effect.params`)."""
+        return fit.source_params(term, value)
+
+    def sigma(self, term: Any, cov: F64, fit: FitView) -> dict[str, Any]:
+        """Return their 1-sigma (see :meth:`Effect.sigma`)."""
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        return {"position_m": sd[0:3].tolist(), "moment_Am2": sd[3:6].tolist(),
+                "closest_approach_m": float(np.linalg.norm(sd[0:3]))}

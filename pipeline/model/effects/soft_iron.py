@@ -2,10 +2,21 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
+
+import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import Effect, register
+from pipeline.model.effects.base import F64, Effect, FitView, register
+
+#: Symmetric traceless basis of the soft-iron deviation S (5 matrices, ``S = sum_k s_k S_k``):
+#: the trace of D is the field magnitude's job when B_enu is free (D = s I and B/s predict the
+#: same readings).
+SOFT_BASIS = np.zeros((5, 3, 3))
+SOFT_BASIS[0] = np.diag([1.0, -1.0, 0.0])
+SOFT_BASIS[1] = np.diag([1.0, 1.0, -2.0]) / np.sqrt(3.0)
+for _k, (_i, _j) in enumerate([(0, 1), (0, 2), (1, 2)]):
+    SOFT_BASIS[2 + _k, _i, _j] = SOFT_BASIS[2 + _k, _j, _i] = 1.0
 
 
 @register
@@ -23,3 +34,13 @@ class SoftIron(Effect):
     )
     frame: ClassVar[str] = "mag"
     n_fixed: ClassVar[int | None] = 5
+
+    def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
+        """Return the CONVENTIONS params (see :meth:`Effect.params`)."""
+        return {"D": fit.D.tolist()}
+
+    def sigma(self, term: Any, cov: F64, fit: FitView) -> dict[str, Any]:
+        """Return their 1-sigma (see :meth:`Effect.sigma`)."""
+        # Var(D_ij) = sum_kl B_k,ij B_l,ij cov_kl
+        var = np.einsum("kij,kl,lij->ij", SOFT_BASIS, cov, SOFT_BASIS)
+        return {"D": np.sqrt(np.clip(var, 0, None)).tolist()}

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
+
+import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import Effect, register
+from pipeline.model.effects.base import F64, Effect, FitView, register
 
 
 @register
@@ -22,3 +24,12 @@ class TimeOffset(Effect):
     )
     frame: ClassVar[str] = "mag"
     n_fixed: ClassVar[int | None] = 1
+
+    def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
+        """Return the CONVENTIONS params (see :meth:`Effect.params`)."""
+        return {"time_offset_s": float(value[0])}
+
+    def sigma(self, term: Any, cov: F64, fit: FitView) -> dict[str, Any]:
+        """Return their 1-sigma (see :meth:`Effect.sigma`)."""
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        return {"time_offset_s": float(sd[0])}
