@@ -200,7 +200,7 @@ def test_wiring_gradient_noise_off_is_recovered_to_numerical_precision():
 
 
 def test_gradient_yaw_is_read_back_from_the_matrix():
-    from stages.diagnose.catalogue import yaw_of_gradient
+    from pipeline.model.effects.field_gradient import yaw_of_gradient
     from stages.diagnose.model import rot_z
 
     for deg in (0.0, 35.0, 120.0, -70.0):

@@ -1,8 +1,8 @@
 """The catalogue of effects: names, explanations, identifiability.
 
-How a finding is explained (``explanation``; what each effect is and how it shows are its
-module's, ``pipeline.model.effects``), and whether the motion of a recording can
-determine it (``motion_stats``, ``identifiability_reason``).
+How a finding is explained (``explanation``: what each effect is, how it shows and what
+its fitted values suggest are its module's, ``pipeline.model.effects``), and whether the
+motion of a recording can determine it (``motion_stats``, ``identifiability_reason``).
 """
 
 from __future__ import annotations
@@ -22,13 +22,7 @@ from stages.diagnose.model import (
     FitData,
     drift_basis,
     drift_span,
-    rot_z,
 )
-
-# Rate of change of the geomagnetic field: about 0.1 nT/min for the quiet diurnal variation,
-# rarely above 10 nT/min at mid latitudes even in a storm. A fitted drift much faster than
-# that is more likely the sensor moving through a spatially varying field.
-GEOMAGNETIC_RATE_NT_MIN = 10.0
 
 
 def explanation(
@@ -53,119 +47,8 @@ def explanation(
     str
 
     """
-    info = EFFECTS[kind]
-    text = f"{info.physics}; signature: {info.signature}"
-    if kind is EffectKind.FIELD_DRIFT:
-        p2p = float(np.max(params["peak_to_peak_nT"]))
-        rate = p2p / max(duration_s / 60.0, 1e-9)
-        text += (
-            f". The fitted change reaches {p2p:.0f} nT over {duration_s:.0f} s "
-            f"(about {rate:.1f} nT/min); "
-        )
-        if rate > GEOMAGNETIC_RATE_NT_MIN:
-            text += (
-                f"that is faster than geomagnetic variation (below ~{GEOMAGNETIC_RATE_NT_MIN:.0f} "
-                "nT/min outside severe storms), so the sensor most likely moved through a "
-                "spatially varying field"
-            )
-        else:
-            text += "that is within the range of diurnal or storm-time geomagnetic variation"
-        if note is None:
-            text += (
-                ". A spatial field gradient cannot be separated from a drift in time without "
-                "the sensor's positions, which this recording does not carry: the term models "
-                "both"
-            )
-        else:
-            text += ". " + note
-    if kind is EffectKind.LOCAL_SOURCE:
-        pos = ", ".join(f"{x:.2f}" for x in params["position_m"])
-        m = float(np.linalg.norm(params["moment_Am2"]))
-        frame = ("the attitude source's own frame (the motion-capture room)"
-                 if params.get("position_frame") == "attitude_source_local" else "local ENU")
-        text += f". Located at ({pos}) m in {frame}, moment {m:.3g} A m^2"
-        if params.get("closest_approach_m") is not None:
-            text += (f"; the sensor came closest, {100 * params['closest_approach_m']:.0f} cm, "
-                     f"at {params['closest_approach_s']:.1f} s")
-        text += (
-            ". It belongs to the surroundings, not to the sensor: the restored field keeps it "
-            "(a survey maps it); calibrate away from it, or keep it in the model"
-        )
-    if kind is EffectKind.FIELD_MAP:
-        pp = [float(x) for x in params["peak_to_peak_nT"]]
-        dom = np.asarray(params["domain_m"], dtype=float)
-        frame = ("the attitude source's own frame (the motion-capture room)"
-                 if params.get("position_frame") == "attitude_source_local" else "local ENU")
-        text += (
-            f". Beyond the linear gradient the field changes by up to {max(pp):.0f} nT "
-            "(range of E, N, U over the places visited: " + ", ".join(f"{x:.0f}" for x in pp)
-            + f" nT), modelled as minus the gradient of a potential in {params['n_basis']} "
-            "Laplace eigenfunctions of a box of " + " x ".join(
-                f"{b - a:.2f}" for a, b in dom) + f" m in {frame} (Solin et al. 2018), "
-            f"GP length scale {params['length_scale_m']:.2f} m. It belongs to the "
-            "surroundings, not to the sensor: the restored field keeps it. Calibrate where the "
-            "field is uniform (or turn the sensor in place), or keep the positions and this "
-            "term in the model"
-        )
-    if kind is EffectKind.LEVER_ARM:
-        lv = np.asarray(params["lever_arm_body_m"], dtype=float)
-        text += (
-            f". The magnetometer sits {100 * float(np.linalg.norm(lv)):.1f} cm from the tracked "
-            "point, at (" + ", ".join(f"{100 * x:+.1f}" for x in lv) + ") cm in the body "
-            "frame; set this offset in the survey's lever-arm configuration"
-        )
-    if kind is EffectKind.HEADING_DRIFT:
-        text += (
-            f". The attitude's heading error changes by {params['peak_to_peak_deg']:.3g} deg "
-            f"over {duration_s:.0f} s (a mean rate of {params['rate_deg_per_h']:.3g} deg/h). "
-            "A field that turns about Up without changing its magnitude would give the same "
-            "readings; the field does not do that by itself (diurnal and storm variations "
-            "change |B| and Up), an attitude source's heading does. Check the source's heading "
-            "aiding (magnetometer, GNSS dual antenna, mocap frame) and its gyro bias"
-        )
-    if kind is EffectKind.FIELD_GRADIENT:
-        G = np.asarray(params["G_nT_per_m"], dtype=float)
-        frob = float(np.linalg.norm(G))
-        text += (
-            f". The fitted gradient is {frob / 1e3:.2f} uT/m (Frobenius norm of G), "
-            f"{float(np.max(np.abs(G))) / 1e3:.2f} uT/m at most per component, about the "
-            "mean position"
-        )
-        if params.get("position_frame") == "attitude_source_local":
-            Q = yaw_of_gradient(G)
-            text += (
-                "; the positions are in the attitude source's own frame (third axis up, "
-                "horizontal axes of unknown bearing), so G is G_enu Q with Q a rotation about "
-                f"Up, found at {np.degrees(Q):.0f} deg (where G_enu Q^T is most nearly "
-                "symmetric)"
-            )
-        text += (
-            ". Calibrate where the field is uniform (away from steel, or with the sensor kept "
-            "at one place while it turns), or keep the positions and this term in the model"
-        )
-    if kind is EffectKind.AXIS_TILT:
-        text += (
-            f". The axis leans {params['tilt_deg']:.3g} deg towards bearing "
-            f"{params['azimuth_deg']:.0f} deg. With the misalignment estimated, the readings fix "
-            "only the angle between the rotation axis and the field: every axis on that cone "
-            "around B fits equally (a lean across the field's bearing turns B about the axis, "
-            "which the misalignment absorbs), and the one of least tilt, leaning along the "
-            "field's bearing, is reported. The true tilt is at least this large; a mounting "
-            "known from another calibration would determine its direction"
-        )
-    return text
-
-
-def yaw_of_gradient(M: F64) -> float:
-    """Rotation about Up (rad) that makes ``M Q^T`` symmetric: the position frame's yaw.
-
-    For ``M = G_enu Rz(a)`` with ``G_enu`` symmetric, ``M Rz(a)^T`` is symmetric; the
-    antisymmetric part of ``M Rz(b)^T`` is checked on a fine grid of ``b`` (defined up to
-    half a turn when G has no vertical-horizontal coupling).
-    """
-    b = np.radians(np.arange(0.0, 360.0, 0.5))
-    asym = [np.linalg.norm(M @ rot_z(x).T - (M @ rot_z(x).T).T) for x in b]
-    return float(b[int(np.argmin(asym))])
+    # the effect's module writes its words and what its fitted values suggest
+    return EFFECTS[kind].explanation(params, duration_s, note)
 
 
 def position_confounding(data: FitData) -> tuple[float, float]:

@@ -39,3 +39,17 @@ class AxisTilt(Effect):
         """Return their 1-sigma (see :meth:`Effect.sigma`)."""
         sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
         return {"tilt_deg": float(np.degrees(np.max(sd)))}
+
+    def remark(self, params: dict[str, Any], duration_s: float, note: str | None = None) -> str:
+        """Return what the fitted values suggest (see :meth:`Effect.remark`)."""
+        text = ""
+        text += (
+            f". The axis leans {params['tilt_deg']:.3g} deg towards bearing "
+            f"{params['azimuth_deg']:.0f} deg. With the misalignment estimated, the readings fix "
+            "only the angle between the rotation axis and the field: every axis on that cone "
+            "around B fits equally (a lean across the field's bearing turns B about the axis, "
+            "which the misalignment absorbs), and the one of least tilt, leaning along the "
+            "field's bearing, is reported. The true tilt is at least this large; a mounting "
+            "known from another calibration would determine its direction"
+        )
+        return text

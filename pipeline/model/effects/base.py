@@ -157,6 +157,35 @@ class Effect:
             raise ValueError(f"{self.kind.value} is not a term of the forward model")
         return self.n_fixed
 
+    def explanation(
+        self, params: dict[str, Any], duration_s: float, note: str | None = None
+    ) -> str:
+        """Return the words for one finding: the physics, the signature and :meth:`remark`.
+
+        Parameters
+        ----------
+        params : dict
+            The finding's CONVENTIONS params.
+        duration_s : float
+            Span of the recording, s.
+        note : str, optional
+            ``field_drift`` with positions in the recording: what the test of a spatial
+            gradient found (replaces the remark that drift and gradient cannot be separated).
+
+        Returns
+        -------
+        str
+
+        """
+        return f"{self.physics}; signature: {self.signature}" + self.remark(
+            params, duration_s, note)
+
+    def remark(
+        self, params: dict[str, Any], duration_s: float, note: str | None = None
+    ) -> str:
+        """Return what the fitted values suggest, ``". "``-led (empty: nothing to add)."""
+        return ""
+
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
         """Return the CONVENTIONS ``params`` of a fitted term (arrays as lists, JSON-ready).
 

@@ -10,6 +10,11 @@ from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects.base import F64, Effect, FitView, register
 from pipeline.model.forward import DRIFT_DEGREE, drift_basis
 
+#: Rate of change of the geomagnetic field: about 0.1 nT/min for the quiet diurnal variation,
+#: rarely above 10 nT/min at mid latitudes even in a storm. A fitted drift much faster than
+#: that is more likely the sensor moving through a spatially varying field.
+GEOMAGNETIC_RATE_NT_MIN = 10.0
+
 
 @register
 class FieldDrift(Effect):
@@ -42,3 +47,30 @@ class FieldDrift(Effect):
         # coefficients' errors times the basis swing (2 for each Legendre polynomial)
         s = sd.reshape(-1, 3)
         return {"peak_to_peak_nT": (2.0 * np.sqrt(np.sum(s**2, axis=0))).tolist()}
+
+    def remark(self, params: dict[str, Any], duration_s: float, note: str | None = None) -> str:
+        """Return what the fitted values suggest (see :meth:`Effect.remark`)."""
+        text = ""
+        p2p = float(np.max(params["peak_to_peak_nT"]))
+        rate = p2p / max(duration_s / 60.0, 1e-9)
+        text += (
+            f". The fitted change reaches {p2p:.0f} nT over {duration_s:.0f} s "
+            f"(about {rate:.1f} nT/min); "
+        )
+        if rate > GEOMAGNETIC_RATE_NT_MIN:
+            text += (
+                f"that is faster than geomagnetic variation (below ~{GEOMAGNETIC_RATE_NT_MIN:.0f} "
+                "nT/min outside severe storms), so the sensor most likely moved through a "
+                "spatially varying field"
+            )
+        else:
+            text += "that is within the range of diurnal or storm-time geomagnetic variation"
+        if note is None:
+            text += (
+                ". A spatial field gradient cannot be separated from a drift in time without "
+                "the sensor's positions, which this recording does not carry: the term models "
+                "both"
+            )
+        else:
+            text += ". " + note
+        return text

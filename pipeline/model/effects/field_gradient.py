@@ -22,6 +22,18 @@ def gradient_matrix(value: F64, yaw_rad: float = 0.0) -> F64:
     return np.tensordot(value, SOFT_BASIS, axes=1) @ rot_z(yaw_rad)
 
 
+def yaw_of_gradient(M: F64) -> float:
+    """Rotation about Up (rad) that makes ``M Q^T`` symmetric: the position frame's yaw.
+
+    For ``M = G_enu Rz(a)`` with ``G_enu`` symmetric, ``M Rz(a)^T`` is symmetric; the
+    antisymmetric part of ``M Rz(b)^T`` is checked on a fine grid of ``b`` (defined up to
+    half a turn when G has no vertical-horizontal coupling).
+    """
+    b = np.radians(np.arange(0.0, 360.0, 0.5))
+    asym = [np.linalg.norm(M @ rot_z(x).T - (M @ rot_z(x).T).T) for x in b]
+    return float(b[int(np.argmin(asym))])
+
+
 @register
 class FieldGradient(Effect):
     """The ``field_gradient`` effect (see :class:`~pipeline.model.effects.base.Effect`)."""
@@ -50,3 +62,27 @@ class FieldGradient(Effect):
         SQ = SOFT_BASIS @ rot_z(term.yaw_rad)
         var = np.einsum("kij,kl,lij->ij", SQ, cov, SQ)
         return {"G_nT_per_m": np.sqrt(np.clip(var, 0, None)).tolist()}
+
+    def remark(self, params: dict[str, Any], duration_s: float, note: str | None = None) -> str:
+        """Return what the fitted values suggest (see :meth:`Effect.remark`)."""
+        text = ""
+        G = np.asarray(params["G_nT_per_m"], dtype=float)
+        frob = float(np.linalg.norm(G))
+        text += (
+            f". The fitted gradient is {frob / 1e3:.2f} uT/m (Frobenius norm of G), "
+            f"{float(np.max(np.abs(G))) / 1e3:.2f} uT/m at most per component, about the "
+            "mean position"
+        )
+        if params.get("position_frame") == "attitude_source_local":
+            Q = yaw_of_gradient(G)
+            text += (
+                "; the positions are in the attitude source's own frame (third axis up, "
+                "horizontal axes of unknown bearing), so G is G_enu Q with Q a rotation about "
+                f"Up, found at {np.degrees(Q):.0f} deg (where G_enu Q^T is most nearly "
+                "symmetric)"
+            )
+        text += (
+            ". Calibrate where the field is uniform (away from steel, or with the sensor kept "
+            "at one place while it turns), or keep the positions and this term in the model"
+        )
+        return text

@@ -41,3 +41,23 @@ class FieldMap(Effect):
         """Return their 1-sigma (see :meth:`Effect.sigma`)."""
         sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
         return {"weights": sd.tolist(), "peak_to_peak_nT": fit.map_range_sigma(term, cov)}
+
+    def remark(self, params: dict[str, Any], duration_s: float, note: str | None = None) -> str:
+        """Return what the fitted values suggest (see :meth:`Effect.remark`)."""
+        text = ""
+        pp = [float(x) for x in params["peak_to_peak_nT"]]
+        dom = np.asarray(params["domain_m"], dtype=float)
+        frame = ("the attitude source's own frame (the motion-capture room)"
+                 if params.get("position_frame") == "attitude_source_local" else "local ENU")
+        text += (
+            f". Beyond the linear gradient the field changes by up to {max(pp):.0f} nT "
+            "(range of E, N, U over the places visited: " + ", ".join(f"{x:.0f}" for x in pp)
+            + f" nT), modelled as minus the gradient of a potential in {params['n_basis']} "
+            "Laplace eigenfunctions of a box of " + " x ".join(
+                f"{b - a:.2f}" for a, b in dom) + f" m in {frame} (Solin et al. 2018), "
+            f"GP length scale {params['length_scale_m']:.2f} m. It belongs to the "
+            "surroundings, not to the sensor: the restored field keeps it. Calibrate where the "
+            "field is uniform (or turn the sensor in place), or keep the positions and this "
+            "term in the model"
+        )
+        return text

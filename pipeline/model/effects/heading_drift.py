@@ -54,3 +54,16 @@ class HeadingDrift(Effect):
         T_h = max(fit.span_s, 1e-9) / 3600.0
         return {"rate_deg_per_h": float(np.degrees(2.0 * sd[0]) / T_h),
                 "peak_to_peak_deg": float(np.degrees(2.0 * np.sqrt(np.sum(sd**2))))}
+
+    def remark(self, params: dict[str, Any], duration_s: float, note: str | None = None) -> str:
+        """Return what the fitted values suggest (see :meth:`Effect.remark`)."""
+        text = ""
+        text += (
+            f". The attitude's heading error changes by {params['peak_to_peak_deg']:.3g} deg "
+            f"over {duration_s:.0f} s (a mean rate of {params['rate_deg_per_h']:.3g} deg/h). "
+            "A field that turns about Up without changing its magnitude would give the same "
+            "readings; the field does not do that by itself (diurnal and storm variations "
+            "change |B| and Up), an attitude source's heading does. Check the source's heading "
+            "aiding (magnetometer, GNSS dual antenna, mocap frame) and its gyro bias"
+        )
+        return text

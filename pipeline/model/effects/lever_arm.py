@@ -35,3 +35,14 @@ class LeverArm(Effect):
         """Return their 1-sigma (see :meth:`Effect.sigma`)."""
         sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
         return {"lever_arm_body_m": sd.tolist()}
+
+    def remark(self, params: dict[str, Any], duration_s: float, note: str | None = None) -> str:
+        """Return what the fitted values suggest (see :meth:`Effect.remark`)."""
+        text = ""
+        lv = np.asarray(params["lever_arm_body_m"], dtype=float)
+        text += (
+            f". The magnetometer sits {100 * float(np.linalg.norm(lv)):.1f} cm from the tracked "
+            "point, at (" + ", ".join(f"{100 * x:+.1f}" for x in lv) + ") cm in the body "
+            "frame; set this offset in the survey's lever-arm configuration"
+        )
+        return text

@@ -41,3 +41,20 @@ class LocalSource(Effect):
         sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
         return {"position_m": sd[0:3].tolist(), "moment_Am2": sd[3:6].tolist(),
                 "closest_approach_m": float(np.linalg.norm(sd[0:3]))}
+
+    def remark(self, params: dict[str, Any], duration_s: float, note: str | None = None) -> str:
+        """Return what the fitted values suggest (see :meth:`Effect.remark`)."""
+        text = ""
+        pos = ", ".join(f"{x:.2f}" for x in params["position_m"])
+        m = float(np.linalg.norm(params["moment_Am2"]))
+        frame = ("the attitude source's own frame (the motion-capture room)"
+                 if params.get("position_frame") == "attitude_source_local" else "local ENU")
+        text += f". Located at ({pos}) m in {frame}, moment {m:.3g} A m^2"
+        if params.get("closest_approach_m") is not None:
+            text += (f"; the sensor came closest, {100 * params['closest_approach_m']:.0f} cm, "
+                     f"at {params['closest_approach_s']:.1f} s")
+        text += (
+            ". It belongs to the surroundings, not to the sensor: the restored field keeps it "
+            "(a survey maps it); calibrate away from it, or keep it in the model"
+        )
+        return text
