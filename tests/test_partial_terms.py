@@ -23,10 +23,10 @@ from pipeline.app.exports import export_text
 from pipeline.core.verdict import plain_words
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.calibration import Calibration
+from pipeline.model.effects import IRON_PRIOR
 from stages.diagnose.fit import fit
 from stages.diagnose.model import (
     CONFOUND_RATIO,
-    IRON_PRIOR,
     AttitudeTrack,
     FitData,
     ModelState,

@@ -12,7 +12,7 @@ import numpy as np
 from indep_gen import Spec, write
 
 from pipeline.app.commands.diagnose import diagnose_file
-from stages.diagnose.stage import IRON_PRIOR
+from pipeline.model.effects import IRON_PRIOR
 
 #: scale differences of 1.2 and 0.7 % and cross-axis couplings of 0.4-0.6 %: within the prior
 D_TYPICAL = [[1.012, 0.006, -0.004], [0.006, 0.993, 0.005], [-0.004, 0.005, 1.0]]

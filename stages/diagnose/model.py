@@ -61,7 +61,7 @@ from pipeline.model.attitude import (
     interpolation_error_shape,
     mean_interpolation_noise_factor,
 )
-from pipeline.model.effects import EFFECTS
+from pipeline.model.effects import EFFECTS, IRON_PRIOR
 from pipeline.model.effects.field_gradient import gradient_matrix
 from pipeline.model.effects.heading_drift import heading_drift_params as heading_params_over
 from pipeline.model.effects.soft_iron import SOFT_BASIS
@@ -87,13 +87,6 @@ F64 = NDArray[np.float64]
 
 
 LOCAL_KINDS = frozenset({EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP})
-
-
-#: Prior sizes of the sensor iron a recording's motion cannot determine, or determines only
-#: in part: the traceless soft-iron parameters (scale differences and cross-axis coupling,
-#: dimensionless) and each offset component (nT). Typical of MEMS magnetometers, and of the
-#: lab sensor, whose full recordings determine D - I up to 0.02 and offsets of 300-500 nT.
-IRON_PRIOR = {"hard_iron": 500.0, "soft_iron": 0.01}
 
 
 #: A term (or the rotation) keeping less than this fraction of the information of its weakest

@@ -29,12 +29,12 @@ import numpy as np
 
 from pipeline.core.geometry import matrix_to_quat, quat_to_matrix, so3_exp
 from pipeline.core.vocabulary import EffectKind
+from pipeline.model.effects import IRON_PRIOR
 from pipeline.model.solve import gram
 from stages.diagnose.fit import FitResult
 from stages.diagnose.model import (
     CONFOUND_RATIO,
     F64,
-    IRON_PRIOR,
     AttitudeTrack,
     FitData,
     ModelState,
@@ -46,7 +46,7 @@ from stages.diagnose.statistics import ScoreTest, score_test
 
 #: Terms that may be fitted in part. Iron has a natural reference for what the motion cannot
 #: determine (no iron), and the rotation's sigma already carries a prior for it
-#: (:data:`~stages.diagnose.model.IRON_PRIOR`); a drift or an eddy term held at zero along
+#: (:data:`~pipeline.model.effects.IRON_PRIOR`); a drift or an eddy term held at zero along
 #: some combinations would be a different effect, not a part of one. Soft iron works the same
 #: way (a survey's held combination is the scale of mag z against x and y) but is left out
 #: until its effect on the real recordings is checked: on lab_01 it would add a soft iron of

@@ -24,14 +24,13 @@ from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
 from pipeline.core.recording import AlignedSeries, Recording
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.calibration import Calibration
-from pipeline.model.effects import EFFECTS
+from pipeline.model.effects import EFFECTS, IRON_PRIOR
 from pipeline.model.sample_hold import Handling, SampleHold, detect_sample_hold
 from pipeline.model.solve import one_blas_thread
 from stages.context import Context
 from stages.diagnose.fit import FitResult, fit
 from stages.diagnose.model import (
     F64,
-    IRON_PRIOR,
     LOCAL_KINDS,
     AttitudeTrack,
     FitData,

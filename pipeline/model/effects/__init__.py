@@ -32,4 +32,11 @@ from pipeline.model.effects.base import EFFECTS, Effect, TermShape
 if set(EFFECTS) != set(EffectKind):
     raise ImportError(f"effect modules do not match EffectKind: {set(EffectKind) ^ set(EFFECTS)}")
 
-__all__ = ["EFFECTS", "Effect", "TermShape"]
+#: Prior sizes of the sensor iron a recording's motion cannot determine, or determines only
+#: in part, by CONVENTIONS name in EffectKind's order (``hard_iron`` before ``soft_iron``,
+#: the order the outputs list them in; not the modules' import order): each module's
+#: ``held_prior``, where it states and justifies its size.
+IRON_PRIOR: dict[str, float] = {
+    k.value: p for k in EffectKind if (p := EFFECTS[k].held_prior) is not None}
+
+__all__ = ["EFFECTS", "IRON_PRIOR", "Effect", "TermShape"]

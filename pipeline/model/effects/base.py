@@ -124,6 +124,10 @@ class Effect:
     n_fixed : int or None
         The number of parameters when it does not depend on the term's windows or options;
         None when :meth:`n_params` counts them.
+    held_prior : float or None
+        The prior's standard deviation of each parameter (or combination of them) a
+        recording's motion cannot determine, held at zero instead (sensor iron only: its
+        "none" is a natural reference); None: the term is never held in part.
 
     """
 
@@ -133,6 +137,7 @@ class Effect:
     frame: ClassVar[str]
     identifiable_in_part: ClassVar[bool] = False
     n_fixed: ClassVar[int | None] = None
+    held_prior: ClassVar[float | None] = None
 
     def n_params(self, term: TermShape) -> int:
         """Return the number of parameters of ``term``, a term of this effect.

@@ -24,6 +24,9 @@ class HardIron(Effect):
     )
     frame: ClassVar[str] = "mag"
     n_fixed: ClassVar[int | None] = 3
+    # Each offset component, nT: typical of MEMS magnetometers, and of the lab sensor, whose
+    # full recordings determine offsets of 300-500 nT.
+    held_prior: ClassVar[float | None] = 500.0
 
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
         """Return the CONVENTIONS params (see :meth:`Effect.params`)."""

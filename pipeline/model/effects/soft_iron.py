@@ -34,6 +34,10 @@ class SoftIron(Effect):
     )
     frame: ClassVar[str] = "mag"
     n_fixed: ClassVar[int | None] = 5
+    # Each traceless parameter (scale differences and cross-axis coupling, dimensionless):
+    # typical of MEMS magnetometers, and of the lab sensor, whose full recordings determine
+    # D - I up to 0.02.
+    held_prior: ClassVar[float | None] = 0.01
 
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
         """Return the CONVENTIONS params (see :meth:`Effect.params`)."""
