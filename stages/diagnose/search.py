@@ -37,6 +37,7 @@ from stages.diagnose.model import (
 from stages.diagnose.nested import (
     MIN_STEP_S,
     RAMP_REACH_S,
+    earns_beside_lookalikes,
     refine_step,
     simplest,
     without_term,
@@ -667,8 +668,8 @@ def diagnose_data(
                                 fits.insert(k_fit, (fr[1], score_test(cur, look, data, sig),
                                                     fr[0]))
                     continue
-            if (st.term.kind is EffectKind.EDDY_CURRENT and EffectKind.TIME_OFFSET in present
-                    and not _eddy_beside_held_lag(cur, res, data, cfg)):
+            if (len(res.state.terms) == len(cur.state.terms) + 1
+                    and not earns_beside_lookalikes(res, cur, len(cur.state.terms), data, cfg)):
                 rejected.add((st.term.kind, st.term.windows_s))
                 continue
             if (st.term.kind in LOCAL_KINDS and EffectKind.FIELD_MAP in present
@@ -694,11 +695,6 @@ def diagnose_data(
                     accepted = True
                     rejected.clear()
                     break
-            if (st.term.kind in DRIFT_KINDS and present & LOCAL_KINDS
-                    and len(res.state.terms) == len(cur.state.terms) + 1
-                    and not _drift_beside_held_transients(res, cur, data, cfg)):
-                rejected.add((st.term.kind, st.term.windows_s))
-                continue
             if id(st) in replaces:
                 # a transition lasts less than a held-out block: it is held out at its own
                 # time scale, the current model on the same blocks (then the usual blocks
@@ -765,11 +761,8 @@ def diagnose_data(
             n_eff = effective_samples(cur, data)
             bic_cur = bic(cur.rss, n_eff, cur.state.n_free())
             keep = bic_cur - bic(res_wo.rss, n_eff, res_wo.state.n_free())
-            # a drift that earned its margin only by trading with a transient goes as well
-            if keep > -cfg.bic_margin or (
-                    t_i.kind in DRIFT_KINDS
-                    and any(t.kind in LOCAL_KINDS for t in cur.state.terms)
-                    and not _drift_beside_held_transients(cur, res_wo, data, cfg)):
+            # a term that earned its margin only by trading with a look-alike goes as well
+            if keep > -cfg.bic_margin or not earns_beside_lookalikes(cur, res_wo, i, data, cfg):
                 dropped.add((t_i.kind, t_i.windows_s))
                 findings.pop(i)
                 cur = res_wo
@@ -1021,71 +1014,6 @@ def _lag_first(eddy: FitResult, data: FitData, cfg: DiagnoseConfig) -> bool:
         return False
     pair = fit(eddy.state.with_term(Term(EffectKind.TIME_OFFSET)), data)
     return bic_between(pair, eddy, data) < -cfg.bic_margin
-
-
-def _gains_with_held(with_new: FitResult, without: FitResult, i_new: int,
-                     held: frozenset[EffectKind], data: FitData, cfg: DiagnoseConfig) -> bool:
-    """Whether term ``i_new`` of ``with_new`` earns its margin with the ``held`` kinds fixed.
-
-    ``without``: the same model without that term (the others in the same order), refitted.
-    The terms of the kinds ``held`` are fixed at their values in ``without`` (a partial term
-    with no combination fitted) and the rest refitted; the new term is named only if that fit
-    still lowers the BIC by the margin at the new term's own parameters (the count of
-    ``with_new``), both with the smaller effective sample count. A term that gained only by
-    moving a look-alike along what the two share does not.
-    """
-    terms, vals = list(with_new.state.terms), list(with_new.state.values)
-    for k, t in enumerate(terms):
-        if k != i_new and t.kind in held:
-            v = np.asarray(without.state.values[k - (k > i_new)], dtype=float)
-            terms[k] = t.restricted(np.zeros((v.size, 0)), fixed=v)  # none fitted
-            vals[k] = v
-    fixed = fit(dataclasses.replace(with_new.state, terms=tuple(terms), values=tuple(vals)),
-                data)
-    n = min(effective_samples(fixed, data), effective_samples(without, data))
-    return bic(fixed.rss, n, with_new.state.n_free()) - bic(
-        without.rss, n, without.state.n_free()) <= -cfg.bic_margin
-
-
-def _eddy_beside_held_lag(cur: FitResult, res: FitResult, data: FitData,
-                          cfg: DiagnoseConfig) -> bool:
-    """Whether a traceless eddy term earns its margin with the time offset held where it was.
-
-    ``cur``: the model with a ``time_offset``; ``res``: the same with an ``eddy_current``
-    beside it, both refitted. To first order the two are orthogonal (the eddy term is
-    traceless beside a lag), except where the motion makes them alike: a sensor that barely
-    turns sees ``db/dt`` perpendicular to ``b`` only, where the traceless ``I/3 - b b.T`` acts
-    as a third of the identity, a lag. There the pair trades along that combination, and
-    the lag's second-order terms, the interpolation's error and the attitude's noise decide
-    the split, not eddy currents. Refitted with ``tau`` held at its value in ``cur``, an eddy
-    term that is there still gains the BIC margin at its 8 parameters; one that gained only
-    by moving the lag does not.
-    """
-    return _gains_with_held(res, cur, len(res.state.terms) - 1,
-                            frozenset({EffectKind.TIME_OFFSET}), data, cfg)
-
-
-#: Slow terms: functions of time over the whole recording, which span part of a transient's
-#: shape (a step in the middle of a recording reads in part as a slow change).
-DRIFT_KINDS = frozenset({EffectKind.FIELD_DRIFT, EffectKind.HEADING_DRIFT})
-
-
-def _drift_beside_held_transients(with_drift: FitResult, without: FitResult, data: FitData,
-                                  cfg: DiagnoseConfig) -> bool:
-    """Whether a drift earns its margin with the transients held where they were without it.
-
-    ``without``: the model of ``with_drift`` without its drift (the other terms in the same
-    order), both refitted. A drift over the recording spans part of a step's or a
-    disturbance's shape, so the pair can trade along it and fit the residual's own slow
-    texture with the transient's amplitude as a free hand: on a lab excerpt a 3000 nT x 7 s
-    magnet came out 500 nT off beside a drift that the same recording without the magnet
-    does not earn. What a term local in time explains is its own (as with the map, which
-    comes last); with every transient held at its value in ``without`` (:func:`_gains_with_held`),
-    a drift that is there still gains the BIC margin, one that gained only by moving the
-    transient does not.
-    """
-    i_d = next(k for k, t in enumerate(with_drift.state.terms) if t.kind in DRIFT_KINDS)
-    return _gains_with_held(with_drift, without, i_d, LOCAL_KINDS, data, cfg)
 
 
 def _transition_words(term: Term) -> str:
