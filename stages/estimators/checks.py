@@ -28,7 +28,7 @@ MIN_BLOCKS = 40
 #: recording the model describes (noise only) fail it. The limit is the chi-square quantile
 #: at ``1 - SPLIT_FALSE_ALARM`` for the directions the halves determine (:func:`split_limit`);
 #: measured on independent nulls by bench/halves_null.py (docs/testing.md).
-SPLIT_FALSE_ALARM = 0.01
+SPLIT_FALSE_ALARM = 0.05
 #: A direction of the halves' difference covariance below this fraction of its largest
 #: eigenvalue is one the motion does not determine (its variance is rounding): left out of
 #: the statistic and of its degrees of freedom.
