@@ -182,7 +182,8 @@ POOR_AXIS_SIGMA_DEG = 1.0
 
 
 def with_verdict(cal: Calibration, aligned: AlignedSeries,
-                 residual_rms_nT: float | None = None, diagnosed: bool = False) -> Calibration:
+                 residual_rms_nT: float | None = None, diagnosed: bool = False,
+                 heldout_rms_nT: float | None = None) -> Calibration:
     """Return ``cal`` with its verdict (:mod:`pipeline.core.verdict`) from the aligned samples.
 
     The sensor noise is measured in the still windows of ``aligned`` (repeated
@@ -190,7 +191,8 @@ def with_verdict(cal: Calibration, aligned: AlignedSeries,
     and doubts, and a rotation known to worse than :data:`POOR_AXIS_SIGMA_DEG` about a body
     axis the motion does determine is one more. ``residual_rms_nT`` overrides the
     calibration's own (a later, fuller model); ``diagnosed``: the diagnosis ran (the
-    verdict's advice points to its findings).
+    verdict's advice points to its findings); ``heldout_rms_nT``: the final model's error
+    on held-out samples, when the diagnosis measured it (the verdict judges and quotes it).
     """
     keep = ~repeated(aligned.mag_nT)
     noise = sensor_noise_nT(aligned.t_ns, aligned.mag_nT, aligned.q_enu_body, keep)
@@ -210,7 +212,7 @@ def with_verdict(cal: Calibration, aligned: AlignedSeries,
             doubts.append(f"{poor}{'xyz'[i]} is only known to {sig[i]:.1f} deg: the motion "
                           "barely turned the sensor about that axis")
     return cal.replace(verdict=judge(res, noise, refusals=refusals, doubts=doubts,
-                                     diagnosed=diagnosed),
+                                     diagnosed=diagnosed, heldout_rms_nT=heldout_rms_nT),
                        checks={**cal.checks, "doubts": doubts})
 
 
@@ -255,8 +257,16 @@ class Judge:
 
     def run(self, ctx: Context) -> Context:
         """Return ``ctx`` with ``calibration.verdict`` for its final model."""
-        return ctx.replace(calibration=with_verdict(ctx.need_calibration(), ctx.need_aligned(),
-                                                    diagnosed=ctx.diagnosis is not None))
+        diag = ctx.diagnosis
+        cal = ctx.need_calibration()
+        # the held-out figure is the diagnosis' final model's: it speaks for the answer only
+        # when that model is the answer (not a model the user restricted with --estimate)
+        held = None
+        if diag is not None and cal.estimator == "diagnose":
+            held = (diag.final or {}).get("heldout_rms_nT")
+        return ctx.replace(calibration=with_verdict(
+            cal, ctx.need_aligned(), diagnosed=diag is not None,
+            heldout_rms_nT=None if held is None else float(held)))
 
 
 @dataclass(frozen=True)
