@@ -19,7 +19,7 @@ import numpy as np
 
 from pipeline.core.errors import InputError
 from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
-from pipeline.core.validate import check_calibration_dict
+from pipeline.core.validate import check_calibration_dict, read_json_object
 from pipeline.core.verdict import Verdict
 from pipeline.model.forward import ForwardModel, predict, restore
 
@@ -341,11 +341,11 @@ class Calibration:
     def load(cls, path: str | Path) -> Calibration:
         """Read a calibration.json file."""
         p = Path(path)
-        try:
-            text = p.read_text()
-        except OSError as exc:
-            raise InputError(f"cannot read calibration: {exc.strerror}", path=p) from exc
-        return cls.from_json(text, path=str(p))
+        d = read_json_object(p, "a calibration.json",
+                             hint="give the calibration.json written by magalign calibrate, "
+                             "diagnose or process")
+        check_calibration_dict(d, str(p))
+        return cls.from_dict(d, path=str(p))
 
     def replace(self, **changes: Any) -> Calibration:
         """Return a new calibration with ``changes``."""
