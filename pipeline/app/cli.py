@@ -20,7 +20,7 @@ import warnings
 from typing import NoReturn
 
 from pipeline import package_version
-from pipeline.core.errors import MagalignError, UsageError
+from pipeline.core.errors import MagalignError, UsageError, damage_behind
 
 COMMANDS = (
     "info",
@@ -123,8 +123,11 @@ def main(argv: list[str] | None = None) -> int:
                 exc.naming(getattr(args, "recording", None) or getattr(args, "input", None))
             if debug:
                 traceback.print_exc()
+            line = exc.one_line()
+            if exc.exit_code == 2 and not debug:
+                line += damage_behind(caught, exc.path)
             _show(caught, debug or exc.exit_code != 2, debug)
-            print(f"magalign: {exc.one_line()}", file=sys.stderr)
+            print(f"magalign: {line}", file=sys.stderr)
             status, failed = exc.exit_code, True
         except KeyboardInterrupt:
             _show(caught, True, debug)
