@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import re
 import sys
 from pathlib import Path
 
@@ -25,7 +26,7 @@ from pipeline.app.commands._options import (
 from pipeline.core import progress
 from pipeline.core.atomic import atomic_path
 from pipeline.core.errors import NotObservableError, RefusedError, UsageError
-from pipeline.core.verdict import Status, verdict_line
+from pipeline.core.verdict import Status, plain_words, verdict_line
 from pipeline.core.vocabulary import EstimateTerm, EstimatorKind
 from pipeline.run.options import ProcessOptions
 from pipeline.run.runner import analyse_recording
@@ -107,13 +108,40 @@ def run(args: argparse.Namespace) -> int:
             path=args.recording, hint="record rotations about at least two different axes")
     if cal.verdict is not None and cal.verdict.status is Status.REFUSED:
         # Same reason: a refused fit is not written where a later run would find it.
-        raise RefusedError(f"calibration refused: {cal.verdict.reason}", path=args.recording)
+        raise RefusedError(f"calibration refused: {refusal_reason(cal)}", path=args.recording)
     out = Path(args.out) / "calibration.json"
     with atomic_path(out, inputs=(args.recording,)) as tmp:
         tmp.write_text(cal.to_json() + "\n")
     print(summary(cal))
     print(f"wrote {out}")
     return 0
+
+
+#: the verdict's pointer to the doubts it does not state, for the outputs that carry them
+_MORE = re.compile(r"\s*\((\d+) more doubts? in the report\.\)\s*$")
+
+
+def refusal_reason(cal) -> str:
+    """Return a refused calibration's reason with its other doubts said, not pointed at.
+
+    The verdict states one cause and counts the others "in the report"; ``calibrate``
+    writes no report (nor, when it refuses, a calibration.json), so its one line names them.
+    """
+    assert cal.verdict is not None
+    reason = cal.verdict.reason
+    m = _MORE.search(reason)
+    if m is None:
+        return reason
+    reason = reason[: m.start()]
+    said = reason.lower()
+    others: list[str] = []
+    for check in [*cal.checks.get("refusals", ()), *cal.checks.get("doubts", ())]:
+        cause = plain_words(str(check))[0]
+        if cause and cause.lower() not in said and cause not in others:
+            others.append(cause)
+    if not others:
+        return reason
+    return reason + " Also: " + "; ".join(others) + "."
 
 
 def summary(cal) -> str:
