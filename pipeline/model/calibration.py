@@ -19,6 +19,7 @@ import numpy as np
 
 from pipeline.core.errors import InputError
 from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
+from pipeline.core.style import unsigned_zeros_in
 from pipeline.core.validate import check_calibration_dict, read_json_object
 from pipeline.core.verdict import Verdict
 from pipeline.model.forward import ForwardModel, predict, restore
@@ -286,7 +287,7 @@ class Calibration:
 
     def to_json(self, indent: int = 2) -> str:
         """Serialise to the calibration.json text."""
-        return json.dumps(self.to_dict(), indent=indent, allow_nan=False)
+        return json.dumps(unsigned_zeros_in(self.to_dict()), indent=indent, allow_nan=False)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], path: str | None = None) -> Calibration:

@@ -26,6 +26,7 @@ from pipeline.app.commands._options import (
 from pipeline.core import progress
 from pipeline.core.atomic import atomic_path
 from pipeline.core.errors import NotObservableError, RefusedError, UsageError
+from pipeline.core.style import num
 from pipeline.core.verdict import Status, plain_words, verdict_line
 from pipeline.core.vocabulary import EstimateTerm, EstimatorKind
 from pipeline.run.options import ProcessOptions
@@ -150,29 +151,29 @@ def summary(cal) -> str:
     sg = cal.sigma_rotvec_deg
     lines = [
         f"estimator {cal.estimator}, {cal.n_samples} samples, residual RMS "
-        f"{cal.residual_rms_nT:.3f} nT",
+        f"{num(cal.residual_rms_nT, '.3f')} nT",
         "rotation vector body<-mag [deg]: "
         + ", ".join(
-            f"{v:+.4f} +- {s:.4f}" if np.isfinite(s) else f"{v:+.4f} +- inf"
+            f"{num(v, '+.4f')} +- {num(s, '.4f') if np.isfinite(s) else 'inf'}"
             for v, s in zip(rv, sg, strict=True)
         ),
-        "B_enu [nT]: " + ", ".join(f"{b:.1f}" for b in cal.B_enu_nT),
+        "B_enu [nT]: " + ", ".join(num(b, ".1f") for b in cal.B_enu_nT),
     ]
     if cal.rotvec_from_nominal_deg is not None:
         lines.append(
-            "from nominal [deg]: " + ", ".join(f"{v:+.4f}" for v in cal.rotvec_from_nominal_deg)
+            "from nominal [deg]: " + ", ".join(num(v, "+.4f") for v in cal.rotvec_from_nominal_deg)
         )
     if cal.offset_nT is not None:
-        lines.append("offset [nT]: " + ", ".join(f"{v:.2f}" for v in cal.offset_nT))
+        lines.append("offset [nT]: " + ", ".join(num(v, ".2f") for v in cal.offset_nT))
     if cal.time_offset_s is not None:
         lines.append(
-            f"time offset: {cal.time_offset_s * 1e3:.3f} ms +- "
-            f"{(cal.sigma_time_offset_s or 0) * 1e3:.3f} ms"
+            f"time offset: {num(cal.time_offset_s * 1e3, '.3f')} ms +- "
+            f"{num((cal.sigma_time_offset_s or 0) * 1e3, '.3f')} ms"
         )
     lines += [f"warning: {w}" for w in cal.warnings]
     lines += [f"not estimated: {d['term']}: {d['reason']}" for d in cal.not_estimated]
     if cal.n_eff is not None:
-        lines.append(f"effective independent samples behind the sigmas: {cal.n_eff:.0f} of "
+        lines.append(f"effective independent samples behind the sigmas: {num(cal.n_eff, '.0f')} of "
                      f"{cal.n_samples} (correlated residuals)")
 
     lines.append(verdict_line(cal))

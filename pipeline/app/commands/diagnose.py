@@ -21,6 +21,7 @@ from pipeline.app.commands._options import (
 )
 from pipeline.core import progress
 from pipeline.core.atomic import write_text_atomic
+from pipeline.core.style import unsigned_zeros_in
 from pipeline.core.verdict import verdict_line
 from pipeline.run.options import ProcessOptions
 from pipeline.run.runner import analyse_recording
@@ -74,7 +75,8 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "diagnosis.json",
-                      json.dumps(ctx.diagnosis.to_dict(), indent=2, allow_nan=False))
+                      json.dumps(unsigned_zeros_in(ctx.diagnosis.to_dict()), indent=2,
+                                 allow_nan=False))
     write_text_atomic(out / "calibration.json", cal.to_json())
     print(ctx.diagnosis.table())
     print(verdict_line(cal))
