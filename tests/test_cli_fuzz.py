@@ -152,3 +152,39 @@ def test_a_recording_as_the_calibration_of_a_real_recording(tmp_path, monkeypatc
             "--out", str(tmp_path / "out"), "--no-progress"]
     status, _ = _run(argv, tmp_path, REAL / "lab_02.mcap", monkeypatch)
     assert status == 2
+
+
+#: commands whose --out is a folder, given an existing file there: refused before any work
+OUT_FOLDER_SLOTS = {
+    "calibrate": ["calibrate", "{rec}", "--out", "{X}"],
+    "diagnose": ["diagnose", "{rec}", "--out", "{X}"],
+    "process": ["process", "{rec}", "--out", "{X}", "--no-progress"],
+    "reproduce": ["reproduce", "li2020", "--out", "{X}"],
+}
+
+
+@pytest.mark.parametrize("kind", ["recording", "calibration", "csv", "empty"])
+@pytest.mark.parametrize("slot", sorted(OUT_FOLDER_SLOTS))
+def test_an_output_folder_that_is_a_file_is_refused(inputs, tmp_path, monkeypatch, slot,
+                                                    kind):
+    x = inputs[kind]
+    rec = tmp_path / "input.mcap"
+    shutil.copyfile(inputs["recording"], rec)
+    argv = [a.format(X=str(x), rec=str(rec)) for a in OUT_FOLDER_SLOTS[slot]]
+    before = fz.sha256(x)
+    status, _ = _run(argv, tmp_path, x, monkeypatch)
+    assert status == 2
+    assert fz.sha256(x) == before
+
+
+@pytest.mark.parametrize("kind", ["folder", "directory", "recording-in-a-file"])
+def test_simulate_output_that_cannot_be_a_file_is_refused(inputs, tmp_path, monkeypatch, kind):
+    scenario = Path(__file__).resolve().parents[1] / "pipeline" / "scenarios" / \
+        "li2020_section41.toml"
+    if kind == "recording-in-a-file":
+        x, named = inputs["empty"] / "rec.mcap", inputs["empty"]
+    else:
+        x = named = inputs[kind]
+    status, _ = _run(["simulate", str(scenario), "--out", str(x)], tmp_path, named,
+                     monkeypatch)
+    assert status == 2

@@ -20,6 +20,7 @@ from pipeline.app.commands._options import (
     add_exclude_option,
     add_field_options,
     add_topic_options,
+    check_out_folder,
     exclude_from_args,
     field_from_args,
 )
@@ -81,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
     ``--estimate`` (and with the default estimator) the answer is the model the data select;
     with it, the chosen model, its sigma widened by what the terms it leaves out do to R.
     """
+    check_out_folder(args.out)  # before the analysis, not after it
     try:
         terms = frozenset(EstimateTerm(t.strip()) for t in args.estimate.split(",") if t.strip())
     except ValueError as exc:

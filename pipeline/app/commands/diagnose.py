@@ -16,6 +16,7 @@ from pipeline.app.commands._options import (
     add_exclude_option,
     add_field_options,
     add_topic_options,
+    check_out_folder,
     exclude_from_args,
     field_from_args,
 )
@@ -59,6 +60,7 @@ def diagnose_file(path: str | Path, *, mag_topic: str | None = None,
 
 def run(args: argparse.Namespace) -> int:
     """Diagnose and write the outputs; returns the exit status."""
+    check_out_folder(args.out)  # before the analysis, not after it
     ref = field_from_args(args)
     exclude = exclude_from_args(args)
     display = progress.ProgressDisplay(1, "magalign diagnose",
