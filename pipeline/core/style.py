@@ -5,6 +5,7 @@ More in docs/modules.md, ``pipeline.core.style``.
 
 from __future__ import annotations
 
+import io
 import math
 import re
 from typing import Any
@@ -153,8 +154,6 @@ def png(fig: Any) -> bytes:
     Titles, labels, legends and notes are put together from numbers formatted where each
     figure is drawn; they pass :func:`unsigned_zeros` here, once for every figure.
     """
-    import io
-
     from matplotlib.text import Text
 
     for t in fig.findobj(Text):
