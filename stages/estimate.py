@@ -216,13 +216,18 @@ def with_verdict(cal: Calibration, aligned: AlignedSeries,
                        checks={**cal.checks, "doubts": doubts})
 
 
+#: check key that carries the estimate's unobservable axes through the diagnosis' model
+CARRIED_AXES = "unobservable_axes_of_estimate"
+
+
 def carry_checks(before: Calibration, after: Calibration, *, explained: bool = False,
                  ) -> Calibration:
     """Return ``after`` (a fuller model of the same recording) with ``before``'s checks.
 
     The estimate's global checks (starts, terms not estimated, sample-and-hold, effective
-    samples) still hold for the final model; its rotation sigmas are never smaller than the
-    estimate's sandwich sigmas (correlated residuals do not go away with more terms). The
+    samples, the rotation axes the motion cannot determine) still hold for the final model;
+    its rotation sigmas are never smaller than the estimate's sandwich sigmas (correlated
+    residuals do not go away with more terms). The
     split-half disagreement is carried (as sigma and doubt) only when the final model has not
     ``explained`` more than the estimate (a diagnosis with findings models the physics that
     made the halves disagree; its own sigmas then stand).
@@ -238,6 +243,12 @@ def carry_checks(before: Calibration, after: Calibration, *, explained: bool = F
     if floor is not None:
         sig = np.fmax(sig, np.asarray(floor, float))
         sig = np.where(np.isinf(after.sigma_rotvec_deg), np.inf, sig)
+    if before.unobservable_axes_body and not after.unobservable_axes_body:
+        # an axis the motion cannot determine stays so under a fuller model (more terms
+        # never determine the rotation better), though that model may not list it; it is
+        # listed again once the final model is complete (Judge)
+        checks[CARRIED_AXES] = [np.asarray(a, float).tolist()
+                                for a in before.unobservable_axes_body]
     return after.replace(
         sigma_rotvec_deg=sig,
         checks={**checks, **after.checks},
@@ -256,9 +267,18 @@ class Judge:
     provides: ClassVar[frozenset[str]] = frozenset({"calibration"})
 
     def run(self, ctx: Context) -> Context:
-        """Return ``ctx`` with ``calibration.verdict`` for its final model."""
+        """Return ``ctx`` with ``calibration.verdict`` for its final model.
+
+        The rotation axes the estimate found unobservable, carried through a fuller model
+        that does not list them (:func:`carry_checks`), are listed in the calibration again.
+        """
         diag = ctx.diagnosis
         cal = ctx.need_calibration()
+        if CARRIED_AXES in cal.checks:
+            checks = dict(cal.checks)
+            axes = checks.pop(CARRIED_AXES)
+            cal = cal.replace(checks=checks, unobservable_axes_body=cal.unobservable_axes_body
+                              or tuple(np.asarray(a, float) for a in axes))
         # the held-out figure is the diagnosis' final model's: it speaks for the answer only
         # when that model is the answer (not a model the user restricted with --estimate)
         held = None

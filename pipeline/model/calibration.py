@@ -19,7 +19,8 @@ import numpy as np
 
 from pipeline.core.errors import InputError
 from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
-from pipeline.core.validate import check_calibration_dict
+from pipeline.core.style import unsigned_zeros_in
+from pipeline.core.validate import check_calibration_dict, read_json_object
 from pipeline.core.verdict import Verdict
 from pipeline.model.forward import ForwardModel, predict, restore
 
@@ -300,7 +301,7 @@ class Calibration:
 
     def to_json(self, indent: int = 2) -> str:
         """Serialise to the calibration.json text."""
-        return json.dumps(self.to_dict(), indent=indent, allow_nan=False)
+        return json.dumps(unsigned_zeros_in(self.to_dict()), indent=indent, allow_nan=False)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], path: str | None = None) -> Calibration:
@@ -355,11 +356,11 @@ class Calibration:
     def load(cls, path: str | Path) -> Calibration:
         """Read a calibration.json file."""
         p = Path(path)
-        try:
-            text = p.read_text()
-        except OSError as exc:
-            raise InputError(f"cannot read calibration: {exc.strerror}", path=p) from exc
-        return cls.from_json(text, path=str(p))
+        d = read_json_object(p, "a calibration.json",
+                             hint="give the calibration.json written by magalign calibrate, "
+                             "diagnose or process")
+        check_calibration_dict(d, str(p))
+        return cls.from_dict(d, path=str(p))
 
     def replace(self, **changes: Any) -> Calibration:
         """Return a new calibration with ``changes``."""
