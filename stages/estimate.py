@@ -182,7 +182,8 @@ POOR_AXIS_SIGMA_DEG = 1.0
 
 
 def with_verdict(cal: Calibration, aligned: AlignedSeries,
-                 residual_rms_nT: float | None = None, diagnosed: bool = False) -> Calibration:
+                 residual_rms_nT: float | None = None, diagnosed: bool = False,
+                 heldout_rms_nT: float | None = None) -> Calibration:
     """Return ``cal`` with its verdict (:mod:`pipeline.core.verdict`) from the aligned samples.
 
     The sensor noise is measured in the still windows of ``aligned`` (repeated
@@ -190,7 +191,8 @@ def with_verdict(cal: Calibration, aligned: AlignedSeries,
     and doubts, and a rotation known to worse than :data:`POOR_AXIS_SIGMA_DEG` about a body
     axis the motion does determine is one more. ``residual_rms_nT`` overrides the
     calibration's own (a later, fuller model); ``diagnosed``: the diagnosis ran (the
-    verdict's advice points to its findings).
+    verdict's advice points to its findings); ``heldout_rms_nT``: the final model's error
+    on held-out samples, when the diagnosis measured it (the verdict judges and quotes it).
     """
     keep = ~repeated(aligned.mag_nT)
     noise = sensor_noise_nT(aligned.t_ns, aligned.mag_nT, aligned.q_enu_body, keep)
@@ -210,8 +212,12 @@ def with_verdict(cal: Calibration, aligned: AlignedSeries,
             doubts.append(f"{poor}{'xyz'[i]} is only known to {sig[i]:.1f} deg: the motion "
                           "barely turned the sensor about that axis")
     return cal.replace(verdict=judge(res, noise, refusals=refusals, doubts=doubts,
-                                     diagnosed=diagnosed),
+                                     diagnosed=diagnosed, heldout_rms_nT=heldout_rms_nT),
                        checks={**cal.checks, "doubts": doubts})
+
+
+#: check key that carries the estimate's unobservable axes through the diagnosis' model
+CARRIED_AXES = "unobservable_axes_of_estimate"
 
 
 def carry_checks(before: Calibration, after: Calibration, *, explained: bool = False,
@@ -219,8 +225,9 @@ def carry_checks(before: Calibration, after: Calibration, *, explained: bool = F
     """Return ``after`` (a fuller model of the same recording) with ``before``'s checks.
 
     The estimate's global checks (starts, terms not estimated, sample-and-hold, effective
-    samples) still hold for the final model; its rotation sigmas are never smaller than the
-    estimate's sandwich sigmas (correlated residuals do not go away with more terms). The
+    samples, the rotation axes the motion cannot determine) still hold for the final model;
+    its rotation sigmas are never smaller than the estimate's sandwich sigmas (correlated
+    residuals do not go away with more terms). The
     split-half disagreement is carried (as sigma and doubt) only when the final model has not
     ``explained`` more than the estimate (a diagnosis with findings models the physics that
     made the halves disagree; its own sigmas then stand).
@@ -236,6 +243,12 @@ def carry_checks(before: Calibration, after: Calibration, *, explained: bool = F
     if floor is not None:
         sig = np.fmax(sig, np.asarray(floor, float))
         sig = np.where(np.isinf(after.sigma_rotvec_deg), np.inf, sig)
+    if before.unobservable_axes_body and not after.unobservable_axes_body:
+        # an axis the motion cannot determine stays so under a fuller model (more terms
+        # never determine the rotation better), though that model may not list it; it is
+        # listed again once the final model is complete (Judge)
+        checks[CARRIED_AXES] = [np.asarray(a, float).tolist()
+                                for a in before.unobservable_axes_body]
     return after.replace(
         sigma_rotvec_deg=sig,
         checks={**checks, **after.checks},
@@ -254,9 +267,26 @@ class Judge:
     provides: ClassVar[frozenset[str]] = frozenset({"calibration"})
 
     def run(self, ctx: Context) -> Context:
-        """Return ``ctx`` with ``calibration.verdict`` for its final model."""
-        return ctx.replace(calibration=with_verdict(ctx.need_calibration(), ctx.need_aligned(),
-                                                    diagnosed=ctx.diagnosis is not None))
+        """Return ``ctx`` with ``calibration.verdict`` for its final model.
+
+        The rotation axes the estimate found unobservable, carried through a fuller model
+        that does not list them (:func:`carry_checks`), are listed in the calibration again.
+        """
+        diag = ctx.diagnosis
+        cal = ctx.need_calibration()
+        if CARRIED_AXES in cal.checks:
+            checks = dict(cal.checks)
+            axes = checks.pop(CARRIED_AXES)
+            cal = cal.replace(checks=checks, unobservable_axes_body=cal.unobservable_axes_body
+                              or tuple(np.asarray(a, float) for a in axes))
+        # the held-out figure is the diagnosis' final model's: it speaks for the answer only
+        # when that model is the answer (not a model the user restricted with --estimate)
+        held = None
+        if diag is not None and cal.estimator == "diagnose":
+            held = (diag.final or {}).get("heldout_rms_nT")
+        return ctx.replace(calibration=with_verdict(
+            cal, ctx.need_aligned(), diagnosed=diag is not None,
+            heldout_rms_nT=None if held is None else float(held)))
 
 
 @dataclass(frozen=True)

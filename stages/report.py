@@ -8,7 +8,6 @@ from __future__ import annotations
 import base64
 import datetime as dt
 import html
-import io
 import os
 import shlex
 import sys
@@ -24,7 +23,7 @@ from pipeline.core import style
 from pipeline.core.atomic import atomic_path, sha256_file, write_text_atomic
 from pipeline.core.geometry import quat_rotate, quat_to_li2020_euler
 from pipeline.core.recording import Recording, Segment
-from pipeline.core.style import minus
+from pipeline.core.style import minus, unsigned_zeros
 from pipeline.core.verdict import plain_words, verdict_line
 from pipeline.model.sample_hold import repeated
 from stages.estimate import POOR_AXIS_SIGMA_DEG
@@ -48,10 +47,7 @@ def _plt():
 
 
 def _png(fig: Any) -> bytes:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png")
-    _plt().close(fig)
-    return buf.getvalue()
+    return style.png(fig)
 
 
 def utc_text(t_ns: int, with_date: bool = False) -> str:
@@ -1278,4 +1274,5 @@ def write_report(
         write_map_json(out / "map.json", md)
     text = render_html(recording, calibration, metrics, diagnosis, figures, restored=restored,
                        totals=totals, estimator=estimator, calibration_path=calibration_path)
-    return write_text_atomic(out / "report.html", text)
+    # the words come from many modules, each formatting its own numbers
+    return write_text_atomic(out / "report.html", unsigned_zeros(text))

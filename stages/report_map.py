@@ -5,7 +5,6 @@ More in docs/modules.md, ``stages.report_map``.
 
 from __future__ import annotations
 
-import io
 import json
 import math
 import warnings
@@ -280,10 +279,7 @@ def draw_map(m: Mapping[str, Any], dpi: int = 100) -> bytes:
                    title=None if n <= 1 else f"each point: mean of {n} consecutive samples",
                    title_fontsize=10, alignment="left")
         fig.subplots_adjust(left=0.08, right=0.86, bottom=0.24, top=0.93, wspace=0.12)
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png")
-        plt.close(fig)
-    return buf.getvalue()
+        return style.png(fig)
 
 
 def draw_small_map(m: Mapping[str, Any], lim: float, title: str, dpi: int = 100) -> bytes:
@@ -299,10 +295,7 @@ def draw_small_map(m: Mapping[str, Any], lim: float, title: str, dpi: int = 100)
         cb = fig.colorbar(lc, ax=ax, fraction=0.05, pad=0.03)
         cb.set_label("|B| \u2212 median (nT)")
         fig.subplots_adjust(left=0.2, right=0.86, bottom=0.14, top=0.9)
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png")
-        plt.close(fig)
-    return buf.getvalue()
+        return style.png(fig)
 
 
 def draw_maps(maps: Sequence[tuple[str, Mapping[str, Any]]]) -> list[tuple[str, bytes]]:

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 from pipeline.core.atomic import write_text_atomic
+from pipeline.core.style import unsigned_zeros_in
 from pipeline.model.calibration import Calibration
 from stages.diagnose.result import Diagnosis
 
@@ -17,6 +18,7 @@ def write_results(out_dir: str | Path, calibration: Calibration,
     p = write_text_atomic(out / "calibration.json", calibration.to_json())
     outputs: tuple[tuple[str, str], ...] = (("calibration.json", str(p)),)
     if diagnosis is not None:
-        p = write_text_atomic(out / "diagnosis.json", json.dumps(diagnosis.to_dict(), indent=2))
+        text = json.dumps(unsigned_zeros_in(diagnosis.to_dict()), indent=2)
+        p = write_text_atomic(out / "diagnosis.json", text)
         outputs += (("diagnosis.json", str(p)),)
     return outputs

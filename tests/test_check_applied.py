@@ -26,9 +26,12 @@ OPTS = dict(write_rerun=False, write_report=False)
 @pytest.fixture(scope="module")
 def calibration(tmp_path_factory) -> Path:
     """The calibration run: 40 s of hand-held rotation, R = (1, -1.5, 2) deg (the rotation
-    alone: what the diagnosis adds is not what these tests are about)."""
+    alone: what the diagnosis adds is not what these tests are about). The seed is one whose
+    halves agree as most nulls' do: seeds 3 and 4 fall in the 5 % the halves check flags on
+    a null by chance (chi-square 8.4 and 8.2 for 3; bench/halves_null.py), and these tests
+    are about the line's verdict, not that rate."""
     d = tmp_path_factory.mktemp("cal")
-    rec = write(Spec("cal", seed=3, duration_s=40.0, mag_noise_nT=2.0), d / "cal.mcap")
+    rec = write(Spec("cal", seed=5, duration_s=40.0, mag_noise_nT=2.0), d / "cal.mcap")
     row = process_recording(rec, d / "out", options=ProcessOptions(diagnose=False, **OPTS))
     assert row["verdict"] == "OK", row["verdict_reason"]
     return Path(row["paths"]["calibration.json"])

@@ -224,3 +224,27 @@ def test_final_summary_in_words_within_100_columns(tmp_path):
     assert "  found: The magnetometer's time stamps are late by 17.4" in text
     assert "  found: A passing disturbance of 59 nT" in text
     assert "  warning: sample-and-hold: 29 %" in text
+
+
+def test_calibrate_refusal_says_its_other_doubts_instead_of_pointing_at_a_report():
+    """calibrate writes no report: its refusal names every doubt in its one line."""
+    import numpy as np
+
+    from pipeline.app.commands.calibrate import refusal_reason
+    from pipeline.core.verdict import judge
+    from pipeline.model.calibration import Calibration
+
+    refusals = ["the result depends on where the fit starts: two starts end 3.1 deg apart"]
+    doubts = ["the two halves of the recording disagree by 1.20 deg, more than their sigmas "
+              "allow",
+              "the motion cannot determine hard iron: its columns trade against B_enu"]
+    verdict = judge(400.0, 20.0, refusals=refusals, doubts=doubts)
+    assert "in the report" in verdict.reason  # what the verdict says for outputs with one
+    cal = Calibration(R_body_mag=np.eye(3), sigma_rotvec_deg=[0.1] * 3,
+                      B_enu_nT=[0.0, 20000.0, -40000.0], estimator="ml",
+                      residual_rms_nT=400.0, n_samples=1000, verdict=verdict,
+                      checks={"refusals": refusals, "doubts": doubts})
+    line = refusal_reason(cal)
+    assert "report" not in line, line
+    assert "\n" not in line
+    assert "halves" in line and "hard-magnetic" in line, line

@@ -126,3 +126,18 @@ def test_pose_attitude_has_no_body_frame_name(tmp_path):
                  .iter_decoded_messages(topics=["/tf_static"])]
     assert tf.transforms[0].header.frame_id == "body"
     assert tf.transforms[0].child_frame_id == "mag"
+
+
+@pytest.mark.parametrize("json_family", [False, True], ids=["ros2", "json"])
+def test_info_does_not_call_the_magnitude_a_turntable(tmp_path, capsys, json_family):
+    """The |B| channel is a number in nT: neither a turntable angle nor a magnetometer."""
+    from pipeline.app.cli import main
+
+    cal = _calibration()
+    rec, _ = _recording(tmp_path, cal, json_family=json_family, frame="imu_link")
+    out = write_corrected_mcap(rec, cal, tmp_path / "out.corrected.mcap")
+    assert main(["info", "--json", str(out)]) == 0
+    roles = {c["topic"]: c["role"] for c in json.loads(capsys.readouterr().out)["channels"]}
+    assert roles["/mag/magnitude"] == "other", roles
+    assert roles["/mag"] == "magnetometer"
+    assert "turntable" not in roles.values()

@@ -175,7 +175,7 @@ def test_a_drift_beside_a_magnet_is_named_when_it_is_there(tmp_path):
     """A real drift and a step in the middle of one recording: both named, both measured.
 
     A drift beside a transient must earn its margin with the transient held where it was
-    without the drift (search._drift_beside_held_transients): on a lab excerpt the pair had
+    without the drift (nested.earns_beside_lookalikes): on a lab excerpt the pair had
     traded a 3000 nT magnet's offset for a drift the recording does not have. A drift that
     is there keeps its margin under that check.
     """

@@ -266,3 +266,77 @@ def test_too_short(tmp_path):
     t, mag_T, q = motion(5)
     with pytest.raises(DataQualityError, match="too short"):
         read_recording(_write(tmp_path, t, mag_T, q))
+
+
+# ---------------------------------------------------------------- records of newer versions
+def _top_records(data: bytes) -> list[tuple[int, int, int]]:
+    """``(offset, opcode, record length)`` of the top-level records after the magic."""
+    import struct
+
+    out, pos = [], 8
+    while pos + 9 <= len(data):
+        op, n = struct.unpack_from("<BQ", data, pos)
+        out.append((pos, op, 9 + n))
+        pos += 9 + n
+    return out
+
+
+def _with_reserved_record(data: bytes, opcode: int = 0x20) -> bytes:
+    """``data`` with a record of a reserved opcode between two records of its data section."""
+    import struct
+
+    recs = [r for r in _top_records(data) if r[1] in (0x05, 0x06)]  # messages or chunks
+    assert len(recs) >= 4
+    at = recs[len(recs) // 2][0]
+    payload = b"a record of a future MCAP version"
+    return data[:at] + struct.pack("<BQ", opcode, len(payload)) + payload + data[at:]
+
+
+@pytest.mark.parametrize("chunked", [True, False], ids=["chunked", "unchunked"])
+def test_a_record_with_a_reserved_opcode_is_skipped(tmp_path, capsys, chunked):
+    """MCAP reserves opcodes 0x10-0x7F for future versions; readers skip such records."""
+    import json
+
+    t, mag_T, q = motion(300)
+    streams = [("/mag", MAG, DEFS[MAG], t, mag_T, ["imu"]),
+               ("/att", IMU, DEFS[IMU], t + 2_000_000, q, ["b"])]
+    if chunked:
+        p = write_ros2(tmp_path / "r.mcap", streams, chunk_size=2048)
+    else:
+        p = write_ros2_raw(tmp_path / "r.mcap", streams, use_chunking=False)
+    newer = tmp_path / "newer.mcap"
+    newer.write_bytes(_with_reserved_record(p.read_bytes()))
+    rec = read_recording(newer)  # no warning: nothing was lost (warnings fail the test)
+    assert len(rec.mag) == 300 and len(rec.attitude) == 300
+    np.testing.assert_allclose(rec.mag.values, mag_T * 1e9, rtol=1e-12)
+    assert main(["info", "--json", str(newer)]) == 0
+    counts = {c["topic"]: c["count"] for c in json.loads(capsys.readouterr().out)["channels"]}
+    assert counts == {"/mag": 300, "/att": 300}
+
+
+def test_the_damage_that_explains_a_failure_is_in_its_one_line(tmp_path, capsys):
+    """A file cut off by damage before its channels: the one error line says why."""
+    import struct
+
+    t, mag_T, q = motion(300)
+    p = write_ros2_raw(tmp_path / "r.mcap", [("/mag", MAG, DEFS[MAG], t, mag_T, ["imu"]),
+                                            ("/att", IMU, DEFS[IMU], t, q, ["b"])],
+                       use_chunking=False)
+    data = p.read_bytes()
+    # damage the first schema record's opcode: nothing after it can be trusted
+    at = next(pos for pos, op, _ in _top_records(data) if op == 0x03)
+    bad = tmp_path / "damaged.mcap"
+    bad.write_bytes(data[:at] + struct.pack("<B", 0) + data[at + 1:])
+    assert main(["info", str(bad)]) in (0, 2)
+    capsys.readouterr()
+    assert main(["calibrate", str(bad), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1, err
+    assert "no magnetometer" in err[-1] and f"byte {at}" in err[-1], err
+    # process says the same in its one line, and leaves no output folder behind
+    out = tmp_path / "processed"
+    assert main(["process", str(bad), "--out", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1, err
+    assert "no magnetometer" in err[-1] and f"byte {at}" in err[-1], err
+    assert not out.exists()

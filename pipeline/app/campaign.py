@@ -751,14 +751,12 @@ def run_campaign(
 
     """
     out = Path(out_dir).resolve()
-    out.mkdir(parents=True, exist_ok=True)
     if calibration_path is not None:
+        # refuse a bad file before any work, and before the output folder exists
         cp = Path(calibration_path)
-        if not cp.is_file():
-            raise InputError("calibration file not found", path=cp)
-
-        Calibration.load(cp)  # refuse a bad file before any work
+        Calibration.load(cp)
         calibration_path = str(cp.resolve())
+    out.mkdir(parents=True, exist_ok=True)
     results: dict[str, dict[str, Any]] = {}
 
     def note(res: dict[str, Any]) -> None:

@@ -16,6 +16,7 @@ from pipeline.app.simulate import Truth, scenario_from_dict, simulate, write_sim
 from pipeline.core.atomic import write_text_atomic
 from pipeline.core.errors import InputError
 from pipeline.core.geometry import quat_mul, quat_to_matrix
+from pipeline.core.validate import read_json_object
 from pipeline.model.attitude import mean_interpolation_noise_factor
 from stages.diagnose.model import AttitudeTrack, FitData, ModelState, evaluate
 
@@ -327,10 +328,11 @@ def score(challenge_dir: str | Path, results_dir: str | Path,
 
     """
     kp = Path(key_file) if key_file is not None else key_path(challenge_dir)
-    try:
-        key = json.loads(kp.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise InputError(f"cannot read the challenge key: {exc}", path=kp) from exc
+    key = read_json_object(kp, "a challenge key",
+                           hint="give the key.json written by magalign simulate --challenge")
+    if not isinstance(key.get("recordings"), dict):
+        raise InputError("not a challenge key: no 'recordings' in it", path=kp,
+                         hint="give the key.json written by magalign simulate --challenge")
     confusion: dict[str, dict[str, int]] = {}
     rows = []
     zs: list[float] = []
@@ -338,7 +340,9 @@ def score(challenge_dir: str | Path, results_dir: str | Path,
     for name, k in sorted(key["recordings"].items()):
         dpath = Path(results_dir) / name / "diagnosis.json"
         if dpath.exists():
-            diag = json.loads(dpath.read_text())
+            diag = read_json_object(dpath, "a diagnosis.json")
+            if not isinstance(diag.get("findings"), list):
+                raise InputError("not a diagnosis.json: no 'findings' list in it", path=dpath)
             found = [f["effect"] for f in diag["findings"]]
         else:
             diag, found = None, ["<missing>"]

@@ -17,10 +17,11 @@ import sys
 import textwrap
 import traceback
 import warnings
-from typing import NoReturn
+from typing import Any, NoReturn, TextIO, cast
 
 from pipeline import package_version
-from pipeline.core.errors import MagalignError, UsageError
+from pipeline.core.errors import MagalignError, UsageError, damage_behind
+from pipeline.core.style import unsigned_zeros
 
 COMMANDS = (
     "info",
@@ -89,6 +90,33 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+class _UnsignedZeros:
+    """stdout for a command: each whole line written passes :func:`unsigned_zeros`.
+
+    The commands print text whose numbers many modules formatted; whatever the numerics of
+    the build left a hair below zero is not printed as "-0" or "-0.00".
+    """
+
+    def __init__(self, target: TextIO):
+        self.target = target
+        self._tail = ""
+
+    def write(self, text: str) -> int:
+        head, nl, self._tail = (self._tail + text).rpartition("\n")
+        if nl:
+            self.target.write(unsigned_zeros(head + nl))
+        return len(text)
+
+    def flush(self) -> None:
+        if self._tail:
+            self.target.write(unsigned_zeros(self._tail))
+            self._tail = ""
+        self.target.flush()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.target, name)
+
+
 def _format_warning(message: Warning | str, category: type[Warning], filename: str,
                     lineno: int, line: str | None = None) -> str:
     """One line per warning, ``warning: <what was lost>`` (source location only with --debug)."""
@@ -112,10 +140,16 @@ def main(argv: list[str] | None = None) -> int:
     # the report's provenance names the command line (worker processes inherit it)
     old_command = os.environ.get("MAGALIGN_COMMAND")
     os.environ["MAGALIGN_COMMAND"] = shlex.join(["magalign", *argv])
+    stdout = sys.stdout
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("default")
         try:
-            status = int(args.func(args) or 0)
+            sys.stdout = cast(TextIO, _UnsignedZeros(stdout))
+            try:
+                status = int(args.func(args) or 0)
+            finally:
+                sys.stdout.flush()
+                sys.stdout = stdout
             failed = False
         except MagalignError as exc:
             if exc.exit_code == 2 and not isinstance(exc, UsageError):
@@ -123,8 +157,11 @@ def main(argv: list[str] | None = None) -> int:
                 exc.naming(getattr(args, "recording", None) or getattr(args, "input", None))
             if debug:
                 traceback.print_exc()
+            line = exc.one_line()
+            if exc.exit_code == 2 and not debug:
+                line += damage_behind(caught, exc.path)
             _show(caught, debug or exc.exit_code != 2, debug)
-            print(f"magalign: {exc.one_line()}", file=sys.stderr)
+            print(f"magalign: {unsigned_zeros(line)}", file=sys.stderr)
             status, failed = exc.exit_code, True
         except KeyboardInterrupt:
             _show(caught, True, debug)
@@ -151,7 +188,7 @@ def _show(caught: list[warnings.WarningMessage], show: bool, debug: bool) -> Non
             text = warnings.formatwarning(w.message, w.category, w.filename, w.lineno)
         else:
             text = _format_warning(w.message, w.category, w.filename, w.lineno)
-        print(f"magalign: {text.rstrip()}", file=sys.stderr)
+        print(f"magalign: {unsigned_zeros(text.rstrip())}", file=sys.stderr)
     caught.clear()
 
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from pipeline.core.errors import InputError
 from pipeline.core.geometry import matrix_to_quat
+from pipeline.core.style import num, unsigned_zeros
 from pipeline.core.verdict import Status
 from pipeline.model.calibration import Calibration
 
@@ -78,7 +79,7 @@ def _check_rotation_determined(cal: Calibration, fmt: str, path: str | None) -> 
 
 
 def _vec(v: Any, spec: str = ".3g") -> str:
-    return "[" + ", ".join(format(float(x) + 0.0, spec) for x in v) + "]"
+    return "[" + ", ".join(num(float(x), spec) for x in v) + "]"
 
 
 def _why_not_estimated(cal: Calibration, key: str) -> str:
@@ -94,11 +95,11 @@ def _verdict_lines(cal: Calibration) -> list[str]:
     v = cal.verdict
     if v is None:
         return ["verdict: none recorded (the file predates verdicts): compare the residual "
-                f"RMS, {cal.residual_rms_nT:.0f} nT, with the sensor's noise before use"]
+                f"RMS, {num(cal.residual_rms_nT, '.0f')} nT, with the sensor's noise before use"]
     lines = [f"verdict {v.status.value}: {' '.join(str(v.reason).split())}"]
     noise = "not measured (no still period)" if v.sensor_noise_nT is None else \
-        f"{v.sensor_noise_nT:.0f} nT"
-    lines.append(f"residual RMS {v.residual_rms_nT:.0f} nT; sensor noise {noise}")
+        f"{num(v.sensor_noise_nT, '.0f')} nT"
+    lines.append(f"residual RMS {num(v.residual_rms_nT, '.0f')} nT; sensor noise {noise}")
     if v.status is Status.QUESTIONABLE:
         lines.append("QUESTIONABLE: check the reason above before loading these values")
     return lines
@@ -106,7 +107,7 @@ def _verdict_lines(cal: Calibration) -> list[str]:
 
 def _rotation_lines(cal: Calibration) -> list[str]:
     rv, sg = cal.rotvec_body_mag_deg, cal.sigma_rotvec_deg
-    parts = [f"{v:+.3f} +- {s:.3f}" if np.isfinite(s) else f"{v:+.3f} +- inf"
+    parts = [f"{num(v, '+.3f')} +- {num(s, '.3f') if np.isfinite(s) else 'inf'}"
              for v, s in zip(rv, sg, strict=True)]
     return ["R_body_mag maps mag-frame vectors into the body frame (v_body = R @ v_mag); "
             f"its rotation vector about body x, y, z [deg]: {', '.join(parts)}"]
@@ -124,7 +125,8 @@ def _held_lines(cal: Calibration, key: str) -> list[str]:
     if key == "offset_nT" and cal.offset_nT is not None and held.get("hard_iron"):
         o = np.asarray(cal.offset_nT, dtype=float)
         return [f"the offset's component along mag-frame {_vec(u, '+.2f')} was not determined "
-                f"by the motion: it is held at {round(float(o @ np.asarray(u, float)))} nT, not "
+                "by the motion: it is held at "
+                f"{num(float(o @ np.asarray(u, float)), '.0f')} nT, not "
                 "measured (sigma_offset_nT gives its prior's sigma); tilt the platform more or "
                 "give a reference field to determine it" for u in held["hard_iron"]]
     if key == "D" and cal.D is not None and held.get("soft_iron"):
@@ -301,8 +303,8 @@ def to_ardupilot(cal: Calibration, path: str | None = None) -> str:
         "COMPASS_ORIENT 100 = custom, COMPASS_CUS_ROLL/PIT/YAW in degrees, "
         "R_body_mag = Rz(yaw) Ry(pitch) Rx(roll) (ArduPilot Matrix3::from_euler).",
         "ArduPilot 4.2 and newer convert these to COMPASS_ORIENT 102 and CUST_ROT_ENABLE 1, "
-        f"CUST_ROT2_ROLL {p['COMPASS_CUS_ROLL']:.9g}, CUST_ROT2_PIT "
-        f"{p['COMPASS_CUS_PIT']:.9g}, CUST_ROT2_YAW {p['COMPASS_CUS_YAW']:.9g}",
+        f"CUST_ROT2_ROLL {num(p['COMPASS_CUS_ROLL'], '.9g')}, CUST_ROT2_PIT "
+        f"{num(p['COMPASS_CUS_PIT'], '.9g')}, CUST_ROT2_YAW {num(p['COMPASS_CUS_YAW'], '.9g')}",
     ]
     if cal.offset_nT is None:
         notes.append("COMPASS_OFS_X/Y/Z are left out, so the autopilot keeps its own: the "
@@ -322,13 +324,14 @@ def to_ardupilot(cal: Calibration, path: str | None = None) -> str:
                      "orientation: values it calibrated under a different orientation need "
                      "its compass calibration again.")
     if cal.time_offset_s is not None:
-        notes.append(f"time offset {cal.time_offset_s * 1e3:+.1f} ms (positive: the magnetometer "
+        notes.append(f"time offset {num(cal.time_offset_s * 1e3, '+.1f')} ms (positive: the "
+                     "magnetometer "
                      "stamps are late): ArduPilot has no parameter for it, not in "
                      "this file")
     notes += _effects_line(cal, "ArduPilot")
     lines = _header("#", cal, path, notes)
     # 9 significant digits: more than the float32 ArduPilot stores
-    lines += [f"{k},{v}" if isinstance(v, int) else f"{k},{float(v) + 0.0:.9g}"
+    lines += [f"{k},{v}" if isinstance(v, int) else f"{k},{num(float(v), '.9g')}"
               for k, v in p.items()]
     return "\n".join(lines) + "\n"
 
@@ -391,7 +394,8 @@ def to_magcal(cal: Calibration, path: str | None = None) -> str:
                      f"{_why_not_estimated(cal, 'offset_nT')}).")
     notes += _held_lines(cal, "D") + _held_lines(cal, "offset_nT")
     if cal.time_offset_s is not None:
-        notes.append(f"time offset {cal.time_offset_s * 1e3:+.1f} ms (positive: the magnetometer "
+        notes.append(f"time offset {num(cal.time_offset_s * 1e3, '+.1f')} ms (positive: the "
+                     "magnetometer "
                      "stamps are late): not part of magcal's model")
     notes += _effects_line(cal, "magcal")
     lines = _header("%", cal, path, notes)
@@ -535,12 +539,13 @@ def export_text(cal: Calibration, fmt: str, path: str | None = None, *,
         The calibration cannot be exported in this format (each ``to_*`` says when).
 
     """
+    # the verdict's and the checks' own words carry numbers formatted elsewhere
     if fmt == "ardupilot":
-        return to_ardupilot(cal, path)
+        return unsigned_zeros(to_ardupilot(cal, path))
     if fmt == "magcal":
-        return to_magcal(cal, path)
+        return unsigned_zeros(to_magcal(cal, path))
     if fmt == "ros-tf":
-        return to_ros_tf(cal, body_frame, mag_frame, path)
+        return unsigned_zeros(to_ros_tf(cal, body_frame, mag_frame, path))
     if fmt == "yaml":
-        return to_yaml(cal, path)
+        return unsigned_zeros(to_yaml(cal, path))
     raise ValueError(f"unknown export format {fmt!r}; one of {', '.join(FORMATS)}")

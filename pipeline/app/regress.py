@@ -379,6 +379,10 @@ def compare(results: str | Path, baseline: str | Path,
         raise InputError("baseline holds no recording (no <name>/calibration.json)", path=base,
                          hint="regenerate it (make golden) or point at a results folder")
     res_recs = set(recordings_in(res, need_marker=True))
+    if not res_recs and not recordings_in(res, need_marker=False):
+        # nothing was processed into it: a wrong folder, not a regression of every recording
+        raise InputError("results folder holds no recording (no <name>/calibration.json)",
+                         path=res, hint="give the --out folder of magalign process")
     rows: list[Diff] = []
     for name in base_recs:
         c = _Cmp(name, tolerances)

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import base64
 import html
-import io
 import json
 import math
 from collections.abc import Mapping, Sequence
@@ -21,7 +20,7 @@ import pyarrow.parquet as pq
 
 from pipeline.core import style
 from pipeline.core.atomic import atomic_path, write_text_atomic
-from pipeline.core.style import minus
+from pipeline.core.style import minus, unsigned_zeros
 from stages.report_map import draw_maps, read_map_json
 
 AXES = ("x", "y", "z")
@@ -147,7 +146,8 @@ def write_summary(out_dir: str | Path, rows: Sequence[Mapping[str, Any]],
     pq_path = out / "summary.parquet"
     with atomic_path(pq_path) as tmp:
         pq.write_table(table, tmp)
-    html_path = write_text_atomic(out / "summary.html", render_html(rows, cols, title, out))
+    html_path = write_text_atomic(out / "summary.html",
+                                  unsigned_zeros(render_html(rows, cols, title, out)))
     return pq_path, html_path
 
 
@@ -272,10 +272,7 @@ def campaign_figure(rows: Sequence[Mapping[str, Any]]) -> bytes | None:
             ax.set_xticklabels([str(r.get("name")) for r in runs], rotation=30, ha="right")
         fig.suptitle("misalignment of each calibration run, \u00b1 1 sigma", fontsize=12)
         fig.tight_layout()
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png")
-        plt.close(fig)
-    return buf.getvalue()
+        return style.png(fig)
 
 
 def maps_html(rows: Sequence[Mapping[str, Any]], out_dir: Path | None) -> str:

@@ -7,7 +7,9 @@ raises these; only the CLI turns them into exit codes and a single line on stder
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 
 class MagalignError(Exception):
@@ -185,3 +187,22 @@ class RecoveredDataWarning(UserWarning):
 
 class QuestionableCalibrationWarning(UserWarning):
     """A calibration whose verdict is QUESTIONABLE is used or exported; the message says why."""
+
+
+def damage_behind(caught: Iterable[Any], path: str | None = None) -> str:
+    """Return the recovered damage among caught warnings, to add to a failure's line.
+
+    ``caught``: :class:`warnings.WarningMessage` records. A failing command's other
+    warnings are moot, but data lost to damage may be why it failed (a file cut off before
+    its magnetometer channel: "no magnetometer channel found"). "" when there was none.
+    """
+    lost: list[str] = []
+    for w in caught:
+        if not issubclass(w.category, RecoveredDataWarning):
+            continue
+        text = str(w.message)
+        if path and text.startswith(f"{path}: "):
+            text = text[len(path) + 2:]  # the line names the file already
+        if text not in lost:
+            lost.append(text)
+    return f"; the file was damaged: {'; '.join(lost)}" if lost else ""

@@ -5,6 +5,9 @@ More in docs/modules.md, ``pipeline.core.style``.
 
 from __future__ import annotations
 
+import io
+import math
+import re
 from typing import Any
 
 #: x / east, y / north, z / up
@@ -62,12 +65,65 @@ def rc() -> dict[Any, Any]:
     }
 
 
+def num(x: Any, spec: str = "") -> str:
+    """Format the number ``x`` with ``spec`` (as ``format(x, spec)``), never as a negative zero.
+
+    A value that rounds to zero at the shown precision is written as zero: ``-1e-12`` and
+    ``-0.004`` at ``.2f`` are ``0.00`` (``+0.00`` with ``+.2f``), not ``-0.00``. Whether a sum
+    of floats ends a hair below or above zero depends on the numerics of the build (SIMD
+    paths, summation order); the number a person reads must not.
+    """
+    text = format(x, spec)
+    try:
+        finite = math.isfinite(float(x))
+    except (TypeError, ValueError):
+        return text
+    if finite and text.lstrip().startswith("-") and _all_zero(text):
+        return format(0.0, spec)
+    return text
+
+
+def _all_zero(text: str) -> bool:
+    """Tell whether the digits of a formatted number's mantissa are all zero."""
+    mantissa = re.split(r"[eE]", text, maxsplit=1)[0]
+    return re.search(r"[1-9]", mantissa) is None
+
+
+#: a negative zero in text: a minus (hyphen or U+2212) then a number whose digits are all
+#: zero, standing alone (not part of a word, a date, ``+-`` or a longer number)
+NEGATIVE_ZERO = re.compile(r"(?<![\w.+\-\u2212\u00b1])[-\u2212](?=(?:0+(?:\.0*)?|\.0+)(?![\w.]))")
+
+
+def unsigned_zeros(text: str) -> str:
+    """Return ``text`` without the minus of any negative zero (``-0``, ``-0.00``, ``[-0.0,``).
+
+    For text put together elsewhere with its own number formats (a check's doubt, a
+    finding's explanation): every line a person reads passes through here or :func:`num`.
+    """
+    return NEGATIVE_ZERO.sub("", text)
+
+
+def unsigned_zeros_in(obj: Any) -> Any:
+    """Return ``obj`` (JSON-like) with every string passed through :func:`unsigned_zeros`.
+
+    Numbers and keys are left as they are: the words of a result file (a verdict's reason,
+    a warning, a finding's explanation) are what a person reads.
+    """
+    if isinstance(obj, str):
+        return unsigned_zeros(obj)
+    if isinstance(obj, dict):
+        return {k: unsigned_zeros_in(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [unsigned_zeros_in(v) for v in obj]
+    return obj
+
+
 def minus(text: str) -> str:
     """Return ``text`` with a true minus sign (U+2212) for a hyphen before a digit.
 
-    ``+-`` (plus-minus written in ASCII) becomes ``±``.
+    ``+-`` (plus-minus written in ASCII) becomes ``±``; a negative zero loses its sign.
     """
-    text = text.replace("+-", "\u00b1")
+    text = unsigned_zeros(text).replace("+-", "\u00b1")
     out = []
     for i, ch in enumerate(text):
         nxt = text[i + 1] if i + 1 < len(text) else ""
@@ -90,3 +146,21 @@ def pyplot() -> Any:
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def png(fig: Any) -> bytes:
+    """Return the figure as PNG bytes and close it; no text on it shows a negative zero.
+
+    Titles, labels, legends and notes are put together from numbers formatted where each
+    figure is drawn; they pass :func:`unsigned_zeros` here, once for every figure.
+    """
+    from matplotlib.text import Text
+
+    for t in fig.findobj(Text):
+        text = t.get_text()
+        if isinstance(text, str) and unsigned_zeros(text) != text:
+            t.set_text(unsigned_zeros(text))
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    pyplot().close(fig)
+    return buf.getvalue()

@@ -5,6 +5,7 @@ More in docs/modules.md, ``pipeline.core.validate``.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -28,6 +29,43 @@ ROTVEC_TOL_DEG = 1e-5
 UNIT_TOL = 1e-6
 
 _HINT = "regenerate it with magalign calibrate (or process); do not edit it by hand"
+
+
+#: the first bytes of every MCAP file (its magic)
+MCAP_MAGIC = b"\x89MCAP"
+
+
+def read_json_object(path: str | Path, what: str, hint: str | None = None) -> dict[str, Any]:
+    """Read the JSON object in ``path``, which should be ``what`` (e.g. "a calibration.json").
+
+    Any other kind of file (a recording, a folder, an empty or binary file, a missing path)
+    is an :class:`InputError` whose one line names the file and what it is instead.
+    """
+    p = Path(path)
+    if p.is_dir():
+        raise InputError(f"a folder, not {what}", path=p, hint=hint)
+    try:
+        data = p.read_bytes()
+    except FileNotFoundError as exc:
+        raise InputError(f"no such file (expected {what})", path=p) from exc
+    except OSError as exc:
+        raise InputError(f"cannot read {what}: {exc.strerror}", path=p) from exc
+    if data.startswith(MCAP_MAGIC):
+        raise InputError(f"an MCAP recording, not {what}", path=p, hint=hint)
+    if not data.strip():
+        raise InputError(f"an empty file, not {what}", path=p, hint=hint)
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"a binary file, not {what}", path=p, hint=hint) from exc
+    try:
+        d = json.loads(text)
+    except ValueError as exc:
+        raise InputError(f"not valid JSON, so not {what}: {exc}", path=p, hint=hint) from exc
+    if not isinstance(d, dict):
+        raise InputError(f"not {what}: it holds a JSON {type(d).__name__}, not an object",
+                         path=p, hint=hint)
+    return d
 
 
 class _Checker:

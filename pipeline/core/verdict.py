@@ -221,8 +221,17 @@ def _sentence(cause: str, advice: str | None, more: int) -> str:
 
 def judge(residual_rms_nT: float, sensor_noise: float | None, *,
           refusals: Sequence[str] = (), doubts: Sequence[str] = (),
-          diagnosed: bool = False) -> Verdict:
+          diagnosed: bool = False, heldout_rms_nT: float | None = None) -> Verdict:
     """Decide the verdict and say it in words a person can act on.
+
+    The one rule of every command (``calibrate``, ``diagnose`` and ``process`` reach it
+    through ``stages.estimate.with_verdict`` with the same inputs), in this order: a refusal
+    of the fit's checks, or a model error above :data:`REFUSED_RESIDUAL_RATIO` times the
+    sensor's noise, is REFUSED; an error above :data:`QUESTIONABLE_RESIDUAL_RATIO` times
+    the noise, or any doubt (halves that fail their check, terms the motion does not
+    determine, a poorly known axis), is QUESTIONABLE; else OK. The model's error is how well
+    it predicts: the held-out figure when the diagnosis measured one (samples the fit did
+    not see; the fitted residual is smaller by what the fit absorbed), else the residual.
 
     The reason is one cause, in nanotesla and degrees, then one thing to do; the checks'
     own words (``refusals``, ``doubts``) stay in ``Calibration.checks`` for the report.
@@ -241,27 +250,34 @@ def judge(residual_rms_nT: float, sensor_noise: float | None, *,
         the cause when the residual does not already decide.
     diagnosed : bool
         The diagnosis ran: its findings, not a new run, tell what the model misses.
+    heldout_rms_nT : float or None
+        The final model's error on held-out samples, nT (the diagnosis' cross-validation);
+        None or not finite: not measured, and the residual stands for it.
 
     """
     res = float(residual_rms_nT)
+    held = (None if heldout_rms_nT is None or not np.isfinite(heldout_rms_nT)
+            else float(heldout_rms_nT))
+    err = res if held is None else held
+    what = (f"the model leaves {res:.0f} nT" if held is None
+            else f"the model's error on samples it was not fitted to is {held:.0f} nT")
     find = ("the diagnosis names what the model cannot describe (see its findings): exclude "
             "those stretches with --exclude, or record again away from them" if diagnosed
             else "run magalign diagnose to find what the model misses")
-    ratio = res / sensor_noise if sensor_noise is not None and sensor_noise > 0 else None
-    fit_words = (f"the model leaves {res:.0f} nT; no still window to measure the sensor's "
+    ratio = err / sensor_noise if sensor_noise is not None and sensor_noise > 0 else None
+    fit_words = (f"{what}; no still window to measure the sensor's "
                  "noise (record a few seconds without moving)" if ratio is None
-                 else f"the model leaves {res:.0f} nT against a sensor noise of "
-                 f"{sensor_noise:.0f} nT")
+                 else f"{what} against a sensor noise of {sensor_noise:.0f} nT")
     if refusals:
         cause, advice = plain_words(refusals[0])
         return Verdict(Status.REFUSED, _sentence(cause, advice, len(refusals) - 1 + len(doubts)),
                        sensor_noise, res)
     if ratio is not None and ratio > REFUSED_RESIDUAL_RATIO:
-        cause = (f"the model leaves {res:.0f} nT, {ratio:.0f} times the sensor's noise "
+        cause = (f"{what}, {ratio:.0f} times the sensor's noise "
                  f"({sensor_noise:.0f} nT): something it does not model dominates")
         return Verdict(Status.REFUSED, _sentence(cause, find, len(doubts)), sensor_noise, res)
     if ratio is not None and ratio > QUESTIONABLE_RESIDUAL_RATIO:
-        cause = (f"the model leaves {res:.0f} nT, {ratio:.1f} times the sensor's noise "
+        cause = (f"{what}, {ratio:.1f} times the sensor's noise "
                  f"({sensor_noise:.0f} nT)")
         return Verdict(Status.QUESTIONABLE, _sentence(cause, find, len(doubts)), sensor_noise,
                        res)

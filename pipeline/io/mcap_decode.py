@@ -730,6 +730,10 @@ def decode_channels(scan: Scan, cids: list[int]) -> dict[int, DecodedColumns]:
 
 
 # --------------------------------------------------------------------------- roles
+#: what a channel's ``unit`` metadata may say for a turntable angle (none said: degrees)
+ANGLE_UNITS = ("", "deg", "degree", "degrees")
+
+
 def role_of(scan: Scan, ch: ChannelRecord) -> Role:
     """Return the role (magnetometer, attitude, position) a channel's schema type gives it."""
     sch = scan.schemas.get(ch.schema_id)
@@ -739,7 +743,10 @@ def role_of(scan: Scan, ch: ChannelRecord) -> Role:
     if t in ATTITUDE_TYPES:
         return Role.ATTITUDE
     if t in TURNTABLE_TYPES:
-        return Role.TURNTABLE
+        # a bare number is a turntable angle unless its channel says it is something else:
+        # the field magnitude magalign writes into a corrected recording is a Float64 in nT
+        unit = str((ch.metadata or {}).get("unit", "deg")).strip().lower()
+        return Role.TURNTABLE if unit in ANGLE_UNITS else Role.OTHER
     if t in POSITION_TYPES:
         return Role.POSITION
     return Role.OTHER

@@ -523,12 +523,15 @@ def read_recording_warning(path: str | Path, **kw: Any) -> Recording:
         Once per problem.
 
     """
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        rec = read_recording(path, **kw)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            rec = read_recording(path, **kw)
+    finally:
+        # also when the read fails: the damage met on the way may be why
+        for w in caught:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     said = {str(w.message) for w in caught}
-    for w in caught:
-        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     for msg in problem_warnings(path, rec.problems, said):
         warnings.warn(msg, RecoveredDataWarning, stacklevel=2)
     return rec

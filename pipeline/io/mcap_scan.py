@@ -245,6 +245,14 @@ def scan_file(path: str | Path) -> Scan:
         op = raw[pos]
         (length,) = struct.unpack_from("<Q", raw, pos + 1)
         body = pos + 9
+        if MAX_OPCODE < op < 0x80 and _sound_record_at(raw, pos, size):
+            # reserved for future versions of MCAP: readers skip such records (the
+            # specification says so, and the official readers do)
+            _problem(scan.problems, "reserved_record",
+                     f"{p}: record with the reserved opcode {op:#x} at byte {pos} (a newer "
+                     "MCAP version's) was skipped", 0, warn=False)
+            pos = body + length
+            continue
         if op == 0 or (op > MAX_OPCODE and op < 0x80) or length > size:
             if pos + 9 + length <= size or op == 0:
                 _problem(scan.problems, "corrupt_record",
@@ -316,6 +324,25 @@ def scan_file(path: str | Path) -> Scan:
                  "are missing or damaged; every record was read", 0)
     return _finish_scan(scan, last_chunk, last_chunk_index, pos, size, not ended,
                         data_end=data_end)
+
+
+def _sound_record_at(raw: bytes | mmap.mmap, pos: int, size: int) -> bool:
+    """Tell whether the record at ``pos`` ends inside the file where another one can start.
+
+    A reserved opcode is skipped only when its record is sound: its length keeps it inside
+    the file and the bytes after it are the end of the file or the head of a record (a
+    non-zero opcode and a length that fits). Anything else is damage, not a newer record.
+    """
+    (length,) = struct.unpack_from("<Q", raw, pos + 1)
+    end = pos + 9 + length
+    if end > size:
+        return False
+    if end == size:
+        return True
+    if end + 9 > size or raw[end] == 0:
+        return False
+    (nxt,) = struct.unpack_from("<Q", raw, end + 1)
+    return end + 9 + nxt <= size
 
 
 def _chunk_header(raw: bytes | mmap.mmap, pos: int, body: int, length: int, size: int

@@ -19,7 +19,8 @@ import numpy as np
 
 from pipeline.core.errors import InputError
 from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
-from pipeline.core.validate import check_calibration_dict
+from pipeline.core.style import unsigned_zeros_in
+from pipeline.core.validate import check_calibration_dict, read_json_object
 from pipeline.core.verdict import Verdict
 from pipeline.model.forward import ForwardModel, predict, restore
 
@@ -28,6 +29,15 @@ if TYPE_CHECKING:
     from pipeline.model.forward import ForwardModel, Restoration
 
 FORMAT = "magalign.calibration/1"
+
+#: Numerical floor of a rotation sigma, deg. Below it a rotation is not known, whatever the
+#: noise: the attitude arrives rounded. A single-precision angle of up to 360 deg is rounded
+#: to 2**-15 deg (a uniform error of standard deviation 2**-15 / sqrt(12) = 8.8e-6 deg), a
+#: single-precision quaternion component to 2**-24 (up to 6.8e-6 deg of rotation); the float64
+#: solve itself settles to about 1e-14 deg (noise-free simulations). 1e-5 deg of a
+#: 50,000 nT field is 0.009 nT, below any magnetometer's noise: the floor shows only on
+#: noise-free data, where it keeps a sigma of 1e-15 deg from being read as a precision.
+SIGMA_FLOOR_DEG = 1e-5
 
 
 def _arr(x: Any, shape: tuple[int, ...] | None = None) -> np.ndarray | None:
@@ -80,7 +90,8 @@ class Calibration:
     R_body_mag : ndarray, shape (3, 3)
         Rotation mapping mag-frame vectors into the body frame (Li 2020, Eq. 1).
     sigma_rotvec_deg : ndarray, shape (3,)
-        1-sigma of the rotation error about body x, y, z (deg); ``inf`` along unobservable axes.
+        1-sigma of the rotation error about body x, y, z (deg); ``inf`` along unobservable axes;
+        never below :data:`SIGMA_FLOOR_DEG`.
     unobservable_axes_body : tuple of ndarray (3,)
         Unit vectors (body frame) about which the data do not determine the rotation.
     B_enu_nT : ndarray, shape (3,)
@@ -144,7 +155,11 @@ class Calibration:
     def __post_init__(self) -> None:
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
         set_("R_body_mag", _arr(self.R_body_mag, (3, 3)))
-        set_("sigma_rotvec_deg", _arr(self.sigma_rotvec_deg, (3,)))
+        sig = _arr(self.sigma_rotvec_deg, (3,))
+        if sig is not None:
+            # the numerical floor (idempotent: a calibration read back keeps its sigmas)
+            sig = np.where(np.isnan(sig), sig, np.fmax(sig, SIGMA_FLOOR_DEG))
+        set_("sigma_rotvec_deg", sig)
         set_("B_enu_nT", _arr(self.B_enu_nT, (3,)))
         set_("D", _arr(self.D, (3, 3)))
         set_("offset_nT", _arr(self.offset_nT, (3,)))
@@ -286,7 +301,7 @@ class Calibration:
 
     def to_json(self, indent: int = 2) -> str:
         """Serialise to the calibration.json text."""
-        return json.dumps(self.to_dict(), indent=indent, allow_nan=False)
+        return json.dumps(unsigned_zeros_in(self.to_dict()), indent=indent, allow_nan=False)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], path: str | None = None) -> Calibration:
@@ -341,11 +356,11 @@ class Calibration:
     def load(cls, path: str | Path) -> Calibration:
         """Read a calibration.json file."""
         p = Path(path)
-        try:
-            text = p.read_text()
-        except OSError as exc:
-            raise InputError(f"cannot read calibration: {exc.strerror}", path=p) from exc
-        return cls.from_json(text, path=str(p))
+        d = read_json_object(p, "a calibration.json",
+                             hint="give the calibration.json written by magalign calibrate, "
+                             "diagnose or process")
+        check_calibration_dict(d, str(p))
+        return cls.from_dict(d, path=str(p))
 
     def replace(self, **changes: Any) -> Calibration:
         """Return a new calibration with ``changes``."""

@@ -19,7 +19,7 @@ import numpy as np
 
 from pipeline.core import progress
 from pipeline.core.atomic import safe_join
-from pipeline.core.errors import InputError, MagalignError, RecoveredDataWarning
+from pipeline.core.errors import InputError, MagalignError, RecoveredDataWarning, damage_behind
 from pipeline.core.memory import release_free_memory
 from pipeline.core.recording import (
     AlignedSeries,
@@ -726,10 +726,19 @@ def process_recording(
     # started the worker issues them once from the row (pipeline.app.commands.process).
     with warnings.catch_warnings(record=True) as caught, \
             progress.use_sink(progress.current() or progress.sink_from_env(stem)):
-        steps.start("Ingest")
-        source = open_source(path, options)
-        done = process(source, rec_dir, options, steps)
-        steps.start(None)
+        try:
+            steps.start("Ingest")
+            source = open_source(path, options)
+            done = process(source, rec_dir, options, steps)
+            steps.start(None)
+        except MagalignError as exc:
+            # the warnings stay here: what damage the reader met goes into the one line
+            note = damage_behind(caught, exc.path or str(path))
+            if note:
+                exc.naming(str(path))
+                exc.message += note
+                exc.args = (exc.one_line(),)
+            raise
     row = summary_row(done, stem, rec_dir)
     row["timings_s"] = {k: round(v, 3) for k, v in steps.timings.items()}
     row["run_warnings"] = run_warnings(str(path), caught, done.problems)

@@ -17,7 +17,7 @@ from typing import TypeVar
 
 import numpy as np
 
-from pipeline.core.errors import OutputError
+from pipeline.core.errors import MagalignError, OutputError
 from pipeline.core.recording import AttitudeSeries, PositionSeries, Recording, VectorSeries
 from pipeline.io.mcap_header import read_recording_header
 from pipeline.io.mcap_read import (
@@ -245,12 +245,19 @@ def open_source(path: str | Path, options: ProcessOptions, *, warn: bool = False
     if options.scale_samples is not None and options.turntable_topic is None:
         # a look at the file's indexes; what it finds wrong the reader says once, below (a
         # file read in ranges is intact)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            header = read_recording_header(path, mag_topic=options.mag_topic,
-                                           attitude_topic=options.attitude_topic)
-        mag = next((c for c in header.channels if c.topic == header.mag_topic), None)
-        if mag is not None and mag.count > options.scale_samples and header.attitude is not None:
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                header = read_recording_header(path, mag_topic=options.mag_topic,
+                                               attitude_topic=options.attitude_topic)
+        except MagalignError:
+            # the whole read below fails the same way, and warns first what damage it met
+            # (the reason a channel may be missing)
+            header = None
+        mag = None if header is None else next(
+            (c for c in header.channels if c.topic == header.mag_topic), None)
+        if (header is not None and mag is not None and mag.count > options.scale_samples
+                and header.attitude is not None):
             pt = pass_through(path)
             if pt is not None and pt.chunks:
                 return FileSource(path, header, pt, int(mag.count), options)

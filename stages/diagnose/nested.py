@@ -22,7 +22,7 @@ from pipeline.core.vocabulary import EffectKind
 from stages.diagnose.fit import FitResult, fit
 from stages.diagnose.model import F64, FitData, ModelState, Term
 from stages.diagnose.result import DiagnoseConfig, Finding
-from stages.diagnose.statistics import bic_between
+from stages.diagnose.statistics import bic, bic_between, effective_samples
 
 #: Shortest ``hard_iron_step``, s: an object brought near the sensor and left there for a
 #: while. A shorter excess (the closest pass by a magnet in the room, where its dipole
@@ -210,3 +210,45 @@ def simplest(cur: FitResult, findings: list[Finding], data: FitData, cfg: Diagno
                 del out[s.also]
             return res, out
     return None
+
+
+#: Look-alikes: the kinds of term a new term of a kind can trade with along a shared
+#: direction, the data paying for the new term by moving the look-alike. A traceless eddy
+#: term beside a time offset, where the sensor barely turns: ``db/dt`` is then
+#: perpendicular to ``b`` and ``I/3 - b b.T`` acts as a third of the identity, a lag. A
+#: drift over the recording beside a transient: a step or a disturbance in mid recording
+#: reads in part as a slow change (on a lab excerpt a 3000 nT x 7 s magnet came out 500 nT
+#: off beside a drift that the same recording without the magnet does not earn).
+LOOKALIKES: dict[EffectKind, frozenset[EffectKind]] = {
+    EffectKind.EDDY_CURRENT: frozenset({EffectKind.TIME_OFFSET}),
+    EffectKind.FIELD_DRIFT: frozenset({EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP}),
+    EffectKind.HEADING_DRIFT: frozenset({EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP}),
+}
+
+
+def earns_beside_lookalikes(with_term: FitResult, without: FitResult, i: int, data: FitData,
+                            cfg: DiagnoseConfig) -> bool:
+    """Whether term ``i`` of ``with_term`` earns its margin with its look-alikes held.
+
+    ``without``: the same model without term ``i`` (the others in the same order), refitted.
+    The terms of the kinds term ``i`` can trade with (:data:`LOOKALIKES`) are fixed at their
+    values in ``without`` (a partial term with no combination fitted) and the rest refitted;
+    a term that is there still lowers the BIC by the margin at its own parameters (the count
+    of ``with_term``), both with the smaller effective sample count; one that gained only by
+    moving a look-alike along what the two share does not. A term without look-alikes in
+    the model passes.
+    """
+    like = LOOKALIKES.get(with_term.state.terms[i].kind, frozenset())
+    held = [k for k, t in enumerate(with_term.state.terms) if k != i and t.kind in like]
+    if not held:
+        return True
+    terms, vals = list(with_term.state.terms), list(with_term.state.values)
+    for k in held:
+        v = np.asarray(without.state.values[k - (k > i)], dtype=float)
+        terms[k] = terms[k].restricted(np.zeros((v.size, 0)), fixed=v)  # none fitted
+        vals[k] = v
+    fixed = fit(dataclasses.replace(with_term.state, terms=tuple(terms), values=tuple(vals)),
+                data)
+    n = min(effective_samples(fixed, data), effective_samples(without, data))
+    return bic(fixed.rss, n, with_term.state.n_free()) - bic(
+        without.rss, n, without.state.n_free()) <= -cfg.bic_margin

@@ -38,6 +38,7 @@ from stages.diagnose.model import (
 from stages.diagnose.nested import (
     MIN_STEP_S,
     RAMP_REACH_S,
+    earns_beside_lookalikes,
     refine_step,
     simplest,
     without_term,
@@ -377,6 +378,430 @@ def _to_enu(v_mag: np.ndarray, state: ModelState, data: FitData) -> np.ndarray:
 _ROUNDS_SHOWN = 3
 
 
+@dataclasses.dataclass
+class _Search:
+    """One diagnosis search: the model of the moment, its findings and what was tried.
+
+    Each :meth:`round` names at most one term (forward), then lets the model settle
+    (:meth:`_settle`: sources located again, the noise model measured again, the backward
+    step, the nested simpler descriptions).
+    """
+
+    data: FitData
+    cfg: DiagnoseConfig
+    stats: Any
+    kinds: list[EffectKind]
+    e_int_nT: float
+    cur: FitResult
+    cv_cur: float
+    findings: list[Finding] = dataclasses.field(default_factory=list)
+    not_ident: dict[str, str] = dataclasses.field(default_factory=dict)
+    #: failed in this round; retried once the model changes
+    rejected: set[tuple] = dataclasses.field(default_factory=set)
+    #: removed by the backward step; never re-added
+    dropped: set[tuple] = dataclasses.field(default_factory=set)
+
+    def round(self) -> bool:
+        """Name the strongest candidate that qualifies; False when none does."""
+        sig = robust_sigma(self.cur.residual_nT)
+        present = {t.kind for t in self.cur.state.terms}
+        cands, src_start, ramps = self._candidates(sig, present)
+        tests, starts, replace_trial = self._scored(cands, src_start, sig, present)
+        mc = self._map_candidate(sig, present)
+        fits, replaces, map_fits = self._refits(tests, starts, ramps, mc, replace_trial)
+        self._prefer_nested(fits, replaces, sig, present)
+        fits = self._map_last(fits, map_fits)
+        if not self._accept_first(fits, mc, replaces, sig, present):
+            return False
+        self._settle()
+        return True
+
+    def _candidates(self, sig: float, present: set[EffectKind]
+                    ) -> tuple[list[Term], dict[int, np.ndarray], list[tuple[int, Term]]]:
+        """Return the candidate terms of this round.
+
+        With them, a located source's start values by candidate index, and the transitions
+        of steps in the model that the residual scan asks for.
+        """
+        cands: list[Term] = [Term(k) for k in self.kinds if k not in present]
+        taken = [w for t in self.cur.state.terms if t.kind in LOCAL_KINDS for w in t.windows_s]
+        src_start: dict[int, np.ndarray] = {}  # candidate index -> a source's start values
+        ramps: list[tuple[int, Term]] = []  # transitions of steps in the model
+        for w in scan_windows(self.cur.residual_nT, self.data.t_s, self.cfg):
+            ws = refine_step(w, self.cur.residual_nT, self.data.t_s)
+            rc = ramp_candidate(self.cur.state, ws, sig)
+            if rc is not None and rc not in ramps:
+                ramps.append(rc)
+            if any(w[0] >= a and w[1] <= b for a, b in taken):
+                continue  # inside a window already modelled, not a new event
+            # the scan sees where the excess is large; a bell-shaped transient starts and
+            # ends earlier and later than that
+            pad = max(0.5, 0.25 * (w[1] - w[0]))
+            t0, t1 = float(self.data.t_s[0]), float(self.data.t_s[-1])
+            wd = (max(t0, w[0] - pad), min(t1, w[1] + pad))
+            ks = min(2.0, max(0.75, (wd[1] - wd[0]) / 6))
+            cands.append(Term(EffectKind.DISTURBANCE, (wd,), knot_step_s=ks))
+            # an edge of a step already in the model is its transition; an offset held
+            # for less than MIN_STEP_S is a bump, not an object left near the sensor
+            if rc is None and ws[1] - ws[0] >= MIN_STEP_S:
+                cands.append(Term(EffectKind.HARD_IRON_STEP, (ws,)))
+            # the same excess as a source fixed in the room: present throughout, or only
+            # around the window (put down and taken away)
+            loc = locate_source(self.cur, self.data, w)
+            if loc is not None and near_far_ratio(source_term(loc[1], (wd,)), loc[0],
+                                                  self.data) <= MAX_NEAR_FAR_RATIO:
+                for presence in ((), (wd,)):
+                    src_start[len(cands)] = loc[0]
+                    cands.append(source_term(loc[1], presence))
+        return cands, src_start, ramps
+
+    def _scored(self, cands: list[Term], src_start: dict[int, np.ndarray], sig: float,
+                present: set[EffectKind]
+                ) -> tuple[list[ScoreTest], dict[int, ModelState], Term | None]:
+        """Return the score tests of the candidates the motion determines.
+
+        With them, the state each refit starts at (by ``id`` of its test) and a field drift
+        to try in place of a heading drift.
+        """
+        tests = []
+        starts: dict[int, ModelState] = {}  # id of a ScoreTest -> the state its refit starts at
+        replace_trial = None
+        for j, term in enumerate(cands):
+            progress.detail(f"search {len(self.findings) + 1}, candidate {j + 1}/{len(cands)}",
+                            len(self.findings) + 0.5 * j / len(cands), _ROUNDS_SHOWN)
+            if (term.kind, term.windows_s) in self.rejected | self.dropped:
+                continue
+            if term.kind is EffectKind.LEVER_ARM and not present & SPATIAL_KINDS:
+                continue  # without a field that varies in space, no lever arm shows
+            if term.kind is EffectKind.FIELD_DRIFT and EffectKind.HEADING_DRIFT in present:
+                # the heading drift spans part of the field drift: the field drift can only
+                # replace it (tried below), not be added to it
+                replace_trial = term
+                continue
+            if term.kind is EffectKind.FIELD_GRADIENT and self.data.p_m is not None:
+                st = gradient_candidate(self.cur, self.data, sig)
+                term = st.term
+            elif term.kind is EffectKind.EDDY_CURRENT and EffectKind.TIME_OFFSET in present:
+                # only what a time offset cannot explain: the anisotropic part of E_s
+                st = anisotropic_eddy_test(self.cur, self.data, sig)
+            elif term.kind is EffectKind.LOCAL_SOURCE:
+                # tested at zero moment at the located place; refitted from the grid's moment
+                v0 = src_start[j]
+                st = score_test(self.cur, term, self.data, sig,
+                                start=with_values(term, np.r_[v0[:3], 0, 0, 0, v0[6:]], self.cur))
+                starts[id(st)] = with_values(term, v0, self.cur)
+            else:
+                st = score_test(self.cur, term, self.data, sig)
+            Bc = self.cur.state.B_enu_nT
+            hfrac = float(np.linalg.norm(Bc[:2]) / max(float(np.linalg.norm(Bc)), 1e-9))
+            reason = identifiability_reason(term.kind, self.stats, self.data, st.efficiency,
+                                            horizontal_fraction=hfrac)
+            if (reason is not None and term.kind in PARTIAL_KINDS and identifiability_reason(
+                    term.kind, self.stats, self.data, 1.0, horizontal_fraction=hfrac) is None):
+                # confounded only in some combinations: tried on the others, which the
+                # motion determines; the words stay for when it is not named
+                part = partial_candidate(self.cur, term, self.data, sig)
+                if part is not None:
+                    if not self.findings:
+                        self.not_ident.setdefault(term.kind.value, reason)
+                    st, term, reason = part, part.term, None
+            if reason is None and st.rot_efficiency < CONFOUND_RATIO\
+                    and term.kind not in LOCAL_KINDS:
+                reason = (
+                    f"with it the motion leaves the misalignment confounded (only "
+                    f"{st.rot_efficiency:.1e} of its weakest combination stays determined): it "
+                    "would trade against the misalignment; rotate through more attitudes"
+                )
+            if (reason is None and st.statistic < INTERP_MARGIN**2 * st.interp_statistic
+                    and st.statistic > st.k * np.log(self.cur.residual_nT.size)):
+                # it would have been tried, but the interpolation error could produce it
+                reason = interp_reason(self.data)
+            if reason is not None:
+                if term.kind in LOCAL_KINDS:
+                    continue
+                if not self.findings:
+                    self.not_ident.setdefault(term.kind.value, reason)
+                elif term.kind is EffectKind.TIME_OFFSET and EffectKind.EDDY_CURRENT in present:
+                    self.not_ident.setdefault(term.kind.value, (
+                        "a time offset is the isotropic part of the eddy-current term already "
+                        "in the model (E_s = -tau I to first order): the two cannot be told "
+                        "apart"))
+                continue
+            tests.append(st)
+        return tests, starts, replace_trial
+
+    def _map_candidate(self, sig: float, present: set[EffectKind]) -> MapCandidate | None:
+        """Return the field map candidate of this round, or None (why, in ``not_ident``)."""
+        # the field beyond the gradient's first order: tried once the gradient is in the
+        # model, its complexity chosen on the held-out blocks (stages.diagnose.field_map)
+        mc: MapCandidate | None = None
+        if EffectKind.FIELD_MAP not in present and (EffectKind.FIELD_MAP, ()) not in\
+                self.rejected | self.dropped:
+            got = map_candidate(self.cur, self.data, sig, self.cfg)
+            if isinstance(got, str):
+                self.not_ident.setdefault(EffectKind.FIELD_MAP.value, got)
+            elif got is not None:
+                st = got.test
+                if st.rot_efficiency < CONFOUND_RATIO:
+                    self.not_ident.setdefault(EffectKind.FIELD_MAP.value, (
+                        "with it the motion leaves the rotation R_body_mag confounded (only "
+                        f"{st.rot_efficiency:.1e} of its weakest combination stays determined)"))
+                elif st.statistic < INTERP_MARGIN**2 * st.interp_statistic:
+                    self.not_ident.setdefault(EffectKind.FIELD_MAP.value, interp_reason(self.data))
+                else:
+                    mc = got
+        return mc
+
+    def _refits(self, tests: list[ScoreTest], starts: dict[int, ModelState],
+                ramps: list[tuple[int, Term]], mc: MapCandidate | None,
+                replace_trial: Term | None) -> tuple[list, dict[int, int], list]:
+        """Refit the strongest candidates.
+
+        Returns the fits that lower the BIC by the margin, the steps whose transition a fit
+        replaces (by ``id`` of its test) and the map's fits.
+        """
+        n = self.cur.residual_nT.size
+        tests.sort(key=lambda s: -s.statistic + s.k * np.log(n))
+        # the score test ranks the candidates; the few strongest are refitted and the one
+        # with the lowest BIC is the strongest (a score statistic far from the null is only
+        # a local approximation when much is still unmodelled)
+        fits = []
+        for r, st in enumerate(tests[: self.cfg.n_refit]):
+            if -st.statistic + st.k * np.log(n) > 0:
+                break
+            progress.detail(f"search {len(self.findings) + 1}, refit {r + 1}/{self.cfg.n_refit}",
+                            len(self.findings) + 0.5 + 0.5 * r / self.cfg.n_refit, _ROUNDS_SHOWN)
+            fr = _refit(self.cur, st.term, self.data, self.cfg, start=starts.get(id(st)))
+            if fr is None or not _source_ok(fr[0], self.data) or _pulled_away(
+                    starts.get(id(st)), fr[0], self.data):
+                self.rejected.add((st.term.kind, st.term.windows_s))
+                continue
+            fits.append((fr[1], st, fr[0]))
+        replaces: dict[int, int] = {}  # id of a ScoreTest -> the step its fit replaces
+        for i_step, ramp in ramps:
+            if (ramp.kind, ramp.windows_s) in self.rejected | self.dropped:
+                continue
+            rf = _ramp_fit(self.cur, i_step, ramp, self.data, self.cfg)
+            if rf is None:
+                self.rejected.add((ramp.kind, ramp.windows_s))
+                continue
+            replaces[id(rf[1])] = i_step
+            fits.append(rf)
+        map_fits = []
+        if mc is not None and -mc.test.statistic + mc.test.k * np.log(n) <= 0:
+            fr = _refit(self.cur, mc.test.term, self.data, self.cfg)
+            if fr is None:
+                self.rejected.add((EffectKind.FIELD_MAP, ()))
+            else:
+                map_fits.append((fr[1], mc.test, fr[0]))
+        if replace_trial is not None:
+            rt = _replacement_fit(self.cur, EffectKind.HEADING_DRIFT, replace_trial, self.data,
+                                  self.cfg)
+            if rt is not None:
+                fits.append(rt)
+        fits.sort(key=lambda x: x[0])
+        return fits, replaces, map_fits
+
+    def _prefer_nested(self, fits: list, replaces: dict[int, int], sig: float,
+                       present: set[EffectKind]) -> None:
+        """Put the simpler of a nested pair first when it explains the data as well."""
+        # nested terms resolve to the simplest that explains the data as well (time offset
+        # inside eddy currents, a mag-frame step inside a free ENU disturbance)
+        by_kind = {f[1].term.kind: f for f in fits}
+        if fits:
+            best = fits[0]
+            simpler_kind = {**NESTED_SIMPLER,
+                       EffectKind.DISTURBANCE: EffectKind.HARD_IRON_STEP}.get(best[1].term.kind)
+            if simpler_kind is not None:
+                alt_fit = by_kind.get(simpler_kind)
+                if (alt_fit is None and simpler_kind in NESTED_SIMPLER.values()
+                        and simpler_kind not in present):
+                    fr = _refit(self.cur, Term(simpler_kind), self.data, self.cfg)
+                    alt_fit = None if fr is None else (fr[1], best[1], fr[0])
+                elif alt_fit is None and simpler_kind is EffectKind.HARD_IRON_STEP:
+                    rc = ramp_candidate(self.cur.state, best[1].term.windows_s[0], sig)
+                    if rc is not None:  # at a step's edge: that magnet's transition
+                        alt_fit = _ramp_fit(self.cur, rc[0], rc[1], self.data, self.cfg)
+                        if alt_fit is not None:
+                            replaces[id(alt_fit[1])] = rc[0]
+                    else:
+                        fr = _refit(self.cur, Term(simpler_kind, best[1].term.windows_s),
+                                    self.data, self.cfg)
+                        alt_fit = None if fr is None else (fr[1], best[1], fr[0])
+                # the pairs of NESTED_SIMPLER are compared with one effective sample count:
+                # with each its own, a time offset lost to eddy currents by the texture of
+                # the residuals alone; the window pair keeps its calibrated rule
+                if alt_fit is not None and simpler_kind in NESTED_SIMPLER.values():
+                    prefer = bic_between(alt_fit[2], best[2], self.data) <= self.cfg.bic_margin
+                    if not prefer and best[1].term.kind is EffectKind.EDDY_CURRENT:
+                        prefer = _lag_first(best[2], self.data, self.cfg)
+                else:
+                    prefer = alt_fit is not None and alt_fit[0] <= best[0] + self.cfg.bic_margin
+                if alt_fit is not None and prefer:
+                    fits.remove(best) if best in fits else None
+                    fits.insert(0, alt_fit)
+
+    def _map_last(self, fits: list, map_fits: list) -> list:
+        """Return the fits in the order they are tried: the map after what is not its."""
+        # the map last: whatever a term local in time or space (a disturbance, a source, a
+        # step) or a global term explains is theirs; the map is for what none of them can.
+        # Except what the map explains as well: a term that no longer earns its margin once
+        # the map is in the model was fitting the map's field (a bump in time where a
+        # survey line crosses a smooth anomaly); it waits until the map has been tried
+        if map_fits:
+            first: list[tuple[float, ScoreTest, FitResult]] = []
+            later: list[tuple[float, ScoreTest, FitResult]] = []
+            for f in fits:
+                explained = _map_explains(map_fits[0][2], f[2], self.data, self.cfg)
+                (later if explained else first).append(f)
+            fits = first + map_fits + later
+        return fits
+
+    def _accept_first(self, fits: list, mc: MapCandidate | None, replaces: dict[int, int],
+                      sig: float, present: set[EffectKind]) -> bool:
+        """Name the first fit that passes every check; False when none does."""
+        accepted = False
+        rich_round: list[FitResult | None] = []  # the model with a finer map, once asked
+        k_fit = 0
+        while k_fit < len(fits):
+            dbic, st, res = fits[k_fit]
+            k_fit += 1
+            told = ""
+            if st.term.kind is EffectKind.FIELD_MAP and mc is not None:
+                told = mc.words
+            if st.term.kind is EffectKind.LOCAL_SOURCE:
+                told, margin, alts = _told_apart(self.cur, res, self.data)
+                if margin < SOURCE_DECISIVE_FACTOR * self.cfg.bic_margin:
+                    self.rejected.add((st.term.kind, st.term.windows_s))
+                    if EffectKind.FIELD_MAP in present:
+                        # the map, fitted while a transient was still hidden under the
+                        # smooth field, took a share of it: what is left of the transient
+                        # looks spatial enough to rank a source first. A look-alike that
+                        # fits better than the source is tried in its place
+                        for look in alts:
+                            fr = _refit(self.cur, look, self.data, self.cfg)
+                            if fr is not None:
+                                look_st = score_test(self.cur, look, self.data, sig)
+                                fits.insert(k_fit, (fr[1], look_st,
+                                                    fr[0]))
+                    continue
+            if (len(res.state.terms) == len(self.cur.state.terms) + 1
+                    and not earns_beside_lookalikes(res, self.cur, len(self.cur.state.terms),
+                                                    self.data, self.cfg)):
+                self.rejected.add((st.term.kind, st.term.windows_s))
+                continue
+            if (st.term.kind in LOCAL_KINDS and EffectKind.FIELD_MAP in present
+                    and id(st) not in replaces):
+                if not rich_round:  # fitted once a round, for whichever transient asks
+                    rich_round.append(_with_finer_map(self.cur, self.data))
+                rich = rich_round[0]
+                cv_rich = _finer_map_explains(rich, res, self.data, self.cfg, self.cv_cur)
+                if rich is not None and cv_rich is not None:
+                    # the transient was the field where the sensor was at the time: the
+                    # finer map, which the held-out blocks cannot tell from the chosen one,
+                    # takes its place and the transient is not tried again
+                    self.dropped.add((st.term.kind, st.term.windows_s))
+                    i_map = [t.kind for t in self.cur.state.terms].index(EffectKind.FIELD_MAP)
+                    w0, w1 = st.term.windows_s[0]
+                    n_axis = rich.state.terms[i_map].n_axis
+                    self.findings[i_map] = dataclasses.replace(self.findings[i_map], told_apart=(
+                        self.findings[i_map].told_apart + f"; refined to {max(n_axis)} modes along "
+                        f"the longest axis ({int(np.prod(n_axis))} functions) when it "
+                        f"explained a {st.term.kind.value} at {w0:.1f}-{w1:.1f} s as well (the "
+                        "field where the sensor was then), no worse on the held-out blocks"))
+                    self.cur, self.cv_cur = rich, cv_rich
+                    accepted = True
+                    self.rejected.clear()
+                    break
+            if id(st) in replaces:
+                # a transition lasts less than a held-out block: it is held out at its own
+                # time scale, the current model on the same blocks (then the usual blocks
+                # for the record)
+                fine = dataclasses.replace(self.cfg, block_s=RAMP_KNOT_S)
+                cv_fine = heldout_rms(self.cur.state, self.data, fine)
+                ok = _heldout_ok(self.cur, res, self.data, fine, cv_fine)
+                cv_new = None if ok is None else heldout_rms(res.state, self.data, self.cfg)
+            else:
+                cv_new = _heldout_ok(self.cur, res, self.data, self.cfg, self.cv_cur)
+            if cv_new is None:
+                self.rejected.add((st.term.kind, st.term.windows_s))
+                continue
+            term = res.state.terms[-1]
+            gone = {t.kind for t in self.cur.state.terms} - {t.kind for t in res.state.terms}
+            if gone:  # a replacement: the nested term it contains leaves the model
+                self.findings = [f for f in self.findings if EffectKind(f.effect) not in gone]
+                self.cur = fit(dataclasses.replace(res.state, terms=res.state.terms[:-1],
+                                              values=res.state.values[:-1]), self.data)
+            self.findings.append(_finding(self.cur, res, term, st, dbic, self.cv_cur, cv_new,
+                                          self.data))
+            if told:
+                self.findings[-1] = dataclasses.replace(self.findings[-1], told_apart=told)
+            if id(st) in replaces:
+                # the step gained a transition: its finding is replaced in its place (the
+                # evidence is measured again in the final order, _chain_evidence)
+                i_step = replaces[id(st)]
+                self.findings[i_step] = self.findings.pop()
+                res = fit(_moved_last_to(res.state, i_step), self.data)
+            self.cur, self.cv_cur = res, cv_new
+            accepted = True
+            self.rejected.clear()
+            break
+        return accepted
+
+    def _settle(self) -> None:
+        """Let the model settle after a term was named (sources, noise model, backward)."""
+        moved = _relocate_sources(self.cur, self.data)
+        if moved is not self.cur:
+            self.cur, self.cv_cur = moved, heldout_rms(moved.state, self.data, self.cfg)
+        # the noise model is measured on what the model leaves: the attitude noise may only
+        # now stand out of it, and a model measured while an effect of thousands of nT was
+        # unmodelled takes that effect for magnetometer noise. Its weights are then nearly
+        # flat, and a lag gains by reading the noisy attitude where its interpolated noise is
+        # smallest (sample_weights): a shift of tau that fits attitude noise, not a lag
+        nm = estimate_noise_model(
+            self.cur.residual_nT if self.cur.raw_residual_nT is None else self.cur.raw_residual_nT,
+            self.data,
+            self.e_int_nT)
+        if nm is not None and (self.data.noise_model is None or not np.allclose(
+                nm, self.data.noise_model, rtol=NOISE_MODEL_RTOL)):
+            self.data = dataclasses.replace(self.data, noise_model=nm)
+            self.cur = fit(self.cur.state, self.data)
+            self.cv_cur = heldout_rms(self.cur.state, self.data, self.cfg)
+        # backward step: a term chosen earlier, while more was unmodelled, may have stood in
+        # for what a later term explains properly; drop it if it no longer earns its margin
+        i = 0
+        while i < len(self.cur.state.terms) - 1:
+            t_i = self.cur.state.terms[i]
+            if t_i.kind is EffectKind.FIELD_GRADIENT and any(
+                    t.kind is EffectKind.FIELD_MAP for t in self.cur.state.terms):
+                # the map is the field beyond the gradient's first order: with the map in
+                # the model the linear part stays the gradient's (the map's prior would
+                # otherwise pay for it)
+                i += 1
+                continue
+            st_wo = without_term(self.cur.state, i)
+            res_wo = fit(st_wo, self.data)
+            n_eff = effective_samples(self.cur, self.data)
+            bic_cur = bic(self.cur.rss, n_eff, self.cur.state.n_free())
+            keep = bic_cur - bic(res_wo.rss, n_eff, res_wo.state.n_free())
+            # a term that earned its margin only by trading with a look-alike goes as well
+            if keep > -self.cfg.bic_margin or not earns_beside_lookalikes(
+                    self.cur, res_wo, i, self.data, self.cfg):
+                self.dropped.add((t_i.kind, t_i.windows_s))
+                self.findings.pop(i)
+                self.cur = res_wo
+                self.cv_cur = heldout_rms(self.cur.state, self.data, self.cfg)
+                continue
+            i += 1
+        # a term named while other terms were missing may contain a simpler description
+        # that now explains the data as well (a disturbance that is a magnet's step, two
+        # pieces of one offset, a time offset inside an eddy term): the simpler is kept
+        while (sm := simplest(self.cur, self.findings, self.data, self.cfg,
+                              self.dropped)) is not None:
+            self.cur, self.findings = sm
+            self.cv_cur = heldout_rms(self.cur.state, self.data, self.cfg)
+
+
 def diagnose_data(
     data: FitData,
     init: ModelState | None = None,
@@ -434,7 +859,6 @@ def diagnose_data(
     cv_cur = heldout_rms(cur.state, data, cfg)
     baseline = {"effects": [], "residual_rms_nT": base_rms, "heldout_rms_nT": cv_cur}
     base_fit, cv_base = cur, cv_cur
-    findings: list[Finding] = []
     not_ident: dict[str, str] = {}
     kinds = list(GLOBAL_KINDS)
     if not (turntable or data.B_known_enu_nT is not None):
@@ -442,347 +866,10 @@ def diagnose_data(
     if turntable and data.B_known_enu_nT is None:
         why = identifiability_reason(EffectKind.AXIS_TILT, stats, data, 0.0)
         not_ident["axis_tilt"] = why or ""
-    rejected: set[tuple] = set()  # failed in this round; retried once the model changes
-    dropped: set[tuple] = set()  # removed by the backward step; never re-added
-    cov_final = None
-    while len(findings) < cfg.max_findings:
-        sig = robust_sigma(cur.residual_nT)
-        present = {t.kind for t in cur.state.terms}
-        cands: list[Term] = [Term(k) for k in kinds if k not in present]
-        taken = [w for t in cur.state.terms if t.kind in LOCAL_KINDS for w in t.windows_s]
-        src_start: dict[int, np.ndarray] = {}  # candidate index -> a source's start values
-        ramps: list[tuple[int, Term]] = []  # transitions of steps in the model
-        for w in scan_windows(cur.residual_nT, data.t_s, cfg):
-            rc = ramp_candidate(cur.state, refine_step(w, cur.residual_nT, data.t_s), sig)
-            if rc is not None and rc not in ramps:
-                ramps.append(rc)
-            if any(w[0] >= a and w[1] <= b for a, b in taken):
-                continue  # inside a window already modelled, not a new event
-            # the scan sees where the excess is large; a bell-shaped transient starts and
-            # ends earlier and later than that
-            pad = max(0.5, 0.25 * (w[1] - w[0]))
-            wd = (max(float(data.t_s[0]), w[0] - pad), min(float(data.t_s[-1]), w[1] + pad))
-            ks = min(2.0, max(0.75, (wd[1] - wd[0]) / 6))
-            cands.append(Term(EffectKind.DISTURBANCE, (wd,), knot_step_s=ks))
-            ws = refine_step(w, cur.residual_nT, data.t_s)
-            # an edge of a step already in the model is its transition; an offset held
-            # for less than MIN_STEP_S is a bump, not an object left near the sensor
-            if rc is None and ws[1] - ws[0] >= MIN_STEP_S:
-                cands.append(Term(EffectKind.HARD_IRON_STEP, (ws,)))
-            # the same excess as a source fixed in the room: present throughout, or only
-            # around the window (put down and taken away)
-            loc = locate_source(cur, data, w)
-            if loc is not None and near_far_ratio(source_term(loc[1], (wd,)), loc[0],
-                                                  data) <= MAX_NEAR_FAR_RATIO:
-                for presence in ((), (wd,)):
-                    src_start[len(cands)] = loc[0]
-                    cands.append(source_term(loc[1], presence))
-        tests = []
-        starts: dict[int, ModelState] = {}  # id of a ScoreTest -> the state its refit starts at
-        replace_trial = None
-        for j, term in enumerate(cands):
-            progress.detail(f"search {len(findings) + 1}, candidate {j + 1}/{len(cands)}",
-                            len(findings) + 0.5 * j / len(cands), _ROUNDS_SHOWN)
-            if (term.kind, term.windows_s) in rejected | dropped:
-                continue
-            if term.kind is EffectKind.LEVER_ARM and not present & SPATIAL_KINDS:
-                continue  # without a field that varies in space, no lever arm shows
-            if term.kind is EffectKind.FIELD_DRIFT and EffectKind.HEADING_DRIFT in present:
-                # the heading drift spans part of the field drift: the field drift can only
-                # replace it (tried below), not be added to it
-                replace_trial = term
-                continue
-            if term.kind is EffectKind.FIELD_GRADIENT and data.p_m is not None:
-                st = gradient_candidate(cur, data, sig)
-                term = st.term
-            elif term.kind is EffectKind.EDDY_CURRENT and EffectKind.TIME_OFFSET in present:
-                # only what a time offset cannot explain: the anisotropic part of E_s
-                st = anisotropic_eddy_test(cur, data, sig)
-            elif term.kind is EffectKind.LOCAL_SOURCE:
-                # tested at zero moment at the located place; refitted from the grid's moment
-                v0 = src_start[j]
-                st = score_test(cur, term, data, sig,
-                                start=with_values(term, np.r_[v0[:3], 0, 0, 0, v0[6:]], cur))
-                starts[id(st)] = with_values(term, v0, cur)
-            else:
-                st = score_test(cur, term, data, sig)
-            Bc = cur.state.B_enu_nT
-            hfrac = float(np.linalg.norm(Bc[:2]) / max(float(np.linalg.norm(Bc)), 1e-9))
-            reason = identifiability_reason(term.kind, stats, data, st.efficiency,
-                                            horizontal_fraction=hfrac)
-            if (reason is not None and term.kind in PARTIAL_KINDS and identifiability_reason(
-                    term.kind, stats, data, 1.0, horizontal_fraction=hfrac) is None):
-                # confounded only in some combinations: tried on the others, which the
-                # motion determines; the words stay for when it is not named
-                part = partial_candidate(cur, term, data, sig)
-                if part is not None:
-                    if not findings:
-                        not_ident.setdefault(term.kind.value, reason)
-                    st, term, reason = part, part.term, None
-            if reason is None and st.rot_efficiency < CONFOUND_RATIO \
-                    and term.kind not in LOCAL_KINDS:
-                reason = (
-                    f"with it the motion leaves the misalignment confounded (only "
-                    f"{st.rot_efficiency:.1e} of its weakest combination stays determined): it "
-                    "would trade against the misalignment; rotate through more attitudes"
-                )
-            if (reason is None and st.statistic < INTERP_MARGIN**2 * st.interp_statistic
-                    and st.statistic > st.k * np.log(cur.residual_nT.size)):
-                # it would have been tried, but the interpolation error could produce it
-                reason = interp_reason(data)
-            if reason is not None:
-                if term.kind in LOCAL_KINDS:
-                    continue
-                if not findings:
-                    not_ident.setdefault(term.kind.value, reason)
-                elif term.kind is EffectKind.TIME_OFFSET and EffectKind.EDDY_CURRENT in present:
-                    not_ident.setdefault(term.kind.value, (
-                        "a time offset is the isotropic part of the eddy-current term already "
-                        "in the model (E_s = -tau I to first order): the two cannot be told "
-                        "apart"))
-                continue
-            tests.append(st)
-        n = cur.residual_nT.size
-        # the field beyond the gradient's first order: tried once the gradient is in the
-        # model, its complexity chosen on the held-out blocks (stages.diagnose.field_map)
-        mc: MapCandidate | None = None
-        if EffectKind.FIELD_MAP not in present and (EffectKind.FIELD_MAP, ()) not in \
-                rejected | dropped:
-            got = map_candidate(cur, data, sig, cfg)
-            if isinstance(got, str):
-                not_ident.setdefault(EffectKind.FIELD_MAP.value, got)
-            elif got is not None:
-                st = got.test
-                if st.rot_efficiency < CONFOUND_RATIO:
-                    not_ident.setdefault(EffectKind.FIELD_MAP.value, (
-                        "with it the motion leaves the rotation R_body_mag confounded (only "
-                        f"{st.rot_efficiency:.1e} of its weakest combination stays determined)"))
-                elif st.statistic < INTERP_MARGIN**2 * st.interp_statistic:
-                    not_ident.setdefault(EffectKind.FIELD_MAP.value, interp_reason(data))
-                else:
-                    mc = got
-        tests.sort(key=lambda s: -s.statistic + s.k * np.log(n))
-        # the score test ranks the candidates; the few strongest are refitted and the one
-        # with the lowest BIC is the strongest (a score statistic far from the null is only
-        # a local approximation when much is still unmodelled)
-        fits = []
-        for r, st in enumerate(tests[: cfg.n_refit]):
-            if -st.statistic + st.k * np.log(n) > 0:
-                break
-            progress.detail(f"search {len(findings) + 1}, refit {r + 1}/{cfg.n_refit}",
-                            len(findings) + 0.5 + 0.5 * r / cfg.n_refit, _ROUNDS_SHOWN)
-            fr = _refit(cur, st.term, data, cfg, start=starts.get(id(st)))
-            if fr is None or not _source_ok(fr[0], data) or _pulled_away(
-                    starts.get(id(st)), fr[0], data):
-                rejected.add((st.term.kind, st.term.windows_s))
-                continue
-            fits.append((fr[1], st, fr[0]))
-        replaces: dict[int, int] = {}  # id of a ScoreTest -> the step its fit replaces
-        for i_step, ramp in ramps:
-            if (ramp.kind, ramp.windows_s) in rejected | dropped:
-                continue
-            rf = _ramp_fit(cur, i_step, ramp, data, cfg)
-            if rf is None:
-                rejected.add((ramp.kind, ramp.windows_s))
-                continue
-            replaces[id(rf[1])] = i_step
-            fits.append(rf)
-        map_fits = []
-        if mc is not None and -mc.test.statistic + mc.test.k * np.log(n) <= 0:
-            fr = _refit(cur, mc.test.term, data, cfg)
-            if fr is None:
-                rejected.add((EffectKind.FIELD_MAP, ()))
-            else:
-                map_fits.append((fr[1], mc.test, fr[0]))
-        if replace_trial is not None:
-            rt = _replacement_fit(cur, EffectKind.HEADING_DRIFT, replace_trial, data, cfg)
-            if rt is not None:
-                fits.append(rt)
-        fits.sort(key=lambda x: x[0])
-        # nested terms resolve to the simplest that explains the data as well (time offset
-        # inside eddy currents, a mag-frame step inside a free ENU disturbance)
-        by_kind = {f[1].term.kind: f for f in fits}
-        if fits:
-            best = fits[0]
-            simpler_kind = {**NESTED_SIMPLER,
-                       EffectKind.DISTURBANCE: EffectKind.HARD_IRON_STEP}.get(best[1].term.kind)
-            if simpler_kind is not None:
-                alt_fit = by_kind.get(simpler_kind)
-                if (alt_fit is None and simpler_kind in NESTED_SIMPLER.values()
-                        and simpler_kind not in present):
-                    fr = _refit(cur, Term(simpler_kind), data, cfg)
-                    alt_fit = None if fr is None else (fr[1], best[1], fr[0])
-                elif alt_fit is None and simpler_kind is EffectKind.HARD_IRON_STEP:
-                    rc = ramp_candidate(cur.state, best[1].term.windows_s[0], sig)
-                    if rc is not None:  # at a step's edge: that magnet's transition
-                        alt_fit = _ramp_fit(cur, rc[0], rc[1], data, cfg)
-                        if alt_fit is not None:
-                            replaces[id(alt_fit[1])] = rc[0]
-                    else:
-                        fr = _refit(cur, Term(simpler_kind, best[1].term.windows_s), data, cfg)
-                        alt_fit = None if fr is None else (fr[1], best[1], fr[0])
-                # the pairs of NESTED_SIMPLER are compared with one effective sample count:
-                # with each its own, a time offset lost to eddy currents by the texture of
-                # the residuals alone; the window pair keeps its calibrated rule
-                if alt_fit is not None and simpler_kind in NESTED_SIMPLER.values():
-                    prefer = bic_between(alt_fit[2], best[2], data) <= cfg.bic_margin
-                    if not prefer and best[1].term.kind is EffectKind.EDDY_CURRENT:
-                        prefer = _lag_first(best[2], data, cfg)
-                else:
-                    prefer = alt_fit is not None and alt_fit[0] <= best[0] + cfg.bic_margin
-                if alt_fit is not None and prefer:
-                    fits.remove(best) if best in fits else None
-                    fits.insert(0, alt_fit)
-        # the map last: whatever a term local in time or space (a disturbance, a source, a
-        # step) or a global term explains is theirs; the map is for what none of them can.
-        # Except what the map explains as well: a term that no longer earns its margin once
-        # the map is in the model was fitting the map's field (a bump in time where a
-        # survey line crosses a smooth anomaly); it waits until the map has been tried
-        if map_fits:
-            first: list[tuple[float, ScoreTest, FitResult]] = []
-            later: list[tuple[float, ScoreTest, FitResult]] = []
-            for f in fits:
-                (later if _map_explains(map_fits[0][2], f[2], data, cfg) else first).append(f)
-            fits = first + map_fits + later
-        accepted = False
-        rich_round: list[FitResult | None] = []  # the model with a finer map, once asked
-        k_fit = 0
-        while k_fit < len(fits):
-            dbic, st, res = fits[k_fit]
-            k_fit += 1
-            told = ""
-            if st.term.kind is EffectKind.FIELD_MAP and mc is not None:
-                told = mc.words
-            if st.term.kind is EffectKind.LOCAL_SOURCE:
-                told, margin, alts = _told_apart(cur, res, data)
-                if margin < SOURCE_DECISIVE_FACTOR * cfg.bic_margin:
-                    rejected.add((st.term.kind, st.term.windows_s))
-                    if EffectKind.FIELD_MAP in present:
-                        # the map, fitted while a transient was still hidden under the
-                        # smooth field, took a share of it: what is left of the transient
-                        # looks spatial enough to rank a source first. A look-alike that
-                        # fits better than the source is tried in its place
-                        for look in alts:
-                            fr = _refit(cur, look, data, cfg)
-                            if fr is not None:
-                                fits.insert(k_fit, (fr[1], score_test(cur, look, data, sig),
-                                                    fr[0]))
-                    continue
-            if (st.term.kind is EffectKind.EDDY_CURRENT and EffectKind.TIME_OFFSET in present
-                    and not _eddy_beside_held_lag(cur, res, data, cfg)):
-                rejected.add((st.term.kind, st.term.windows_s))
-                continue
-            if (st.term.kind in LOCAL_KINDS and EffectKind.FIELD_MAP in present
-                    and id(st) not in replaces):
-                if not rich_round:  # fitted once a round, for whichever transient asks
-                    rich_round.append(_with_finer_map(cur, data))
-                rich = rich_round[0]
-                cv_rich = _finer_map_explains(rich, res, data, cfg, cv_cur)
-                if rich is not None and cv_rich is not None:
-                    # the transient was the field where the sensor was at the time: the
-                    # finer map, which the held-out blocks cannot tell from the chosen one,
-                    # takes its place and the transient is not tried again
-                    dropped.add((st.term.kind, st.term.windows_s))
-                    i_map = [t.kind for t in cur.state.terms].index(EffectKind.FIELD_MAP)
-                    w0, w1 = st.term.windows_s[0]
-                    n_axis = rich.state.terms[i_map].n_axis
-                    findings[i_map] = dataclasses.replace(findings[i_map], told_apart=(
-                        findings[i_map].told_apart + f"; refined to {max(n_axis)} modes along "
-                        f"the longest axis ({int(np.prod(n_axis))} functions) when it "
-                        f"explained a {st.term.kind.value} at {w0:.1f}-{w1:.1f} s as well (the "
-                        "field where the sensor was then), no worse on the held-out blocks"))
-                    cur, cv_cur = rich, cv_rich
-                    accepted = True
-                    rejected.clear()
-                    break
-            if (st.term.kind in DRIFT_KINDS and present & LOCAL_KINDS
-                    and len(res.state.terms) == len(cur.state.terms) + 1
-                    and not _drift_beside_held_transients(res, cur, data, cfg)):
-                rejected.add((st.term.kind, st.term.windows_s))
-                continue
-            if id(st) in replaces:
-                # a transition lasts less than a held-out block: it is held out at its own
-                # time scale, the current model on the same blocks (then the usual blocks
-                # for the record)
-                fine = dataclasses.replace(cfg, block_s=RAMP_KNOT_S)
-                ok = _heldout_ok(cur, res, data, fine, heldout_rms(cur.state, data, fine))
-                cv_new = None if ok is None else heldout_rms(res.state, data, cfg)
-            else:
-                cv_new = _heldout_ok(cur, res, data, cfg, cv_cur)
-            if cv_new is None:
-                rejected.add((st.term.kind, st.term.windows_s))
-                continue
-            term = res.state.terms[-1]
-            gone = {t.kind for t in cur.state.terms} - {t.kind for t in res.state.terms}
-            if gone:  # a replacement: the nested term it contains leaves the model
-                findings = [f for f in findings if EffectKind(f.effect) not in gone]
-                cur = fit(dataclasses.replace(res.state, terms=res.state.terms[:-1],
-                                              values=res.state.values[:-1]), data)
-            findings.append(_finding(cur, res, term, st, dbic, cv_cur, cv_new, data))
-            if told:
-                findings[-1] = dataclasses.replace(findings[-1], told_apart=told)
-            if id(st) in replaces:
-                # the step gained a transition: its finding is replaced in its place (the
-                # evidence is measured again in the final order, _chain_evidence)
-                i_step = replaces[id(st)]
-                findings[i_step] = findings.pop()
-                res = fit(_moved_last_to(res.state, i_step), data)
-            cur, cv_cur = res, cv_new
-            accepted = True
-            rejected.clear()
-            break
-        if not accepted:
-            break
-        moved = _relocate_sources(cur, data)
-        if moved is not cur:
-            cur, cv_cur = moved, heldout_rms(moved.state, data, cfg)
-        # the noise model is measured on what the model leaves: the attitude noise may only
-        # now stand out of it, and a model measured while an effect of thousands of nT was
-        # unmodelled takes that effect for magnetometer noise. Its weights are then nearly
-        # flat, and a lag gains by reading the noisy attitude where its interpolated noise is
-        # smallest (sample_weights): a shift of tau that fits attitude noise, not a lag
-        nm = estimate_noise_model(
-            cur.residual_nT if cur.raw_residual_nT is None else cur.raw_residual_nT, data,
-            e_int_nT)
-        if nm is not None and (data.noise_model is None or not np.allclose(
-                nm, data.noise_model, rtol=NOISE_MODEL_RTOL)):
-            data = dataclasses.replace(data, noise_model=nm)
-            cur = fit(cur.state, data)
-            cv_cur = heldout_rms(cur.state, data, cfg)
-        # backward step: a term chosen earlier, while more was unmodelled, may have stood in
-        # for what a later term explains properly; drop it if it no longer earns its margin
-        i = 0
-        while i < len(cur.state.terms) - 1:
-            t_i = cur.state.terms[i]
-            if t_i.kind is EffectKind.FIELD_GRADIENT and any(
-                    t.kind is EffectKind.FIELD_MAP for t in cur.state.terms):
-                # the map is the field beyond the gradient's first order: with the map in
-                # the model the linear part stays the gradient's (the map's prior would
-                # otherwise pay for it)
-                i += 1
-                continue
-            st_wo = without_term(cur.state, i)
-            res_wo = fit(st_wo, data)
-            n_eff = effective_samples(cur, data)
-            bic_cur = bic(cur.rss, n_eff, cur.state.n_free())
-            keep = bic_cur - bic(res_wo.rss, n_eff, res_wo.state.n_free())
-            # a drift that earned its margin only by trading with a transient goes as well
-            if keep > -cfg.bic_margin or (
-                    t_i.kind in DRIFT_KINDS
-                    and any(t.kind in LOCAL_KINDS for t in cur.state.terms)
-                    and not _drift_beside_held_transients(cur, res_wo, data, cfg)):
-                dropped.add((t_i.kind, t_i.windows_s))
-                findings.pop(i)
-                cur = res_wo
-                cv_cur = heldout_rms(cur.state, data, cfg)
-                continue
-            i += 1
-        # a term named while other terms were missing may contain a simpler description
-        # that now explains the data as well (a disturbance that is a magnet's step, two
-        # pieces of one offset, a time offset inside an eddy term): the simpler is kept
-        while (sm := simplest(cur, findings, data, cfg, dropped)) is not None:
-            cur, findings = sm
-            cv_cur = heldout_rms(cur.state, data, cfg)
+    search = _Search(data, cfg, stats, kinds, e_int_nT, cur, cv_cur, not_ident=not_ident)
+    while len(search.findings) < cfg.max_findings and search.round():
+        pass
+    data, cur, cv_cur, findings = search.data, search.cur, search.cv_cur, search.findings
     # the evidence of each finding was measured against the model of the moment it was added;
     # later rounds may have dropped or replaced terms before it. Re-measure it as a build-up in
     # the final order so that the numbers chain from the baseline to the final model.
@@ -818,7 +905,6 @@ def diagnose_data(
         duration_s=data.duration_s,
     )
     return diag, cur
-
 
 def _gradient_note(cur: FitResult, data: FitData, not_ident: dict[str, str]) -> str | None:
     """Return what the test of a spatial gradient found, for the drift explanation.
@@ -1022,71 +1108,6 @@ def _lag_first(eddy: FitResult, data: FitData, cfg: DiagnoseConfig) -> bool:
         return False
     pair = fit(eddy.state.with_term(Term(EffectKind.TIME_OFFSET)), data)
     return bic_between(pair, eddy, data) < -cfg.bic_margin
-
-
-def _gains_with_held(with_new: FitResult, without: FitResult, i_new: int,
-                     held: frozenset[EffectKind], data: FitData, cfg: DiagnoseConfig) -> bool:
-    """Whether term ``i_new`` of ``with_new`` earns its margin with the ``held`` kinds fixed.
-
-    ``without``: the same model without that term (the others in the same order), refitted.
-    The terms of the kinds ``held`` are fixed at their values in ``without`` (a partial term
-    with no combination fitted) and the rest refitted; the new term is named only if that fit
-    still lowers the BIC by the margin at the new term's own parameters (the count of
-    ``with_new``), both with the smaller effective sample count. A term that gained only by
-    moving a look-alike along what the two share does not.
-    """
-    terms, vals = list(with_new.state.terms), list(with_new.state.values)
-    for k, t in enumerate(terms):
-        if k != i_new and t.kind in held:
-            v = np.asarray(without.state.values[k - (k > i_new)], dtype=float)
-            terms[k] = t.restricted(np.zeros((v.size, 0)), fixed=v)  # none fitted
-            vals[k] = v
-    fixed = fit(dataclasses.replace(with_new.state, terms=tuple(terms), values=tuple(vals)),
-                data)
-    n = min(effective_samples(fixed, data), effective_samples(without, data))
-    return bic(fixed.rss, n, with_new.state.n_free()) - bic(
-        without.rss, n, without.state.n_free()) <= -cfg.bic_margin
-
-
-def _eddy_beside_held_lag(cur: FitResult, res: FitResult, data: FitData,
-                          cfg: DiagnoseConfig) -> bool:
-    """Whether a traceless eddy term earns its margin with the time offset held where it was.
-
-    ``cur``: the model with a ``time_offset``; ``res``: the same with an ``eddy_current``
-    beside it, both refitted. To first order the two are orthogonal (the eddy term is
-    traceless beside a lag), except where the motion makes them alike: a sensor that barely
-    turns sees ``db/dt`` perpendicular to ``b`` only, where the traceless ``I/3 - b b.T`` acts
-    as a third of the identity, a lag. There the pair trades along that combination, and
-    the lag's second-order terms, the interpolation's error and the attitude's noise decide
-    the split, not eddy currents. Refitted with ``tau`` held at its value in ``cur``, an eddy
-    term that is there still gains the BIC margin at its 8 parameters; one that gained only
-    by moving the lag does not.
-    """
-    return _gains_with_held(res, cur, len(res.state.terms) - 1,
-                            frozenset({EffectKind.TIME_OFFSET}), data, cfg)
-
-
-#: Slow terms: functions of time over the whole recording, which span part of a transient's
-#: shape (a step in the middle of a recording reads in part as a slow change).
-DRIFT_KINDS = frozenset({EffectKind.FIELD_DRIFT, EffectKind.HEADING_DRIFT})
-
-
-def _drift_beside_held_transients(with_drift: FitResult, without: FitResult, data: FitData,
-                                  cfg: DiagnoseConfig) -> bool:
-    """Whether a drift earns its margin with the transients held where they were without it.
-
-    ``without``: the model of ``with_drift`` without its drift (the other terms in the same
-    order), both refitted. A drift over the recording spans part of a step's or a
-    disturbance's shape, so the pair can trade along it and fit the residual's own slow
-    texture with the transient's amplitude as a free hand: on a lab excerpt a 3000 nT x 7 s
-    magnet came out 500 nT off beside a drift that the same recording without the magnet
-    does not earn. What a term local in time explains is its own (as with the map, which
-    comes last); with every transient held at its value in ``without`` (:func:`_gains_with_held`),
-    a drift that is there still gains the BIC margin, one that gained only by moving the
-    transient does not.
-    """
-    i_d = next(k for k, t in enumerate(with_drift.state.terms) if t.kind in DRIFT_KINDS)
-    return _gains_with_held(with_drift, without, i_d, LOCAL_KINDS, data, cfg)
 
 
 def _transition_words(term: Term) -> str:

@@ -44,9 +44,16 @@ from stages.diagnose.model import (
 )
 from stages.diagnose.result import DiagnoseConfig, Diagnosis, Finding
 from stages.diagnose.search import MAX_LAG_S, diagnose_data, scan_windows
-from stages.diagnose.statistics import effective_samples, param_covariance
+from stages.diagnose.statistics import effective_samples, inflation, param_covariance
 from stages.estimate import carry_checks
-from stages.estimators.checks import SplitCheck, apply_split, info_halves
+from stages.estimators.checks import (
+    SplitCheck,
+    apply_split,
+    info_halves,
+    sandwich_cov,
+    split_statistic,
+    undetermined_directions,
+)
 from stages.restore import restore_samples
 
 
@@ -519,13 +526,15 @@ def calibration_from(res: FitResult, data: FitData, findings: tuple[Finding, ...
     )
 
 
-def final_split(res: FitResult, data: FitData):
+def final_split(res: FitResult, data: FitData, excluded: np.ndarray | None = None):
     """Refit the final model on two contiguous halves of equal rotation information.
 
     Returns a :class:`stages.estimators.checks.SplitCheck` (the halves' rotations, their
-    difference and its chi-square under the halves' covariances), or None when a half is too
-    small. A term that the motion barely determines, or physics the final model still leaves
-    out, shows up as halves that disagree.
+    difference and its chi-square under the covariance of the difference), or None when a
+    half is too small. A term that the motion barely determines, or physics the final model
+    still leaves out, shows up as halves that disagree. Each half's rotation covariance is
+    its block sandwich (:func:`half_rotation_cov`), as the estimator's halves are;
+    ``excluded``: directions the recording does not determine, not compared.
     """
     if len(data) < 200:
         return None
@@ -538,19 +547,46 @@ def final_split(res: FitResult, data: FitData):
         if len(sub) < 50:
             return None
         r = fit(res.state, sub)
-        cov = param_covariance(r, sub)
-        out.append((r.state.R_body_mag, np.clip(np.diag(cov)[0:3], 0.0, None)))
-    (Ra, va), (Rb, vb) = out
+        out.append((r.state.R_body_mag, half_rotation_cov(r, sub)))
+    (Ra, ca), (Rb, cb) = out
 
     def rv(R: np.ndarray) -> np.ndarray:
         return quat_to_rotvec(matrix_to_quat(R))
 
     d = rv(Ra @ Rb.T)
-    var = va + vb
-    ok = np.isfinite(var) & (var > 0)
-    chi2 = float(np.sum(d[ok] ** 2 / var[ok]))
+    chi2, dof = split_statistic(d, ca + cb, excluded)
     t_split = float(data.t_s[np.flatnonzero(~first)[0]] - data.t_s[0])
-    return SplitCheck(np.degrees(rv(Ra)), np.degrees(rv(Rb)), np.degrees(d), chi2, t_split)
+    return SplitCheck(np.degrees(rv(Ra)), np.degrees(rv(Rb)), np.degrees(d), chi2, t_split,
+                      dof)
+
+
+def half_rotation_cov(r: FitResult, sub: FitData) -> np.ndarray:
+    """Rotation covariance (rad^2, 3x3) of a fit to one half: the block sandwich.
+
+    ``param_covariance`` inflates the white covariance by one factor measured on the
+    residual's block means; what the rotation feels is the correlation of its scores
+    ``J_i^T r_i`` (attitude noise interpolated between attitude samples is correlated
+    across components and in time, and the Jacobian weighs it by the motion). The block
+    (batch-means) sandwich of the estimator (:func:`stages.estimators.checks.sandwich_cov`)
+    measures that, never below the white covariance.
+    """
+    white = param_covariance(r, sub)
+    P = r.info.shape[0]
+    dof = max(r.residual_nT.size - P, 1)
+    s2 = r.rss / dof
+    scale = s2 * inflation(r.residual_nT, sub.t_s)
+    if not np.isfinite(scale) or scale <= 0:
+        return np.asarray(white[0:3, 0:3], float)
+    H_pinv = white / scale
+    ev = evaluate(r.state, sub)
+    J = ev.jac if ev.sqrt_w is None else ev.jac * ev.sqrt_w[:, None, None]
+    if sub.B_known_enu_nT is not None:
+        J = J.copy()
+        J[:, :, 3:6] = 0.0
+    t_ns = np.round((sub.t_s - sub.t_s[0]) * 1e9).astype(np.int64)
+    cov, _ = sandwich_cov(J, None, np.ones(len(sub)), r.residual_nT, t_ns, H_pinv,
+                          s2 * H_pinv)
+    return np.asarray(cov[0:3, 0:3], float)
 
 
 @dataclass(frozen=True)
@@ -628,18 +664,18 @@ class Diagnose:
         if extra:
             final = dataclasses.replace(final, effects={**(final.effects or {}), **extra})
 
-        split = final_split(res, data)
+        split = final_split(res, data, undetermined_directions(final, cal))
         if cal is not None:
 
-            # the findings explained the halves' disagreement when the final model's halves
-            # agree, or agree better than the estimate's did: then the final split's own
-            # disagreement (apply_split below) is the one the sigma carries. The estimate's,
+            # one halves check decides, that of the model which is the answer: when the
+            # final model's halves were compared, their check (apply_split below) is the one
+            # the sigma and the verdict carry, whether it passes or not. The estimate's,
             # measured without the terms the data asked for (lab_02: 54 deg without its
-            # magnet, 0.4 deg with it), says nothing about the final model's rotation.
-            before = (cal.checks or {}).get("split") or {}
-            explained = bool(diag.findings) and (
-                split is None or split.consistent
-                or ("chi2" in before and split.chi2 < float(before["chi2"])))
+            # magnet, 0.4 deg with it), says nothing about the final model's rotation; with
+            # no findings the final model is the estimate's, and testing it twice would
+            # double the check's false-alarm rate. Without a final split the findings, if
+            # any, stand for the physics that made the estimate's halves disagree.
+            explained = split is not None or bool(diag.findings)
             final = carry_checks(cal, final, explained=explained)
         if split is not None:
             final = final.replace(checks={**final.checks, "split_final": split.to_dict()})

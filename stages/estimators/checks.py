@@ -9,8 +9,10 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2 as chi2_dist
 
 from pipeline.core.geometry import so3_log
+from pipeline.model.calibration import SIGMA_FLOOR_DEG
 from stages.diagnose.model import CONFOUND_RATIO
 from stages.estimators.base import RELATIVE_INFO_THRESHOLD
 
@@ -22,9 +24,15 @@ BLOCK_S = 1.0
 #: At least this many blocks: shorter recordings get shorter blocks (the block covariance has
 #: about ``n_blocks`` degrees of freedom, so its sigmas err by ``1 / sqrt(2 n_blocks)``).
 MIN_BLOCKS = 40
-#: 95 % quantile of chi-square with 3 degrees of freedom: halves that disagree by more are
-#: inconsistent with the covariance (the model leaves out physics that changes in time).
-SPLIT_CHI2_95 = 7.815
+#: Stated false-alarm rate of the split-halves check: the probability that the halves of a
+#: recording the model describes (noise only) fail it. The limit is the chi-square quantile
+#: at ``1 - SPLIT_FALSE_ALARM`` for the directions the halves determine (:func:`split_limit`);
+#: measured on independent nulls by bench/halves_null.py (docs/testing.md).
+SPLIT_FALSE_ALARM = 0.05
+#: A direction of the halves' difference covariance below this fraction of its largest
+#: eigenvalue is one the motion does not determine (its variance is rounding): left out of
+#: the statistic and of its degrees of freedom.
+SPLIT_RANK_RCOND = 1e-9
 
 
 def block_index(t_ns: NDArray[np.int64], block_s: float = BLOCK_S,
@@ -116,6 +124,81 @@ def info_halves(info: F64) -> NDArray[np.bool_]:
     return m
 
 
+def split_limit(dof: int) -> float:
+    """Chi-square limit of the halves' statistic with ``dof`` degrees of freedom."""
+    return float(chi2_dist.ppf(1.0 - SPLIT_FALSE_ALARM, max(int(dof), 1)))
+
+
+def undetermined_directions(*cals) -> F64:
+    """Return the directions (body frame, (k, 3)) about which calibrations leave R open.
+
+    Its ``unobservable_axes_body`` and the body axes whose sigma is infinite, of every
+    calibration given (None skipped): the halves are compared about the other directions.
+    """
+    dirs: list[F64] = []
+    for c in cals:
+        if c is None:
+            continue
+        dirs += [np.asarray(a, float) for a in c.unobservable_axes_body]
+        sig = np.asarray(c.sigma_rotvec_deg, float)
+        dirs += [np.eye(3)[i] for i in range(3) if not np.isfinite(sig[i])]
+    return np.array(dirs, float).reshape(-1, 3)
+
+
+def split_statistic(d_rad: F64, cov_rad2: F64, excluded: F64 | None = None
+                    ) -> tuple[float, int]:
+    """Chi-square of the halves' difference ``d`` under the covariance of the difference.
+
+    Parameters
+    ----------
+    d_rad : ndarray (3,)
+        Rotation vector of ``R_a R_b^T``, rad.
+    cov_rad2 : ndarray (3, 3)
+        Covariance of that difference: the sum of the halves' own rotation covariances (the
+        halves hold disjoint samples), each with its correlated-noise inflation. A
+        non-finite diagonal entry marks an axis the motion does not determine.
+    excluded : ndarray (k, 3), optional
+        Directions the whole recording does not determine (:func:`undetermined_directions`):
+        a half's fit may wander about them without meaning anything, so they are projected
+        out of the difference and its covariance.
+
+    Returns
+    -------
+    chi2 : float
+        ``d^T (C + 2 f^2 I)^-1 d`` over the directions the halves determine, ``f`` the
+        numerical floor :data:`pipeline.model.calibration.SIGMA_FLOOR_DEG` of each half's
+        sigma: a difference below the floor is agreement, however small the sigmas.
+    dof : int
+        The number of those directions (0: nothing to compare).
+
+    """
+    d = np.asarray(d_rad, float).reshape(3)
+    C = np.asarray(cov_rad2, float).reshape(3, 3)
+    fin = np.isfinite(np.diag(C))
+    E = [np.eye(3)[i] for i in range(3) if not fin[i]]
+    if excluded is not None and np.size(excluded):
+        E += list(np.asarray(excluded, float).reshape(-1, 3))
+    # an orthonormal basis Q of the directions compared: the complement of the excluded
+    if E:
+        u, sv, _ = np.linalg.svd(np.array(E).T, full_matrices=True)
+        Q = u[:, int(np.sum(sv > 1e-6)):]
+    else:
+        Q = np.eye(3)
+    if Q.shape[1] == 0:
+        return 0.0, 0
+    Cf = np.where(np.isfinite(C), C, 0.0)
+    Cq = Q.T @ (0.5 * (Cf + Cf.T)) @ Q
+    w, V = np.linalg.eigh(Cq)
+    top = float(np.max(w))
+    # directions of rounding-level variance are not determined by the motion; with no
+    # variance at all (a noise-free fit) every direction is compared under the floor alone
+    keep = w > SPLIT_RANK_RCOND * top if top > 0 else np.ones(len(w), bool)
+    floor2 = 2.0 * np.radians(SIGMA_FLOOR_DEG) ** 2
+    z = V[:, keep].T @ (Q.T @ d)
+    chi2 = float(np.sum(z**2 / (np.maximum(w[keep], 0.0) + floor2)))
+    return chi2, int(np.sum(keep))
+
+
 @dataclass(frozen=True)
 class SplitCheck:
     """Split-half consistency of the rotation.
@@ -127,9 +210,13 @@ class SplitCheck:
     diff_deg : ndarray (3,)
         ``log(R_a R_b^T)``, deg, body frame.
     chi2 : float
-        ``d^T (Cov_a + Cov_b)^-1 d`` (3 degrees of freedom under the model).
+        :func:`split_statistic`: the difference under the covariance of the difference
+        (``Cov_a + Cov_b``, numerical floor included), over the ``dof`` directions the
+        halves determine.
     split_s : float
         Where the halves meet, s from the first sample.
+    dof : int
+        Degrees of freedom of ``chi2``.
 
     """
 
@@ -138,25 +225,38 @@ class SplitCheck:
     diff_deg: F64
     chi2: float
     split_s: float
+    dof: int = 3
 
     @classmethod
-    def compare(cls, a, b, split_s: float) -> SplitCheck:
+    def compare(cls, a, b, split_s: float, cov_a: F64 | None = None,
+                cov_b: F64 | None = None, excluded: F64 | None = None) -> SplitCheck:
         """Compare the rotations of two calibrations fitted to the halves of a recording.
 
-        ``chi2`` weighs the difference by the halves' own rotation variances (the axes with
-        a finite, positive variance); ``split_s``: where the halves meet, s.
+        ``cov_a``, ``cov_b``: the halves' rotation covariances, rad^2 (3x3, with their
+        correlated-noise inflation); without them the halves' sigmas (no correlation between
+        axes). ``split_s``: where the halves meet, s. ``excluded``: directions not compared
+        (:func:`split_statistic`).
         """
         d = so3_log(a.R_body_mag @ b.R_body_mag.T)
-        var = np.radians(a.sigma_rotvec_deg) ** 2 + np.radians(b.sigma_rotvec_deg) ** 2
-        ok = np.isfinite(var) & (var > 0)
-        chi2 = float(np.sum(d[ok] ** 2 / var[ok]))
+
+        def cov(c, given: F64 | None) -> F64:
+            if given is not None:
+                return np.asarray(given, float)
+            return np.diag(np.radians(np.asarray(c.sigma_rotvec_deg, float)) ** 2)
+
+        chi2, dof = split_statistic(d, cov(a, cov_a) + cov(b, cov_b), excluded)
         return cls(a.rotvec_body_mag_deg, b.rotvec_body_mag_deg, np.degrees(d), chi2,
-                   float(split_s))
+                   float(split_s), dof)
+
+    @property
+    def limit(self) -> float:
+        """The statistic's limit at the stated false-alarm rate (:func:`split_limit`)."""
+        return split_limit(self.dof)
 
     @property
     def consistent(self) -> bool:
-        """Whether the halves agree within the 95 % chi-square bound."""
-        return bool(self.chi2 <= SPLIT_CHI2_95)
+        """Whether the halves agree: within the limit, or nothing to compare."""
+        return bool(self.dof == 0 or self.chi2 <= self.limit)
 
     def to_dict(self) -> dict:
         """JSON-able summary."""
@@ -165,6 +265,9 @@ class SplitCheck:
             "rotvec_second_half_deg": [float(x) for x in self.rotvec_b_deg],
             "difference_deg": [float(x) for x in self.diff_deg],
             "chi2": float(self.chi2),
+            "dof": int(self.dof),
+            "limit": float(self.limit),
+            "consistent": self.consistent,
             "split_s": float(self.split_s),
         }
 
@@ -206,13 +309,16 @@ def confounded(ratios: dict[str, F64], names: list[str]) -> dict[str, float]:
     return out
 
 
-#: The halves' disagreement makes the result questionable when it more than doubles a sigma
-#: (below that it is a warning: the sigmas already carry it).
-SPLIT_DOUBT_GROWTH = 2.0
+HALVES_DOUBT = "the two halves of the recording disagree"
 
 
 def apply_split(cal, split: SplitCheck, what: str = ""):
-    """Return ``cal`` with an inconsistent split's disagreement in its rotation sigmas.
+    """Return ``cal`` with an inconsistent split's disagreement in its sigmas and doubts.
+
+    One rule, the same for every model and every command: halves that fail the check at its
+    stated false-alarm rate (:data:`SPLIT_FALSE_ALARM`) put their disagreement into the
+    rotation's sigmas (:func:`split_inflation`) and are a doubt (the verdict is at most
+    QUESTIONABLE); halves that pass change nothing.
 
     Parameters
     ----------
@@ -223,12 +329,6 @@ def apply_split(cal, split: SplitCheck, what: str = ""):
     what : str
         Words for the model that was split (e.g. ``" under the final model"``).
 
-    Returns
-    -------
-    cal : Calibration
-        Sigmas inflated by :func:`split_inflation`; the words are appended to ``warnings``
-        when no sigma more than doubles, else to ``checks["doubts"]`` (the verdict).
-
     """
     if split.consistent:
         return cal
@@ -236,15 +336,13 @@ def apply_split(cal, split: SplitCheck, what: str = ""):
     var = np.radians(before) ** 2 + np.diag(split_inflation(np.radians(split.diff_deg)))
     after = np.degrees(np.sqrt(var))
     words = (
-        f"the two halves of the recording disagree by {np.linalg.norm(split.diff_deg):.2f} "
-        f"deg{what} (chi-square {split.chi2:.0f} for 3 degrees of freedom): the model leaves "
-        "out physics that changes over the recording, or a term the motion barely determines; "
-        "sigmas include the disagreement"
+        f"{HALVES_DOUBT} by {np.linalg.norm(split.diff_deg):.2f} "
+        f"deg{what} (chi-square {split.chi2:.0f} for {split.dof} degrees of freedom, above "
+        f"{split.limit:.1f}, which halves agreeing within their sigmas exceed "
+        f"{100 * SPLIT_FALSE_ALARM:.0f} % of the time): the model leaves out physics that "
+        "changes over the recording, or a term the motion barely determines; sigmas include "
+        "the disagreement"
     )
-    fin = np.isfinite(before) & (before > 0)
-    grow = float(np.max(after[fin] / before[fin])) if np.any(fin) else 1.0
-    cal = cal.replace(sigma_rotvec_deg=after)
-    if grow > SPLIT_DOUBT_GROWTH:
-        doubts = [d for d in cal.checks.get("doubts", ()) if not d.startswith("the two halves")]
-        return cal.replace(checks={**cal.checks, "doubts": doubts + [words]})
-    return cal.replace(warnings=cal.warnings + (words,))
+    doubts = [d for d in cal.checks.get("doubts", ()) if not d.startswith("the two halves")]
+    return cal.replace(sigma_rotvec_deg=after,
+                       checks={**cal.checks, "doubts": doubts + [words]})

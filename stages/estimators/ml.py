@@ -46,6 +46,7 @@ from stages.estimators.checks import (
     info_halves,
     per_sample_rot_info,
     sandwich_cov,
+    undetermined_directions,
 )
 from stages.estimators.ellipsoid import fit_ellipsoid
 
@@ -632,18 +633,29 @@ class MLEstimator:
             mh = Model(ph, estimate_B=model.estimate_B)
             try:
                 g = gauss_newton(mh, gn.s, self.max_iter)
-                c = sub.finish(ph, mh, g)
+                c, cov = sub.finish_with_cov(ph, mh, g)
             except (EstimationError, np.linalg.LinAlgError):
                 return None
             if c.unobservable_axes_body and not cal.unobservable_axes_body:
                 return None
-            out.append(c)
+            out.append((c, cov))
         t_split = float((p.t_ns[np.flatnonzero(~first)[0]] - p.t_ns[0]) * 1e-9)
-        return SplitCheck.compare(out[0], out[1], t_split)
+        (a, cov_a), (b, cov_b) = out
+        return SplitCheck.compare(a, b, t_split, cov_a, cov_b,
+                                  undetermined_directions(cal))
 
 
     def finish(self, p: EstimationProblem, model: Model, gn: GNResult) -> Calibration:
         """Covariance, observability and the Calibration value."""
+        return self.finish_with_cov(p, model, gn)[0]
+
+    def finish_with_cov(self, p: EstimationProblem, model: Model, gn: GNResult
+                        ) -> tuple[Calibration, F64]:
+        """:meth:`finish`, and the rotation's covariance (rad^2, 3x3, block sandwich).
+
+        The covariance is finite everywhere: about an axis the motion does not determine it
+        is about zero (the truncated inverse), where the calibration's sigma is infinite.
+        """
         s, w, W, r, H = gn.s, gn.w, gn.W, gn.r, gn.H
         dof = max(3 * p.n - model.n_params, 1)
         chi2, _ = _cost(r, W, w)
@@ -724,7 +736,7 @@ class MLEstimator:
                 warnings.append(
                     f"{n_down} samples were down-weighted as outliers by the robust loss"
                 )
-        return Calibration(
+        cal = Calibration(
             R_body_mag=s.R,
             sigma_rotvec_deg=np.degrees(sig_rot),
             B_enu_nT=s.B,
@@ -745,6 +757,7 @@ class MLEstimator:
             checks={"n_eff_fraction": n_eff_frac,
                     "sigma_rotvec_white_deg": np.degrees(sig_rot_white).tolist()},
         )
+        return cal, block_cov("rot")
 
 
 #: With a time offset, samples closer than this to either end of the attitude series are left

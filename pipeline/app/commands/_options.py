@@ -120,6 +120,22 @@ def check_mcap_file(path: str | Path) -> None:
     check_magic(head, p)
 
 
+def check_out_folder(path: str | Path) -> None:
+    """Refuse, before any work, an ``--out`` folder that is an existing file."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise UsageError("exists and is not a folder (--out takes a folder)", path=p)
+
+
+def check_out_file(path: str | Path) -> None:
+    """Refuse, before any work, an ``--out`` file name that is an existing folder."""
+    p = Path(path)
+    if p.is_dir():
+        raise UsageError("is a folder (--out takes a file name, such as REC.mcap)", path=p)
+    if p.parent.exists() and not p.parent.is_dir():
+        raise UsageError("is not a folder, so no file can be written in it", path=p.parent)
+
+
 def add_exclude_option(p: argparse.ArgumentParser) -> None:
     """Add ``--exclude START:END`` (repeatable; default none)."""
     p.add_argument("--exclude", action="append", default=None, metavar="START:END",

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import re
 import sys
 from pathlib import Path
 
@@ -19,13 +20,15 @@ from pipeline.app.commands._options import (
     add_exclude_option,
     add_field_options,
     add_topic_options,
+    check_out_folder,
     exclude_from_args,
     field_from_args,
 )
 from pipeline.core import progress
 from pipeline.core.atomic import atomic_path
 from pipeline.core.errors import NotObservableError, RefusedError, UsageError
-from pipeline.core.verdict import Status, verdict_line
+from pipeline.core.style import num
+from pipeline.core.verdict import Status, plain_words, verdict_line
 from pipeline.core.vocabulary import EstimateTerm, EstimatorKind
 from pipeline.run.options import ProcessOptions
 from pipeline.run.runner import analyse_recording
@@ -79,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
     ``--estimate`` (and with the default estimator) the answer is the model the data select;
     with it, the chosen model, its sigma widened by what the terms it leaves out do to R.
     """
+    check_out_folder(args.out)  # before the analysis, not after it
     try:
         terms = frozenset(EstimateTerm(t.strip()) for t in args.estimate.split(",") if t.strip())
     except ValueError as exc:
@@ -107,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
             path=args.recording, hint="record rotations about at least two different axes")
     if cal.verdict is not None and cal.verdict.status is Status.REFUSED:
         # Same reason: a refused fit is not written where a later run would find it.
-        raise RefusedError(f"calibration refused: {cal.verdict.reason}", path=args.recording)
+        raise RefusedError(f"calibration refused: {refusal_reason(cal)}", path=args.recording)
     out = Path(args.out) / "calibration.json"
     with atomic_path(out, inputs=(args.recording,)) as tmp:
         tmp.write_text(cal.to_json() + "\n")
@@ -116,35 +120,62 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+#: the verdict's pointer to the doubts it does not state, for the outputs that carry them
+_MORE = re.compile(r"\s*\((\d+) more doubts? in the report\.\)\s*$")
+
+
+def refusal_reason(cal) -> str:
+    """Return a refused calibration's reason with its other doubts said, not pointed at.
+
+    The verdict states one cause and counts the others "in the report"; ``calibrate``
+    writes no report (nor, when it refuses, a calibration.json), so its one line names them.
+    """
+    assert cal.verdict is not None
+    reason = cal.verdict.reason
+    m = _MORE.search(reason)
+    if m is None:
+        return reason
+    reason = reason[: m.start()]
+    said = reason.lower()
+    others: list[str] = []
+    for check in [*cal.checks.get("refusals", ()), *cal.checks.get("doubts", ())]:
+        cause = plain_words(str(check))[0]
+        if cause and cause.lower() not in said and cause not in others:
+            others.append(cause)
+    if not others:
+        return reason
+    return reason + " Also: " + "; ".join(others) + "."
+
+
 def summary(cal) -> str:
     """Format a few lines: rotation vector with sigmas, residual RMS, terms, warnings."""
     rv = cal.rotvec_body_mag_deg
     sg = cal.sigma_rotvec_deg
     lines = [
         f"estimator {cal.estimator}, {cal.n_samples} samples, residual RMS "
-        f"{cal.residual_rms_nT:.3f} nT",
+        f"{num(cal.residual_rms_nT, '.3f')} nT",
         "rotation vector body<-mag [deg]: "
         + ", ".join(
-            f"{v:+.4f} +- {s:.4f}" if np.isfinite(s) else f"{v:+.4f} +- inf"
+            f"{num(v, '+.4f')} +- {num(s, '.4f') if np.isfinite(s) else 'inf'}"
             for v, s in zip(rv, sg, strict=True)
         ),
-        "B_enu [nT]: " + ", ".join(f"{b:.1f}" for b in cal.B_enu_nT),
+        "B_enu [nT]: " + ", ".join(num(b, ".1f") for b in cal.B_enu_nT),
     ]
     if cal.rotvec_from_nominal_deg is not None:
         lines.append(
-            "from nominal [deg]: " + ", ".join(f"{v:+.4f}" for v in cal.rotvec_from_nominal_deg)
+            "from nominal [deg]: " + ", ".join(num(v, "+.4f") for v in cal.rotvec_from_nominal_deg)
         )
     if cal.offset_nT is not None:
-        lines.append("offset [nT]: " + ", ".join(f"{v:.2f}" for v in cal.offset_nT))
+        lines.append("offset [nT]: " + ", ".join(num(v, ".2f") for v in cal.offset_nT))
     if cal.time_offset_s is not None:
         lines.append(
-            f"time offset: {cal.time_offset_s * 1e3:.3f} ms +- "
-            f"{(cal.sigma_time_offset_s or 0) * 1e3:.3f} ms"
+            f"time offset: {num(cal.time_offset_s * 1e3, '.3f')} ms +- "
+            f"{num((cal.sigma_time_offset_s or 0) * 1e3, '.3f')} ms"
         )
     lines += [f"warning: {w}" for w in cal.warnings]
     lines += [f"not estimated: {d['term']}: {d['reason']}" for d in cal.not_estimated]
     if cal.n_eff is not None:
-        lines.append(f"effective independent samples behind the sigmas: {cal.n_eff:.0f} of "
+        lines.append(f"effective independent samples behind the sigmas: {num(cal.n_eff, '.0f')} of "
                      f"{cal.n_samples} (correlated residuals)")
 
     lines.append(verdict_line(cal))

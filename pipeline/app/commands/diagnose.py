@@ -16,11 +16,13 @@ from pipeline.app.commands._options import (
     add_exclude_option,
     add_field_options,
     add_topic_options,
+    check_out_folder,
     exclude_from_args,
     field_from_args,
 )
 from pipeline.core import progress
 from pipeline.core.atomic import write_text_atomic
+from pipeline.core.style import unsigned_zeros_in
 from pipeline.core.verdict import verdict_line
 from pipeline.run.options import ProcessOptions
 from pipeline.run.runner import analyse_recording
@@ -58,6 +60,7 @@ def diagnose_file(path: str | Path, *, mag_topic: str | None = None,
 
 def run(args: argparse.Namespace) -> int:
     """Diagnose and write the outputs; returns the exit status."""
+    check_out_folder(args.out)  # before the analysis, not after it
     ref = field_from_args(args)
     exclude = exclude_from_args(args)
     display = progress.ProgressDisplay(1, "magalign diagnose",
@@ -74,7 +77,8 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "diagnosis.json",
-                      json.dumps(ctx.diagnosis.to_dict(), indent=2, allow_nan=False))
+                      json.dumps(unsigned_zeros_in(ctx.diagnosis.to_dict()), indent=2,
+                                 allow_nan=False))
     write_text_atomic(out / "calibration.json", cal.to_json())
     print(ctx.diagnosis.table())
     print(verdict_line(cal))

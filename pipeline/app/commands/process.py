@@ -14,6 +14,7 @@ import builtins
 import dataclasses
 import logging
 import os
+import shutil
 import sys
 import tempfile
 import textwrap
@@ -199,6 +200,19 @@ def summary_title(name: str) -> str:
     return name if name.lower().startswith("magalign") else f"magalign: {name}"
 
 
+def _remove_failed(out: Path, name: str, made_out: bool) -> None:
+    """Remove what a failed single-recording run made.
+
+    ``out`` when this run created it, else the recording's folder when it holds no file.
+    """
+    if made_out:
+        shutil.rmtree(out, ignore_errors=True)
+        return
+    folder = out / name
+    if folder.is_dir() and not any(f.is_file() for f in folder.rglob("*")):
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 def run(args: argparse.Namespace) -> int:
     """Process; print where the results are; exit 3 when some recordings failed."""
     if args.jobs is not None and (args.dask_local is not None or args.scheduler is not None):
@@ -206,6 +220,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out} exists and is not a folder")
+    made_out = not out.exists()  # a failed single recording leaves nothing behind then
     inp = Path(args.input)
     single = inp.is_file() and inp.suffix.lower() != ".toml"
     if single:
@@ -230,12 +245,17 @@ def run(args: argparse.Namespace) -> int:
         warm.join()
     issue_warnings(results)
     out_r = out.resolve()
+    failures = [(r["name"], r["error"] or "unknown error") for r in results
+                if r["status"] == "failed"]
+    if failures and len(results) == 1 and single:
+        # One recording given: its failure is bad input (exit 2, one line), not a campaign
+        # that partly failed (CONVENTIONS, "Exit status"); outputs appear only when complete
+        _remove_failed(out, failures[0][0], made_out)
+        raise InputError(failures[0][1], path="")  # the line names its file already
     rows = [row_for(out_r, r) for r in results]
     pq_path, html_path = write_summary(out_r, rows, title=summary_title(camp.name))
     n_ok = sum(r["status"] == "ok" for r in results)
     n_re = sum(r["status"] == "reused" for r in results)
-    failures = [(r["name"], r["error"] or "unknown error") for r in results
-                if r["status"] == "failed"]
     where = executor.describe()
     # where the work ran says nothing new for the default single local worker
     where = "" if where in ("1 local worker", "in this process") else f" ({where})"
@@ -253,10 +273,6 @@ def run(args: argparse.Namespace) -> int:
             print(f"  {r['name']}: magalign view {out / r['rrd']}")
         if r["report"]:
             print(f"  {' ' * len(r['name'])}  report {out / r['report']}")
-    if failures and len(results) == 1 and single:
-        # One recording given: its failure is bad input (exit 2, one line), not a campaign
-        # that partly failed (CONVENTIONS, "Exit status").
-        raise InputError(failures[0][1], path="")  # the line names its file already
     if failures:
         for name, why in failures:
             print(f"magalign: FAILED {name}: {why}", file=sys.stderr)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import importlib
 
+from pipeline.app.commands._options import check_out_folder
+
 PAPERS = {
     "li2020": "pipeline.app.reproduce_li2020",
     "tang2016": "pipeline.app.reproduce_tang2016",
@@ -25,5 +27,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the chosen paper's reproduction (its module's ``reproduce(out_dir) -> int``)."""
+    check_out_folder(args.out)
     mod = importlib.import_module(PAPERS[args.paper])
     return int(mod.reproduce(args.out) or 0)

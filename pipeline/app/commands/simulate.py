@@ -12,6 +12,7 @@ import logging
 from pipeline.app.challenge import (
     generate,  # owned by DIAGNOSE; imported only when asked for
 )
+from pipeline.app.commands._options import check_out_file
 from pipeline.app.simulate import load_scenario, simulate, write_simulated
 from pipeline.core.errors import UsageError
 
@@ -47,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
     if args.scenario is None:
         raise UsageError("a SCENARIO file is required (or --challenge N)")
 
+    check_out_file(args.out)
     sim = simulate(load_scenario(args.scenario), seed=args.seed)
     path = write_simulated(sim, args.out)
     rec = sim.recording
