@@ -879,23 +879,7 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
 
     """
     if jacobian and state.has_partial:
-        # the full Jacobian of the same values, then each partial term's block turned to its
-        # fitted combinations (J_full A) and to the held ones (J_full U)
-        full = evaluate(state.unrestricted(), data, jacobian=True)
-        Jf = full.jac
-        blocks, held = [Jf[:, :, :6]], []
-        i = 6
-        for term in state.terms:
-            width = term.full_size()
-            blk = Jf[:, :, i : i + width]
-            if term.partial:
-                blocks.append(blk @ term.determined_matrix())
-                held.append(blk @ term.undetermined())
-            else:
-                blocks.append(blk)
-            i += width
-        return replace(full, J=np.concatenate(blocks, axis=2),
-                       J_held=np.concatenate(held, axis=2))
+        return _partial_evaluation(state, data)
     t = data.t_s
     n = t.shape[0]
     tau = state.tau_s()
@@ -918,36 +902,7 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
     # the time offset's Jacobian: second order, |omega x l| tau)
     lever = state.value(EffectKind.LEVER_ARM)
     lever_enu = None if lever is None or data.p_m is None else np.einsum("nji,j->ni", Ct, lever)
-    Bt = np.broadcast_to(state.B_enu_nT, (n, 3)).copy()
-    for term, v in zip(state.terms, state.values, strict=True):
-        if term.kind is EffectKind.FIELD_DRIFT:
-            P = drift_basis(t, 0.0, drift_span(data))
-            Bt += P @ v.reshape(-1, 3)
-        elif term.kind is EffectKind.DISTURBANCE:
-            Phi = np.concatenate([hat_basis(t, k) for k in term.knots()], axis=1)
-            Bt += Phi @ v.reshape(-1, 3)
-        elif term.kind is EffectKind.FIELD_GRADIENT:
-            # B(p) = B_enu + G_enu Q (p - p_ref)  (CONVENTIONS field_gradient)
-            Bt += data.dp_m @ gradient_matrix(v, term.yaw_rad).T
-            if lever_enu is not None:  # + G_enu C l
-                Bt += lever_enu @ gradient_matrix(v, 0.0).T
-        elif term.kind is EffectKind.LOCAL_SOURCE and data.p_m is not None:
-            # B(p) = B_enu + 100 nT (3 (m.u) u - m) / r^3  (CONVENTIONS local_source)
-            r_src = source_offset_enu(term, v, data.p_m, lever_enu)
-            Bt += term.presence(t)[:, None] * (dipole_matrix(r_src) @ v[3:6])
-        elif term.kind is EffectKind.FIELD_MAP and data.p_m is not None:
-            # B(p) = B_enu - Q grad phi(x), x = p + Q.T C l  (CONVENTIONS field_map;
-            # pipeline.model.field_map): Q sum_j w_j g_j(x)
-            g_map = _map_field(term, data.p_m, lever_enu)
-            Bt += np.einsum("ndk,k->nd", g_map, v) @ rot_z(term.yaw_rad).T
-    # heading_drift: the attitude source reports Rz(h(t)) C_true(t), so the reading is
-    # R.T C_rep.T Rz(h) B (CONVENTIONS heading_drift): the ENU field turned about Up by h(t)
-    h_rad = None
-    for term, v in zip(state.terms, state.values, strict=True):
-        if term.kind is EffectKind.HEADING_DRIFT:
-            h_rad = heading_basis(t, drift_span(data)) @ v
-            Bt_unturned = Bt
-            Bt = rotate_about_up(Bt, h_rad)
+    Bt, h_rad, Bt_unturned = _enu_field(state, data, lever_enu)
     TT = state.T_enu.T
     Bp = Bt @ TT.T  # T.T @ B_t per row (axis_tilt)
 
@@ -990,6 +945,113 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             Rz[:, 2, 2] = 1.0
             J[:, :, 3:6] = np.matmul(G, Rz)
     bddot = matvec_rows(Cddot, Bp)
+    _term_columns(J, state, data, _Linearisation(
+        Ct=Ct, omega_body=att.at.omega_body_rad_s, G=G, Gp=Gp, TT=TT, b=b, bddot=bddot, m=m,
+        mdot=mdot, ydot0=ydot0, E=E, lever_enu=lever_enu, Bt=Bt, h_rad=h_rad,
+        Bt_unturned=Bt_unturned))
+    return Evaluation(y, J, ydot0, G, sqrt_w)
+
+
+
+@dataclass(frozen=True)
+class _Linearisation:
+    """What the prediction computed at a state, for the Jacobian columns of its terms.
+
+    ``Ct``: attitudes (N, 3, 3) at the sensing times; ``omega_body``: the interpolated rate
+    there; ``G``, ``Gp``: d y / d B_enu after and before the tilt ``TT``; ``b``, ``bddot``:
+    the field in the body frame and its second derivative; ``m``, ``mdot``: the reading
+    before the eddy term and its rate; ``ydot0``: the eddy regressor; ``E``: the eddy
+    matrix in use; ``lever_enu``: ``C l`` or None; ``Bt``, ``Bt_unturned``, ``h_rad``: the
+    ENU field with and without the heading drift's turn, and the turn.
+    """
+
+    Ct: F64
+    omega_body: F64
+    G: F64
+    Gp: F64
+    TT: F64
+    b: F64
+    bddot: F64
+    m: F64
+    mdot: F64
+    ydot0: F64
+    E: F64
+    lever_enu: F64 | None
+    Bt: F64
+    h_rad: F64 | None
+    Bt_unturned: F64 | None
+
+
+def _partial_evaluation(state: ModelState, data: FitData) -> Evaluation:
+    """Evaluate a state with partial terms.
+
+    The full Jacobian of the same values, then each partial term's block turned to its
+    fitted combinations (``J_full A``) and to the held ones (``J_full U``).
+    """
+    full = evaluate(state.unrestricted(), data, jacobian=True)
+    Jf = full.jac
+    blocks, held = [Jf[:, :, :6]], []
+    i = 6
+    for term in state.terms:
+        width = term.full_size()
+        blk = Jf[:, :, i : i + width]
+        if term.partial:
+            blocks.append(blk @ term.determined_matrix())
+            held.append(blk @ term.undetermined())
+        else:
+            blocks.append(blk)
+        i += width
+    return replace(full, J=np.concatenate(blocks, axis=2),
+                   J_held=np.concatenate(held, axis=2))
+
+
+def _enu_field(state: ModelState, data: FitData, lever_enu: F64 | None
+               ) -> tuple[F64, F64 | None, F64 | None]:
+    """Return the ENU field at each sample, the heading drift's turn and the field unturned.
+
+    ``B + drift + disturbances + the spatial terms``, then turned about Up by the heading
+    drift when the model has one (None, None without).
+    """
+    t = data.t_s
+    n = t.shape[0]
+    Bt = np.broadcast_to(state.B_enu_nT, (n, 3)).copy()
+    for term, v in zip(state.terms, state.values, strict=True):
+        if term.kind is EffectKind.FIELD_DRIFT:
+            P = drift_basis(t, 0.0, drift_span(data))
+            Bt += P @ v.reshape(-1, 3)
+        elif term.kind is EffectKind.DISTURBANCE:
+            Phi = np.concatenate([hat_basis(t, k) for k in term.knots()], axis=1)
+            Bt += Phi @ v.reshape(-1, 3)
+        elif term.kind is EffectKind.FIELD_GRADIENT:
+            # B(p) = B_enu + G_enu Q (p - p_ref)  (CONVENTIONS field_gradient)
+            Bt += data.dp_m @ gradient_matrix(v, term.yaw_rad).T
+            if lever_enu is not None:  # + G_enu C l
+                Bt += lever_enu @ gradient_matrix(v, 0.0).T
+        elif term.kind is EffectKind.LOCAL_SOURCE and data.p_m is not None:
+            # B(p) = B_enu + 100 nT (3 (m.u) u - m) / r^3  (CONVENTIONS local_source)
+            r_src = source_offset_enu(term, v, data.p_m, lever_enu)
+            Bt += term.presence(t)[:, None] * (dipole_matrix(r_src) @ v[3:6])
+        elif term.kind is EffectKind.FIELD_MAP and data.p_m is not None:
+            # B(p) = B_enu - Q grad phi(x), x = p + Q.T C l  (CONVENTIONS field_map;
+            # pipeline.model.field_map): Q sum_j w_j g_j(x)
+            g_map = _map_field(term, data.p_m, lever_enu)
+            Bt += np.einsum("ndk,k->nd", g_map, v) @ rot_z(term.yaw_rad).T
+    # heading_drift: the attitude source reports Rz(h(t)) C_true(t), so the reading is
+    # R.T C_rep.T Rz(h) B (CONVENTIONS heading_drift): the ENU field turned about Up by h(t)
+    h_rad, Bt_unturned = None, None
+    for term, v in zip(state.terms, state.values, strict=True):
+        if term.kind is EffectKind.HEADING_DRIFT:
+            h_rad = heading_basis(t, drift_span(data)) @ v
+            Bt_unturned = Bt
+            Bt = rotate_about_up(Bt, h_rad)
+    return Bt, h_rad, Bt_unturned
+
+
+def _term_columns(J: F64, state: ModelState, data: FitData, lin: _Linearisation) -> None:
+    """Write each term's Jacobian columns into ``J`` (N, 3, P) in place."""
+    t = data.t_s
+    n = t.shape[0]
+    R, D = state.R_body_mag, state.D()
     for term, i, v in zip(state.terms, state.offsets(), state.values, strict=True):
         k = term.kind
         if k is EffectKind.HARD_IRON:
@@ -1002,41 +1064,41 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
                 J[:, r_, i + 3 + r_ : i + 3 + 3 * phi.shape[1] : 3] = phi
         elif k is EffectKind.SOFT_IRON:
             # dy/ds_k = S_k m + E S_k mdot
-            J[:, :, i : i + 5] = soft_iron_jacobian(SOFT_BASIS, m, mdot, E)  # (J4)
+            J[:, :, i : i + 5] = soft_iron_jacobian(SOFT_BASIS, lin.m, lin.mdot, lin.E)  # (J4)
         elif k is EffectKind.TIME_OFFSET:
             # b(t - tau) with the attitude re-interpolated at t - tau: db/dtau = omega x b with
             # omega the exact interpolated rate at t - tau (pipeline.model.forward, (J5));
             # dbdot/dtau = -bddot for the eddy regressor
-            J[:, :, i] = time_offset_jacobian(att.at.omega_body_rad_s, b, bddot, R, D, E)
+            J[:, :, i] = time_offset_jacobian(lin.omega_body, lin.b, lin.bddot, R, D, lin.E)
         elif k is EffectKind.EDDY_CURRENT:
             # y_i += E_ij ydot0_j (row-major E); beside a time offset only the traceless part
             for r_ in range(3):
-                J[:, r_, i + 3 * r_ : i + 3 * r_ + 3] = ydot0
+                J[:, r_, i + 3 * r_ : i + 3 * r_ + 3] = lin.ydot0
             if state.rate_pair():
                 J[:, :, i : i + 9] = J[:, :, i : i + 9] @ TRACELESS_PROJECTOR
         elif k is EffectKind.FIELD_DRIFT:
             P = drift_basis(t, 0.0, drift_span(data))
             kk = 3 * P.shape[1]
-            J[:, :, i : i + kk] = (P[:, :, None, None] * G[:, None, :, :]).transpose(
+            J[:, :, i : i + kk] = (P[:, :, None, None] * lin.G[:, None, :, :]).transpose(
                 0, 2, 1, 3
             ).reshape(n, 3, kk)
         elif k is EffectKind.DISTURBANCE:
             Phi = np.concatenate([hat_basis(t, kn) for kn in term.knots()], axis=1)
             K = Phi.shape[1]
-            J[:, :, i : i + 3 * K] = (Phi[:, :, None, None] * G[:, None, :, :]).transpose(
+            J[:, :, i : i + 3 * K] = (Phi[:, :, None, None] * lin.G[:, None, :, :]).transpose(
                 0, 2, 1, 3
             ).reshape(n, 3, 3 * K)
         elif k is EffectKind.FIELD_GRADIENT:
             # dB/dg_k = S_k (Q (p - p_ref) + C l); dy/dg_k = G (N,3,3) @ that
             dpq = data.dp_m @ rot_z(term.yaw_rad).T  # Q (p - p_ref) per row
-            if lever_enu is not None:
-                dpq = dpq + lever_enu
+            if lin.lever_enu is not None:
+                dpq = dpq + lin.lever_enu
             dB = np.einsum("kij,nj->nik", SOFT_BASIS, dpq)  # (N, 3, 5)
-            J[:, :, i : i + 5] = np.matmul(G, dB)
+            J[:, :, i : i + 5] = np.matmul(lin.G, dB)
         elif k is EffectKind.LOCAL_SOURCE and data.p_m is not None:
             # r = Rz(psi) (p - c) + C l, B = P(r) m: dB/dc = -K Rz(psi), dB/dm = P(r),
             # dB/dpsi = K (e_z x Rz(psi) (p - c)), K = dB/dr (dipole_gradient)
-            r_src = source_offset_enu(term, v, data.p_m, lever_enu)
+            r_src = source_offset_enu(term, v, data.p_m, lin.lever_enu)
             pres = term.presence(t)[:, None, None]
             K = dipole_gradient(r_src, v[3:6])
             psi = float(v[6]) if term.fit_yaw else term.yaw_rad
@@ -1047,41 +1109,41 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
                 r_p = source_offset_enu(term, v, data.p_m)
                 ez_r = np.stack([-r_p[:, 1], r_p[:, 0], np.zeros(n)], axis=1)
                 dB[:, :, 6] = matvec_rows(K, ez_r)
-            J[:, :, i : i + term.n_params()] = np.matmul(G, pres * dB)
+            J[:, :, i : i + term.n_params()] = np.matmul(lin.G, pres * dB)
         elif k is EffectKind.FIELD_MAP and data.p_m is not None:
             # linear in the weights: dB/dw_j = Q g_j(x)
-            g_map = _map_field(term, data.p_m, lever_enu)
+            g_map = _map_field(term, data.p_m, lin.lever_enu)
             J[:, :, i : i + term.n_params()] = np.matmul(
-                G, np.einsum("ij,njk->nik", rot_z(term.yaw_rad), g_map))
-        elif k is EffectKind.LEVER_ARM and lever_enu is not None:
+                lin.G, np.einsum("ij,njk->nik", rot_z(term.yaw_rad), g_map))
+        elif k is EffectKind.LEVER_ARM and lin.lever_enu is not None:
             # dB/dl = sum over spatial terms of (dB/dr) C: G_enu C for the gradient,
             # K(r) C for each source present
-            C = np.swapaxes(Ct, 1, 2)
+            C = np.swapaxes(lin.Ct, 1, 2)
             dBdr = np.zeros((n, 3, 3))
             for t2, v2 in zip(state.terms, state.values, strict=True):
                 if t2.kind is EffectKind.FIELD_GRADIENT:
                     dBdr += gradient_matrix(v2, 0.0)[None]
                 elif t2.kind is EffectKind.LOCAL_SOURCE and data.p_m is not None:
-                    r2 = source_offset_enu(t2, v2, data.p_m, lever_enu)
+                    r2 = source_offset_enu(t2, v2, data.p_m, lin.lever_enu)
                     dBdr += t2.presence(t)[:, None, None] * dipole_gradient(r2, v2[3:6])
                 elif t2.kind is EffectKind.FIELD_MAP and data.p_m is not None:
                     # the map's ENU gradient Q (dB_x/dx) Q.T (dx/dr = Q.T)
                     Qm = rot_z(t2.yaw_rad)
-                    x2 = map_points(data.p_m, t2.yaw_rad, lever_enu)
+                    x2 = map_points(data.p_m, t2.yaw_rad, lin.lever_enu)
                     dBdr += Qm @ t2.basis().field_gradient(x2, v2) @ Qm.T
-            J[:, :, i : i + 3] = np.matmul(G, np.matmul(dBdr, C))
+            J[:, :, i : i + 3] = np.matmul(lin.G, np.matmul(dBdr, C))
         elif k is EffectKind.HEADING_DRIFT:
             # d(Rz(h) B)/dh = Rz(h + pi/2) B with the vertical part removed; h = P v
-            assert h_rad is not None  # computed above: the model has the heading_drift term
-            dB = rotate_about_up(Bt_unturned, h_rad + 0.5 * np.pi)
+            # computed with the field: the model has the heading_drift term
+            assert lin.h_rad is not None and lin.Bt_unturned is not None
+            dB = rotate_about_up(lin.Bt_unturned, lin.h_rad + 0.5 * np.pi)
             dB[:, 2] = 0.0
             P = heading_basis(t, drift_span(data))
-            J[:, :, i : i + P.shape[1]] = matvec_rows(G, dB)[:, :, None] * P[:, None, :]
+            J[:, :, i : i + P.shape[1]] = matvec_rows(lin.G, dB)[:, :, None] * P[:, None, :]
         elif k is EffectKind.AXIS_TILT:
             # T.T <- T.T exp(-[d]x): d(T.T B)/dd = T.T [B]x, d = basis @ (2 params)
             Pb = _tilt_basis(state)
-            J[:, :, i : i + 2] = np.matmul(np.matmul(Gp, TT), skew(Bt)) @ Pb
-    return Evaluation(y, J, ydot0, G, sqrt_w)
+            J[:, :, i : i + 2] = np.matmul(np.matmul(lin.Gp, lin.TT), skew(lin.Bt)) @ Pb
 
 
 def drift_span(data: FitData) -> float:
