@@ -24,9 +24,15 @@ import numpy as np
 
 from pipeline import __version__
 from pipeline.app.simulate import load_scenario, simulate, write_simulated
-from pipeline.core.atomic import safe_join, sha256_file, write_text_atomic
+from pipeline.core.atomic import safe_join, sha256_file, write_hint, write_text_atomic
 from pipeline.core.config import TomlDoc
-from pipeline.core.errors import ConfigError, InputError, MagalignError, UsageError
+from pipeline.core.errors import (
+    ConfigError,
+    InputError,
+    MagalignError,
+    OutputError,
+    UsageError,
+)
 from pipeline.core.vocabulary import EstimateTerm, EstimatorKind, ExcludeWindow
 from pipeline.model.calibration import Calibration
 from pipeline.model.igrf import igrf_enu_nT
@@ -707,6 +713,12 @@ def run_task(task: RecordingTask) -> dict[str, Any]:
     except MagalignError as exc:
         return {**base, "status": "failed", "row": None,
                 "error": exc.naming(task.input_path).one_line()}
+    except OSError as exc:
+        # the file system refused an output (a read-only or full folder): the user's to
+        # fix, named in one line like every other bad input
+        err = OutputError(f"cannot write: {exc.strerror or exc}",
+                          path=exc.filename or task.out_dir, hint=write_hint(exc))
+        return {**base, "status": "failed", "row": None, "error": err.one_line()}
     except Exception as exc:  # noqa: BLE001 - one bad recording must not stop the campaign
         return {**base, "status": "failed", "row": None,
                 "error": f"{task.input_path}: internal error {type(exc).__name__}: {exc}"}

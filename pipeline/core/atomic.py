@@ -39,7 +39,8 @@ def safe_join(root: str | Path, *parts: str) -> Path:
 _NO_SPACE = frozenset({errno.ENOSPC, errno.EFBIG, errno.EDQUOT, errno.EROFS})
 
 
-def _write_hint(exc: OSError) -> str:
+def write_hint(exc: OSError) -> str:
+    """Return what to do about an output the file system refused (``exc``)."""
     if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
         return "free some disk space (or raise the file size limit) and run again"
     if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
@@ -94,7 +95,7 @@ def atomic_path(dest: str | Path, inputs: tuple[str | Path, ...] = ()) -> Iterat
         fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
     except OSError as exc:
         raise OutputError(f"cannot create a file in this folder: {exc.strerror}",
-                          path=dest.parent, hint=_write_hint(exc)) from exc
+                          path=dest.parent, hint=write_hint(exc)) from exc
     os.close(fd)
     tmp_p = Path(tmp)
     try:
@@ -114,7 +115,7 @@ def atomic_path(dest: str | Path, inputs: tuple[str | Path, ...] = ()) -> Iterat
             tmp_p.unlink()
         if isinstance(exc, OSError) and exc.errno in _NO_SPACE:
             raise OutputError(f"cannot write {dest.name}: {exc.strerror}", path=dest.parent,
-                              hint=_write_hint(exc)) from exc
+                              hint=write_hint(exc)) from exc
         raise
 
 
