@@ -166,10 +166,17 @@ def _one_step_for_two(cur: FitResult, i: int, data: FitData) -> Iterator[Simpler
         yield Simpler(i, term, start, also=j)
 
 
+#: Whole terms nested in whole terms: the simpler kind (value) is a special case of the
+#: other (key). A time offset is the isotropic eddy term ``E_s = -tau I``; a heading drift is
+#: a field drift along ``(-B_N, B_E, 0)`` (the field turned about Up).
+NESTED_SIMPLER: dict[EffectKind, EffectKind] = {
+    EffectKind.EDDY_CURRENT: EffectKind.TIME_OFFSET,
+    EffectKind.FIELD_DRIFT: EffectKind.HEADING_DRIFT,
+}
+
 #: The simpler descriptions each kind of term contains (the nested special cases).
 NESTED: dict[EffectKind, Callable[[FitResult, int, FitData], Iterator[Simpler]]] = {
-    EffectKind.EDDY_CURRENT: _as_kind(EffectKind.TIME_OFFSET),  # E_s = -tau I
-    EffectKind.FIELD_DRIFT: _as_kind(EffectKind.HEADING_DRIFT),  # the field turned about Up
+    **{kind: _as_kind(simpler) for kind, simpler in NESTED_SIMPLER.items()},
     EffectKind.DISTURBANCE: _step_in_disturbance,
     EffectKind.HARD_IRON_STEP: _one_step_for_two,
 }

@@ -37,6 +37,7 @@ from stages.diagnose.model import (
 )
 from stages.diagnose.nested import (
     MIN_STEP_S,
+    NESTED_SIMPLER,
     RAMP_REACH_S,
     earns_beside_lookalikes,
     refine_step,
@@ -87,16 +88,6 @@ GLOBAL_KINDS = (
 #: the terms whose field depends on where the sensor is: a lever arm acts through them
 SPATIAL_KINDS = frozenset({EffectKind.FIELD_GRADIENT, EffectKind.LOCAL_SOURCE,
                            EffectKind.FIELD_MAP})
-
-
-#: Nested pairs: the simpler term (value) is a special case of the other (key) and is
-#: reported when it explains the data as well (within the BIC margin). A heading drift is a
-#: field drift along ``(-B_N, B_E, 0)`` (the field turned about Up); a time offset is the
-#: isotropic eddy term ``E_s = -tau I``.
-NESTED_SIMPLER = {
-    EffectKind.EDDY_CURRENT: EffectKind.TIME_OFFSET,
-    EffectKind.FIELD_DRIFT: EffectKind.HEADING_DRIFT,
-}
 
 
 #: The noise model is measured again when a component of it moves by more than this fraction

@@ -20,6 +20,14 @@ from pipeline.core.vocabulary import EffectKind
 F64 = NDArray[np.float64]
 
 
+def standard_deviations(cov: F64) -> F64:
+    """Return the 1-sigma of each parameter from its covariance.
+
+    A rounding's negative variance reads as zero.
+    """
+    return np.sqrt(np.clip(np.diag(cov), 0.0, None))
+
+
 class TermShape(Protocol):
     """The shape of a model term that its parameter count depends on.
 

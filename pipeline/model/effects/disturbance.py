@@ -7,7 +7,14 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import F64, Effect, FitView, TermShape, register
+from pipeline.model.effects.base import (
+    F64,
+    Effect,
+    FitView,
+    TermShape,
+    register,
+    standard_deviations,
+)
 from pipeline.model.forward import hat_basis
 
 
@@ -41,5 +48,5 @@ class Disturbance(Effect):
 
     def sigma(self, term: Any, cov: F64, fit: FitView) -> dict[str, Any]:
         """Return their 1-sigma (see :meth:`Effect.sigma`)."""
-        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        sd = standard_deviations(cov)
         return {"peak_nT": float(np.sqrt(np.max(np.sum(sd.reshape(-1, 3) ** 2, axis=1))))}

@@ -7,7 +7,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import F64, Effect, FitView, register
+from pipeline.model.effects.base import F64, Effect, FitView, register, standard_deviations
 from pipeline.model.forward import DRIFT_DEGREE, drift_basis
 
 #: Rate of change of the geomagnetic field: about 0.1 nT/min for the quiet diurnal variation,
@@ -42,7 +42,7 @@ class FieldDrift(Effect):
 
     def sigma(self, term: Any, cov: F64, fit: FitView) -> dict[str, Any]:
         """Return their 1-sigma (see :meth:`Effect.sigma`)."""
-        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        sd = standard_deviations(cov)
         # first-order sigma of the range: max - min of the fitted curve differs by the
         # coefficients' errors times the basis swing (2 for each Legendre polynomial)
         s = sd.reshape(-1, 3)

@@ -7,7 +7,14 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import F64, Effect, FitView, TermShape, register
+from pipeline.model.effects.base import (
+    F64,
+    Effect,
+    FitView,
+    TermShape,
+    register,
+    standard_deviations,
+)
 
 
 @register
@@ -39,7 +46,7 @@ class FieldMap(Effect):
 
     def sigma(self, term: Any, cov: F64, fit: FitView) -> dict[str, Any]:
         """Return their 1-sigma (see :meth:`Effect.sigma`)."""
-        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        sd = standard_deviations(cov)
         return {"weights": sd.tolist(), "peak_to_peak_nT": fit.map_range_sigma(term, cov)}
 
     def remark(self, params: dict[str, Any], duration_s: float, note: str | None = None) -> str:

@@ -4,10 +4,8 @@ from __future__ import annotations
 
 from typing import Any, ClassVar
 
-import numpy as np
-
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import F64, Effect, FitView, register
+from pipeline.model.effects.base import F64, Effect, FitView, register, standard_deviations
 
 
 @register
@@ -34,5 +32,5 @@ class HardIron(Effect):
 
     def sigma(self, term: Any, cov: F64, fit: FitView) -> dict[str, Any]:
         """Return their 1-sigma (see :meth:`Effect.sigma`)."""
-        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        sd = standard_deviations(cov)
         return {"offset_nT": sd[:3].tolist()}

@@ -7,7 +7,14 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import F64, Effect, FitView, TermShape, register
+from pipeline.model.effects.base import (
+    F64,
+    Effect,
+    FitView,
+    TermShape,
+    register,
+    standard_deviations,
+)
 
 
 @register
@@ -35,5 +42,5 @@ class HardIronStep(Effect):
 
     def sigma(self, term: Any, cov: F64, fit: FitView) -> dict[str, Any]:
         """Return their 1-sigma (see :meth:`Effect.sigma`)."""
-        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        sd = standard_deviations(cov)
         return {"offset_nT": sd[:3].tolist()}

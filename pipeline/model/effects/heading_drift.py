@@ -7,7 +7,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import F64, Effect, FitView, register
+from pipeline.model.effects.base import F64, Effect, FitView, register, standard_deviations
 from pipeline.model.forward import HEADING_DEGREE, heading_basis
 
 
@@ -48,7 +48,7 @@ class HeadingDrift(Effect):
 
     def sigma(self, term: Any, cov: F64, fit: FitView) -> dict[str, Any]:
         """Return their 1-sigma (see :meth:`Effect.sigma`)."""
-        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        sd = standard_deviations(cov)
         # rate: h(end) - h(start) = 2 v1 (P1 runs from -1 to 1, P2 is 1 at both ends);
         # range: first order, as for field_drift (each polynomial swings by at most 2)
         T_h = max(fit.span_s, 1e-9) / 3600.0

@@ -7,7 +7,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import F64, Effect, FitView, register
+from pipeline.model.effects.base import F64, Effect, FitView, register, standard_deviations
 
 
 @register
@@ -33,7 +33,7 @@ class LeverArm(Effect):
 
     def sigma(self, term: Any, cov: F64, fit: FitView) -> dict[str, Any]:
         """Return their 1-sigma (see :meth:`Effect.sigma`)."""
-        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        sd = standard_deviations(cov)
         return {"lever_arm_body_m": sd.tolist()}
 
     def remark(self, params: dict[str, Any], duration_s: float, note: str | None = None) -> str:

@@ -7,7 +7,14 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import F64, Effect, FitView, TermShape, register
+from pipeline.model.effects.base import (
+    F64,
+    Effect,
+    FitView,
+    TermShape,
+    register,
+    standard_deviations,
+)
 
 
 @register
@@ -38,7 +45,7 @@ class LocalSource(Effect):
 
     def sigma(self, term: Any, cov: F64, fit: FitView) -> dict[str, Any]:
         """Return their 1-sigma (see :meth:`Effect.sigma`)."""
-        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        sd = standard_deviations(cov)
         return {"position_m": sd[0:3].tolist(), "moment_Am2": sd[3:6].tolist(),
                 "closest_approach_m": float(np.linalg.norm(sd[0:3]))}
 

@@ -4,10 +4,8 @@ from __future__ import annotations
 
 from typing import Any, ClassVar
 
-import numpy as np
-
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import F64, Effect, FitView, register
+from pipeline.model.effects.base import F64, Effect, FitView, register, standard_deviations
 
 
 @register
@@ -31,5 +29,5 @@ class TimeOffset(Effect):
 
     def sigma(self, term: Any, cov: F64, fit: FitView) -> dict[str, Any]:
         """Return their 1-sigma (see :meth:`Effect.sigma`)."""
-        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        sd = standard_deviations(cov)
         return {"time_offset_s": float(sd[0])}
