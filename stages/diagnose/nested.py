@@ -20,9 +20,9 @@ import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
 from stages.diagnose.fit import FitResult, fit
-from stages.diagnose.model import F64, FitData, ModelState, Term
+from stages.diagnose.model import F64, TRACELESS_PROJECTOR, FitData, ModelState, Term
 from stages.diagnose.result import DiagnoseConfig, Finding
-from stages.diagnose.statistics import bic, bic_between, effective_samples
+from stages.diagnose.statistics import bic, bic_between, effective_samples, heldout_ok
 
 #: Shortest ``hard_iron_step``, s: an object brought near the sensor and left there for a
 #: while. A shorter excess (the closest pass by a magnet in the room, where its dipole
@@ -72,48 +72,54 @@ def without_term(state: ModelState, i: int) -> ModelState:
 
 
 @dataclass(frozen=True)
-class Simpler:
-    """A simpler description of part of a model.
+class Description:
+    """Another description of one term of a model (a simpler one, or the term in parts).
 
     Attributes
     ----------
     i : int
         The term it replaces, in that term's place.
-    term : Term
-        The simpler term.
-    start : ndarray
-        Its starting values.
+    terms : tuple of Term
+        The terms that describe it instead, in order (one for a simpler description).
+    starts : tuple of ndarray
+        Their starting values.
     also : int or None
         A second term it replaces as well (removed: two pieces become one).
 
     """
 
     i: int
-    term: Term
-    start: F64
+    terms: tuple[Term, ...]
+    starts: tuple[F64, ...]
     also: int | None = None
+
+    @classmethod
+    def one(cls, i: int, term: Term, start: F64, also: int | None = None) -> Description:
+        """Describe term ``i`` by the single ``term``."""
+        return cls(i, (term,), (start,), also)
 
     def state(self, st: ModelState) -> ModelState:
         """``st`` with this description in place (refit it to compare)."""
         terms, values = list(st.terms), list(st.values)
-        terms[self.i], values[self.i] = self.term, self.start
+        terms[self.i:self.i + 1], values[self.i:self.i + 1] = self.terms, self.starts
         if self.also is not None:
-            del terms[self.also], values[self.also]
+            j = self.also + (len(self.terms) - 1 if self.also > self.i else 0)
+            del terms[j], values[j]
         out = dataclasses.replace(st, terms=tuple(terms), values=tuple(values))
         if st.terms[self.i].kind is EffectKind.AXIS_TILT:
             out = dataclasses.replace(out, T_enu=np.eye(3))
         return out
 
 
-def _as_kind(kind: EffectKind) -> Callable[[FitResult, int, FitData], Iterator[Simpler]]:
+def _as_kind(kind: EffectKind) -> Callable[[FitResult, int, FitData], Iterator[Description]]:
     """Describe the whole term by one term of ``kind`` (no window), from zero."""
-    def gen(cur: FitResult, i: int, data: FitData) -> Iterator[Simpler]:
+    def gen(cur: FitResult, i: int, data: FitData) -> Iterator[Description]:
         t = Term(kind)
-        yield Simpler(i, t, t.null_value())
+        yield Description.one(i, t, t.null_value())
     return gen
 
 
-def _step_in_disturbance(cur: FitResult, i: int, data: FitData) -> Iterator[Simpler]:
+def _step_in_disturbance(cur: FitResult, i: int, data: FitData) -> Iterator[Description]:
     """Describe a disturbance as one offset in the sensor's frame over its window.
 
     The disturbance's window was widened by a quarter of its length on each side around the
@@ -129,10 +135,10 @@ def _step_in_disturbance(cur: FitResult, i: int, data: FitData) -> Iterator[Simp
     w = refine_step((a, b), without.residual_nT, data.t_s, reach_s=0.3 * (b - a) + 1.0)
     if w[1] - w[0] >= MIN_STEP_S:
         step = Term(EffectKind.HARD_IRON_STEP, (w,))
-        yield Simpler(i, step, step.null_value())
+        yield Description.one(i, step, step.null_value())
 
 
-def _one_step_for_two(cur: FitResult, i: int, data: FitData) -> Iterator[Simpler]:
+def _one_step_for_two(cur: FitResult, i: int, data: FitData) -> Iterator[Description]:
     """Step ``i`` and a later step whose windows touch or overlap as one step over both.
 
     Pieces of one offset that abut along seconds are one event (a magnet moved a little while
@@ -163,7 +169,24 @@ def _one_step_for_two(cur: FitResult, i: int, data: FitData) -> Iterator[Simpler
         d_i, d_j = max(b_i - a_i, 1e-9), max(b_j - a_j, 1e-9)
         start = np.zeros(term.n_params())
         start[:3] = (d_i * st.values[i][:3] + d_j * st.values[j][:3]) / (d_i + d_j)
-        yield Simpler(i, term, start, also=j)
+        yield Description.one(i, term, start, also=j)
+
+
+def _lag_and_rest(cur: FitResult, i: int, data: FitData) -> Iterator[Description]:
+    """Describe an eddy term as a time offset and the traceless rest (the rate pair).
+
+    To first order the isotropic part ``tr(E_s)/3`` of an eddy term is a lag
+    (``E_s = -tau I``); the lag in the model is exact ((M1) at ``t - tau``), the eddy
+    term's regressor a first-order rate. The two descriptions have as many free parameters
+    (1 + 8 against 9); the pair is the richer one (one term more) and is kept only when the
+    data show the lag's second-order terms, by the margin.
+    """
+    if cur.state.value(EffectKind.TIME_OFFSET) is not None:
+        return
+    E = np.asarray(cur.state.values[i], dtype=float)
+    tau = -float(np.trace(E.reshape(3, 3))) / 3.0  # E_iso = -tau I
+    yield Description(i, (Term(EffectKind.TIME_OFFSET), cur.state.terms[i]),
+                      (np.array([tau]), TRACELESS_PROJECTOR @ E))
 
 
 #: Whole terms nested in whole terms: the simpler kind (value) is a special case of the
@@ -174,49 +197,74 @@ NESTED_SIMPLER: dict[EffectKind, EffectKind] = {
     EffectKind.FIELD_DRIFT: EffectKind.HEADING_DRIFT,
 }
 
-#: The simpler descriptions each kind of term contains (the nested special cases).
-NESTED: dict[EffectKind, Callable[[FitResult, int, FitData], Iterator[Simpler]]] = {
-    **{kind: _as_kind(simpler) for kind, simpler in NESTED_SIMPLER.items()},
-    EffectKind.DISTURBANCE: _step_in_disturbance,
-    EffectKind.HARD_IRON_STEP: _one_step_for_two,
+#: The other descriptions each kind of term has, tried in this order: the simpler special
+#: cases it contains, then the term in parts (an eddy term as a lag and its traceless rest).
+NESTED: dict[EffectKind, tuple[Callable[[FitResult, int, FitData], Iterator[Description]], ...]]
+NESTED = {
+    **{kind: (_as_kind(simpler),) for kind, simpler in NESTED_SIMPLER.items()},
+    EffectKind.DISTURBANCE: (_step_in_disturbance,),
+    EffectKind.HARD_IRON_STEP: (_one_step_for_two,),
 }
+NESTED[EffectKind.EDDY_CURRENT] += (_lag_and_rest,)
 
 
-def simplest(cur: FitResult, findings: list[Finding], data: FitData, cfg: DiagnoseConfig,
-             dropped: set[tuple]) -> tuple[FitResult, list[Finding]] | None:
-    """Replace the first term whose nested simpler description explains the data as well.
+def _simpler(a: FitResult, b: FitResult) -> bool:
+    """Whether model ``a`` is simpler than ``b``: fewer free parameters, then fewer terms."""
+    return (a.state.n_free(), len(a.state.terms)) < (b.state.n_free(), len(b.state.terms))
 
-    Each description is refitted with the rest of the model and kept when it loses no more
-    than ``bic_margin`` against the current model, both with one effective sample count
-    (:func:`~stages.diagnose.statistics.bic_between`). A term of a kind already in the model
+
+def simplest(cur: FitResult, cv_cur: float, findings: list[Finding], data: FitData,
+             cfg: DiagnoseConfig, dropped: set[tuple]
+             ) -> tuple[FitResult, list[Finding]] | None:
+    """Replace the first term that another description explains better, by Occam's razor.
+
+    Each description is refitted with the rest of the model and compared with the current
+    model by BIC with one effective sample count
+    (:func:`~stages.diagnose.statistics.bic_between`): a simpler description is kept when
+    it loses no more than ``bic_margin``, a richer one (as many parameters in more terms)
+    when it gains the margin and predicts the held-out blocks better as a new term must
+    (:func:`~stages.diagnose.statistics.heldout_ok`). A term of a kind already in the model
     is not offered again (one time offset, one heading drift). The replaced terms go into
-    ``dropped`` (never re-added); the finding of the replaced term takes the simpler kind in
-    its place (its evidence is measured again in the final order).
+    ``dropped`` (never re-added); the finding of the replaced term takes the new kinds in
+    its place (their evidence is measured again in the final order).
 
     Returns
     -------
-    (the refitted model, its findings) or None when no description is simpler.
+    (the refitted model, its findings) or None when no description is preferred.
 
     """
     for i, t in enumerate(cur.state.terms):
-        gen = NESTED.get(t.kind)
-        if gen is None:
-            continue
-        for s in gen(cur, i, data):
-            if not s.term.windows_s and any(u.kind is s.term.kind for u in cur.state.terms):
-                continue
-            res = fit(s.state(cur.state), data)
-            if bic_between(res, cur, data) > cfg.bic_margin:
-                continue
-            dropped.add((t.kind, t.windows_s))
-            out = list(findings)
-            out[i] = dataclasses.replace(out[i], effect=s.term.kind.value, told_apart="")
-            if s.also is not None:
-                other = cur.state.terms[s.also]
-                dropped.add((other.kind, other.windows_s))
-                del out[s.also]
-            return res, out
+        for gen in NESTED.get(t.kind, ()):
+            for s in gen(cur, i, data):
+                if any(not u.windows_s and u.kind is not t.kind and any(
+                        v.kind is u.kind for v in cur.state.terms) for u in s.terms):
+                    continue
+                res = fit(s.state(cur.state), data)
+                simpler = _simpler(res, cur)
+                limit = cfg.bic_margin if simpler else -cfg.bic_margin
+                if bic_between(res, cur, data) > limit or (
+                        not simpler and heldout_ok(cur, res, data, cfg, cv_cur) is None):
+                    continue
+                return res, _described(cur, findings, s, dropped)
     return None
+
+
+def _described(cur: FitResult, findings: list[Finding], s: Description, dropped: set[tuple]
+               ) -> list[Finding]:
+    """Return the findings with term ``s.i`` (and ``s.also``) described as ``s`` says."""
+    t = cur.state.terms[s.i]
+    kept = {(u.kind, u.windows_s) for u in s.terms}
+    if (t.kind, t.windows_s) not in kept:
+        dropped.add((t.kind, t.windows_s))
+    f = findings[s.i]
+    out = list(findings)
+    out[s.i:s.i + 1] = [f if u.kind is t.kind else dataclasses.replace(
+        f, effect=u.kind.value, told_apart="") for u in s.terms]
+    if s.also is not None:
+        other = cur.state.terms[s.also]
+        dropped.add((other.kind, other.windows_s))
+        del out[s.also + (len(s.terms) - 1 if s.also > s.i else 0)]
+    return out
 
 
 #: Look-alikes: the kinds of term a new term of a kind can trade with along a shared

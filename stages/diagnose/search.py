@@ -58,13 +58,13 @@ from stages.diagnose.sources import (
 )
 from stages.diagnose.statistics import (
     INTERP_MARGIN,
-    ISO_DIRECTION,
     ScoreTest,
     anisotropic_eddy_test,
     bic,
     bic_between,
     effective_samples,
     gradient_candidate,
+    heldout_ok,
     heldout_rms,
     interp_reason,
     param_covariance,
@@ -624,8 +624,6 @@ class _Search:
                 # the residuals alone; the window pair keeps its calibrated rule
                 if alt_fit is not None and simpler_kind in NESTED_SIMPLER.values():
                     prefer = bic_between(alt_fit[2], best[2], self.data) <= self.cfg.bic_margin
-                    if not prefer and best[1].term.kind is EffectKind.EDDY_CURRENT:
-                        prefer = _lag_first(best[2], self.data, self.cfg)
                 else:
                     prefer = alt_fit is not None and alt_fit[0] <= best[0] + self.cfg.bic_margin
                 if alt_fit is not None and prefer:
@@ -710,10 +708,10 @@ class _Search:
                 # for the record)
                 fine = dataclasses.replace(self.cfg, block_s=RAMP_KNOT_S)
                 cv_fine = heldout_rms(self.cur.state, self.data, fine)
-                ok = _heldout_ok(self.cur, res, self.data, fine, cv_fine)
+                ok = heldout_ok(self.cur, res, self.data, fine, cv_fine)
                 cv_new = None if ok is None else heldout_rms(res.state, self.data, self.cfg)
             else:
-                cv_new = _heldout_ok(self.cur, res, self.data, self.cfg, self.cv_cur)
+                cv_new = heldout_ok(self.cur, res, self.data, self.cfg, self.cv_cur)
             if cv_new is None:
                 self.rejected.add((st.term.kind, st.term.windows_s))
                 continue
@@ -758,8 +756,19 @@ class _Search:
             self.data = dataclasses.replace(self.data, noise_model=nm)
             self.cur = fit(self.cur.state, self.data)
             self.cv_cur = heldout_rms(self.cur.state, self.data, self.cfg)
-        # backward step: a term chosen earlier, while more was unmodelled, may have stood in
-        # for what a later term explains properly; drop it if it no longer earns its margin
+        # a term named while other terms were missing may have stood in for what a later
+        # term explains properly (the backward step), or contain another description that
+        # now explains the data as well or better (a disturbance that is a magnet's step, two
+        # pieces of one offset, a lag inside an eddy term): until neither changes the model
+        self._backward()
+        while (sm := simplest(self.cur, self.cv_cur, self.findings, self.data, self.cfg,
+                              self.dropped)) is not None:
+            self.cur, self.findings = sm
+            self.cv_cur = heldout_rms(self.cur.state, self.data, self.cfg)
+            self._backward()
+
+    def _backward(self) -> None:
+        """Drop each term that no longer earns its margin beside the others."""
         i = 0
         while i < len(self.cur.state.terms) - 1:
             t_i = self.cur.state.terms[i]
@@ -784,13 +793,6 @@ class _Search:
                 self.cv_cur = heldout_rms(self.cur.state, self.data, self.cfg)
                 continue
             i += 1
-        # a term named while other terms were missing may contain a simpler description
-        # that now explains the data as well (a disturbance that is a magnet's step, two
-        # pieces of one offset, a time offset inside an eddy term): the simpler is kept
-        while (sm := simplest(self.cur, self.findings, self.data, self.cfg,
-                              self.dropped)) is not None:
-            self.cur, self.findings = sm
-            self.cv_cur = heldout_rms(self.cur.state, self.data, self.cfg)
 
 
 def diagnose_data(
@@ -867,7 +869,6 @@ def diagnose_data(
     canon = canonical_rate_terms(cur, data)
     if canon is not cur:
         cur, cv_cur = canon, heldout_rms(canon.state, data, cfg)
-    findings, cur, cv_cur = split_isotropic_eddy(findings, cur, cv_cur, data, cfg)
     findings = _chain_evidence(findings, cur, base_fit, cv_base, cv_cur, data, cfg)
     cov_final = param_covariance(cur, data)
     note = _gradient_note(cur, data, not_ident)
@@ -1024,81 +1025,6 @@ def canonical_rate_terms(res: FitResult, data: FitData) -> FitResult:
     vals = tuple(TRACELESS_PROJECTOR @ v if t.kind is EffectKind.EDDY_CURRENT else v
                  for t, v in zip(res.state.terms, res.state.values, strict=True))
     return dataclasses.replace(res, state=dataclasses.replace(res.state, values=vals))
-
-
-def split_isotropic_eddy(
-    findings: list[Finding], cur: FitResult, cv_cur: float, data: FitData,
-    cfg: DiagnoseConfig,
-) -> tuple[list[Finding], FitResult, float]:
-    """Name the rate terms of a final model with an eddy term and no time offset.
-
-    An eddy term with an isotropic part ``tr(E_s)/3`` is, to first order, a time offset
-    (``E_s = -tau I``) and its traceless rest. Three descriptions of the same first-order
-    rate term are compared, each by BIC with one effective sample count:
-
-    - ``time_offset`` alone in place of the eddy term (1 parameter against 9): a lag;
-    - ``eddy_current`` alone (9): an eddy term;
-    - ``time_offset`` and a traceless ``eddy_current`` (1 + 8 = 9): a lag and eddy currents.
-
-    The simpler description is kept unless the next one lowers the BIC by ``bic_margin``:
-    the lag when it explains the data as well as the eddy term (a lag is one parameter);
-    the eddy term alone against the pair (as many parameters, one term fewer) unless the
-    exact lag of the pair ((M1) at ``t - tau``) fits better by the margin, i.e. the data
-    show the lag's second-order terms, which an eddy term's first-order ``E_s dy0/dt``
-    lacks. An isotropic part within the BIC gate of one parameter of zero
-    (``z^2 <= ln n_eff + bic_margin``) leaves the model as it is.
-    """
-    kinds = [t.kind for t in cur.state.terms]
-    if EffectKind.EDDY_CURRENT not in kinds or EffectKind.TIME_OFFSET in kinds:
-        return findings, cur, cv_cur
-    ie = kinds.index(EffectKind.EDDY_CURRENT)
-    o = cur.state.offsets()[ie]
-    cov = param_covariance(cur, data)[o : o + 9, o : o + 9]
-    E = cur.state.values[ie]
-    iso = float(ISO_DIRECTION @ E)
-    var = float(ISO_DIRECTION @ cov @ ISO_DIRECTION)
-    n_eff = effective_samples(cur, data)
-    if var <= 0 or iso * iso / var <= np.log(n_eff) + cfg.bic_margin:
-        return findings, cur, cv_cur
-    tau = -iso / np.sqrt(3.0)  # E_iso = (iso / sqrt 3) I = -tau I
-    lag_only = fit(dataclasses.replace(
-        cur.state, terms=cur.state.terms[:ie] + (Term(EffectKind.TIME_OFFSET),)
-        + cur.state.terms[ie + 1:],
-        values=cur.state.values[:ie] + (np.array([tau]),) + cur.state.values[ie + 1:]), data)
-    placeholder = dataclasses.replace(findings[ie], effect=EffectKind.TIME_OFFSET.value)
-    if bic_between(lag_only, cur, data) <= cfg.bic_margin:
-        # a lag explains what the eddy term does: the lag is named, no eddy term
-        return (findings[:ie] + [placeholder] + findings[ie + 1:], lag_only,
-                heldout_rms(lag_only.state, data, cfg))
-    # the pair: tau = -tr(E_s)/3 and the traceless rest (the rate pair, 8 free in E_s)
-    split = fit(dataclasses.replace(
-        cur.state,
-        terms=cur.state.terms[:ie] + (Term(EffectKind.TIME_OFFSET),) + cur.state.terms[ie:],
-        values=cur.state.values[:ie] + (np.array([tau]),)
-        + (TRACELESS_PROJECTOR @ E,) + cur.state.values[ie + 1:]), data)
-    if bic_between(split, cur, data) > -cfg.bic_margin:
-        return findings, cur, cv_cur  # the eddy term alone explains the data as well
-    cv_split = _heldout_ok(cur, split, data, cfg, cv_cur)
-    if cv_split is None:
-        return findings, cur, cv_cur
-    return findings[:ie] + [placeholder] + findings[ie:], split, cv_split
-
-
-def _lag_first(eddy: FitResult, data: FitData, cfg: DiagnoseConfig) -> bool:
-    """Whether the lag inside an eddy term that won its round is to be named first.
-
-    ``eddy``: the model with a new ``eddy_current`` and no ``time_offset``. Its isotropic part
-    is a time offset to first order; when the pair of an exact lag (the attitude at
-    ``t - tau``, ``tau = -tr(E_s)/3``) and the traceless rest fits better by the BIC margin
-    at as many free parameters (1 + 8 against 9), the data show the lag's second-order
-    terms: the time offset is named in this round and the anisotropic rest is tested in the
-    next on its own (as :func:`split_isotropic_eddy` decides for the final model), so the
-    rest does not ride on the lag's evidence.
-    """
-    if eddy.state.value(EffectKind.TIME_OFFSET) is not None:
-        return False
-    pair = fit(eddy.state.with_term(Term(EffectKind.TIME_OFFSET)), data)
-    return bic_between(pair, eddy, data) < -cfg.bic_margin
 
 
 def _transition_words(term: Term) -> str:
@@ -1292,24 +1218,6 @@ def _refit(
     if dbic > -cfg.bic_margin:
         return None
     return res, float(dbic)
-
-
-def _heldout_ok(
-    cur: FitResult, res: FitResult, data: FitData, cfg: DiagnoseConfig, cv_old: float
-) -> float | None:
-    """Held-out RMS of the model with the new term, or None if it does not improve enough.
-
-    The improvement in chi-square units of the (correlation-discounted) noise must clear the
-    same bar as the BIC: a term that only fits noise does not predict new blocks.
-    """
-    cv_new = heldout_rms(res.state, data, cfg)
-    n_eff = effective_samples(res, data)
-    s2 = res.rss / res.residual_nT.size
-    k = res.state.n_free() - cur.state.n_free()
-    gain = (cv_old**2 - cv_new**2) * n_eff / s2
-    if cv_new < cv_old * (1.0 - cfg.heldout_margin) and gain >= k * np.log(n_eff) + cfg.bic_margin:
-        return cv_new
-    return None
 
 
 def _finding(

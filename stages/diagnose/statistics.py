@@ -354,6 +354,24 @@ def heldout_rms(state: ModelState, data: FitData, cfg: DiagnoseConfig) -> float:
     return float(np.sqrt(sq / max(cnt, 1)))
 
 
+def heldout_ok(
+    cur: FitResult, res: FitResult, data: FitData, cfg: DiagnoseConfig, cv_old: float
+) -> float | None:
+    """Held-out RMS of the model ``res``, or None if it does not improve on ``cur`` enough.
+
+    The improvement in chi-square units of the (correlation-discounted) noise must clear the
+    same bar as the BIC: a term that only fits noise does not predict new blocks.
+    """
+    cv_new = heldout_rms(res.state, data, cfg)
+    n_eff = effective_samples(res, data)
+    s2 = res.rss / res.residual_nT.size
+    k = res.state.n_free() - cur.state.n_free()
+    gain = (cv_old**2 - cv_new**2) * n_eff / s2
+    if cv_new < cv_old * (1.0 - cfg.heldout_margin) and gain >= k * np.log(n_eff) + cfg.bic_margin:
+        return cv_new
+    return None
+
+
 def bic(rss: float, n_eff: float, k: int) -> float:
     """Return the BIC of a fit: ``rss`` (nT^2) over ``n_eff`` samples, ``k`` parameters."""
     return n_eff * np.log(rss / n_eff) + k * np.log(n_eff)
