@@ -43,6 +43,7 @@ and the state stores the rotation matrices.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any
@@ -1361,3 +1362,22 @@ def term_sigma(term: Term, cov: F64, state: ModelState, data: FitData) -> dict[s
     covariance into its params' sigmas.
     """
     return EFFECTS[term.kind].sigma(term, held_covariance(term, cov), FitContext(state, data))
+
+
+def without_term(state: ModelState, i: int) -> ModelState:
+    """``state`` without its ``i``-th term."""
+    t = state.terms[i]
+    return dataclasses.replace(
+        state,
+        terms=state.terms[:i] + state.terms[i + 1:],
+        values=state.values[:i] + state.values[i + 1:],
+        T_enu=np.eye(3) if t.kind is EffectKind.AXIS_TILT else state.T_enu,
+    )
+
+
+def moved_last_to(state: ModelState, i: int) -> ModelState:
+    """``state`` with its last term moved to position ``i`` (values with it)."""
+    order = list(range(len(state.terms) - 1))
+    order.insert(i, len(state.terms) - 1)
+    return dataclasses.replace(state, terms=tuple(state.terms[k] for k in order),
+                               values=tuple(state.values[k] for k in order))

@@ -20,8 +20,16 @@ import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
 from stages.diagnose.fit import FitResult, fit
-from stages.diagnose.model import F64, TRACELESS_PROJECTOR, FitData, ModelState, Term
+from stages.diagnose.model import (
+    F64,
+    TRACELESS_PROJECTOR,
+    FitData,
+    ModelState,
+    Term,
+    without_term,
+)
 from stages.diagnose.result import DiagnoseConfig, Finding
+from stages.diagnose.sources import rivals as source_rivals
 from stages.diagnose.statistics import bic, bic_between, effective_samples, heldout_ok
 
 #: Shortest ``hard_iron_step``, s: an object brought near the sensor and left there for a
@@ -58,17 +66,6 @@ def refine_step(
     a = float(t_s[ia[i]])
     b = float(t_s[ib[j]]) if ib[j] < n else float(t_s[-1]) + 1e-6
     return (a, b) if b > a else w
-
-
-def without_term(state: ModelState, i: int) -> ModelState:
-    """``state`` without its ``i``-th term."""
-    t = state.terms[i]
-    return dataclasses.replace(
-        state,
-        terms=state.terms[:i] + state.terms[i + 1:],
-        values=state.values[:i] + state.values[i + 1:],
-        T_enu=np.eye(3) if t.kind is EffectKind.AXIS_TILT else state.T_enu,
-    )
 
 
 @dataclass(frozen=True)
@@ -307,3 +304,39 @@ def earns_beside_lookalikes(with_term: FitResult, without: FitResult, i: int, da
     n = min(effective_samples(fixed, data), effective_samples(without, data))
     return bic(fixed.rss, n, with_term.state.n_free()) - bic(
         without.rss, n, without.state.n_free()) <= -cfg.bic_margin
+
+
+#: Rivals: terms that could replace a new term of a kind in its place, over the windows
+#: where it acts, with the words on what tells it apart. Restore keeps a source in the
+#: field and takes a step out of it: naming the wrong one of such rivals moves the
+#: restored field.
+RIVALS: dict[EffectKind, Callable[[FitResult, FitData], tuple[str, list[tuple[Term, str]]]]]
+RIVALS = {EffectKind.LOCAL_SOURCE: source_rivals}
+
+#: A term with rivals is named only when each fits worse by this many times the BIC margin:
+#: a short pass near an object makes a source, a step and a disturbance nearly equal.
+DECISIVE_FACTOR = 5.0
+
+
+def told_apart(cur: FitResult, res: FitResult, data: FitData) -> tuple[str, float, list[Term]]:
+    """Compare the new last term of ``res`` with each of its rivals in its place.
+
+    Each rival (:data:`RIVALS`) is fitted in place of the new term on ``cur`` and compared
+    by BIC with one effective sample count. Returns the words on the comparison, the
+    smallest BIC difference (how decisively the term wins; infinite without rivals) and the
+    rivals that fit better than the term.
+    """
+    kind = res.state.terms[-1].kind
+    if kind not in RIVALS:
+        return "", float(np.inf), []
+    intro, rivals = RIVALS[kind](res, data)
+    parts, worst, better = [], np.inf, []
+    for alt, what in rivals:
+        other = fit(cur.state.with_term(alt), data)
+        d = bic_between(other, res, data)
+        worst = min(worst, d)
+        if d < 0:
+            better.append(alt)
+        parts.append(f"{what} fits worse by {d:.0f} in BIC" if d > 0
+                     else f"{what} fits as well (BIC {d:.0f}): the pass is too short to tell")
+    return ". " + intro + "; " + "; ".join(parts), float(worst), better

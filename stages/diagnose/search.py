@@ -33,27 +33,31 @@ from stages.diagnose.model import (
     evaluate,
     interpolation_error_nT,
     interpolation_error_proxy,
+    moved_last_to,
     term_params,
+    without_term,
 )
 from stages.diagnose.nested import (
+    DECISIVE_FACTOR,
     MIN_STEP_S,
     NESTED_SIMPLER,
     RAMP_REACH_S,
+    RIVALS,
     earns_beside_lookalikes,
     refine_step,
     simplest,
-    without_term,
+    told_apart,
 )
 from stages.diagnose.partial import PARTIAL_KINDS, held_words, partial_candidate
 from stages.diagnose.result import DiagnoseConfig, Diagnosis, Finding, Signature
 from stages.diagnose.sources import (
     MAX_NEAR_FAR_RATIO,
-    MIN_VISITS,
-    active_windows,
     locate_source,
     near_far_ratio,
+    plausible,
+    pulled_away,
+    relocated,
     source_term,
-    source_visits,
     with_values,
 )
 from stages.diagnose.statistics import (
@@ -563,7 +567,7 @@ class _Search:
             progress.detail(f"search {len(self.findings) + 1}, refit {r + 1}/{self.cfg.n_refit}",
                             len(self.findings) + 0.5 + 0.5 * r / self.cfg.n_refit, _ROUNDS_SHOWN)
             fr = _refit(self.cur, st.term, self.data, self.cfg, start=starts.get(id(st)))
-            if fr is None or not _source_ok(fr[0], self.data) or _pulled_away(
+            if fr is None or not plausible(fr[0], self.data) or pulled_away(
                     starts.get(id(st)), fr[0], self.data):
                 self.rejected.add((st.term.kind, st.term.windows_s))
                 continue
@@ -658,21 +662,21 @@ class _Search:
             told = ""
             if st.term.kind is EffectKind.FIELD_MAP and mc is not None:
                 told = mc.words
-            if st.term.kind is EffectKind.LOCAL_SOURCE:
-                told, margin, alts = _told_apart(self.cur, res, self.data)
-                if margin < SOURCE_DECISIVE_FACTOR * self.cfg.bic_margin:
+            if st.term.kind in RIVALS:
+                told, margin, alts = told_apart(self.cur, res, self.data)
+                if margin < DECISIVE_FACTOR * self.cfg.bic_margin:
                     self.rejected.add((st.term.kind, st.term.windows_s))
                     if EffectKind.FIELD_MAP in present:
                         # the map, fitted while a transient was still hidden under the
                         # smooth field, took a share of it: what is left of the transient
-                        # looks spatial enough to rank a source first. A look-alike that
-                        # fits better than the source is tried in its place
+                        # looks spatial enough to rank the term first. A rival that fits
+                        # better is tried in its place (without a map the scan proposes the
+                        # transients itself, with their own minimum lengths)
                         for look in alts:
                             fr = _refit(self.cur, look, self.data, self.cfg)
                             if fr is not None:
                                 look_st = score_test(self.cur, look, self.data, sig)
-                                fits.insert(k_fit, (fr[1], look_st,
-                                                    fr[0]))
+                                fits.insert(k_fit, (fr[1], look_st, fr[0]))
                     continue
             if (len(res.state.terms) == len(self.cur.state.terms) + 1
                     and not earns_beside_lookalikes(res, self.cur, len(self.cur.state.terms),
@@ -730,7 +734,7 @@ class _Search:
                 # evidence is measured again in the final order, _chain_evidence)
                 i_step = replaces[id(st)]
                 self.findings[i_step] = self.findings.pop()
-                res = fit(_moved_last_to(res.state, i_step), self.data)
+                res = fit(moved_last_to(res.state, i_step), self.data)
             self.cur, self.cv_cur = res, cv_new
             accepted = True
             self.rejected.clear()
@@ -739,7 +743,7 @@ class _Search:
 
     def _settle(self) -> None:
         """Let the model settle after a term was named (sources, noise model, backward)."""
-        moved = _relocate_sources(self.cur, self.data)
+        moved = relocated(self.cur, self.data)
         if moved is not self.cur:
             self.cur, self.cv_cur = moved, heldout_rms(moved.state, self.data, self.cfg)
         # the noise model is measured on what the model leaves: the attitude noise may only
@@ -1038,110 +1042,6 @@ def _transition_words(term: Term) -> str:
     return (". One event: the object was " + " and ".join(parts) + "; the field while it "
             "moved is modelled as a smooth curve from no offset to the plateau (and back), "
             "not as further steps")
-
-
-def _moved_last_to(state: ModelState, i: int) -> ModelState:
-    """``state`` with its last term moved to position ``i`` (values with it)."""
-    order = list(range(len(state.terms) - 1))
-    order.insert(i, len(state.terms) - 1)
-    return dataclasses.replace(state, terms=tuple(state.terms[k] for k in order),
-                               values=tuple(state.values[k] for k in order))
-
-
-def _source_ok(res: FitResult, data: FitData, i: int = -1) -> bool:
-    """Keep a fitted ``local_source`` only where the sensor sampled its ``1/r^3``.
-
-    Other terms pass. A source the fit moved far from the path, so that the sensor's
-    distance to it hardly changes where it acts, describes a smooth field, not an object;
-    one whose field never stands above the noise is not seen at all.
-    """
-    term = res.state.terms[i]
-    if term.kind is not EffectKind.LOCAL_SOURCE:
-        return True
-    value = res.state.values[i]
-    if not np.all(np.isfinite(value)):
-        return False
-    near = near_far_ratio(dataclasses.replace(term, windows_s=active_windows(term, value, data)),
-                          value, data)
-    # a pass of a few tenths of a second holds tens of samples: one noise sigma per sample
-    # is already a clear signal over it
-    visits = source_visits(term, value, data, robust_sigma(res.residual_nT))
-    return near <= MAX_NEAR_FAR_RATIO and visits >= MIN_VISITS
-
-
-#: A source is named only when the look-alikes in its windows (a step, a disturbance) fit
-#: worse by this many times the BIC margin: a short pass near an object makes the three
-#: nearly equal, and naming the wrong one moves the restored field (a source stays in it,
-#: a step is taken out of it).
-SOURCE_DECISIVE_FACTOR = 5.0
-
-
-def _pulled_away(start: ModelState | None, res: FitResult, data: FitData) -> bool:
-    """Whether the joint fit moved a located source by more than half its closest distance.
-
-    The grid locates a source with the smooth field, a lag and a constant taken out around
-    it; a joint fit that then drags it away is fitting what the model still lacks (a
-    gradient, a time offset) with the source. It is tried again once the model has those.
-    """
-    if start is None or res.state.terms[-1].kind is not EffectKind.LOCAL_SOURCE:
-        return False
-    c0, c1 = start.values[-1][:3], res.state.values[-1][:3]
-    d0 = float(np.min(np.linalg.norm(np.asarray(data.p_m) - c0, axis=1)))
-    return float(np.linalg.norm(c1 - c0)) > 0.5 * max(d0, 0.02)
-
-
-def _relocate_sources(cur: FitResult, data: FitData) -> FitResult:
-    """Locate each ``local_source`` again on what the rest of the model now leaves.
-
-    A source located while much was unmodelled (a gradient, a time offset) may sit where
-    it absorbed part of them, a local minimum the joint fit does not leave. With the
-    source taken out, the grid of :func:`locate_source` runs on the residual of the other
-    terms (around the source's own strongest pass), and the joint fit from there replaces
-    the model when its weighted RSS is lower.
-    """
-    for i, term in enumerate(cur.state.terms):
-        if term.kind is not EffectKind.LOCAL_SOURCE:
-            continue
-        wins = active_windows(term, cur.state.values[i], data)
-        without = fit(without_term(cur.state, i), data, max_iter=10)
-        loc = locate_source(without, data, (wins[0][0], wins[-1][1]))
-        if loc is None:
-            continue
-        # keep the term's place in the model (findings are listed in the model's order)
-        trial = _moved_last_to(with_values(term, loc[0], without), i)
-        res = fit(trial, data)
-        if res.rss < cur.rss and _source_ok(res, data, i):
-            cur = res
-    return cur
-
-
-def _told_apart(cur: FitResult, res: FitResult, data: FitData
-                ) -> tuple[str, float, list[Term]]:
-    """Words on how much worse a magnet on the platform or a disturbance fits than the source.
-
-    Both are fitted in the windows where the source's field stands out (above a tenth of its
-    peak), in place of the source, and compared by BIC with one effective sample count.
-    Returns the words, the smaller of the two BIC differences and the look-alikes that fit
-    better than the source.
-    """
-    wins = active_windows(res.state.terms[-1], res.state.values[-1], data)
-    a, b = wins[0][0], wins[-1][1]
-    ks = min(2.0, max(0.75, (b - a) / 6))
-    parts, worst, better = [], np.inf, []
-    for alt, what in ((Term(EffectKind.HARD_IRON_STEP, ((a, b),)),
-                       "a magnet riding on the platform (an offset that turns with it)"),
-                      (Term(EffectKind.DISTURBANCE, ((a, b),), knot_step_s=ks),
-                       "a field changing in time, the same everywhere nearby")):
-        other = fit(cur.state.with_term(alt), data)
-        d = bic_between(other, res, data)
-        worst = min(worst, d)
-        if d < 0:
-            better.append(alt)
-        parts.append(f"{what} fits worse by {d:.0f} in BIC" if d > 0
-                     else f"{what} fits as well (BIC {d:.0f}): the pass is too short to tell")
-    return (". Told apart by the data: the field stays where the object is and falls off "
-            f"with the cube of the distance as the sensor moves (checked in {a:.1f}-{b:.1f} s); "
-            + "; ".join(parts)), float(worst), better
 
 
 def _map_explains(map_res: FitResult, res: FitResult, data: FitData,

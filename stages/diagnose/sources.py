@@ -18,6 +18,7 @@ ENU and falls off as ``1/r^3`` with the distance to one place.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import replace
 
 import numpy as np
@@ -25,8 +26,19 @@ from scipy.signal import find_peaks
 
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.forward import DIPOLE_NT, MIN_SOURCE_DISTANCE_M, dipole_matrix
-from stages.diagnose.fit import FitResult
-from stages.diagnose.model import F64, FitData, ModelState, Term, evaluate, rot_z, source_offset_enu
+from stages.diagnose.fit import FitResult, fit
+from stages.diagnose.model import (
+    F64,
+    FitData,
+    ModelState,
+    Term,
+    evaluate,
+    moved_last_to,
+    rot_z,
+    source_offset_enu,
+    without_term,
+)
+from stages.diagnose.statistics import robust_sigma
 
 #: distances (m) of the grid's shells from the place of the strongest residual
 SHELLS_M = (0.02, 0.04, 0.07, 0.12, 0.2, 0.35, 0.6, 1.0, 1.7, 3.0)
@@ -129,43 +141,54 @@ def locate_source(cur: FitResult, data: FitData, window_s: tuple[float, float],
 
 
 def _dipole_fits(G: F64, p: F64, cands: F64, psi: float, Qn: F64, r_perp: F64,
-                 batch: int = 32) -> tuple[F64, F64]:
+                 batch: int = 64) -> tuple[F64, F64]:
     """Moment and gain of a dipole at each candidate place, the nuisance columns taken out.
 
     For each candidate ``c`` (K, 3) in the position frame turned by ``psi``: the columns
-    ``X = G P(r)`` (3n, 3) of the moment, ``r = Rz(psi) (p - c)`` and ``P`` of
-    :func:`pipeline.model.forward.dipole_matrix` (so ``X = 100 (3 (G u) u' - G) / |r|^3``),
-    less their projection on the orthonormal nuisance columns ``Qn`` (3n, q); the moment
-    ``m`` solving ``(X'X + 1e-12 tr(X'X) I) m = X' r_perp``; the gain ``m' X' r_perp``, the
-    decrease of the residual sum of squares. Candidates are handled ``batch`` at a time, their
-    columns side by side so that the projection is one product. Returns the gains (K,),
-    ``-inf`` where the system is singular, and the moments (K, 3), A m^2 in ENU.
+    ``X = G P(r)`` (3n, 3) of the moment, ``r = Rz(psi) (p - c)``, ``u = r / |r|`` and ``P``
+    of :func:`pipeline.model.forward.dipole_matrix`, so ``X = s (3 (G u) u' - G)`` with
+    ``s = 100 / |r|^3``; less their projection on the orthonormal nuisance columns ``Qn``
+    (3n, q); the moment ``m`` solving ``(A + 1e-12 tr(A) I) m = X' r_perp``; the gain
+    ``m' X' r_perp``, the decrease of the residual sum of squares. ``A`` is the projected
+    ``X'X``, formed in closed form per sample, never as the (3n, 3) columns: with
+    ``M = G'G``, ``v = M u``, ``H_j = G' Q_j`` (``Q_j``: nuisance column ``j`` as (n, 3))
+
+    - ``X'X = sum s^2 (9 (u'v) u u' - 3 (u v' + v u') + M)``,
+    - ``Q_j' X = sum s (3 (H_j . u) u - H_j)``, ``A = X'X - sum_j (Q_j' X)' (Q_j' X)``,
+    - ``X' r_perp = sum s (3 (w . u) u - w)``, ``w = G' r_perp`` (``r_perp`` is already
+      orthogonal to ``Qn``, so the projection leaves it).
+
+    Candidates are handled ``batch`` at a time. Returns the gains (K,), ``-inf`` where the
+    system is singular, and the moments (K, 3), A m^2 in ENU.
     """
     n, K = len(p), len(cands)
     Q = rot_z(psi)
-    Gt = np.swapaxes(G, 1, 2)
-    rf = r_perp.reshape(-1)
+    M = np.einsum("nik,nil->nkl", G, G)
+    w = np.einsum("nik,ni->nk", G, r_perp)
+    H = np.einsum("nik,nij->njk", G, Qn.reshape(n, 3, -1))  # (n, q, 3)
+    Ht = np.ascontiguousarray(H.transpose(0, 2, 1))  # (n, 3, q)
     gains = np.full(K, -np.inf)
     moments = np.zeros((K, 3))
     for k0 in range(0, K, batch):
         c = cands[k0 : k0 + batch]
-        b = len(c)
         r = (p[:, None, :] - c[None, :, :]) @ Q.T  # (n, b, 3)
         d = np.maximum(np.sqrt(np.sum(r * r, axis=2)), MIN_SOURCE_DISTANCE_M)  # (n, b)
         u = r / d[:, :, None]
-        Gu = np.matmul(u, Gt)  # (n, b, 3): G_n u
-        # X[n, i, b, k] = 100 (3 (G u)_i u_k - G_ik) / d^3: rows as r's, 3 columns each
-        X = 3.0 * np.swapaxes(Gu, 1, 2)[:, :, :, None] * u[:, None, :, :]
-        X -= G[:, :, None, :]
-        X *= (DIPOLE_NT / d**3)[:, None, :, None]
-        Xc = X.reshape(3 * n, 3 * b)
-        Xc = Xc - Qn @ (Qn.T @ Xc)
-        Xb = Xc.reshape(3 * n, b, 3)
-        A = np.empty((b, 3, 3))
-        for i in range(3):
-            for j in range(i, 3):
-                A[:, i, j] = A[:, j, i] = np.sum(Xb[:, :, i] * Xb[:, :, j], axis=0)
-        g = (rf @ Xc).reshape(b, 3)
+        s = DIPOLE_NT / d**3
+        v = u @ M.transpose(0, 2, 1)  # (n, b, 3): M u
+        uT = np.ascontiguousarray(u.transpose(1, 2, 0))  # (b, 3, n)
+        su = (s * s * 9.0 * np.sum(u * v, axis=2))[:, :, None] * u  # (n, b, 3)
+        A = uT @ su.transpose(1, 0, 2)
+        uv = uT @ ((s * s)[:, :, None] * v).transpose(1, 0, 2)
+        A -= 3.0 * (uv + uv.transpose(0, 2, 1))
+        A += ((s * s).T @ M.reshape(n, 9)).reshape(-1, 3, 3)
+        sHu = (s[:, :, None] * (u @ Ht)).transpose(1, 2, 0)  # (b, q, n)
+        W = 3.0 * (sHu @ u.transpose(1, 0, 2))  # (b, q, 3)
+        W -= (s.T @ H.reshape(n, -1)).reshape(W.shape)
+        A -= W.transpose(0, 2, 1) @ W
+        g = 3.0 * (uT @ (s * np.sum(w[:, None, :] * u, axis=2)).T[:, :, None])[:, :, 0]
+        g -= s.T @ w
+        b = len(c)
         Ar = A + (1e-12 * np.trace(A, axis1=1, axis2=2))[:, None, None] * np.eye(3)
         try:
             m = np.linalg.solve(Ar, g[:, :, None])[:, :, 0]
@@ -203,7 +226,8 @@ def near_far_ratio(term: Term, value: F64, data: FitData) -> float:
 #: approaches to a source whose field stands above the noise: at least one. A single pass
 #: can locate an object (three components along a tracked path sample its 1/r^3 and its
 #: direction); whether a bump in time (a step, a disturbance) fits as well is decided by the
-#: evidence of those look-alikes against it (``_told_apart`` in the search), not by a count
+#: evidence of those look-alikes against it (:func:`stages.diagnose.nested.told_apart`), not
+#: by a count
 MIN_VISITS = 1
 
 
@@ -253,3 +277,83 @@ def with_values(state_term: Term, value: F64, cur: FitResult) -> ModelState:
     """Return ``cur.state`` with ``state_term`` appended at ``value`` (not at zero)."""
     st = cur.state.with_term(state_term)
     return replace(st, values=st.values[:-1] + (np.asarray(value, dtype=float),))
+
+
+def plausible(res: FitResult, data: FitData, i: int = -1) -> bool:
+    """Keep a fitted ``local_source`` only where the sensor sampled its ``1/r^3``.
+
+    Other terms pass. A source the fit moved far from the path, so that the sensor's
+    distance to it hardly changes where it acts, describes a smooth field, not an object;
+    one whose field never stands above the noise is not seen at all.
+    """
+    term = res.state.terms[i]
+    if term.kind is not EffectKind.LOCAL_SOURCE:
+        return True
+    value = res.state.values[i]
+    if not np.all(np.isfinite(value)):
+        return False
+    near = near_far_ratio(dataclasses.replace(term, windows_s=active_windows(term, value, data)),
+                          value, data)
+    # a pass of a few tenths of a second holds tens of samples: one noise sigma per sample
+    # is already a clear signal over it
+    visits = source_visits(term, value, data, robust_sigma(res.residual_nT))
+    return near <= MAX_NEAR_FAR_RATIO and visits >= MIN_VISITS
+
+
+def pulled_away(start: ModelState | None, res: FitResult, data: FitData) -> bool:
+    """Whether the joint fit moved a located source by more than half its closest distance.
+
+    The grid locates a source with the smooth field, a lag and a constant taken out around
+    it; a joint fit that then drags it away is fitting what the model still lacks (a
+    gradient, a time offset) with the source. It is tried again once the model has those.
+    """
+    if start is None or res.state.terms[-1].kind is not EffectKind.LOCAL_SOURCE:
+        return False
+    c0, c1 = start.values[-1][:3], res.state.values[-1][:3]
+    d0 = float(np.min(np.linalg.norm(np.asarray(data.p_m) - c0, axis=1)))
+    return float(np.linalg.norm(c1 - c0)) > 0.5 * max(d0, 0.02)
+
+
+def relocated(cur: FitResult, data: FitData) -> FitResult:
+    """Locate each ``local_source`` again on what the rest of the model now leaves.
+
+    A source located while much was unmodelled (a gradient, a time offset) may sit where
+    it absorbed part of them, a local minimum the joint fit does not leave. With the
+    source taken out, the grid of :func:`locate_source` runs on the residual of the other
+    terms (around the source's own strongest pass), and the joint fit from there replaces
+    the model when its weighted RSS is lower.
+    """
+    for i, term in enumerate(cur.state.terms):
+        if term.kind is not EffectKind.LOCAL_SOURCE:
+            continue
+        wins = active_windows(term, cur.state.values[i], data)
+        without = fit(without_term(cur.state, i), data, max_iter=10)
+        loc = locate_source(without, data, (wins[0][0], wins[-1][1]))
+        if loc is None:
+            continue
+        # keep the term's place in the model (findings are listed in the model's order)
+        trial = moved_last_to(with_values(term, loc[0], without), i)
+        res = fit(trial, data)
+        if res.rss < cur.rss and plausible(res, data, i):
+            cur = res
+    return cur
+
+
+def rivals(res: FitResult, data: FitData) -> tuple[str, list[tuple[Term, str]]]:
+    """Return what tells the new source of ``res`` apart, and the terms that could replace it.
+
+    A source seen on passes by one place could also be a magnet riding on the platform (an
+    offset in the sensor's frame) or a field changing in time, each over the windows where
+    the source's field stands out (above a tenth of its peak). Returns the words on what
+    the source alone explains and each rival with what it would mean.
+    """
+    wins = active_windows(res.state.terms[-1], res.state.values[-1], data)
+    a, b = wins[0][0], wins[-1][1]
+    ks = min(2.0, max(0.75, (b - a) / 6))
+    return (
+        "Told apart by the data: the field stays where the object is and falls off with the "
+        f"cube of the distance as the sensor moves (checked in {a:.1f}-{b:.1f} s)",
+        [(Term(EffectKind.HARD_IRON_STEP, ((a, b),)),
+          "a magnet riding on the platform (an offset that turns with it)"),
+         (Term(EffectKind.DISTURBANCE, ((a, b),), knot_step_s=ks),
+          "a field changing in time, the same everywhere nearby")])
