@@ -118,3 +118,30 @@ def survey_html(out_dir: str | Path, path_m: np.ndarray | None,
         "the strongest evidence first (ΔBIC: how much better the model with the object "
         "explains the data). Depth: below the sensor's mean height within 5 m of the "
         "object.</p>")
+
+
+def grid_points(out_dir: str | Path) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """Return the unmasked cells of ``out_dir/anomaly.nc`` for a 3D view, or None without it.
+
+    ``(xyz (P, 3) m at the grid's height, rgb (P, 3) uint8 coloured by the total-field
+    anomaly as the report's figure is, radius m)``.
+    """
+    import matplotlib
+
+    from stages.write_survey import read_grid
+
+    nc = Path(out_dir) / "anomaly.nc"
+    if not nc.exists():
+        return None
+    grid = read_grid(nc)
+    a = grid["attrs"]
+    ee, nn = np.meshgrid(np.asarray(grid["easting"], float), np.asarray(grid["northing"], float))
+    tfa = np.asarray(grid["total_field_anomaly_nT"], float)
+    ok = np.isfinite(tfa)
+    if not ok.any():
+        return None
+    lim = max(float(np.percentile(np.abs(tfa[ok]), 99)), 1.0)
+    rgb = (np.asarray(matplotlib.colormaps[CMAP](np.clip(0.5 + 0.5 * tfa[ok] / lim, 0, 1)))
+           [:, :3] * 255).astype(np.uint8)
+    xyz = np.column_stack([ee[ok], nn[ok], np.full(np.count_nonzero(ok), float(a["height_m"]))])
+    return xyz, rgb, 0.5 * float(a["spacing_m"])

@@ -33,6 +33,7 @@ that use them: a recording without positions never loads them.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import datetime as dt
 import io
 import math
@@ -567,7 +568,8 @@ def write_campaign_anomaly(out_dir: str | Path, grids: list[str | Path]) -> Path
     origin are brought into the local ENU frame of the first one (through their cells'
     latitude and longitude), local grids are taken in their own frame (one frame for all:
     the campaign's recordings share their attitude source). The union is gridded again by
-    :func:`grid_survey`, with the finest line spacing of the recordings.
+    :func:`grid_survey`, with the finest line spacing of the recordings; its mask distance
+    is the largest of the recordings' plus one cell.
 
     Returns None when fewer than two grids are given or their frames differ.
     """
@@ -604,14 +606,16 @@ def write_campaign_anomaly(out_dir: str | Path, grids: list[str | Path]) -> Path
         lines.append(float(a["mask_distance_m"]) / MASK_PER_LINE)
     p, B = np.concatenate(ps), np.concatenate(bs)
     line = min(lines)
-    rule = (line, _round_spacing(SPACING_PER_LINE * line), MASK_PER_LINE * line)
-    xy_w, xy_h = (np.ptp(p[:, :2], axis=0) + 2 * rule[2]).tolist()
-    rule = (line, _round_spacing(max(rule[1], math.sqrt(xy_w * xy_h / MAX_CELLS))), rule[2])
+    w, h = (np.ptp(p[:, :2], axis=0) + 2 * MASK_PER_LINE * line).tolist()
+    spacing = _round_spacing(max(SPACING_PER_LINE * line, math.sqrt(w * h / MAX_CELLS)))
     bg = np.mean([np.asarray(pt["attrs"]["background_B_enu_nT"], dtype=float)
                   for pt in parts], axis=0)
-    grid = grid_survey(p, B, bg, None, rule=rule)
+    # the data are cells already within a recording's mask of its path: a campaign cell is
+    # kept within one cell of them, so within that mask plus a cell of a path
+    grid = grid_survey(p, B, bg, None, rule=(line, spacing, spacing))
     if grid is None:
         return None
+    grid = dataclasses.replace(grid, mask_distance_m=max(lines) * MASK_PER_LINE + spacing)
     return write_anomaly(Path(out_dir) / "anomaly.nc", grid, position_frame=frames.pop(),
                          origin=origin, magalign_version=magalign_version())
 
