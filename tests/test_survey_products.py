@@ -192,3 +192,31 @@ def test_the_report_shows_the_grid_and_the_targets(processed):
     assert 'alt="fig_anomaly.png"' in text
     text = (processed / "null" / "report.html").read_text(encoding="utf-8")
     assert "<p id=targets>" in text
+
+
+def test_line_spacing_grid_rule_and_an_in_process_grid_raise_no_warning(tmp_path):
+    """Parallel lines 4 m apart give a 4 m line spacing, 1 m cells and a 2.4 m mask; the
+    grid of one dipole, written and read in this process (warnings are errors here)."""
+    from stages.write_survey import Source, grid_rule, grid_survey, read_grid, write_anomaly
+
+    north = np.arange(0.0, 30.0, 0.05)
+    p = np.concatenate([np.column_stack([np.full_like(north, 4.0 * k),
+                                         north if k % 2 == 0 else north[::-1],
+                                         np.zeros_like(north)]) for k in range(5)])
+    assert grid_rule(p) == pytest.approx((4.0, 1.0, 2.4), rel=1e-6)
+    bg = np.array([1000.0, 20000.0, -40000.0])
+    src = Source(np.array([6.0, 15.0, -2.0]), np.full(3, 0.01), np.array([5.0, 20.0, -30.0]),
+                 2.0, 10.0, -500.0, "enu")
+    B = bg + dipole_field_nT(src.moment_Am2, p - src.position_m)
+    grid = grid_survey(p, B, bg, [src])
+    assert grid is not None
+    write_anomaly(tmp_path / "anomaly.nc", grid, position_frame="attitude_source_local",
+                  origin=None, magalign_version="test")
+    d = read_grid(tmp_path / "anomaly.nc")
+    assert "position_origin_lat_deg" not in d["attrs"] and "latitude" not in d
+    e, n = np.meshgrid(d["easting"], d["northing"])
+    x = np.column_stack([e.ravel(), n.ravel(), np.full(e.size, d["attrs"]["height_m"])])
+    want = (np.linalg.norm(bg + dipole_field_nT(src.moment_Am2, x - src.position_m), axis=1)
+            - np.linalg.norm(bg)).reshape(e.shape)
+    ok = np.isfinite(d["total_field_anomaly_nT"])
+    assert np.sqrt(np.mean((d["total_field_anomaly_nT"] - want)[ok] ** 2)) < 0.5
