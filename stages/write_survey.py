@@ -156,7 +156,7 @@ def path_blocks(p_m: np.ndarray, B_enu_nT: np.ndarray, step_m: float) -> PathBlo
 
 
 def line_spacing_m(p_m: np.ndarray) -> float:
-    """Return the typical distance between neighbouring passes of the path, m.
+    """Return the typical distance between neighbouring passes of the path ``p_m`` (N, 2+), m.
 
     The path is resampled every ``max(0.05 m, length / 20,000)`` along its length; for each
     point the nearest point of another pass is found (one the path reaches only after more
@@ -167,7 +167,7 @@ def line_spacing_m(p_m: np.ndarray) -> float:
     """
     from scipy.spatial import cKDTree
 
-    xy = np.asarray(p_m, dtype=float).reshape(-1, 3)[:, :2]
+    xy = np.asarray(p_m, dtype=float)[:, :2]
     xy = xy[np.isfinite(xy).all(axis=1)]
     if len(xy) < 2:
         return 1.0
@@ -192,14 +192,14 @@ def line_spacing_m(p_m: np.ndarray) -> float:
 
 
 def grid_rule(p_m: np.ndarray) -> tuple[float, float, float]:
-    """Return ``(line_spacing_m, spacing_m, mask_distance_m)`` for the path ``p_m``.
+    """Return ``(line_spacing_m, spacing_m, mask_distance_m)`` for the path ``p_m`` (N, 2+).
 
     Spacing :data:`SPACING_PER_LINE` of the line spacing, coarsened to keep the grid within
     :data:`MAX_CELLS`; mask distance :data:`MASK_PER_LINE` of the line spacing.
     """
-    xy = np.asarray(p_m, dtype=float).reshape(-1, 3)[:, :2]
+    xy = np.asarray(p_m, dtype=float)[:, :2]
     xy = xy[np.isfinite(xy).all(axis=1)]
-    line = line_spacing_m(xy if xy.shape[1] == 3 else np.column_stack([xy, np.zeros(len(xy))]))
+    line = line_spacing_m(xy)
     mask = MASK_PER_LINE * line
     spacing = SPACING_PER_LINE * line
     if len(xy):
@@ -254,10 +254,12 @@ def located_sources(diagnosis: Any) -> list[Source]:
     """
     if diagnosis is None:
         return []
-    final = set((getattr(diagnosis, "final", None) or {}).get("effects") or ["local_source"])
+    final = getattr(diagnosis, "final", None) or {}
+    if "effects" in final and "local_source" not in final["effects"]:
+        return []  # found on the way, then left out of the final model
     out = []
     for f in diagnosis.findings:
-        if f.effect != "local_source" or "local_source" not in final:
+        if f.effect != "local_source":
             continue
         p = f.params
         sig = (f.sigma or {}).get("position_m") or [math.nan] * 3
@@ -491,8 +493,6 @@ def write_anomaly(path: str | Path, grid: Grid, *, position_frame: str,
     import xarray as xr
 
     dims = ("northing", "easting")
-    attrs_b = {"units": "nT", "grid_mapping": "", "coordinates": ""}
-    del attrs_b["grid_mapping"], attrs_b["coordinates"]
     data_vars: dict[str, Any] = {}
     for k, (name, axis) in enumerate((("B_east_nT", "east"), ("B_north_nT", "north"),
                                       ("B_up_nT", "up"))):
