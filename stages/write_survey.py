@@ -57,9 +57,9 @@ TARGET_COLUMNS = (
     "moment_east_Am2", "moment_north_Am2", "moment_up_Am2", "moment_Am2",
     "closest_approach_m", "closest_approach_utc", "peak_nT", "delta_bic", "position_frame",
 )
-#: most along-path blocks the equivalent sources are fitted to (the fit's Jacobian is
-#: points x sources, float64: 4,000 x 4,000 is 128 MB)
-MAX_POINTS = 4000
+#: most along-path blocks the equivalent sources are fitted to (the fit's Jacobian and its
+#: normal matrix are points x sources, float64: 3,000 x 3,000 is 72 MB each)
+MAX_POINTS = 3000
 #: most grid cells (each component is predicted cell by cell)
 MAX_CELLS = 250_000
 #: a point of another pass: the path between the two is longer than this many times the
@@ -158,7 +158,7 @@ def path_blocks(p_m: np.ndarray, B_enu_nT: np.ndarray, step_m: float) -> PathBlo
 def line_spacing_m(p_m: np.ndarray) -> float:
     """Return the typical distance between neighbouring passes of the path ``p_m`` (N, 2+), m.
 
-    The path is resampled every ``max(0.05 m, length / 20,000)`` along its length; for each
+    The path is resampled every ``max(0.05 m, length / 10,000)`` along its length; for each
     point the nearest point of another pass is found (one the path reaches only after more
     than :data:`DETOUR` times the straight distance), and the median of those distances is
     the spacing. Parallel survey lines give their spacing (the turns at the line ends count
@@ -176,7 +176,7 @@ def line_spacing_m(p_m: np.ndarray) -> float:
     fallback = max(1.0, extent / 10.0)
     if s[-1] <= 0:
         return fallback
-    step = max(0.05, s[-1] / 20000.0)
+    step = max(0.05, s[-1] / 10000.0)  # 10,000 points x 400 neighbours: 70 MB at most
     keep = np.unique(np.searchsorted(s, np.arange(0.0, s[-1], step)))
     pts, sk = xy[keep], s[keep]
     tree = cKDTree(pts)

@@ -220,3 +220,16 @@ def test_line_spacing_grid_rule_and_an_in_process_grid_raise_no_warning(tmp_path
             - np.linalg.norm(bg)).reshape(e.shape)
     ok = np.isfinite(d["total_field_anomaly_nT"])
     assert np.sqrt(np.mean((d["total_field_anomaly_nT"] - want)[ok] ** 2)) < 0.5
+
+
+def test_the_rerun_recording_shows_the_grid(processed):
+    """``map/anomaly_grid``: a point per unmasked cell of anomaly.nc, at the grid's height."""
+    from test_outputs import rrd_columns
+
+    cols = rrd_columns(processed / "objects" / "objects.rrd")
+    (pts,) = cols["/map/anomaly_grid"]["Points3D:positions"]
+    with _grid(processed / "objects" / "anomaly.nc") as ds:
+        n_cells = int(np.count_nonzero(np.isfinite(ds["total_field_anomaly_nT"].values)))
+        h = float(ds.attrs["height_m"])
+    assert len(pts) == n_cells
+    np.testing.assert_allclose(np.asarray(pts)[:, 2], h, atol=1e-4)
