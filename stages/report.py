@@ -28,6 +28,7 @@ from pipeline.core.verdict import plain_words, verdict_line
 from pipeline.model.sample_hold import repeated
 from stages.estimate import POOR_AXIS_SIGMA_DEG
 from stages.estimators.registry import DESCRIPTIONS
+from stages.report_grid import survey_html
 from stages.report_map import (
     EVENT_EFFECTS,
     draw_map,
@@ -1086,6 +1087,7 @@ def render_html(
     estimator: str | None = None,
     calibration_path: str | None = None,
     prov: dict[str, str] | None = None,
+    survey: str = "",
 ) -> str:
     """Return the self-contained report text (figures inline as base64).
 
@@ -1127,7 +1129,7 @@ def render_html(
     headline = _headline(calibration, metrics, diagnosis)
     counts = ("" if restored is None else
               f"<p id=counts>{html.escape(counts_sentence(restored, calibration, totals))}</p>")
-    map_html = _map_html(fig_html.get("fig_map.png"), recording)
+    map_html = _map_html(fig_html.get("fig_map.png"), recording) + survey  # grid, targets
     # the counts of every sample (a long recording's figures show every k-th row)
     n_samples = metrics.n_samples if metrics is not None else len(recording.mag)
     duration_s = metrics.whole.end_s if metrics is not None else recording.duration_s
@@ -1194,6 +1196,14 @@ scale) give each reading's distance from that sphere, raw above and corrected be
 <dl class=prov>{prov_html}</dl>
 </body></html>
 """
+
+
+def _positions(recording: Recording, restored: Any) -> np.ndarray | None:
+    """Return the positions at the restored rows (N, 3), or None without positions."""
+    pos = getattr(recording, "position", None)
+    if pos is None or not len(pos) or restored is None:
+        return None
+    return pos.at(np.asarray(restored.t_ns, dtype=np.int64))
 
 
 def _map_html(fig: str | None, recording: Recording) -> str:
@@ -1272,7 +1282,9 @@ def write_report(
     md = report_map_data(recording, restored, calibration, diagnosis)
     if md is not None:  # the campaign summary draws every line's map from it
         write_map_json(out / "map.json", md)
+    survey = survey_html(out, _positions(recording, restored), _img)  # "" without anomaly.nc
     text = render_html(recording, calibration, metrics, diagnosis, figures, restored=restored,
-                       totals=totals, estimator=estimator, calibration_path=calibration_path)
+                       totals=totals, estimator=estimator, calibration_path=calibration_path,
+                       survey=survey)
     # the words come from many modules, each formatting its own numbers
     return write_text_atomic(out / "report.html", unsigned_zeros(text))

@@ -23,6 +23,7 @@ from stages.restore import RestoreResult, RestoreTotals
 from stages.write_mcap import CorrectedMcapStream, corrected_path
 from stages.write_rerun import RrdStream, rrd_path
 from stages.write_results import write_results
+from stages.write_survey import write_survey
 
 Outputs = tuple[tuple[str, str], ...]
 
@@ -299,3 +300,25 @@ class ReportSink(Sink):
                             totals=end.totals, estimator=self.estimator,
                             calibration_path=self.calibration_path, figures=self._figures)
         return (("report.html", str(path)),)
+
+
+class SurveySink(Sink):
+    """``targets.csv`` and ``anomaly.nc`` of a recording with positions (:mod:`.write_survey`).
+
+    Closes before the rerun recording and the report, which show the grid it wrote.
+    """
+
+    name: ClassVar[str] = "WriteSurvey"
+
+    def __init__(self, out_dir: str | Path) -> None:
+        self.out_dir = Path(out_dir)
+        self._t0_ns = 0
+
+    def open(self, start: RunStart) -> None:
+        """Keep the first magnetometer stamp (the closest approach counts from it)."""
+        self._t0_ns = start.t0_ns
+
+    def close(self, end: RunEnd) -> Outputs:
+        """Write both files; nothing for a recording without positions."""
+        return write_survey(self.out_dir, end.recording, end.sample, end.calibration,
+                            end.diagnosis, self._t0_ns)

@@ -17,6 +17,7 @@ from pipeline.core.errors import OutputError
 from pipeline.core.geometry import quat_to_li2020_euler
 from pipeline.core.recording import Recording, Segment
 from stages.report import report_map_data
+from stages.report_grid import grid_points
 from stages.report_map import CMAP, colour_limit
 from stages.restore import RestoreResult, restore_samples, view_data
 
@@ -394,6 +395,10 @@ class RrdStream:
                 radii=[0.012 * scale],
                 labels=[f"{e['effect'].replace('_', ' ')} {e['start_s']:.0f}-{e['end_s']:.0f} s"
                         for e in ev]), static=True)
+        cells = grid_points(self.dest.parent)  # anomaly.nc, written before this file
+        if cells is not None:
+            rec.log("map/anomaly_grid", rr.Points3D(cells[0], colors=cells[1],
+                                                    radii=[cells[2]]), static=True)
 
 
 def write_rrd(

@@ -37,6 +37,7 @@ from pipeline.core.vocabulary import EstimateTerm, EstimatorKind, ExcludeWindow
 from pipeline.model.calibration import Calibration
 from pipeline.model.igrf import igrf_enu_nT
 from pipeline.run.options import ProcessOptions
+from stages.write_survey import write_campaign_anomaly
 
 #: the analysis a worker runs on each recording: imported by name in the worker, so that the
 #: process that plans the campaign and gathers its rows never loads it (scipy's signal and
@@ -813,4 +814,7 @@ def run_campaign(
             "--calibration" if calibration_path is not None and s.role is RecordingRole.SURVEY
             else None)
         ordered.append(r)
+    # one anomaly grid over every recording with positions (DIR/anomaly.nc)
+    grids = [out / r["name"] / "anomaly.nc" for r in ordered if r["status"] in ("ok", "reused")]
+    write_campaign_anomaly(out, [g for g in grids if g.is_file()])
     return ordered

@@ -39,6 +39,7 @@ from stages.sinks import (
     RerunSink,
     ResultsSink,
     Sink,
+    SurveySink,
 )
 from stages.turntable import AxisTiltNote, plan_turntable
 
@@ -154,7 +155,7 @@ class Plan:
         """Return the outputs of ``process`` into ``out_dir``, the metrics first."""
         o = self.options
         sinks: list[Sink] = [MetricsSink(out_dir), ResultsSink(out_dir),
-                             CorrectedMcapSink(out_dir)]
+                             CorrectedMcapSink(out_dir), SurveySink(out_dir)]
         if o.write_rerun:
             sinks.append(RerunSink(out_dir))
         if o.write_report:
