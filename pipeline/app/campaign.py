@@ -45,7 +45,9 @@ from stages.write_survey import write_campaign_anomaly
 RUNNER_MODULE = "pipeline.run.runner"
 
 DONE_MARKER = ".magalign-done.json"
-DONE_FORMAT = "magalign.done/1"
+#: /2: a recording with positions also has targets.csv and anomaly.nc, which a folder done
+#: under /1 lacks (it is processed again rather than reused)
+DONE_FORMAT = "magalign.done/2"
 CAMPAIGN_FORMAT = "magalign.campaign/1"
 
 
