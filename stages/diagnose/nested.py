@@ -30,7 +30,14 @@ from stages.diagnose.model import (
 )
 from stages.diagnose.result import DiagnoseConfig, Finding
 from stages.diagnose.sources import rivals as source_rivals
-from stages.diagnose.statistics import bic, bic_between, effective_samples, heldout_ok
+from stages.diagnose.statistics import (
+    ScoreTest,
+    anisotropic_eddy_test,
+    bic,
+    bic_between,
+    effective_samples,
+    heldout_ok,
+)
 
 #: Shortest ``hard_iron_step``, s: an object brought near the sensor and left there for a
 #: while. A shorter excess (the closest pass by a magnet in the room, where its dipole
@@ -194,6 +201,14 @@ NESTED_SIMPLER: dict[EffectKind, EffectKind] = {
     EffectKind.FIELD_DRIFT: EffectKind.HEADING_DRIFT,
 }
 
+#: Kinds that are a sum of named terms: how a fitted term splits into them, and the score
+#: test of the rest when its simpler part is already in the model (an eddy term beside a
+#: time offset: the traceless part only).
+IN_PARTS: dict[EffectKind, tuple[Callable[[FitResult, int, FitData], Iterator[Description]],
+                                 Callable[[FitResult, FitData, float], ScoreTest]]] = {
+    EffectKind.EDDY_CURRENT: (_lag_and_rest, anisotropic_eddy_test),
+}
+
 #: The other descriptions each kind of term has, tried in this order: the simpler special
 #: cases it contains, then the term in parts (an eddy term as a lag and its traceless rest).
 NESTED: dict[EffectKind, tuple[Callable[[FitResult, int, FitData], Iterator[Description]], ...]]
@@ -202,7 +217,8 @@ NESTED = {
     EffectKind.DISTURBANCE: (_step_in_disturbance,),
     EffectKind.HARD_IRON_STEP: (_one_step_for_two,),
 }
-NESTED[EffectKind.EDDY_CURRENT] += (_lag_and_rest,)
+for _kind, (_split, _) in IN_PARTS.items():
+    NESTED[_kind] = NESTED.get(_kind, ()) + (_split,)
 
 
 def _simpler(a: FitResult, b: FitResult) -> bool:

@@ -39,6 +39,7 @@ from stages.diagnose.model import (
 )
 from stages.diagnose.nested import (
     DECISIVE_FACTOR,
+    IN_PARTS,
     MIN_STEP_S,
     NESTED_SIMPLER,
     RAMP_REACH_S,
@@ -63,7 +64,6 @@ from stages.diagnose.sources import (
 from stages.diagnose.statistics import (
     INTERP_MARGIN,
     ScoreTest,
-    anisotropic_eddy_test,
     bic,
     bic_between,
     effective_samples,
@@ -92,6 +92,9 @@ GLOBAL_KINDS = (
 #: the terms whose field depends on where the sensor is: a lever arm acts through them
 SPATIAL_KINDS = frozenset({EffectKind.FIELD_GRADIENT, EffectKind.LOCAL_SOURCE,
                            EffectKind.FIELD_MAP})
+
+#: The kind each nested simpler kind is a special case of (a time offset: an eddy term)
+_CONTAINED_IN = {simpler: kind for kind, simpler in NESTED_SIMPLER.items()}
 
 
 #: The noise model is measured again when a component of it moves by more than this fraction
@@ -468,17 +471,20 @@ class _Search:
                 continue
             if term.kind is EffectKind.LEVER_ARM and not present & SPATIAL_KINDS:
                 continue  # without a field that varies in space, no lever arm shows
-            if term.kind is EffectKind.FIELD_DRIFT and EffectKind.HEADING_DRIFT in present:
-                # the heading drift spans part of the field drift: the field drift can only
-                # replace it (tried below), not be added to it
+            simpler = NESTED_SIMPLER.get(term.kind)
+            if simpler in present and term.kind not in IN_PARTS:
+                # the simpler term in the model spans part of this one, which can only
+                # replace it (tried below), not be added to it (a field drift over a
+                # heading drift)
                 replace_trial = term
                 continue
             if term.kind is EffectKind.FIELD_GRADIENT and self.data.p_m is not None:
                 st = gradient_candidate(self.cur, self.data, sig)
                 term = st.term
-            elif term.kind is EffectKind.EDDY_CURRENT and EffectKind.TIME_OFFSET in present:
-                # only what a time offset cannot explain: the anisotropic part of E_s
-                st = anisotropic_eddy_test(self.cur, self.data, sig)
+            elif simpler in present:
+                # only what the simpler part in the model cannot explain: the rest (for an
+                # eddy term beside a time offset, the anisotropic part of E_s)
+                st = IN_PARTS[term.kind][1](self.cur, self.data, sig)
             elif term.kind is EffectKind.LOCAL_SOURCE:
                 # tested at zero moment at the located place; refitted from the grid's moment
                 v0 = src_start[j]
@@ -516,11 +522,10 @@ class _Search:
                     continue
                 if not self.findings:
                     self.not_ident.setdefault(term.kind.value, reason)
-                elif term.kind is EffectKind.TIME_OFFSET and EffectKind.EDDY_CURRENT in present:
+                elif (outer := _CONTAINED_IN.get(term.kind)) is not None and outer in present:
                     self.not_ident.setdefault(term.kind.value, (
-                        "a time offset is the isotropic part of the eddy-current term already "
-                        "in the model (E_s = -tau I to first order): the two cannot be told "
-                        "apart"))
+                        f"a {term.kind.value} is a special case of the {outer.value} term "
+                        "already in the model: the two cannot be told apart"))
                 continue
             tests.append(st)
         return tests, starts, replace_trial
@@ -590,8 +595,8 @@ class _Search:
             else:
                 map_fits.append((fr[1], mc.test, fr[0]))
         if replace_trial is not None:
-            rt = _replacement_fit(self.cur, EffectKind.HEADING_DRIFT, replace_trial, self.data,
-                                  self.cfg)
+            rt = _replacement_fit(self.cur, NESTED_SIMPLER[replace_trial.kind], replace_trial,
+                                  self.data, self.cfg)
             if rt is not None:
                 fits.append(rt)
         fits.sort(key=lambda x: x[0])
