@@ -89,10 +89,11 @@ def what(f: dict[str, Any]) -> str:
     if e == "time_offset":
         tau = 1e3 * float(p["time_offset_s"])
         st = s.get("time_offset_s")
-        sig = f" \u00b1 {1e3 * float(st):.1f}" if st is not None and np.isfinite(st) else ""
+        # the digits of the calibration table and the verdict line: one value everywhere
+        sig = f" \u00b1 {1e3 * float(st):.2f}" if st is not None and np.isfinite(st) else ""
         late = "late" if tau > 0 else "early"
-        return (f"The magnetometer's time stamps are {late} by {abs(tau):.1f}{sig} ms against "
-                f"the attitude (\u03c4 = {num(tau)} ms).")
+        return (f"The magnetometer's time stamps are {late} by {abs(tau):.2f}{sig} ms against "
+                f"the attitude (\u03c4 = {num(tau, 2)} ms).")
     if e == "eddy_current":
         ed = 1e3 * np.diag(np.asarray(p["E_s"], float))
         return (f"Eddy currents: the reading lags changes of the field by {vec(ed, 2)} ms "

@@ -18,6 +18,8 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from pipeline.core.style import num
+
 F64 = NDArray[np.float64]
 
 #: Still windows are this long, s.
@@ -345,7 +347,8 @@ def verdict_line(cal: StatedCalibration, with_status: bool = True) -> str:
         + ", ".join(f"{c:+.2f}" for c in u) + "]"
     ]
     if cal.time_offset_s is not None:
-        parts.append(f"time offset {cal.time_offset_s * 1e3:+.1f} ms")
+        # the digits of the report's calibration table (one value everywhere)
+        parts.append(f"time offset {num(cal.time_offset_s * 1e3, '+.2f')} ms")
     if cal.verdict is not None:
         v = cal.verdict
         if v.sensor_noise_nT is not None:
