@@ -158,7 +158,7 @@ def test_diagnosis_section(tmp_path):
     assert "edges 2.0\u20133.0 s; 3.0\u20134.0 s" in sec
     assert "on held-out data from 12.9 to 8.9 nT" in sec  # first before, last after
     # a global effect as a sentence with units; no raw JSON, no BIC jargon in the rows
-    assert "early by 2.1 \u00b1 0.1 ms" in sec
+    assert "early by 2.10 \u00b1 0.10 ms" in sec  # the calibration table's digits
     assert "windows_s" not in sec and "{" not in sec and "BIC</th>" not in sec
     assert "very strong" in sec and "constant rotation rate" in sec
 
