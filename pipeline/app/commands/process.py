@@ -17,7 +17,6 @@ import os
 import shutil
 import sys
 import tempfile
-import textwrap
 import warnings
 from pathlib import Path
 
@@ -42,7 +41,7 @@ from pipeline.app.summary import read_json, row_for, write_summary
 from pipeline.core import errors
 from pipeline.core import progress as pg
 from pipeline.core.errors import CampaignPartialFailure, InputError, UsageError
-from pipeline.core.style import minus
+from pipeline.core.style import minus, terminal_width, wrap
 from pipeline.core.vocabulary import EstimateTerm, EstimatorKind
 from pipeline.core.warm import warm_in_background
 from stages.report_text import rows as finding_rows
@@ -158,14 +157,13 @@ def _run_with_progress(camp, out: Path, executor, args: argparse.Namespace) -> l
                 os.environ[pg.ENV_DIR] = old_env
 
 
-#: no line of the final summary is longer (paths excepted: they are printed whole)
-WIDTH = 100
-
-
 def _wrapped(text: str, first: str, rest: str) -> list[str]:
-    """Return ``text`` wrapped to :data:`WIDTH` columns, after ``first`` then ``rest``."""
-    return textwrap.wrap(text, WIDTH, initial_indent=first, subsequent_indent=rest,
-                         break_on_hyphens=False, break_long_words=False) or [first.rstrip()]
+    """Return ``text`` wrapped to the terminal's width (80 columns when unknown).
+
+    After ``first`` then ``rest``; lines break between words, so a number or a path is
+    never cut (a path longer than the line stands whole on its own line).
+    """
+    return wrap(text, first, rest, terminal_width())
 
 
 def recording_summary(result: dict, row: dict, out: Path) -> list[str]:
@@ -173,7 +171,7 @@ def recording_summary(result: dict, row: dict, out: Path) -> list[str]:
 
     The verdict line as the report gives it, then (when it is not OK) why, then each
     diagnosis finding as the report's sentence (events that touch are one) and each warning
-    of the calibration, all in words, wrapped to :data:`WIDTH` columns.
+    of the calibration, all in words, wrapped to the terminal's width.
     """
     name = str(result["name"])
     line = (result.get("row") or {}).get("verdict_line")
