@@ -950,12 +950,12 @@ def _diagnosis_html(diagnosis: Any, t0_ns: int = 0, calibration_path: str | None
 
 
 def finding_figures(diagnosis: Any, t0_ns: int, dpi: int = 100) -> list[tuple[str, bytes]]:
-    """One figure per diagnosis finding: its signature in the residual (PNG), in time order.
+    """One figure per diagnosis finding: its signature in the residual (PNG).
 
-    Findings that live in time windows (disturbance, hard-iron step, local source) come
-    after the others, ordered by when they start, so that a magnet brought near and taken
-    away reads left to right. The time axis is the report's (seconds, minutes or hours from
-    the first sample's UTC time); keys are under the axes, never over the data.
+    In the diagnosis' order (the order its evidence was measured, as the findings table and
+    diagnosis.json): each figure shows the residual the terms before it left. The time axis
+    is the report's (seconds, minutes or hours from the first sample's UTC time); keys are
+    under the axes, never over the data.
 
     Returns
     -------
@@ -967,12 +967,8 @@ def finding_figures(diagnosis: Any, t0_ns: int, dpi: int = 100) -> list[tuple[st
         return []
     plt = _plt()
 
-    def start(f: Any) -> float:
-        w = (f.where or {}).get("windows_s") or [[0.0, 0.0]]
-        return min(float(x[0]) for x in w)
-
-    timed = [f for f in findings if f.effect in EVENT_EFFECTS]
-    ordered = [f for f in findings if f.effect not in EVENT_EFFECTS] + sorted(timed, key=start)
+    # the diagnosis' order (the order its evidence was measured), as the findings table
+    ordered = findings
     dur = float(getattr(diagnosis, "duration_s", 0.0) or 0.0)
     scale, unit = _time_scale(dur)
     out = []

@@ -178,6 +178,10 @@ def _fit_text(first: dict[str, Any], last: dict[str, Any]) -> str:
 def rows(diagnosis: dict[str, Any], t0_ns: int) -> list[Row]:
     """Return the findings as table rows: local windows that touch are one event.
 
+    The rows follow the diagnosis (``diagnosis.json``'s findings, the order the evidence
+    was measured in): an event stands where its first finding does, so that each row's
+    improvement starts where the one before it ended.
+
     Parameters
     ----------
     diagnosis : dict
@@ -187,17 +191,17 @@ def rows(diagnosis: dict[str, Any], t0_ns: int) -> list[Row]:
 
     """
     findings = list(diagnosis.get("findings") or [])
-    out: list[Row] = []
+    placed: list[tuple[int, Row]] = []
     local: list[tuple[float, float, dict[str, Any]]] = []
-    for f in findings:
+    for k, f in enumerate(findings):
         if f.get("effect") in LOCAL:
             for a, b in (f.get("params") or {}).get("windows_s") or []:
                 local.append((float(a), float(b), f))
             continue
         ev = f.get("evidence") or {}
-        out.append(Row(what(f), "whole recording", _fit_text(f, f),
-                       evidence_words(ev.get("delta_bic")), [str(f.get("effect"))],
-                       str(f.get("explanation", ""))))
+        placed.append((k, Row(what(f), "whole recording", _fit_text(f, f),
+                              evidence_words(ev.get("delta_bic")), [str(f.get("effect"))],
+                              str(f.get("explanation", "")))))
     local.sort(key=lambda x: x[0])
     events: list[list[tuple[float, float, dict[str, Any]]]] = []
     for w in local:
@@ -205,12 +209,17 @@ def rows(diagnosis: dict[str, Any], t0_ns: int) -> list[Row]:
             events[-1].append(w)
         else:
             events.append([w])
+
+    def index(f: dict[str, Any]) -> int:
+        return next(i for i, g in enumerate(findings) if g is f)
+
     for ev in events:
         a, b = min(x[0] for x in ev), max(x[1] for x in ev)
         fs: list[dict[str, Any]] = []
         for _, _, f in ev:
             if not any(f is g for g in fs):
                 fs.append(f)
+        fs.sort(key=index)
         kinds = sorted({str(f.get("effect")) for f in fs})
         if kinds == ["disturbance"]:
             peak = max(float((f.get("params") or {}).get("peak_nT", np.nan)) for f in fs)
@@ -228,14 +237,14 @@ def rows(diagnosis: dict[str, Any], t0_ns: int) -> list[Row]:
                 head += f", found as {len(ev)} steps"
         edges = "; ".join(f"{x[0]:.1f}\u2013{x[1]:.1f} s" for x in ev) if len(ev) > 1 else ""
         when = span(t0_ns, a, b) + (f"; edges {edges}" if edges else "")
-        first = min(fs, key=findings.index)
-        last = max(fs, key=findings.index)
         bics = [x for x in ((f.get("evidence") or {}).get("delta_bic") for f in fs)
                 if x is not None]
-        out.append(Row(f"{head} between {a:.1f} s and {b:.1f} s.", when,
-                       _fit_text(first, last), evidence_words(sum(bics) if bics else None),
-                       kinds, str(fs[0].get("explanation", ""))))
-    return out
+        placed.append((index(fs[0]), Row(
+            f"{head} between {a:.1f} s and {b:.1f} s.", when, _fit_text(fs[0], fs[-1]),
+            evidence_words(sum(bics) if bics else None), kinds,
+            str(fs[0].get("explanation", "")))))
+    placed.sort(key=lambda x: x[0])
+    return [r for _, r in placed]
 
 
 def rows_html(diagnosis: dict[str, Any], t0_ns: int) -> str:

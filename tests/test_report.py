@@ -163,6 +163,26 @@ def test_diagnosis_section(tmp_path):
     assert "very strong" in sec and "constant rotation rate" in sec
 
 
+def test_findings_in_the_order_the_evidence_was_measured():
+    """The table, diagnosis.json and the terminal: one order, the magnet found first first."""
+    from stages.diagnose.result import Diagnosis, Finding
+    from stages.report_text import rows
+
+    d = _diag()
+    rs = rows(d, 0)
+    assert [r.effects for r in rs] == [["hard_iron_step"], ["time_offset"]]
+    # the improvements chain: each row starts where the one before it ended
+    assert "from 12.9 to 8.9 nT" in rs[0].fit and "from 8.9 to 0.5 nT" in rs[1].fit
+    diag = Diagnosis(d["baseline"], d["final"], tuple(
+        Finding(f["effect"], f["params"], f["sigma"], f["evidence"], f["where"],
+                f["explanation"]) for f in d["findings"]), (("soft_iron", "constant"),))
+    text = diag.table(80)
+    assert text.index("1. hard_iron_step") < text.index("2. time_offset")
+    assert all(len(line) <= 80 for line in text.splitlines()), text
+    for jargon in ("dBIC", "stat", " > "):
+        assert jargon not in text, jargon
+
+
 def test_headline_first(tmp_path):
     from stages.report import render_html
 
