@@ -644,8 +644,8 @@ def counts_sentence(restored: RestoreResult, calibration: Any,
     checks = getattr(calibration, "checks", None) or {}
     fs = checks.get("fit_samples") if isinstance(checks.get("fit_samples"), dict) else None
     held = getattr(calibration, "sample_hold", None)
-    parts = [f"Of {_n(total)} magnetometer samples received, {_n(n_without)} have no usable "
-             f"attitude and {_n(n_valid)} are restored"]
+    parts = [f"Of {_n(total)} magnetometer samples received, {_n(n_without)} "
+             f"{_have(n_without)} no usable attitude and {_n(n_valid)} are restored"]
     n_rep: int | None = None
     if held:
         if totals.n_total != len(restored.t_ns):
@@ -660,29 +660,29 @@ def counts_sentence(restored: RestoreResult, calibration: Any,
             parts.append(f" = {_n(n_rep)} repeats of the previous reading (the sensor "
                          f"converts slower than it sends: sample-and-hold) + "
                          f"{_n(n_valid - n_rep)} new readings")
-    use = (f". The metrics and the residual use all {_n(n_valid)} restored samples"
-           + (f" (the before/after comparison {_n(n_valid - n_stamp)}: {_n(n_stamp)} have no "
-              "attitude at their own stamp, only at their sensing time t \u2212 \u03c4)"
-              if n_stamp else ""))
+    use = (". The metrics and the residual use every restored sample"
+           + (f" (the before/after comparison {_n(n_valid - n_stamp)}: {_n(n_stamp)} "
+              f"{_have(n_stamp)} no attitude at their own stamp, only at their sensing time "
+              "t \u2212 \u03c4)" if n_stamp else ""))
     parts.append(use)
     n_excl = int(checks.get("excluded_samples") or 0)
     fit = [] if not held else ["the repeats"]
     if n_excl:
         fit.append(f"the {_n(n_excl)} samples in the excluded windows")
     n_fit = int(fs["of"]) if fs and fs.get("of") else int(getattr(calibration, "n_samples", 0))
-    text = "".join(parts)
-    if fit:
-        text += "; " + " and ".join(fit) + " are left out of the fit only"
     base = (n_valid - n_rep if held and n_rep is not None else n_valid) - n_excl
     what = "new readings" if held else "restored samples"
-    text += f", which used {_n(n_fit)}"
+    # the fit in a sentence of its own: its count is of other samples than the metrics'
+    text = "".join(parts) + f". The calibration's fit used {_n(n_fit)}"
     notes = []
+    if fit:
+        notes.append(" and ".join(fit) + " are left out of the fit only")
     if 0 < n_fit < base:
         text += f" of the {_n(base)} {what}"
         notes.append(f"the {_n(base - n_fit)} others lie too close to the attitude's start or "
                      "end to be predicted, or have no position")
     else:
-        text += " samples"
+        text += f" {what}" if n_fit != 1 else " sample"
     if fs and int(fs.get("stride", 1) or 1) > 1:
         k = int(fs["stride"])
         nth = {2: "2nd", 3: "3rd"}.get(k, f"{k}th")
@@ -690,6 +690,11 @@ def counts_sentence(restored: RestoreResult, calibration: Any,
     if notes:
         text += " (" + "; ".join(notes) + ")"
     return text + "."
+
+
+def _have(n: int) -> str:
+    """Return the verb for a count of samples: "has" for one, "have" otherwise."""
+    return "has" if int(n) == 1 else "have"
 
 
 def counts_text(metrics: Any) -> str:
@@ -1165,7 +1170,7 @@ beyond it.</p>
 {_metrics_html(metrics, t0)}
 <h2>Calibration</h2>
 {_calibration_html(calibration, estimator, calibration_path)}
-{f'<div class=warn><b>Warnings</b><ul>{warn}</ul></div>' if warn else '<p>No warning.</p>'}
+{f'<div class=warn><b>Warnings from reading the recording</b><ul>{warn}</ul></div>' if warn else ''}
 <h2>Residuals</h2>
 {_residual_html(totals)}
 {fig_html.get('fig_residual.png', '')}

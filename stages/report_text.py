@@ -55,6 +55,20 @@ def pm_vec(a: Any, s: Any, nd: int = 1) -> str:
     return "[" + ", ".join(parts) + "]"
 
 
+def per_metre(g_nT_per_m: float) -> str:
+    """Return a field gradient in the unit that shows its value: ``3.47 µT/m``, ``2.0 nT/m``.
+
+    Microtesla per metre from 1 µT/m up, nanotesla per metre below (a gradient of 2 nT/m
+    must not read "0.00 µT/m").
+    """
+    g = abs(float(g_nT_per_m))
+    if not np.isfinite(g):
+        return "an unknown amount per metre"
+    if g >= 1000.0:
+        return f"{g / 1e3:.2f} \u00b5T/m"
+    return f"{g:.0f} nT/m" if g >= 10.0 else f"{g:.1f} nT/m"
+
+
 def evidence_words(delta_bic: float | None) -> str:
     """Plain words for a BIC drop (Kass and Raftery 1995): how strongly the data ask for it."""
     if delta_bic is None or not np.isfinite(delta_bic):
@@ -108,8 +122,8 @@ def what(f: dict[str, Any]) -> str:
         g = float(np.linalg.norm(np.asarray(p["G_nT_per_m"], float)))
         frame = ("the attitude source's own frame" if p.get("position_frame")
                  == "attitude_source_local" else "local east, north, up")
-        return (f"The field varies from place to place: a gradient of {g / 1e3:.2f} \u00b5T/m "
-                f"(Frobenius norm) as the sensor moves (positions in {frame}).")
+        return (f"The field varies from place to place: a gradient of {per_metre(g)} (all "
+                f"directions together) as the sensor moves (positions in {frame}).")
     if e == "heading_drift":
         return (f"The attitude source's heading drifts by {num(float(p['rate_deg_per_h']), 2)}"
                 f"\u00b0/h ({float(p['peak_to_peak_deg']):.2f}\u00b0 peak to peak).")

@@ -212,3 +212,14 @@ def test_metrics_table_folds_hundreds_of_segments():
     assert many.index("whole recording") < many.index("<details>") < many.index("segment_0")
     few = _metrics_html(result(3))
     assert "<details>" not in few and "segment_2" in few
+
+
+def test_a_gradient_reads_in_the_unit_that_shows_it():
+    from stages.report_text import per_metre, what
+
+    assert per_metre(2.0) == "2.0 nT/m" and per_metre(250.0) == "250 nT/m"
+    assert per_metre(3470.0) == "3.47 \u00b5T/m"
+    text = what({"effect": "field_gradient", "params": {
+        "G_nT_per_m": [[2.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]],
+        "position_frame": "enu"}})
+    assert "2.0 nT/m" in text and "0.00" not in text and "Frobenius" not in text
