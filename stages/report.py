@@ -983,11 +983,17 @@ def finding_figures(diagnosis: Any, t0_ns: int, dpi: int = 100) -> list[tuple[st
         with plt.rc_context(style.rc() | {"savefig.dpi": dpi, "figure.dpi": dpi}):
             fig, ax = plt.subplots(figsize=(12, 4.2))
             t = np.asarray(s.t_s, dtype=float) / scale
+            names = _axis_names(frame)
             if s.regressor is not None:
-                for i, c in enumerate("xyz"):
+                for i, c in enumerate(names):
                     ax.plot(s.regressor[:, i], s.residual_before_nT[:, i], ".", ms=2,
-                            alpha=0.4, color=style.AXIS[i], label=f"{frame} {c}")
-                ax.set_xlabel(f"rate of change of the reading ({frame} frame, nT/s)")
+                            alpha=0.4, color=style.AXIS[i], label=f"residual {c}")
+                for i, c in enumerate(names):
+                    # the fitted term against the same rate: the line the points should follow
+                    order = np.argsort(s.regressor[:, i])
+                    ax.plot(s.regressor[order, i], s.contribution_nT[order, i], lw=1.8,
+                            color=style.AXIS[i], label=f"fitted term {c}")
+                ax.set_xlabel(f"rate of change of the reading ({_frame_words(frame)}, nT/s)")
                 ax.set_ylabel("residual before the term (nT)")
             elif f.effect in EVENT_EFFECTS:
                 ax.plot(t, np.linalg.norm(s.residual_before_nT, axis=1), lw=0.7,
@@ -1002,13 +1008,13 @@ def finding_figures(diagnosis: Any, t0_ns: int, dpi: int = 100) -> list[tuple[st
                 ax.set_xlabel(_time_label(t0_ns, unit))
                 ax.set_ylabel("nT")
             else:
-                for i, c in enumerate("xyz"):
+                for i, c in enumerate(names):
                     ax.plot(t, s.residual_before_nT[:, i], lw=0.5, alpha=0.35,
                             color=style.AXIS[i], label=f"residual {c}")
                     ax.plot(t, s.contribution_nT[:, i], lw=1.6, color=style.AXIS[i],
                             label=f"fitted term {c}")
                 ax.set_xlabel(_time_label(t0_ns, unit))
-                ax.set_ylabel(f"nT ({frame} frame)")
+                ax.set_ylabel(f"nT ({_frame_words(frame)})")
             title = _finding_title(f)
             ax.set_title(title)
             h, lab = ax.get_legend_handles_labels()
@@ -1018,6 +1024,17 @@ def finding_figures(diagnosis: Any, t0_ns: int, dpi: int = 100) -> list[tuple[st
             _fit_left(fig)
             out.append((title, _png(fig)))
     return out
+
+
+def _axis_names(frame: str) -> tuple[str, str, str]:
+    """Return the names of a finding's components in its frame (east, north, up in ENU)."""
+    return ("east", "north", "up") if frame == "enu" else ("x", "y", "z")
+
+
+def _frame_words(frame: str) -> str:
+    """Return the frame of a finding's figure in words."""
+    return {"enu": "east, north, up", "mag": "magnetometer axes",
+            "body": "body axes"}.get(frame, f"{frame} frame")
 
 
 def _finding_title(f: Any) -> str:
