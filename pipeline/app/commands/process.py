@@ -177,7 +177,8 @@ def recording_summary(result: dict, row: dict, out: Path) -> list[str]:
     line = (result.get("row") or {}).get("verdict_line")
     if not line:
         return []
-    lines = _wrapped(f"{name}: {line}", "", "    ")
+    # the report's signs (± and a true minus), as the lines below it
+    lines = _wrapped(f"{name}: {minus(line)}", "", "    ")
     folder = out / name
     cal = read_json(folder / "calibration.json") or {}
     verdict = cal.get("verdict") if isinstance(cal.get("verdict"), dict) else {}
