@@ -666,12 +666,15 @@ def counts_sentence(restored: RestoreResult, calibration: Any,
               "t \u2212 \u03c4)" if n_stamp else ""))
     parts.append(use)
     n_excl = int(checks.get("excluded_samples") or 0)
-    fit = [] if not held else ["the repeats"]
+    n_fit = int(fs["of"]) if fs and fs.get("of") else int(getattr(calibration, "n_samples", 0))
+    # the repeats are left out of the fit only when it used no more than the new readings (a
+    # diagnosis that kept its model on every message fitted them too)
+    skipped = bool(held) and n_rep is not None and n_fit <= n_valid - n_rep - n_excl
+    fit = ["the repeats"] if skipped else []
     if n_excl:
         fit.append(f"the {_n(n_excl)} samples in the excluded windows")
-    n_fit = int(fs["of"]) if fs and fs.get("of") else int(getattr(calibration, "n_samples", 0))
-    base = (n_valid - n_rep if held and n_rep is not None else n_valid) - n_excl
-    what = "new readings" if held else "restored samples"
+    base = (n_valid - n_rep if skipped and n_rep is not None else n_valid) - n_excl
+    what = "new readings" if skipped else "restored samples"
     # the fit in a sentence of its own: its count is of other samples than the metrics'
     text = "".join(parts) + f". The calibration's fit used {_n(n_fit)}"
     notes = []
