@@ -267,11 +267,18 @@ def run(args: argparse.Namespace) -> int:
     print(f"results in {out}:")
     print(f"  summary  {out / html_path.name}   (open in a browser)")
     print(f"  table    {out / pq_path.name}")
+    width = terminal_width()
     for r in rows:
-        if r["rrd"]:
-            print(f"  {r['name']}: magalign view {out / r['rrd']}")
+        pad = " " * len(r["name"])
+        view = f"  {r['name']}: magalign view {out / r['rrd']}" if r["rrd"] else ""
+        if view and len(view) > width:
+            # a path is printed whole: under the name when the line would overflow
+            print(f"  {r['name']}:")
+            view, pad = f"    magalign view {out / r['rrd']}", ""
+        if view:
+            print(view)
         if r["report"]:
-            print(f"  {' ' * len(r['name'])}  report {out / r['report']}")
+            print(f"  {pad}  report {out / r['report']}")
     if failures:
         for name, why in failures:
             print(f"magalign: FAILED {name}: {why}", file=sys.stderr)
