@@ -270,3 +270,26 @@ def test_the_terminal_width_is_80_when_unknown_and_numbers_are_never_cut(monkeyp
     assert "58431.123456789" in " ".join(lines) and "12345678901234567890" * 5 in lines[-1]
     assert wrap(f"x = 1.0{GLUE}\u00b1{GLUE}0.1", "", "", 40) == ["x = 1.0 \u00b1 0.1"]
     assert all(len(line) <= 40 for line in wrap("word " * 40, "", "  ", 40))
+
+
+def test_calibrate_summary_fits_any_width_and_keeps_each_number_whole():
+    import numpy as np
+
+    from pipeline.app.commands.calibrate import summary
+    from pipeline.core.verdict import judge
+    from pipeline.model.calibration import Calibration
+
+    cal = Calibration(R_body_mag=np.eye(3), sigma_rotvec_deg=np.array([0.476, 0.383, 0.102]),
+                      B_enu_nT=np.array([94.5, 15537.4, -41382.8]), estimator="diagnose",
+                      residual_rms_nT=716.7, n_samples=9126, offset_nT=np.array([-308.5, 256.2,
+                                                                                  191.8]),
+                      sigma_offset_nT=np.array([30.5, 17.8, 17.7]), time_offset_s=0.01525,
+                      sigma_time_offset_s=0.00023, n_eff=982.0)
+    cal = cal.replace(verdict=judge(716.7, 663.0, heldout_rms_nT=718.4))
+    for width in range(50, 101, 7):
+        text = summary(cal, width)
+        assert all(len(line) <= width for line in text.splitlines()), (width, text)
+        flat = " ".join(text.split())
+        assert "9 126 samples" in flat and "of 9 126" in flat
+        assert "\u2212308.5 \u00b1 30.5" in flat and "+15.25 \u00b1 0.23 ms" in flat
+        assert "estimator diagnose" not in flat and "\u00a0" not in text

@@ -158,8 +158,12 @@ def _pm(values, sigmas, spec: str) -> str:
 
 
 def _count(n: float) -> str:
-    """Return a count with a space between thousands (11 999), as the report writes it."""
-    return f"{int(round(float(n))):,}".replace(",", " ")
+    """Return a count with a space between thousands (11 999), as the report writes it.
+
+    The space is one :func:`~pipeline.core.style.wrap` does not break at: a count is one
+    number on one line.
+    """
+    return f"{int(round(float(n))):,}".replace(",", GLUE)
 
 
 def model_words(cal) -> str:
