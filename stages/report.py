@@ -645,8 +645,8 @@ def counts_sentence(restored: RestoreResult, calibration: Any,
     checks = getattr(calibration, "checks", None) or {}
     fs = checks.get("fit_samples") if isinstance(checks.get("fit_samples"), dict) else None
     held = getattr(calibration, "sample_hold", None)
-    parts = [f"Of {_n(total)} magnetometer samples received, {_n(n_without)} have no usable "
-             f"attitude and {_n(n_valid)} are restored"]
+    parts = [f"Of {_n(total)} magnetometer samples received, {_n(n_without)} "
+             f"{_have(n_without)} no usable attitude and {_n(n_valid)} are restored"]
     n_rep: int | None = None
     if held:
         if totals.n_total != len(restored.t_ns):
@@ -661,29 +661,32 @@ def counts_sentence(restored: RestoreResult, calibration: Any,
             parts.append(f" = {_n(n_rep)} repeats of the previous reading (the sensor "
                          f"converts slower than it sends: sample-and-hold) + "
                          f"{_n(n_valid - n_rep)} new readings")
-    use = (f". The metrics and the residual use all {_n(n_valid)} restored samples"
-           + (f" (the before/after comparison {_n(n_valid - n_stamp)}: {_n(n_stamp)} have no "
-              "attitude at their own stamp, only at their sensing time t \u2212 \u03c4)"
-              if n_stamp else ""))
+    use = (". The metrics and the residual use every restored sample"
+           + (f" (the before/after comparison {_n(n_valid - n_stamp)}: {_n(n_stamp)} "
+              f"{_have(n_stamp)} no attitude at their own stamp, only at their sensing time "
+              "t \u2212 \u03c4)" if n_stamp else ""))
     parts.append(use)
     n_excl = int(checks.get("excluded_samples") or 0)
-    fit = [] if not held else ["the repeats"]
+    n_fit = int(fs["of"]) if fs and fs.get("of") else int(getattr(calibration, "n_samples", 0))
+    # the repeats are left out of the fit only when it used no more than the new readings (a
+    # diagnosis that kept its model on every message fitted them too)
+    skipped = bool(held) and n_rep is not None and n_fit <= n_valid - n_rep - n_excl
+    fit = ["the repeats"] if skipped else []
     if n_excl:
         fit.append(f"the {_n(n_excl)} samples in the excluded windows")
-    n_fit = int(fs["of"]) if fs and fs.get("of") else int(getattr(calibration, "n_samples", 0))
-    text = "".join(parts)
-    if fit:
-        text += "; " + " and ".join(fit) + " are left out of the fit only"
-    base = (n_valid - n_rep if held and n_rep is not None else n_valid) - n_excl
-    what = "new readings" if held else "restored samples"
-    text += f", which used {_n(n_fit)}"
+    base = (n_valid - n_rep if skipped and n_rep is not None else n_valid) - n_excl
+    what = "new readings" if skipped else "restored samples"
+    # the fit in a sentence of its own: its count is of other samples than the metrics'
+    text = "".join(parts) + f". The calibration's fit used {_n(n_fit)}"
     notes = []
+    if fit:
+        notes.append(" and ".join(fit) + " are left out of the fit only")
     if 0 < n_fit < base:
         text += f" of the {_n(base)} {what}"
         notes.append(f"the {_n(base - n_fit)} others lie too close to the attitude's start or "
                      "end to be predicted, or have no position")
     else:
-        text += " samples"
+        text += f" {what}" if n_fit != 1 else " sample"
     if fs and int(fs.get("stride", 1) or 1) > 1:
         k = int(fs["stride"])
         nth = {2: "2nd", 3: "3rd"}.get(k, f"{k}th")
@@ -691,6 +694,11 @@ def counts_sentence(restored: RestoreResult, calibration: Any,
     if notes:
         text += " (" + "; ".join(notes) + ")"
     return text + "."
+
+
+def _have(n: int) -> str:
+    """Return the verb for a count of samples: "has" for one, "have" otherwise."""
+    return "has" if int(n) == 1 else "have"
 
 
 def counts_text(metrics: Any) -> str:
@@ -951,12 +959,12 @@ def _diagnosis_html(diagnosis: Any, t0_ns: int = 0, calibration_path: str | None
 
 
 def finding_figures(diagnosis: Any, t0_ns: int, dpi: int = 100) -> list[tuple[str, bytes]]:
-    """One figure per diagnosis finding: its signature in the residual (PNG), in time order.
+    """One figure per diagnosis finding: its signature in the residual (PNG).
 
-    Findings that live in time windows (disturbance, hard-iron step, local source) come
-    after the others, ordered by when they start, so that a magnet brought near and taken
-    away reads left to right. The time axis is the report's (seconds, minutes or hours from
-    the first sample's UTC time); keys are under the axes, never over the data.
+    In the diagnosis' order (the order its evidence was measured, as the findings table and
+    diagnosis.json): each figure shows the residual the terms before it left. The time axis
+    is the report's (seconds, minutes or hours from the first sample's UTC time); keys are
+    under the axes, never over the data.
 
     Returns
     -------
@@ -968,12 +976,8 @@ def finding_figures(diagnosis: Any, t0_ns: int, dpi: int = 100) -> list[tuple[st
         return []
     plt = _plt()
 
-    def start(f: Any) -> float:
-        w = (f.where or {}).get("windows_s") or [[0.0, 0.0]]
-        return min(float(x[0]) for x in w)
-
-    timed = [f for f in findings if f.effect in EVENT_EFFECTS]
-    ordered = [f for f in findings if f.effect not in EVENT_EFFECTS] + sorted(timed, key=start)
+    # the diagnosis' order (the order its evidence was measured), as the findings table
+    ordered = findings
     dur = float(getattr(diagnosis, "duration_s", 0.0) or 0.0)
     scale, unit = _time_scale(dur)
     out = []
@@ -983,11 +987,17 @@ def finding_figures(diagnosis: Any, t0_ns: int, dpi: int = 100) -> list[tuple[st
         with plt.rc_context(style.rc() | {"savefig.dpi": dpi, "figure.dpi": dpi}):
             fig, ax = plt.subplots(figsize=(12, 4.2))
             t = np.asarray(s.t_s, dtype=float) / scale
+            names = _axis_names(frame)
             if s.regressor is not None:
-                for i, c in enumerate("xyz"):
+                for i, c in enumerate(names):
                     ax.plot(s.regressor[:, i], s.residual_before_nT[:, i], ".", ms=2,
-                            alpha=0.4, color=style.AXIS[i], label=f"{frame} {c}")
-                ax.set_xlabel(f"rate of change of the reading ({frame} frame, nT/s)")
+                            alpha=0.4, color=style.AXIS[i], label=f"residual {c}")
+                for i, c in enumerate(names):
+                    # the fitted term against the same rate: the line the points should follow
+                    order = np.argsort(s.regressor[:, i])
+                    ax.plot(s.regressor[order, i], s.contribution_nT[order, i], lw=1.8,
+                            color=style.AXIS[i], label=f"fitted term {c}")
+                ax.set_xlabel(f"rate of change of the reading ({_frame_words(frame)}, nT/s)")
                 ax.set_ylabel("residual before the term (nT)")
             elif f.effect in EVENT_EFFECTS:
                 ax.plot(t, np.linalg.norm(s.residual_before_nT, axis=1), lw=0.7,
@@ -1002,13 +1012,13 @@ def finding_figures(diagnosis: Any, t0_ns: int, dpi: int = 100) -> list[tuple[st
                 ax.set_xlabel(_time_label(t0_ns, unit))
                 ax.set_ylabel("nT")
             else:
-                for i, c in enumerate("xyz"):
+                for i, c in enumerate(names):
                     ax.plot(t, s.residual_before_nT[:, i], lw=0.5, alpha=0.35,
                             color=style.AXIS[i], label=f"residual {c}")
                     ax.plot(t, s.contribution_nT[:, i], lw=1.6, color=style.AXIS[i],
                             label=f"fitted term {c}")
                 ax.set_xlabel(_time_label(t0_ns, unit))
-                ax.set_ylabel(f"nT ({frame} frame)")
+                ax.set_ylabel(f"nT ({_frame_words(frame)})")
             title = _finding_title(f)
             ax.set_title(title)
             h, lab = ax.get_legend_handles_labels()
@@ -1018,6 +1028,17 @@ def finding_figures(diagnosis: Any, t0_ns: int, dpi: int = 100) -> list[tuple[st
             _fit_left(fig)
             out.append((title, _png(fig)))
     return out
+
+
+def _axis_names(frame: str) -> tuple[str, str, str]:
+    """Return the names of a finding's components in its frame (east, north, up in ENU)."""
+    return ("east", "north", "up") if frame == "enu" else ("x", "y", "z")
+
+
+def _frame_words(frame: str) -> str:
+    """Return the frame of a finding's figure in words."""
+    return {"enu": "east, north, up", "mag": "magnetometer axes",
+            "body": "body axes"}.get(frame, f"{frame} frame")
 
 
 def _finding_title(f: Any) -> str:
@@ -1171,7 +1192,7 @@ beyond it.</p>
 {_metrics_html(metrics, t0)}
 <h2>Calibration</h2>
 {_calibration_html(calibration, estimator, calibration_path)}
-{f'<div class=warn><b>Warnings</b><ul>{warn}</ul></div>' if warn else '<p>No warning.</p>'}
+{f'<div class=warn><b>Warnings from reading the recording</b><ul>{warn}</ul></div>' if warn else ''}
 <h2>Residuals</h2>
 {_residual_html(totals)}
 {fig_html.get('fig_residual.png', '')}

@@ -55,6 +55,20 @@ def pm_vec(a: Any, s: Any, nd: int = 1) -> str:
     return "[" + ", ".join(parts) + "]"
 
 
+def per_metre(g_nT_per_m: float) -> str:
+    """Return a field gradient in the unit that shows its value: ``3.47 µT/m``, ``2.0 nT/m``.
+
+    Microtesla per metre from 1 µT/m up, nanotesla per metre below (a gradient of 2 nT/m
+    must not read "0.00 µT/m").
+    """
+    g = abs(float(g_nT_per_m))
+    if not np.isfinite(g):
+        return "an unknown amount per metre"
+    if g >= 1000.0:
+        return f"{g / 1e3:.2f} \u00b5T/m"
+    return f"{g:.0f} nT/m" if g >= 10.0 else f"{g:.1f} nT/m"
+
+
 def evidence_words(delta_bic: float | None) -> str:
     """Plain words for a BIC drop (Kass and Raftery 1995): how strongly the data ask for it."""
     if delta_bic is None or not np.isfinite(delta_bic):
@@ -89,10 +103,11 @@ def what(f: dict[str, Any]) -> str:
     if e == "time_offset":
         tau = 1e3 * float(p["time_offset_s"])
         st = s.get("time_offset_s")
-        sig = f" \u00b1 {1e3 * float(st):.1f}" if st is not None and np.isfinite(st) else ""
+        # the digits of the calibration table and the verdict line: one value everywhere
+        sig = f" \u00b1 {1e3 * float(st):.2f}" if st is not None and np.isfinite(st) else ""
         late = "late" if tau > 0 else "early"
-        return (f"The magnetometer's time stamps are {late} by {abs(tau):.1f}{sig} ms against "
-                f"the attitude (\u03c4 = {num(tau)} ms).")
+        return (f"The magnetometer's time stamps are {late} by {abs(tau):.2f}{sig} ms against "
+                f"the attitude (\u03c4 = {num(tau, 2)} ms).")
     if e == "eddy_current":
         ed = 1e3 * np.diag(np.asarray(p["E_s"], float))
         return (f"Eddy currents: the reading lags changes of the field by {vec(ed, 2)} ms "
@@ -107,8 +122,8 @@ def what(f: dict[str, Any]) -> str:
         g = float(np.linalg.norm(np.asarray(p["G_nT_per_m"], float)))
         frame = ("the attitude source's own frame" if p.get("position_frame")
                  == "attitude_source_local" else "local east, north, up")
-        return (f"The field varies from place to place: a gradient of {g / 1e3:.2f} \u00b5T/m "
-                f"(Frobenius norm) as the sensor moves (positions in {frame}).")
+        return (f"The field varies from place to place: a gradient of {per_metre(g)} (all "
+                f"directions together) as the sensor moves (positions in {frame}).")
     if e == "heading_drift":
         return (f"The attitude source's heading drifts by {num(float(p['rate_deg_per_h']), 2)}"
                 f"\u00b0/h ({float(p['peak_to_peak_deg']):.2f}\u00b0 peak to peak).")
@@ -177,6 +192,10 @@ def _fit_text(first: dict[str, Any], last: dict[str, Any]) -> str:
 def rows(diagnosis: dict[str, Any], t0_ns: int) -> list[Row]:
     """Return the findings as table rows: local windows that touch are one event.
 
+    The rows follow the diagnosis (``diagnosis.json``'s findings, the order the evidence
+    was measured in): an event stands where its first finding does, so that each row's
+    improvement starts where the one before it ended.
+
     Parameters
     ----------
     diagnosis : dict
@@ -186,17 +205,17 @@ def rows(diagnosis: dict[str, Any], t0_ns: int) -> list[Row]:
 
     """
     findings = list(diagnosis.get("findings") or [])
-    out: list[Row] = []
+    placed: list[tuple[int, Row]] = []
     local: list[tuple[float, float, dict[str, Any]]] = []
-    for f in findings:
+    for k, f in enumerate(findings):
         if f.get("effect") in LOCAL:
             for a, b in (f.get("params") or {}).get("windows_s") or []:
                 local.append((float(a), float(b), f))
             continue
         ev = f.get("evidence") or {}
-        out.append(Row(what(f), "whole recording", _fit_text(f, f),
-                       evidence_words(ev.get("delta_bic")), [str(f.get("effect"))],
-                       str(f.get("explanation", ""))))
+        placed.append((k, Row(what(f), "whole recording", _fit_text(f, f),
+                              evidence_words(ev.get("delta_bic")), [str(f.get("effect"))],
+                              str(f.get("explanation", "")))))
     local.sort(key=lambda x: x[0])
     events: list[list[tuple[float, float, dict[str, Any]]]] = []
     for w in local:
@@ -204,12 +223,17 @@ def rows(diagnosis: dict[str, Any], t0_ns: int) -> list[Row]:
             events[-1].append(w)
         else:
             events.append([w])
+
+    def index(f: dict[str, Any]) -> int:
+        return next(i for i, g in enumerate(findings) if g is f)
+
     for ev in events:
         a, b = min(x[0] for x in ev), max(x[1] for x in ev)
         fs: list[dict[str, Any]] = []
         for _, _, f in ev:
             if not any(f is g for g in fs):
                 fs.append(f)
+        fs.sort(key=index)
         kinds = sorted({str(f.get("effect")) for f in fs})
         if kinds == ["disturbance"]:
             peak = max(float((f.get("params") or {}).get("peak_nT", np.nan)) for f in fs)
@@ -227,14 +251,14 @@ def rows(diagnosis: dict[str, Any], t0_ns: int) -> list[Row]:
                 head += f", found as {len(ev)} steps"
         edges = "; ".join(f"{x[0]:.1f}\u2013{x[1]:.1f} s" for x in ev) if len(ev) > 1 else ""
         when = span(t0_ns, a, b) + (f"; edges {edges}" if edges else "")
-        first = min(fs, key=findings.index)
-        last = max(fs, key=findings.index)
         bics = [x for x in ((f.get("evidence") or {}).get("delta_bic") for f in fs)
                 if x is not None]
-        out.append(Row(f"{head} between {a:.1f} s and {b:.1f} s.", when,
-                       _fit_text(first, last), evidence_words(sum(bics) if bics else None),
-                       kinds, str(fs[0].get("explanation", ""))))
-    return out
+        placed.append((index(fs[0]), Row(
+            f"{head} between {a:.1f} s and {b:.1f} s.", when, _fit_text(fs[0], fs[-1]),
+            evidence_words(sum(bics) if bics else None), kinds,
+            str(fs[0].get("explanation", "")))))
+    placed.sort(key=lambda x: x[0])
+    return [r for _, r in placed]
 
 
 def rows_html(diagnosis: dict[str, Any], t0_ns: int) -> str:

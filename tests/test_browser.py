@@ -144,7 +144,8 @@ def test_report_in_browser(campaign, name, tmp_path):
         assert w >= 1100 and h >= 350, (f.name, w, h)
     # every sample counted in one place: received = without attitude + restored
     m = re.search(r'<p id="counts">Of ([\d\u2009]+) magnetometer samples received, '
-                  r'([\d\u2009]+) have no usable attitude and ([\d\u2009]+) are restored', body)
+                  r'([\d\u2009]+) (?:have|has) no usable attitude and ([\d\u2009]+) are restored',
+                  body)
     assert m is not None
     n_all, n_without, n_restored = (int(x.replace("\u2009", "")) for x in m.groups())
     assert n_all == n_without + n_restored

@@ -194,11 +194,19 @@ def test_summary_title_names_magalign_once():
     assert summary_title("coast survey 2024") == "magalign: coast survey 2024"
 
 
-def test_final_summary_in_words_within_100_columns(tmp_path):
-    """Each recording's verdict, why, findings and warnings: wrapped, never over 100 columns."""
+@pytest.mark.parametrize("columns", [None, "60", "80", "132"])
+def test_final_summary_in_words_within_the_terminal(tmp_path, monkeypatch, columns):
+    """Each recording's verdict, why, findings and warnings: wrapped to the terminal's width
+    (80 columns when unknown), never cutting a number."""
     import json as _json
 
-    from pipeline.app.commands.process import WIDTH, recording_summary
+    from pipeline.app.commands.process import recording_summary
+
+    if columns is None:
+        monkeypatch.delenv("COLUMNS", raising=False)
+    else:
+        monkeypatch.setenv("COLUMNS", columns)
+    WIDTH = int(columns or 80)
 
     folder = tmp_path / "line_07"
     folder.mkdir()
@@ -221,7 +229,7 @@ def test_final_summary_in_words_within_100_columns(tmp_path):
     assert all(len(x) <= WIDTH for x in lines), lines
     text = "\n".join(lines)
     assert lines[0].startswith("line_07: misalignment") and "  why: The model leaves" in text
-    assert "  found: The magnetometer's time stamps are late by 17.4" in text
+    assert "The magnetometer's time stamps are late by 17.40" in " ".join(text.split())
     assert "  found: A passing disturbance of 59 nT" in text
     assert "  warning: sample-and-hold: 29 %" in text
 
@@ -248,3 +256,40 @@ def test_calibrate_refusal_says_its_other_doubts_instead_of_pointing_at_a_report
     assert "report" not in line, line
     assert "\n" not in line
     assert "halves" in line and "hard-magnetic" in line, line
+
+
+def test_the_terminal_width_is_80_when_unknown_and_numbers_are_never_cut(monkeypatch):
+    from pipeline.core.style import GLUE, terminal_width, wrap
+
+    monkeypatch.delenv("COLUMNS", raising=False)
+    assert terminal_width() == 80  # pytest's captured output is no terminal
+    monkeypatch.setenv("COLUMNS", "120")
+    assert terminal_width() == 120
+    text = "a residual of 58431.123456789 nT and " + "12345678901234567890" * 5
+    lines = wrap(text, "  why: ", "       ", 40)
+    assert "58431.123456789" in " ".join(lines) and "12345678901234567890" * 5 in lines[-1]
+    assert wrap(f"x = 1.0{GLUE}\u00b1{GLUE}0.1", "", "", 40) == ["x = 1.0 \u00b1 0.1"]
+    assert all(len(line) <= 40 for line in wrap("word " * 40, "", "  ", 40))
+
+
+def test_calibrate_summary_fits_any_width_and_keeps_each_number_whole():
+    import numpy as np
+
+    from pipeline.app.commands.calibrate import summary
+    from pipeline.core.verdict import judge
+    from pipeline.model.calibration import Calibration
+
+    cal = Calibration(R_body_mag=np.eye(3), sigma_rotvec_deg=np.array([0.476, 0.383, 0.102]),
+                      B_enu_nT=np.array([94.5, 15537.4, -41382.8]), estimator="diagnose",
+                      residual_rms_nT=716.7, n_samples=9126, offset_nT=np.array([-308.5, 256.2,
+                                                                                  191.8]),
+                      sigma_offset_nT=np.array([30.5, 17.8, 17.7]), time_offset_s=0.01525,
+                      sigma_time_offset_s=0.00023, n_eff=982.0)
+    cal = cal.replace(verdict=judge(716.7, 663.0, heldout_rms_nT=718.4))
+    for width in range(50, 101, 7):
+        text = summary(cal, width)
+        assert all(len(line) <= width for line in text.splitlines()), (width, text)
+        flat = " ".join(text.split())
+        assert "9 126 samples" in flat and "of 9 126" in flat
+        assert "\u2212308.5 \u00b1 30.5" in flat and "+15.25 \u00b1 0.23 ms" in flat
+        assert "estimator diagnose" not in flat and "\u00a0" not in text

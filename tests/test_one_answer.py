@@ -86,3 +86,36 @@ def test_a_restricted_model_carries_the_shift_of_what_it_leaves_out(gradient_rec
     assert restr.verdict.status.value == "QUESTIONABLE"
     assert "field gradient" in restr.verdict.reason and "--estimate" in restr.verdict.reason
     assert "restricted" in r.stdout
+
+
+#: the findings whose params repeat a field of calibration.json (diagnosis effect -> key)
+_IN_CALIBRATION = {"hard_iron": "offset_nT", "time_offset": "time_offset_s"}
+
+
+@pytest.mark.parametrize("folder", sorted(
+    p for p in (Path(__file__).parent / "golden").rglob("diagnosis.json")))
+def test_findings_quote_the_final_model_as_the_calibration_does(folder):
+    """A finding and the calibration state one value of each quantity: the final model's.
+
+    The archived results of every recording (the real lab recordings among them, whose
+    sample-and-hold handling refits the model after the search named its terms).
+    """
+    diag = json.loads(folder.read_text())
+    cal = json.loads((folder.parent / "calibration.json").read_text())
+    for f in diag["findings"]:
+        p, e = f["params"], f["effect"]
+        if e in _IN_CALIBRATION:
+            key = _IN_CALIBRATION[e]
+            np.testing.assert_allclose(p[key], cal[key], rtol=1e-9, atol=0)
+            np.testing.assert_allclose(f["sigma"][key], cal[f"sigma_{key}"], rtol=1e-9, atol=0)
+        elif e == "soft_iron":
+            np.testing.assert_allclose(p["D"], cal["D"], rtol=1e-9, atol=0)
+        elif e == "sample_hold":
+            for k in ("native_rate_hz", "repeated_fraction"):
+                assert p[k] == pytest.approx(cal["effects"]["sample_hold"][k], rel=1e-12)
+                assert p[k] == pytest.approx(cal["sample_hold"][k], rel=1e-12)
+            assert f"native rate {p['native_rate_hz']:.1f} Hz" in " ".join(cal["warnings"])
+        elif e in cal.get("effects", {}) and isinstance(cal["effects"][e], dict):
+            for k, v in p.items():
+                if isinstance(v, int | float | list) and not isinstance(v, bool):
+                    np.testing.assert_allclose(v, cal["effects"][e][k], rtol=1e-9, atol=1e-12)

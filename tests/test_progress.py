@@ -182,3 +182,21 @@ def test_calibrate_on_terminal(recording, tmp_path):
     assert rc == 0, shown
     assert "magalign calibrate  valid: estimating (4/7)" in shown, shown
     assert "valid: reading" in shown and " s, estimating " in shown  # -v timings
+
+
+def test_the_share_done_never_goes_back():
+    """A run whose stage list grows after it started draws no smaller share than before."""
+    disp = pg.ProgressDisplay(1, "magalign calibrate", enabled=False)
+    disp.started -= 10.0
+
+    def pct() -> int:
+        return int(re.search(r"(\d+)%", disp.line(width=200)).group(1))
+
+    with pg.use_sink(pg.DirectSink("lab_03", disp.update)):
+        pg.stage("Ingest", 0, 3, ["Ingest", "Estimate", "Judge"])
+        pg.stage("Judge", 2, 3)
+        pg.detail("", 0.9, 1.0)
+        high = pct()
+        # the same run now learns of a long stage still to come
+        pg.stage("Diagnose", 2, 4, ["Ingest", "Estimate", "Diagnose", "Judge"])
+        assert pct() >= high

@@ -158,9 +158,29 @@ def test_diagnosis_section(tmp_path):
     assert "edges 2.0\u20133.0 s; 3.0\u20134.0 s" in sec
     assert "on held-out data from 12.9 to 8.9 nT" in sec  # first before, last after
     # a global effect as a sentence with units; no raw JSON, no BIC jargon in the rows
-    assert "early by 2.1 \u00b1 0.1 ms" in sec
+    assert "early by 2.10 \u00b1 0.10 ms" in sec  # the calibration table's digits
     assert "windows_s" not in sec and "{" not in sec and "BIC</th>" not in sec
     assert "very strong" in sec and "constant rotation rate" in sec
+
+
+def test_findings_in_the_order_the_evidence_was_measured():
+    """The table, diagnosis.json and the terminal: one order, the magnet found first first."""
+    from stages.diagnose.result import Diagnosis, Finding
+    from stages.report_text import rows
+
+    d = _diag()
+    rs = rows(d, 0)
+    assert [r.effects for r in rs] == [["hard_iron_step"], ["time_offset"]]
+    # the improvements chain: each row starts where the one before it ended
+    assert "from 12.9 to 8.9 nT" in rs[0].fit and "from 8.9 to 0.5 nT" in rs[1].fit
+    diag = Diagnosis(d["baseline"], d["final"], tuple(
+        Finding(f["effect"], f["params"], f["sigma"], f["evidence"], f["where"],
+                f["explanation"]) for f in d["findings"]), (("soft_iron", "constant"),))
+    text = diag.table(80)
+    assert text.index("1. hard_iron_step") < text.index("2. time_offset")
+    assert all(len(line) <= 80 for line in text.splitlines()), text
+    for jargon in ("dBIC", "stat", " > "):
+        assert jargon not in text, jargon
 
 
 def test_headline_first(tmp_path):
@@ -192,3 +212,14 @@ def test_metrics_table_folds_hundreds_of_segments():
     assert many.index("whole recording") < many.index("<details>") < many.index("segment_0")
     few = _metrics_html(result(3))
     assert "<details>" not in few and "segment_2" in few
+
+
+def test_a_gradient_reads_in_the_unit_that_shows_it():
+    from stages.report_text import per_metre, what
+
+    assert per_metre(2.0) == "2.0 nT/m" and per_metre(250.0) == "250 nT/m"
+    assert per_metre(3470.0) == "3.47 \u00b5T/m"
+    text = what({"effect": "field_gradient", "params": {
+        "G_nT_per_m": [[2.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]],
+        "position_frame": "enu"}})
+    assert "2.0 nT/m" in text and "0.00" not in text and "Frobenius" not in text

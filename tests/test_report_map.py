@@ -124,6 +124,8 @@ def test_counts_add_up(moving):
     a, b = (int(x.replace("\u2009", "")) for x in m.groups())
     assert a + b == rs.n_valid
     assert "left out of the fit only" in text
+    # the fit's count is a sentence of its own, not a clause on the metrics' count
+    assert "which used" not in text and "The calibration's fit used" in text
 
 
 def test_rerun_path_in_3d(moving):
@@ -152,3 +154,23 @@ def test_rerun_path_in_3d(moving):
     assert np.allclose(cols["/map/sources"]["Ellipsoids3D:half_sizes"][0], [[0.1, 0.2, 0.3]])
     (labels,) = cols["/map/events"]["Points3D:labels"]
     assert labels == ["disturbance 10-12 s"]
+
+
+def test_a_fit_of_every_message_is_not_said_to_leave_the_repeats_out():
+    """lab_02: the diagnosis kept its model on every message; 45 383 are no new readings."""
+    from types import SimpleNamespace
+
+    from stages.restore import RestoreTotals
+
+    totals = RestoreTotals(n_total=47639, n_valid=45440, n_used=45436)
+    part = SimpleNamespace(t_ns=[0])  # a chunk: the counts come from ``totals``
+    held = {"native_rate_hz": 202.2, "repeated_fraction": 0.29}
+    every = SimpleNamespace(checks={"fit_samples": {"n": 11346, "stride": 4, "of": 45383}},
+                            sample_hold=held, n_samples=11346)
+    text = counts_sentence(part, every, totals)
+    assert "left out of the fit" not in text and "new readings" not in text.split(". ")[-1]
+    assert "The calibration's fit used 45\u2009383 of the 45\u2009440 restored samples" in text
+    fewer = SimpleNamespace(checks={"fit_samples": {"n": 8000, "stride": 4, "of": 32000}},
+                            sample_hold=held, n_samples=8000)
+    text = counts_sentence(part, fewer, totals)
+    assert "the repeats are left out of the fit only" in text and "new readings" in text

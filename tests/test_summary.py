@@ -51,3 +51,13 @@ def test_campaign_figure_only_calibration_runs():
     assert campaign_figure([_row("bad", status="failed")]) is None
     png = campaign_figure([_row("a"), _row("b", rv=(1.1, -0.9, 1.3)), _row("l", frm="a")])
     assert png is not None and png.startswith(PNG)
+
+
+def test_a_recording_that_is_not_ok_says_why_under_its_row():
+    ok, doubt = _row("line_03"), _row("line_04")
+    doubt["verdict"] = "QUESTIONABLE"
+    doubt["verdict_reason"] = ("The two halves of the recording give rotations 0.85 deg apart, "
+                               "more than their sigmas allow.")
+    page = render_html([ok, doubt], list(ok), "demo")
+    assert "<tr class=why>" in page and page.count("<tr class=why>") == 1
+    assert "line_04 is QUESTIONABLE: The two halves of the recording give rotations 0.85" in page

@@ -114,3 +114,25 @@ def test_the_report_table_names_poorly_determined_axes():
     text = _undetermined_axes(cal)
     assert text.startswith("none; poorly determined") and "x (\u00b1 3.6\u00b0)" in text
     assert "z (\u00b1 4.5\u00b0)" in text and "y (" not in text
+
+
+def test_the_verdict_line_quotes_the_figure_the_verdict_judged():
+    """The held-out error, when the diagnosis measured one, in the line and in the file."""
+    from pipeline.core.verdict import verdict_line
+    from pipeline.model.calibration import Calibration
+
+    cal = Calibration(R_body_mag=np.eye(3), sigma_rotvec_deg=np.full(3, 0.01),
+                      B_enu_nT=np.array([0.0, 20000.0, -44000.0]), estimator="diagnose",
+                      residual_rms_nT=761.0, n_samples=100, time_offset_s=-1e-7)
+    held = cal.replace(verdict=judge(761.0, 655.0, heldout_rms_nT=822.0))
+    line = verdict_line(held)
+    assert "held-out error 822 nT vs noise 655 nT" in line and "761" not in line
+    assert "time offset 0.00 ms" in line or "time offset +0.00 ms" in line
+    assert "822 nT" in held.verdict.reason
+    back = Calibration.from_json(held.to_json())
+    assert back.verdict == held.verdict and verdict_line(back) == line
+    # not measured (calibrate without the diagnosis): the residual, and the file's verdict
+    # holds only the CONVENTIONS keys
+    plain = cal.replace(verdict=judge(761.0, 655.0))
+    assert "residual 761 nT vs noise 655 nT" in verdict_line(plain)
+    assert "heldout_rms_nT" not in plain.verdict.to_dict()

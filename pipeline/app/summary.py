@@ -353,6 +353,11 @@ def render_html(rows: Sequence[Mapping[str, Any]], cols: Sequence[str], title: s
         if r.get("error"):
             body.append(f"<tr class=err><td colspan={n_cols}>{html.escape(str(r['error']))}"
                         "</td></tr>")
+        elif r.get("verdict") not in (None, "OK") and r.get("verdict_reason"):
+            # why a recording is not OK, under its row: the status alone does not say
+            body.append(f"<tr class=why><td colspan={n_cols}>{html.escape(str(r['name']))} is "
+                        f"{html.escape(str(r['verdict']))}: "
+                        f"{html.escape(minus_text(str(r['verdict_reason'])))}</td></tr>")
     n_fail = sum(1 for r in rows if r.get("status") == "failed")
     png = campaign_figure(rows)
     fig = "" if png is None else (
@@ -375,6 +380,7 @@ td.failed {{ background: #fdd; }} td.ok, td.reused {{ background: #dfd; }}
 td.v-OK {{ background: #d4edda; }} td.v-QUESTIONABLE {{ background: #fff3cd; }}
 td.v-REFUSED {{ background: #f8d7da; }}
 tr.err td {{ text-align: left; background: #fff0f0; white-space: normal; }}
+tr.why td {{ text-align: left; background: #fffbea; white-space: normal; font-size: 12px; }}
 img {{ max-width: 100%; }}
 div.maps {{ display: flex; flex-wrap: wrap; gap: 0.8em; }}
 figure.map {{ margin: 0; width: 440px; }} figure.map img {{ width: 440px; }}

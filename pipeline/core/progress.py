@@ -302,6 +302,7 @@ class ProgressDisplay:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._width = 0
+        self._shown = 0.0  # the largest share done drawn so far
 
     def __enter__(self) -> ProgressDisplay:
         if self.enabled:
@@ -357,6 +358,10 @@ class ProgressDisplay:
         with self._lock:
             done = self.done
         frac = min(1.0, (done + sum(run_fraction(s) for s in states)) / self.total)
+        # progress only moves forward: a run whose stage list grows (or a worker's file read
+        # between two stages) would otherwise draw a smaller share done than before
+        with self._lock:
+            frac = self._shown = max(frac, self._shown)
         elapsed = now - self.started
         head = [self.title]
         if self.total > 1:

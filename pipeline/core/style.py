@@ -7,7 +7,10 @@ from __future__ import annotations
 
 import io
 import math
+import os
 import re
+import sys
+import textwrap
 from typing import Any
 
 #: x / east, y / north, z / up
@@ -164,3 +167,44 @@ def png(fig: Any) -> bytes:
     fig.savefig(buf, format="png")
     pyplot().close(fig)
     return buf.getvalue()
+
+
+#: columns of a terminal whose width is unknown (output to a file or a pipe)
+DEFAULT_COLUMNS = 80
+
+
+def terminal_width() -> int:
+    """Return the columns a printed line may use: the terminal's, 80 when unknown.
+
+    ``COLUMNS`` in the environment decides when set (as for every terminal program); then
+    the terminal standard output is; else (a file, a pipe) :data:`DEFAULT_COLUMNS`. A width
+    under 40 columns is taken as a mistake and replaced by the default.
+    """
+    cols = 0
+    env = os.environ.get("COLUMNS", "").strip()
+    if env.isdigit():
+        cols = int(env)
+    else:
+        try:
+            if sys.stdout is not None and sys.stdout.isatty():
+                cols = os.get_terminal_size(sys.stdout.fileno()).columns
+        except (OSError, ValueError, AttributeError):
+            cols = 0
+    return cols if cols >= 40 else DEFAULT_COLUMNS
+
+
+def wrap(text: str, first: str = "", rest: str = "", width: int | None = None) -> list[str]:
+    """Return ``text`` as lines of at most ``width`` columns (the terminal's by default).
+
+    Lines break between words only: a number, a path or a word is never cut (one longer
+    than the line stands on a line of its own). A no-break space (U+00A0) holds two words
+    on one line (a value and its sigma) and is printed as a space.
+    """
+    w = terminal_width() if width is None else int(width)
+    lines = textwrap.wrap(text, w, initial_indent=first, subsequent_indent=rest,
+                          break_on_hyphens=False, break_long_words=False) or [first.rstrip()]
+    return [line.replace(GLUE, " ") for line in lines]
+
+
+#: a space that :func:`wrap` does not break at (a value and its sigma stay on one line)
+GLUE = "\u00a0"

@@ -18,6 +18,8 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from pipeline.core.style import num
+
 F64 = NDArray[np.float64]
 
 #: Still windows are this long, s.
@@ -57,6 +59,9 @@ class Verdict:
         Per-axis noise measured in still windows (RMS over the axes), nT; None without any.
     residual_rms_nT : float
         The final model's residual, nT (per component RMS, as ``residual_rms_nT``).
+    heldout_rms_nT : float or None
+        The final model's error on samples it was not fitted to, nT, when the diagnosis
+        measured it: the figure the verdict judges and quotes. None when not measured.
 
     """
 
@@ -64,6 +69,7 @@ class Verdict:
     reason: str
     sensor_noise_nT: float | None
     residual_rms_nT: float
+    heldout_rms_nT: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """Return the CONVENTIONS ``verdict`` object."""
@@ -74,14 +80,19 @@ class Verdict:
             if self.sensor_noise_nT is None
             else float(self.sensor_noise_nT),
             "residual_rms_nT": float(self.residual_rms_nT),
+            # beside the CONVENTIONS keys, only when measured: a reader of the file quotes
+            # the figure the verdict judged
+            **({} if self.heldout_rms_nT is None
+               else {"heldout_rms_nT": float(self.heldout_rms_nT)}),
         }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Verdict:
         """Build from the ``verdict`` object of a calibration.json."""
         n = d.get("sensor_noise_nT")
+        h = d.get("heldout_rms_nT")
         return cls(Status(d["status"]), str(d["reason"]), None if n is None else float(n),
-                   float(d["residual_rms_nT"]))
+                   float(d["residual_rms_nT"]), None if h is None else float(h))
 
     def line(self) -> str:
         """Return the verdict as one line: status and reason."""
@@ -271,21 +282,22 @@ def judge(residual_rms_nT: float, sensor_noise: float | None, *,
     if refusals:
         cause, advice = plain_words(refusals[0])
         return Verdict(Status.REFUSED, _sentence(cause, advice, len(refusals) - 1 + len(doubts)),
-                       sensor_noise, res)
+                       sensor_noise, res, held)
     if ratio is not None and ratio > REFUSED_RESIDUAL_RATIO:
         cause = (f"{what}, {ratio:.0f} times the sensor's noise "
                  f"({sensor_noise:.0f} nT): something it does not model dominates")
-        return Verdict(Status.REFUSED, _sentence(cause, find, len(doubts)), sensor_noise, res)
+        return Verdict(Status.REFUSED, _sentence(cause, find, len(doubts)), sensor_noise, res,
+                       held)
     if ratio is not None and ratio > QUESTIONABLE_RESIDUAL_RATIO:
         cause = (f"{what}, {ratio:.1f} times the sensor's noise "
                  f"({sensor_noise:.0f} nT)")
         return Verdict(Status.QUESTIONABLE, _sentence(cause, find, len(doubts)), sensor_noise,
-                       res)
+                       res, held)
     if doubts:
         cause, advice = plain_words(doubts[0])
         return Verdict(Status.QUESTIONABLE, _sentence(cause, advice, len(doubts) - 1),
-                       sensor_noise, res)
-    return Verdict(Status.OK, _sentence(fit_words, None, 0), sensor_noise, res)
+                       sensor_noise, res, held)
+    return Verdict(Status.OK, _sentence(fit_words, None, 0), sensor_noise, res, held)
 
 
 class StatedCalibration(Protocol):
@@ -345,13 +357,16 @@ def verdict_line(cal: StatedCalibration, with_status: bool = True) -> str:
         + ", ".join(f"{c:+.2f}" for c in u) + "]"
     ]
     if cal.time_offset_s is not None:
-        parts.append(f"time offset {cal.time_offset_s * 1e3:+.1f} ms")
+        # the digits of the report's calibration table (one value everywhere)
+        parts.append(f"time offset {num(cal.time_offset_s * 1e3, '+.2f')} ms")
     if cal.verdict is not None:
         v = cal.verdict
+        # the figure the verdict judged: the error on held-out samples when it was measured
+        err = (f"residual {v.residual_rms_nT:.0f} nT" if v.heldout_rms_nT is None
+               else f"held-out error {v.heldout_rms_nT:.0f} nT")
         if v.sensor_noise_nT is not None:
-            parts.append(f"residual {v.residual_rms_nT:.0f} nT vs noise {v.sensor_noise_nT:.0f} nT")
-        else:
-            parts.append(f"residual {v.residual_rms_nT:.0f} nT")
+            err += f" vs noise {v.sensor_noise_nT:.0f} nT"
+        parts.append(err)
         if with_status:
             parts.append(v.status.value)
     return "; ".join(parts)

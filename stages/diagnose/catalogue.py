@@ -205,8 +205,8 @@ def identifiability_reason(
         return None
     if stats.total_turn_deg < 20.0 and kind is not EffectKind.FIELD_DRIFT:
         return (
-            f"the platform turned only {stats.total_turn_deg:.0f} deg in total: without rotation "
-            "every field-like term is the same constant as B_enu"
+            f"the platform turned only {stats.total_turn_deg:.0f} deg in total: without "
+            "turning, every term that acts like a field looks like the background field itself"
         )
     if kind is EffectKind.AXIS_TILT:
         if data.B_known_enu_nT is None:
@@ -216,16 +216,16 @@ def identifiability_reason(
             )
     if kind is EffectKind.HARD_IRON and single_axis and data.B_known_enu_nT is None:
         return (
-            "rotation about a single axis only (axis spread "
-            f"{stats.axis_spread:.3f}): the offset component along that axis is confounded with "
-            "the unknown field; rotate about a second axis or give a reference field"
+            "the sensor turned about a single axis only: the part of the offset along that "
+            "axis looks the same as the unknown field; turn it about a second axis or give a "
+            "reference field"
         )
     rate_kinds = (EffectKind.TIME_OFFSET, EffectKind.EDDY_CURRENT)
     if kind in rate_kinds and single_axis and stats.rate_cv < 0.05:
         return (
-            f"rotation at a constant rate about one axis (rate CV {stats.rate_cv:.3f}): a time "
-            "offset equals a fixed heading rotation, absorbed by the misalignment; vary the "
-            "rotation rate or rotate about more than one axis"
+            "the sensor turned at a steady rate about one axis: a time offset then looks the "
+            "same as a fixed turn of the heading, which the misalignment absorbs; vary the "
+            "rate or turn about more than one axis"
         )
     if kind is EffectKind.HEADING_DRIFT:
         if horizontal_fraction is not None and horizontal_fraction < MIN_HORIZONTAL_FRACTION:
@@ -251,7 +251,7 @@ def identifiability_reason(
             EffectKind.HEADING_DRIFT: "the field and the misalignment",
         }.get(kind, "terms already in the model")
         return (
-            f"the motion leaves this term confounded with {which} (only {efficiency:.1e} of its "
-            "weakest combination is independent of them)"
+            f"the motion leaves this term looking like {which}: it cannot be told apart from "
+            "them in this recording"
         )
     return None

@@ -6,11 +6,12 @@ What a diagnosis finds (``Signature``, ``Finding``, ``Diagnosis``, format
 
 from __future__ import annotations
 
-import textwrap
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
+from pipeline.core.style import minus, num, terminal_width, wrap
 
 FORMAT = "magalign.diagnosis/1"
 
@@ -100,74 +101,35 @@ class Diagnosis:
         """Names of the effects found."""
         return frozenset(f.effect for f in self.findings)
 
-    def table(self, width: int = 100) -> str:
-        """Return the printed table, no line longer than ``width`` characters.
+    def table(self, width: int | None = None) -> str:
+        """Return what the diagnosis found in words, no line longer than ``width``.
 
-        Effect, estimate, score statistic, dBIC and held-out RMS before > after; the
-        explanations are in diagnosis.json and the report.
+        One paragraph per finding in the order its evidence was measured (as diagnosis.json
+        and the report): the report's sentence with its size and units, then how much the
+        error on held-out data fell and how strongly the data ask for it; then the terms
+        this recording cannot determine. ``width``: the terminal's (80 when unknown).
+        Lines break between words, never inside a number.
         """
-        head = (f"{'effect':<15} {'estimate (1 sigma)':<40} {'stat':>8} {'dBIC':>8} "
-                f"{'held-out nT':>17}")
-        lines = [head, "-" * len(head)]
+        # the report's sentences: one wording of each finding everywhere
+        from stages.report_text import rows
+
+        w = terminal_width() if width is None else width
         b = self.baseline
-        lines.append(f"{'baseline':<15} {', '.join(b['effects']) or 'R_body_mag, B_enu':<40} "
-                     f"{'':>8} {'':>8} {b['heldout_rms_nT']:>17.1f}")
-        for fd in self.findings:
-            ev = fd.evidence
-            est = _estimate_text(fd)
-            if len(est) > 40:
-                est = est[:39] + "~"
-            held = f"{ev['heldout_rms_before_nT']:.1f} > {ev['heldout_rms_after_nT']:.1f}"
-            lines.append(f"{fd.effect:<15} {est:<40} {ev['statistic']:>8.1f} "
-                         f"{ev['delta_bic']:>8.1f} {held:>17}")
-        if not self.findings:
-            lines.append("(no findings: the baseline model explains the recording)")
-        for e, r in self.not_identifiable:
-            lines += textwrap.wrap(f"not identifiable: {e}: {r}", width,
-                                   subsequent_indent="    ")
-        return "\n".join(line[:width] for line in lines)
-
-
-def _estimate_text(fd: Finding) -> str:
-    p, s = fd.params, fd.sigma
-    if fd.effect in ("hard_iron", "hard_iron_step"):
-        o, so = p["offset_nT"], s["offset_nT"]
-        txt = "o=[" + ", ".join(f"{a:.1f}+-{b:.1f}" for a, b in zip(o, so, strict=True)) + "] nT"
-        if fd.effect == "hard_iron_step":
-            txt += " in " + _windows_text(p["windows_s"])
-        return txt
-    if fd.effect == "time_offset":
-        return f"tau={p['time_offset_s'] * 1e3:.2f}+-{s['time_offset_s'] * 1e3:.2f} ms"
-    if fd.effect == "soft_iron":
-        d = np.asarray(p["D"])
-        return "diag(D)=[" + ", ".join(f"{x:.4f}" for x in np.diag(d)) + "]"
-    if fd.effect == "eddy_current":
-        e = np.asarray(p["E_s"]) * 1e3
-        return "diag(E_s)=[" + ", ".join(f"{x:.2f}" for x in np.diag(e)) + "] ms"
-    if fd.effect == "field_drift":
-        return "p2p=[" + ", ".join(f"{x:.1f}" for x in p["peak_to_peak_nT"]) + "] nT ENU"
-    if fd.effect == "heading_drift":
-        return (f"{p['rate_deg_per_h']:.3g}+-{s.get('rate_deg_per_h', 0.0):.2g} deg/h, "
-                f"p2p {p['peak_to_peak_deg']:.3g} deg")
-    if fd.effect == "disturbance":
-        return f"peak {p['peak_nT']:.0f} nT in " + _windows_text(p["windows_s"])
-    if fd.effect == "axis_tilt":
-        return f"tilt {p['tilt_deg']:.3f} deg az {p['azimuth_deg']:.0f} deg"
-    if fd.effect == "field_gradient":
-        g = float(np.linalg.norm(np.asarray(p["G_nT_per_m"]))) / 1e3
-        sg = float(np.linalg.norm(np.asarray(s.get("G_nT_per_m", 0.0)))) / 1e3
-        return f"|G|={g:.2f}+-{sg:.2f} uT/m ({p['position_frame']})"
-    if fd.effect == "field_map":
-        return ("p2p=[" + ", ".join(f"{x:.0f}" for x in p["peak_to_peak_nT"])
-                + f"] nT ENU, {p['n_basis']} functions")
-    if fd.effect == "sample_hold":
-        return (f"native {p['native_rate_hz']:.1f} Hz, "
-                f"{100 * p['repeated_fraction']:.1f} % repeats")
-    return str(p)
-
-
-def _windows_text(w: list[list[float]]) -> str:
-    return ", ".join(f"[{a:.1f}, {b:.1f}) s" for a, b in w)
+        lines = wrap(f"Without further terms (misalignment and field only) the model's error on "
+                     f"held-out data is {num(b['heldout_rms_nT'], '.1f')} nT.", "", "", w)
+        rs = rows(self.to_dict(), 0)
+        if rs:
+            lines.append("Found, in the order the evidence was measured:")
+        for k, r in enumerate(rs, 1):
+            lead = f"{k}. "
+            lines += wrap(f"{', '.join(r.effects)}: {r.sentence} Error {r.fit}; evidence "
+                          f"{r.evidence}.", lead, " " * len(lead), w)
+        if not rs:
+            lines.append("No finding: the baseline model explains the recording.")
+        for e, why in self.not_identifiable:
+            lines += wrap(f"Cannot be told from this recording: {e.replace('_', ' ')}: {why}",
+                          "", "    ", w)
+        return "\n".join(minus(line) for line in lines)
 
 
 @dataclass(frozen=True)

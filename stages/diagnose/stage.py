@@ -28,6 +28,7 @@ from pipeline.model.effects import EFFECTS, IRON_PRIOR
 from pipeline.model.sample_hold import Handling, SampleHold, detect_sample_hold
 from pipeline.model.solve import one_blas_thread
 from stages.context import Context
+from stages.diagnose.catalogue import explanation
 from stages.diagnose.fit import FitResult, fit
 from stages.diagnose.model import (
     F64,
@@ -42,9 +43,15 @@ from stages.diagnose.model import (
     term_params,
     term_sigma,
 )
+from stages.diagnose.partial import held_words
 from stages.diagnose.result import DiagnoseConfig, Diagnosis, Finding
-from stages.diagnose.search import MAX_LAG_S, diagnose_data, scan_windows
-from stages.diagnose.statistics import effective_samples, inflation, param_covariance
+from stages.diagnose.search import MAX_LAG_S, _gradient_note, diagnose_data, scan_windows
+from stages.diagnose.statistics import (
+    effective_samples,
+    inflation,
+    param_covariance,
+    sigma_for,
+)
 from stages.estimate import carry_checks
 from stages.estimators.checks import (
     SplitCheck,
@@ -365,6 +372,64 @@ def sample_hold_finding(
             train, name)
 
 
+def with_final_values(diag: Diagnosis, before: FitResult, before_data: FitData,
+                      after: FitResult, after_data: FitData) -> Diagnosis:
+    """Return ``diag`` whose findings quote the values and sigmas of the ``after`` fit.
+
+    The search names each term and states its values at its own final fit (``before`` on
+    ``before_data``); a later refit of the same terms (the sample-and-hold handling) moves
+    them. The calibration holds the refit's values, so each finding's ``params``,
+    ``sigma`` and the numbers in its explanation are taken from it too: a reader then sees
+    one value of each quantity in every output. The evidence (how much each term lowered the
+    residual, step by step) stays as measured. Findings without a term of their own (the
+    sample-and-hold finding) are kept as they are.
+    """
+    terms = after.state.terms
+    if len(terms) != len(before.state.terms):
+        return diag
+    cov = param_covariance(after, after_data)
+    not_ident = {e: r for e, r in diag.not_identifiable}
+    note_old = _gradient_note(before, before_data, not_ident)
+    note_new = _gradient_note(after, after_data, not_ident)
+    out = list(diag.findings)
+    for i, term in enumerate(terms):
+        if i >= len(out) or out[i].effect != term.kind.value:
+            return diag  # not the search's order: leave the findings as measured
+        fd = out[i]
+        p_new = term_params(term, after.state.values[i], after.state, after_data)
+        text = fd.explanation
+        head_old = explanation(term.kind, fd.params, before_data.duration_s, note=note_old)
+        if text.startswith(head_old):
+            text = (explanation(term.kind, p_new, after_data.duration_s, note=note_new)
+                    + text[len(head_old):])
+        if term.partial:
+            held_old = held_words(before, i, before_data)
+            if held_old and held_old in text:
+                text = text.replace(held_old, held_words(after, i, after_data))
+        out[i] = dataclasses.replace(fd, params=p_new, sigma=sigma_for(after, i, cov, after_data),
+                                     explanation=text)
+    return dataclasses.replace(diag, findings=tuple(out))
+
+
+#: how the estimate's sample-and-hold warning begins (stages.estimate.fit_calibration)
+_SAMPLE_HOLD_WARNING = "sample-and-hold:"
+
+
+def _sample_hold_stated(cal: Calibration, sh: SampleHold) -> Calibration:
+    """Return ``cal`` stating the sample-and-hold figures of the final model's finding.
+
+    The estimate detects the repeats on the samples it fitted; the diagnosis detects them on
+    every message and its finding is the one the final model handles. The calibration's
+    ``sample_hold`` and its warning then quote the finding's native rate and fraction, so
+    that one figure stands in every output.
+    """
+    said = (f"{_SAMPLE_HOLD_WARNING} {100 * sh.repeated_fraction:.0f} % of the magnetometer "
+            f"messages repeat the previous one (native rate {sh.native_rate_hz:.1f} Hz, "
+            f"messages {sh.message_rate_hz:.1f} Hz); the repeats were left out")
+    warnings = tuple(said if w.startswith(_SAMPLE_HOLD_WARNING) else w for w in cal.warnings)
+    return cal.replace(sample_hold=sh.params(), warnings=tuple(dict.fromkeys(warnings)))
+
+
 def _model_values(term: Term, value: np.ndarray, data: FitData) -> dict[str, Any]:
     """Return the fitted values of a term that its CONVENTIONS params cannot reproduce.
 
@@ -657,7 +722,9 @@ class Diagnose:
             out = sample_hold_finding(diag, res, data, rec, al, sh, self.config,
                                       reference_field_enu_nT=self.reference_field_enu_nT)
             if out is not None:
+                before, before_data = res, data
                 diag, res, data, handling = out
+                diag = with_final_values(diag, before, before_data, res, data)
                 # the restore times the conversions as the fit that chose the handling did
                 extra["sample_hold"] = {**diag.findings[-1].params, "handling": handling}
         final = calibration_from(res, data, diag.findings)
@@ -677,6 +744,8 @@ class Diagnose:
             # any, stand for the physics that made the estimate's halves disagree.
             explained = split is not None or bool(diag.findings)
             final = carry_checks(cal, final, explained=explained)
+        if sh is not None and "sample_hold" in extra:
+            final = _sample_hold_stated(final, sh)
         if split is not None:
             final = final.replace(checks={**final.checks, "split_final": split.to_dict()})
             final = apply_split(final, split, " under the final model")

@@ -27,7 +27,7 @@ from pipeline.app.commands._options import (
 from pipeline.core import progress
 from pipeline.core.atomic import atomic_path
 from pipeline.core.errors import NotObservableError, RefusedError, UsageError
-from pipeline.core.style import num
+from pipeline.core.style import GLUE, minus, num, terminal_width, wrap
 from pipeline.core.verdict import Status, plain_words, verdict_line
 from pipeline.core.vocabulary import EstimateTerm, EstimatorKind
 from pipeline.run.options import ProcessOptions
@@ -147,38 +147,78 @@ def refusal_reason(cal) -> str:
     return reason + " Also: " + "; ".join(others) + "."
 
 
-def summary(cal) -> str:
-    """Format a few lines: rotation vector with sigmas, residual RMS, terms, warnings."""
+def _pm(values, sigmas, spec: str) -> str:
+    """Return ``+1.23 ± 0.04, ...``: each value with its sigma (``inf``: not determined)."""
+    sig = [None] * len(values) if sigmas is None else list(sigmas)
+    # a value and its sigma stay on one line when the text is wrapped
+    return ", ".join(num(v, spec) + ("" if s is None else
+                                     f"{GLUE}\u00b1{GLUE}" + (num(s, spec.lstrip("+"))
+                                                            if np.isfinite(s) else "inf"))
+                     for v, s in zip(values, sig, strict=True))
+
+
+def _count(n: float) -> str:
+    """Return a count with a space between thousands (11 999), as the report writes it.
+
+    The space is one :func:`~pipeline.core.style.wrap` does not break at: a count is one
+    number on one line.
+    """
+    return f"{int(round(float(n))):,}".replace(",", GLUE)
+
+
+def model_words(cal) -> str:
+    """Say in words what the calibration's model holds, for a person (no stage names)."""
+    terms = ["misalignment", "background field"]
+    if cal.offset_nT is not None:
+        terms.append("offset (hard iron)")
+    if cal.D is not None:
+        terms.append("soft iron")
+    if cal.time_offset_s is not None:
+        terms.append("time offset")
+    terms += [k.replace("_", " ") for k in (cal.effects or {})]
+    how = ("the model the diagnosis selected" if cal.estimator == "diagnose"
+           else f"the {cal.estimator} estimator")
+    return f"fitted with {how}: " + ", ".join(terms)
+
+
+def summary(cal, width: int | None = None) -> str:
+    """Format the result in words: the model, the values with their sigmas, the verdict.
+
+    The values carry the digits of the report's calibration table (one value everywhere);
+    every line is wrapped to ``width`` columns (the terminal's, 80 when unknown) between
+    words, so that no number is cut.
+    """
     rv = cal.rotvec_body_mag_deg
     sg = cal.sigma_rotvec_deg
-    lines = [
-        f"estimator {cal.estimator}, {cal.n_samples} samples, residual RMS "
-        f"{num(cal.residual_rms_nT, '.3f')} nT",
-        "rotation vector body<-mag [deg]: "
-        + ", ".join(
-            f"{num(v, '+.4f')} +- {num(s, '.4f') if np.isfinite(s) else 'inf'}"
-            for v, s in zip(rv, sg, strict=True)
-        ),
-        "B_enu [nT]: " + ", ".join(num(b, ".1f") for b in cal.B_enu_nT),
+    texts = [
+        model_words(cal) + f"; {_count(cal.n_samples)} samples, residual "
+        f"{num(cal.residual_rms_nT, '.1f')} nT RMS",
+        "misalignment as a rotation vector (deg, body x, y, z): " + _pm(rv, sg, "+.3f"),
+        "background field (nT, east, north, up): " + _pm(cal.B_enu_nT, cal.sigma_B_enu_nT,
+                                                         ".1f"),
     ]
     if cal.rotvec_from_nominal_deg is not None:
-        lines.append(
-            "from nominal [deg]: " + ", ".join(num(v, "+.4f") for v in cal.rotvec_from_nominal_deg)
-        )
+        texts.append("from the nominal mounting (deg, body x, y, z): "
+                     + _pm(cal.rotvec_from_nominal_deg, None, "+.3f"))
     if cal.offset_nT is not None:
-        lines.append("offset [nT]: " + ", ".join(num(v, ".2f") for v in cal.offset_nT))
+        texts.append("offset (nT, magnetometer x, y, z): "
+                     + _pm(cal.offset_nT, cal.sigma_offset_nT, ".1f"))
     if cal.time_offset_s is not None:
-        lines.append(
-            f"time offset: {num(cal.time_offset_s * 1e3, '.3f')} ms +- "
-            f"{num((cal.sigma_time_offset_s or 0) * 1e3, '.3f')} ms"
-        )
-    lines += [f"warning: {w}" for w in cal.warnings]
-    lines += [f"not estimated: {d['term']}: {d['reason']}" for d in cal.not_estimated]
+        sig = cal.sigma_time_offset_s
+        texts.append(f"time offset: {num(cal.time_offset_s * 1e3, '+.2f')}"
+                     + ("" if sig is None else f" \u00b1 {num(sig * 1e3, '.2f')}") + " ms")
+    texts += [f"warning: {w}" for w in cal.warnings]
+    texts += [f"not estimated: {d['term'].replace('_', ' ')}: {d['reason']}"
+              for d in cal.not_estimated]
     if cal.n_eff is not None:
-        lines.append(f"effective independent samples behind the sigmas: {num(cal.n_eff, '.0f')} of "
-                     f"{cal.n_samples} (correlated residuals)")
-
-    lines.append(verdict_line(cal))
-    if cal.verdict is not None:
-        lines.append(cal.verdict.reason)  # the status ends the line above
+        texts.append(f"the sigmas rest on {_count(cal.n_eff)} independent samples of "
+                     f"{_count(cal.n_samples)} (the residuals are correlated in time)")
+    w = terminal_width() if width is None else width
+    lines: list[str] = []
+    for t in texts:
+        lines += wrap(minus(t), "", "    ", w)
+    lines += wrap(minus(verdict_line(cal)), "", "    ", w)
+    if cal.verdict is not None:  # the status ends the line above
+        # calibrate writes no report: the doubts the reason counts are said here
+        lines += wrap(minus(refusal_reason(cal)), "  why: ", "       ", w)
     return "\n".join(lines)

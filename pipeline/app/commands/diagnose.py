@@ -20,9 +20,10 @@ from pipeline.app.commands._options import (
     exclude_from_args,
     field_from_args,
 )
+from pipeline.app.commands.calibrate import refusal_reason
 from pipeline.core import progress
 from pipeline.core.atomic import write_text_atomic
-from pipeline.core.style import unsigned_zeros_in
+from pipeline.core.style import minus, terminal_width, unsigned_zeros_in, wrap
 from pipeline.core.verdict import verdict_line
 from pipeline.run.options import ProcessOptions
 from pipeline.run.runner import analyse_recording
@@ -80,9 +81,14 @@ def run(args: argparse.Namespace) -> int:
                       json.dumps(unsigned_zeros_in(ctx.diagnosis.to_dict()), indent=2,
                                  allow_nan=False))
     write_text_atomic(out / "calibration.json", cal.to_json())
-    print(ctx.diagnosis.table())
-    print(verdict_line(cal))
-    print("explanations and the verdict's reason are in the files:")
+    width = terminal_width()
+    print(ctx.diagnosis.table(width))
+    lines = wrap(minus(verdict_line(cal)), "", "    ", width)
+    if cal.verdict is not None:
+        # diagnose writes no report: the doubts the reason counts are said here
+        lines += wrap(minus(refusal_reason(cal)), "  why: ", "       ", width)
+    print("\n".join(lines))
+    print("the explanation of each finding is in diagnosis.json:")
     print(f"wrote {out / 'diagnosis.json'}")
     print(f"wrote {out / 'calibration.json'}")
     return 0

@@ -17,7 +17,6 @@ import os
 import shutil
 import sys
 import tempfile
-import textwrap
 import warnings
 from pathlib import Path
 
@@ -42,7 +41,7 @@ from pipeline.app.summary import read_json, row_for, write_summary
 from pipeline.core import errors
 from pipeline.core import progress as pg
 from pipeline.core.errors import CampaignPartialFailure, InputError, UsageError
-from pipeline.core.style import minus
+from pipeline.core.style import minus, terminal_width, wrap
 from pipeline.core.vocabulary import EstimateTerm, EstimatorKind
 from pipeline.core.warm import warm_in_background
 from stages.report_text import rows as finding_rows
@@ -158,14 +157,13 @@ def _run_with_progress(camp, out: Path, executor, args: argparse.Namespace) -> l
                 os.environ[pg.ENV_DIR] = old_env
 
 
-#: no line of the final summary is longer (paths excepted: they are printed whole)
-WIDTH = 100
-
-
 def _wrapped(text: str, first: str, rest: str) -> list[str]:
-    """Return ``text`` wrapped to :data:`WIDTH` columns, after ``first`` then ``rest``."""
-    return textwrap.wrap(text, WIDTH, initial_indent=first, subsequent_indent=rest,
-                         break_on_hyphens=False, break_long_words=False) or [first.rstrip()]
+    """Return ``text`` wrapped to the terminal's width (80 columns when unknown).
+
+    After ``first`` then ``rest``; lines break between words, so a number or a path is
+    never cut (a path longer than the line stands whole on its own line).
+    """
+    return wrap(text, first, rest, terminal_width())
 
 
 def recording_summary(result: dict, row: dict, out: Path) -> list[str]:
@@ -173,13 +171,14 @@ def recording_summary(result: dict, row: dict, out: Path) -> list[str]:
 
     The verdict line as the report gives it, then (when it is not OK) why, then each
     diagnosis finding as the report's sentence (events that touch are one) and each warning
-    of the calibration, all in words, wrapped to :data:`WIDTH` columns.
+    of the calibration, all in words, wrapped to the terminal's width.
     """
     name = str(result["name"])
     line = (result.get("row") or {}).get("verdict_line")
     if not line:
         return []
-    lines = _wrapped(f"{name}: {line}", "", "    ")
+    # the report's signs (± and a true minus), as the lines below it
+    lines = _wrapped(f"{name}: {minus(line)}", "", "    ")
     folder = out / name
     cal = read_json(folder / "calibration.json") or {}
     verdict = cal.get("verdict") if isinstance(cal.get("verdict"), dict) else {}
@@ -268,11 +267,18 @@ def run(args: argparse.Namespace) -> int:
     print(f"results in {out}:")
     print(f"  summary  {out / html_path.name}   (open in a browser)")
     print(f"  table    {out / pq_path.name}")
+    width = terminal_width()
     for r in rows:
-        if r["rrd"]:
-            print(f"  {r['name']}: magalign view {out / r['rrd']}")
+        pad = " " * len(r["name"])
+        view = f"  {r['name']}: magalign view {out / r['rrd']}" if r["rrd"] else ""
+        if view and len(view) > width:
+            # a path is printed whole: under the name when the line would overflow
+            print(f"  {r['name']}:")
+            view, pad = f"    magalign view {out / r['rrd']}", ""
+        if view:
+            print(view)
         if r["report"]:
-            print(f"  {' ' * len(r['name'])}  report {out / r['report']}")
+            print(f"  {pad}  report {out / r['report']}")
     if failures:
         for name, why in failures:
             print(f"magalign: FAILED {name}: {why}", file=sys.stderr)
