@@ -162,3 +162,48 @@ def test_null_recordings_do_not_trip_the_halves(tmp_path):
         if _halves_doubts(cal):
             tripped.append((spec.name, "doubt"))
     assert not tripped
+
+
+# ----------------------------------------------------------------- the terms' sigmas
+
+
+def _offset_halves(shift_nT: float):
+    """A hard-iron fit to readings whose offset moves by ``shift_nT`` half way through."""
+    import dataclasses
+
+    from _diag_sim import make_data
+
+    from pipeline.core.vocabulary import EffectKind
+    from stages.diagnose.fit import fit
+    from stages.diagnose.model import ModelState, Term
+    from stages.diagnose.stage import covered_covariance, fit_halves
+    from stages.diagnose.statistics import param_covariance
+
+    o = np.array([120.0, -80.0, 40.0])
+    data, truth = make_data((Term(EffectKind.HARD_IRON_STEP, ((30.0, 1e9),)),),
+                            (np.r_[shift_nT, shift_nT, shift_nT],), duration_s=60.0,
+                            noise_nT=5.0, seed=3)
+    data = dataclasses.replace(data, y_nT=data.y_nT + o[None, :])  # a hard iron throughout
+    res = fit(ModelState(truth.R_body_mag, truth.B_enu_nT, (Term(EffectKind.HARD_IRON),),
+                         (np.zeros(3),)), data)
+    halves = fit_halves(res, data)
+    assert halves is not None
+    (ra, _), (rb, _) = halves.fits
+    d = np.asarray(ra.state.values[0]) - np.asarray(rb.state.values[0])
+    own = np.sqrt(np.diag(param_covariance(res, data))[6:9])
+    covered = np.sqrt(np.diag(covered_covariance(res, data, halves))[6:9])
+    return d, own, covered
+
+
+def test_a_terms_sigma_covers_what_the_halves_show():
+    """An offset that moved half way through: the halves disagree, and the sigma says so."""
+    d, own, covered = _offset_halves(60.0)
+    assert np.all(np.abs(d) > 20.0 * own)  # the fit's own sigma does not cover it
+    assert np.all(covered >= 0.4 * np.abs(d)) and np.all(covered <= np.abs(d))
+
+
+def test_halves_that_agree_leave_a_terms_sigma_near_its_own():
+    """A constant offset: the halves agree within their sigmas; the sigma stays near its own."""
+    d, own, covered = _offset_halves(0.0)
+    assert np.all(covered >= own)
+    assert np.all(covered <= 2.5 * own)

@@ -22,6 +22,7 @@ from stages.diagnose.model import ModelState, Term
 from stages.diagnose.nested import simplest
 from stages.diagnose.result import DiagnoseConfig, Finding
 from stages.diagnose.search import scan_windows
+from stages.diagnose.statistics import heldout_rms
 
 RATE_HZ = 285.714  # the lab magnetometer's rate
 
@@ -63,7 +64,8 @@ def _simplest(cur, data):
     """The nested move on ``cur`` with a placeholder finding per term."""
     findings = [Finding(effect=t.kind.value, params={}, sigma={}, evidence={}, where={},
                         explanation="") for t in cur.state.terms]
-    return simplest(cur, findings, data, DiagnoseConfig(), set())
+    cfg = DiagnoseConfig()
+    return simplest(cur, heldout_rms(cur.state, data, cfg), findings, data, cfg, set())
 
 
 def _two_pieces(offset_a, offset_b):

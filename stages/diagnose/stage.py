@@ -411,6 +411,18 @@ def with_final_values(diag: Diagnosis, before: FitResult, before_data: FitData,
     return dataclasses.replace(diag, findings=tuple(out))
 
 
+def with_sigmas(diag: Diagnosis, res: FitResult, data: FitData, cov: np.ndarray) -> Diagnosis:
+    """Return ``diag`` whose findings state the sigmas of ``cov`` (those of ``res``'s terms).
+
+    Findings without a term of their own, or not in the model's order, keep theirs.
+    """
+    out = list(diag.findings)
+    for i, term in enumerate(res.state.terms):
+        if i < len(out) and out[i].effect == term.kind.value:
+            out[i] = dataclasses.replace(out[i], sigma=sigma_for(res, i, cov, data))
+    return dataclasses.replace(diag, findings=tuple(out))
+
+
 #: how the estimate's sample-and-hold warning begins (stages.estimate.fit_calibration)
 _SAMPLE_HOLD_WARNING = "sample-and-hold:"
 
@@ -548,10 +560,15 @@ def with_undetermined_iron(cal: Calibration, res: FitResult, data: FitData,
         "doubts": list(cal.checks.get("doubts", ())) + [doubt]})
 
 
-def calibration_from(res: FitResult, data: FitData, findings: tuple[Finding, ...]) -> Calibration:
-    """Return the final model as a Calibration; terms beyond D, o, tau go to ``effects``."""
+def calibration_from(res: FitResult, data: FitData, findings: tuple[Finding, ...],
+                     cov: np.ndarray | None = None) -> Calibration:
+    """Return the final model as a Calibration; terms beyond D, o, tau go to ``effects``.
+
+    ``cov``: the parameter covariance its sigmas come from (default the fit's own).
+    """
     st = res.state
-    cov = param_covariance(res, data)
+    if cov is None:
+        cov = param_covariance(res, data)
     sd = np.sqrt(np.clip(np.diag(cov), 0, None))
     sig_rot = np.degrees(sd[0:3])
     D = st.D() if st.value(EffectKind.SOFT_IRON) is not None else None
@@ -591,28 +608,96 @@ def calibration_from(res: FitResult, data: FitData, findings: tuple[Finding, ...
     )
 
 
-def final_split(res: FitResult, data: FitData, excluded: np.ndarray | None = None):
+@dataclass(frozen=True)
+class Halves:
+    """The final model refitted on two contiguous halves of equal rotation information.
+
+    Attributes
+    ----------
+    t_split_s : float
+        Where the second half begins, s from the first sample.
+    fits : tuple of (FitResult, FitData)
+        Each half's fit and its samples.
+
+    """
+
+    t_split_s: float
+    fits: tuple[tuple[FitResult, FitData], tuple[FitResult, FitData]]
+
+
+def fit_halves(res: FitResult, data: FitData) -> Halves | None:
     """Refit the final model on two contiguous halves of equal rotation information.
 
-    Returns a :class:`stages.estimators.checks.SplitCheck` (the halves' rotations, their
-    difference and its chi-square under the covariance of the difference), or None when a
-    half is too small. A term that the motion barely determines, or physics the final model
-    still leaves out, shows up as halves that disagree. Each half's rotation covariance is
-    its block sandwich (:func:`half_rotation_cov`), as the estimator's halves are;
-    ``excluded``: directions the recording does not determine, not compared.
+    None when the recording or a half is too small. A term that the motion barely
+    determines, or physics the final model still leaves out, shows up as halves that
+    disagree.
     """
     if len(data) < 200:
         return None
     ev = evaluate(res.state, data)
     Jr = ev.jac[:, :, 0:3]
     first = info_halves(np.einsum("nip,nip->n", Jr, Jr))
-    out = []
+    fits = []
     for m in (first, ~first):
         sub = data.subset(m)
         if len(sub) < 50:
             return None
-        r = fit(res.state, sub)
-        out.append((r.state.R_body_mag, half_rotation_cov(r, sub)))
+        fits.append((fit(res.state, sub), sub))
+    t_split = float(data.t_s[np.flatnonzero(~first)[0]] - data.t_s[0])
+    return Halves(t_split, (fits[0], fits[1]))
+
+
+def covered_covariance(res: FitResult, data: FitData, halves: Halves | None) -> np.ndarray:
+    """Return the parameter covariance with each term's block covering what the halves show.
+
+    For each term the difference ``d`` of its values between the two halves is compared with
+    what the fits expect of it: ``4 C`` from the full recording's covariance ``C`` of the
+    block (halves of equal information each have twice its variance) and ``C_a + C_b`` from
+    the halves' own. The smaller of ``chi2 = d' E^+ d / rank(E)`` under the two is how far
+    the halves disagree beyond what either allows; where it exceeds 1 the term's block of the
+    full covariance is scaled by it (the scale factor of the Particle Data Group's averages,
+    Review of Particle Physics, Introduction, "Unconstrained averaging"). In one dimension
+    the sigma then becomes at least ``|d| / 2``: it covers what the recording's halves show.
+    A half that barely determines a term has a large covariance there, so its difference
+    does not widen the sigma. A term with held combinations (its values have more entries
+    than its free parameters) keeps its covariance. The rotation's own halves check is
+    :func:`final_split`.
+    """
+    cov = param_covariance(res, data)
+    if halves is None:
+        return cov
+    (ra, sa), (rb, sb) = halves.fits
+    ca, cb = param_covariance(ra, sa), param_covariance(rb, sb)
+    scale = np.ones(cov.shape[0])
+    for i, t in enumerate(res.state.terms):
+        o, k = res.state.offsets()[i], t.n_params()
+        d = np.asarray(ra.state.values[i], float) - np.asarray(rb.state.values[i], float)
+        if d.size != k or k == 0:
+            continue
+        blk = slice(o, o + k)
+        ratios = []
+        for e in (4.0 * cov[blk, blk], ca[blk, blk] + cb[blk, blk]):
+            dof = int(np.linalg.matrix_rank(e, hermitian=True))
+            ratios.append(float(d @ np.linalg.pinv(e, hermitian=True) @ d) / dof if dof
+                          else 0.0)
+        ratio = min(ratios)
+        if np.isfinite(ratio) and ratio > 1.0:
+            scale[blk] = np.sqrt(ratio)
+    return cov * np.outer(scale, scale)
+
+
+def final_split(res: FitResult, halves: Halves | None, excluded: np.ndarray | None = None):
+    """Compare the rotations of the final model's two halves (:func:`fit_halves`).
+
+    Returns a :class:`stages.estimators.checks.SplitCheck` (the halves' rotations, their
+    difference and its chi-square under the covariance of the difference), or None without
+    halves. Each half's rotation covariance is its block sandwich
+    (:func:`half_rotation_cov`), as the estimator's halves are; ``excluded``: directions the
+    recording does not determine, not compared.
+    """
+    if halves is None:
+        return None
+    out = [(r.state.R_body_mag, half_rotation_cov(r, sub)) for r, sub in halves.fits]
     (Ra, ca), (Rb, cb) = out
 
     def rv(R: np.ndarray) -> np.ndarray:
@@ -620,9 +705,8 @@ def final_split(res: FitResult, data: FitData, excluded: np.ndarray | None = Non
 
     d = rv(Ra @ Rb.T)
     chi2, dof = split_statistic(d, ca + cb, excluded)
-    t_split = float(data.t_s[np.flatnonzero(~first)[0]] - data.t_s[0])
-    return SplitCheck(np.degrees(rv(Ra)), np.degrees(rv(Rb)), np.degrees(d), chi2, t_split,
-                      dof)
+    return SplitCheck(np.degrees(rv(Ra)), np.degrees(rv(Rb)), np.degrees(d), chi2,
+                      halves.t_split_s, dof)
 
 
 def half_rotation_cov(r: FitResult, sub: FitData) -> np.ndarray:
@@ -727,11 +811,15 @@ class Diagnose:
                 diag = with_final_values(diag, before, before_data, res, data)
                 # the restore times the conversions as the fit that chose the handling did
                 extra["sample_hold"] = {**diag.findings[-1].params, "handling": handling}
-        final = calibration_from(res, data, diag.findings)
+        # every sigma a user reads covers what the recording's halves show
+        halves = fit_halves(res, data)
+        cov = covered_covariance(res, data, halves)
+        diag = with_sigmas(diag, res, data, cov)
+        final = calibration_from(res, data, diag.findings, cov)
         if extra:
             final = dataclasses.replace(final, effects={**(final.effects or {}), **extra})
 
-        split = final_split(res, data, undetermined_directions(final, cal))
+        split = final_split(res, halves, undetermined_directions(final, cal))
         if cal is not None:
 
             # one halves check decides, that of the model which is the answer: when the
