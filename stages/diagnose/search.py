@@ -347,6 +347,28 @@ def block_mean_var(x: np.ndarray, w: int) -> float:
     return float(np.sum(mad * mad) / 2.0)
 
 
+def _above_noise(contrib_nT: np.ndarray, t_s: np.ndarray, sigma_nT: float,
+                 gap_s: float = 1.0) -> list[list[float]]:
+    """Spans where a term's contribution stands above the noise, s (half-open).
+
+    Above three times the residual's per-component sigma, smoothed over 0.1 s; spans closer
+    than ``gap_s`` are one.
+    """
+    if len(t_s) < 3:
+        return []
+    dt = float(np.median(np.diff(t_s)))
+    w = max(1, int(round(0.1 / max(dt, 1e-6))))
+    mag = np.convolve(np.linalg.norm(contrib_nT, axis=1), np.ones(w) / w, mode="same")
+    out: list[list[float]] = []
+    for a, b in _excess_runs(mag, 0.0, 3.0 * sigma_nT):
+        t0, t1 = float(t_s[a]), float(t_s[min(b, len(t_s) - 1)])
+        if out and t0 - out[-1][1] < gap_s:
+            out[-1][1] = t1
+        else:
+            out.append([t0, t1])
+    return out
+
+
 def _axes(x: np.ndarray) -> list[str]:
     rms = np.sqrt(np.mean(np.asarray(x) ** 2, axis=0))
     if not np.any(rms > 0):
@@ -1152,6 +1174,14 @@ def _finding(
         axes = _axes(contrib_f[m]) if m.any() else []
     else:
         windows = [[0.0, float(data.t_s[-1])]]
+        if term.kind is EffectKind.LOCAL_SOURCE:
+            # local in space and present throughout: it acts where the sensor passes it,
+            # where its own field (the model with and without its values) stands out
+            off = dataclasses.replace(res.state, values=res.state.values[:i] + (
+                np.zeros_like(res.state.values[i]),) + res.state.values[i + 1:])
+            own = (evaluate(res.state, data, jacobian=False).y_nT
+                   - evaluate(off, data, jacobian=False).y_nT)
+            windows = _above_noise(own, data.t_s, robust_sigma(res.residual_nT)) or windows
         axes = _axes(contrib_f)
     stride = max(1, len(data) // 4000)
     regressor = None
