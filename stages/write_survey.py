@@ -49,6 +49,7 @@ from pipeline.core.errors import OutputError
 from pipeline.core.recording import GeodeticOrigin
 from pipeline.core.style import num
 from pipeline.io.mcap_decode import geodetic_to_local_enu, local_enu_to_geodetic
+from pipeline.model.forward import dipole_matrix
 
 #: columns of targets.csv, in order (CONVENTIONS)
 TARGET_COLUMNS = (
@@ -74,8 +75,6 @@ DEPTH_RADIUS_M = 5.0
 #: the equivalent sources' damping (ridge regularisation of verde's least squares on the
 #: column-scaled Jacobian): small, the data's noise is averaged out by the along-path blocks
 DAMPING = 1e-3
-#: mu0 / 4 pi, nT m / A (CONVENTIONS ``local_source``)
-MU0_4PI_NT = 100.0
 
 
 @dataclass(frozen=True)
@@ -223,13 +222,11 @@ def _round_spacing(x: float) -> float:
 def dipole_field_nT(p_m: np.ndarray, source_m: np.ndarray, moment_Am2: np.ndarray) -> np.ndarray:
     """Field of a point dipole at points ``p_m`` (N, 3), ENU nT (CONVENTIONS ``local_source``).
 
-    ``B = 100 nT (3 (m.u) u - m) / r^3``, ``u`` the unit vector from the source to the point.
+    The forward model's own dipole (:func:`pipeline.model.forward.dipole_matrix`), so that the
+    grid and the diagnosis evaluate one field.
     """
     r = np.asarray(p_m, dtype=float).reshape(-1, 3) - np.asarray(source_m, dtype=float)
-    rn = np.linalg.norm(r, axis=1, keepdims=True)
-    u = r / rn
-    m = np.asarray(moment_Am2, dtype=float)
-    return MU0_4PI_NT * (3.0 * (u @ m)[:, None] * u - m) / rn**3
+    return dipole_matrix(r) @ np.asarray(moment_Am2, dtype=float)
 
 
 @dataclass(frozen=True)

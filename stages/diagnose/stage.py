@@ -659,7 +659,8 @@ def covered_covariance(res: FitResult, data: FitData, halves: Halves | None) -> 
     Review of Particle Physics, Introduction, "Unconstrained averaging"). In one dimension
     the sigma then becomes at least ``|d| / 2``: it covers what the recording's halves show.
     A half that barely determines a term has a large covariance there, so its difference
-    does not widen the sigma. A term with held combinations (its values have more entries
+    does not widen the sigma, nor does a term that acts mostly in one half
+    (:data:`MIN_HALF_SHARE`). A term with held combinations (its values have more entries
     than its free parameters) keeps its covariance. The rotation's own halves check is
     :func:`final_split`.
     """
@@ -672,7 +673,7 @@ def covered_covariance(res: FitResult, data: FitData, halves: Halves | None) -> 
     for i, t in enumerate(res.state.terms):
         o, k = res.state.offsets()[i], t.n_params()
         d = np.asarray(ra.state.values[i], float) - np.asarray(rb.state.values[i], float)
-        if d.size != k or k == 0:
+        if d.size != k or k == 0 or not _in_both(t, sa, sb):
             continue
         blk = slice(o, o + k)
         ratios = []
@@ -684,6 +685,21 @@ def covered_covariance(res: FitResult, data: FitData, halves: Halves | None) -> 
         if np.isfinite(ratio) and ratio > 1.0:
             scale[blk] = np.sqrt(ratio)
     return cov * np.outer(scale, scale)
+
+
+#: Least share of a windowed term's samples each half must hold for the halves to be
+#: compared on it: a term that acts mostly in one half is determined there only, and the
+#: other half's value is its prior's, not a second measurement.
+MIN_HALF_SHARE = 0.25
+
+
+def _in_both(term: Term, a: FitData, b: FitData) -> bool:
+    """Whether both halves hold at least :data:`MIN_HALF_SHARE` of ``term``'s samples."""
+    if not term.windows_s:
+        return True
+    na = int(np.count_nonzero(term.indicator(a.t_s) > 0))
+    nb = int(np.count_nonzero(term.indicator(b.t_s) > 0))
+    return na + nb > 0 and min(na, nb) >= MIN_HALF_SHARE * (na + nb)
 
 
 def final_split(res: FitResult, halves: Halves | None, excluded: np.ndarray | None = None):

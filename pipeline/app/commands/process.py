@@ -267,6 +267,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"results in {out}:")
     print(f"  summary  {out / html_path.name}   (open in a browser)")
     print(f"  table    {out / pq_path.name}")
+    if (out / "anomaly.nc").is_file():
+        print(f"  grid     {out / 'anomaly.nc'}   (the campaign's anomaly grid)")
     width = terminal_width()
     for r in rows:
         pad = " " * len(r["name"])
@@ -279,6 +281,10 @@ def run(args: argparse.Namespace) -> int:
             print(view)
         if r["report"]:
             print(f"  {pad}  report {out / r['report']}")
+        # a survey's products, where the recording has positions
+        for what, name in (("targets", "targets.csv"), ("grid", "anomaly.nc")):
+            if (out / r["name"] / name).is_file():
+                print(f"  {pad}  {what:<6} {out / r['name'] / name}")
     if failures:
         for name, why in failures:
             print(f"magalign: FAILED {name}: {why}", file=sys.stderr)
