@@ -189,6 +189,20 @@ def _fit_text(first: dict[str, Any], last: dict[str, Any]) -> str:
     return " ".join(parts) or "\u2013"
 
 
+def _when(f: dict[str, Any]) -> str:
+    """When a finding acted: "whole recording", or the passes of a source fixed nearby.
+
+    A term present throughout has one ``where`` window from the first sample on; a source
+    fixed in the surroundings acts where the sensor passes it (its ``where`` windows).
+    """
+    wins = (f.get("where") or {}).get("windows_s") or []
+    if f.get("effect") != "local_source" or not wins or (
+            len(wins) == 1 and float(wins[0][0]) == 0.0):
+        return "whole recording"
+    spans = ", ".join(f"{float(a):.1f}\u2013{float(b):.1f}" for a, b in wins)
+    return f"{'passes' if len(wins) > 1 else 'pass'} at {spans} s"
+
+
 def rows(diagnosis: dict[str, Any], t0_ns: int) -> list[Row]:
     """Return the findings as table rows: local windows that touch are one event.
 
@@ -213,7 +227,7 @@ def rows(diagnosis: dict[str, Any], t0_ns: int) -> list[Row]:
                 local.append((float(a), float(b), f))
             continue
         ev = f.get("evidence") or {}
-        placed.append((k, Row(what(f), "whole recording", _fit_text(f, f),
+        placed.append((k, Row(what(f), _when(f), _fit_text(f, f),
                               evidence_words(ev.get("delta_bic")), [str(f.get("effect"))],
                               str(f.get("explanation", "")))))
     local.sort(key=lambda x: x[0])

@@ -280,11 +280,11 @@ def run(args: argparse.Namespace) -> int:
         if view:
             print(view)
         if r["report"]:
-            print(f"  {pad}  report {out / r['report']}")
+            print(f"  {pad}  {'report':<7} {out / r['report']}")
         # a survey's products, where the recording has positions
         for what, name in (("targets", "targets.csv"), ("grid", "anomaly.nc")):
             if (out / r["name"] / name).is_file():
-                print(f"  {pad}  {what:<6} {out / r['name'] / name}")
+                print(f"  {pad}  {what:<7} {out / r['name'] / name}")
     if failures:
         for name, why in failures:
             print(f"magalign: FAILED {name}: {why}", file=sys.stderr)
