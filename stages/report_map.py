@@ -162,8 +162,8 @@ def map_data(t_ns: np.ndarray, p_m: np.ndarray, field_nT: np.ndarray, model_nT: 
     for a, b, eff in merged_events(event_windows(diagnosis,
                                                  float(t_s[-1]) if len(t_s) else None)):
         here = ok & (t_s >= a) & (t_s < b)
-        if not np.any(here):
-            continue
+        if eff == "local_source" or not np.any(here):
+            continue  # a source's passes: its cross on the map marks where they were
         c = p[here].mean(axis=0)
         events.append({"effect": eff, "start_s": a, "end_s": b,
                        "x": float(c[0]), "y": float(c[1]), "z": float(c[2])})

@@ -349,10 +349,12 @@ def block_mean_var(x: np.ndarray, w: int) -> float:
 
 def _above_noise(contrib_nT: np.ndarray, t_s: np.ndarray, sigma_nT: float,
                  gap_s: float = 1.0) -> list[list[float]]:
-    """Spans where a term's contribution stands above the noise, s (half-open).
+    """Spans where a term's contribution stands out, s (half-open).
 
-    Above three times the residual's per-component sigma, smoothed over 0.1 s; spans closer
-    than ``gap_s`` are one.
+    Its magnitude smoothed over 0.1 s, above three times the residual's per-component sigma
+    (the noise) and a tenth of its own peak (its tails: over quiet survey data a buried
+    object's field stays above the noise for most of a line); spans closer than ``gap_s``
+    are one.
     """
     if len(t_s) < 3:
         return []
@@ -360,7 +362,7 @@ def _above_noise(contrib_nT: np.ndarray, t_s: np.ndarray, sigma_nT: float,
     w = max(1, int(round(0.1 / max(dt, 1e-6))))
     mag = np.convolve(np.linalg.norm(contrib_nT, axis=1), np.ones(w) / w, mode="same")
     out: list[list[float]] = []
-    for a, b in _excess_runs(mag, 0.0, 3.0 * sigma_nT):
+    for a, b in _excess_runs(mag, 0.0, max(3.0 * sigma_nT, 0.1 * float(mag.max()))):
         t0, t1 = float(t_s[a]), float(t_s[min(b, len(t_s) - 1)])
         if out and t0 - out[-1][1] < gap_s:
             out[-1][1] = t1
