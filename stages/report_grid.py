@@ -17,6 +17,7 @@ import numpy as np
 from pipeline.core import style
 from pipeline.core.style import minus, num
 from stages.report_map import CMAP, frame_axes
+from stages.write_survey import MASK_PER_LINE, read_grid
 
 #: columns of the report's target table: (targets.csv column, heading)
 TABLE_COLUMNS = (
@@ -86,8 +87,6 @@ def survey_html(out_dir: str | Path, path_m: np.ndarray | None,
     ``path_m``: the sensor's positions (N, 3) to draw over the grid; ``img``: how the report
     embeds a PNG.
     """
-    from stages.write_survey import MASK_PER_LINE, read_grid
-
     nc = Path(out_dir) / "anomaly.nc"
     if not nc.exists():
         return ""
@@ -127,8 +126,6 @@ def grid_points(out_dir: str | Path) -> tuple[np.ndarray, np.ndarray, float] | N
     anomaly as the report's figure is, radius m)``.
     """
     import matplotlib
-
-    from stages.write_survey import read_grid
 
     nc = Path(out_dir) / "anomaly.nc"
     if not nc.exists():

@@ -15,8 +15,11 @@ import threading
 #: import (docs/performance.md) and would cost every command that never uses it. rerun and
 #: matplotlib for the outputs that draw; dask and its ``distributed`` only with
 #: ``--dask-local`` or ``--scheduler``; ppigrf only with ``--igrf``; ``scipy.interpolate``
-#: only to simulate a scenario's field drift.
-LATE_IMPORTS = ("rerun", "matplotlib", "dask", "distributed", "ppigrf", "scipy.interpolate")
+#: only to simulate a scenario's field drift; harmonica, verde, xarray, ``scipy.spatial`` and
+#: ``scipy.linalg`` only to grid a recording with positions (stages.write_survey), not in the
+#: process that plans a campaign.
+LATE_IMPORTS = ("rerun", "matplotlib", "dask", "distributed", "ppigrf", "scipy.interpolate",
+                "harmonica", "verde", "xarray", "scipy.spatial", "scipy.linalg")
 
 
 def import_quietly(*names: str) -> None:

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.core.style import minus, num, terminal_width, wrap
+from stages.report_text import rows
 
 FORMAT = "magalign.diagnosis/1"
 
@@ -110,9 +111,7 @@ class Diagnosis:
         this recording cannot determine. ``width``: the terminal's (80 when unknown).
         Lines break between words, never inside a number.
         """
-        # the report's sentences: one wording of each finding everywhere
-        from stages.report_text import rows
-
+        # the report's sentences (report_text.rows): one wording of each finding everywhere
         w = terminal_width() if width is None else width
         b = self.baseline
         lines = wrap(f"Without further terms (misalignment and field only) the model's error on "

@@ -904,7 +904,7 @@ def diagnose_data(
         cur, cv_cur = canon, heldout_rms(canon.state, data, cfg)
     findings = _chain_evidence(findings, cur, base_fit, cv_base, cv_cur, data, cfg)
     cov_final = param_covariance(cur, data)
-    note = _gradient_note(cur, data, not_ident)
+    note = gradient_note(cur, data, not_ident)
     findings = [
         dataclasses.replace(
             f,
@@ -931,7 +931,7 @@ def diagnose_data(
     )
     return diag, cur
 
-def _gradient_note(cur: FitResult, data: FitData, not_ident: dict[str, str]) -> str | None:
+def gradient_note(cur: FitResult, data: FitData, not_ident: dict[str, str]) -> str | None:
     """Return what the test of a spatial gradient found, for the drift explanation.
 
     None without positions (the drift explanation then says that drift and gradient cannot

@@ -45,7 +45,7 @@ from stages.diagnose.model import (
 )
 from stages.diagnose.partial import held_words
 from stages.diagnose.result import DiagnoseConfig, Diagnosis, Finding
-from stages.diagnose.search import MAX_LAG_S, _gradient_note, diagnose_data, scan_windows
+from stages.diagnose.search import MAX_LAG_S, diagnose_data, gradient_note, scan_windows
 from stages.diagnose.statistics import (
     effective_samples,
     inflation,
@@ -389,8 +389,8 @@ def with_final_values(diag: Diagnosis, before: FitResult, before_data: FitData,
         return diag
     cov = param_covariance(after, after_data)
     not_ident = {e: r for e, r in diag.not_identifiable}
-    note_old = _gradient_note(before, before_data, not_ident)
-    note_new = _gradient_note(after, after_data, not_ident)
+    note_old = gradient_note(before, before_data, not_ident)
+    note_new = gradient_note(after, after_data, not_ident)
     out = list(diag.findings)
     for i, term in enumerate(terms):
         if i >= len(out) or out[i].effect != term.kind.value:
