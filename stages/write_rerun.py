@@ -326,7 +326,7 @@ class RrdStream:
             texts = [
                 f"segment {i}: {getattr(s.kind, 'value', s.kind)} "
                 f"{(s.end_ns - s.start_ns) * 1e-9:.1f} s"
-                + (f", twist {s.twist_deg:.0f} deg" if s.twist_deg is not None else "")
+                + ("" if s.twist_deg is None else f", turned {s.twist_deg:.0f} deg about its axis")
                 for i, s in enumerate(segments)
             ]
             rec.send_columns("segments/log", indexes=[rr.TimeColumn("time", timestamp=st)],

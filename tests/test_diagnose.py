@@ -324,3 +324,16 @@ def test_sample_hold_never_fires_without_repeats():
     # moving, noisy, no sample-and-hold
     diag = _run(_sim({}, seconds=30.0))
     assert "sample_hold" not in diag.effects, diag.table()
+
+
+@pytest.mark.parametrize("G_nT_per_m, words", [
+    (np.diag([2000.0, -1500.0, -500.0]), "2.55 uT/m in all"),  # steel indoors
+    (np.diag([2.0, 0.0, -2.0]), "2.8 nT/m in all"),  # a regional gradient outdoors
+])
+def test_gradient_words_use_the_unit_its_size_needs(G_nT_per_m, words):
+    """A survey's 2 nT/m gradient reads in nT/m; it read "0.00 uT/m" before."""
+    from pipeline.model.effects.base import EFFECTS
+
+    text = EFFECTS[K.FIELD_GRADIENT].remark({"G_nT_per_m": G_nT_per_m.tolist()}, 100.0)
+    assert words in text, text
+    assert "0.00 " not in text

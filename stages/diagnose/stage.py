@@ -374,20 +374,20 @@ def sample_hold_finding(
 
 def with_final_values(diag: Diagnosis, before: FitResult, before_data: FitData,
                       after: FitResult, after_data: FitData) -> Diagnosis:
-    """Return ``diag`` whose findings quote the values and sigmas of the ``after`` fit.
+    """Return ``diag`` whose findings quote the values of the ``after`` fit.
 
     The search names each term and states its values at its own final fit (``before`` on
     ``before_data``); a later refit of the same terms (the sample-and-hold handling) moves
-    them. The calibration holds the refit's values, so each finding's ``params``,
-    ``sigma`` and the numbers in its explanation are taken from it too: a reader then sees
-    one value of each quantity in every output. The evidence (how much each term lowered the
+    them. The calibration holds the refit's values, so each finding's ``params`` and the
+    numbers in its explanation are taken from it too: a reader then sees one value of each
+    quantity in every output. The sigmas are the final covariance's (:func:`with_sigmas`),
+    set once the halves have been compared. The evidence (how much each term lowered the
     residual, step by step) stays as measured. Findings without a term of their own (the
     sample-and-hold finding) are kept as they are.
     """
     terms = after.state.terms
     if len(terms) != len(before.state.terms):
         return diag
-    cov = param_covariance(after, after_data)
     not_ident = {e: r for e, r in diag.not_identifiable}
     note_old = gradient_note(before, before_data, not_ident)
     note_new = gradient_note(after, after_data, not_ident)
@@ -406,8 +406,7 @@ def with_final_values(diag: Diagnosis, before: FitResult, before_data: FitData,
             held_old = held_words(before, i, before_data)
             if held_old and held_old in text:
                 text = text.replace(held_old, held_words(after, i, after_data))
-        out[i] = dataclasses.replace(fd, params=p_new, sigma=sigma_for(after, i, cov, after_data),
-                                     explanation=text)
+        out[i] = dataclasses.replace(fd, params=p_new, explanation=text)
     return dataclasses.replace(diag, findings=tuple(out))
 
 

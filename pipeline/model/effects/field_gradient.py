@@ -22,6 +22,14 @@ def gradient_matrix(value: F64, yaw_rad: float = 0.0) -> F64:
     return np.tensordot(value, SOFT_BASIS, axes=1) @ rot_z(yaw_rad)
 
 
+def _per_metre(g_nT_per_m: float) -> str:
+    """Words for a gradient: uT/m indoors (steel: thousands of nT/m), nT/m in a survey."""
+    # a regional gradient of 2 nT/m would read 0.00 uT/m
+    if g_nT_per_m >= 1000.0:
+        return f"{g_nT_per_m / 1e3:.2f} uT/m"
+    return f"{g_nT_per_m:.2g} nT/m" if g_nT_per_m < 10.0 else f"{g_nT_per_m:.0f} nT/m"
+
+
 def yaw_of_gradient(M: F64) -> float:
     """Rotation about Up (rad) that makes ``M Q^T`` symmetric: the position frame's yaw.
 
@@ -67,11 +75,11 @@ class FieldGradient(Effect):
         """Return what the fitted values suggest (see :meth:`Effect.remark`)."""
         text = ""
         G = np.asarray(params["G_nT_per_m"], dtype=float)
-        frob = float(np.linalg.norm(G))
+        size = float(np.linalg.norm(G))
         text += (
-            f". The fitted gradient is {frob / 1e3:.2f} uT/m (Frobenius norm of G), "
-            f"{float(np.max(np.abs(G))) / 1e3:.2f} uT/m at most per component, about the "
-            "mean position"
+            f". The fitted gradient is {_per_metre(size)} in all (the root sum of squares of "
+            f"G's nine components), {_per_metre(float(np.max(np.abs(G))))} at most in one "
+            "component, about the mean position"
         )
         if params.get("position_frame") == "attitude_source_local":
             Q = yaw_of_gradient(G)
