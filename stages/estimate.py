@@ -10,12 +10,13 @@ from __future__ import annotations
 import importlib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
 from pipeline.core.errors import EstimationError, UsageError
 from pipeline.core.recording import AlignedSeries, Recording
+from pipeline.core.style import GLUE
 from pipeline.core.verdict import judge, sensor_noise_nT
 from pipeline.core.vocabulary import EstimateTerm, EstimatorKind, RobustLoss
 from pipeline.model.calibration import Calibration
@@ -23,7 +24,11 @@ from pipeline.model.forward import MAX_TIME_OFFSET_S
 from pipeline.model.sample_hold import detect_sample_hold, repeated
 from stages.context import Context
 from stages.estimators.base import EstimationProblem, Estimator, NoiseModel
+from stages.estimators.ml import fisher_rotation_crb_deg
 from stages.estimators.registry import ESTIMATORS
+
+if TYPE_CHECKING:
+    from stages.diagnose.result import Finding
 
 __all__ = [
     "Estimate",
@@ -180,19 +185,216 @@ def fit_calibration(
 #: costs about 870 nT on a 50,000 nT field, more than any sensor's noise.
 POOR_AXIS_SIGMA_DEG = 1.0
 
+#: check key of the rotation's sigma (deg, body x, y, z) under white noise: what the motion
+#: alone determines, the residual's correlation left out (the final model's)
+WHITE_SIGMA = "sigma_rotvec_white_deg"
+
+#: how a doubt about the rotation's own precision begins (judged again, it is replaced)
+POOR_AXIS_DOUBT = "the rotation about body "
+
+#: A finding whose windows cover more than this share of the recording acted throughout it:
+#: leaving its time out would leave nothing to fit.
+WHOLE_RECORDING_SHARE = 0.9
+
+
+@dataclass(frozen=True)
+class LargestEffect:
+    """The effect of the diagnosis that explains the most of the residual.
+
+    Attributes
+    ----------
+    effect : str
+        Its name (an ``EffectKind`` value).
+    size_nT : float or None
+        The magnitude of its field offset where it is one (``offset_nT``), nT.
+    windows_s : tuple of (float, float)
+        When it acted, s from the first sample; empty when it acted over the whole recording.
+
+    """
+
+    effect: str
+    size_nT: float | None
+    windows_s: tuple[tuple[float, float], ...]
+
+    def words(self) -> str:
+        """Return it for a person: its name, its size and when it acted."""
+        text = "a " + self.effect.replace("_", " ")
+        if self.size_nT is not None and np.isfinite(self.size_nT):
+            text += f" of {_count(self.size_nT, 100)} nT"
+        if self.windows_s:
+            text += " at " + ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in self.windows_s)
+        else:
+            text += " over the whole recording"
+        return text
+
+
+def _count(x: float, step: float = 1.0) -> str:
+    """Return ``x`` rounded to ``step`` with a no-break space between thousands (11 346)."""
+    return f"{int(round(float(x) / step) * step):,}".replace(",", GLUE)
+
+
+def largest_effect(findings: Sequence[Finding], effects: dict[str, Any] | None,
+                   duration_s: float) -> LargestEffect | None:
+    """Return the finding that lowered the residual's variance the most, or None.
+
+    Its size and windows are the final model's (``effects`` of the calibration) where that
+    model holds it as an effect of its own, else the finding's. Findings handled on the data
+    rather than as a term of the model (sample-and-hold) are not candidates.
+
+    Parameters
+    ----------
+    findings : sequence of Finding
+        The diagnosis' findings (``Diagnosis.findings``).
+    effects : dict or None
+        ``Calibration.effects`` of the final model.
+    duration_s : float
+        Length of the recording, s (a window covering nearly all of it is no window).
+
+    """
+    best, gain = None, 0.0
+    for f in findings:
+        ev = f.evidence or {}
+        before, after = ev.get("rms_before_nT"), ev.get("rms_after_nT")
+        if f.effect == "sample_hold" or before is None or after is None:
+            continue
+        g = float(before) ** 2 - float(after) ** 2
+        if np.isfinite(g) and g > gain:
+            best, gain = f, g
+    if best is None:
+        return None
+    params = (effects or {}).get(best.effect)
+    if not isinstance(params, dict):  # absent, or several terms of one kind
+        params = best.params
+    off = params.get("offset_nT")
+    size = None if off is None else float(np.linalg.norm(np.asarray(off, float)))
+    wins = params.get("windows_s") or (best.where or {}).get("windows_s") or ()
+    windows = tuple((float(a), float(b)) for a, b in wins)
+    span = sum(b - a for a, b in windows)
+    if duration_s > 0 and span >= WHOLE_RECORDING_SHARE * duration_s:
+        windows = ()
+    return LargestEffect(best.effect, size, windows)
+
+
+def _digits(x: float) -> str:
+    """Return a sigma to two significant digits in fixed notation (0.35, 0.0082; never 0.00)."""
+    dec = 2 if not x > 0 else int(min(max(2, 1 - np.floor(np.log10(x))), 6))
+    return f"{x:.{dec}f}"
+
+
+def _listed(items: Sequence[str]) -> str:
+    """Return ``x``, ``x and y``, ``x, y and z``."""
+    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
+
+
+def motion_sigma_deg(cal: Calibration, aligned: AlignedSeries,
+                     noise_nT: float | None) -> np.ndarray | None:
+    """Return the rotation's sigma (deg, body x, y, z) that the motion alone determines.
+
+    The white-noise sigma of the model that is the answer (``checks`` key
+    :data:`WHITE_SIGMA`, written by the maximum-likelihood estimator and by the diagnosis for
+    its final model). An estimator that does not write it (li2020, ellipsoid, dpi) gets the
+    Cramer-Rao bound of its own terms on the aligned attitudes under the measured sensor
+    noise (:func:`stages.estimators.ml.fisher_rotation_crb_deg`, the field unknown). None
+    when neither is available (no still window to measure the noise).
+    """
+    white = cal.checks.get(WHITE_SIGMA)
+    if white is not None:
+        return np.asarray(white, float)
+    if noise_nT is None or not np.isfinite(noise_nT) or noise_nT <= 0:
+        return None
+    terms = frozenset(t for t, v in ((EstimateTerm.OFFSET, cal.offset_nT),
+                                     (EstimateTerm.SOFT_IRON, cal.D)) if v is not None)
+    p = EstimationProblem(t_ns=aligned.t_ns, mag_nT=aligned.mag_nT,
+                          q_enu_body=aligned.q_enu_body, terms=terms,
+                          noise=NoiseModel(sigma_mag_nT=float(noise_nT)))
+    try:
+        return fisher_rotation_crb_deg(p, np.asarray(cal.R_body_mag, float),
+                                       np.asarray(cal.B_enu_nT, float),
+                                       D=cal.D, offset_nT=cal.offset_nT)
+    except (EstimationError, np.linalg.LinAlgError):
+        return None
+
+
+def poor_axis_doubts(cal: Calibration, motion_deg: np.ndarray | None,
+                     effect: LargestEffect | None = None) -> list[str]:
+    """Return the doubts about the axes the rotation is known to worse than the threshold.
+
+    A sigma over :data:`POOR_AXIS_SIGMA_DEG` about a body axis has one of two causes. Where
+    the motion alone (``motion_deg``, white noise and the geometry of the turns) already
+    leaves the axis that poorly determined, the motion is to blame and the remedy is to turn
+    about it. Where the motion determines it well, the sigma is wide because of what the
+    residual holds: samples correlated in time (few independent ones) or an effect the model
+    carries; the doubt quotes the motion's sigma and the independent samples, and names
+    ``effect``, the largest the diagnosis found (:func:`largest_effect`), if any. Each cause
+    is one doubt listing all its axes, the one with the widest sigma first.
+    """
+    sig = np.asarray(cal.sigma_rotvec_deg, float)
+    poor = [i for i in np.argsort(-sig) if sig[i] > POOR_AXIS_SIGMA_DEG]
+    if not poor:
+        return []
+    mot = np.full(3, np.inf) if motion_deg is None else np.asarray(motion_deg, float)
+    # an unknown motion sigma (inf) or a NaN one leaves the blame with the motion
+    by_motion = [i for i in poor if not mot[i] <= POOR_AXIS_SIGMA_DEG]
+    by_residual = [i for i in poor if i not in by_motion]
+    out: list[tuple[float, str]] = []
+    for motion_poor, axes in ((True, sorted(by_motion)), (False, sorted(by_residual))):
+        if not axes:
+            continue
+        widest = float(max(sig[i] for i in axes))
+        names = _listed(["xyz"[i] for i in axes])
+        head = (f"{POOR_AXIS_DOUBT}{names} is only known to "
+                f"{_listed([f'{sig[i]:.1f}' for i in axes])} deg")
+        if motion_poor:
+            one = len(axes) == 1
+            out.append((widest, f"{head}: the motion barely turned the sensor about "
+                                f"{'that axis' if one else 'those axes'}"))
+            continue
+        text = (f"{head}, though the motion alone determines it to "
+                f"{_listed([_digits(mot[i]) for i in axes])} deg: what the residual holds "
+                "widens the sigma")
+        if cal.n_eff is not None and np.isfinite(cal.n_eff):
+            n_eff = _count(cal.n_eff) if cal.n_eff >= 1 else "fewer than 1"
+            text += (f" (its samples are correlated in time: {n_eff} independent "
+                     f"samples of {_count(cal.n_samples)})")
+        if effect is not None:
+            text += f"; the largest effect in the model is {effect.words()}"
+        out.append((widest, text))
+    # the widest sigma's cause first: the verdict states the first doubt
+    return [text for _, text in sorted(out, key=lambda x: -x[0])]
+
 
 def with_verdict(cal: Calibration, aligned: AlignedSeries,
                  residual_rms_nT: float | None = None, diagnosed: bool = False,
-                 heldout_rms_nT: float | None = None) -> Calibration:
+                 heldout_rms_nT: float | None = None,
+                 effect: LargestEffect | None = None) -> Calibration:
     """Return ``cal`` with its verdict (:mod:`pipeline.core.verdict`) from the aligned samples.
 
     The sensor noise is measured in the still windows of ``aligned`` (repeated
     sample-and-hold messages left out); the fit's checks (``cal.checks``) give the refusals
     and doubts, and a rotation known to worse than :data:`POOR_AXIS_SIGMA_DEG` about a body
-    axis the motion does determine is one more. ``residual_rms_nT`` overrides the
-    calibration's own (a later, fuller model); ``diagnosed``: the diagnosis ran (the
-    verdict's advice points to its findings); ``heldout_rms_nT``: the final model's error
-    on held-out samples, when the diagnosis measured it (the verdict judges and quotes it).
+    axis the motion does determine is one more, attributed to the motion or to the residual
+    (:func:`poor_axis_doubts`).
+
+    Parameters
+    ----------
+    cal : Calibration
+        The calibration that is the answer.
+    aligned : AlignedSeries
+        Its samples.
+    residual_rms_nT : float, optional
+        Overrides the calibration's own residual (a later, fuller model).
+    diagnosed : bool
+        The diagnosis ran: the verdict's advice points to its findings.
+    heldout_rms_nT : float, optional
+        The final model's error on held-out samples, when the diagnosis measured it (the
+        verdict judges and quotes it).
+    effect : LargestEffect, optional
+        The largest effect the diagnosis found: a sigma the motion does not explain names it.
+
+    Returns
+    -------
+    Calibration
+
     """
     keep = ~repeated(aligned.mag_nT)
     noise = sensor_noise_nT(aligned.t_ns, aligned.mag_nT, aligned.q_enu_body, keep)
@@ -203,14 +405,11 @@ def with_verdict(cal: Calibration, aligned: AlignedSeries,
                         "observable; record rotations about at least two different axes")
     # a doubt about the rotation's own precision, kept beside the checks' (the report lists
     # them all; judged again, the previous one is replaced)
-    poor = "the rotation about body "
-    doubts = [d for d in cal.checks.get("doubts", ()) if not d.startswith(poor)]
+    doubts = [d for d in cal.checks.get("doubts", ()) if not d.startswith(POOR_AXIS_DOUBT)]
     sig = np.asarray(cal.sigma_rotvec_deg, float)
-    if len(cal.unobservable_axes_body) == 0 and np.all(np.isfinite(sig)):
-        i = int(np.argmax(sig))
-        if sig[i] > POOR_AXIS_SIGMA_DEG:
-            doubts.append(f"{poor}{'xyz'[i]} is only known to {sig[i]:.1f} deg: the motion "
-                          "barely turned the sensor about that axis")
+    if len(cal.unobservable_axes_body) == 0 and np.all(np.isfinite(sig)) and np.any(
+            sig > POOR_AXIS_SIGMA_DEG):
+        doubts += poor_axis_doubts(cal, motion_sigma_deg(cal, aligned, noise), effect)
     return cal.replace(verdict=judge(res, noise, refusals=refusals, doubts=doubts,
                                      diagnosed=diagnosed, heldout_rms_nT=heldout_rms_nT),
                        checks={**cal.checks, "doubts": doubts})
@@ -271,6 +470,8 @@ class Judge:
 
         The rotation axes the estimate found unobservable, carried through a fuller model
         that does not list them (:func:`carry_checks`), are listed in the calibration again.
+        A rotation sigma the motion does not explain names the diagnosis' largest effect
+        (:func:`largest_effect`).
         """
         diag = ctx.diagnosis
         cal = ctx.need_calibration()
@@ -284,9 +485,11 @@ class Judge:
         held = None
         if diag is not None and cal.estimator == "diagnose":
             held = (diag.final or {}).get("heldout_rms_nT")
+        effect = None if diag is None else largest_effect(diag.findings, cal.effects,
+                                                           diag.duration_s)
         return ctx.replace(calibration=with_verdict(
             cal, ctx.need_aligned(), diagnosed=diag is not None,
-            heldout_rms_nT=None if held is None else float(held)))
+            heldout_rms_nT=None if held is None else float(held), effect=effect))
 
 
 @dataclass(frozen=True)

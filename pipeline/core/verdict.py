@@ -162,6 +162,10 @@ def sensor_noise_nT(t_ns: NDArray[np.int64], mag_nT: F64, q_enu_body: F64,
     return float(np.sqrt(np.mean(per_axis**2)))
 
 
+#: body axes and their degrees in a doubt: ``x``, ``y and z``, ``x, y and z``
+_AXES = r"([xyz](?:(?:, | and )[xyz])*)"
+_DEGREES = r"([\d.]+(?:(?:, | and )[\d.]+)*)"
+
 #: A doubt in plain words: its cause (``re`` groups fill the template) and what to do.
 #: The checks write their doubts with the details a report shows; the verdict's reason gives
 #: a person the cause in degrees and nanotesla and one thing to do. Patterns are matched on
@@ -201,10 +205,45 @@ _PLAIN: tuple[tuple[str, str, str], ...] = (
      "this recording's own rotation differs from the calibration's by {0} deg about body "
      "{1}: the sensor may have moved on its mount",
      "calibrate again with this installation"),
-    (r"the rotation about body (\w) is only known to ([\d.]+) deg",
+    (rf"the rotation about body {_AXES} is only known to {_DEGREES} deg: the motion",
      "the rotation about body {0} is only known to +-{1} deg",
      "turn the sensor about body {0} as well"),
 )
+
+#: A poorly known rotation that the motion determines well: its sigma is wide because of
+#: what the residual holds (``stages.estimate.poor_axis_doubts`` writes it).
+_RESIDUAL_AXES = re.compile(
+    rf"the rotation about body {_AXES} is only known to {_DEGREES} deg, though the motion "
+    rf"alone determines it to {_DEGREES} deg: what the residual holds widens the sigma"
+    r"(?: \(its samples are correlated in time: ((?:fewer than )?[\d\u00a0]+) independent "
+    r"samples of ([\d\u00a0]+)\))?(?:; the largest effect in the model is (.+))?$")
+
+
+def _residual_axes_words(m: re.Match[str]) -> tuple[str, str]:
+    """Return the cause and the remedy of a :data:`_RESIDUAL_AXES` doubt.
+
+    The remedy acts on the largest effect in the model: when it acted for a while (a magnet
+    or magnetic object brought near the sensor), take it away or leave that time out;
+    when it acted throughout, or there is none, the residual shows what to look for.
+    """
+    axes, sig, motion, n_eff, n, effect = m.groups()
+    cause = (f"the rotation about body {axes} is only known to +-{sig} deg, though the motion "
+             f"alone determines it to +-{motion} deg: the residual is correlated in time")
+    if n_eff is not None:
+        cause += f" ({n_eff} independent samples of {n})"
+    if effect is None:
+        return cause, ("look at the residual (the report's residual figure) for what changes "
+                       "over the recording, and record again without it")
+    effect = effect.replace("_", " ")
+    cause += f" and the model holds {effect}"
+    windows = re.findall(r"([\d.]+)-([\d.]+) s", effect.split(" at ", 1)[-1])
+    if " at " not in effect or not windows:
+        return cause, (f"look at the residual in the report: the model holds {effect}; record "
+                       "again away from its cause")
+    when = ", ".join(f"{a}-{b} s" for a, b in windows)
+    exclude = " ".join(f"--exclude {a}:{b}" for a, b in windows)
+    return cause, (f"remove the magnet or magnetic object near the sensor during {when}, or "
+                   f"leave that time out with {exclude}")
 
 
 def plain_words(doubt: str) -> tuple[str, str | None]:
@@ -213,6 +252,9 @@ def plain_words(doubt: str) -> tuple[str, str | None]:
     ``cause`` is in degrees and nanotesla without internal names; ``what to do`` is None for
     a doubt without advice (its words up to the first colon are the cause).
     """
+    m = _RESIDUAL_AXES.match(doubt)
+    if m:
+        return _residual_axes_words(m)
     for pattern, cause, advice in _PLAIN:
         m = re.match(pattern, doubt)
         if m:

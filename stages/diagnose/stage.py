@@ -52,7 +52,7 @@ from stages.diagnose.statistics import (
     param_covariance,
     sigma_for,
 )
-from stages.estimate import carry_checks
+from stages.estimate import WHITE_SIGMA, carry_checks
 from stages.estimators.checks import (
     SplitCheck,
     apply_split,
@@ -847,6 +847,8 @@ class Diagnose:
             # any, stand for the physics that made the estimate's halves disagree.
             explained = split is not None or bool(diag.findings)
             final = carry_checks(cal, final, explained=explained)
+        # the verdict weighs the stated sigma against what the final model's motion gives
+        final = with_white_sigma(final, res, data)
         if sh is not None and "sample_hold" in extra:
             final = _sample_hold_stated(final, sh)
         if split is not None:
@@ -874,6 +876,30 @@ class Diagnose:
             # the user's model is the answer; the restore of the diagnosis' model is not its
             return ctx.replace(diagnosis=diag, calibration=left_out_shift(cal, final, diag))
         return ctx.replace(diagnosis=diag, calibration=final)
+
+
+def white_rotation_sigma_deg(res: FitResult, data: FitData) -> np.ndarray:
+    """Return the rotation's white-noise sigma (deg, body x, y, z) of the fit ``res``.
+
+    ``s^2 (J'J)^-1`` without the residual-correlation inflation of
+    :func:`~stages.diagnose.statistics.param_covariance`: what the motion determines when
+    every sample is independent, the geometry of the turns under the fit's own noise.
+    """
+    cov = param_covariance(res, data) / inflation(res.residual_nT, data.t_s)
+    return np.degrees(np.sqrt(np.clip(np.diag(cov)[0:3], 0.0, None)))
+
+
+def with_white_sigma(final: Calibration, res: FitResult, data: FitData) -> Calibration:
+    """Return ``final`` stating its own white-noise rotation sigma.
+
+    Check ``sigma_rotvec_white_deg``, deg about body x, y, z. The estimate's, carried by
+    :func:`stages.estimate.carry_checks`, was measured on another model (one without the
+    diagnosis' terms, whose residual holds them) and other samples; the verdict compares
+    the final model's stated sigma with what its motion alone determines
+    (:func:`white_rotation_sigma_deg` of ``res`` on ``data``).
+    """
+    white = white_rotation_sigma_deg(res, data)
+    return final.replace(checks={**final.checks, WHITE_SIGMA: white.tolist()})
 
 
 #: calibration terms of the estimate and the diagnosis effects they stand for

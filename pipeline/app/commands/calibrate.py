@@ -181,6 +181,25 @@ def model_words(cal) -> str:
     return f"fitted with {how}: " + ", ".join(terms)
 
 
+def event_words(cal) -> list[str]:
+    """Say the field offsets the final model holds for part of the recording (a magnet).
+
+    One line per event of an effect with windows and a field offset (``hard_iron_step``):
+    its size (the offset's magnitude, nT) and when it acted, in the final model's values.
+    """
+    out = []
+    for kind, value in (cal.effects or {}).items():
+        for p in value if isinstance(value, list) else [value]:
+            if not isinstance(p, dict) or p.get("offset_nT") is None or not p.get("windows_s"):
+                continue
+            size = float(np.linalg.norm(np.asarray(p["offset_nT"], float)))
+            when = ", ".join(f"{a:.1f}-{b:.1f}{GLUE}s" for a, b in p["windows_s"])
+            out.append(f"found: a {kind.replace('_', ' ')} of "
+                       f"{_count(round(size / 100.0) * 100.0)} nT at {when} (a magnet or "
+                       "magnetic object near the sensor)")
+    return out
+
+
 def summary(cal, width: int | None = None) -> str:
     """Format the result in words: the model, the values with their sigmas, the verdict.
 
@@ -207,6 +226,7 @@ def summary(cal, width: int | None = None) -> str:
         sig = cal.sigma_time_offset_s
         texts.append(f"time offset: {num(cal.time_offset_s * 1e3, '+.2f')}"
                      + ("" if sig is None else f" \u00b1 {num(sig * 1e3, '.2f')}") + " ms")
+    texts += event_words(cal)
     texts += [f"warning: {w}" for w in cal.warnings]
     texts += [f"not estimated: {d['term'].replace('_', ' ')}: {d['reason']}"
               for d in cal.not_estimated]
