@@ -1,4 +1,5 @@
-"""Progress per stage with the time left: on a terminal only, -v prints each stage's time."""
+"""Progress per stage: a redrawn line with the time left on a terminal, else one plain line
+per stage of each recording; -v prints each stage's time."""
 
 from __future__ import annotations
 
@@ -103,15 +104,69 @@ def test_library_calls_without_sink_do_nothing():
     pg.detail("nothing listens")
 
 
-def test_quiet_unless_terminal(monkeypatch):
+def test_redrawn_line_only_on_a_terminal(monkeypatch):
     monkeypatch.delenv(pg.ENV_MODE, raising=False)
     assert not pg.enabled_for(io.StringIO())
+    assert pg.mode_for(io.StringIO()) == pg.LOG  # a log of the stages instead
     monkeypatch.setenv(pg.ENV_MODE, "always")
     assert pg.enabled_for(io.StringIO())
+    monkeypatch.setenv(pg.ENV_MODE, "lines")
+    assert pg.mode_for(io.StringIO()) == pg.LOG
     monkeypatch.setenv(pg.ENV_MODE, "never")
-    assert not pg.enabled_for(io.StringIO())
+    assert not pg.enabled_for(io.StringIO()) and pg.mode_for(io.StringIO()) == pg.OFF
     monkeypatch.setenv(pg.ENV_MODE, "always")
-    assert not pg.enabled_for(io.StringIO(), disable=True)  # --no-progress wins
+    assert pg.mode_for(io.StringIO(), disable=True) == pg.OFF  # --no-progress wins
+
+
+def _three_stages(disp: pg.ProgressDisplay, name: str) -> None:
+    with pg.use_sink(pg.DirectSink(name, disp.update)):
+        pg.stage("Ingest", 0, 3, ["Ingest", "Diagnose", "Report"])
+        for _ in range(50):
+            pg.detail("search 1, candidate 3/9", 0.5, 1.0)  # never a line of its own
+        pg.stage("Diagnose", 1, 3)
+        pg.stage("Report", 2, 3)
+        disp.run_done(name)
+
+
+def test_log_waits_then_tells_every_stage_once():
+    """Without a terminal: nothing while the command is young, then each stage once."""
+    buf = io.StringIO()
+    disp = pg.ProgressDisplay(1, "magalign calibrate", stream=buf, log=True, log_after_s=60.0)
+    _three_stages(disp, "lab_03")
+    disp.draw()
+    assert buf.getvalue() == ""  # the run ended within its first minute: nothing yet
+    disp.started -= 61.0
+    disp.draw()
+    disp.draw()  # a second poll prints nothing new
+    assert buf.getvalue().splitlines() == [
+        "magalign: lab_03: reading (1/3), 1:01 elapsed",
+        "magalign: lab_03: diagnosing (2/3), 1:01 elapsed",
+        "magalign: lab_03: writing report (3/3), 1:01 elapsed",
+        "magalign: lab_03: done, 1:01 elapsed"]
+
+
+def test_log_of_a_command_that_ends_at_once_is_empty():
+    """A command that ends (or refuses its input) before the log starts prints no stage."""
+    buf = io.StringIO()
+    with pg.ProgressDisplay(1, "magalign calibrate", stream=buf, log=True,
+                            log_after_s=pg.LOG_AFTER_S) as disp:
+        with pg.use_sink(pg.DirectSink("empty", disp.update)):
+            pg.stage("Ingest", 0, 1)
+    assert buf.getvalue() == ""
+
+
+def test_log_line_never_cuts_a_number(monkeypatch):
+    monkeypatch.setenv("COLUMNS", "80")
+    buf = io.StringIO()
+    disp = pg.ProgressDisplay(12, "magalign process", stream=buf, log=True)
+    disp.started -= 3725.0
+    _three_stages(disp, "a_recording_with_a_very_long_name_from_the_second_survey_2026-11-20")
+    disp.draw()
+    lines = buf.getvalue().splitlines()
+    assert all(len(ln) <= 80 for ln in lines), lines
+    text = " ".join(ln.strip() for ln in lines)
+    assert "_2026-11-20: writing report (3/3), 1:02:05 elapsed" in text
+    assert "done (1 of 12 recordings), 1:02:05 elapsed" in text
 
 
 def test_drawn_line_is_cleared():
@@ -141,12 +196,73 @@ def test_process_single_recording_on_terminal(recording, tmp_path):
     assert "valid: reading" in shown and " s, " in shown
 
 
-def test_nothing_on_stderr_that_is_not_a_terminal(recording, tmp_path):
-    res = subprocess.run(MAGALIGN + ["process", str(recording), "--out", str(tmp_path / "o")],
-                         cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=600)
+#: one line of the log: the recording, the stage and its count, the time since the start
+STAGE_LINE = re.compile(r"magalign: (?P<name>\w+): (?P<what>[A-Za-z ]+) \((?P<k>\d+)/(?P<n>\d+)\), "
+                        r"\d+:\d\d elapsed")
+END_LINE = re.compile(r"magalign: (?P<name>\w+): done( \(\d+ of \d+ recordings\))?, "
+                      r"\d+:\d\d elapsed")
+
+
+def _check_log(stderr: str, name: str, complete: bool) -> list[str]:
+    """Check a log of the stages of run ``name``; return its stages' words in order.
+
+    Every line plain (no carriage return, no escape code) and within 80 columns; each stage
+    once, in order, with one total; the run's end last. ``complete``: from the first stage.
+    """
+    assert "\r" not in stderr and "\x1b" not in stderr, repr(stderr)
+    lines = [ln for ln in stderr.splitlines() if ln.startswith(f"magalign: {name}: ")]
+    assert all(len(ln) <= 80 for ln in stderr.splitlines()), stderr
+    stages = [m for m in map(STAGE_LINE.fullmatch, lines) if m]
+    if not complete and not lines:
+        return []
+    assert END_LINE.fullmatch(lines[-1]) and len(stages) == len(lines) - 1, lines
+    counts = [int(m["k"]) for m in stages]
+    assert counts == list(range(counts[0], counts[0] + len(counts))), lines
+    assert len({m["n"] for m in stages}) == 1 and counts[-1] == int(stages[0]["n"]), lines
+    if complete:
+        assert counts[0] == 1, lines
+    return [m["what"] for m in stages]
+
+
+@pytest.mark.parametrize("command", ["process", "calibrate"])
+def test_one_plain_line_per_stage_without_a_terminal(recording, tmp_path, command):
+    """Not a terminal (a log, CI): one line per stage, in order, the same in every mode."""
+    argv = MAGALIGN + [command, str(recording), "--out", str(tmp_path / "o")]
+    res = subprocess.run(argv, cwd=tmp_path, env=_env(**{pg.ENV_MODE: "lines"}),
+                         capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr
-    assert "\r" not in res.stderr and "elapsed" not in res.stderr
-    assert "left ~" not in res.stdout
+    stages = _check_log(res.stderr, "valid", complete=True)
+    assert stages[:7] == ["reading", "aligning", "segmenting", "estimating", "checking",
+                          "diagnosing", "judging"], res.stderr
+    if command == "process":
+        assert stages[7:9] == ["restoring", "metrics"] and stages[-1] == "writing report"
+    assert "elapsed" not in res.stdout  # stdout stays what other programs read
+    # the default: the same lines, those of the first seconds held until the log starts
+    res = subprocess.run(argv, cwd=tmp_path, env=_env(), capture_output=True, text=True,
+                         timeout=600)
+    assert res.returncode == 0, res.stderr
+    _check_log(res.stderr, "valid", complete=False)
+    assert "elapsed" not in res.stdout
+    res = subprocess.run(argv, cwd=tmp_path, env=_env(**{pg.ENV_MODE: "never"}),
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0 and res.stderr == "", res.stderr
+
+
+def test_campaign_workers_log_each_stage_once(recording, tmp_path):
+    """Recordings in worker processes: each one's stages once and in order, then its end."""
+    folder = tmp_path / "in"
+    folder.mkdir()
+    for name in ("line_a", "line_b"):
+        (folder / f"{name}.mcap").write_bytes(recording.read_bytes())
+    res = subprocess.run(MAGALIGN + ["process", str(folder), "--out", str(tmp_path / "o"),
+                                     "--jobs", "2"], cwd=tmp_path,
+                         env=_env(**{pg.ENV_MODE: "lines"}), capture_output=True, text=True,
+                         timeout=600)
+    assert res.returncode == 0, res.stderr
+    for name in ("line_a", "line_b"):
+        assert _check_log(res.stderr, name, complete=True)[-1] == "writing report"
+    ends = [ln for ln in res.stderr.splitlines() if END_LINE.fullmatch(ln)]
+    assert [e.split(" (")[1].split(" of")[0] for e in ends] == ["1", "2"], ends
 
 
 def test_diagnose_reports_candidate_search(recording):
@@ -171,7 +287,7 @@ def test_diagnose_on_terminal(recording, tmp_path):
                             _env(**{pg.ENV_MODE: "always"}))
     assert rc == 0, shown
     # each stage is drawn as it starts, however short
-    for label in ("reading (1/1)", "aligning (2/7)", "estimating (4/7)", "diagnosing (6/7)"):
+    for label in ("reading (1/7)", "aligning (2/7)", "estimating (4/7)", "diagnosing (6/7)"):
         assert f"magalign diagnose  valid: {label}" in shown, shown
 
 

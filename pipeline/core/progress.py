@@ -1,5 +1,8 @@
 """Progress of long work: per stage, with an estimate of the time left.
 
+On a terminal one line is redrawn; elsewhere (a log file, a pipe, CI) each stage of each
+recording is told once, on a line of its own.
+
 More in docs/modules.md, ``pipeline.core.progress``.
 """
 
@@ -15,10 +18,27 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, TextIO
 
+from pipeline.core.style import terminal_width, wrap
+
 #: folder where worker processes write their progress files (set by the parent command)
 ENV_DIR = "MAGALIGN_PROGRESS_DIR"
-#: ``auto`` (default: only when stderr is a terminal), ``always`` or ``never``
+#: ``auto`` (default: the redrawn line on a terminal, else one line per stage of work that
+#: lasts), ``always`` (the redrawn line), ``lines`` (one line per stage, from the start) or
+#: ``never``
 ENV_MODE = "MAGALIGN_PROGRESS"
+
+#: the redrawn line on a terminal (:func:`mode_for`)
+LINE = "line"
+#: one plain line per stage (no carriage return, no colour): a log keeps every line
+LOG = "log"
+#: nothing
+OFF = "off"
+
+#: In ``auto`` mode without a terminal, the stage lines of a command wait this long (seconds)
+#: and are not printed if it ends first: a command that refuses its input (one error line,
+#: exit 2) or ends at once prints nothing else, while a long one logs every stage, those of
+#: its first seconds included.
+LOG_AFTER_S = 5.0
 
 #: the progress line's width when the terminal does not say (the classic 80 columns, less
 #: one: a line as wide as the terminal wraps on some)
@@ -63,8 +83,13 @@ STAGE_LABELS: dict[str, str] = {
     "Metrics": "metrics",
     "WriteResults": "writing results",
     "WriteCorrectedMcap": "writing corrected MCAP",
+    "WriteSurvey": "writing targets and grid",
     "WriteRerun": "writing rerun recording",
     "Report": "writing report",
+    "Exclude": "leaving out windows",
+    "NoteExclusions": "noting what was left out",
+    "CheckApplied": "checking the calibration",
+    "AxisTiltNote": "turntable axis tilt",
 }
 
 
@@ -92,11 +117,15 @@ class _RunState:
         self.started = time.time()
         self.stage_started = self.started
         self.timings: dict[str, float] = {}
+        # every stage started, in order, as [index, name, wall time]: a display that polls
+        # (a worker's file) may miss a short stage in the current state alone
+        self.history: list[list[Any]] = []
 
     def to_dict(self) -> dict[str, Any]:
         return {"name": self.name, "stages": self.stages, "index": self.index,
                 "detail": self.detail, "fraction": self.fraction, "started": self.started,
-                "stage_started": self.stage_started, "timings": self.timings}
+                "stage_started": self.stage_started, "timings": self.timings,
+                "history": list(self.history)}
 
 
 class _ProgressSink:
@@ -122,6 +151,8 @@ class _ProgressSink:
         if 0 <= index < len(st.stages):
             st.stages[index] = name
         st.index, st.detail, st.fraction, st.stage_started = index, "", 0.0, now
+        if name:
+            st.history.append([index, name, now])
         self.publish(True)
 
     def finish(self) -> None:
@@ -227,19 +258,53 @@ def detail(text: str, done: float = 0.0, total: float | None = None) -> None:
 
 # ----------------------------------------------------------------------------- display side
 
-def enabled_for(stream: TextIO, disable: bool = False) -> bool:
-    """Whether to draw progress on ``stream``: a terminal, unless :data:`ENV_MODE` says else."""
-    if disable:
-        return False
+def _asked() -> str:
+    """Return :data:`ENV_MODE` as one of ``auto``, ``always``, ``lines``, ``never``."""
     mode = os.environ.get(ENV_MODE, "auto").strip().lower()
     if mode in ("never", "0", "off", "no"):
-        return False
+        return "never"
     if mode in ("always", "1", "on", "yes"):
-        return True
+        return "always"
+    return "lines" if mode in ("lines", "log") else "auto"
+
+
+def mode_for(stream: TextIO, disable: bool = False) -> str:
+    """How to show progress on ``stream``: :data:`LINE`, :data:`LOG` or :data:`OFF`.
+
+    The redrawn line on a terminal, one plain line per stage elsewhere (a log file, a
+    pipe); :data:`ENV_MODE` decides first, and ``disable`` (``--no-progress``) before it.
+    """
+    asked = "never" if disable else _asked()
+    if asked == "never":
+        return OFF
+    if asked == "always":
+        return LINE
+    if asked == "lines":
+        return LOG
     try:
-        return bool(stream.isatty())
+        tty = bool(stream.isatty())
     except (AttributeError, ValueError):
-        return False
+        tty = False
+    return LINE if tty else LOG
+
+
+def enabled_for(stream: TextIO, disable: bool = False) -> bool:
+    """Whether to draw the redrawn progress line on ``stream`` (:func:`mode_for` is LINE)."""
+    return mode_for(stream, disable) == LINE
+
+
+def display_for(total: int, title: str, *, stream: TextIO | None = None,
+                disable: bool = False, folder: str | Path | None = None) -> ProgressDisplay:
+    """Return the :class:`ProgressDisplay` a command shows on ``stream`` (stderr by default).
+
+    Its mode is :func:`mode_for`; the stage lines of a log wait :data:`LOG_AFTER_S` unless
+    :data:`ENV_MODE` asks for ``lines``.
+    """
+    stream = stream if stream is not None else sys.stderr
+    mode = mode_for(stream, disable)
+    return ProgressDisplay(total, title, stream=stream, enabled=mode != OFF, log=mode == LOG,
+                           log_after_s=0.0 if _asked() == "lines" else LOG_AFTER_S,
+                           folder=folder)
 
 
 def fmt_duration(s: float) -> str:
@@ -266,7 +331,10 @@ def run_fraction(state: dict[str, Any]) -> float:
 
 
 class ProgressDisplay:
-    """One redrawn line on a terminal: recordings done, the current stage, elapsed, left.
+    """Progress on stderr: one redrawn line on a terminal, else a log of the stages.
+
+    The line tells the recordings done, the current stage, the time elapsed and left; the
+    log has one plain line per stage of each recording and one when it ends.
 
     Parameters
     ----------
@@ -277,17 +345,23 @@ class ProgressDisplay:
     stream : text stream
         Where to draw (stderr).
     enabled : bool
-        Draw at all (see :func:`enabled_for`).
+        Show anything at all (see :func:`mode_for`).
+    log : bool
+        One plain line per stage of each recording (:meth:`log_lines`), and one when it
+        ends, rather than the redrawn line: for a stream that keeps every line.
+    log_after_s : float
+        The log's lines wait this long after the display started; if the display is
+        closed first, they are never printed (:data:`LOG_AFTER_S`).
     folder : path, optional
         Poll the progress files of worker processes here.
     interval_s : float
-        Redraw period.
+        Redraw (or poll) period.
 
     """
 
     def __init__(self, total: int, title: str = "magalign", *, stream: TextIO | None = None,
-                 enabled: bool = True, folder: str | Path | None = None,
-                 interval_s: float = 0.25):
+                 enabled: bool = True, log: bool = False, log_after_s: float = 0.0,
+                 folder: str | Path | None = None, interval_s: float = 0.25):
         self.total = max(1, int(total))
         self.title = title
         self.stream = stream if stream is not None else sys.stderr
@@ -303,10 +377,16 @@ class ProgressDisplay:
         self._thread: threading.Thread | None = None
         self._width = 0
         self._shown = 0.0  # the largest share done drawn so far
+        self.log = log
+        self.log_after_s = log_after_s
+        self._logged: dict[str, int] = {}  # run name -> stages of its history printed
+        # (wall time, name, status, runs done) of the run ends not printed yet
+        self._held: list[tuple[float, str, str, int]] = []
 
     def __enter__(self) -> ProgressDisplay:
         if self.enabled:
-            self.draw()  # at once: the user sees that work started
+            if not self.log:
+                self.draw()  # at once: the user sees that work started
             self._thread = threading.Thread(target=self._loop, daemon=True)
             self._thread.start()
         return self
@@ -329,13 +409,24 @@ class ProgressDisplay:
             except (OSError, ValueError):
                 pass
 
-    def run_done(self, name: str) -> None:
-        """One recording (run) finished, whatever its status."""
+    def run_done(self, name: str, status: str = "ok") -> None:
+        """One recording (run) finished, with ``status`` (``ok``, ``reused``, ``failed``).
+
+        In a log, its stages not printed yet are printed, then a line saying it ended.
+        """
+        if self.enabled and self.log:
+            with self._draw_lock:
+                self._log_new()
+                with self._lock:
+                    done = self.done + 1
+                self._held.append((time.time(), name, status, done))
+                self._log_new()
         with self._lock:
             self.done += 1
             self._direct.pop(name, None)
 
-    def _states(self) -> list[dict[str, Any]]:
+    def _all_states(self) -> list[dict[str, Any]]:
+        """Return the states of the runs here and in the progress files, finished too."""
         with self._lock:
             states = list(self._direct.values())
         if self.folder is not None and self.folder.is_dir():
@@ -344,7 +435,53 @@ class ProgressDisplay:
                     states.append(json.loads(f.read_text()))
                 except (OSError, ValueError):
                     continue
-        return [s for s in states if run_fraction(s) < 1.0]
+        return states
+
+    def _states(self) -> list[dict[str, Any]]:
+        return [s for s in self._all_states() if run_fraction(s) < 1.0]
+
+    def log_lines(self, now: float | None = None) -> list[str]:
+        """Return the log's lines not printed yet, oldest first, and count them as printed.
+
+        One line per stage started, ``magalign: NAME: STAGE (k/n), m:ss elapsed``, and one
+        per run ended; wrapped to the terminal's width (80 columns when unknown) between
+        words, so no number is cut. Nothing (and nothing counted) before
+        ``log_after_s``: the lines held until then are all given at once.
+        """
+        now = time.time() if now is None else now
+        if now - self.started < self.log_after_s:
+            return []
+        events: list[tuple[float, str]] = []
+        for st in self._all_states():
+            name = str(st.get("name", ""))
+            history = st.get("history") or []
+            total = len(st.get("stages") or [])
+            for index, stage_name, t in history[self._logged.get(name, 0):]:
+                count = f" ({index + 1}/{total})" if 0 <= index < total else ""
+                events.append((float(t), f"{name}: {label(stage_name)}{count}, "
+                                         f"{fmt_duration(float(t) - self.started)} elapsed"))
+            self._logged[name] = len(history)
+        events += [(t, self._end_line(name, status, done, t))
+                   for t, name, status, done in self._held]
+        self._held = []
+        events.sort(key=lambda e: e[0])  # a stable sort: each run's stages stay in order
+        texts = [text for _, text in events]
+        prefix = self.title.split(" ")[0] + ": "
+        width = terminal_width()
+        return [line for text in texts for line in wrap(prefix + text, "", "    ", width)]
+
+    def _end_line(self, name: str, status: str, done: int, t: float) -> str:
+        """Return the log's text for run ``name`` ending at wall time ``t`` (no prefix)."""
+        word = {"ok": "done", "reused": "earlier results reused"}.get(status, status)
+        of = f" ({done} of {self.total} recordings)" if self.total > 1 else ""
+        return f"{name}: {word}{of}, {fmt_duration(t - self.started)} elapsed"
+
+    def _log_new(self) -> None:
+        """Print the log's new lines (the caller holds the draw lock)."""
+        lines = self.log_lines()
+        if lines:
+            self.stream.write("".join(line + "\n" for line in lines))
+            self.stream.flush()
 
     def line(self, now: float | None = None, width: int = DEFAULT_WIDTH) -> str:
         """Return the progress line as it would be drawn now, at most ``width`` characters.
@@ -394,11 +531,14 @@ class ProgressDisplay:
         return "  ".join([x for x in ("  ".join(head[1:]), fixed) if x])[:width]
 
     def draw(self) -> None:
-        """Redraw the line (nothing when disabled)."""
+        """Redraw the line, or print the log's new lines (nothing when disabled)."""
         if not self.enabled:
             return
         with self._draw_lock:
-            self._draw()
+            if self.log:
+                self._log_new()
+            else:
+                self._draw()
 
     def _draw(self) -> None:
         try:
@@ -427,10 +567,15 @@ class ProgressDisplay:
             self._thread.join(timeout=2)
             self._thread = None
         with self._draw_lock:
+            if self.enabled and self.log:
+                try:
+                    self._log_new()  # the last stages (none if the command ended at once)
+                except (OSError, ValueError):
+                    pass
             self._clear()
 
     def _clear(self) -> None:
-        if self.enabled and self._width:
+        if self.enabled and not self.log and self._width:
             try:
                 self.stream.write("\r" + " " * self._width + "\r")
                 self.stream.flush()

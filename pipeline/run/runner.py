@@ -10,7 +10,7 @@ import itertools
 import os
 import time
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -62,33 +62,71 @@ UNSEEN_RMS_RATIO = 1.25
 
 # ------------------------------------------------------------------------------- steps
 class Steps:
-    """The run's steps on the progress line, and the wall time of each."""
+    """The run's steps on the progress line, and the wall time of each.
 
-    def __init__(self) -> None:
-        self.names: list[str] = ["Ingest"]
+    Parameters
+    ----------
+    expected : sequence of str
+        The steps expected after reading the file (:func:`expected_steps`): announced from
+        the start, so that the count a step shows (``aligning (2/7)``) keeps its total
+        through the run rather than growing as the plan becomes known.
+
+    """
+
+    def __init__(self, expected: Sequence[str] = ()) -> None:
+        self.names: list[str] = ["Ingest", *(n for n in expected if n != "Ingest")]
         self.timings: dict[str, float] = {}
         self._current: str | None = None
         self._t = time.perf_counter()
+
+    def _next(self) -> int:
+        """Index of the first step not started yet."""
+        return 0 if self._current is None else self.names.index(self._current) + 1
 
     def start(self, name: str | None) -> None:
         """Start step ``name`` (None: the run is over)."""
         now = time.perf_counter()
         if self._current is not None:
             self.timings[self._current] = self.timings.get(self._current, 0.0) + now - self._t
+        if name is not None and name not in self.names:
+            self.names.insert(self._next(), name)
         self._current, self._t = name, now
         if name is not None:
-            if name not in self.names:
-                self.names.append(name)
             progress.stage(name, self.names.index(name), len(self.names), self.names)
 
     def expect(self, names: list[str]) -> None:
-        """Announce the steps still to come (the progress line's estimate of time left)."""
-        self.names += [n for n in names if n not in self.names]
+        """Announce the steps that run next, in order (the progress line's count and time left).
+
+        The steps expected up to the last of ``names`` are replaced by ``names``: the plan of
+        the recording read (a long recording's first pass, a turntable's attitude) may differ
+        from the one expected. The steps expected after it (the outputs) stay.
+        """
+        head = self.names[:self._next()]
+        todo = [n for n in names if n not in head]
+        later = self.names[len(head):]
+        known = [i for i, n in enumerate(later) if n in todo]
+        if known:
+            later = later[known[-1] + 1:]
+        self.names = head + todo + [n for n in later if n not in todo]
 
     def pipeline(self, pipe: Pipeline[Context], ctx: Context) -> Context:
         """Run ``pipe`` on ``ctx`` with each stage as a step."""
         self.expect([stage_name(s) for s in pipe.stages])
         return pipe.run(ctx, progress=lambda name, i, n: self.start(name))
+
+
+def expected_steps(options: ProcessOptions, rec_dir: Path | None = None) -> list[str]:
+    """Return the steps a run is expected to take after reading its recording.
+
+    Those of a recording held in memory without a turntable (:func:`make_plan`), then, with
+    ``rec_dir`` (``process``), restoring and each output. Only the stages' names are taken:
+    nothing is read or written.
+    """
+    plan = make_plan(options, 0)
+    names = [stage_name(s) for s in plan.analysis_stages()]
+    if rec_dir is not None:
+        names += ["Restore", *(s.name for s in plan.sinks(rec_dir))]
+    return names
 
 
 # ------------------------------------------------------------------------- first pass
@@ -420,7 +458,7 @@ def analyse_recording(path: str | Path, options: ProcessOptions | None = None) -
     warned (``RecoveredDataWarning``).
     """
     options = options or ProcessOptions()
-    steps = Steps()
+    steps = Steps(expected_steps(options))
     steps.start("Ingest")
     source = open_source(path, options, warn=True)
     analysis = analyse_source(source, options, steps)
@@ -720,7 +758,7 @@ def process_recording(
     stem = path.stem
     rec_dir = safe_join(out_dir, stem)
     rec_dir.mkdir(parents=True, exist_ok=True)
-    steps = Steps()
+    steps = Steps(expected_steps(options, rec_dir))
     # Warnings are collected, not shown: this runs in a worker process whose stderr is not
     # the user's terminal (and has Python's two-line warning format); the command that
     # started the worker issues them once from the row (pipeline.app.commands.process).

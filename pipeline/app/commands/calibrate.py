@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import logging
 import re
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -96,11 +95,11 @@ def run(args: argparse.Namespace) -> int:
                                                          float(ref[2])),
         mag_topic=args.mag, attitude_topic=args.attitude, robust=args.robust,
         exclude=exclude_from_args(args))
-    display = progress.ProgressDisplay(1, "magalign calibrate",
-                                       enabled=progress.enabled_for(sys.stderr))
+    display = progress.display_for(1, "magalign calibrate")
     sink = progress.DirectSink(Path(args.recording).stem, display.update)
     with display, progress.use_sink(sink):
         ctx = analyse_recording(args.recording, options)
+        display.run_done(sink.state.name)
     cal = ctx.need_calibration()
     log.info("%s: %s", Path(args.recording).stem, progress.timings_text(sink.state.timings))
     if len(cal.unobservable_axes_body) >= 3:

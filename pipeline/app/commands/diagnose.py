@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import sys
 from pathlib import Path
 
 from pipeline.app.commands._options import (
@@ -64,15 +63,14 @@ def run(args: argparse.Namespace) -> int:
     check_out_folder(args.out)  # before the analysis, not after it
     ref = field_from_args(args)
     exclude = exclude_from_args(args)
-    display = progress.ProgressDisplay(1, "magalign diagnose",
-                                       enabled=progress.enabled_for(sys.stderr))
+    display = progress.display_for(1, "magalign diagnose")
     sink = progress.DirectSink(Path(args.recording).stem, display.update)
     with display, progress.use_sink(sink):
         ctx = diagnose_file(args.recording, mag_topic=args.mag, attitude_topic=args.attitude,
                             reference_field_enu_nT=None if ref is None
                             else (float(ref[0]), float(ref[1]), float(ref[2])),
                             exclude=exclude)
-
+        display.run_done(sink.state.name)
         cal = ctx.need_calibration()
     log.info("%s: %s", Path(args.recording).stem, progress.timings_text(sink.state.timings))
     out = Path(args.out)

@@ -126,21 +126,21 @@ def issue_warnings(results: list[dict]) -> None:
 
 
 def _run_with_progress(camp, out: Path, executor, args: argparse.Namespace) -> list[dict]:
-    """Run the campaign with a per-stage progress line on a terminal (``pipeline.core.progress``).
+    """Run the campaign with its progress on stderr (``pipeline.core.progress``).
 
-    The workers write their stage into small files in a temporary folder the line reads;
+    A line redrawn on a terminal, else one line per stage of each recording. The workers
+    write their stage into small files in a temporary folder the display reads;
     with ``-v`` the time of each stage of each recording is logged when it finishes.
     """
-    enabled = pg.enabled_for(sys.stderr, disable=args.no_progress)
     old_env = os.environ.get(pg.ENV_DIR)
     with tempfile.TemporaryDirectory(prefix="magalign-progress-") as folder:
-        if enabled:
+        display = pg.display_for(len(camp.recordings), "magalign process",
+                                 disable=args.no_progress, folder=folder)
+        if display.enabled:
             os.environ[pg.ENV_DIR] = folder
-        display = pg.ProgressDisplay(len(camp.recordings), "magalign process", enabled=enabled,
-                                     folder=folder)
 
         def progress(res: dict) -> None:
-            display.run_done(res["name"])
+            display.run_done(res["name"], str(res.get("status") or "ok"))
             timings = (res.get("row") or {}).get("timings_s")
             if timings and res.get("status") == "ok":
                 log.info("%s: %s", res["name"], pg.timings_text(timings))
