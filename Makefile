@@ -35,10 +35,12 @@ chromium:
 	  echo "no chromium (apt-get missing or not root): the browser test will be skipped"; \
 	fi
 
+# The suite on one pytest-xdist worker per core (at most 4: each may hold a real recording's
+# diagnosis), a file to a worker, the longest files first (tests/conftest.py).
 test: $(STAMP) chromium
 	$(BIN)/ruff check pipeline stages tests bench
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q -x -p no:cacheprovider tests
+	$(BIN)/python -m pytest -q -x -p no:cacheprovider -n auto --maxprocesses 4 --dist loadfile tests
 
 # The committed HEAD cloned afresh into $(FRESH), each clone in a fresh venv, tested twice:
 # with the newest dependencies pyproject.toml allows and with the oldest (the lowest release
