@@ -281,6 +281,18 @@ def _digits(x: float) -> str:
     return f"{x:.{dec}f}"
 
 
+def _beyond(x: float, limit: float) -> str:
+    """Return ``x`` to one decimal, or to as many more (up to 3) as show it exceeds ``limit``.
+
+    A sigma quoted because it exceeds a threshold must read above it (1.03 deg over 1 deg
+    printed as "1.0" says the opposite).
+    """
+    dec = 1
+    while dec < 3 and round(x, dec) <= limit:
+        dec += 1
+    return f"{x:.{dec}f}"
+
+
 def _listed(items: Sequence[str]) -> str:
     """Return ``x``, ``x and y``, ``x, y and z``."""
     return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
@@ -343,7 +355,7 @@ def poor_axis_doubts(cal: Calibration, motion_deg: np.ndarray | None,
         widest = float(max(sig[i] for i in axes))
         names = _listed(["xyz"[i] for i in axes])
         head = (f"{POOR_AXIS_DOUBT}{names} is only known to "
-                f"{_listed([f'{sig[i]:.1f}' for i in axes])} deg")
+                f"{_listed([_beyond(sig[i], POOR_AXIS_SIGMA_DEG) for i in axes])} deg")
         if motion_poor:
             one = len(axes) == 1
             out.append((widest, f"{head}: the motion barely turned the sensor about "
@@ -453,7 +465,12 @@ def carry_checks(before: Calibration, after: Calibration, *, explained: bool = F
         checks={**checks, **after.checks},
         not_estimated=before.not_estimated,
         sample_hold=before.sample_hold if after.sample_hold is None else after.sample_hold,
-        n_eff=before.n_eff if after.n_eff is None else after.n_eff,
+        # the estimate's share of independent samples (its residual's correlation), over
+        # the final model's samples: the count is quoted as "N independent samples of M"
+        # with M the final model's, so both must count the same samples
+        n_eff=after.n_eff if after.n_eff is not None else (
+            None if before.n_eff is None or not before.n_samples
+            else before.n_eff / before.n_samples * after.n_samples),
         warnings=tuple(dict.fromkeys(before.warnings + after.warnings)),
     )
 

@@ -18,7 +18,12 @@ import pytest
 
 from pipeline.core.verdict import Status, judge, plain_words
 from pipeline.model.calibration import Calibration
-from stages.estimate import POOR_AXIS_SIGMA_DEG, LargestEffect, poor_axis_doubts
+from stages.estimate import (
+    POOR_AXIS_SIGMA_DEG,
+    LargestEffect,
+    carry_checks,
+    poor_axis_doubts,
+)
 
 HERE = Path(__file__).resolve().parent
 REAL = HERE.parents[0].parent / "shared" / "data" / "real"
@@ -78,6 +83,14 @@ def test_axes_the_motion_barely_determines_keep_the_turn_remedy():
     assert POOR_AXIS_SIGMA_DEG == 1.0
 
 
+def test_a_sigma_just_over_the_threshold_reads_over_it():
+    # 1.03 deg at one decimal would read "1.0", as if it were within the threshold
+    (doubt,) = poor_axis_doubts(_cal([1.03, 0.2, 0.2]), np.array([2.0, 0.1, 0.1]))
+    assert "known to 1.03 deg" in doubt
+    (doubt,) = poor_axis_doubts(_cal([1.6, 0.2, 0.2]), np.array([2.0, 0.1, 0.1]))
+    assert "known to 1.6 deg" in doubt
+
+
 @pytest.mark.slow
 def test_a_magnet_over_part_of_a_well_turned_recording_is_the_cause(tmp_path):
     """End to end (calibrate's stages): a 70,000 nT magnet on the board for 12 s of 40 s.
@@ -123,3 +136,17 @@ def test_real_lab_02_names_its_magnet_not_a_turn(tmp_path):
     assert "hard iron step" in poor[0] and "barely turned" not in poor[0]
     cause, advice = plain_words(poor[0])
     assert "--exclude" in str(advice) and "magnet" in str(advice)
+
+
+def test_the_independent_samples_count_the_final_models_samples():
+    # the estimate's 155 of 45 383 samples carried onto a final model of 11 346: the doubt
+    # says "N independent samples of 11 346", so N is the same share of those
+    before = Calibration(R_body_mag=np.eye(3), sigma_rotvec_deg=np.full(3, 0.1),
+                         B_enu_nT=np.array([0.0, 20000.0, -44000.0]), estimator="ml",
+                         residual_rms_nT=744.0, n_samples=45383, n_eff=155.0)
+    after = _cal([3.6, 4.0, 4.4], n_eff=None)
+    got = carry_checks(before, after)
+    assert got.n_samples == 11346
+    assert got.n_eff == pytest.approx(155.0 * 11346 / 45383)
+    # a final model that measured its own count keeps it
+    assert carry_checks(before, _cal([3.6, 4.0, 4.4], n_eff=90.0)).n_eff == 90.0
