@@ -281,16 +281,16 @@ def _digits(x: float) -> str:
     return f"{x:.{dec}f}"
 
 
-def _beyond(x: float, limit: float) -> str:
-    """Return ``x`` to one decimal, or to as many more (up to 3) as show it exceeds ``limit``.
+def _beyond(xs: Sequence[float], limit: float) -> list[str]:
+    """Return sigmas to one decimal, or to as many more (up to 3) as show each exceeds ``limit``.
 
     A sigma quoted because it exceeds a threshold must read above it (1.03 deg over 1 deg
-    printed as "1.0" says the opposite).
+    printed as "1.0" says the opposite); the sigmas of one sentence share their decimals.
     """
     dec = 1
-    while dec < 3 and round(x, dec) <= limit:
+    while dec < 3 and any(round(x, dec) <= limit for x in xs):
         dec += 1
-    return f"{x:.{dec}f}"
+    return [f"{x:.{dec}f}" for x in xs]
 
 
 def _listed(items: Sequence[str]) -> str:
@@ -355,7 +355,7 @@ def poor_axis_doubts(cal: Calibration, motion_deg: np.ndarray | None,
         widest = float(max(sig[i] for i in axes))
         names = _listed(["xyz"[i] for i in axes])
         head = (f"{POOR_AXIS_DOUBT}{names} is only known to "
-                f"{_listed([_beyond(sig[i], POOR_AXIS_SIGMA_DEG) for i in axes])} deg")
+                f"{_listed(_beyond([sig[i] for i in axes], POOR_AXIS_SIGMA_DEG))} deg")
         if motion_poor:
             one = len(axes) == 1
             out.append((widest, f"{head}: the motion barely turned the sensor about "

@@ -9,11 +9,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from indep_gen import Spec, write
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from test_scale import make
 
 from pipeline.core.recording import Segment, SegmentKind
+from pipeline.io.mcap_header import read_recording_header
 from pipeline.io.mcap_read import iter_recording_chunks, read_recording
 from pipeline.model.attitude import AttitudeInterpolator
 from pipeline.model.calibration import Calibration
@@ -414,3 +416,23 @@ def test_two_pass_report_maps_the_path(tmp_path, monkeypatch):
     assert "local_source" in row["findings"]
     assert len(json.dumps(m)) > 1_000 and "sources" in json.dumps(m)
     assert 'id=map' in Path(row["paths"]["report.html"]).read_text()
+
+
+def test_a_survey_that_starts_with_a_turn_in_place_has_positions_in_its_header(tmp_path):
+    """A survey's first minute is a calibration turn at the first fix: its positions in local
+    ENU metres are all zero there, yet INSPVA wrote latitudes and longitudes. The header
+    (read from the first block of each channel, which holds only that minute here) must say
+    the recording has positions: the two-pass run of a long recording writes targets.csv and
+    anomaly.nc only when it does (a 2-hour 200 Hz survey wrote neither)."""
+    spec = Spec("turn_first", seed=3, duration_s=90.0, mag_rate_hz=50.0, att_rate_hz=20.0,
+                att_type="novatel_oem7_msgs/msg/INSPVA", path="survey",
+                position_type="inspva", survey_calibration_s=60.0, mag_noise_nT=1.0)
+    path = write(spec, tmp_path / "turn_first.mcap", chunk_size=8 << 10)
+    whole = read_recording(path)
+    assert whole.position is not None
+    first = whole.position.t_ns[0]
+    still = whole.position.t_ns < first + int(50e9)
+    assert np.all(whole.position.p_m[still] == 0.0)  # standing at the first fix
+    header = read_recording_header(path)
+    assert header.position is not None
+    assert header.position.frame == whole.position.frame

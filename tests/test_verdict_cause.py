@@ -89,6 +89,9 @@ def test_a_sigma_just_over_the_threshold_reads_over_it():
     assert "known to 1.03 deg" in doubt
     (doubt,) = poor_axis_doubts(_cal([1.6, 0.2, 0.2]), np.array([2.0, 0.1, 0.1]))
     assert "known to 1.6 deg" in doubt
+    # the sigmas of one sentence share their decimals
+    (doubt,) = poor_axis_doubts(_cal([1.1, 1.03, 1.13]), np.array([0.1, 0.1, 0.1]))
+    assert "known to 1.10, 1.03 and 1.13 deg" in doubt
 
 
 @pytest.mark.slow

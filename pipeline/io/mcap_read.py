@@ -456,8 +456,10 @@ def position_series(d: DecodedColumns, *, fixes: bool = False, keep_lost: bool =
     (``NavSatFix``, INSPVA) become WGS-84 local ENU metres about the first valid fix in stamp
     order, which is the series' ``origin`` (:func:`geodetic_to_local_enu`).
 
-    An attitude channel whose positions are all zero or all NaN carries none (a writer that
-    fills the field with zeros). A position channel (``fixes``: ``NavSatFix``) has positions
+    An attitude channel whose position fields are all zero or all NaN carries none (a writer
+    that fills the field with zeros); the fields as written are tested, not the local metres,
+    which are zero wherever a platform stands at its first fix (a survey that starts with a
+    calibration turn in place). A position channel (``fixes``: ``NavSatFix``) has positions
     as soon as one fix is valid (a receiver standing still reads zeros about its own first
     fix); with ``keep_lost`` even without a valid fix it gives its stamps with NaN rows and no
     origin (a receiver without a fix yet still says that the recording has positions).
@@ -474,7 +476,8 @@ def position_series(d: DecodedColumns, *, fixes: bool = False, keep_lost: bool =
         p = np.asarray(d.position, dtype=float)
         frame = PositionFrame.ATTITUDE_SOURCE_LOCAL
     fin = np.isfinite(p).all(axis=1)
-    if not (fixes and keep_lost) and (not fin.any() or (not fixes and not np.any(p[fin] != 0.0))):
+    written = np.asarray(d.position, dtype=float)[fin]
+    if not (fixes and keep_lost) and (not fin.any() or (not fixes and not np.any(written != 0.0))):
         return None
     return PositionSeries(d.t_ns, p, frame, origin)
 
