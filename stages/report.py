@@ -34,6 +34,7 @@ from stages.report_map import (
     draw_map,
     event_windows,
     map_data,
+    sources,
     write_map_json,
 )
 from stages.report_text import pm_vec, rows_html, utc
@@ -387,6 +388,28 @@ def _clip_to(ax: Any, t: np.ndarray, v: np.ndarray, colour: str) -> tuple[float,
     return lo, hi, int(np.count_nonzero(above | below))
 
 
+def _enu_series(vd: Any) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """Return the rows of the ENU figure: (name, before, after) for east, north, up and |B|."""
+    unc, cal = vd.uncalibrated_enu_nT, vd.calibrated_enu_nT
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mag_before = np.linalg.norm(vd.raw_mag_nT, axis=1)
+        mag_before = np.where(np.isfinite(unc).all(axis=1), mag_before, np.nan)
+        mag_after = np.linalg.norm(cal, axis=1)
+    rows = [(name, unc[:, k], cal[:, k]) for k, name in enumerate(ENU_LABELS)]
+    rows.append(("|B|", mag_before, mag_after))
+    return rows
+
+
+def closer_scale_rows(vd: Any) -> list[bool]:
+    """Return, per row of the ENU figure, whether "after" gets a panel at a closer scale.
+
+    Where "before" spans far more (:func:`needs_own_scale`); elsewhere the panel would repeat
+    the first. The report's caption speaks of the closer scale only when one is drawn.
+    """
+    return [needs_own_scale(b, a) for _, b, a in _enu_series(vd)]
+
+
 def _fig_enu(plt: Any, vd: Any, ts: np.ndarray, t0: int, unit: str, shade: Shading,
              max_points: int, pred: tuple[np.ndarray, np.ndarray]) -> bytes:
     """Li 2020 Figs. 5 and 8: east, north, up and |B|, before and after calibration.
@@ -398,18 +421,12 @@ def _fig_enu(plt: Any, vd: Any, ts: np.ndarray, t0: int, unit: str, shade: Shadi
     would otherwise be a flat line); its scale holds nearly every sample and the few beyond
     it are marked on its edges.
     """
-    unc, cal = vd.uncalibrated_enu_nT, vd.calibrated_enu_nT
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        mag_before = np.linalg.norm(vd.raw_mag_nT, axis=1)
-        mag_before = np.where(np.isfinite(unc).all(axis=1), mag_before, np.nan)
-        mag_after = np.linalg.norm(cal, axis=1)
     pred_enu, pred_norm = pred
-    rows = [(f"{name} (nT)", unc[:, k], cal[:, k], pred_enu[:, k])
-            for k, name in enumerate(ENU_LABELS)]
-    rows.append(("|B| (nT)", mag_before, mag_after, pred_norm))
-    # "after" at its own scale where "before" spans far more; elsewhere it would repeat
-    own_rows = [needs_own_scale(b, a) for _, b, a, _ in rows]
+    series = _enu_series(vd)
+    rows = [(f"{name} (nT)", b, a, m) for (name, b, a), m in
+            zip(series, [pred_enu[:, 0], pred_enu[:, 1], pred_enu[:, 2], pred_norm],
+                strict=True)]
+    own_rows = closer_scale_rows(vd)
     own = any(own_rows)
     fig, axes = plt.subplots(4, 2 if own else 1, figsize=(12, 10), sharex=True, squeeze=False,
                              gridspec_kw={"width_ratios": [3, 2] if own else [1]})
@@ -517,10 +534,12 @@ def sphere_histogram_range_nT(d_raw_nT: np.ndarray, d_cor_nT: np.ndarray
                               ) -> tuple[float, float]:
     """Return the one range both distance-from-the-sphere histograms are drawn on, nT.
 
-    The raw and the corrected histograms share it so that the narrowing (or shift) the
-    calibration makes shows: each at its own scale they looked alike. The range holds the
-    0.5 to 99.5 percentiles of both series and zero (the sphere itself), with a margin;
-    samples beyond it are counted in the edge bins.
+    The raw and the corrected histograms share it so that what the calibration changes
+    shows: each at its own scale they looked alike. It holds the 0.5 to 99.5 percentiles of
+    the corrected series, the middle half of the raw one, and zero (the sphere itself), with
+    a margin. Raw readings far off the sphere (a magnet near the sensor for a while) would
+    otherwise stretch the range until every histogram is one bar; they are counted in the
+    edge bins and their share is written on the panel.
 
     Parameters
     ----------
@@ -533,10 +552,11 @@ def sphere_histogram_range_nT(d_raw_nT: np.ndarray, d_cor_nT: np.ndarray
 
     """
     lo, hi = 0.0, 0.0
-    for d in (np.asarray(d_raw_nT, float), np.asarray(d_cor_nT, float)):
+    for d, q in ((np.asarray(d_raw_nT, float), (25.0, 75.0)),
+                 (np.asarray(d_cor_nT, float), (0.5, 99.5))):
         d = d[np.isfinite(d)]
         if d.size:
-            a, b = np.percentile(d, [0.5, 99.5])
+            a, b = np.percentile(d, q)
             lo, hi = min(lo, float(a)), max(hi, float(b))
     pad = 0.05 * max(hi - lo, 1e-3)
     return lo - pad, hi + pad
@@ -587,6 +607,10 @@ def _fig_sphere(plt: Any, vd: Any, calibration: Any, max_points: int = 3000) -> 
         if d.size:
             ax.hist(np.clip(d, lo_nT, hi_nT), bins=edges, color=colour,
                     alpha=0.7 if row == 0 else 0.9)
+            beyond = float(np.mean((d < lo_nT) | (d > hi_nT)))
+            if beyond >= 0.005:
+                ax.text(0.99, 0.97, f"{100 * beyond:.0f} % beyond the axis\n(in the edge bars)",
+                        transform=ax.transAxes, ha="right", va="top", fontsize=9)
         ax.set_xlim(lo_nT, hi_nT)
         ax.axvline(0, color=style.REFERENCE, ls="--", lw=1)
         ax.set_title(f"{name}: |reading| \u2212 |B|", fontsize=11)
@@ -1288,7 +1312,8 @@ def render_html(
     headline = _headline(calibration, metrics, diagnosis)
     counts = ("" if restored is None else
               f"<p id=counts>{html.escape(counts_sentence(restored, calibration, totals))}</p>")
-    map_html = _map_html(fig_html.get("fig_map.png"), recording) + survey  # grid, targets
+    map_html = _map_html(fig_html.get("fig_map.png"), recording, diagnosis) + survey
+    enu_caption_end = _enu_caption_end(recording, calibration, restored, diagnosis)
     # the counts of every sample (a long recording's figures show every k-th row)
     n_samples = metrics.n_samples if metrics is not None else len(recording.mag)
     duration_s = metrics.whole.end_s if metrics is not None else recording.duration_s
@@ -1322,9 +1347,7 @@ the rotation. The bottom row, |B|, does not depend on the heading or the misalig
 purple |B| steps or wanders and the black line follows, that is the field changing from place
 to place or in time, not a calibration error; where purple departs from black, the offsets or
 soft iron are wrong or the model lacks a term (the check of MATLAB magcal and ArduPilot
-MagFit). Shading: motion segments, and in red the events the diagnosis found (key under the
-figure). The closer scale holds nearly every sample; triangles on its edge mark the few
-beyond it.</p>
+MagFit).{enu_caption_end}</p>
 {map_html}
 <h2>Metrics (Li et al. 2020, Table 4)</h2>
 {_metrics_html(metrics, t0)}
@@ -1365,8 +1388,31 @@ def _positions(recording: Recording, restored: Any) -> np.ndarray | None:
     return pos.at(np.asarray(restored.t_ns, dtype=np.int64))
 
 
-def _map_html(fig: str | None, recording: Recording) -> str:
-    """Return the plan view's section (empty for a recording without positions)."""
+def _enu_caption_end(recording: Recording, calibration: Any, restored: Any,
+                     diagnosis: Any) -> str:
+    """Return the ENU caption's sentences on shading and the closer scale, as drawn.
+
+    Only what the figure has: the diagnosed events are named when there are any, the closer
+    scale when a row has one.
+    """
+    words = []
+    has_events = bool(event_windows(diagnosis, recording.duration_s or None))
+    words.append(" Shading: motion segments" + (
+        ", and in red the events the diagnosis found" if has_events else "")
+        + " (key under the figure).")
+    if restored is not None and len(restored.t_ns):
+        vd = view_data(restored, calibration.R_body_mag)
+        if any(closer_scale_rows(vd)):
+            words.append(" Right: after calibration alone at a closer scale, which holds "
+                         "nearly every sample; triangles on its edge mark the few beyond it.")
+    return "".join(words)
+
+
+def _map_html(fig: str | None, recording: Recording, diagnosis: Any = None) -> str:
+    """Return the plan view's section (empty for a recording without positions).
+
+    The caption names the marks the map has: sources and event stars only when diagnosed.
+    """
     if not fig:
         return ""
     pos = recording.position
@@ -1374,13 +1420,19 @@ def _map_html(fig: str | None, recording: Recording) -> str:
     where = ("east and north about the first position fix" if frame == "enu" else
              "the horizontal axes of the attitude source's own frame (a motion-capture "
              "room: they need not point east and north)")
+    marks = ""
+    if sources(diagnosis):
+        marks += "Crosses: located sources with their 1-sigma ellipse. "
+    if any(e != "local_source" for _, _, e in event_windows(diagnosis, recording.duration_s
+                                                           or None)):
+        marks += "Stars: where the sensor was during a diagnosed event. "
     return (f"<h2 id=map>Where the sensor went</h2>{fig}<p class=caption>The path seen from "
             f"above, in {where}, coloured by |B| minus its median: left the restored field, "
             "right the field the fitted model predicts there. Colours that repeat where the "
             "path comes back are the field in space; a colour on the left that the right "
-            "does not have is something the model leaves out. Crosses: located sources with "
-            "their 1-sigma ellipse; stars: where the sensor was during a diagnosed event. "
-            "Circle: start; square: end.</p>")
+            f"does not have is something the model leaves out. {marks}"
+            "Open circle: start; filled square: end (inside the circle when the path ends "
+            "where it began).</p>")
 
 
 def _headline(cal: Any, metrics: Any, diagnosis: Any) -> str:
