@@ -539,7 +539,7 @@ def sphere_histogram_range_nT(d_raw_nT: np.ndarray, d_cor_nT: np.ndarray
     the corrected series, the middle half of the raw one, and zero (the sphere itself), with
     a margin. Raw readings far off the sphere (a magnet near the sensor for a while) would
     otherwise stretch the range until every histogram is one bar; they are counted in the
-    edge bins and their share is written on the panel.
+    edge bins and their share (from 2 %) is written in the panel's title.
 
     Parameters
     ----------
@@ -604,16 +604,16 @@ def _fig_sphere(plt: Any, vd: Any, calibration: Any, max_points: int = 3000) -> 
     for row, (d, colour, name) in enumerate(((d_raw, style.BEFORE, "raw"),
                                              (d_cor, style.AFTER, "corrected"))):
         ax = fig.add_subplot(gs[row, 3])
+        beyond = 0.0
         if d.size:
             ax.hist(np.clip(d, lo_nT, hi_nT), bins=edges, color=colour,
                     alpha=0.7 if row == 0 else 0.9)
             beyond = float(np.mean((d < lo_nT) | (d > hi_nT)))
-            if beyond >= 0.005:
-                ax.text(0.99, 0.97, f"{100 * beyond:.0f} % beyond the axis\n(in the edge bars)",
-                        transform=ax.transAxes, ha="right", va="top", fontsize=9)
         ax.set_xlim(lo_nT, hi_nT)
         ax.axvline(0, color=style.REFERENCE, ls="--", lw=1)
-        ax.set_title(f"{name}: |reading| \u2212 |B|", fontsize=11)
+        # in the title, not over the bars: the share counted in the edge bars
+        note = f"; {100 * beyond:.0f} % in edge bars" if beyond >= 0.02 else ""
+        ax.set_title(f"{name}: |reading| \u2212 |B|{note}", fontsize=10 if note else 11)
         ax.set_xlabel("nT")
         ax.set_ylabel("samples")
         ax.xaxis.set_major_locator(plt.MaxNLocator(4))
