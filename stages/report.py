@@ -612,7 +612,7 @@ def _fig_sphere(plt: Any, vd: Any, calibration: Any, max_points: int = 3000) -> 
         ax.set_xlim(lo_nT, hi_nT)
         ax.axvline(0, color=style.REFERENCE, ls="--", lw=1)
         # in the title, not over the bars: the share counted in the edge bars
-        note = f"; {100 * beyond:.0f} % in edge bars" if beyond >= 0.02 else ""
+        note = f"\n{100 * beyond:.0f} % off scale (edge bars)" if beyond >= 0.02 else ""
         ax.set_title(f"{name}: |reading| \u2212 |B|{note}", fontsize=10 if note else 11)
         ax.set_xlabel("nT")
         ax.set_ylabel("samples")

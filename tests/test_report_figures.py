@@ -213,3 +213,21 @@ def test_targets_table_speaks_words_not_bic():
 
     assert "BIC" not in " ".join(h for _, h in TABLE_COLUMNS)
     assert dict(TABLE_COLUMNS)["delta_bic"] == "evidence"
+
+
+def test_summary_map_caption_names_only_marks_present(tmp_path):
+    """The campaign summary speaks of crosses and stars only when some map has them."""
+    import json
+
+    from pipeline.app.summary import maps_html
+
+    m = _loop_map()
+    (tmp_path / "map.json").write_text(json.dumps(m))
+    row = {"name": "line", "map": "map.json", "verdict": "ok"}
+    text = maps_html([row], tmp_path)
+    assert "Crosses" not in text and "Stars" not in text and "Open circle: start" in text
+    m["events"] = [{"effect": "disturbance", "start_s": 1.0, "end_s": 2.0, "x": 0.0,
+                    "y": 0.0, "z": 0.0}]
+    (tmp_path / "map.json").write_text(json.dumps(m))
+    text = maps_html([row], tmp_path)
+    assert "Stars" in text and "Crosses" not in text
