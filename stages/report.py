@@ -22,7 +22,7 @@ from pipeline import package_version
 from pipeline.core import style
 from pipeline.core.atomic import atomic_path, sha256_file, write_text_atomic
 from pipeline.core.geometry import quat_rotate, quat_to_li2020_euler
-from pipeline.core.recording import Recording, Segment
+from pipeline.core.recording import Recording, Segment, VectorSeries
 from pipeline.core.style import minus, unsigned_zeros
 from pipeline.core.verdict import plain_words, verdict_line
 from pipeline.model.sample_hold import repeated
@@ -34,6 +34,7 @@ from stages.report_map import (
     draw_map,
     event_windows,
     map_data,
+    sources,
     write_map_json,
 )
 from stages.report_text import pm_vec, rows_html, utc
@@ -387,6 +388,28 @@ def _clip_to(ax: Any, t: np.ndarray, v: np.ndarray, colour: str) -> tuple[float,
     return lo, hi, int(np.count_nonzero(above | below))
 
 
+def _enu_series(vd: Any) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """Return the rows of the ENU figure: (name, before, after) for east, north, up and |B|."""
+    unc, cal = vd.uncalibrated_enu_nT, vd.calibrated_enu_nT
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mag_before = np.linalg.norm(vd.raw_mag_nT, axis=1)
+        mag_before = np.where(np.isfinite(unc).all(axis=1), mag_before, np.nan)
+        mag_after = np.linalg.norm(cal, axis=1)
+    rows = [(name, unc[:, k], cal[:, k]) for k, name in enumerate(ENU_LABELS)]
+    rows.append(("|B|", mag_before, mag_after))
+    return rows
+
+
+def closer_scale_rows(vd: Any) -> list[bool]:
+    """Return, per row of the ENU figure, whether "after" gets a panel at a closer scale.
+
+    Where "before" spans far more (:func:`needs_own_scale`); elsewhere the panel would repeat
+    the first. The report's caption speaks of the closer scale only when one is drawn.
+    """
+    return [needs_own_scale(b, a) for _, b, a in _enu_series(vd)]
+
+
 def _fig_enu(plt: Any, vd: Any, ts: np.ndarray, t0: int, unit: str, shade: Shading,
              max_points: int, pred: tuple[np.ndarray, np.ndarray]) -> bytes:
     """Li 2020 Figs. 5 and 8: east, north, up and |B|, before and after calibration.
@@ -398,18 +421,12 @@ def _fig_enu(plt: Any, vd: Any, ts: np.ndarray, t0: int, unit: str, shade: Shadi
     would otherwise be a flat line); its scale holds nearly every sample and the few beyond
     it are marked on its edges.
     """
-    unc, cal = vd.uncalibrated_enu_nT, vd.calibrated_enu_nT
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        mag_before = np.linalg.norm(vd.raw_mag_nT, axis=1)
-        mag_before = np.where(np.isfinite(unc).all(axis=1), mag_before, np.nan)
-        mag_after = np.linalg.norm(cal, axis=1)
     pred_enu, pred_norm = pred
-    rows = [(f"{name} (nT)", unc[:, k], cal[:, k], pred_enu[:, k])
-            for k, name in enumerate(ENU_LABELS)]
-    rows.append(("|B| (nT)", mag_before, mag_after, pred_norm))
-    # "after" at its own scale where "before" spans far more; elsewhere it would repeat
-    own_rows = [needs_own_scale(b, a) for _, b, a, _ in rows]
+    series = _enu_series(vd)
+    rows = [(f"{name} (nT)", b, a, m) for (name, b, a), m in
+            zip(series, [pred_enu[:, 0], pred_enu[:, 1], pred_enu[:, 2], pred_norm],
+                strict=True)]
+    own_rows = closer_scale_rows(vd)
     own = any(own_rows)
     fig, axes = plt.subplots(4, 2 if own else 1, figsize=(12, 10), sharex=True, squeeze=False,
                              gridspec_kw={"width_ratios": [3, 2] if own else [1]})
@@ -513,15 +530,47 @@ def _fig_residual(plt: Any, vd: Any, ts: np.ndarray, t0: int, scale: float, unit
     return _png(fig)
 
 
+def sphere_histogram_range_nT(d_raw_nT: np.ndarray, d_cor_nT: np.ndarray
+                              ) -> tuple[float, float]:
+    """Return the one range both distance-from-the-sphere histograms are drawn on, nT.
+
+    The raw and the corrected histograms share it so that what the calibration changes
+    shows: each at its own scale they looked alike. It holds the 0.5 to 99.5 percentiles of
+    the corrected series, the middle half of the raw one, and zero (the sphere itself), with
+    a margin. Raw readings far off the sphere (a magnet near the sensor for a while) would
+    otherwise stretch the range until every histogram is one bar; they are counted in the
+    edge bins and their share (from 2 %) is written in the panel's title.
+
+    Parameters
+    ----------
+    d_raw_nT, d_cor_nT : ndarray
+        |reading| minus |B| of the raw and the corrected readings, nT.
+
+    Returns
+    -------
+    lo_nT, hi_nT : float
+
+    """
+    lo, hi = 0.0, 0.0
+    for d, q in ((np.asarray(d_raw_nT, float), (25.0, 75.0)),
+                 (np.asarray(d_cor_nT, float), (0.5, 99.5))):
+        d = d[np.isfinite(d)]
+        if d.size:
+            a, b = np.percentile(d, q)
+            lo, hi = min(lo, float(a)), max(hi, float(b))
+    pad = 0.05 * max(hi - lo, 1e-3)
+    return lo - pad, hi + pad
+
+
 def _fig_sphere(plt: Any, vd: Any, calibration: Any, max_points: int = 3000) -> bytes:
     """Plot the readings in the mag frame, raw and corrected, in three projections.
 
     Rotated through all attitudes a perfect sensor's readings lie on a sphere of radius
     |B| about the origin; hard iron moves the centre, soft iron makes it an ellipsoid.
     Equal axes, so that a sphere looks round; in microtesla, so that the tick labels stay
-    short. The distance from the sphere is a histogram per series at its own scale: a
-    corrected series a hundred times narrower than the raw one would be one bar on the
-    raw one's bins.
+    short. The distance from the sphere is a histogram per series; the two
+    histograms share one range (:func:`sphere_histogram_range_nT`), so that what the
+    calibration changes shows.
     """
     raw = np.asarray(vd.raw_mag_nT, dtype=float) * 1e-3
     # the corrected reading in the mag frame: body_after = R_body_mag @ corrected
@@ -550,20 +599,24 @@ def _fig_sphere(plt: Any, vd: Any, calibration: Any, max_points: int = 3000) -> 
     # distance from the sphere: what an offset of a few hundred nT does, invisible above
     d_raw = np.linalg.norm(raw[good], axis=1) * 1e3 - 1e3 * radius
     d_cor = np.linalg.norm(corr[good], axis=1) * 1e3 - 1e3 * radius
+    lo_nT, hi_nT = sphere_histogram_range_nT(d_raw, d_cor)
+    edges = np.linspace(lo_nT, hi_nT, 61)
     for row, (d, colour, name) in enumerate(((d_raw, style.BEFORE, "raw"),
                                              (d_cor, style.AFTER, "corrected"))):
         ax = fig.add_subplot(gs[row, 3])
+        beyond = 0.0
         if d.size:
-            lo, hi = np.percentile(d, [0.5, 99.5])
-            lim = max(abs(float(lo)), abs(float(hi)), 1e-3)
-            ax.hist(np.clip(d, -lim, lim), bins=np.linspace(-lim, lim, 41), color=colour,
+            ax.hist(np.clip(d, lo_nT, hi_nT), bins=edges, color=colour,
                     alpha=0.7 if row == 0 else 0.9)
-            ax.set_xlim(-lim, lim)
+            beyond = float(np.mean((d < lo_nT) | (d > hi_nT)))
+        ax.set_xlim(lo_nT, hi_nT)
         ax.axvline(0, color=style.REFERENCE, ls="--", lw=1)
-        ax.set_title(f"{name}: |reading| \u2212 |B|", fontsize=11)
+        # in the title, not over the bars: the share counted in the edge bars
+        note = f"\n{100 * beyond:.0f} % off scale (edge bars)" if beyond >= 0.02 else ""
+        ax.set_title(f"{name}: |reading| \u2212 |B|{note}", fontsize=10 if note else 11)
         ax.set_xlabel("nT")
         ax.set_ylabel("samples")
-        ax.xaxis.set_major_locator(plt.MaxNLocator(5, symmetric=True))
+        ax.xaxis.set_major_locator(plt.MaxNLocator(4))
         ax.yaxis.set_major_locator(plt.MaxNLocator(3))
     h, lab = axes[0].get_legend_handles_labels()
     fig.legend(h, lab, loc="lower center", ncol=3, frameon=False, markerscale=4)
@@ -918,8 +971,8 @@ def _verdict_html(cal: Any) -> str:
             f"{html.escape(line)}{reason}{doubts}{ne}{neff_html}</div>")
 
 
-def _diagnosis_html(diagnosis: Any, t0_ns: int = 0, calibration_path: str | None = None
-                    ) -> tuple[str, list[tuple[str, bytes]]]:
+def _diagnosis_html(diagnosis: Any, t0_ns: int = 0, calibration_path: str | None = None,
+                    mag: VectorSeries | None = None) -> tuple[str, list[tuple[str, bytes]]]:
     if diagnosis is None:
         given = calibration_path
         if given:
@@ -954,24 +1007,39 @@ def _diagnosis_html(diagnosis: Any, t0_ns: int = 0, calibration_path: str | None
         )
     figs: list[tuple[str, bytes]] = []
     if not isinstance(diagnosis, dict):
-        figs = finding_figures(diagnosis, t0_ns)
+        figs = finding_figures(diagnosis, t0_ns, mag=mag)
     return "".join(parts), figs
 
 
-def finding_figures(diagnosis: Any, t0_ns: int, dpi: int = 100) -> list[tuple[str, bytes]]:
+def finding_figures(diagnosis: Any, t0_ns: int, dpi: int = 100, *,
+                    mag: VectorSeries | None = None) -> list[tuple[str, bytes]]:
     """One figure per diagnosis finding: its signature in the residual (PNG).
 
     In the diagnosis' order (the order its evidence was measured, as the findings table and
     diagnosis.json): each figure shows the residual the terms before it left. The time axis
     is the report's (seconds, minutes or hours from the first sample's UTC time); keys are
-    under the axes, never over the data.
+    under the axes, never over the data. A sample-and-hold finding has no term in the
+    residual: its figure shows the repeated messages themselves (needs ``mag``).
+
+    Parameters
+    ----------
+    diagnosis : Diagnosis
+        Its findings, with their signatures.
+    t0_ns : int
+        First magnetometer stamp, ns since the epoch.
+    dpi : int
+        Resolution of the PNGs.
+    mag : VectorSeries, optional
+        The recording's magnetometer messages, for the sample-and-hold figure.
 
     Returns
     -------
     list of (title, png bytes)
 
     """
-    findings = [f for f in getattr(diagnosis, "findings", ()) if f.signature is not None]
+    findings = [f for f in getattr(diagnosis, "findings", ())
+                if f.signature is not None or (f.effect == "sample_hold" and mag is not None
+                                               and len(mag) > 10)]
     if not findings:
         return []
     plt = _plt()
@@ -983,11 +1051,25 @@ def finding_figures(diagnosis: Any, t0_ns: int, dpi: int = 100) -> list[tuple[st
     out = []
     for f in ordered:
         s = f.signature
+        if s is None:  # sample and hold: the messages show it, not a residual
+            with plt.rc_context(style.rc() | {"savefig.dpi": dpi, "figure.dpi": dpi}):
+                assert mag is not None
+                out.append(("sample hold", _png(_sample_hold_figure(plt, f, mag))))
+            continue
         frame = f.where.get("frame", "")
         with plt.rc_context(style.rc() | {"savefig.dpi": dpi, "figure.dpi": dpi}):
-            fig, ax = plt.subplots(figsize=(12, 4.2))
             t = np.asarray(s.t_s, dtype=float) / scale
             names = _axis_names(frame)
+            # a term far smaller than the residual it was fitted to is flat at the
+            # residual's scale: a second panel shows it at its own
+            own = (s.regressor is None and f.effect not in EVENT_EFFECTS
+                   and needs_own_scale(np.asarray(s.residual_before_nT, float),
+                                       np.asarray(s.contribution_nT, float)))
+            if own:
+                fig, (ax, ax_term) = plt.subplots(2, 1, figsize=(12, 6.4), sharex=True,
+                                                  gridspec_kw={"height_ratios": [3, 2]})
+            else:
+                fig, ax = plt.subplots(figsize=(12, 4.2))
             if s.regressor is not None:
                 for i, c in enumerate(names):
                     ax.plot(s.regressor[:, i], s.residual_before_nT[:, i], ".", ms=2,
@@ -1017,17 +1099,97 @@ def finding_figures(diagnosis: Any, t0_ns: int, dpi: int = 100) -> list[tuple[st
                             color=style.AXIS[i], label=f"residual {c}")
                     ax.plot(t, s.contribution_nT[:, i], lw=1.6, color=style.AXIS[i],
                             label=f"fitted term {c}")
-                ax.set_xlabel(_time_label(t0_ns, unit))
                 ax.set_ylabel(f"nT ({_frame_words(frame)})")
+                if own:
+                    for i in range(3):
+                        ax_term.plot(t, s.contribution_nT[:, i], lw=1.6, color=style.AXIS[i])
+                    _term_limits(ax_term, np.asarray(s.contribution_nT, float))
+                    ax_term.set_ylabel("fitted term (nT)")
+                    ax_term.set_title("the fitted term alone, at its own scale", fontsize=11)
+                    ax_term.set_xlabel(_time_label(t0_ns, unit))
+                else:
+                    ax.set_xlabel(_time_label(t0_ns, unit))
             title = _finding_title(f)
             ax.set_title(title)
             h, lab = ax.get_legend_handles_labels()
             fig.legend(h, lab, loc="lower left", ncol=6, frameon=False, markerscale=5,
                        bbox_to_anchor=(0.01, 0.0))
-            fig.subplots_adjust(left=0.07, right=0.99, bottom=0.27, top=0.9)
+            fig.subplots_adjust(left=0.07, right=0.99, bottom=0.18 if own else 0.27,
+                                top=0.93 if own else 0.9, hspace=0.3)
             _fit_left(fig)
             out.append((title, _png(fig)))
     return out
+
+
+#: messages in the sample-and-hold figure's close-up
+HOLD_WINDOW_MESSAGES = 48
+
+
+def _sample_hold_figure(plt: Any, f: Any, mag: VectorSeries) -> Any:
+    """Draw a sample-and-hold finding: repeated messages in a close-up, and run lengths.
+
+    Left: the magnetometer axis that changes most, over a few dozen messages where the field
+    changes fastest (a repeat is only visible while the field moves); new conversions filled,
+    repeats of the previous reading open and red. Right: how many messages carry each
+    conversion.
+    """
+    t_ns = np.asarray(mag.t_ns, dtype=np.int64)
+    v_nT = np.asarray(mag.values, dtype=float)
+    rep = repeated(v_nT)
+    n = len(t_ns)
+    w = min(HOLD_WINDOW_MESSAGES, n)
+    axis = int(np.argmax(np.nanstd(np.diff(v_nT, axis=0), axis=0))) if n > 1 else 0
+    change = np.r_[0.0, np.abs(np.diff(v_nT[:, axis]))]
+    change = np.where(np.isfinite(change), change, 0.0)
+    # the window where the field moves most and messages repeat
+    score = np.convolve(change * 1.0, np.ones(w), "valid") * (
+        np.convolve(rep.astype(float), np.ones(w), "valid") > 0)
+    i0 = int(np.argmax(score)) if score.size else 0
+    sl = slice(i0, i0 + w)
+    t_ms = (t_ns[sl] - t_ns[i0]) * 1e-6
+    y = v_nT[sl, axis]
+    r = rep[sl]
+    fig, (ax, axr) = plt.subplots(1, 2, figsize=(12, 4.2), gridspec_kw={"width_ratios": [3, 2]})
+    ax.step(t_ms, y, where="post", color=style.REFERENCE, lw=0.8, alpha=0.6)
+    ax.plot(t_ms[~r], y[~r], "o", ms=5, color=style.AFTER, label="new conversion")
+    ax.plot(t_ms[r], y[r], "o", ms=6, mfc="none", mec=style.EVENT_EDGE, mew=1.5,
+            label="message repeating the previous reading")
+    ax.set_xlabel(f"time from {utc_text(int(t_ns[i0]))} UTC (ms)")
+    ax.set_ylabel(f"mag {'xyz'[axis]} (nT)")
+    ax.set_title(f"{w} consecutive messages where the field changes fastest", fontsize=11)
+    run_id = np.cumsum(~rep) - 1
+    lengths = np.bincount(np.bincount(run_id))[1:] if n else np.zeros(0, int)
+    k = np.arange(1, len(lengths) + 1)
+    shown = k <= 8
+    axr.bar(k[shown], lengths[shown], color=style.AFTER, width=0.7)
+    axr.set_xticks(k[shown])
+    axr.set_xlabel("messages carrying one conversion")
+    axr.set_ylabel("conversions")
+    axr.set_title("how long each reading is held", fontsize=11)
+    p = f.params or {}
+    fig.suptitle(f"sample hold: the sensor converts at {float(p.get('native_rate_hz', 0)):.1f} "
+                 f"Hz; {100 * float(p.get('repeated_fraction', 0)):.1f} % of the messages "
+                 "repeat a reading", fontsize=12)
+    h, lab = ax.get_legend_handles_labels()
+    fig.legend(h, lab, loc="lower left", ncol=2, frameon=False, bbox_to_anchor=(0.01, 0.0))
+    fig.subplots_adjust(left=0.08, right=0.99, bottom=0.25, top=0.84, wspace=0.25)
+    _fit_left(fig)
+    return fig
+
+
+def _term_limits(ax: Any, term_nT: np.ndarray) -> None:
+    """Set y limits that hold the fitted term with a margin, and zero.
+
+    A constant term (an offset) would otherwise get matplotlib's tiny default span about its
+    value, which hides its size; with zero in the range the lines show how far from zero each
+    component is.
+    """
+    v = term_nT[np.isfinite(term_nT)]
+    if not v.size:
+        return
+    lo, hi = min(float(v.min()), 0.0), max(float(v.max()), 0.0)
+    pad = 0.15 * max(hi - lo, 1e-6)
+    ax.set_ylim(lo - pad, hi + pad)
 
 
 def _axis_names(frame: str) -> tuple[str, str, str]:
@@ -1132,7 +1294,7 @@ def render_html(
     probs = "".join(
         f"<li>{html.escape(p.code)}: {html.escape(p.message)}</li>" for p in recording.problems
     )
-    diag_html, diag_figs = _diagnosis_html(diagnosis, t0, calibration_path)
+    diag_html, diag_figs = _diagnosis_html(diagnosis, t0, calibration_path, recording.mag)
     if totals is None and restored is not None:
         totals = RestoreTotals.of(restored)
     channels = "".join(
@@ -1150,7 +1312,8 @@ def render_html(
     headline = _headline(calibration, metrics, diagnosis)
     counts = ("" if restored is None else
               f"<p id=counts>{html.escape(counts_sentence(restored, calibration, totals))}</p>")
-    map_html = _map_html(fig_html.get("fig_map.png"), recording) + survey  # grid, targets
+    map_html = _map_html(fig_html.get("fig_map.png"), recording, diagnosis) + survey
+    enu_caption_end = _enu_caption_end(recording, calibration, restored, diagnosis)
     # the counts of every sample (a long recording's figures show every k-th row)
     n_samples = metrics.n_samples if metrics is not None else len(recording.mag)
     duration_s = metrics.whole.end_s if metrics is not None else recording.duration_s
@@ -1184,9 +1347,7 @@ the rotation. The bottom row, |B|, does not depend on the heading or the misalig
 purple |B| steps or wanders and the black line follows, that is the field changing from place
 to place or in time, not a calibration error; where purple departs from black, the offsets or
 soft iron are wrong or the model lacks a term (the check of MATLAB magcal and ArduPilot
-MagFit). Shading: motion segments, and in red the events the diagnosis found (key under the
-figure). The closer scale holds nearly every sample; triangles on its edge mark the few
-beyond it.</p>
+MagFit).{enu_caption_end}</p>
 {map_html}
 <h2>Metrics (Li et al. 2020, Table 4)</h2>
 {_metrics_html(metrics, t0)}
@@ -1202,8 +1363,8 @@ lacks (a once-per-turn wave: an offset; twice per turn: soft iron).</p>
 <h2>Readings in the magnetometer frame</h2>
 {fig_html.get('fig_sphere.png', '')}
 <p class=caption>Each reading in the magnetometer's own axes, in microtesla: calibrated, they
-lie on the dashed circle of radius |B| about the cross. The histograms (right, each at its own
-scale) give each reading's distance from that sphere, raw above and corrected below.</p>
+lie on the dashed circle of radius |B| about the cross. The histograms (right, on one scale)
+give each reading's distance from that sphere, raw above and corrected below.</p>
 <h2>Attitude and segments</h2>
 {fig_html.get('fig_attitude.png', '')}
 {'<h2>Diagnosis: each finding in the residual</h2>' if diag_figs else ''}
@@ -1227,8 +1388,31 @@ def _positions(recording: Recording, restored: Any) -> np.ndarray | None:
     return pos.at(np.asarray(restored.t_ns, dtype=np.int64))
 
 
-def _map_html(fig: str | None, recording: Recording) -> str:
-    """Return the plan view's section (empty for a recording without positions)."""
+def _enu_caption_end(recording: Recording, calibration: Any, restored: Any,
+                     diagnosis: Any) -> str:
+    """Return the ENU caption's sentences on shading and the closer scale, as drawn.
+
+    Only what the figure has: the diagnosed events are named when there are any, the closer
+    scale when a row has one.
+    """
+    words = []
+    has_events = bool(event_windows(diagnosis, recording.duration_s or None))
+    words.append(" Shading: motion segments" + (
+        ", and in red the events the diagnosis found" if has_events else "")
+        + " (key under the figure).")
+    if restored is not None and len(restored.t_ns):
+        vd = view_data(restored, calibration.R_body_mag)
+        if any(closer_scale_rows(vd)):
+            words.append(" Right: after calibration alone at a closer scale, which holds "
+                         "nearly every sample; triangles on its edge mark the few beyond it.")
+    return "".join(words)
+
+
+def _map_html(fig: str | None, recording: Recording, diagnosis: Any = None) -> str:
+    """Return the plan view's section (empty for a recording without positions).
+
+    The caption names the marks the map has: sources and event stars only when diagnosed.
+    """
     if not fig:
         return ""
     pos = recording.position
@@ -1236,13 +1420,19 @@ def _map_html(fig: str | None, recording: Recording) -> str:
     where = ("east and north about the first position fix" if frame == "enu" else
              "the horizontal axes of the attitude source's own frame (a motion-capture "
              "room: they need not point east and north)")
+    marks = ""
+    if sources(diagnosis):
+        marks += "Crosses: located sources with their 1-sigma ellipse. "
+    if any(e != "local_source" for _, _, e in event_windows(diagnosis, recording.duration_s
+                                                           or None)):
+        marks += "Stars: where the sensor was during a diagnosed event. "
     return (f"<h2 id=map>Where the sensor went</h2>{fig}<p class=caption>The path seen from "
             f"above, in {where}, coloured by |B| minus its median: left the restored field, "
             "right the field the fitted model predicts there. Colours that repeat where the "
             "path comes back are the field in space; a colour on the left that the right "
-            "does not have is something the model leaves out. Crosses: located sources with "
-            "their 1-sigma ellipse; stars: where the sensor was during a diagnosed event. "
-            "Circle: start; square: end.</p>")
+            f"does not have is something the model leaves out. {marks}"
+            "Open circle: start; filled square: end (inside the circle when the path ends "
+            "where it began).</p>")
 
 
 def _headline(cal: Any, metrics: Any, diagnosis: Any) -> str:

@@ -27,7 +27,7 @@ TABLE_COLUMNS = (
     ("sigma_north_m", "1σ north (m)"), ("sigma_up_m", "1σ up (m)"),
     ("moment_Am2", "moment (A m²)"), ("closest_approach_m", "closest pass (m)"),
     ("closest_approach_utc", "closest pass (UTC)"), ("peak_nT", "peak (nT)"),
-    ("delta_bic", "ΔBIC"),
+    ("delta_bic", "evidence"),
 )
 
 
@@ -114,9 +114,9 @@ def survey_html(out_dir: str | Path, path_m: np.ndarray | None,
         f"measurement supports them. Crosses: the targets below. The grid is anomaly.nc "
         f"(NetCDF-4), made by {html.escape(str(a['method']))}.</p>"
         f"<h3>Targets</h3>{table}<p class=caption>One row per located object (targets.csv), "
-        "the strongest evidence first (ΔBIC: how much better the model with the object "
-        "explains the data). Depth: below the sensor's mean height within 5 m of the "
-        "object.</p>")
+        "the strongest evidence first (evidence: how much better the model with the object "
+        "explains the data, as the fall of the Bayesian information criterion). Depth: "
+        "below the sensor's mean height within 5 m of the object.</p>")
 
 
 def grid_points(out_dir: str | Path) -> tuple[np.ndarray, np.ndarray, float] | None:

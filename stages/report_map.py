@@ -214,8 +214,11 @@ def _plan(ax: Any, m: Mapping[str, Any], column: int, lim: float, *,
     lc.set_array(0.5 * (path[:-1, column] + path[1:, column]))
     lc.set_clim(-lim, lim)
     ax.add_collection(lc)
-    ax.plot(xy[0, 0], xy[0, 1], "o", color=style.REFERENCE, ms=6, zorder=3, label="start")
-    ax.plot(xy[-1, 0], xy[-1, 1], "s", color=style.REFERENCE, ms=6, zorder=3, label="end")
+    # start an open ring larger than the filled end square: a path that ends where it
+    # began shows both, the square inside the ring
+    ax.plot(xy[0, 0], xy[0, 1], "o", ms=13, mfc="none", mec=style.REFERENCE, mew=2.0,
+            zorder=3, label="start")
+    ax.plot(xy[-1, 0], xy[-1, 1], "s", color=style.REFERENCE, ms=6, zorder=3.5, label="end")
     for i, s in enumerate(m.get("sources") or []):
         c = s["position_m"]
         sg = s.get("sigma_m") or [None, None, None]
@@ -287,14 +290,14 @@ def draw_small_map(m: Mapping[str, Any], lim: float, title: str, dpi: int = 100)
     plt = style.pyplot()
     xl, yl = frame_axes(str(m.get("frame")))
     with plt.rc_context(style.rc() | {"savefig.dpi": dpi, "figure.dpi": dpi}):
-        fig, ax = plt.subplots(figsize=(4.4, 4.2))
+        # laid out by matplotlib: fixed margins cut the colour bar's label off the right
+        fig, ax = plt.subplots(figsize=(4.4, 4.2), layout="constrained")
         lc = _plan(ax, m, 4, lim, labels=False)  # too small for words: the stars say it
         ax.set_title(title, fontsize=11)
         ax.set_xlabel(xl.split(",")[0] + (")" if "," in xl else ""))
         ax.set_ylabel(yl.split(",")[0] + (")" if "," in yl else ""))
         cb = fig.colorbar(lc, ax=ax, fraction=0.05, pad=0.03)
         cb.set_label("|B| \u2212 median (nT)")
-        fig.subplots_adjust(left=0.2, right=0.86, bottom=0.14, top=0.9)
         return style.png(fig)
 
 

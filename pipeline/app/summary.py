@@ -306,10 +306,16 @@ def maps_html(rows: Sequence[Mapping[str, Any]], out_dir: Path | None) -> str:
             f"<figcaption><b>{_link(r.get('report'), str(r.get('name'))) or name}</b> "
             f"<span class=\"verdict v-{v}\">{v}</span>{whose}"
             f"<br><small class=reason>{reason}</small></figcaption></figure>")
+    # the caption names only the marks some map has
+    marks = ""
+    if any(m.get("sources") for _, m in found):
+        marks += " Crosses: located sources (dashed: 1 sigma)."
+    if any(m.get("events") for _, m in found):
+        marks += " Stars: where the sensor was during a diagnosed event."
     return ("<h2>Where each recording went</h2><p>Each path seen from above, coloured by its "
             "restored |B| minus that recording's median (one colour scale for all), with its "
-            "own verdict. Crosses: located sources (dashed: 1 sigma); stars: where the sensor "
-            "was during a diagnosed event.</p><div class=maps>" + "".join(cells) + "</div>")
+            f"own verdict. Open circle: start; filled square: end.{marks}</p>"
+            "<div class=maps>" + "".join(cells) + "</div>")
 
 
 def minus_text(text: str) -> str:
