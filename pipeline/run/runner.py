@@ -38,6 +38,7 @@ from pipeline.io.mcap_read import RecordingChunk, problem_warnings
 from pipeline.model.attitude import AttitudeInterpolator, auto_max_gap_s, estimate_cubic_weight
 from pipeline.model.calibration import Calibration
 from pipeline.run.options import ProcessOptions
+from pipeline.run.passes import PASS_WINDOW_S, PassFinder
 from pipeline.run.plan import FirstPass, Plan, make_plan, streams_estimate, windows_ns
 from pipeline.run.source import FileSource, MemorySource, Source, open_source
 from stages.check_applied import applied_verdict
@@ -208,6 +209,25 @@ class _Kept:
                 self.pos.append(dataclasses.replace(ch.position, t_ns=ch.position.t_ns[p],
                                                     p_m=ch.position.p_m[p]))
 
+    def add_windows(self, other: _Kept) -> None:
+        """Take the samples ``other`` kept in its windows (disjoint from these) as well.
+
+        The attitude and positions both kept about neighbouring windows (their margins) are
+        kept once: ``other``'s rows already kept here are dropped.
+        """
+        margin = int(WINDOW_MARGIN_S * 1e9)
+        self.mag_t += other.mag_t
+        self.mag_v += other.mag_v
+        for t, q in zip(other.att_t, other.att_q, strict=True):
+            new = ~self._inside(t, margin)
+            self.att_t.append(t[new])
+            self.att_q.append(q[new])
+        for p in other.pos:
+            new = ~self._inside(p.t_ns, margin)
+            self.pos.append(dataclasses.replace(p, t_ns=p.t_ns[new], p_m=p.p_m[new]))
+        w = np.concatenate([self.windows, other.windows])
+        self.windows = w[np.argsort(w[:, 0], kind="stable")]
+
     def aligned(self, q: np.ndarray, y: np.ndarray, t: np.ndarray) -> None:
         first = (-self.n_aligned) % self.step
         # copies: views would keep every block alive
@@ -264,7 +284,10 @@ class Reduced:
         The recording's first magnetometer stamp.
     rule : AttitudeRule
     windows_ns : ndarray (W, 2)
-        The analysis windows.
+        The analysis windows, in time order: those spread over the recording and those where
+        its field's magnitude stood out (:mod:`pipeline.run.passes`).
+    n_pass_windows : int
+        How many of them are of the second kind.
     recording : Recording
         The windows' samples (the header's channels).
     thin_aligned : AlignedSeries
@@ -280,6 +303,7 @@ class Reduced:
     t0_ns: int
     rule: AttitudeRule
     windows_ns: np.ndarray
+    n_pass_windows: int
     recording: Recording
     thin_aligned: AlignedSeries
     thin_positions: PositionSeries | None
@@ -322,6 +346,7 @@ def first_pass(source: Source, plan: Plan) -> Reduced:
                  if streamed and terms - {EstimateTerm.OFFSET} else None)
     split_ns: int | None = None
     aligner = ChunkedAttitude(max_gap_s=rule.max_gap_s, cubic_weight=rule.cubic_weight)
+    finder = PassFinder()
 
     def reduce(q: np.ndarray, y: np.ndarray, t: np.ndarray) -> None:
         nonlocal split_ns
@@ -342,6 +367,7 @@ def first_pass(source: Source, plan: Plan) -> Reduced:
 
     for ch in itertools.chain([first], chunks):
         kept.chunk(ch)
+        finder.add(ch.mag.t_ns, ch.mag.values)
         if excl and kept.t_first_ns is not None:
             if t0_excl is None:  # the first range's first stamp: the recording's
                 t0_excl = int(kept.t_first_ns)
@@ -360,8 +386,15 @@ def first_pass(source: Source, plan: Plan) -> Reduced:
     elif streamed:
         split_s = 0.0 if split_ns is None else (split_ns - t0) * 1e-9
         sums = SampleSums(halves=(halves[0].result(), halves[1].result()), split_s=split_s)
+    passes = finder.windows(kept.windows)
+    if len(passes):
+        # the candidates are known once every sample was judged: their samples are read again
+        more = _Kept(passes, plan.keep_every)
+        for ch in source.again():
+            more.chunk(ch)
+        kept.add_windows(more)
     return Reduced(FirstPass(rule.max_gap_s, t0_excl if t0_excl is not None else t0, n_excl),
-                   t0, rule, kept.windows, kept.window_recording(source.header),
+                   t0, rule, kept.windows, len(passes), kept.window_recording(source.header),
                    kept.aligned_series(), kept.thin_positions(source.header), sums)
 
 
@@ -431,8 +464,13 @@ def analyse_source(source: Source, options: ProcessOptions, steps: Steps) -> Ana
     cal = ctx.need_calibration()
     n_win = len(ctx.need_recording().mag)
     if options.calibration_path is None and n_win < source.n_mag:
-        where = (f"{len(w)} windows of {(w[0, 1] - w[0, 0]) * 1e-9:.0f} s spread over the "
-                 f"recording ({n_win} of {source.n_mag} magnetometer samples)")
+        k = reduced.n_pass_windows
+        spread = w[np.argsort(w[:, 1] - w[:, 0])[k:]] if k else w
+        where = (f"{len(spread)} windows of {(spread[0, 1] - spread[0, 0]) * 1e-9:.0f} s spread "
+                 "over the recording"
+                 + (f" and {k} of at most {PASS_WINDOW_S:.0f} s where the field's magnitude "
+                    "stood out" if k else "")
+                 + f" ({n_win} of {source.n_mag} magnetometer samples)")
         if ctx.sums is None:
             fitted = f"the model was fitted on {where}"
         elif options.diagnose:

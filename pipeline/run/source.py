@@ -82,6 +82,10 @@ class MemorySource:
         """Yield the chunks again (the second pass)."""
         return self.chunks()
 
+    def again(self) -> Iterator[RecordingChunk]:
+        """Yield the chunks again within the first pass (windows found at its end)."""
+        return self.chunks()
+
     def passthrough(self) -> PassThrough | None:
         """Return the input's chunks to copy as they are, when the file is intact and indexed."""
         return None if self.recording.problems else pass_through(self.recording.path)
@@ -155,7 +159,19 @@ class FileSource:
     def replay(self) -> Iterator[RecordingChunk]:
         """Yield the first pass's chunks again from the spill file (the second pass)."""
         assert self._spill is not None, "the first pass was not spilled"
-        return self._spill.chunks()
+        return self._spill.chunks(last=True)
+
+    def again(self) -> Iterator[RecordingChunk]:
+        """Yield the chunks again within the first pass (windows found at its end).
+
+        From the spill file when there is one (it stays for the second pass), else decoded
+        from the file again.
+        """
+        if self._spill is not None:
+            return self._spill.chunks(last=False)
+        return iter_recording_chunks(self.path, max_messages=RANGE_MESSAGES,
+                                     mag_topic=self.options.mag_topic,
+                                     attitude_topic=self.options.attitude_topic)
 
     def passthrough(self) -> PassThrough | None:
         """Return the input's chunks, copied as they are."""
@@ -208,7 +224,8 @@ class _Spill:
             raise self._error(exc) from exc
         self.n_chunks += 1
 
-    def chunks(self) -> Iterator[RecordingChunk]:
+    def chunks(self, last: bool) -> Iterator[RecordingChunk]:
+        """Yield the chunks written; ``last``: the file goes away after them."""
         fh = self._fh
         fh.flush()
         fh.seek(0)
@@ -230,7 +247,8 @@ class _Spill:
                 pos = dataclasses.replace(self.position, t_ns=pt, p_m=pp)
             yield RecordingChunk(j, dataclasses.replace(mag_like, t_ns=mt, values=mv), att,
                                  None, pos)
-        fh.close()
+        if last:
+            fh.close()
 
 
 def open_source(path: str | Path, options: ProcessOptions, *, warn: bool = False) -> Source:
