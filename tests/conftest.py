@@ -1,4 +1,4 @@
-"""Run the longest test files first, so that the workers of ``make test`` finish together.
+"""The suite's common setup: the longest test files first, and no progress lines by default.
 
 ``make test`` runs the suite on pytest-xdist workers with ``--dist loadfile``: each file on
 one worker (its module fixtures and caches built once), files handed out in collection
@@ -6,6 +6,11 @@ order as workers come free. Handed out alphabetically, a file of several minutes
 last and run alone while the other worker idles; longest first (the greedy order that
 keeps the makespan within a third of the ideal, Graham 1969) lets the short files fill in
 around them. The order of the tests inside a file is unchanged, and so is the set of tests.
+
+Without a terminal a command prints a line per stage once it has run for
+``pipeline.core.progress.LOG_AFTER_S``: what a test reads on stderr would then depend on the
+machine's speed. Every test runs with ``MAGALIGN_PROGRESS=never`` (inherited by the commands
+it starts) unless it sets the mode itself, as the tests of the progress display do.
 """
 
 from __future__ import annotations
@@ -39,3 +44,9 @@ def _rank(item: pytest.Item) -> int:
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Put the longest files first, keeping the order within each file (a stable sort)."""
     items.sort(key=_rank)
+
+
+@pytest.fixture(autouse=True)
+def _no_progress_lines(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Run each test with the progress display off unless the test sets its mode."""
+    monkeypatch.setenv("MAGALIGN_PROGRESS", "never")
