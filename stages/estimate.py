@@ -220,7 +220,7 @@ class LargestEffect:
         """Return it for a person: its name, its size and when it acted."""
         text = "a " + self.effect.replace("_", " ")
         if self.size_nT is not None and np.isfinite(self.size_nT):
-            text += f" of {_count(self.size_nT, 100)} nT"
+            text += f" of {_count(self.size_nT)} nT"
         if self.windows_s:
             text += " at " + ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in self.windows_s)
         else:
@@ -421,7 +421,10 @@ def with_verdict(cal: Calibration, aligned: AlignedSeries,
     sig = np.asarray(cal.sigma_rotvec_deg, float)
     if len(cal.unobservable_axes_body) == 0 and np.all(np.isfinite(sig)) and np.any(
             sig > POOR_AXIS_SIGMA_DEG):
-        doubts += poor_axis_doubts(cal, motion_sigma_deg(cal, aligned, noise), effect)
+        # first: the verdict states the first doubt, and a rotation known only to degrees is
+        # the largest uncertainty of the answer; the sigmas it quotes already include what
+        # the other checks measured (the halves' disagreement widens them)
+        doubts = poor_axis_doubts(cal, motion_sigma_deg(cal, aligned, noise), effect) + doubts
     return cal.replace(verdict=judge(res, noise, refusals=refusals, doubts=doubts,
                                      diagnosed=diagnosed, heldout_rms_nT=heldout_rms_nT),
                        checks={**cal.checks, "doubts": doubts})

@@ -194,7 +194,7 @@ def event_words(cal) -> list[str]:
             size = float(np.linalg.norm(np.asarray(p["offset_nT"], float)))
             when = ", ".join(f"{a:.1f}-{b:.1f}{GLUE}s" for a, b in p["windows_s"])
             out.append(f"found: a {kind.replace('_', ' ')} of "
-                       f"{_count(round(size / 100.0) * 100.0)} nT at {when} (a magnet or "
+                       f"{_count(size)} nT at {when} (a magnet or "
                        "magnetic object near the sensor)")
     return out
 
