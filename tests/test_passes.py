@@ -64,14 +64,26 @@ def test_a_one_second_bump_is_a_candidate_at_its_peak(chunk):
     assert not len(finder.windows(np.array([[int(1200e9), int(1300e9)]], np.int64)))
 
 
-def test_the_strongest_candidates_are_kept_apart_and_capped():
+def test_the_strongest_candidates_are_kept_and_overlapping_windows_are_one():
     finder = PassFinder()
-    finder.candidates = [(10.0 + k, int(k * 3e9)) for k in range(3 * PASS_WINDOWS)]
+    finder.candidates = [(10.0 + k, int(k * 20e9)) for k in range(3 * PASS_WINDOWS)]
     got = finder.windows(np.zeros((0, 2), np.int64))
     assert len(got) == PASS_WINDOWS
-    centres = np.sort((got[:, 0] + got[:, 1]) // 2)
-    assert np.all(np.diff(centres) >= PASS_WINDOW_S * 1e9)
+    centres = (got[:, 0] + got[:, 1]) // 2
+    assert set(centres.tolist()) == {int(k * 20e9) for k in range(2 * PASS_WINDOWS,
+                                                                  3 * PASS_WINDOWS)}
     assert np.all(got[1:, 0] >= got[:-1, 1])  # disjoint, in time order
+    # two peaks 4 s apart (a step's two edges): one window over both; a weaker peak inside
+    # it adds nothing
+    finder.candidates = [(9.0, int(100e9)), (8.0, int(104e9)), (7.0, int(101e9))]
+    (w,) = finder.windows(np.zeros((0, 2), np.int64))
+    assert w.tolist() == [int(96e9), int(108e9)]
+    # what a spread window holds is cut out, on either side
+    (a, b) = finder.windows(np.array([[int(97e9), int(99e9)]], np.int64))
+    assert a.tolist() == [int(96e9), int(97e9)] and b.tolist() == [int(99e9), int(108e9)]
+    # a peak a spread window holds needs no window of its own
+    (w,) = finder.windows(np.array([[int(99e9), int(103e9)]], np.int64))
+    assert w.tolist() == [int(103e9), int(108e9)]
 
 
 def test_the_first_pass_reads_the_windows_of_a_bump_between_the_spread_windows(
@@ -102,3 +114,36 @@ def test_the_first_pass_reads_the_windows_of_a_bump_between_the_spread_windows(
     # every sample of the 4 s about the bump, once
     assert np.count_nonzero(near) == np.count_nonzero(np.abs(s - t_bump) < 2.0)
     assert np.all(np.diff(rec.attitude.t_ns) > 0)  # the margins' attitude kept once
+
+
+def test_a_long_recordings_event_times_count_from_its_first_sample(tmp_path, monkeypatch):
+    """The analysis of a long recording sees windows whose first sample is not the
+    recording's; the times it reports (and the restore applies) still count from the
+    recording's first magnetometer sample (CONVENTIONS ``windows_s``): a car parked beside
+    the sensor from 25 s to 29 s is found there, not shifted by the first window's start."""
+    from test_scale import B_ENU, ROTVEC_DEG
+
+    from pipeline.core.geometry import li2020_euler_to_quat, quat_conj, quat_rotate, so3_exp
+    from pipeline.run.runner import process_recording
+
+    monkeypatch.setattr(plan, "DECIMATED_SAMPLES", 1_200)  # 12 windows of 2 s
+    monkeypatch.setattr(source, "RANGE_MESSAGES", 1_000)
+    n = 8_000
+    s = np.arange(n) / 50.0
+    q = li2020_euler_to_quat(2 * np.pi * s / 30.0, np.radians(20) * np.sin(s / 3.0),
+                             np.radians(20) * np.sin(s / 4.0))
+    y = quat_rotate(quat_conj(q), np.broadcast_to(B_ENU, (n, 3))) @ so3_exp(
+        np.radians(ROTVEC_DEG))
+    y = y + 0.5 * np.random.default_rng(0).standard_normal((n, 3))
+    y[(s >= 25.0) & (s < 29.0)] += [300.0, -200.0, 100.0]
+    t = 1_700_000_000_000_000_000 + np.arange(n, dtype=np.int64) * 20_000_000
+    path = write_recording(tmp_path / "g.mcap", mag_t_ns=t, mag_nT=y, attitude_t_ns=t,
+                           q_enu_body=q, chunk_size=32 << 10)
+    row = process_recording(path, tmp_path / "o", options=ProcessOptions(
+        scale_samples=1_000, write_rerun=False, write_report=False))
+    import json
+    from pathlib import Path
+
+    d = json.loads(Path(row["paths"]["diagnosis.json"]).read_text())
+    spans = [w for f in d["findings"] for w in (f["params"].get("windows_s") or [])]
+    assert any(abs(a - 25.0) < 0.5 and abs(b - 29.0) < 0.5 for a, b in spans), spans

@@ -376,6 +376,10 @@ class Recording:
         local ENU from the first valid fix), else those carried by the attitude channel
         (``PoseStamped`` ``pose.position``, ``Odometry`` ``pose.pose.position``, INSPVA
         latitude/longitude/height as local ENU); None when there are none.
+    first_ns : int or None
+        The recording's first magnetometer stamp when ``mag`` holds only parts of it (a long
+        recording's analysed windows); None: ``mag``'s own first stamp. Times in seconds
+        (``windows_s``, a closest approach) count from it (:meth:`origin_ns`).
 
     """
 
@@ -391,6 +395,13 @@ class Recording:
     attitude_frame_id: str = ""
     problems: tuple[Problem, ...] = ()
     position: PositionSeries | None = None
+    first_ns: int | None = None
+
+    def origin_ns(self) -> int:
+        """Return the stamp that times in seconds count from: the first magnetometer sample."""
+        if self.first_ns is not None:
+            return int(self.first_ns)
+        return int(self.mag.t_ns[0]) if len(self.mag.t_ns) else 0
 
     @property
     def duration_s(self) -> float:

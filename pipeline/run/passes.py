@@ -108,26 +108,39 @@ class PassFinder:
             self.candidates = sorted(self.candidates, reverse=True)[:4 * PASS_WINDOWS]
 
     def windows(self, spread_ns: np.ndarray) -> np.ndarray:
-        """Return the candidates' windows, (K, 2) int64 ns, half-open, time order.
+        """Return the candidates' windows, (K, 2) int64 ns, half-open, in time order.
 
-        The strongest first, each :data:`PASS_WINDOW_S` long about its peak, none closer
-        than a window to a stronger one; a candidate inside a spread window needs none, and
-        a window that overlaps a spread window is cut back to it (the windows stay disjoint).
+        The strongest :data:`PASS_WINDOWS` candidates whose peak no stronger one's window or
+        spread window already holds, each :data:`PASS_WINDOW_S` long about its peak;
+        overlapping windows are one, and what the spread windows hold is cut out (the
+        windows stay disjoint from them and from each other).
         """
         half = int(PASS_WINDOW_S * 0.5e9)
         spread = np.asarray(spread_ns, np.int64).reshape(-1, 2)
-        out: list[tuple[int, int]] = []
+        chosen: list[tuple[int, int]] = []
         for _, tp in sorted(self.candidates, reverse=True):
-            if len(out) >= PASS_WINDOWS:
+            if len(chosen) >= PASS_WINDOWS:
                 break
-            if np.any((spread[:, 0] <= tp) & (tp < spread[:, 1])):
+            held = [(int(a), int(b)) for a, b in spread] + chosen
+            if any(a <= tp < b for a, b in held):
                 continue
-            if any(abs(tp - (a + b) // 2) < 2 * half for a, b in out):
-                continue
-            a, b = tp - half, tp + half
-            for s0, s1 in spread:
-                if s0 < b and a < s1:  # overlaps: keep the side the peak is on
-                    a, b = (max(a, int(s1)), b) if tp >= s1 else (a, min(b, int(s0)))
+            chosen.append((tp - half, tp + half))
+        merged: list[list[int]] = []
+        for a, b in sorted(chosen):
+            if merged and a <= merged[-1][1]:
+                merged[-1][1] = max(merged[-1][1], b)
+            else:
+                merged.append([a, b])
+        out: list[tuple[int, int]] = []
+        for a, b in merged:
+            for s0, s1 in sorted((int(x), int(y)) for x, y in spread):
+                if s1 <= a or b <= s0:
+                    continue
+                if s0 > a:
+                    out.append((a, s0))
+                a = max(a, s1)
+                if a >= b:
+                    break
             if b > a:
                 out.append((a, b))
         return np.array(sorted(out), np.int64).reshape(-1, 2)

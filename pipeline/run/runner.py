@@ -269,7 +269,8 @@ class _Kept:
                                            max_gap_s=self.pos[0].gap_rule_s())
         return dataclasses.replace(
             header, mag=VectorSeries(mt[o], mv[o], header.mag.frame, header.mag.unit),
-            attitude=AttitudeSeries(at[oa], aq[oa]), position=position)
+            attitude=AttitudeSeries(at[oa], aq[oa]), position=position,
+            first_ns=self.t_first_ns)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -80,7 +80,7 @@ def fit_data_from(
     inside the half-open windows ``full_rate_s`` (s), where every sample is kept: an event
     there is briefer than the decimated data resolve (:func:`brief_events`).
     """
-    t0 = int(recording.mag.t_ns[0]) if len(recording.mag) else int(aligned.t_ns[0])
+    t0 = recording.origin_ns() if len(recording.mag) else int(aligned.t_ns[0])
     t_s = (np.asarray(aligned.t_ns, dtype=np.int64) - t0) * 1e-9
     if recording.attitude is not None and len(recording.attitude) >= 2:
         ta = (np.asarray(recording.attitude.t_ns, dtype=np.int64) - t0) * 1e-9
@@ -292,7 +292,7 @@ def sample_hold_finding(
 
     """
     mag_t = np.asarray(recording.mag.t_ns, dtype=np.int64)
-    t0 = int(mag_t[0])
+    t0 = recording.origin_ns()
     idx = np.clip(np.searchsorted(mag_t, t0 + np.round(data.t_s * 1e9).astype(np.int64)), 0,
                   len(mag_t) - 1)
     first_idx = np.maximum.accumulate(np.where(sh.first, np.arange(len(mag_t)), 0))
