@@ -121,24 +121,13 @@ def test_a_long_recordings_event_times_count_from_its_first_sample(tmp_path, mon
     recording's; the times it reports (and the restore applies) still count from the
     recording's first magnetometer sample (CONVENTIONS ``windows_s``): a car parked beside
     the sensor from 25 s to 29 s is found there, not shifted by the first window's start."""
-    from test_scale import B_ENU, ROTVEC_DEG
+    from test_stream_process import car_parked_recording
 
-    from pipeline.core.geometry import li2020_euler_to_quat, quat_conj, quat_rotate, so3_exp
     from pipeline.run.runner import process_recording
 
     monkeypatch.setattr(plan, "DECIMATED_SAMPLES", 1_200)  # 12 windows of 2 s
     monkeypatch.setattr(source, "RANGE_MESSAGES", 1_000)
-    n = 8_000
-    s = np.arange(n) / 50.0
-    q = li2020_euler_to_quat(2 * np.pi * s / 30.0, np.radians(20) * np.sin(s / 3.0),
-                             np.radians(20) * np.sin(s / 4.0))
-    y = quat_rotate(quat_conj(q), np.broadcast_to(B_ENU, (n, 3))) @ so3_exp(
-        np.radians(ROTVEC_DEG))
-    y = y + 0.5 * np.random.default_rng(0).standard_normal((n, 3))
-    y[(s >= 25.0) & (s < 29.0)] += [300.0, -200.0, 100.0]
-    t = 1_700_000_000_000_000_000 + np.arange(n, dtype=np.int64) * 20_000_000
-    path = write_recording(tmp_path / "g.mcap", mag_t_ns=t, mag_nT=y, attitude_t_ns=t,
-                           q_enu_body=q, chunk_size=32 << 10)
+    path = car_parked_recording(tmp_path / "g.mcap")
     row = process_recording(path, tmp_path / "o", options=ProcessOptions(
         scale_samples=1_000, write_rerun=False, write_report=False))
     import json

@@ -222,24 +222,15 @@ def test_two_pass_estimates_time_offset_and_soft_iron_from_every_sample(tmp_path
                                atol=0.01)  # deg
 
 
-def test_two_pass_warns_of_physics_between_the_analysed_windows(tmp_path, monkeypatch):
-    """A disturbance that falls between the diagnosis windows of a long recording: the
-    final model fits the windows, and pass 2, which restores every sample, says where it
-    does not fit (UNSEEN_RMS_RATIO). The windows about where the field's magnitude stands
-    out (pipeline.run.passes) would hold this one; they are capped, so what lies beyond the
-    cap is checked here with none."""
+def car_parked_recording(path: Path) -> Path:
+    """160 s at 50 Hz, turning, 0.5 nT noise, and a car parked beside the sensor from 25 s to
+    29 s (an offset of [300, -200, 100] nT): with 1 200 analysed samples, 12 windows of 2 s
+    spread over it, the car lies between two of them."""
     from test_scale import B_ENU, ROTVEC_DEG
 
-    import pipeline.run.passes as passes
-    import pipeline.run.plan as plan
-    import pipeline.run.source as source
     from pipeline.core.geometry import li2020_euler_to_quat, quat_conj, quat_rotate, so3_exp
     from pipeline.io.mcap_write import write_recording
-    from pipeline.run.runner import ProcessOptions, process_recording
 
-    monkeypatch.setattr(plan, "DECIMATED_SAMPLES", 1_200)  # windows of 2 s
-    monkeypatch.setattr(source, "RANGE_MESSAGES", 1_000)  # chunks of 10 s
-    monkeypatch.setattr(passes, "PASS_WINDOWS", 0)
     n = 8_000
     s = np.arange(n) / 50.0
     q = li2020_euler_to_quat(2 * np.pi * s / 30.0, np.radians(20) * np.sin(s / 3.0),
@@ -249,11 +240,27 @@ def test_two_pass_warns_of_physics_between_the_analysed_windows(tmp_path, monkey
     y = y + 0.5 * np.random.default_rng(0).standard_normal((n, 3))
     windows = [(0.5 + i) * s[-1] / 12 for i in range(12)]
     assert all(abs(w - 27.0) > 4.0 for w in windows)  # 25-29 s is between two windows
-    y[(s >= 25.0) & (s < 29.0)] += [300.0, -200.0, 100.0]  # a car parked beside the sensor
+    y[(s >= 25.0) & (s < 29.0)] += [300.0, -200.0, 100.0]
     t = 1_700_000_000_000_000_000 + np.arange(n, dtype=np.int64) * 20_000_000
-    path = tmp_path / "g.mcap"
-    write_recording(path, mag_t_ns=t, mag_nT=y, attitude_t_ns=t, q_enu_body=q,
-                    chunk_size=32 << 10)
+    return write_recording(path, mag_t_ns=t, mag_nT=y, attitude_t_ns=t, q_enu_body=q,
+                           chunk_size=32 << 10)
+
+
+def test_two_pass_warns_of_physics_between_the_analysed_windows(tmp_path, monkeypatch):
+    """A disturbance that falls between the diagnosis windows of a long recording: the
+    final model fits the windows, and pass 2, which restores every sample, says where it
+    does not fit (UNSEEN_RMS_RATIO). The windows about where the field's magnitude stands
+    out (pipeline.run.passes) would hold this one; they are capped, so what lies beyond the
+    cap is checked here with none."""
+    import pipeline.run.passes as passes
+    import pipeline.run.plan as plan
+    import pipeline.run.source as source
+    from pipeline.run.runner import ProcessOptions, process_recording
+
+    monkeypatch.setattr(plan, "DECIMATED_SAMPLES", 1_200)  # windows of 2 s
+    monkeypatch.setattr(source, "RANGE_MESSAGES", 1_000)  # chunks of 10 s
+    monkeypatch.setattr(passes, "PASS_WINDOWS", 0)
+    path = car_parked_recording(tmp_path / "g.mcap")
     row = process_recording(path, tmp_path / "o", options=ProcessOptions(
         scale_samples=1_000, write_rerun=False, write_report=False))
     note = [w for w in row["warnings"] if "between the analysed windows" in w]
