@@ -58,6 +58,8 @@ from stages.estimators.checks import (
     apply_split,
     info_halves,
     sandwich_cov,
+    split_inflation,
+    split_limit,
     split_statistic,
     undetermined_directions,
 )
@@ -649,41 +651,41 @@ def fit_halves(res: FitResult, data: FitData) -> Halves | None:
 def covered_covariance(res: FitResult, data: FitData, halves: Halves | None) -> np.ndarray:
     """Return the parameter covariance with each term's block covering what the halves show.
 
-    For each term the difference ``d`` of its values between the two halves is compared with
-    what the fits expect of it: ``4 C`` from the full recording's covariance ``C`` of the
-    block (halves of equal information each have twice its variance) and ``C_a + C_b`` from
-    the halves' own. The smaller of ``chi2 = d' E^+ d / rank(E)`` under the two is how far
-    the halves disagree beyond what either allows; where it exceeds 1 the term's block of the
-    full covariance is scaled by it (the scale factor of the Particle Data Group's averages,
-    Review of Particle Physics, Introduction, "Unconstrained averaging"). In one dimension
-    the sigma then becomes at least ``|d| / 2``: it covers what the recording's halves show.
-    A half that barely determines a term has a large covariance there, so its difference
-    does not widen the sigma, nor does a term that acts mostly in one half
-    (:data:`MIN_HALF_SHARE`). A term with held combinations (its values have more entries
-    than its free parameters) keeps its covariance. The rotation's own halves check is
-    :func:`final_split`.
+    The rotation's rule (:func:`stages.estimators.checks.apply_split`), applied to every
+    term: the difference ``d`` of a term's values between the two halves is tested at the
+    halves' stated false-alarm rate (:func:`stages.estimators.checks.split_limit`), and
+    where it fails, ``d d^T / 2`` is added to the term's block
+    (:func:`stages.estimators.checks.split_inflation`: each half's bias spreads by about
+    ``|d| / sqrt(2)`` along ``d``), so that along ``d`` the stated sigma is at least
+    ``|d| / sqrt(2)``. The test statistic is the smaller of ``d' E^+ d`` under what the fits
+    expect of ``d``: ``4 C`` from the whole recording's covariance ``C`` of the block (halves
+    of equal information each have twice its variance) and ``C_a + C_b`` from the halves'
+    own; its degrees of freedom are the rank of ``E``. A half that barely determines a term
+    has a large covariance there, so its difference does not widen the sigma, nor does a
+    term that acts mostly in one half (:data:`MIN_HALF_SHARE`). A term with held
+    combinations (its values have more entries than its free parameters) keeps its
+    covariance. The rotation's own halves check is :func:`final_split`.
     """
     cov = param_covariance(res, data)
     if halves is None:
         return cov
     (ra, sa), (rb, sb) = halves.fits
     ca, cb = param_covariance(ra, sa), param_covariance(rb, sb)
-    scale = np.ones(cov.shape[0])
+    added = np.zeros_like(cov)
     for i, t in enumerate(res.state.terms):
         o, k = res.state.offsets()[i], t.n_params()
         d = np.asarray(ra.state.values[i], float) - np.asarray(rb.state.values[i], float)
         if d.size != k or k == 0 or not _in_both(t, sa, sb):
             continue
         blk = slice(o, o + k)
-        ratios = []
+        tests = []
         for e in (4.0 * cov[blk, blk], ca[blk, blk] + cb[blk, blk]):
             dof = int(np.linalg.matrix_rank(e, hermitian=True))
-            ratios.append(float(d @ np.linalg.pinv(e, hermitian=True) @ d) / dof if dof
-                          else 0.0)
-        ratio = min(ratios)
-        if np.isfinite(ratio) and ratio > 1.0:
-            scale[blk] = np.sqrt(ratio)
-    return cov * np.outer(scale, scale)
+            if dof:
+                tests.append(float(d @ np.linalg.pinv(e, hermitian=True) @ d) / split_limit(dof))
+        if tests and np.isfinite(min(tests)) and min(tests) > 1.0:
+            added[blk, blk] = split_inflation(d)
+    return cov + added
 
 
 #: Least share of a windowed term's samples each half must hold for the halves to be

@@ -272,15 +272,16 @@ class SplitCheck:
         }
 
 
-def split_inflation(diff_rad: F64) -> F64:
-    """Covariance (rad^2, 3x3) added to the rotation when the halves disagree significantly.
+def split_inflation(diff: F64) -> F64:
+    """Covariance added to an estimate when its halves disagree significantly.
 
-    The halves' difference ``d`` estimates the spread of a bias that changes over the
-    recording (physics the model leaves out); each half's bias then has a spread of about
-    ``|d| / sqrt(2)`` along ``d``, and the whole recording's estimate is given that spread:
-    ``d d^T / 2``. Conservative on purpose: a bias common to both halves is not seen at all.
+    The halves' difference ``d`` (any parameter vector: the rotation's, rad, or a term's)
+    estimates the spread of a bias that changes over the recording (physics the model leaves
+    out); each half's bias then has a spread of about ``|d| / sqrt(2)`` along ``d``, and the
+    whole recording's estimate is given that spread: ``d d^T / 2``. Conservative on purpose:
+    a bias common to both halves is not seen at all.
     """
-    d = np.asarray(diff_rad, float).reshape(3)
+    d = np.asarray(diff, float).ravel()
     return np.outer(d, d) / 2.0
 
 
