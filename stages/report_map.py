@@ -219,6 +219,9 @@ def _plan(ax: Any, m: Mapping[str, Any], column: int, lim: float, *,
     ax.plot(xy[0, 0], xy[0, 1], "o", ms=13, mfc="none", mec=style.REFERENCE, mew=2.0,
             zorder=3, label="start")
     ax.plot(xy[-1, 0], xy[-1, 1], "s", color=style.REFERENCE, ms=6, zorder=3.5, label="end")
+    x0, x1, y0, y1 = extent(m)
+    reach = 0.06 * max(x1 - x0, y1 - y0)  # about a label's height at the figure's size
+    placed: list[tuple[float, float]] = []
     for i, s in enumerate(m.get("sources") or []):
         c = s["position_m"]
         sg = s.get("sigma_m") or [None, None, None]
@@ -230,8 +233,12 @@ def _plan(ax: Any, m: Mapping[str, Any], column: int, lim: float, *,
         ax.plot(c[0], c[1], "X", color=style.REFERENCE, ms=11, zorder=5,
                 label="located source (dashed: 1 sigma)" if i == 0 else None)
         if labels:
+            # sources a few centimetres apart in a room would print their names on each
+            # other: each label goes a line below those of the sources already near it
+            below = sum(math.hypot(c[0] - a, c[1] - b) < reach for a, b in placed)
             ax.annotate(f"source {i + 1}", (c[0], c[1]), textcoords="offset points",
-                        xytext=(8, 6), fontsize=10)
+                        xytext=(8, 6 - 13 * below), fontsize=10)
+            placed.append((c[0], c[1]))
     for i, e in enumerate(m.get("events") or []):
         ax.plot(e["x"], e["y"], "*", color=style.EVENT, mec=style.REFERENCE, ms=16,
                 zorder=6, label="sensor during a diagnosed event" if i == 0 else None)
@@ -241,7 +248,6 @@ def _plan(ax: Any, m: Mapping[str, Any], column: int, lim: float, *,
                         textcoords="offset points", xytext=(8, -12), fontsize=10,
                         bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none",
                               "alpha": 0.8}, zorder=7)
-    x0, x1, y0, y1 = extent(m)
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
     ax.set_aspect("equal", adjustable="box")
