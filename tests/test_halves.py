@@ -207,3 +207,37 @@ def test_halves_that_agree_leave_a_terms_sigma_near_its_own():
     d, own, covered = _offset_halves(0.0)
     assert np.all(covered >= own)
     assert np.all(covered <= 2.5 * own)
+
+
+def test_a_source_passed_in_one_half_only_keeps_its_own_sigma():
+    """A line survey passes a buried source in its first half only. The second half, 10-17 m
+    away, holds a thousandth of the source's information and its fit wanders by metres; that
+    is not a second measurement and must not widen the located place to metres."""
+    from _diag_sim import make_data
+
+    from pipeline.core.vocabulary import EffectKind
+    from stages.diagnose.fit import fit
+    from stages.diagnose.model import Term
+    from stages.diagnose.stage import covered_covariance, fit_halves, shared_directions
+    from stages.diagnose.statistics import param_covariance
+
+    def line(t):
+        return np.stack([t / 3.0, 0.3 * np.sin(0.5 * t), 0 * t + 1.0], -1)  # 20 m east
+
+    term = Term(EffectKind.LOCAL_SOURCE, fit_yaw=False, yaw_rad=0.0)
+    value = np.r_[3.0, 0.5, -1.0, 4.0, -2.0, 6.0]  # 2 m below the line, 1 m from its start
+    data, truth = make_data((term,), (value,), duration_s=60.0, rate_hz=50.0, seed=7,
+                            noise_nT=2.0, positions=line)
+    res = fit(truth, data)
+    halves = fit_halves(res, data)
+    assert halves is not None
+    (ra, _), (rb, _) = halves.fits
+    moved = np.linalg.norm(np.asarray(ra.state.values[0][:3]) - rb.state.values[0][:3])
+    assert moved > 1.0  # the premise: the far half's fit wandered
+    assert not shared_directions(res, halves)[0].any()  # no direction both halves measure
+    own = np.sqrt(np.diag(param_covariance(res, data))[6:9])
+    covered = np.sqrt(np.diag(covered_covariance(res, data, halves))[6:9])
+    assert np.all(covered < 0.01), covered  # metres before the information share was weighed
+    assert np.all(covered >= own)
+    err = np.asarray(res.state.values[0][:3]) - value[:3]
+    assert np.all(np.abs(err) < 4 * covered), (err, covered)

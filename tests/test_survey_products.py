@@ -132,6 +132,13 @@ def test_every_buried_object_is_a_target_where_it_is(processed):
         assert r["closest_approach_utc"].startswith("2026-01-01T") and \
             r["closest_approach_utc"].endswith("Z")
         assert 10.0 < float(r["peak_nT"]) < 400.0
+        # the sigma covers the error, and a half of the survey that did not pass the object
+        # does not widen it to metres (each object is passed on two or three lines)
+        sig = np.array([float(r[f"sigma_{a}_m"]) for a in ("east", "north", "up")])
+        err = np.array([float(r["east_m"]) + off[0] - x[0], float(r["north_m"]) + off[1] - x[1],
+                        HEIGHT_M - x[2] - float(r["depth_below_sensor_m"])])
+        assert np.all(sig < 0.1), sig
+        assert np.all(np.abs(err) < 4 * sig), (err, sig)
 
 
 def test_anomaly_nc_has_the_dimensions_variables_and_attributes(processed):
