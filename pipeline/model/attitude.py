@@ -324,7 +324,8 @@ class AttitudeInterpolator:
         all_valid = bool(valid.all())
         jv = j if all_valid else j[valid]
         sv = (s if all_valid else s[valid])[:, None]
-        qv = quat_mul(qa[jv], rotvec_to_quat(self._rotvec(jv, sv)))  # (A1)
+        rv = self._rotvec(jv, sv)
+        qv = quat_mul(qa[jv], rotvec_to_quat(rv))  # (A1)
         qv /= np.linalg.norm(qv, axis=1, keepdims=True)
         if all_valid:
             q_out = qv
@@ -335,13 +336,12 @@ class AttitudeInterpolator:
 
         def omega() -> F64:
             # (A6): the exact derivative of the cubic, computed when asked for (the closure
-            # keeps the rows' segments and positions, not the curve's terms)
+            # keeps the rows' segments, positions and rotation vectors, not the curve's terms)
             s2 = sv * sv
             a, phi, b = self._a[jv], self._phi[jv], self._b[jv]
             dr = (3 * s2 - 4 * sv + 1) * a + (6 * sv - 6 * s2) * phi + (3 * s2 - 2 * sv) * b
-            r = self._rotvec(jv, sv)
             dt = self._dt[jv]
-            w = right_jacobian_apply(r, dr) / np.where(dt > 0, dt, 1.0)[:, None]
+            w = right_jacobian_apply(rv, dr) / np.where(dt > 0, dt, 1.0)[:, None]
             w_out = np.full((n, 3), np.nan)
             w_out[valid] = w
             w_out[valid & held] = 0.0

@@ -315,11 +315,19 @@ def dipole_gradient(r_enu_m: F64, m_Am2: F64) -> F64:
     r = np.asarray(r_enu_m, dtype=float)
     d = np.maximum(np.linalg.norm(r, axis=1), MIN_SOURCE_DISTANCE_M)
     mr = r @ m_Am2
-    eye = np.eye(3)[None]
-    t1 = (m_Am2[None, None, :] * r[:, :, None] + m_Am2[None, :, None] * r[:, None, :]
-          + mr[:, None, None] * eye)
+    # in place, in the formula's order: the diagnosis evaluates this at every iteration
+    t1 = m_Am2[None, None, :] * r[:, :, None]
+    t1 += m_Am2[None, :, None] * r[:, None, :]
+    diag = np.arange(3)
+    t1[:, diag, diag] += mr[:, None]  # (m.r) d_ij
+    t1 *= 3.0
+    t1 /= (d**5)[:, None, None]
     t2 = mr[:, None, None] * r[:, :, None] * r[:, None, :]
-    return DIPOLE_NT * (3.0 * t1 / (d**5)[:, None, None] - 15.0 * t2 / (d**7)[:, None, None])
+    t2 *= 15.0
+    t2 /= (d**7)[:, None, None]
+    t1 -= t2
+    t1 *= DIPOLE_NT
+    return cast(F64, t1)
 
 
 @dataclass(frozen=True)
