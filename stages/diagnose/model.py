@@ -822,13 +822,32 @@ def _attitude(track: AttitudeTrack, t_s: F64, key: tuple | None = None,
             return hit[1]
     tq = np.asarray(t_s, dtype=float) - float(track.t_s[0])  # as AttitudeTrack.at
     at = track.interpolator.at_rel_s(tq)
-    out = _Attitude(np.ascontiguousarray(np.swapaxes(quat_to_matrix(at.q_enu_body), -1, -2)),
-                    at)
+    out = _Attitude(_transposed_matrix(at.q_enu_body), at)
     if key is not None:
         if len(_CT_CACHE) > 48:
             _CT_CACHE.clear()  # bounded: the cache only spans the iterations of one fit
         _CT_CACHE[key] = (owners, out)
     return out
+
+
+def _transposed_matrix(q: F64) -> F64:
+    """``C(q).T`` (N, 3, 3) of unit quaternions (N, 4), scalar-last.
+
+    The entries of :func:`pipeline.core.geometry.quat_to_matrix`, written to their
+    transposed places at once: no stacking and no transposed copy, the same numbers.
+    """
+    x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    Ct = np.empty((len(q), 3, 3))
+    Ct[:, 0, 0] = 1 - 2 * (y * y + z * z)
+    Ct[:, 1, 0] = 2 * (x * y - z * w)
+    Ct[:, 2, 0] = 2 * (x * z + y * w)
+    Ct[:, 0, 1] = 2 * (x * y + z * w)
+    Ct[:, 1, 1] = 1 - 2 * (x * x + z * z)
+    Ct[:, 2, 1] = 2 * (y * z - x * w)
+    Ct[:, 0, 2] = 2 * (x * z - y * w)
+    Ct[:, 1, 2] = 2 * (y * z + x * w)
+    Ct[:, 2, 2] = 1 - 2 * (x * x + y * y)
+    return Ct
 
 
 def _CT(track: AttitudeTrack, t_s: F64, key: tuple | None = None, owners: Any = None) -> F64:
@@ -1090,7 +1109,10 @@ def _enu_field(state: ModelState, data: FitData, lever_enu: F64 | None
             r_src = source_offset_enu(term, v, data.p_m, lever_enu)
             P = dipole_matrix(r_src)
             sources[k] = (r_src, P)
-            Bt += term.presence(t)[:, None] * (P @ v[3:6])
+            if term.windows_s:
+                Bt += term.presence(t)[:, None] * (P @ v[3:6])
+            else:  # present throughout: a presence of 1 would change nothing
+                Bt += P @ v[3:6]
         elif term.kind is EffectKind.FIELD_MAP and data.p_m is not None:
             # B(p) = B_enu - Q grad phi(x), x = p + Q.T C l  (CONVENTIONS field_map;
             # pipeline.model.field_map): Q sum_j w_j g_j(x)
@@ -1155,27 +1177,28 @@ def _term_columns(J: F64, state: ModelState, data: FitData, lin: _Linearisation)
             if lin.lever_enu is not None:
                 dpq = dpq + lin.lever_enu
             dB = np.einsum("kij,nj->nik", SOFT_BASIS, dpq)  # (N, 3, 5)
-            J[:, :, i : i + 5] = np.matmul(lin.G, dB)
+            np.matmul(lin.G, dB, out=J[:, :, i : i + 5])
         elif k is EffectKind.LOCAL_SOURCE and data.p_m is not None:
             # r = Rz(psi) (p - c) + C l, B = P(r) m: dB/dc = -K Rz(psi), dB/dm = P(r),
             # dB/dpsi = K (e_z x Rz(psi) (p - c)), K = dB/dr (dipole_gradient)
             r_src, P_src = lin.sources[j]  # as the field's: the same offsets and values
-            pres = term.presence(t)[:, None, None]
             K = dipole_gradient(r_src, v[3:6])
             psi = float(v[6]) if term.fit_yaw else term.yaw_rad
             dB = np.zeros((n, 3, term.n_params()))
-            dB[:, :, 0:3] = -np.matmul(K, rot_z(psi))
+            np.negative(np.matmul(K, rot_z(psi)), out=dB[:, :, 0:3])
             dB[:, :, 3:6] = P_src
             if term.fit_yaw:
                 r_p = r_src if lin.lever_enu is None else source_offset_enu(term, v, data.p_m)
                 ez_r = np.stack([-r_p[:, 1], r_p[:, 0], np.zeros(n)], axis=1)
                 dB[:, :, 6] = matvec_rows(K, ez_r)
-            J[:, :, i : i + term.n_params()] = np.matmul(lin.G, pres * dB)
+            if term.windows_s:
+                dB *= term.presence(t)[:, None, None]
+            np.matmul(lin.G, dB, out=J[:, :, i : i + term.n_params()])
         elif k is EffectKind.FIELD_MAP and data.p_m is not None:
             # linear in the weights: dB/dw_j = Q g_j(x)
             g_map = _map_field(term, data.p_m, lin.lever_enu)
-            J[:, :, i : i + term.n_params()] = np.matmul(
-                lin.G, np.einsum("ij,njk->nik", rot_z(term.yaw_rad), g_map))
+            np.matmul(lin.G, np.einsum("ij,njk->nik", rot_z(term.yaw_rad), g_map),
+                      out=J[:, :, i : i + term.n_params()])
         elif k is EffectKind.LEVER_ARM and lin.lever_enu is not None:
             # dB/dl = sum over spatial terms of (dB/dr) C: G_enu C for the gradient,
             # K(r) C for each source present
