@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.core.geometry import (
+    norm_last,
     quat_conj,
     quat_mul,
     quat_normalize,
@@ -96,7 +97,7 @@ def right_jacobian_apply(r: F64, v: F64) -> F64:
     ``Jr(r) = I - a [r]x + b [r]x^2`` (Sola 2018, Eq. 143) applied without forming the
     matrices: ``[r]x v = r x v``.
     """
-    th = np.linalg.norm(r, axis=-1)[:, None]
+    th = norm_last(r)[:, None]
     small = th < 1e-6
     t = np.where(small, 1.0, th)
     a = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(t)) / t**2)
@@ -107,7 +108,7 @@ def right_jacobian_apply(r: F64, v: F64) -> F64:
 
 def right_jacobian_inv_apply(r: F64, v: F64) -> F64:
     """``Jr(r)^-1 v`` of SO(3) row by row, (N, 3) (Sola 2018, Eq. 144)."""
-    th = np.linalg.norm(r, axis=-1)[:, None]
+    th = norm_last(r)[:, None]
     small = th < 1e-4
     t = np.where(small, 1.0, th)
     c = np.where(small, 1.0 / 12.0 + th**2 / 720.0,
@@ -326,7 +327,7 @@ class AttitudeInterpolator:
         sv = (s if all_valid else s[valid])[:, None]
         rv = self._rotvec(jv, sv)
         qv = quat_mul(qa[jv], rotvec_to_quat(rv))  # (A1)
-        qv /= np.linalg.norm(qv, axis=1, keepdims=True)
+        qv /= norm_last(qv, keepdims=True)
         if all_valid:
             q_out = qv
             pos = s.copy()
