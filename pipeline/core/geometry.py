@@ -33,11 +33,16 @@ def skew(v: ArrayLike) -> F64:
 
     """
     v = np.asarray(v, dtype=float)
-    z = np.zeros(v.shape[:-1])
     x, y, w = v[..., 0], v[..., 1], v[..., 2]
-    return np.stack(
-        [np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2
-    )
+    # written into place: the diagnosis builds one per sample at every iteration
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1] = -w
+    out[..., 0, 2] = y
+    out[..., 1, 0] = w
+    out[..., 1, 2] = -x
+    out[..., 2, 0] = -y
+    out[..., 2, 1] = x
+    return out
 
 
 def norm_last(x: F64, keepdims: bool = False) -> F64:

@@ -1007,7 +1007,8 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
     DRt = state.D() @ state.R_body_mag.T
     J = np.zeros((n, 3, state.n_params()))
     # R: left perturbation, R.T <- R.T exp(-[d]x): dm/dd = R.T [b]x
-    J[:, :, 0:3] = np.matmul(DRt, skew(b)) + np.matmul(E @ DRt, skew(bdot))
+    np.matmul(DRt, skew(b), out=J[:, :, 0:3])
+    J[:, :, 0:3] += np.matmul(E @ DRt, skew(bdot))
     if data.B_known_enu_nT is None:
         J[:, :, 3:6] = G
         if fw.h_rad is not None:  # dB_t/dB = Rz(h)
