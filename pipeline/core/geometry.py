@@ -11,6 +11,8 @@ Conventions (CONVENTIONS.md):
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -31,11 +33,29 @@ def skew(v: ArrayLike) -> F64:
 
     """
     v = np.asarray(v, dtype=float)
-    z = np.zeros(v.shape[:-1])
     x, y, w = v[..., 0], v[..., 1], v[..., 2]
-    return np.stack(
-        [np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2
-    )
+    # written into place: the diagnosis builds one per sample at every iteration
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1] = -w
+    out[..., 0, 2] = y
+    out[..., 1, 0] = w
+    out[..., 1, 2] = -x
+    out[..., 2, 0] = -y
+    out[..., 2, 1] = x
+    return out
+
+
+def norm_last(x: F64, keepdims: bool = False) -> F64:
+    """``np.linalg.norm(x, axis=-1, keepdims=keepdims)`` of a short last axis (3 or 4).
+
+    The squares are added in the order the reduction adds them, so the numbers are the
+    same; a reduction over so short an axis costs several times the products and sums.
+    """
+    s = x[..., 0] * x[..., 0]
+    for i in range(1, x.shape[-1]):
+        s = s + x[..., i] * x[..., i]
+    out = np.sqrt(s)
+    return cast(F64, out[..., None] if keepdims else out)
 
 
 def so3_exp(phi: ArrayLike) -> F64:
@@ -156,7 +176,7 @@ def quat_to_rotvec(q: ArrayLike) -> F64:
 def rotvec_to_quat(phi: ArrayLike) -> F64:
     """Rotation vectors (rad) to unit quaternions, shape (..., 4)."""
     phi = np.asarray(phi, dtype=float)
-    theta = np.linalg.norm(phi, axis=-1, keepdims=True)
+    theta = norm_last(phi, keepdims=True)
     half = 0.5 * theta
     k = np.where(theta < 1e-12, 0.5, np.sin(half) / np.where(theta < 1e-12, 1.0, theta))
     return np.concatenate([phi * k, np.cos(half)], axis=-1)

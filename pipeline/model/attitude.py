@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.core.geometry import (
+    norm_last,
     quat_conj,
     quat_mul,
     quat_normalize,
@@ -96,7 +97,7 @@ def right_jacobian_apply(r: F64, v: F64) -> F64:
     ``Jr(r) = I - a [r]x + b [r]x^2`` (Sola 2018, Eq. 143) applied without forming the
     matrices: ``[r]x v = r x v``.
     """
-    th = np.linalg.norm(r, axis=-1)[:, None]
+    th = norm_last(r)[:, None]
     small = th < 1e-6
     t = np.where(small, 1.0, th)
     a = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(t)) / t**2)
@@ -107,7 +108,7 @@ def right_jacobian_apply(r: F64, v: F64) -> F64:
 
 def right_jacobian_inv_apply(r: F64, v: F64) -> F64:
     """``Jr(r)^-1 v`` of SO(3) row by row, (N, 3) (Sola 2018, Eq. 144)."""
-    th = np.linalg.norm(r, axis=-1)[:, None]
+    th = norm_last(r)[:, None]
     small = th < 1e-4
     t = np.where(small, 1.0, th)
     c = np.where(small, 1.0 / 12.0 + th**2 / 720.0,
@@ -324,8 +325,9 @@ class AttitudeInterpolator:
         all_valid = bool(valid.all())
         jv = j if all_valid else j[valid]
         sv = (s if all_valid else s[valid])[:, None]
-        qv = quat_mul(qa[jv], rotvec_to_quat(self._rotvec(jv, sv)))  # (A1)
-        qv /= np.linalg.norm(qv, axis=1, keepdims=True)
+        rv = self._rotvec(jv, sv)
+        qv = quat_mul(qa[jv], rotvec_to_quat(rv))  # (A1)
+        qv /= norm_last(qv, keepdims=True)
         if all_valid:
             q_out = qv
             pos = s.copy()
@@ -335,13 +337,12 @@ class AttitudeInterpolator:
 
         def omega() -> F64:
             # (A6): the exact derivative of the cubic, computed when asked for (the closure
-            # keeps the rows' segments and positions, not the curve's terms)
+            # keeps the rows' segments, positions and rotation vectors, not the curve's terms)
             s2 = sv * sv
             a, phi, b = self._a[jv], self._phi[jv], self._b[jv]
             dr = (3 * s2 - 4 * sv + 1) * a + (6 * sv - 6 * s2) * phi + (3 * s2 - 2 * sv) * b
-            r = self._rotvec(jv, sv)
             dt = self._dt[jv]
-            w = right_jacobian_apply(r, dr) / np.where(dt > 0, dt, 1.0)[:, None]
+            w = right_jacobian_apply(rv, dr) / np.where(dt > 0, dt, 1.0)[:, None]
             w_out = np.full((n, 3), np.nan)
             w_out[valid] = w
             w_out[valid & held] = 0.0

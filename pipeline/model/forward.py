@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.core.geometry import quat_rotate, quat_to_matrix, rot_z, so3_exp
+from pipeline.core.geometry import norm_last, quat_rotate, quat_to_matrix, rot_z, so3_exp
 from pipeline.model.attitude import AttitudeInterpolator, Interpolated
 from pipeline.model.field_map import FieldMapBasis, map_field_enu, map_points
 
@@ -299,7 +299,7 @@ def dipole_matrix(r_enu_m: F64) -> F64:
     ``P = 100 (3 u u^T - I) / r^3`` with ``r`` the vector from the source to the sensor, m.
     """
     r = np.asarray(r_enu_m, dtype=float)
-    d = np.maximum(np.linalg.norm(r, axis=1), MIN_SOURCE_DISTANCE_M)
+    d = np.maximum(norm_last(r), MIN_SOURCE_DISTANCE_M)
     u = r / d[:, None]
     P = 3.0 * u[:, :, None] * u[:, None, :] - np.eye(3)
     return DIPOLE_NT * P / (d**3)[:, None, None]
@@ -313,13 +313,21 @@ def dipole_gradient(r_enu_m: F64, m_Am2: F64) -> F64:
         dB_i/dr_j = k (3 (m_j r_i + m_i r_j + (m.r) d_ij) / r^5 - 15 (m.r) r_i r_j / r^7)
     """
     r = np.asarray(r_enu_m, dtype=float)
-    d = np.maximum(np.linalg.norm(r, axis=1), MIN_SOURCE_DISTANCE_M)
+    d = np.maximum(norm_last(r), MIN_SOURCE_DISTANCE_M)
     mr = r @ m_Am2
-    eye = np.eye(3)[None]
-    t1 = (m_Am2[None, None, :] * r[:, :, None] + m_Am2[None, :, None] * r[:, None, :]
-          + mr[:, None, None] * eye)
+    # in place, in the formula's order: the diagnosis evaluates this at every iteration
+    t1 = m_Am2[None, None, :] * r[:, :, None]
+    t1 += m_Am2[None, :, None] * r[:, None, :]
+    diag = np.arange(3)
+    t1[:, diag, diag] += mr[:, None]  # (m.r) d_ij
+    t1 *= 3.0
+    t1 /= (d**5)[:, None, None]
     t2 = mr[:, None, None] * r[:, :, None] * r[:, None, :]
-    return DIPOLE_NT * (3.0 * t1 / (d**5)[:, None, None] - 15.0 * t2 / (d**7)[:, None, None])
+    t2 *= 15.0
+    t2 /= (d**7)[:, None, None]
+    t1 -= t2
+    t1 *= DIPOLE_NT
+    return cast(F64, t1)
 
 
 @dataclass(frozen=True)

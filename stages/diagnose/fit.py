@@ -90,7 +90,7 @@ def fit(
         r, J = data.y_nT - ev.y_nT, ev.J
         if ev.sqrt_w is not None:  # the likelihood's weights (sample_weights)
             if J is not None:
-                J = J * ev.sqrt_w[:, None, None]
+                J *= ev.sqrt_w[:, None, None]  # J is this evaluation's own array
                 i = _tau_index(st)
                 if i is not None:
                     J[:, :, i] -= _sqrt_weight_rate(data, st.tau_s())[:, None] * r

@@ -68,6 +68,7 @@ from pipeline.model.effects.heading_drift import heading_drift_params as heading
 from pipeline.model.effects.soft_iron import SOFT_BASIS
 from pipeline.model.field_map import BASIS_NAME, FieldMapBasis, map_points
 from pipeline.model.forward import (
+    Reading,
     dipole_gradient,
     dipole_matrix,
     field_jacobian,
@@ -821,13 +822,32 @@ def _attitude(track: AttitudeTrack, t_s: F64, key: tuple | None = None,
             return hit[1]
     tq = np.asarray(t_s, dtype=float) - float(track.t_s[0])  # as AttitudeTrack.at
     at = track.interpolator.at_rel_s(tq)
-    out = _Attitude(np.ascontiguousarray(np.swapaxes(quat_to_matrix(at.q_enu_body), -1, -2)),
-                    at)
+    out = _Attitude(_transposed_matrix(at.q_enu_body), at)
     if key is not None:
         if len(_CT_CACHE) > 48:
             _CT_CACHE.clear()  # bounded: the cache only spans the iterations of one fit
         _CT_CACHE[key] = (owners, out)
     return out
+
+
+def _transposed_matrix(q: F64) -> F64:
+    """``C(q).T`` (N, 3, 3) of unit quaternions (N, 4), scalar-last.
+
+    The entries of :func:`pipeline.core.geometry.quat_to_matrix`, written to their
+    transposed places at once: no stacking and no transposed copy, the same numbers.
+    """
+    x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    Ct = np.empty((len(q), 3, 3))
+    Ct[:, 0, 0] = 1 - 2 * (y * y + z * z)
+    Ct[:, 1, 0] = 2 * (x * y - z * w)
+    Ct[:, 2, 0] = 2 * (x * z + y * w)
+    Ct[:, 0, 1] = 2 * (x * y + z * w)
+    Ct[:, 1, 1] = 1 - 2 * (x * x + z * z)
+    Ct[:, 2, 1] = 2 * (y * z - x * w)
+    Ct[:, 0, 2] = 2 * (x * z - y * w)
+    Ct[:, 1, 2] = 2 * (y * z + x * w)
+    Ct[:, 2, 2] = 1 - 2 * (x * x + y * y)
+    return Ct
 
 
 def _CT(track: AttitudeTrack, t_s: F64, key: tuple | None = None, owners: Any = None) -> F64:
@@ -862,6 +882,99 @@ def _map_field(term: Term, p_m: F64, lever_enu: F64 | None) -> F64:
     return out
 
 
+@dataclass(frozen=True)
+class _Forward:
+    """The prediction at a state with what its Jacobian reuses (:func:`_forward`).
+
+    ``att``: the attitude at the sensing times; ``Cp``, ``Cm``: ``C.T`` a difference step
+    ``h`` later and earlier; ``lever_enu``: ``C l`` or None; ``Bt``, ``h_rad``,
+    ``Bt_unturned``, ``sources``: as :func:`_enu_field` returns them; ``TT``: the tilt;
+    ``Bp``: the field it turns; ``rd``: (M2)-(M5); ``E``: the eddy matrix in use; ``Gp``,
+    ``G``: d y / d B_enu before and after the tilt; ``sqrt_w``: the roots of the
+    likelihood's weights.
+    """
+
+    att: _Attitude
+    Cp: F64
+    Cm: F64
+    h: float
+    lever_enu: F64 | None
+    Bt: F64
+    h_rad: F64 | None
+    Bt_unturned: F64 | None
+    sources: dict[int, tuple[F64, F64]]
+    TT: F64
+    Bp: F64
+    rd: Reading
+    E: F64
+    Gp: F64
+    G: F64
+    sqrt_w: F64 | None
+
+
+#: The last :func:`_forward` with the state and data it was computed for: a fit evaluates
+#: a candidate without the Jacobian, then, once the step is accepted, the same state
+#: object with it. Kept by reference, so an identity match is the same objects.
+_FORWARD_CACHE: list[tuple[ModelState, FitData, _Forward]] = []
+
+
+def _forward(state: ModelState, data: FitData) -> _Forward:
+    """Return the prediction at ``state`` and its shared pieces, reused for the same objects."""
+    if _FORWARD_CACHE:
+        st, dt, fw = _FORWARD_CACHE[0]
+        if st is state and dt is data:
+            return fw
+    t = data.t_s
+    n = t.shape[0]
+    tau = state.tau_s()
+    # 3 samples: the rate regressor then shares no attitude sample with the reading's own
+    # interpolation, so it cannot fit attitude noise
+    h = max(3.0 * data.track.step_s, 1e-3)
+    s = t - tau  # sensing time (CONVENTIONS: tau > 0 means stamps are late)
+    base = (id(data.track), id(t), n, tau, h)
+    own = (data.track, t)
+    att = _attitude(data.track, s, base + (0,), own)
+    Ct = att.Ct
+    Cp = _CT(data.track, s + h, base + (1,), own)
+    Cm = _CT(data.track, s - h, base + (-1,), own)
+    Cdot = (Cp - Cm) / (2.0 * h)  # d/dt C.T, central difference of the interpolated track
+
+    # --- ENU field at each sample: B + drift + disturbances
+    # lever_arm: the sensor sits at p + C l (CONVENTIONS), so every spatial term sees the
+    # position moved by C(t) l, ENU (the lever arm's own tau-dependence is left out of
+    # the time offset's Jacobian: second order, |omega x l| tau)
+    lever = state.value(EffectKind.LEVER_ARM)
+    lever_enu = None if lever is None or data.p_m is None else np.einsum("nji,j->ni", Ct, lever)
+    Bt, h_rad, Bt_unturned, sources = _enu_field(state, data, lever_enu)
+    TT = state.T_enu.T
+    Bp = Bt @ TT.T  # T.T @ B_t per row (axis_tilt)
+
+    # (M2)-(M5): THE prediction (pipeline.model.forward.reading), sensor terms in term order
+    R = state.R_body_mag
+    D = state.D()
+    offsets: list[F64] = []
+    E_term: F64 | None = None
+    for term, v in zip(state.terms, state.values, strict=True):
+        if term.kind is EffectKind.HARD_IRON:
+            offsets.append(v)
+        elif term.kind is EffectKind.HARD_IRON_STEP:
+            offsets.append(term.step_offset_nT(t, v))
+        elif term.kind is EffectKind.EDDY_CURRENT:
+            E_term = (TRACELESS_PROJECTOR @ v if state.rate_pair() else v).reshape(3, 3)
+    rd = reading(Ct, Bp, R, D, offsets, E_term, Cdot)
+    E = np.zeros((3, 3)) if E_term is None else E_term
+    Gp = field_jacobian(Ct, R, D, E, Cdot)  # (J2), before the tilt
+    G = Gp @ TT
+    # the positions of the interpolation at t - tau, as sample_weights(data, tau) finds them
+    w = _weights_at(data, att.at.position) if data.noise_model is not None else None
+    sqrt_w = None if w is None else np.sqrt(w)
+    fw = _Forward(att=att, Cp=Cp, Cm=Cm, h=h, lever_enu=lever_enu, Bt=Bt, h_rad=h_rad,
+                  Bt_unturned=Bt_unturned, sources=sources, TT=TT, Bp=Bp, rd=rd, E=E, Gp=Gp, G=G,
+                  sqrt_w=sqrt_w)
+    _FORWARD_CACHE[:] = [(state, data, fw)]
+    return fw
+
+
 def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluation:
     """Predicted magnetometer reading and its Jacobian (vectorised over samples).
 
@@ -881,77 +994,36 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
     """
     if jacobian and state.has_partial:
         return _partial_evaluation(state, data)
-    t = data.t_s
-    n = t.shape[0]
-    tau = state.tau_s()
-    # 3 samples: the rate regressor then shares no attitude sample with the reading's own
-    # interpolation, so it cannot fit attitude noise
-    h = max(3.0 * data.track.step_s, 1e-3)
-    s = t - tau  # sensing time (CONVENTIONS: tau > 0 means stamps are late)
-    base = (id(data.track), id(t), n, tau, h)
-    own = (data.track, t)
-    att = _attitude(data.track, s, base + (0,), own)
-    Ct = att.Ct
-    Cp = _CT(data.track, s + h, base + (1,), own)
-    Cm = _CT(data.track, s - h, base + (-1,), own)
-    Cdot = (Cp - Cm) / (2.0 * h)  # d/dt C.T, central difference of the interpolated track
-    Cddot = (Cp - 2.0 * Ct + Cm) / (h * h)
-
-    # --- ENU field at each sample: B + drift + disturbances
-    # lever_arm: the sensor sits at p + C l (CONVENTIONS), so every spatial term sees the
-    # position moved by C(t) l, ENU (the lever arm's own tau-dependence is left out of
-    # the time offset's Jacobian: second order, |omega x l| tau)
-    lever = state.value(EffectKind.LEVER_ARM)
-    lever_enu = None if lever is None or data.p_m is None else np.einsum("nji,j->ni", Ct, lever)
-    Bt, h_rad, Bt_unturned = _enu_field(state, data, lever_enu)
-    TT = state.T_enu.T
-    Bp = Bt @ TT.T  # T.T @ B_t per row (axis_tilt)
-
-    # (M2)-(M5): THE prediction (pipeline.model.forward.reading), sensor terms in term order
-    R = state.R_body_mag
-    D = state.D()
-    offsets: list[F64] = []
-    E_term: F64 | None = None
-    for term, v in zip(state.terms, state.values, strict=True):
-        if term.kind is EffectKind.HARD_IRON:
-            offsets.append(v)
-        elif term.kind is EffectKind.HARD_IRON_STEP:
-            offsets.append(term.step_offset_nT(t, v))
-        elif term.kind is EffectKind.EDDY_CURRENT:
-            E_term = (TRACELESS_PROJECTOR @ v if state.rate_pair() else v).reshape(3, 3)
-    rd = reading(Ct, Bp, R, D, offsets, E_term, Cdot)
+    fw = _forward(state, data)
+    rd, G = fw.rd, fw.G
     y, b, m = rd.y_nT, rd.b_body_nT, rd.m_nT
     bdot, mdot, ydot0 = rd.bdot_nT_s, rd.mdot_nT_s, rd.ydot0_nT_s
-    E = np.zeros((3, 3)) if E_term is None else E_term
-
-    DRt = D @ R.T
-    Gp = field_jacobian(Ct, R, D, E, Cdot)  # (J2), before the tilt
-    G = Gp @ TT
-    # the positions of the interpolation at t - tau, as sample_weights(data, tau) finds them
-    w = _weights_at(data, att.at.position) if data.noise_model is not None else None
-    sqrt_w = None if w is None else np.sqrt(w)
     if not jacobian:
-        return Evaluation(y, None, ydot0, G, sqrt_w)
+        return Evaluation(y, None, ydot0, G, fw.sqrt_w)
 
+    n = data.t_s.shape[0]
+    h, Ct, E = fw.h, fw.att.Ct, fw.E
+    Cddot = (fw.Cp - 2.0 * Ct + fw.Cm) / (h * h)
+    DRt = state.D() @ state.R_body_mag.T
     J = np.zeros((n, 3, state.n_params()))
     # R: left perturbation, R.T <- R.T exp(-[d]x): dm/dd = R.T [b]x
-    J[:, :, 0:3] = np.matmul(DRt, skew(b)) + np.matmul(E @ DRt, skew(bdot))
+    np.matmul(DRt, skew(b), out=J[:, :, 0:3])
+    J[:, :, 0:3] += np.matmul(E @ DRt, skew(bdot))
     if data.B_known_enu_nT is None:
         J[:, :, 3:6] = G
-        if h_rad is not None:  # dB_t/dB = Rz(h)
+        if fw.h_rad is not None:  # dB_t/dB = Rz(h)
             Rz = np.zeros((n, 3, 3))
-            Rz[:, 0, 0] = Rz[:, 1, 1] = np.cos(h_rad)
-            Rz[:, 1, 0] = np.sin(h_rad)
-            Rz[:, 0, 1] = -np.sin(h_rad)
+            Rz[:, 0, 0] = Rz[:, 1, 1] = np.cos(fw.h_rad)
+            Rz[:, 1, 0] = np.sin(fw.h_rad)
+            Rz[:, 0, 1] = -np.sin(fw.h_rad)
             Rz[:, 2, 2] = 1.0
             J[:, :, 3:6] = np.matmul(G, Rz)
-    bddot = matvec_rows(Cddot, Bp)
+    bddot = matvec_rows(Cddot, fw.Bp)
     _term_columns(J, state, data, _Linearisation(
-        Ct=Ct, omega_body=att.at.omega_body_rad_s, G=G, Gp=Gp, TT=TT, b=b, bddot=bddot, m=m,
-        mdot=mdot, ydot0=ydot0, E=E, lever_enu=lever_enu, Bt=Bt, h_rad=h_rad,
-        Bt_unturned=Bt_unturned))
-    return Evaluation(y, J, ydot0, G, sqrt_w)
-
+        Ct=Ct, omega_body=fw.att.at.omega_body_rad_s, G=G, Gp=fw.Gp, TT=fw.TT, b=b,
+        bddot=bddot, m=m, mdot=mdot, ydot0=ydot0, E=E, lever_enu=fw.lever_enu, Bt=fw.Bt,
+        h_rad=fw.h_rad, Bt_unturned=fw.Bt_unturned, sources=fw.sources))
+    return Evaluation(y, J, ydot0, G, fw.sqrt_w)
 
 
 @dataclass(frozen=True)
@@ -963,7 +1035,8 @@ class _Linearisation:
     the field in the body frame and its second derivative; ``m``, ``mdot``: the reading
     before the eddy term and its rate; ``ydot0``: the eddy regressor; ``E``: the eddy
     matrix in use; ``lever_enu``: ``C l`` or None; ``Bt``, ``Bt_unturned``, ``h_rad``: the
-    ENU field with and without the heading drift's turn, and the turn.
+    ENU field with and without the heading drift's turn, and the turn; ``sources``: each
+    ``local_source``'s offsets and dipole matrices by term index (:func:`_enu_field`).
     """
 
     Ct: F64
@@ -981,6 +1054,7 @@ class _Linearisation:
     Bt: F64
     h_rad: F64 | None
     Bt_unturned: F64 | None
+    sources: dict[int, tuple[F64, F64]]
 
 
 def _partial_evaluation(state: ModelState, data: FitData) -> Evaluation:
@@ -1007,16 +1081,19 @@ def _partial_evaluation(state: ModelState, data: FitData) -> Evaluation:
 
 
 def _enu_field(state: ModelState, data: FitData, lever_enu: F64 | None
-               ) -> tuple[F64, F64 | None, F64 | None]:
+               ) -> tuple[F64, F64 | None, F64 | None, dict[int, tuple[F64, F64]]]:
     """Return the ENU field at each sample, the heading drift's turn and the field unturned.
 
     ``B + drift + disturbances + the spatial terms``, then turned about Up by the heading
-    drift when the model has one (None, None without).
+    drift when the model has one (None, None without). Last, each ``local_source``'s
+    offsets ``r`` (N, 3) and dipole matrices ``P(r)`` (N, 3, 3) by term index: its
+    Jacobian's columns need them again.
     """
     t = data.t_s
     n = t.shape[0]
     Bt = np.broadcast_to(state.B_enu_nT, (n, 3)).copy()
-    for term, v in zip(state.terms, state.values, strict=True):
+    sources: dict[int, tuple[F64, F64]] = {}
+    for k, (term, v) in enumerate(zip(state.terms, state.values, strict=True)):
         if term.kind is EffectKind.FIELD_DRIFT:
             P = drift_basis(t, 0.0, drift_span(data))
             Bt += P @ v.reshape(-1, 3)
@@ -1031,7 +1108,12 @@ def _enu_field(state: ModelState, data: FitData, lever_enu: F64 | None
         elif term.kind is EffectKind.LOCAL_SOURCE and data.p_m is not None:
             # B(p) = B_enu + 100 nT (3 (m.u) u - m) / r^3  (CONVENTIONS local_source)
             r_src = source_offset_enu(term, v, data.p_m, lever_enu)
-            Bt += term.presence(t)[:, None] * (dipole_matrix(r_src) @ v[3:6])
+            P = dipole_matrix(r_src)
+            sources[k] = (r_src, P)
+            if term.windows_s:
+                Bt += term.presence(t)[:, None] * (P @ v[3:6])
+            else:  # present throughout: a presence of 1 would change nothing
+                Bt += P @ v[3:6]
         elif term.kind is EffectKind.FIELD_MAP and data.p_m is not None:
             # B(p) = B_enu - Q grad phi(x), x = p + Q.T C l  (CONVENTIONS field_map;
             # pipeline.model.field_map): Q sum_j w_j g_j(x)
@@ -1045,7 +1127,7 @@ def _enu_field(state: ModelState, data: FitData, lever_enu: F64 | None
             h_rad = heading_basis(t, drift_span(data)) @ v
             Bt_unturned = Bt
             Bt = rotate_about_up(Bt, h_rad)
-    return Bt, h_rad, Bt_unturned
+    return Bt, h_rad, Bt_unturned, sources
 
 
 def _term_columns(J: F64, state: ModelState, data: FitData, lin: _Linearisation) -> None:
@@ -1053,7 +1135,8 @@ def _term_columns(J: F64, state: ModelState, data: FitData, lin: _Linearisation)
     t = data.t_s
     n = t.shape[0]
     R, D = state.R_body_mag, state.D()
-    for term, i, v in zip(state.terms, state.offsets(), state.values, strict=True):
+    for j, (term, i, v) in enumerate(zip(state.terms, state.offsets(), state.values,
+                                         strict=True)):
         k = term.kind
         if k is EffectKind.HARD_IRON:
             J[:, :, i : i + 3] = np.eye(3)
@@ -1095,27 +1178,28 @@ def _term_columns(J: F64, state: ModelState, data: FitData, lin: _Linearisation)
             if lin.lever_enu is not None:
                 dpq = dpq + lin.lever_enu
             dB = np.einsum("kij,nj->nik", SOFT_BASIS, dpq)  # (N, 3, 5)
-            J[:, :, i : i + 5] = np.matmul(lin.G, dB)
+            np.matmul(lin.G, dB, out=J[:, :, i : i + 5])
         elif k is EffectKind.LOCAL_SOURCE and data.p_m is not None:
             # r = Rz(psi) (p - c) + C l, B = P(r) m: dB/dc = -K Rz(psi), dB/dm = P(r),
             # dB/dpsi = K (e_z x Rz(psi) (p - c)), K = dB/dr (dipole_gradient)
-            r_src = source_offset_enu(term, v, data.p_m, lin.lever_enu)
-            pres = term.presence(t)[:, None, None]
+            r_src, P_src = lin.sources[j]  # as the field's: the same offsets and values
             K = dipole_gradient(r_src, v[3:6])
             psi = float(v[6]) if term.fit_yaw else term.yaw_rad
             dB = np.zeros((n, 3, term.n_params()))
-            dB[:, :, 0:3] = -np.matmul(K, rot_z(psi))
-            dB[:, :, 3:6] = dipole_matrix(r_src)
+            np.negative(np.matmul(K, rot_z(psi)), out=dB[:, :, 0:3])
+            dB[:, :, 3:6] = P_src
             if term.fit_yaw:
-                r_p = source_offset_enu(term, v, data.p_m)
+                r_p = r_src if lin.lever_enu is None else source_offset_enu(term, v, data.p_m)
                 ez_r = np.stack([-r_p[:, 1], r_p[:, 0], np.zeros(n)], axis=1)
                 dB[:, :, 6] = matvec_rows(K, ez_r)
-            J[:, :, i : i + term.n_params()] = np.matmul(lin.G, pres * dB)
+            if term.windows_s:
+                dB *= term.presence(t)[:, None, None]
+            np.matmul(lin.G, dB, out=J[:, :, i : i + term.n_params()])
         elif k is EffectKind.FIELD_MAP and data.p_m is not None:
             # linear in the weights: dB/dw_j = Q g_j(x)
             g_map = _map_field(term, data.p_m, lin.lever_enu)
-            J[:, :, i : i + term.n_params()] = np.matmul(
-                lin.G, np.einsum("ij,njk->nik", rot_z(term.yaw_rad), g_map))
+            np.matmul(lin.G, np.einsum("ij,njk->nik", rot_z(term.yaw_rad), g_map),
+                      out=J[:, :, i : i + term.n_params()])
         elif k is EffectKind.LEVER_ARM and lin.lever_enu is not None:
             # dB/dl = sum over spatial terms of (dB/dr) C: G_enu C for the gradient,
             # K(r) C for each source present
