@@ -45,16 +45,21 @@ def skew(v: ArrayLike) -> F64:
     return out
 
 
-def norm_last(x: F64, keepdims: bool = False) -> F64:
-    """``np.linalg.norm(x, axis=-1, keepdims=keepdims)`` of a short last axis (3 or 4).
+def dot_last(a: F64, b: F64) -> F64:
+    """``np.sum(a * b, axis=-1)`` of a short last axis (3 or 4), added in the same order.
 
-    The squares are added in the order the reduction adds them, so the numbers are the
-    same; a reduction over so short an axis costs several times the products and sums.
+    A reduction over so short an axis costs several times the products and sums; the
+    diagnosis takes these over every sample and every candidate place of a source.
     """
-    s = x[..., 0] * x[..., 0]
-    for i in range(1, x.shape[-1]):
-        s = s + x[..., i] * x[..., i]
-    out = np.sqrt(s)
+    s = a[..., 0] * b[..., 0]
+    for i in range(1, a.shape[-1]):
+        s = s + a[..., i] * b[..., i]
+    return cast(F64, s)
+
+
+def norm_last(x: F64, keepdims: bool = False) -> F64:
+    """``np.linalg.norm(x, axis=-1, keepdims=keepdims)`` of a short last axis (3 or 4)."""
+    out = np.sqrt(dot_last(x, x))
     return cast(F64, out[..., None] if keepdims else out)
 
 
@@ -116,18 +121,24 @@ def quat_rotate(q: ArrayLike, v: ArrayLike) -> F64:
     return v + w * t + np.cross(u, t)
 
 
-def quat_to_matrix(q: ArrayLike) -> F64:
-    """Convert unit quaternion(s) to rotation matrices, shape (..., 3, 3)."""
+def quat_to_matrix(q: ArrayLike, transposed: bool = False) -> F64:
+    """Convert unit quaternion(s) to rotation matrices, shape (..., 3, 3).
+
+    ``transposed``: return ``C.T`` instead, each entry written to its transposed place
+    (the diagnosis needs ``C.T`` of every sample at every iteration; no transposed copy).
+    """
     q = np.asarray(q, dtype=float)
     x, y, z, w = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
+    rows = (
+        (1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)),
+        (2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)),
+        (2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)),
     )
+    C = np.empty(q.shape[:-1] + (3, 3))
+    for i, row in enumerate(rows):
+        for j, v in enumerate(row):
+            C[(..., j, i) if transposed else (..., i, j)] = v
+    return C
 
 
 def matrix_to_quat(C: ArrayLike) -> F64:

@@ -822,32 +822,12 @@ def _attitude(track: AttitudeTrack, t_s: F64, key: tuple | None = None,
             return hit[1]
     tq = np.asarray(t_s, dtype=float) - float(track.t_s[0])  # as AttitudeTrack.at
     at = track.interpolator.at_rel_s(tq)
-    out = _Attitude(_transposed_matrix(at.q_enu_body), at)
+    out = _Attitude(quat_to_matrix(at.q_enu_body, transposed=True), at)
     if key is not None:
         if len(_CT_CACHE) > 48:
             _CT_CACHE.clear()  # bounded: the cache only spans the iterations of one fit
         _CT_CACHE[key] = (owners, out)
     return out
-
-
-def _transposed_matrix(q: F64) -> F64:
-    """``C(q).T`` (N, 3, 3) of unit quaternions (N, 4), scalar-last.
-
-    The entries of :func:`pipeline.core.geometry.quat_to_matrix`, written to their
-    transposed places at once: no stacking and no transposed copy, the same numbers.
-    """
-    x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    Ct = np.empty((len(q), 3, 3))
-    Ct[:, 0, 0] = 1 - 2 * (y * y + z * z)
-    Ct[:, 1, 0] = 2 * (x * y - z * w)
-    Ct[:, 2, 0] = 2 * (x * z + y * w)
-    Ct[:, 0, 1] = 2 * (x * y + z * w)
-    Ct[:, 1, 1] = 1 - 2 * (x * x + z * z)
-    Ct[:, 2, 1] = 2 * (y * z - x * w)
-    Ct[:, 0, 2] = 2 * (x * z - y * w)
-    Ct[:, 1, 2] = 2 * (y * z + x * w)
-    Ct[:, 2, 2] = 1 - 2 * (x * x + y * y)
-    return Ct
 
 
 def _CT(track: AttitudeTrack, t_s: F64, key: tuple | None = None, owners: Any = None) -> F64:

@@ -20,11 +20,11 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import replace
-from typing import cast
 
 import numpy as np
 from scipy.signal import find_peaks
 
+from pipeline.core.geometry import dot_last
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.forward import DIPOLE_NT, MIN_SOURCE_DISTANCE_M, dipole_matrix
 from stages.diagnose.fit import FitResult, fit
@@ -173,12 +173,12 @@ def _dipole_fits(G: F64, p: F64, cands: F64, psi: float, Qn: F64, r_perp: F64,
     for k0 in range(0, K, batch):
         c = cands[k0 : k0 + batch]
         r = (p[:, None, :] - c[None, :, :]) @ Q.T  # (n, b, 3)
-        d = np.maximum(np.sqrt(_dot3(r, r)), MIN_SOURCE_DISTANCE_M)  # (n, b)
+        d = np.maximum(np.sqrt(dot_last(r, r)), MIN_SOURCE_DISTANCE_M)  # (n, b)
         u = r / d[:, :, None]
         s = DIPOLE_NT / d**3
         v = u @ M.transpose(0, 2, 1)  # (n, b, 3): M u
         uT = np.ascontiguousarray(u.transpose(1, 2, 0))  # (b, 3, n)
-        su = (s * s * 9.0 * _dot3(u, v))[:, :, None] * u  # (n, b, 3)
+        su = (s * s * 9.0 * dot_last(u, v))[:, :, None] * u  # (n, b, 3)
         A = uT @ su.transpose(1, 0, 2)
         uv = uT @ ((s * s)[:, :, None] * v).transpose(1, 0, 2)
         A -= 3.0 * (uv + uv.transpose(0, 2, 1))
@@ -187,7 +187,7 @@ def _dipole_fits(G: F64, p: F64, cands: F64, psi: float, Qn: F64, r_perp: F64,
         W = 3.0 * (sHu @ u.transpose(1, 0, 2))  # (b, q, 3)
         W -= (s.T @ H.reshape(n, -1)).reshape(W.shape)
         A -= W.transpose(0, 2, 1) @ W
-        g = 3.0 * (uT @ (s * _dot3(w[:, None, :], u)).T[:, :, None])[:, :, 0]
+        g = 3.0 * (uT @ (s * dot_last(w[:, None, :], u)).T[:, :, None])[:, :, 0]
         g -= s.T @ w
         b = len(c)
         Ar = A + (1e-12 * np.trace(A, axis1=1, axis2=2))[:, None, None] * np.eye(3)
@@ -206,14 +206,6 @@ def _dipole_fits(G: F64, p: F64, cands: F64, psi: float, Qn: F64, r_perp: F64,
         gains[k0 : k0 + b] = np.where(ok & np.isfinite(gain), gain, -np.inf)
         moments[k0 : k0 + b] = m
     return gains, moments
-
-
-def _dot3(a: F64, b: F64) -> F64:
-    """``np.sum(a * b, axis=-1)`` over a last axis of 3, added in the same order.
-
-    A reduction over so short an axis costs several times the three products and two sums.
-    """
-    return cast(F64, a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2])
 
 
 def near_far_ratio(term: Term, value: F64, data: FitData) -> float:
