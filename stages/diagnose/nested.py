@@ -13,7 +13,7 @@ is nested in (the simpler of a nested pair, Occam's razor with one criterion).
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -221,6 +221,19 @@ for _kind, (_split, _) in IN_PARTS.items():
     NESTED[_kind] = NESTED.get(_kind, ()) + (_split,)
 
 
+def hypothesis(term: Term, present: Collection[EffectKind]) -> tuple:
+    """Return what adding ``term`` to a model with terms of the kinds ``present`` claims.
+
+    Its kind and windows, and whether it would stand beside the simpler term nested in it
+    (:data:`IN_PARTS`): an eddy term beside a time offset claims only its traceless rest,
+    which a lag cannot explain, and is a different claim from the whole term that the lag
+    replaced. The search remembers what it rejected and dropped by this key, so a term
+    replaced by its simpler part can still come back as the rest.
+    """
+    beside = term.kind in IN_PARTS and NESTED_SIMPLER.get(term.kind) in present
+    return (term.kind, term.windows_s, beside)
+
+
 def _simpler(a: FitResult, b: FitResult) -> bool:
     """Whether model ``a`` is simpler than ``b``: fewer free parameters, then fewer terms."""
     return (a.state.n_free(), len(a.state.terms)) < (b.state.n_free(), len(b.state.terms))
@@ -266,16 +279,17 @@ def _described(cur: FitResult, findings: list[Finding], s: Description, dropped:
                ) -> list[Finding]:
     """Return the findings with term ``s.i`` (and ``s.also``) described as ``s`` says."""
     t = cur.state.terms[s.i]
+    present = {u.kind for u in cur.state.terms}
     kept = {(u.kind, u.windows_s) for u in s.terms}
     if (t.kind, t.windows_s) not in kept:
-        dropped.add((t.kind, t.windows_s))
+        dropped.add(hypothesis(t, present))
     f = findings[s.i]
     out = list(findings)
     out[s.i:s.i + 1] = [f if u.kind is t.kind else dataclasses.replace(
         f, effect=u.kind.value, told_apart="") for u in s.terms]
     if s.also is not None:
         other = cur.state.terms[s.also]
-        dropped.add((other.kind, other.windows_s))
+        dropped.add(hypothesis(other, present))
         del out[s.also + (len(s.terms) - 1 if s.also > s.i else 0)]
     return out
 

@@ -45,6 +45,7 @@ from stages.diagnose.nested import (
     RAMP_REACH_S,
     RIVALS,
     earns_beside_lookalikes,
+    hypothesis,
     refine_step,
     simplest,
     told_apart,
@@ -430,8 +431,7 @@ class _Search:
         cands, src_start, ramps = self._candidates(sig, present)
         tests, starts, replace_trial = self._scored(cands, src_start, sig, present)
         mc = self._map_candidate(sig, present)
-        fits, replaces, map_fits = self._refits(tests, starts, ramps, mc, replace_trial)
-        self._prefer_nested(fits, replaces, sig, present)
+        fits, replaces, map_fits = self._refits(tests, starts, ramps, mc, replace_trial, present)
         fits = self._map_last(fits, map_fits)
         if not self._accept_first(fits, mc, replaces, sig, present):
             return False
@@ -491,7 +491,7 @@ class _Search:
         for j, term in enumerate(cands):
             progress.detail(f"search {len(self.findings) + 1}, candidate {j + 1}/{len(cands)}",
                             len(self.findings) + 0.5 * j / len(cands), _ROUNDS_SHOWN)
-            if (term.kind, term.windows_s) in self.rejected | self.dropped:
+            if hypothesis(term, present) in self.rejected | self.dropped:
                 continue
             if term.kind is EffectKind.LEVER_ARM and not present & SPATIAL_KINDS:
                 continue  # without a field that varies in space, no lever arm shows
@@ -559,8 +559,8 @@ class _Search:
         # the field beyond the gradient's first order: tried once the gradient is in the
         # model, its complexity chosen on the held-out blocks (stages.diagnose.field_map)
         mc: MapCandidate | None = None
-        if EffectKind.FIELD_MAP not in present and (EffectKind.FIELD_MAP, ()) not in\
-                self.rejected | self.dropped:
+        if EffectKind.FIELD_MAP not in present and hypothesis(
+                Term(EffectKind.FIELD_MAP), present) not in self.rejected | self.dropped:
             got = map_candidate(self.cur, self.data, sig, self.cfg)
             if isinstance(got, str):
                 self.not_ident.setdefault(EffectKind.FIELD_MAP.value, got)
@@ -578,7 +578,8 @@ class _Search:
 
     def _refits(self, tests: list[ScoreTest], starts: dict[int, ModelState],
                 ramps: list[tuple[int, Term]], mc: MapCandidate | None,
-                replace_trial: Term | None) -> tuple[list, dict[int, int], list]:
+                replace_trial: Term | None, present: set[EffectKind]
+                ) -> tuple[list, dict[int, int], list]:
         """Refit the strongest candidates.
 
         Returns the fits that lower the BIC by the margin, the steps whose transition a fit
@@ -598,16 +599,16 @@ class _Search:
             fr = _refit(self.cur, st.term, self.data, self.cfg, start=starts.get(id(st)))
             if fr is None or not plausible(fr[0], self.data) or pulled_away(
                     starts.get(id(st)), fr[0], self.data):
-                self.rejected.add((st.term.kind, st.term.windows_s))
+                self.rejected.add(hypothesis(st.term, present))
                 continue
             fits.append((fr[1], st, fr[0]))
         replaces: dict[int, int] = {}  # id of a ScoreTest -> the step its fit replaces
         for i_step, ramp in ramps:
-            if (ramp.kind, ramp.windows_s) in self.rejected | self.dropped:
+            if hypothesis(ramp, present) in self.rejected | self.dropped:
                 continue
             rf = _ramp_fit(self.cur, i_step, ramp, self.data, self.cfg)
             if rf is None:
-                self.rejected.add((ramp.kind, ramp.windows_s))
+                self.rejected.add(hypothesis(ramp, present))
                 continue
             replaces[id(rf[1])] = i_step
             fits.append(rf)
@@ -615,7 +616,7 @@ class _Search:
         if mc is not None and -mc.test.statistic + mc.test.k * np.log(n) <= 0:
             fr = _refit(self.cur, mc.test.term, self.data, self.cfg)
             if fr is None:
-                self.rejected.add((EffectKind.FIELD_MAP, ()))
+                self.rejected.add(hypothesis(mc.test.term, present))
             else:
                 map_fits.append((fr[1], mc.test, fr[0]))
         if replace_trial is not None:
@@ -625,43 +626,6 @@ class _Search:
                 fits.append(rt)
         fits.sort(key=lambda x: x[0])
         return fits, replaces, map_fits
-
-    def _prefer_nested(self, fits: list, replaces: dict[int, int], sig: float,
-                       present: set[EffectKind]) -> None:
-        """Put the simpler of a nested pair first when it explains the data as well."""
-        # nested terms resolve to the simplest that explains the data as well (time offset
-        # inside eddy currents, a mag-frame step inside a free ENU disturbance)
-        by_kind = {f[1].term.kind: f for f in fits}
-        if fits:
-            best = fits[0]
-            simpler_kind = {**NESTED_SIMPLER,
-                       EffectKind.DISTURBANCE: EffectKind.HARD_IRON_STEP}.get(best[1].term.kind)
-            if simpler_kind is not None:
-                alt_fit = by_kind.get(simpler_kind)
-                if (alt_fit is None and simpler_kind in NESTED_SIMPLER.values()
-                        and simpler_kind not in present):
-                    fr = _refit(self.cur, Term(simpler_kind), self.data, self.cfg)
-                    alt_fit = None if fr is None else (fr[1], best[1], fr[0])
-                elif alt_fit is None and simpler_kind is EffectKind.HARD_IRON_STEP:
-                    rc = ramp_candidate(self.cur.state, best[1].term.windows_s[0], sig)
-                    if rc is not None:  # at a step's edge: that magnet's transition
-                        alt_fit = _ramp_fit(self.cur, rc[0], rc[1], self.data, self.cfg)
-                        if alt_fit is not None:
-                            replaces[id(alt_fit[1])] = rc[0]
-                    else:
-                        fr = _refit(self.cur, Term(simpler_kind, best[1].term.windows_s),
-                                    self.data, self.cfg)
-                        alt_fit = None if fr is None else (fr[1], best[1], fr[0])
-                # the pairs of NESTED_SIMPLER are compared with one effective sample count:
-                # with each its own, a time offset lost to eddy currents by the texture of
-                # the residuals alone; the window pair keeps its calibrated rule
-                if alt_fit is not None and simpler_kind in NESTED_SIMPLER.values():
-                    prefer = bic_between(alt_fit[2], best[2], self.data) <= self.cfg.bic_margin
-                else:
-                    prefer = alt_fit is not None and alt_fit[0] <= best[0] + self.cfg.bic_margin
-                if alt_fit is not None and prefer:
-                    fits.remove(best) if best in fits else None
-                    fits.insert(0, alt_fit)
 
     def _map_last(self, fits: list, map_fits: list) -> list:
         """Return the fits in the order they are tried: the map after what is not its."""
@@ -694,7 +658,7 @@ class _Search:
             if st.term.kind in RIVALS:
                 told, margin, alts = told_apart(self.cur, res, self.data)
                 if margin < DECISIVE_FACTOR * self.cfg.bic_margin:
-                    self.rejected.add((st.term.kind, st.term.windows_s))
+                    self.rejected.add(hypothesis(st.term, present))
                     if EffectKind.FIELD_MAP in present:
                         # the map, fitted while a transient was still hidden under the
                         # smooth field, took a share of it: what is left of the transient
@@ -710,7 +674,7 @@ class _Search:
             if (len(res.state.terms) == len(self.cur.state.terms) + 1
                     and not earns_beside_lookalikes(res, self.cur, len(self.cur.state.terms),
                                                     self.data, self.cfg)):
-                self.rejected.add((st.term.kind, st.term.windows_s))
+                self.rejected.add(hypothesis(st.term, present))
                 continue
             if (st.term.kind in LOCAL_KINDS and EffectKind.FIELD_MAP in present
                     and id(st) not in replaces):
@@ -722,7 +686,7 @@ class _Search:
                     # the transient was the field where the sensor was at the time: the
                     # finer map, which the held-out blocks cannot tell from the chosen one,
                     # takes its place and the transient is not tried again
-                    self.dropped.add((st.term.kind, st.term.windows_s))
+                    self.dropped.add(hypothesis(st.term, present))
                     i_map = [t.kind for t in self.cur.state.terms].index(EffectKind.FIELD_MAP)
                     w0, w1 = st.term.windows_s[0]
                     n_axis = rich.state.terms[i_map].n_axis
@@ -746,7 +710,7 @@ class _Search:
             else:
                 cv_new = heldout_ok(self.cur, res, self.data, self.cfg, self.cv_cur)
             if cv_new is None:
-                self.rejected.add((st.term.kind, st.term.windows_s))
+                self.rejected.add(hypothesis(st.term, present))
                 continue
             term = res.state.terms[-1]
             gone = {t.kind for t in self.cur.state.terms} - {t.kind for t in res.state.terms}
@@ -820,7 +784,7 @@ class _Search:
             # a term that earned its margin only by trading with a look-alike goes as well
             if keep > -self.cfg.bic_margin or not earns_beside_lookalikes(
                     self.cur, res_wo, i, self.data, self.cfg):
-                self.dropped.add((t_i.kind, t_i.windows_s))
+                self.dropped.add(hypothesis(t_i, {t.kind for t in self.cur.state.terms}))
                 self.findings.pop(i)
                 self.cur = res_wo
                 self.cv_cur = heldout_rms(self.cur.state, self.data, self.cfg)
