@@ -734,10 +734,20 @@ def counts_sentence(restored: RestoreResult, calibration: Any,
     notes = []
     if fit:
         notes.append(" and ".join(fit) + " are left out of the fit only")
+    seen = checks.get("analysed_samples") if isinstance(checks.get("analysed_samples"),
+                                                         dict) else None
     if 0 < n_fit < base:
         text += f" of the {_n(base)} {what}"
-        notes.append(f"the {_n(base - n_fit)} others lie too close to the attitude's start or "
-                     "end to be predicted, or have no position")
+        if seen and int(seen.get("n", 0)) < int(seen.get("of", 0)):
+            # a long recording: the analysis saw windows of it, the restore every sample
+            n_seen = int(seen["n"])
+            notes.append(f"the analysis of a long recording sees {_n(n_seen)} magnetometer "
+                         f"samples in {int(seen.get('windows', 0))} windows of it; "
+                         "every sample is restored and measured")
+            base = min(base, n_seen)
+        if n_fit < base:
+            notes.append(f"the {_n(base - n_fit)} others lie too close to the attitude's start "
+                         "or end to be predicted, or have no position")
     else:
         text += f" {what}" if n_fit != 1 else " sample"
     if fs and int(fs.get("stride", 1) or 1) > 1:

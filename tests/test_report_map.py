@@ -174,3 +174,25 @@ def test_a_fit_of_every_message_is_not_said_to_leave_the_repeats_out():
                             sample_hold=held, n_samples=8000)
     text = counts_sentence(part, fewer, totals)
     assert "the repeats are left out of the fit only" in text and "new readings" in text
+
+
+def test_a_long_recordings_fit_says_its_analysis_saw_windows_of_it():
+    """The 2-hour survey: the fit used the windows' samples, not "too close to the ends"."""
+    from types import SimpleNamespace
+
+    from stages.restore import RestoreTotals
+
+    totals = RestoreTotals(n_total=1_440_000, n_valid=1_440_000, n_used=1_440_000)
+    part = SimpleNamespace(t_ns=[0])
+    cal = SimpleNamespace(checks={"fit_samples": {"n": 12000, "stride": 14, "of": 167_555},
+                                  "analysed_samples": {"n": 168_000, "of": 1_440_000,
+                                                       "windows": 18}},
+                          sample_hold=None, n_samples=12000)
+    text = counts_sentence(part, cal, totals)
+    assert "167\u2009555 of the 1\u2009440\u2009000 restored samples" in text
+    assert "sees 168\u2009000 magnetometer samples in 18 windows of it" in text
+    # 445 of the windows' samples were not predicted: only those lie near the ends
+    assert "the 445 others lie too close" in text
+    short = SimpleNamespace(checks={"fit_samples": {"n": 12000, "stride": 14, "of": 167_555}},
+                            sample_hold=None, n_samples=12000)
+    assert "windows of it" not in counts_sentence(part, short, totals)

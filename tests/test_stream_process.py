@@ -274,6 +274,10 @@ def test_two_pass_warns_of_physics_between_the_analysed_windows(tmp_path, monkey
     with open(row["paths"]["corrected_mcap"], "rb") as f:  # the same calibration inside
         (meta,) = [m for m in make_reader(f).iter_metadata() if m.name == "magalign.calibration"]
     assert note[0] in json.loads(meta.metadata["json"])["warnings"]
+    # what the analysis saw, for the report's samples paragraph
+    seen = cal["checks"]["analysed_samples"]
+    assert seen["windows"] >= 2 and 0 < seen["n"] < seen["of"] == row["n_samples"]
+    assert cal["checks"]["fit_samples"]["of"] <= seen["n"]
 
 
 def _indep(tmp_path, name, **effects):

@@ -123,7 +123,9 @@ class Calibration:
         ``{term, reason}`` for requested terms the motion could not determine.
     checks : dict
         What the estimator's global checks found (JSON values): ``split`` (halves),
-        ``starts`` (multi-start), ``n_eff_fraction``, ``refusals`` and ``doubts``.
+        ``starts`` (multi-start), ``n_eff_fraction``, ``refusals`` and ``doubts``; the
+        diagnosis' ``fit_samples`` ``{n, stride, of}`` and, for a long recording analysed in
+        windows, ``analysed_samples`` ``{n, of, windows}`` (the samples its analysis saw).
     sample_hold : dict or None
         ``{native_rate_hz, repeated_fraction}`` when repeated messages were left out.
 

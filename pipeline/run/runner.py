@@ -481,7 +481,10 @@ def analyse_source(source: Source, options: ProcessOptions, steps: Steps) -> Ana
             fitted = "the model was estimated from every sample"
         note = (f"long recording processed in chunks: {fitted}; restored, measured and "
                 "written: every sample")
-        ctx = ctx.replace(calibration=cal.replace(warnings=cal.warnings + (note,)))
+        # the report says how many samples the analysis saw and why the fit used fewer
+        seen = {"n": int(n_win), "of": int(source.n_mag), "windows": int(len(w))}
+        ctx = ctx.replace(calibration=cal.replace(
+            warnings=cal.warnings + (note,), checks={**cal.checks, "analysed_samples": seen}))
     return Analysed(ctx, plan, source, segments, reduced)
 
 
