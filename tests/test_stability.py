@@ -118,7 +118,7 @@ def test_an_undetermined_offset_on_a_translating_base_adds_nothing(bases, tmp_pa
     The offset is declared not identifiable and nothing else changes. It once tipped the
     field map's complexity (3 modes against 4, 796.4 and 796.7 nT held out) and the coarser
     map left a 900 nT step at 24.7-26.4 s to be named; a transient the finer map explains as
-    well is now the field (search._finer_map_explains).
+    well is now the field (nested.explained_by_refinement).
     """
     rec, base_path, before = bases("lab_01_tr")
     _, case, size, seed, win = CASE["offset3000#0"]

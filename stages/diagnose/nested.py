@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
+from stages.diagnose.field_map import finer_map_term
 from stages.diagnose.fit import FitResult, fit
 from stages.diagnose.model import (
     F64,
@@ -30,6 +31,7 @@ from stages.diagnose.model import (
 )
 from stages.diagnose.result import DiagnoseConfig, Finding
 from stages.diagnose.sources import rivals as source_rivals
+from stages.diagnose.sources import with_values
 from stages.diagnose.statistics import (
     ScoreTest,
     anisotropic_eddy_test,
@@ -37,6 +39,7 @@ from stages.diagnose.statistics import (
     bic_between,
     effective_samples,
     heldout_ok,
+    heldout_rms,
 )
 
 #: Shortest ``hard_iron_step``, s: an object brought near the sensor and left there for a
@@ -370,3 +373,78 @@ def told_apart(cur: FitResult, res: FitResult, data: FitData) -> tuple[str, floa
         parts.append(f"{what} fits worse by {d:.0f} in BIC" if d > 0
                      else f"{what} fits as well (BIC {d:.0f}): the pass is too short to tell")
     return ". " + intro + "; " + "; ".join(parts), float(worst), better
+
+
+def _finer_map_words(term: Term) -> str:
+    """Return what a refined ``field_map`` is: its modes along the longest axis, its functions."""
+    return (f"{max(term.n_axis)} modes along the longest axis "
+            f"({int(np.prod(term.n_axis))} functions)")
+
+
+#: Refinements: a kind of term that has a finer form of itself, one step up its own ladder
+#: (None at the top), and the words that say what the finer form is. A field map one
+#: complexity finer resolves the field where the sensor was at a time more closely.
+REFINED: dict[EffectKind, tuple[Callable[[Term, FitData], Term | None], Callable[[Term], str]]]
+REFINED = {EffectKind.FIELD_MAP: (finer_map_term, _finer_map_words)}
+
+#: Kinds whose candidate can explain part of any other candidate's excess: a field map along
+#: a path fits a bump in time where the path crosses a smooth anomaly. Whatever a term local
+#: in time or space or a global term explains is theirs; an absorbing term is for what none
+#: of them can, so its fit is tried after the others, except after those it explains as well
+#: (:func:`absorbed`).
+ABSORBING = frozenset({EffectKind.FIELD_MAP})
+
+
+def refinements(cur: FitResult, data: FitData) -> list[tuple[int, FitResult]]:
+    """Return ``cur`` refitted with each term that has a finer form (:data:`REFINED`) in it.
+
+    One model per such term, that term one step finer in its place (its values from zero),
+    with the term's index.
+    """
+    out = []
+    st = cur.state
+    for i, t in enumerate(st.terms):
+        finer = REFINED[t.kind][0](t, data) if t.kind in REFINED else None
+        if finer is not None:
+            out.append((i, fit(dataclasses.replace(
+                st, terms=st.terms[:i] + (finer,) + st.terms[i + 1:],
+                values=st.values[:i] + (finer.null_value(),) + st.values[i + 1:]), data)))
+    return out
+
+
+def explained_by_refinement(rich: FitResult, res: FitResult, data: FitData,
+                            cfg: DiagnoseConfig, cv_cur: float) -> float | None:
+    """Return the held-out RMS of ``rich`` if its refined term explains ``res``'s new one.
+
+    ``rich``: the current model with one term refined (:func:`refinements`); ``res``: the
+    current model with a new term added. A held term's complexity is the one the held-out
+    blocks liked best when it came in, often by a hair over the next. A bump in time where
+    the sensor passed a place the chosen map resolves too coarsely then earns a step's or a
+    disturbance's margin, and which complexity won would decide whether it is named (an
+    injected offset that tipped the choice made a step appear). The new term is the held
+    term's when, added to the refined model at its fitted values, it no longer lowers the
+    BIC by the margin, and the refined model predicts the held-out blocks no worse than the
+    current one (within ``heldout_margin``). A magnet's step where the sensor came back
+    without it keeps its margin beside any map.
+    """
+    both = fit(with_values(res.state.terms[-1], res.state.values[-1], rich), data)
+    if bic_between(both, rich, data) <= -cfg.bic_margin:
+        return None  # the new term keeps its margin: no need for the held-out refits
+    cv_rich = heldout_rms(rich.state, data, cfg)
+    return cv_rich if cv_rich <= cv_cur * (1.0 + cfg.heldout_margin) else None
+
+
+def absorbed(by: FitResult, res: FitResult, data: FitData, cfg: DiagnoseConfig) -> bool:
+    """Whether the last term of ``res`` no longer lowers the BIC by the margin beside ``by``.
+
+    ``by``: the current model with an absorbing candidate (:data:`ABSORBING`); the term is
+    added to it at the values it was fitted with and the two are refitted and compared with
+    one effective sample count. A term the absorbing one leaves something to explain (a
+    compact source's ``1/r^3``, a disturbance where the sensor came back without it, a
+    sensor term) still earns it.
+    """
+    term = res.state.terms[-1]
+    if term.kind in ABSORBING or term in by.state.terms:
+        return False
+    both = fit(with_values(term, res.state.values[-1], by), data)
+    return bic_between(both, by, data) > -cfg.bic_margin

@@ -20,7 +20,7 @@ from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects import EFFECTS
 from pipeline.model.effects.field_gradient import gradient_matrix
 from stages.diagnose.catalogue import explanation, identifiability_reason, motion_stats
-from stages.diagnose.field_map import MapCandidate, finer_map_term, map_candidate
+from stages.diagnose.field_map import MapCandidate, map_candidate
 from stages.diagnose.fit import FitResult, fit, wahba_init
 from stages.diagnose.model import (
     CONFOUND_RATIO,
@@ -38,15 +38,20 @@ from stages.diagnose.model import (
     without_term,
 )
 from stages.diagnose.nested import (
+    ABSORBING,
     DECISIVE_FACTOR,
     IN_PARTS,
     MIN_STEP_S,
     NESTED_SIMPLER,
     RAMP_REACH_S,
+    REFINED,
     RIVALS,
+    absorbed,
     earns_beside_lookalikes,
+    explained_by_refinement,
     hypothesis,
     refine_step,
+    refinements,
     simplest,
     told_apart,
 )
@@ -66,7 +71,6 @@ from stages.diagnose.statistics import (
     INTERP_MARGIN,
     ScoreTest,
     bic,
-    bic_between,
     effective_samples,
     gradient_candidate,
     heldout_ok,
@@ -432,7 +436,7 @@ class _Search:
         tests, starts, replace_trial = self._scored(cands, src_start, sig, present)
         mc = self._map_candidate(sig, present)
         fits, replaces, map_fits = self._refits(tests, starts, ramps, mc, replace_trial, present)
-        fits = self._map_last(fits, map_fits)
+        fits = self._absorbing_last(fits, map_fits)
         if not self._accept_first(fits, mc, replaces, sig, present):
             return False
         self._settle()
@@ -627,44 +631,43 @@ class _Search:
         fits.sort(key=lambda x: x[0])
         return fits, replaces, map_fits
 
-    def _map_last(self, fits: list, map_fits: list) -> list:
-        """Return the fits in the order they are tried: the map after what is not its."""
-        # the map last: whatever a term local in time or space (a disturbance, a source, a
-        # step) or a global term explains is theirs; the map is for what none of them can.
-        # Except what the map explains as well: a term that no longer earns its margin once
-        # the map is in the model was fitting the map's field (a bump in time where a
-        # survey line crosses a smooth anomaly); it waits until the map has been tried
-        if map_fits:
+    def _absorbing_last(self, fits: list, absorbing_fits: list) -> list:
+        """Return the fits in the order they are tried: an absorbing term after what is not its.
+
+        Whatever a term local in time or space or a global term explains is theirs; an
+        absorbing term (:data:`~stages.diagnose.nested.ABSORBING`) is for what none of them
+        can. A term that no longer earns its margin beside it was fitting its field (a bump
+        in time where a survey line crosses a smooth anomaly) and waits until it was tried.
+        """
+        if absorbing_fits:
             first: list[tuple[float, ScoreTest, FitResult]] = []
             later: list[tuple[float, ScoreTest, FitResult]] = []
             for f in fits:
-                explained = _map_explains(map_fits[0][2], f[2], self.data, self.cfg)
-                (later if explained else first).append(f)
-            fits = first + map_fits + later
+                (later if absorbed(absorbing_fits[0][2], f[2], self.data, self.cfg)
+                 else first).append(f)
+            fits = first + absorbing_fits + later
         return fits
 
     def _accept_first(self, fits: list, mc: MapCandidate | None, replaces: dict[int, int],
                       sig: float, present: set[EffectKind]) -> bool:
         """Name the first fit that passes every check; False when none does."""
         accepted = False
-        rich_round: list[FitResult | None] = []  # the model with a finer map, once asked
+        refined: list[list[tuple[int, FitResult]]] = []  # fitted once a round, when asked
         k_fit = 0
         while k_fit < len(fits):
             dbic, st, res = fits[k_fit]
             k_fit += 1
-            told = ""
-            if st.term.kind is EffectKind.FIELD_MAP and mc is not None:
-                told = mc.words
+            told = mc.words if mc is not None and st is mc.test else ""
             if st.term.kind in RIVALS:
                 told, margin, alts = told_apart(self.cur, res, self.data)
                 if margin < DECISIVE_FACTOR * self.cfg.bic_margin:
                     self.rejected.add(hypothesis(st.term, present))
-                    if EffectKind.FIELD_MAP in present:
-                        # the map, fitted while a transient was still hidden under the
-                        # smooth field, took a share of it: what is left of the transient
-                        # looks spatial enough to rank the term first. A rival that fits
-                        # better is tried in its place (without a map the scan proposes the
-                        # transients itself, with their own minimum lengths)
+                    if present & ABSORBING:
+                        # the absorbing term, fitted while a transient was still hidden
+                        # under the smooth field, took a share of it: what is left of the
+                        # transient looks spatial enough to rank the term first. A rival
+                        # that fits better is tried in its place (without one the scan
+                        # proposes the transients itself, with their own minimum lengths)
                         for look in alts:
                             fr = _refit(self.cur, look, self.data, self.cfg)
                             if fr is not None:
@@ -676,28 +679,12 @@ class _Search:
                                                     self.data, self.cfg)):
                 self.rejected.add(hypothesis(st.term, present))
                 continue
-            if (st.term.kind in LOCAL_KINDS and EffectKind.FIELD_MAP in present
+            if (st.term.kind in LOCAL_KINDS and present & REFINED.keys()
                     and id(st) not in replaces):
-                if not rich_round:  # fitted once a round, for whichever transient asks
-                    rich_round.append(_with_finer_map(self.cur, self.data))
-                rich = rich_round[0]
-                cv_rich = _finer_map_explains(rich, res, self.data, self.cfg, self.cv_cur)
-                if rich is not None and cv_rich is not None:
-                    # the transient was the field where the sensor was at the time: the
-                    # finer map, which the held-out blocks cannot tell from the chosen one,
-                    # takes its place and the transient is not tried again
-                    self.dropped.add(hypothesis(st.term, present))
-                    i_map = [t.kind for t in self.cur.state.terms].index(EffectKind.FIELD_MAP)
-                    w0, w1 = st.term.windows_s[0]
-                    n_axis = rich.state.terms[i_map].n_axis
-                    self.findings[i_map] = dataclasses.replace(self.findings[i_map], told_apart=(
-                        self.findings[i_map].told_apart + f"; refined to {max(n_axis)} modes along "
-                        f"the longest axis ({int(np.prod(n_axis))} functions) when it "
-                        f"explained a {st.term.kind.value} at {w0:.1f}-{w1:.1f} s as well (the "
-                        "field where the sensor was then), no worse on the held-out blocks"))
-                    self.cur, self.cv_cur = rich, cv_rich
+                if not refined:
+                    refined.append(refinements(self.cur, self.data))
+                if self._refined_instead(st.term, res, refined[0], present):
                     accepted = True
-                    self.rejected.clear()
                     break
             if id(st) in replaces:
                 # a transition lasts less than a held-out block: it is held out at its own
@@ -733,6 +720,32 @@ class _Search:
             self.rejected.clear()
             break
         return accepted
+
+    def _refined_instead(self, term: Term, res: FitResult,
+                         refined: list[tuple[int, FitResult]], present: set[EffectKind]) -> bool:
+        """Refine a held term in place of naming ``term`` when it explains it as well.
+
+        ``res``: the current model with ``term`` added; ``refined``: the current model with
+        each held term that has a finer form refined (:func:`~stages.diagnose.nested.
+        refinements`). A term local in time that a refined held term explains as well, no
+        worse on the held-out blocks, was that term's field where the sensor was then: the
+        refined model becomes the current one and ``term`` is not tried again.
+        """
+        for i, rich in refined:
+            cv_rich = explained_by_refinement(rich, res, self.data, self.cfg, self.cv_cur)
+            if cv_rich is None:
+                continue
+            self.dropped.add(hypothesis(term, present))
+            w0, w1 = term.windows_s[0]
+            held = rich.state.terms[i]
+            self.findings[i] = dataclasses.replace(self.findings[i], told_apart=(
+                self.findings[i].told_apart + f"; refined to {REFINED[held.kind][1](held)} "
+                f"when it explained a {term.kind.value} at {w0:.1f}-{w1:.1f} s as well (the "
+                "field where the sensor was then), no worse on the held-out blocks"))
+            self.cur, self.cv_cur = rich, cv_rich
+            self.rejected.clear()
+            return True
+        return False
 
     def _settle(self) -> None:
         """Let the model settle after a term was named (sources, noise model, backward)."""
@@ -1035,62 +1048,6 @@ def _transition_words(term: Term) -> str:
     return (". One event: the object was " + " and ".join(parts) + "; the field while it "
             "moved is modelled as a smooth curve from no offset to the plateau (and back), "
             "not as further steps")
-
-
-def _map_explains(map_res: FitResult, res: FitResult, data: FitData,
-                  cfg: DiagnoseConfig) -> bool:
-    """Whether the last term of ``res`` no longer lowers the BIC by the margin beside the map.
-
-    ``map_res``: the current model with the ``field_map`` candidate; the term is added to it
-    at the values it was fitted with and the two are refitted and compared with one effective
-    sample count. A term the map leaves something to explain (a compact source's ``1/r^3``,
-    a disturbance where the sensor came back without it, a sensor term) still earns it.
-    """
-    term = res.state.terms[-1]
-    if term.kind is EffectKind.FIELD_MAP or any(t.kind is term.kind and t == term
-                                                 for t in map_res.state.terms):
-        return False
-    both = fit(with_values(term, res.state.values[-1], map_res), data)
-    return bic_between(both, map_res, data) > -cfg.bic_margin
-
-
-def _with_finer_map(cur: FitResult, data: FitData) -> FitResult | None:
-    """Return ``cur`` refitted with its map one complexity finer in the map's place, or None.
-
-    None at the top of the map's ladder (:func:`~stages.diagnose.field_map.finer_map_term`).
-    """
-    st = cur.state
-    i_map = [t.kind for t in st.terms].index(EffectKind.FIELD_MAP)
-    finer = finer_map_term(st.terms[i_map], data)
-    if finer is None:
-        return None
-    return fit(dataclasses.replace(
-        st, terms=st.terms[:i_map] + (finer,) + st.terms[i_map + 1:],
-        values=st.values[:i_map] + (finer.null_value(),) + st.values[i_map + 1:]), data)
-
-
-def _finer_map_explains(rich: FitResult | None, res: FitResult, data: FitData,
-                        cfg: DiagnoseConfig, cv_cur: float) -> float | None:
-    """Return the held-out RMS of ``rich`` if its finer map explains the transient, else None.
-
-    ``rich``: the current model with its map one complexity finer (:func:`_with_finer_map`);
-    ``res``: the current model with the transient added. The map's complexity is the one the
-    held-out blocks liked best when it came in, often by a hair over the next. A residual
-    bump in time where the sensor passed a place the chosen map resolves too coarsely then
-    earns a step's or a disturbance's margin, and which complexity won decides whether it is
-    named (an injected offset that tips the choice made a step appear). The transient is the
-    field when, added to the finer map at its fitted values, it no longer lowers the BIC by
-    the margin, and that map predicts the held-out blocks no worse than the current model
-    (within ``heldout_margin``). A magnet's step where the sensor came back without it keeps
-    its margin beside any map.
-    """
-    if rich is None:
-        return None
-    both = fit(with_values(res.state.terms[-1], res.state.values[-1], rich), data)
-    if bic_between(both, rich, data) <= -cfg.bic_margin:
-        return None  # the transient keeps its margin: no need for the held-out refits
-    cv_rich = heldout_rms(rich.state, data, cfg)
-    return cv_rich if cv_rich <= cv_cur * (1.0 + cfg.heldout_margin) else None
 
 
 def _refit(
