@@ -7,13 +7,13 @@ magalign's own field map (``pipeline.model.field_map``) is used, so that the bas
 share a mistake with what it is compared against.
 
 The field is curl-free where no current flows, so it is minus the gradient of a scalar
-potential: ``B(x) = B0 - grad phi(x)``. The potential gets a Gaussian-process prior with the
-squared-exponential kernel ``k(x, x') = sigma_f^2 exp(-|x - x'|^2 / (2 l^2))``; the constant
-``B0`` (Solin 2018's linear kernel on the potential, ``phi_lin = -B0 . x``) gets a broad
-Gaussian prior. The GP is approximated in the Hilbert-space basis of Solin and Saerkkae
-(Statistics and Computing 30, 2020) that Solin 2018 uses: the eigenfunctions of the
-Laplacian in a box ``[-L_1, L_1] x [-L_2, L_2] x [-L_3, L_3]`` (about its centre) with
-Dirichlet boundary,
+potential: ``B(x) = B0 - grad phi(x)`` (Solin 2018, Sect. III). The potential gets a
+Gaussian-process prior with the squared-exponential kernel ``k(x, x') = sigma_f^2
+exp(-|x - x'|^2 / (2 l^2))``; the constant ``B0`` (Solin 2018's linear kernel on the
+potential, ``phi_lin = -B0 . x``) gets a broad Gaussian prior. The GP is approximated in
+the Hilbert-space basis of Solin and Saerkkae (Statistics and Computing 30, 2020) that Solin
+2018 uses (Sect. IV): the eigenfunctions of the Laplacian in a box ``[-L_1, L_1] x [-L_2,
+L_2] x [-L_3, L_3]`` (about its centre) with Dirichlet boundary,
 
     phi_j(x) = prod_d L_d^(-1/2) sin(pi n_jd (x_d + L_d) / (2 L_d)),
     lambda_j = sum_d (pi n_jd / (2 L_d))^2,
@@ -104,8 +104,8 @@ class LaplaceBox:
 
     @property
     def eigenvalues(self) -> F64:
-        """``lambda_j = sum_d (pi n_jd / (2 L_d))^2``, rad^2/m^2, (K,) (Solin 2018's
-        Dirichlet eigenvalues of the box)."""
+        """``lambda_j = sum_d (pi n_jd / (2 L_d))^2``, rad^2/m^2, (K,) (Solin 2018, Sect. IV:
+        the Dirichlet eigenvalues of the box)."""
         return np.sum(self.wavenumbers**2, axis=1)
 
     def _args(self, x_m: F64) -> F64:
@@ -116,7 +116,7 @@ class LaplaceBox:
     def potential(self, x_m: F64) -> F64:
         """``phi_j(x) = prod_d L_d^(-1/2) sin(pi n_jd (x_d + L_d) / (2 L_d))``, (N, K).
 
-        The orthonormal eigenfunctions of Solin 2018 (unit L2 norm over the box).
+        The orthonormal eigenfunctions of Solin 2018, Sect. IV (unit L2 norm over the box).
         """
         return np.prod(np.sin(self._args(x_m)), axis=1) / np.sqrt(np.prod(self.half_m))
 
@@ -134,8 +134,8 @@ class LaplaceBox:
 
     def spectral_density(self, sigma_f: float, ell_m: float) -> F64:
         """``S(sqrt(lambda_j))`` of the 3-D SE kernel, (nT m)^2 m^3, (K,): the weights' prior
-        variances (Solin 2018, the SE spectral density ``sigma_f^2 (2 pi l^2)^(3/2)
-        exp(-w^2 l^2 / 2)``)."""
+        variances (Solin 2018, Sect. IV: the SE spectral density ``sigma_f^2 (2 pi l^2)^(3/2)
+        exp(-w^2 l^2 / 2)`` in three dimensions)."""
         return sigma_f**2 * (2.0 * np.pi * ell_m**2) ** 1.5 * np.exp(
             -0.5 * self.eigenvalues * ell_m**2)
 
@@ -265,7 +265,8 @@ def posterior_weights(box: LaplaceBox, ne: Normal, sigma_f: float, ell_m: float,
                       sigma_n: float) -> F64:
     """Posterior mean ``w = Z^-1 Phi^T y`` with ``Z = sigma_n^2 Lambda^-1 + Phi^T Phi``.
 
-    The reduced-rank predictive mean of Solin 2018 (``E[f_*] = Phi_* Z^-1 Phi^T y``).
+    The reduced-rank predictive mean of Solin 2018, Sect. IV (``E[f_*] = Phi_* Z^-1 Phi^T
+    y``).
     """
     lam = _prior_variance(box, sigma_f, ell_m)
     Z = ne.PtP + np.diag(sigma_n**2 / lam)
