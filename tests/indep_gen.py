@@ -483,8 +483,8 @@ def position_m(spec: Spec, t_s: np.ndarray) -> np.ndarray:
     :func:`_survey_track`; ``translate``: +-``translate_amp_m`` about (1, 2, 1.2) m at 0.1-0.3
     Hz per axis; ``handheld``: per axis ``c + h (0.6 sin(2 pi f1 t + a) + 0.4 sin(2 pi f2 t +
     b))`` with ``c``, ``h`` the centre and half width of ``handheld_box_m``, ``f1`` 0.03-0.07
-    Hz and ``f2`` 0.1-0.2 Hz drawn per axis from the seed: smooth (speeds below 0.8 m/s in a
-    2 m box), inside the box, and crossing its own track again and again (incommensurate
+    Hz and ``f2`` 0.1-0.2 Hz drawn per axis from the seed: smooth (under 0.8 m/s along each
+    axis of a 2 m box), inside the box, and crossing its own track again and again (incommensurate
     frequencies). Without ``lever_arm`` it is also the magnetometer's position.
     """
     if spec.path == "handheld":
