@@ -23,8 +23,9 @@ spatial term of ``B_enu`` (``field_gradient``, ``local_source``: a point dipole 
 surroundings; ``field_map``: a smooth non-linear field, the sum of distant point dipoles,
 each minus the gradient of its own closed-form potential ``100 nT (m.r) / r^3``) is
 evaluated there. Paths (``Spec.path``): ``lissajous`` (the original motion),
-``survey`` (parallel lines walked with the heading along the track) and ``translate`` (a lab
-recording that moves the sensor but barely turns it). Positions are written as PoseStamped
+``survey`` (parallel lines walked with the heading along the track), ``translate`` (a lab
+recording that moves the sensor but barely turns it) and ``handheld`` (a sensor carried by
+hand through a room's volume, turning as it goes). Positions are written as PoseStamped
 (local metres, optionally in a frame rotated about Up), INSPVA or NavSatFix (WGS-84 geodetic,
 flat-earth tangent plane at ``Spec.geo_origin``). :func:`truth` states what went in.
 
@@ -157,7 +158,7 @@ K_PARAMS = {"hard_iron": 3, "soft_iron": 5, "time_offset": 1, "eddy_current": 9,
             "field_map": 27}
 
 #: Paths (``Spec.path``) and position sources (``Spec.position_type``).
-PATHS = ("lissajous", "survey", "translate")
+PATHS = ("lissajous", "survey", "translate", "handheld")
 POSITION_TYPES = ("pose", "inspva", "navsatfix")
 
 #: mu0 / 4 pi in nT m / A: the dipole field is ``MU0_4PI_NT * (3 (m.u) u - m) / r^3`` with m
@@ -219,7 +220,10 @@ class Spec:
         (``survey_*``), the heading along the track (body frame x right, y forward, z up), and
         swings of ``swing_deg`` at ``freqs_hz``. ``translate``: +-``translate_amp_m`` in each
         ENU axis at 0.1-0.3 Hz, a fixed heading and swings of ``swing_deg`` at ``freqs_hz``.
-        ``motion`` and ``amps_deg`` / ``yaw_rate_deg_s`` belong to ``lissajous`` only.
+        ``handheld``: the tracked point wanders through the box ``handheld_box_m``
+        (:func:`position_m`) with the attitude of ``lissajous`` (``motion``, ``amps_deg``,
+        ``yaw_rate_deg_s``). ``motion`` and ``amps_deg`` / ``yaw_rate_deg_s`` belong to
+        ``lissajous`` and ``handheld`` only.
     swing_deg : tuple of float
         Yaw, pitch, roll swing amplitudes of ``survey`` and ``translate``, deg.
     survey_line_m, survey_spacing_m, survey_speed_m_s, survey_height_m : float
@@ -244,6 +248,9 @@ class Spec:
     position_frame_yaw_deg : float
         PoseStamped positions are written in a frame rotated about Up by this angle from ENU
         (a motion-capture room): ``p_written = Rz(yaw).T @ p_enu``. ``pose`` only.
+    handheld_box_m : tuple of 3 (low, high)
+        ENU extent (m) of the ``handheld`` path per axis: it reaches near each face and
+        stays inside.
 
     """
 
@@ -279,13 +286,14 @@ class Spec:
     geo_origin: tuple = (52.5, 13.3, 40.0)
     fix_rate_hz: float = 10.0
     position_frame_yaw_deg: float = 0.0
+    handheld_box_m: tuple = ((0.0, 2.0), (0.0, 2.0), (0.3, 1.0))
 
 
 #: Spec fields added after the first corpora: left out of a key file while at their
 #: defaults, so that the key of a recording without them stays as it was.
 _NEW_FIELDS = ("path", "swing_deg", "survey_line_m", "survey_spacing_m", "survey_speed_m_s",
                "survey_height_m", "survey_calibration_s", "translate_amp_m", "position_type",
-               "geo_origin", "fix_rate_hz", "position_frame_yaw_deg")
+               "geo_origin", "fix_rate_hz", "position_frame_yaw_deg", "handheld_box_m")
 
 
 def check_spec(spec: Spec) -> None:
@@ -313,7 +321,7 @@ def check_spec(spec: Spec) -> None:
 
 def _angles(spec: Spec, t_s: np.ndarray) -> np.ndarray:
     """Yaw, pitch, roll (rad) of the true attitude at ``t_s``, (N, 3)."""
-    if spec.path != "lissajous":
+    if spec.path not in ("lissajous", "handheld"):
         return _path_angles(spec, t_s)
     f = np.asarray(spec.freqs_hz, dtype=float)
     a = np.radians(spec.amps_deg)
@@ -473,8 +481,21 @@ def position_m(spec: Spec, t_s: np.ndarray) -> np.ndarray:
 
     ``lissajous``: a Lissajous path that revisits places; ``survey``: see
     :func:`_survey_track`; ``translate``: +-``translate_amp_m`` about (1, 2, 1.2) m at 0.1-0.3
-    Hz per axis. Without ``lever_arm`` it is also the magnetometer's position.
+    Hz per axis; ``handheld``: per axis ``c + h (0.6 sin(2 pi f1 t + a) + 0.4 sin(2 pi f2 t +
+    b))`` with ``c``, ``h`` the centre and half width of ``handheld_box_m``, ``f1`` 0.03-0.07
+    Hz and ``f2`` 0.1-0.2 Hz drawn per axis from the seed: smooth (under 0.8 m/s along each
+    axis of a 2 m box), inside the box, and crossing its own track again and again (incommensurate
+    frequencies). Without ``lever_arm`` it is also the magnetometer's position.
     """
+    if spec.path == "handheld":
+        rng = np.random.default_rng(spec.seed + 2)
+        f1, f2 = rng.uniform(0.03, 0.07, 3), rng.uniform(0.1, 0.2, 3)
+        a, b = rng.uniform(0, 2 * np.pi, 3), rng.uniform(0, 2 * np.pi, 3)
+        box = np.asarray(spec.handheld_box_m, dtype=float)
+        c, h = box.mean(axis=1), 0.5 * (box[:, 1] - box[:, 0])
+        t = np.asarray(t_s, dtype=float)[:, None]
+        return c + h * (0.6 * np.sin(2 * np.pi * f1 * t + a)
+                        + 0.4 * np.sin(2 * np.pi * f2 * t + b))
     if spec.path == "survey":
         return _survey_track(spec, t_s)[0]
     if spec.path == "translate":

@@ -425,6 +425,28 @@ def test_translate_moves_but_barely_turns():
     assert np.linalg.norm(np.diff(p, 2, axis=0), axis=1).max() < 3.1 * 0.01**2
 
 
+def test_handheld_wanders_through_its_box_and_turns():
+    box = ((0.0, 2.0), (0.0, 2.0), (0.3, 1.0))
+    spec = g.Spec("hh", 8, duration_s=100.0, path="handheld", handheld_box_m=box)
+    t = np.arange(0.0, 100.0, 0.01)
+    p = g.position_m(spec, t)
+    lo, hi = np.array(box).T
+    assert np.all(p >= lo) and np.all(p <= hi)
+    assert np.all(np.ptp(p, axis=0) > 0.7 * (hi - lo))  # it reaches across the box
+    # smooth: per axis at most 2 pi (0.6 * 0.07 + 0.4 * 0.2) h m/s
+    v = np.diff(p, axis=0) / 0.01
+    assert np.abs(v).max(axis=0) @ [1, 1, 0] < 2 * 2 * np.pi * 0.122 * 1.0
+    # it turns as the Lissajous motion does (the same attitude)
+    np.testing.assert_allclose(
+        g.true_attitude(spec, t).as_quat(),
+        g.true_attitude(g.Spec("hh", 8, duration_s=100.0), t).as_quat(), atol=0)
+    # and it comes back: most places are passed again more than 10 s later within 0.3 m
+    k = np.arange(0, len(t), 50)
+    back = [np.min(np.linalg.norm(p[k][np.abs(t[k] - t[i]) > 10.0] - p[i], axis=1)) < 0.3
+            for i in k]
+    assert np.mean(back) > 0.5
+
+
 # ----------------------------------------------------------------------------- unchanged
 
 
