@@ -36,11 +36,12 @@ chromium:
 	fi
 
 # The suite on one pytest-xdist worker per core (at most 4: each may hold a real recording's
-# diagnosis), a file to a worker, the longest files first (tests/conftest.py).
+# diagnosis), a file to a worker, the longest files first (tests/conftest.py); the 25
+# longest tests are listed at the end, so every run records where its time went.
 test: $(STAMP) chromium
 	$(BIN)/ruff check pipeline stages tests bench
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q -x -p no:cacheprovider -n auto --maxprocesses 4 --dist loadfile tests
+	$(BIN)/python -m pytest -q -x -p no:cacheprovider -n auto --maxprocesses 4 --dist loadfile --durations=25 tests
 
 # The committed HEAD cloned afresh into $(FRESH), each clone in a fresh venv, tested twice:
 # with the newest dependencies pyproject.toml allows and with the oldest (the lowest release
