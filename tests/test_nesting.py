@@ -142,3 +142,22 @@ def test_independent_lag_on_a_sensor_that_barely_turns_is_no_eddy(tmp_path: Path
     f = {x.effect: x for x in ctx.diagnosis.findings}
     assert set(f) == {"time_offset"}, list(f)
     assert abs(f["time_offset"].params["time_offset_s"] - tau_s) <= 0.1 * abs(tau_s)
+
+
+def test_a_term_another_acts_through_stays_while_that_one_does():
+    """nested.REQUIRES: a map acts through the gradient, a lever arm through any spatial term.
+
+    The backward step keeps the last term of a kind another term requires, and only that.
+    """
+    from stages.diagnose.nested import required
+
+    g, m, h = Term(K.FIELD_GRADIENT), Term(K.FIELD_MAP), Term(K.HARD_IRON)
+    lever = Term(K.LEVER_ARM)
+    assert required(0, (g, m))  # the map's gradient
+    assert not required(1, (g, m))  # nothing acts through the map
+    assert not required(0, (g, h)) and not required(1, (g, h))
+    assert required(0, (g, lever))  # the lever arm's only spatial term
+    assert required(0, (g, m, lever))  # the map still needs the gradient
+    src = Term(K.LOCAL_SOURCE)
+    assert not required(1, (g, src, lever))  # the source still carries the lever arm's field
+    assert required(0, (g, src, m, lever))  # ... but the map needs the gradient itself

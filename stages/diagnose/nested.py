@@ -13,7 +13,7 @@ is nested in (the simpler of a nested pair, Occam's razor with one criterion).
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Collection, Iterator
+from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -448,3 +448,24 @@ def absorbed(by: FitResult, res: FitResult, data: FitData, cfg: DiagnoseConfig) 
         return False
     both = fit(with_values(term, res.state.values[-1], by), data)
     return bic_between(both, by, data) > -cfg.bic_margin
+
+
+#: Requirements: a kind of term that acts only through terms of other kinds, and those kinds
+#: (one of them must be in the model). A lever arm moves the sensor within a field that
+#: varies in space; a field map is the field beyond the gradient's first order, in the
+#: gradient's bearing. Such a term is a candidate only beside one of them, and the backward
+#: step keeps the last of them while it stays (:func:`required`): a gradient beside a map
+#: would otherwise be paid for by the map's prior, which then holds the linear part too.
+REQUIRES: dict[EffectKind, frozenset[EffectKind]] = {
+    EffectKind.LEVER_ARM: frozenset({EffectKind.FIELD_GRADIENT, EffectKind.LOCAL_SOURCE,
+                                     EffectKind.FIELD_MAP}),
+    EffectKind.FIELD_MAP: frozenset({EffectKind.FIELD_GRADIENT}),
+}
+
+
+def required(i: int, terms: Sequence[Term]) -> bool:
+    """Whether term ``i`` is the last term of a kind that another of ``terms`` requires."""
+    others = [t for k, t in enumerate(terms) if k != i]
+    kinds = {t.kind for t in others}
+    return any(terms[i].kind in need and not kinds & need
+               for t in others if (need := REQUIRES.get(t.kind)) is not None)

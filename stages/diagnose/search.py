@@ -45,6 +45,7 @@ from stages.diagnose.nested import (
     NESTED_SIMPLER,
     RAMP_REACH_S,
     REFINED,
+    REQUIRES,
     RIVALS,
     absorbed,
     earns_beside_lookalikes,
@@ -52,6 +53,7 @@ from stages.diagnose.nested import (
     hypothesis,
     refine_step,
     refinements,
+    required,
     simplest,
     told_apart,
 )
@@ -93,10 +95,6 @@ GLOBAL_KINDS = (
     EffectKind.HEADING_DRIFT,
     EffectKind.LEVER_ARM,
 )
-
-#: the terms whose field depends on where the sensor is: a lever arm acts through them
-SPATIAL_KINDS = frozenset({EffectKind.FIELD_GRADIENT, EffectKind.LOCAL_SOURCE,
-                           EffectKind.FIELD_MAP})
 
 #: The kind each nested simpler kind is a special case of (a time offset: an eddy term)
 _CONTAINED_IN = {simpler: kind for kind, simpler in NESTED_SIMPLER.items()}
@@ -497,8 +495,9 @@ class _Search:
                             len(self.findings) + 0.5 * j / len(cands), _ROUNDS_SHOWN)
             if hypothesis(term, present) in self.rejected | self.dropped:
                 continue
-            if term.kind is EffectKind.LEVER_ARM and not present & SPATIAL_KINDS:
-                continue  # without a field that varies in space, no lever arm shows
+            if term.kind in REQUIRES and not present & REQUIRES[term.kind]:
+                continue  # it acts only through terms not in the model (no lever arm shows
+                # without a field that varies in space)
             simpler = NESTED_SIMPLER.get(term.kind)
             if simpler in present and term.kind not in IN_PARTS:
                 # the simpler term in the model spans part of this one, which can only
@@ -782,12 +781,8 @@ class _Search:
         i = 0
         while i < len(self.cur.state.terms) - 1:
             t_i = self.cur.state.terms[i]
-            if t_i.kind is EffectKind.FIELD_GRADIENT and any(
-                    t.kind is EffectKind.FIELD_MAP for t in self.cur.state.terms):
-                # the map is the field beyond the gradient's first order: with the map in
-                # the model the linear part stays the gradient's (the map's prior would
-                # otherwise pay for it)
-                i += 1
+            if required(i, self.cur.state.terms):
+                i += 1  # another term acts through it (nested.REQUIRES)
                 continue
             st_wo = without_term(self.cur.state, i)
             res_wo = fit(st_wo, self.data)
