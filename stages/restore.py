@@ -243,8 +243,10 @@ def restore_samples(
         )
     interp = AttitudeInterpolator.of(recording.attitude, max_gap_s=max_gap_s)
     t_ns = np.asarray(recording.mag.t_ns, dtype=np.int64)
+    # windows in seconds count from the recording's first sample, which a long recording's
+    # analysed windows do not hold (Recording.first_ns)
     return restore_rows(cal, t_ns, recording.mag.values, interp,
-                        t0_ns=int(t_ns[0]) if len(t_ns) else 0, position=recording.position,
+                        t0_ns=recording.origin_ns(), position=recording.position,
                         model_key=model_key_of(cal, max_gap_s))
 
 

@@ -280,6 +280,36 @@ def test_two_pass_warns_of_physics_between_the_analysed_windows(tmp_path, monkey
     assert cal["checks"]["fit_samples"]["of"] <= seen["n"]
 
 
+def test_a_step_found_in_a_long_recordings_window_is_restored_at_its_own_time(tmp_path,
+                                                                              monkeypatch):
+    """The car parked from 25 s to 29 s, caught by a window where |B| stands out: the final
+    model's residual on the analysed windows is the noise's, not the car's 374 nT.
+
+    The diagnosis restores the windows it analysed to measure that residual; a step's window
+    counts from the recording's first sample, which the windows do not hold (it read 100.6 nT
+    when the windows' own first sample was taken as the origin). The residual of every sample
+    agrees with it, and the check of the samples between the windows has a true reference.
+    """
+    import pipeline.run.plan as plan
+    import pipeline.run.source as source
+    from pipeline.run.runner import ProcessOptions, process_recording
+
+    monkeypatch.setattr(plan, "DECIMATED_SAMPLES", 1_200)
+    monkeypatch.setattr(source, "RANGE_MESSAGES", 1_000)
+    path = car_parked_recording(tmp_path / "g.mcap")
+    row = process_recording(path, tmp_path / "o", options=ProcessOptions(
+        scale_samples=1_000, write_rerun=False, write_report=False))
+    cal = json.loads(Path(row["paths"]["calibration.json"]).read_text())
+    diag = json.loads(Path(row["paths"]["diagnosis.json"]).read_text())
+    assert [f["effect"] for f in diag["findings"]] == ["hard_iron_step"]
+    (a, b), = diag["findings"][0]["where"]["windows_s"]
+    assert abs(a - 25.0) < 0.2 and abs(b - 29.0) < 0.2  # s
+    assert cal["residual_rms_nT"] < 1.0  # nT; 0.5 nT noise
+    assert diag["final"]["residual_rms_nT"] == pytest.approx(cal["residual_rms_nT"])
+    metrics = json.loads(Path(row["paths"]["metrics.json"]).read_text())
+    assert row["residual_rms_nT"] < 1.0 and metrics["n_used"] == 8_000
+
+
 def _indep(tmp_path, name, **effects):
     """A recording of the independent generator (tests/indep_gen.py: scipy's Rotation and
     mcap_ros2's writer, no magalign code), 120 s, mag 100 Hz, attitude 50 Hz as Imu."""
