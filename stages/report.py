@@ -780,17 +780,30 @@ def counts_text(metrics: Any) -> str:
     return text
 
 
+def analysed_words(cal: Any) -> str:
+    """Return where a long recording's analysis looked, or "" when it saw every sample.
+
+    From ``checks.analysed_samples`` (pipeline.run.runner): the windows and their samples.
+    """
+    seen = (getattr(cal, "checks", None) or {}).get("analysed_samples")
+    if not isinstance(seen, dict) or int(seen.get("n", 0)) >= int(seen.get("of", 0)):
+        return ""
+    return (f" in the {int(seen.get('windows', 0))} analysed windows, "
+            f"{int(seen['n'])} of the recording's {int(seen['of'])} magnetometer samples")
+
+
 def samples_text(cal: Any) -> str:
     """Return the calibration's ``n_samples`` with what it counts (the samples fitted)."""
     n = int(cal.n_samples)
     fs = (getattr(cal, "checks", None) or {}).get("fit_samples")
+    where = analysed_words(cal)
     if isinstance(fs, dict) and fs.get("stride", 1) and int(fs.get("stride", 1)) > 1:
         k = int(fs["stride"])
         nth = {2: "2nd", 3: "3rd"}.get(k, f"{k}th")
-        return (f"{n} (every {nth} of {int(fs.get('of', 0))} samples with an attitude, "
+        return (f"{n} (every {nth} of {int(fs.get('of', 0))} samples with an attitude{where}, "
                 f"decimated for the diagnosis fit{fs.get('note', '')})")
     if isinstance(fs, dict):
-        return f"{n} (every sample with an attitude{fs.get('note', '')})"
+        return f"{n} (every sample with an attitude{where}{fs.get('note', '')})"
     held = getattr(cal, "sample_hold", None)
     if held:
         return f"{n} (samples with an attitude, sample-and-hold repeats left out)"
@@ -915,7 +928,9 @@ def _calibration_html(cal: Any, estimator: str | None = None,
                         else f" \u00b1 {1e3 * cal.sigma_time_offset_s:.2f}"))),
         ("background field B (nT, east, north, up)", _pm(cal.B_enu_nT, cal.sigma_B_enu_nT, 1)),
         ("|B| (nT)", _fmt(float(np.linalg.norm(cal.B_enu_nT)), 1)),
-        ("residual rms (nT)", _fmt(float(cal.residual_rms_nT), 2)),
+        ("residual rms (nT)", _fmt(float(cal.residual_rms_nT), 2)
+         + html.escape(" (the fitted samples below; every sample's: Residuals)"
+                       if analysed_words(cal) else "")),
         ("samples", html.escape(samples_text(cal))),
         ("rotation axes not determined (body)", _undetermined_axes(cal)),
     ]

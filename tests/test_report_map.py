@@ -196,3 +196,19 @@ def test_a_long_recordings_fit_says_its_analysis_saw_windows_of_it():
     short = SimpleNamespace(checks={"fit_samples": {"n": 12000, "stride": 14, "of": 167_555}},
                             sample_hold=None, n_samples=12000)
     assert "windows of it" not in counts_sentence(part, short, totals)
+
+
+def test_the_table_says_a_long_recordings_fit_saw_its_windows():
+    """The calibration table's samples row names the analysed windows, not "every sample"."""
+    from types import SimpleNamespace
+
+    from stages.report import samples_text
+
+    seen = {"n": 1765, "of": 8000, "windows": 13}
+    long = SimpleNamespace(checks={"fit_samples": {"n": 1765, "stride": 1, "of": 1765},
+                                   "analysed_samples": seen}, n_samples=1765)
+    assert samples_text(long) == ("1765 (every sample with an attitude in the 13 analysed "
+                                  "windows, 1765 of the recording's 8000 magnetometer samples)")
+    short = SimpleNamespace(checks={"fit_samples": {"n": 1765, "stride": 1, "of": 1765}},
+                            n_samples=1765)
+    assert samples_text(short) == "1765 (every sample with an attitude)"
