@@ -1460,6 +1460,15 @@ def _map_html(fig: str | None, recording: Recording, diagnosis: Any = None) -> s
             "where it began).</p>")
 
 
+def percent_text(v: float) -> str:
+    """Return a percentage as a reader takes it: whole numbers, two digits below 1 %.
+
+    A calibration that leaves a few parts in ten thousand of the fluctuation reads
+    "0.031 %", not "0 %" (nothing left at all).
+    """
+    return f"{v:.0f} %" if abs(v) >= 1.0 or v == 0.0 else f"{v:.2g} %"
+
+
 def _headline(cal: Any, metrics: Any, diagnosis: Any) -> str:
     """Return the result in two sentences: the misalignment, what calibration did to the field."""
     rv = np.asarray(cal.rotvec_body_mag_deg, float)
@@ -1469,13 +1478,15 @@ def _headline(cal: Any, metrics: Any, diagnosis: Any) -> str:
     if metrics is not None:
         try:
             r = metrics.ratio_pct()
-            vals = [f"{ENU_LABELS[i]} {r[c]:.0f} %" for i, c in enumerate("xyz")
-                    if r.get(c) is not None and np.isfinite(r[c])]
+            pct = {ENU_LABELS[i]: float(r[c]) for i, c in enumerate("xyz")
+                   if r.get(c) is not None and np.isfinite(r[c])}
         except (AttributeError, KeyError, TypeError):
-            vals = []
-        if vals:
-            parts.append("Calibration shrinks the field's fluctuation to "
-                         + ", ".join(vals) + " of what it was.")
+            pct = {}
+        if pct:
+            verb = "shrinks" if max(pct.values()) <= 100.0 else "changes"
+            parts.append(f"Calibration {verb} the field's fluctuation to "
+                         + ", ".join(f"{k} {percent_text(v)}" for k, v in pct.items())
+                         + " of what it was.")
     if diagnosis is not None:
         d = diagnosis.to_dict() if hasattr(diagnosis, "to_dict") else dict(diagnosis)
         n = len(finding_rows(d, 0))

@@ -212,3 +212,13 @@ def test_the_table_says_a_long_recordings_fit_saw_its_windows():
     short = SimpleNamespace(checks={"fit_samples": {"n": 1765, "stride": 1, "of": 1765}},
                             n_samples=1765)
     assert samples_text(short) == "1765 (every sample with an attitude)"
+
+
+def test_a_percentage_below_one_is_not_printed_as_nothing():
+    """The headline's fluctuation ratios: 0.031 % left is not "0 %"."""
+    from stages.report import percent_text
+
+    assert percent_text(41.43) == "41 %"
+    assert percent_text(0.0312) == "0.031 %"
+    assert percent_text(0.0) == "0 %"
+    assert percent_text(1.0) == "1 %"
