@@ -734,11 +734,10 @@ def counts_sentence(restored: RestoreResult, calibration: Any,
     notes = []
     if fit:
         notes.append(" and ".join(fit) + " are left out of the fit only")
-    seen = checks.get("analysed_samples") if isinstance(checks.get("analysed_samples"),
-                                                         dict) else None
+    seen = analysed_samples(calibration)
     if 0 < n_fit < base:
         text += f" of the {_n(base)} {what}"
-        if seen and int(seen.get("n", 0)) < int(seen.get("of", 0)):
+        if seen is not None:
             # a long recording: the analysis saw windows of it, the restore every sample
             n_seen = int(seen["n"])
             notes.append(f"the analysis of a long recording sees {_n(n_seen)} magnetometer "
@@ -780,13 +779,21 @@ def counts_text(metrics: Any) -> str:
     return text
 
 
-def analysed_words(cal: Any) -> str:
-    """Return where a long recording's analysis looked, or "" when it saw every sample.
+def analysed_samples(cal: Any) -> dict | None:
+    """Return ``checks.analysed_samples`` when the analysis saw only windows of the recording.
 
-    From ``checks.analysed_samples`` (pipeline.run.runner): the windows and their samples.
+    ``{n, of, windows}`` (pipeline.run.runner); None when it saw every sample.
     """
     seen = (getattr(cal, "checks", None) or {}).get("analysed_samples")
     if not isinstance(seen, dict) or int(seen.get("n", 0)) >= int(seen.get("of", 0)):
+        return None
+    return seen
+
+
+def analysed_words(cal: Any) -> str:
+    """Return where a long recording's analysis looked, or "" when it saw every sample."""
+    seen = analysed_samples(cal)
+    if seen is None:
         return ""
     return (f" in the {int(seen.get('windows', 0))} analysed windows, "
             f"{int(seen['n'])} of the recording's {int(seen['of'])} magnetometer samples")

@@ -427,27 +427,35 @@ def explained_by_refinement(rich: FitResult, res: FitResult, data: FitData,
     current one (within ``heldout_margin``). A magnet's step where the sensor came back
     without it keeps its margin beside any map.
     """
-    both = fit(with_values(res.state.terms[-1], res.state.values[-1], rich), data)
-    if bic_between(both, rich, data) <= -cfg.bic_margin:
+    if keeps_margin_beside(rich, res, data, cfg):
         return None  # the new term keeps its margin: no need for the held-out refits
     cv_rich = heldout_rms(rich.state, data, cfg)
     return cv_rich if cv_rich <= cv_cur * (1.0 + cfg.heldout_margin) else None
 
 
-def absorbed(by: FitResult, res: FitResult, data: FitData, cfg: DiagnoseConfig) -> bool:
-    """Whether the last term of ``res`` no longer lowers the BIC by the margin beside ``by``.
+def keeps_margin_beside(by: FitResult, res: FitResult, data: FitData,
+                        cfg: DiagnoseConfig) -> bool:
+    """Whether the last term of ``res`` still lowers the BIC by the margin beside ``by``.
 
-    ``by``: the current model with an absorbing candidate (:data:`ABSORBING`); the term is
-    added to it at the values it was fitted with and the two are refitted and compared with
-    one effective sample count. A term the absorbing one leaves something to explain (a
-    compact source's ``1/r^3``, a disturbance where the sensor came back without it, a
-    sensor term) still earns it.
+    The term is added to ``by`` at the values it was fitted with, the two are refitted and
+    compared with one effective sample count: the one test behind :func:`absorbed` and
+    :func:`explained_by_refinement`.
+    """
+    both = fit(with_values(res.state.terms[-1], res.state.values[-1], by), data)
+    return bic_between(both, by, data) <= -cfg.bic_margin
+
+
+def absorbed(by: FitResult, res: FitResult, data: FitData, cfg: DiagnoseConfig) -> bool:
+    """Whether the last term of ``res`` no longer earns its margin beside ``by``.
+
+    ``by``: the current model with an absorbing candidate (:data:`ABSORBING`). A term the
+    absorbing one leaves something to explain (a compact source's ``1/r^3``, a disturbance
+    where the sensor came back without it, a sensor term) still earns it.
     """
     term = res.state.terms[-1]
     if term.kind in ABSORBING or term in by.state.terms:
         return False
-    both = fit(with_values(term, res.state.values[-1], by), data)
-    return bic_between(both, by, data) > -cfg.bic_margin
+    return not keeps_margin_beside(by, res, data, cfg)
 
 
 #: Requirements: a kind of term that acts only through terms of other kinds, and those kinds

@@ -496,8 +496,7 @@ class _Search:
             if hypothesis(term, present) in self.rejected | self.dropped:
                 continue
             if term.kind in REQUIRES and not present & REQUIRES[term.kind]:
-                continue  # it acts only through terms not in the model (no lever arm shows
-                # without a field that varies in space)
+                continue  # it acts only through terms that are not in the model
             simpler = NESTED_SIMPLER.get(term.kind)
             if simpler in present and term.kind not in IN_PARTS:
                 # the simpler term in the model spans part of this one, which can only
