@@ -11,7 +11,7 @@ import dataclasses
 from typing import Any
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtri
 
 from pipeline.core import progress
 from pipeline.core.errors import EstimationError
@@ -271,7 +271,7 @@ def scan_windows(
     # mean (a bound: squares are less correlated than the residual itself)
     nu = 9.0 * sig * sig / max(block_mean_var(residual_nT, w), 1e-30)
     level_emp = max(med + cfg.scan_sigma * mad, med + 2.0)
-    level = max(level_emp, med * float(chi2.isf(_false_alarm(n, w), nu) / chi2.median(nu)))
+    level = max(level_emp, med * float(chdtri(nu, _false_alarm(n, w)) / chdtri(nu, 0.5)))
 
     def windows(runs: list[tuple[int, int]]) -> list[tuple[float, float]]:
         merged: list[list[int]] = []
@@ -314,7 +314,7 @@ def scan_windows(
     # wk correlated samples varies more than white noise says): sv is then that spread times
     # chi-square(3) / 3
     spread = wk * block_mean_var(residual_nT, wk) / (3 * sig * sig)
-    lev_c = spread * float(chi2.isf(_false_alarm(n, wk), 3)) / 3.0
+    lev_c = spread * float(chdtri(3, _false_alarm(n, wk))) / 3.0
     lev_v = max(med_v + cfg.scan_sigma * mad_v, med_v + 2.0)
     return windows(_excess_runs(sv, med_v, lev_v, lev_c))
 

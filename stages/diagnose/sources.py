@@ -22,7 +22,6 @@ import dataclasses
 from dataclasses import replace
 
 import numpy as np
-from scipy.signal import find_peaks
 
 from pipeline.core.geometry import dot_last
 from pipeline.core.vocabulary import EffectKind
@@ -252,6 +251,10 @@ def source_visits(term: Term, value: F64, data: FitData, floor_nT: float = 0.0) 
     w = max(1, int(round(0.1 / max(dt, 1e-6))))
     bs = np.convolve(b, np.ones(w) / w, mode="same")
     height = max(floor_nT, 0.1 * float(bs.max()))
+    # imported here: scipy.signal loads scipy.stats (about half a second), and only a
+    # recording with a located source reaches this line
+    from scipy.signal import find_peaks
+
     _, props = find_peaks(bs, height=height, prominence=0.0)
     return int(np.count_nonzero(props["prominences"] >= 0.5 * props["peak_heights"]))
 

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2 as chi2_dist
+from scipy.special import chdtri
 
 from pipeline.core.geometry import so3_log
 from pipeline.model.calibration import SIGMA_FLOOR_DEG
@@ -126,7 +126,7 @@ def info_halves(info: F64) -> NDArray[np.bool_]:
 
 def split_limit(dof: int) -> float:
     """Chi-square limit of the halves' statistic with ``dof`` degrees of freedom."""
-    return float(chi2_dist.ppf(1.0 - SPLIT_FALSE_ALARM, max(int(dof), 1)))
+    return float(chdtri(max(int(dof), 1), SPLIT_FALSE_ALARM))
 
 
 def undetermined_directions(*cals) -> F64:

@@ -12,7 +12,6 @@ from typing import cast
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.signal import savgol_filter
 
 from pipeline.core.geometry import skew
 from pipeline.model.calibration import Calibration
@@ -110,6 +109,10 @@ def derivative_operator(
     k = stride_for(x, SMOOTH_TURN_DEG / 2.0)
     w = min(2 * k + 1, n if n % 2 else n - 1)
     w = max(w, _SG_ORDER + 2 if (_SG_ORDER + 2) % 2 else _SG_ORDER + 3)
+
+    # imported here: scipy.signal loads scipy.stats (about half a second), and only the
+    # smoothed-tangent variant of Li 2020 needs it
+    from scipy.signal import savgol_filter
 
     def sg(X: F64) -> tuple[F64, F64]:
         return (
