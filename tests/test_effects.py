@@ -15,9 +15,10 @@ from _diag_sim import all_terms, lissajous_m, make_data
 from pipeline.core.geometry import so3_exp
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects import EFFECTS
+from pipeline.model.forward import hat_basis
 from stages.diagnose.catalogue import motion_stats
 from stages.diagnose.fit import fit, wahba_init
-from stages.diagnose.model import FitData, ModelState, Term, evaluate, hat_basis
+from stages.diagnose.model import FitData, ModelState, Term, evaluate
 
 
 def _numeric_jacobian(state: ModelState, data: FitData, eps: np.ndarray) -> np.ndarray:

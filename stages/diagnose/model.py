@@ -63,24 +63,18 @@ from pipeline.model.attitude import (
     mean_interpolation_noise_factor,
 )
 from pipeline.model.effects import EFFECTS, IRON_PRIOR
-from pipeline.model.effects.field_gradient import gradient_matrix
+from pipeline.model.effects.axis_tilt import tilt_basis
+from pipeline.model.effects.eddy_current import TRACELESS_PROJECTOR
 from pipeline.model.effects.heading_drift import heading_drift_params as heading_params_over
 from pipeline.model.effects.soft_iron import SOFT_BASIS
 from pipeline.model.field_map import BASIS_NAME, FieldMapBasis, map_points
 from pipeline.model.forward import (
     Reading,
-    dipole_gradient,
-    dipole_matrix,
     field_jacobian,
-    hat_basis,
-    heading_basis,
     ramp_modes,
     ramp_profile,
     reading,
     rot_z,
-    rotate_about_up,
-    soft_iron_jacobian,
-    time_offset_jacobian,
 )
 from pipeline.model.forward import drift_basis as forward_drift_basis
 from pipeline.model.forward import source_offset_enu as forward_source_offset
@@ -97,12 +91,6 @@ LOCAL_KINDS = frozenset({EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP})
 #: moves it by a sigma. Not estimated, by calibrate (``stages.estimators.checks``) and by
 #: diagnose alike.
 CONFOUND_RATIO = 1e-2
-
-
-#: Projector (9, 9) of a row-major ``E_s`` onto its traceless part, ``E_s - tr(E_s)/3 I``.
-#: Beside a time offset the eddy term has only these 8 directions: its isotropic part is the
-#: time offset's (``E_s = -tau I`` to first order, (M5) against (M1) at ``t - tau``).
-TRACELESS_PROJECTOR = np.eye(9) - np.outer(np.eye(3).ravel(), np.eye(3).ravel()) / 3.0
 
 
 @dataclass(frozen=True)
@@ -439,9 +427,8 @@ class Term:
         return ramp_profile(t_s, window, self.ramps_s, self.knot_step_s)
 
     def step_offset_nT(self, t_s: F64, value: F64) -> F64:
-        """``hard_iron_step``'s offset at ``t_s``, mag frame, (N, 3)."""
-        s, phi = self.step_profile(t_s)
-        return s[:, None] * value[:3] + phi @ np.asarray(value[3:]).reshape(-1, 3)
+        """``hard_iron_step``'s offset at ``t_s``, mag frame, (N, 3) (its effect's)."""
+        return np.asarray(EFFECTS[EffectKind.HARD_IRON_STEP].offset_nT(self, value, t_s))
 
     def indicator(self, t_s: F64) -> F64:
         """1 inside any window, else 0, shape (N,)."""
@@ -628,7 +615,7 @@ class ModelState:
             vals.append(v + d)
         for t, i in zip(self.terms, self.offsets(), strict=True):
             if t.kind is EffectKind.AXIS_TILT:
-                P = _tilt_basis(self)
+                P = tilt_basis()
                 T = so3_exp(P @ dx[i : i + 2]) @ T
         return replace(self, R_body_mag=R, B_enu_nT=B, values=tuple(vals), T_enu=T)
 
@@ -639,16 +626,6 @@ def _fitted_coordinates(term: Term, value: F64) -> F64:
     if not term.partial:
         return v
     return term.determined_matrix().T @ (v - term.null_value())
-
-
-def _tilt_basis(state: ModelState, axis_enu: F64 | None = None) -> F64:
-    """Two unit vectors (3, 2) perpendicular to the nominal turntable axis in ENU (up)."""
-    n = np.array([0.0, 0.0, 1.0]) if axis_enu is None else axis_enu / np.linalg.norm(axis_enu)
-    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(n, a)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(n, e1)
-    return np.stack([e1, e2], axis=-1)
 
 
 @dataclass(frozen=True)
@@ -868,7 +845,7 @@ class _Forward:
 
     ``att``: the attitude at the sensing times; ``Cp``, ``Cm``: ``C.T`` a difference step
     ``h`` later and earlier; ``lever_enu``: ``C l`` or None; ``Bt``, ``h_rad``,
-    ``Bt_unturned``, ``sources``: as :func:`_enu_field` returns them; ``TT``: the tilt;
+    ``Bt_unturned``, ``kept``: as :func:`_enu_field` returns them; ``TT``: the tilt;
     ``Bp``: the field it turns; ``rd``: (M2)-(M5); ``E``: the eddy matrix in use; ``Gp``,
     ``G``: d y / d B_enu before and after the tilt; ``sqrt_w``: the roots of the
     likelihood's weights.
@@ -882,7 +859,7 @@ class _Forward:
     Bt: F64
     h_rad: F64 | None
     Bt_unturned: F64 | None
-    sources: dict[int, tuple[F64, F64]]
+    kept: dict[int, Any]
     TT: F64
     Bp: F64
     rd: Reading
@@ -925,7 +902,7 @@ def _forward(state: ModelState, data: FitData) -> _Forward:
     # the time offset's Jacobian: second order, |omega x l| tau)
     lever = state.value(EffectKind.LEVER_ARM)
     lever_enu = None if lever is None or data.p_m is None else np.einsum("nji,j->ni", Ct, lever)
-    Bt, h_rad, Bt_unturned, sources = _enu_field(state, data, lever_enu)
+    Bt, h_rad, Bt_unturned, kept = _enu_field(state, data, lever_enu)
     TT = state.T_enu.T
     Bp = Bt @ TT.T  # T.T @ B_t per row (axis_tilt)
 
@@ -934,13 +911,13 @@ def _forward(state: ModelState, data: FitData) -> _Forward:
     D = state.D()
     offsets: list[F64] = []
     E_term: F64 | None = None
+    pair = state.rate_pair()
     for term, v in zip(state.terms, state.values, strict=True):
-        if term.kind is EffectKind.HARD_IRON:
-            offsets.append(v)
-        elif term.kind is EffectKind.HARD_IRON_STEP:
-            offsets.append(term.step_offset_nT(t, v))
-        elif term.kind is EffectKind.EDDY_CURRENT:
-            E_term = (TRACELESS_PROJECTOR @ v if state.rate_pair() else v).reshape(3, 3)
+        eff = EFFECTS[term.kind]
+        if (off := eff.offset_nT(term, v, t)) is not None:
+            offsets.append(off)
+        if (e := eff.eddy_matrix(term, v, pair)) is not None:
+            E_term = e
     rd = reading(Ct, Bp, R, D, offsets, E_term, Cdot)
     E = np.zeros((3, 3)) if E_term is None else E_term
     Gp = field_jacobian(Ct, R, D, E, Cdot)  # (J2), before the tilt
@@ -949,7 +926,7 @@ def _forward(state: ModelState, data: FitData) -> _Forward:
     w = _weights_at(data, att.at.position) if data.noise_model is not None else None
     sqrt_w = None if w is None else np.sqrt(w)
     fw = _Forward(att=att, Cp=Cp, Cm=Cm, h=h, lever_enu=lever_enu, Bt=Bt, h_rad=h_rad,
-                  Bt_unturned=Bt_unturned, sources=sources, TT=TT, Bp=Bp, rd=rd, E=E, Gp=Gp, G=G,
+                  Bt_unturned=Bt_unturned, kept=kept, TT=TT, Bp=Bp, rd=rd, E=E, Gp=Gp, G=G,
                   sqrt_w=sqrt_w)
     _FORWARD_CACHE[:] = [(state, data, fw)]
     return fw
@@ -999,24 +976,61 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             Rz[:, 2, 2] = 1.0
             J[:, :, 3:6] = np.matmul(G, Rz)
     bddot = matvec_rows(Cddot, fw.Bp)
-    _term_columns(J, state, data, _Linearisation(
-        Ct=Ct, omega_body=fw.att.at.omega_body_rad_s, G=G, Gp=fw.Gp, TT=fw.TT, b=b,
-        bddot=bddot, m=m, mdot=mdot, ydot0=ydot0, E=E, lever_enu=fw.lever_enu, Bt=fw.Bt,
-        h_rad=fw.h_rad, Bt_unturned=fw.Bt_unturned, sources=fw.sources))
+    _term_columns(J, state, _Linearisation(
+        data=data, lever_enu=fw.lever_enu, Ct=Ct, omega_body=fw.att.at.omega_body_rad_s, G=G,
+        Gp=fw.Gp, TT=fw.TT, b=b, bddot=bddot, m=m, mdot=mdot, ydot0=ydot0, E=E,
+        R=state.R_body_mag, D=state.D(), Bt=fw.Bt, h_rad=fw.h_rad, Bt_unturned=fw.Bt_unturned,
+        rate_pair=state.rate_pair(), terms=tuple(zip(state.terms, state.values, strict=True)),
+        kept=fw.kept))
     return Evaluation(y, J, ydot0, G, fw.sqrt_w)
 
 
 @dataclass(frozen=True)
-class _Linearisation:
+class _Samples:
+    """The samples as a term's field sees them (:class:`pipeline.model.effects.base.Samples`)."""
+
+    data: FitData
+    lever_enu: F64 | None
+
+    @property
+    def t_s(self) -> F64:
+        """Stamps, s."""
+        return self.data.t_s
+
+    @property
+    def p_m(self) -> F64 | None:
+        """Positions, m, or None."""
+        return self.data.p_m
+
+    @property
+    def dp_m(self) -> F64:
+        """Positions minus their reference, m (zeros without positions)."""
+        return self.data.dp_m
+
+    @property
+    def span_s(self) -> float:
+        """The drifts' time span (:func:`drift_span`)."""
+        return drift_span(self.data)
+
+    def map_field(self, term: Any) -> F64:
+        """Return a ``field_map``'s basis fields at the sensor (:func:`_map_field`, cached)."""
+        assert self.data.p_m is not None  # a map is evaluated only with positions
+        return _map_field(term, self.data.p_m, self.lever_enu)
+
+
+@dataclass(frozen=True)
+class _Linearisation(_Samples):
     """What the prediction computed at a state, for the Jacobian columns of its terms.
 
-    ``Ct``: attitudes (N, 3, 3) at the sensing times; ``omega_body``: the interpolated rate
-    there; ``G``, ``Gp``: d y / d B_enu after and before the tilt ``TT``; ``b``, ``bddot``:
-    the field in the body frame and its second derivative; ``m``, ``mdot``: the reading
-    before the eddy term and its rate; ``ydot0``: the eddy regressor; ``E``: the eddy
-    matrix in use; ``lever_enu``: ``C l`` or None; ``Bt``, ``Bt_unturned``, ``h_rad``: the
-    ENU field with and without the heading drift's turn, and the turn; ``sources``: each
-    ``local_source``'s offsets and dipole matrices by term index (:func:`_enu_field`).
+    :class:`pipeline.model.effects.base.Linearisation`: ``Ct``: attitudes (N, 3, 3) at the
+    sensing times; ``omega_body``: the interpolated rate there; ``G``, ``Gp``: d y / d B_enu
+    after and before the tilt ``TT``; ``R``, ``D``: the rotation and ``I + S``; ``b``,
+    ``bddot``: the field in the body frame and its second derivative; ``m``, ``mdot``: the
+    reading before the eddy term and its rate; ``ydot0``: the eddy regressor; ``E``: the eddy
+    matrix in use; ``Bt``, ``Bt_unturned``, ``h_rad``: the ENU field with and without the
+    heading drift's turn, and the turn; ``rate_pair``: a time offset beside an eddy term;
+    ``terms``: every term with its value; ``kept``: what each term's field kept for its
+    columns, by term index (:func:`_enu_field`).
     """
 
     Ct: F64
@@ -1030,11 +1044,14 @@ class _Linearisation:
     mdot: F64
     ydot0: F64
     E: F64
-    lever_enu: F64 | None
+    R: F64
+    D: F64
     Bt: F64
     h_rad: F64 | None
     Bt_unturned: F64 | None
-    sources: dict[int, tuple[F64, F64]]
+    rate_pair: bool
+    terms: tuple[tuple[Any, F64], ...]
+    kept: dict[int, Any]
 
 
 def _partial_evaluation(state: ModelState, data: FitData) -> Evaluation:
@@ -1061,154 +1078,33 @@ def _partial_evaluation(state: ModelState, data: FitData) -> Evaluation:
 
 
 def _enu_field(state: ModelState, data: FitData, lever_enu: F64 | None
-               ) -> tuple[F64, F64 | None, F64 | None, dict[int, tuple[F64, F64]]]:
+               ) -> tuple[F64, F64 | None, F64 | None, dict[int, Any]]:
     """Return the ENU field at each sample, the heading drift's turn and the field unturned.
 
-    ``B + drift + disturbances + the spatial terms``, then turned about Up by the heading
-    drift when the model has one (None, None without). Last, each ``local_source``'s
-    offsets ``r`` (N, 3) and dipole matrices ``P(r)`` (N, 3, 3) by term index: its
-    Jacobian's columns need them again.
+    ``B`` plus each term's field (:meth:`Effect.add_field`, in the model's order), then
+    turned about Up by a term that turns it (``heading_drift``, (M1h)); (None, None) without
+    one. Last, what each term's columns reuse, by term index (a source's offsets and dipole
+    matrices).
     """
-    t = data.t_s
-    n = t.shape[0]
-    Bt = np.broadcast_to(state.B_enu_nT, (n, 3)).copy()
-    sources: dict[int, tuple[F64, F64]] = {}
+    at = _Samples(data, lever_enu)
+    Bt = np.broadcast_to(state.B_enu_nT, (len(data.t_s), 3)).copy()
+    kept: dict[int, Any] = {}
     for k, (term, v) in enumerate(zip(state.terms, state.values, strict=True)):
-        if term.kind is EffectKind.FIELD_DRIFT:
-            P = drift_basis(t, 0.0, drift_span(data))
-            Bt += P @ v.reshape(-1, 3)
-        elif term.kind is EffectKind.DISTURBANCE:
-            Phi = np.concatenate([hat_basis(t, k) for k in term.knots()], axis=1)
-            Bt += Phi @ v.reshape(-1, 3)
-        elif term.kind is EffectKind.FIELD_GRADIENT:
-            # B(p) = B_enu + G_enu Q (p - p_ref)  (CONVENTIONS field_gradient)
-            Bt += data.dp_m @ gradient_matrix(v, term.yaw_rad).T
-            if lever_enu is not None:  # + G_enu C l
-                Bt += lever_enu @ gradient_matrix(v, 0.0).T
-        elif term.kind is EffectKind.LOCAL_SOURCE and data.p_m is not None:
-            # B(p) = B_enu + 100 nT (3 (m.u) u - m) / r^3  (CONVENTIONS local_source)
-            r_src = source_offset_enu(term, v, data.p_m, lever_enu)
-            P = dipole_matrix(r_src)
-            sources[k] = (r_src, P)
-            if term.windows_s:
-                Bt += term.presence(t)[:, None] * (P @ v[3:6])
-            else:  # present throughout: a presence of 1 would change nothing
-                Bt += P @ v[3:6]
-        elif term.kind is EffectKind.FIELD_MAP and data.p_m is not None:
-            # B(p) = B_enu - Q grad phi(x), x = p + Q.T C l  (CONVENTIONS field_map;
-            # pipeline.model.field_map): Q sum_j w_j g_j(x)
-            g_map = _map_field(term, data.p_m, lever_enu)
-            Bt += np.einsum("ndk,k->nd", g_map, v) @ rot_z(term.yaw_rad).T
-    # heading_drift: the attitude source reports Rz(h(t)) C_true(t), so the reading is
-    # R.T C_rep.T Rz(h) B (CONVENTIONS heading_drift): the ENU field turned about Up by h(t)
+        kept[k] = EFFECTS[term.kind].add_field(term, v, at, Bt)
     h_rad, Bt_unturned = None, None
     for term, v in zip(state.terms, state.values, strict=True):
-        if term.kind is EffectKind.HEADING_DRIFT:
-            h_rad = heading_basis(t, drift_span(data)) @ v
+        turned = EFFECTS[term.kind].turned_enu(term, v, at, Bt)
+        if turned is not None:
             Bt_unturned = Bt
-            Bt = rotate_about_up(Bt, h_rad)
-    return Bt, h_rad, Bt_unturned, sources
+            Bt, h_rad = turned
+    return Bt, h_rad, Bt_unturned, kept
 
 
-def _term_columns(J: F64, state: ModelState, data: FitData, lin: _Linearisation) -> None:
-    """Write each term's Jacobian columns into ``J`` (N, 3, P) in place."""
-    t = data.t_s
-    n = t.shape[0]
-    R, D = state.R_body_mag, state.D()
+def _term_columns(J: F64, state: ModelState, lin: _Linearisation) -> None:
+    """Write each term's Jacobian columns into ``J`` (N, 3, P) in place (its effect's)."""
     for j, (term, i, v) in enumerate(zip(state.terms, state.offsets(), state.values,
                                          strict=True)):
-        k = term.kind
-        if k is EffectKind.HARD_IRON:
-            J[:, :, i : i + 3] = np.eye(3)
-        elif k is EffectKind.HARD_IRON_STEP:
-            s_step, phi = term.step_profile(t)
-            # component r_ of the plateau's offset and of each transition mode's (3 each)
-            for r_ in range(3):
-                J[:, r_, i + r_] = s_step
-                J[:, r_, i + 3 + r_ : i + 3 + 3 * phi.shape[1] : 3] = phi
-        elif k is EffectKind.SOFT_IRON:
-            # dy/ds_k = S_k m + E S_k mdot
-            J[:, :, i : i + 5] = soft_iron_jacobian(SOFT_BASIS, lin.m, lin.mdot, lin.E)  # (J4)
-        elif k is EffectKind.TIME_OFFSET:
-            # b(t - tau) with the attitude re-interpolated at t - tau: db/dtau = omega x b with
-            # omega the exact interpolated rate at t - tau (pipeline.model.forward, (J5));
-            # dbdot/dtau = -bddot for the eddy regressor
-            J[:, :, i] = time_offset_jacobian(lin.omega_body, lin.b, lin.bddot, R, D, lin.E)
-        elif k is EffectKind.EDDY_CURRENT:
-            # y_i += E_ij ydot0_j (row-major E); beside a time offset only the traceless part
-            for r_ in range(3):
-                J[:, r_, i + 3 * r_ : i + 3 * r_ + 3] = lin.ydot0
-            if state.rate_pair():
-                J[:, :, i : i + 9] = J[:, :, i : i + 9] @ TRACELESS_PROJECTOR
-        elif k is EffectKind.FIELD_DRIFT:
-            P = drift_basis(t, 0.0, drift_span(data))
-            kk = 3 * P.shape[1]
-            J[:, :, i : i + kk] = (P[:, :, None, None] * lin.G[:, None, :, :]).transpose(
-                0, 2, 1, 3
-            ).reshape(n, 3, kk)
-        elif k is EffectKind.DISTURBANCE:
-            Phi = np.concatenate([hat_basis(t, kn) for kn in term.knots()], axis=1)
-            K = Phi.shape[1]
-            J[:, :, i : i + 3 * K] = (Phi[:, :, None, None] * lin.G[:, None, :, :]).transpose(
-                0, 2, 1, 3
-            ).reshape(n, 3, 3 * K)
-        elif k is EffectKind.FIELD_GRADIENT:
-            # dB/dg_k = S_k (Q (p - p_ref) + C l); dy/dg_k = G (N,3,3) @ that
-            dpq = data.dp_m @ rot_z(term.yaw_rad).T  # Q (p - p_ref) per row
-            if lin.lever_enu is not None:
-                dpq = dpq + lin.lever_enu
-            dB = np.einsum("kij,nj->nik", SOFT_BASIS, dpq)  # (N, 3, 5)
-            np.matmul(lin.G, dB, out=J[:, :, i : i + 5])
-        elif k is EffectKind.LOCAL_SOURCE and data.p_m is not None:
-            # r = Rz(psi) (p - c) + C l, B = P(r) m: dB/dc = -K Rz(psi), dB/dm = P(r),
-            # dB/dpsi = K (e_z x Rz(psi) (p - c)), K = dB/dr (dipole_gradient)
-            r_src, P_src = lin.sources[j]  # as the field's: the same offsets and values
-            K = dipole_gradient(r_src, v[3:6])
-            psi = float(v[6]) if term.fit_yaw else term.yaw_rad
-            dB = np.zeros((n, 3, term.n_params()))
-            np.negative(np.matmul(K, rot_z(psi)), out=dB[:, :, 0:3])
-            dB[:, :, 3:6] = P_src
-            if term.fit_yaw:
-                r_p = r_src if lin.lever_enu is None else source_offset_enu(term, v, data.p_m)
-                ez_r = np.stack([-r_p[:, 1], r_p[:, 0], np.zeros(n)], axis=1)
-                dB[:, :, 6] = matvec_rows(K, ez_r)
-            if term.windows_s:
-                dB *= term.presence(t)[:, None, None]
-            np.matmul(lin.G, dB, out=J[:, :, i : i + term.n_params()])
-        elif k is EffectKind.FIELD_MAP and data.p_m is not None:
-            # linear in the weights: dB/dw_j = Q g_j(x)
-            g_map = _map_field(term, data.p_m, lin.lever_enu)
-            np.matmul(lin.G, np.einsum("ij,njk->nik", rot_z(term.yaw_rad), g_map),
-                      out=J[:, :, i : i + term.n_params()])
-        elif k is EffectKind.LEVER_ARM and lin.lever_enu is not None:
-            # dB/dl = sum over spatial terms of (dB/dr) C: G_enu C for the gradient,
-            # K(r) C for each source present
-            C = np.swapaxes(lin.Ct, 1, 2)
-            dBdr = np.zeros((n, 3, 3))
-            for t2, v2 in zip(state.terms, state.values, strict=True):
-                if t2.kind is EffectKind.FIELD_GRADIENT:
-                    dBdr += gradient_matrix(v2, 0.0)[None]
-                elif t2.kind is EffectKind.LOCAL_SOURCE and data.p_m is not None:
-                    r2 = source_offset_enu(t2, v2, data.p_m, lin.lever_enu)
-                    dBdr += t2.presence(t)[:, None, None] * dipole_gradient(r2, v2[3:6])
-                elif t2.kind is EffectKind.FIELD_MAP and data.p_m is not None:
-                    # the map's ENU gradient Q (dB_x/dx) Q.T (dx/dr = Q.T)
-                    Qm = rot_z(t2.yaw_rad)
-                    x2 = map_points(data.p_m, t2.yaw_rad, lin.lever_enu)
-                    dBdr += Qm @ t2.basis().field_gradient(x2, v2) @ Qm.T
-            J[:, :, i : i + 3] = np.matmul(lin.G, np.matmul(dBdr, C))
-        elif k is EffectKind.HEADING_DRIFT:
-            # d(Rz(h) B)/dh = Rz(h + pi/2) B with the vertical part removed; h = P v
-            # computed with the field: the model has the heading_drift term
-            assert lin.h_rad is not None and lin.Bt_unturned is not None
-            dB = rotate_about_up(lin.Bt_unturned, lin.h_rad + 0.5 * np.pi)
-            dB[:, 2] = 0.0
-            P = heading_basis(t, drift_span(data))
-            J[:, :, i : i + P.shape[1]] = matvec_rows(lin.G, dB)[:, :, None] * P[:, None, :]
-        elif k is EffectKind.AXIS_TILT:
-            # T.T <- T.T exp(-[d]x): d(T.T B)/dd = T.T [B]x, d = basis @ (2 params)
-            Pb = _tilt_basis(state)
-            J[:, :, i : i + 2] = np.matmul(np.matmul(lin.Gp, lin.TT), skew(lin.Bt)) @ Pb
+        EFFECTS[term.kind].columns(term, v, lin, lin.kept[j], J[:, :, i : i + term.n_params()])
 
 
 def drift_span(data: FitData) -> float:

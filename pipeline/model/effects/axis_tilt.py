@@ -6,8 +6,26 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from pipeline.core.geometry import skew
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import F64, Effect, FitView, register, standard_deviations
+from pipeline.model.effects.base import (
+    F64,
+    Effect,
+    FitView,
+    Linearisation,
+    register,
+    standard_deviations,
+)
+
+
+def tilt_basis(axis_enu: F64 | None = None) -> F64:
+    """Two unit vectors (3, 2) perpendicular to the nominal turntable axis in ENU (up)."""
+    n = np.array([0.0, 0.0, 1.0]) if axis_enu is None else axis_enu / np.linalg.norm(axis_enu)
+    a = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(n, a)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    return np.stack([e1, e2], axis=-1)
 
 
 @register
@@ -27,6 +45,13 @@ class AxisTilt(Effect):
     # a lean across the field's bearing turns B about the axis, which R_body_mag absorbs.
     identifiable_in_part: ClassVar[bool] = True
     n_fixed: ClassVar[int | None] = 2
+
+    def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
+        """Write ``d(T.T B)/dd = T.T [B]x`` on the tilt's basis (see :meth:`Effect.columns`).
+
+        ``T.T <- T.T exp(-[d]x)`` with ``d = basis @ (2 params)``.
+        """
+        out[:] = np.matmul(np.matmul(lin.Gp, lin.TT), skew(lin.Bt)) @ tilt_basis()
 
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
         """Return the CONVENTIONS params (see :meth:`Effect.params`)."""

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.core.vocabulary import EffectKind
+from pipeline.model.field_map import FieldMapBasis
 
 F64 = NDArray[np.float64]
 
@@ -62,6 +63,148 @@ class TermShape(Protocol):
 
     def step_profile(self, t_s: F64) -> tuple[F64, F64]:
         """Return a ``hard_iron_step``'s plateau profile (N,) and transition basis (N, M)."""
+        ...
+
+    def presence(self, t_s: F64) -> F64:
+        """Return 1 where the term acts (inside its windows, or everywhere without), (N,)."""
+        ...
+
+    def basis(self) -> FieldMapBasis:
+        """Return a ``field_map``'s basis."""
+        ...
+
+
+class Samples(Protocol):
+    """What a term's field needs of the samples at one state of the fit.
+
+    ``stages.diagnose.model`` implements it (and :class:`Linearisation`); this layer does not
+    name the diagnosis.
+    """
+
+    @property
+    def t_s(self) -> F64:
+        """Stamps, s from the first sample (N,)."""
+        ...
+
+    @property
+    def p_m(self) -> F64 | None:
+        """Positions (N, 3), m, in the position frame; None without positions."""
+        ...
+
+    @property
+    def dp_m(self) -> F64:
+        """Positions minus their reference point (N, 3), m; zeros without positions."""
+        ...
+
+    @property
+    def span_s(self) -> float:
+        """Time from the first to the last sample of the recording, s (the drifts' domain)."""
+        ...
+
+    @property
+    def lever_enu(self) -> F64 | None:
+        """The lever arm ``C l`` in ENU (N, 3), m, when the model has one."""
+        ...
+
+    def map_field(self, term: TermShape) -> F64:
+        """Return a ``field_map``'s basis fields ``g_j(x)`` at the sensor (N, 3, K)."""
+        ...
+
+
+class Linearisation(Samples, Protocol):
+    """What the prediction computed at a state, for the Jacobian columns of its terms.
+
+    Names as in (M1)-(M5) and (J1)-(J5) of :mod:`pipeline.model.forward`.
+    """
+
+    @property
+    def Ct(self) -> F64:
+        """``C_enu_body.T`` at the sensing times (N, 3, 3)."""
+        ...
+
+    @property
+    def omega_body(self) -> F64:
+        """The interpolated angular rate at the sensing times, body frame (N, 3), rad/s."""
+        ...
+
+    @property
+    def G(self) -> F64:
+        """``d y / d B_enu`` after the axis tilt (N, 3, 3)."""
+        ...
+
+    @property
+    def Gp(self) -> F64:
+        """``d y / d B_enu`` before the axis tilt (N, 3, 3)."""
+        ...
+
+    @property
+    def TT(self) -> F64:
+        """The tilt ``T.T`` (3, 3)."""
+        ...
+
+    @property
+    def R(self) -> F64:
+        """``R_body_mag`` (3, 3)."""
+        ...
+
+    @property
+    def D(self) -> F64:
+        """``I + S`` (3, 3)."""
+        ...
+
+    @property
+    def E(self) -> F64:
+        """The eddy matrix in use (3, 3)."""
+        ...
+
+    @property
+    def b(self) -> F64:
+        """The field in the body frame (N, 3), nT."""
+        ...
+
+    @property
+    def bddot(self) -> F64:
+        """Its second time derivative (N, 3), nT/s^2."""
+        ...
+
+    @property
+    def m(self) -> F64:
+        """The reading before the eddy term (N, 3), nT."""
+        ...
+
+    @property
+    def mdot(self) -> F64:
+        """Its rate (N, 3), nT/s."""
+        ...
+
+    @property
+    def ydot0(self) -> F64:
+        """The eddy regressor ``dy0/dt`` (N, 3), nT/s."""
+        ...
+
+    @property
+    def Bt(self) -> F64:
+        """The ENU field at the sensor, after the heading drift's turn (N, 3), nT."""
+        ...
+
+    @property
+    def Bt_unturned(self) -> F64 | None:
+        """The same before the turn; None without a heading drift."""
+        ...
+
+    @property
+    def h_rad(self) -> F64 | None:
+        """The heading drift's turn (N,), rad; None without one."""
+        ...
+
+    @property
+    def rate_pair(self) -> bool:
+        """A time offset and an eddy term are both in the model."""
+        ...
+
+    @property
+    def terms(self) -> tuple[tuple[Any, F64], ...]:
+        """Every term of the model with its value, in the model's order."""
         ...
 
 
@@ -112,7 +255,14 @@ class FitView(Protocol):
 
 
 class Effect:
-    """One effect: its name, its words and the size of its parameter vector.
+    """One effect: its name, its words, its parameters and its part of the forward model.
+
+    The forward model of the diagnosis (``stages.diagnose.model``, (M1)-(M5) of
+    :mod:`pipeline.model.forward`) asks each term's effect for its part: a field in ENU
+    (:meth:`add_field`), a turn of that field (:meth:`turned_enu`), an offset in the
+    magnetometer frame (:meth:`offset_nT`), an eddy matrix (:meth:`eddy_matrix`), and the
+    term's Jacobian columns (:meth:`columns`); a spatial term also gives the field's gradient
+    at the sensor (:meth:`gradient_enu`), which the lever arm's columns sum.
 
     Attributes
     ----------
@@ -236,6 +386,44 @@ class Effect:
         dict
             The keys of :meth:`params` that have a sigma.
 
+        """
+        raise ValueError(f"{self.kind.value} is not a term of the forward model")
+
+
+    def add_field(self, term: Any, value: F64, at: Samples, B_enu: F64) -> Any:
+        """Add the term's field to the ENU field at the sensor ``B_enu`` (N, 3), nT, in place.
+
+        Returns what :meth:`columns` of the same evaluation reuses (a source's offsets and
+        dipole matrices), or None. The default adds nothing: the term is not a field in ENU.
+        """
+        return None
+
+    def turned_enu(self, term: Any, value: F64, at: Samples, B_enu: F64
+                   ) -> tuple[F64, F64] | None:
+        """Return the ENU field turned by the term (N, 3) and the turn (N,), rad; or None."""
+        return None
+
+    def offset_nT(self, term: Any, value: F64, t_s: F64) -> F64 | None:
+        """Return the term's offset of the reading, mag frame ((3,) or (N, 3)), or None."""
+        return None
+
+    def eddy_matrix(self, term: Any, value: F64, rate_pair: bool) -> F64 | None:
+        """Return the term's ``E_s`` (3, 3) in (M5), or None."""
+        return None
+
+    def gradient_enu(self, term: Any, value: F64, at: Samples) -> F64 | None:
+        """Return ``dB/dr``, the gradient of the term's field at the sensor, ENU, or None.
+
+        (N, 3, 3) or (1, 3, 3); None: the term's field does not depend on the position.
+        """
+        return None
+
+    def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
+        """Write the term's Jacobian columns ``d y / d value`` into ``out`` (N, 3, k).
+
+        ``out`` is zero on entry; ``kept`` is what :meth:`add_field` returned.
+        Every implementation is checked against central differences
+        (``tests/test_effects.py``, ``tests/test_local_source.py``, ``tests/test_field_map.py``).
         """
         raise ValueError(f"{self.kind.value} is not a term of the forward model")
 

@@ -11,6 +11,8 @@ from pipeline.model.effects.base import (
     F64,
     Effect,
     FitView,
+    Linearisation,
+    Samples,
     TermShape,
     register,
     standard_deviations,
@@ -50,3 +52,16 @@ class Disturbance(Effect):
         """Return their 1-sigma (see :meth:`Effect.sigma`)."""
         sd = standard_deviations(cov)
         return {"peak_nT": float(np.sqrt(np.max(np.sum(sd.reshape(-1, 3) ** 2, axis=1))))}
+
+    def add_field(self, term: Any, value: F64, at: Samples, B_enu: F64) -> Any:
+        """Add the hats' field inside the windows, (M1) (see :meth:`Effect.add_field`)."""
+        Phi = np.concatenate([hat_basis(at.t_s, k) for k in term.knots()], axis=1)
+        B_enu += Phi @ value.reshape(-1, 3)
+        return None
+
+    def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
+        """Write ``dy/dc_kd = G e_d phi_k(t)`` (see :meth:`Effect.columns`)."""
+        Phi = np.concatenate([hat_basis(lin.t_s, kn) for kn in term.knots()], axis=1)
+        n, K = Phi.shape
+        out[:] = (Phi[:, :, None, None] * lin.G[:, None, :, :]).transpose(0, 2, 1, 3).reshape(
+            n, 3, 3 * K)

@@ -4,8 +4,22 @@ from __future__ import annotations
 
 from typing import Any, ClassVar
 
+import numpy as np
+
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import F64, Effect, FitView, register, standard_deviations
+from pipeline.model.effects.base import (
+    F64,
+    Effect,
+    FitView,
+    Linearisation,
+    register,
+    standard_deviations,
+)
+
+#: Projector (9, 9) of a row-major ``E_s`` onto its traceless part, ``E_s - tr(E_s)/3 I``.
+#: Beside a time offset the eddy term has only these 8 directions: its isotropic part is the
+#: time offset's (``E_s = -tau I`` to first order, (M5) against (M1) at ``t - tau``).
+TRACELESS_PROJECTOR = np.eye(9) - np.outer(np.eye(3).ravel(), np.eye(3).ravel()) / 3.0
 
 
 @register
@@ -31,3 +45,14 @@ class EddyCurrent(Effect):
         """Return their 1-sigma (see :meth:`Effect.sigma`)."""
         sd = standard_deviations(cov)
         return {"E_s": sd.reshape(3, 3).tolist()}
+
+    def eddy_matrix(self, term: Any, value: F64, rate_pair: bool) -> F64:
+        """Return ``E_s`` (3, 3): beside a time offset its traceless part only."""
+        return np.asarray(TRACELESS_PROJECTOR @ value if rate_pair else value).reshape(3, 3)
+
+    def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
+        """Write ``dy_i/dE_ij = ydot0_j`` (row-major ``E``) (see :meth:`Effect.columns`)."""
+        for r_ in range(3):
+            out[:, r_, 3 * r_ : 3 * r_ + 3] = lin.ydot0
+        if lin.rate_pair:  # beside a time offset only the traceless part
+            out[:] = out @ TRACELESS_PROJECTOR

@@ -7,7 +7,15 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import F64, Effect, FitView, register, standard_deviations
+from pipeline.model.effects.base import (
+    F64,
+    Effect,
+    FitView,
+    Linearisation,
+    Samples,
+    register,
+    standard_deviations,
+)
 from pipeline.model.forward import DRIFT_DEGREE, drift_basis
 
 #: Rate of change of the geomagnetic field: about 0.1 nT/min for the quiet diurnal variation,
@@ -33,6 +41,18 @@ class FieldDrift(Effect):
     )
     frame: ClassVar[str] = "enu"
     n_fixed: ClassVar[int | None] = 3 * DRIFT_DEGREE
+
+    def add_field(self, term: Any, value: F64, at: Samples, B_enu: F64) -> Any:
+        """Add ``F(t)``, Legendre P1..P4 per ENU axis, (M1) (see :meth:`Effect.add_field`)."""
+        B_enu += drift_basis(at.t_s, at.span_s) @ value.reshape(-1, 3)
+        return None
+
+    def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
+        """Write ``dy/dc_kd = G e_d P_k(t)`` (see :meth:`Effect.columns`)."""
+        P = drift_basis(lin.t_s, lin.span_s)
+        kk = 3 * P.shape[1]
+        out[:] = (P[:, :, None, None] * lin.G[:, None, :, :]).transpose(0, 2, 1, 3).reshape(
+            len(P), 3, kk)
 
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
         """Return the CONVENTIONS params (see :meth:`Effect.params`)."""

@@ -8,7 +8,7 @@ import numpy as np
 
 from pipeline.core.geometry import rot_z
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import F64, Effect, FitView, register
+from pipeline.model.effects.base import F64, Effect, FitView, Linearisation, Samples, register
 from pipeline.model.effects.soft_iron import SOFT_BASIS
 
 
@@ -56,6 +56,28 @@ class FieldGradient(Effect):
     )
     frame: ClassVar[str] = "enu"
     n_fixed: ClassVar[int | None] = 5
+
+    def add_field(self, term: Any, value: F64, at: Samples, B_enu: F64) -> Any:
+        """Add ``G_enu Q (p - p_ref)``, and ``G_enu C l`` with a lever arm (CONVENTIONS).
+
+        See :meth:`Effect.add_field`.
+        """
+        B_enu += at.dp_m @ gradient_matrix(value, term.yaw_rad).T
+        if at.lever_enu is not None:
+            B_enu += at.lever_enu @ gradient_matrix(value, 0.0).T
+        return None
+
+    def gradient_enu(self, term: Any, value: F64, at: Samples) -> F64:
+        """Return ``G_enu`` (1, 3, 3) (see :meth:`Effect.gradient_enu`)."""
+        return gradient_matrix(value, 0.0)[None]
+
+    def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
+        """Write ``dy/dg_k = G S_k (Q (p - p_ref) + C l)`` (see :meth:`Effect.columns`)."""
+        dpq = lin.dp_m @ rot_z(term.yaw_rad).T  # Q (p - p_ref) per row
+        if lin.lever_enu is not None:
+            dpq = dpq + lin.lever_enu
+        dB = np.einsum("kij,nj->nik", SOFT_BASIS, dpq)  # (N, 3, 5)
+        np.matmul(lin.G, dB, out=out)
 
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
         """Return the CONVENTIONS params (see :meth:`Effect.params`)."""

@@ -6,15 +6,19 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from pipeline.core.geometry import rot_z
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects.base import (
     F64,
     Effect,
     FitView,
+    Linearisation,
+    Samples,
     TermShape,
     register,
     standard_deviations,
 )
+from pipeline.model.field_map import map_points
 
 
 @register
@@ -39,6 +43,31 @@ class FieldMap(Effect):
     def n_params(self, term: TermShape) -> int:
         """Return one weight per basis function (the product of the modes per axis)."""
         return int(np.prod(term.n_axis))
+
+    def add_field(self, term: Any, value: F64, at: Samples, B_enu: F64) -> Any:
+        """Add ``-Q grad phi(x) = Q sum_j w_j g_j(x)``, ``x = p + Q.T C l`` (CONVENTIONS).
+
+        See :meth:`Effect.add_field` and :mod:`pipeline.model.field_map`.
+        """
+        if at.p_m is None:
+            return None
+        B_enu += np.einsum("ndk,k->nd", at.map_field(term), value) @ rot_z(term.yaw_rad).T
+        return None
+
+    def gradient_enu(self, term: Any, value: F64, at: Samples) -> F64 | None:
+        """Return the map's ENU gradient ``Q (dB_x/dx) Q.T`` (see :meth:`Effect.gradient_enu`)."""
+        if at.p_m is None:
+            return None
+        Qm = rot_z(term.yaw_rad)
+        x = map_points(at.p_m, term.yaw_rad, at.lever_enu)
+        return np.asarray(Qm @ term.basis().field_gradient(x, value) @ Qm.T)
+
+    def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
+        """Write ``dy/dw_j = G Q g_j(x)``: linear in the weights (see :meth:`Effect.columns`)."""
+        if lin.p_m is None:
+            return
+        np.matmul(lin.G, np.einsum("ij,njk->nik", rot_z(term.yaw_rad), lin.map_field(term)),
+                  out=out)
 
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
         """Return the CONVENTIONS params (see :meth:`Effect.params`)."""

@@ -4,8 +4,17 @@ from __future__ import annotations
 
 from typing import Any, ClassVar
 
+import numpy as np
+
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import F64, Effect, FitView, register, standard_deviations
+from pipeline.model.effects.base import (
+    F64,
+    Effect,
+    FitView,
+    Linearisation,
+    register,
+    standard_deviations,
+)
 
 
 @register
@@ -34,3 +43,11 @@ class HardIron(Effect):
         """Return their 1-sigma (see :meth:`Effect.sigma`)."""
         sd = standard_deviations(cov)
         return {"offset_nT": sd[:3].tolist()}
+
+    def offset_nT(self, term: Any, value: F64, t_s: F64) -> F64:
+        """Return ``o`` of (M5), mag frame, (3,)."""
+        return value
+
+    def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
+        """Write ``dy/do = I`` (see :meth:`Effect.columns`)."""
+        out[:] = np.eye(3)

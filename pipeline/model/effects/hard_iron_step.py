@@ -11,6 +11,7 @@ from pipeline.model.effects.base import (
     F64,
     Effect,
     FitView,
+    Linearisation,
     TermShape,
     register,
     standard_deviations,
@@ -44,3 +45,16 @@ class HardIronStep(Effect):
         """Return their 1-sigma (see :meth:`Effect.sigma`)."""
         sd = standard_deviations(cov)
         return {"offset_nT": sd[:3].tolist()}
+
+    def offset_nT(self, term: Any, value: F64, t_s: F64) -> F64:
+        """Return ``o_step s(t) + phi(t) c`` of (M5), mag frame, (N, 3)."""
+        s, phi = term.step_profile(t_s)
+        return s[:, None] * value[:3] + phi @ np.asarray(value[3:]).reshape(-1, 3)
+
+    def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
+        """Write the plateau's and each transition mode's columns (see :meth:`Effect.columns`)."""
+        s_step, phi = term.step_profile(lin.t_s)
+        # component r_ of the plateau's offset and of each transition mode's (3 each)
+        for r_ in range(3):
+            out[:, r_, r_] = s_step
+            out[:, r_, 3 + r_ : 3 + 3 * phi.shape[1] : 3] = phi

@@ -7,8 +7,16 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import F64, Effect, FitView, register, standard_deviations
-from pipeline.model.forward import HEADING_DEGREE, heading_basis
+from pipeline.model.effects.base import (
+    F64,
+    Effect,
+    FitView,
+    Linearisation,
+    Samples,
+    register,
+    standard_deviations,
+)
+from pipeline.model.forward import HEADING_DEGREE, heading_basis, rotate_about_up
 
 
 def heading_drift_params(value: F64, span_s: float) -> dict[str, Any]:
@@ -41,6 +49,27 @@ class HeadingDrift(Effect):
     )
     frame: ClassVar[str] = "enu"
     n_fixed: ClassVar[int | None] = HEADING_DEGREE
+
+    def turned_enu(self, term: Any, value: F64, at: Samples, B_enu: F64
+                   ) -> tuple[F64, F64]:
+        """Return ``Rz(h(t)) B``, (M1h), and ``h(t)`` (see :meth:`Effect.turned_enu`).
+
+        The attitude source reports ``Rz(h) C_true``, so the reading is ``R.T C_rep.T Rz(h)
+        B`` (CONVENTIONS heading_drift): the ENU field turned about Up by ``h``.
+        """
+        h = heading_basis(at.t_s, at.span_s) @ value
+        return rotate_about_up(B_enu, h), h
+
+    def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
+        """Write ``dy/dv_k = G Rz(h + pi/2) B_h P_k(t)`` (see :meth:`Effect.columns`).
+
+        ``d(Rz(h) B)/dh = Rz(h + pi/2) B`` with the vertical part removed; ``h = P v``.
+        """
+        assert lin.h_rad is not None and lin.Bt_unturned is not None  # the model has the term
+        dB = rotate_about_up(lin.Bt_unturned, lin.h_rad + 0.5 * np.pi)
+        dB[:, 2] = 0.0
+        P = heading_basis(lin.t_s, lin.span_s)
+        out[:] = np.matmul(lin.G, dB[:, :, None])[:, :, 0][:, :, None] * P[:, None, :]
 
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
         """Return the CONVENTIONS params (see :meth:`Effect.params`)."""

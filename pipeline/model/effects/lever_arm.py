@@ -7,7 +7,15 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import F64, Effect, FitView, register, standard_deviations
+from pipeline.model.effects.base import (
+    EFFECTS,
+    F64,
+    Effect,
+    FitView,
+    Linearisation,
+    register,
+    standard_deviations,
+)
 
 
 @register
@@ -26,6 +34,21 @@ class LeverArm(Effect):
     )
     frame: ClassVar[str] = "enu"
     n_fixed: ClassVar[int | None] = 3
+
+    def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
+        """Write ``dy/dl = G (dB/dr) C``, the spatial terms' gradients summed (see below).
+
+        The sensor sits at ``p + C l`` (CONVENTIONS lever_arm), so each term whose field
+        depends on the place (:meth:`Effect.gradient_enu`) moves with ``C l``.
+        """
+        if lin.lever_enu is None:
+            return
+        dBdr = np.zeros((len(lin.t_s), 3, 3))
+        for t2, v2 in lin.terms:
+            g = EFFECTS[t2.kind].gradient_enu(t2, v2, lin)
+            if g is not None:
+                dBdr += g
+        out[:] = np.matmul(lin.G, np.matmul(dBdr, np.swapaxes(lin.Ct, 1, 2)))
 
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
         """Return the CONVENTIONS params (see :meth:`Effect.params`)."""

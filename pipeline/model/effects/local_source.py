@@ -6,15 +6,24 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from pipeline.core.geometry import rot_z
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects.base import (
     F64,
     Effect,
     FitView,
+    Linearisation,
+    Samples,
     TermShape,
     register,
     standard_deviations,
 )
+from pipeline.model.forward import dipole_gradient, dipole_matrix, source_offset_enu
+
+
+def _bearing(term: Any, value: F64) -> float:
+    """Return the position frame's bearing: fitted (``value[6]``) or the term's."""
+    return float(value[6]) if term.fit_yaw else float(term.yaw_rad)
 
 
 @register
@@ -38,6 +47,52 @@ class LocalSource(Effect):
     def n_params(self, term: TermShape) -> int:
         """Return position (3) and moment (3), plus the bearing of the position frame."""
         return 7 if term.fit_yaw else 6
+
+    def add_field(self, term: Any, value: F64, at: Samples, B_enu: F64) -> Any:
+        """Add ``100 nT (3 (m.u) u - m) / r^3`` (CONVENTIONS), where the source is present.
+
+        Returns the offsets ``r`` (N, 3) and dipole matrices ``P(r)`` for the columns (see
+        :meth:`Effect.add_field`).
+        """
+        if at.p_m is None:
+            return None
+        r_src = source_offset_enu(value[0:3], _bearing(term, value), at.p_m, at.lever_enu)
+        P = dipole_matrix(r_src)
+        if term.windows_s:
+            B_enu += term.presence(at.t_s)[:, None] * (P @ value[3:6])
+        else:  # present throughout: a presence of 1 would change nothing
+            B_enu += P @ value[3:6]
+        return r_src, P
+
+    def gradient_enu(self, term: Any, value: F64, at: Samples) -> F64 | None:
+        """Return ``K(r) = dB/dr`` where present (see :meth:`Effect.gradient_enu`)."""
+        if at.p_m is None:
+            return None
+        r = source_offset_enu(value[0:3], _bearing(term, value), at.p_m, at.lever_enu)
+        return term.presence(at.t_s)[:, None, None] * dipole_gradient(r, value[3:6])
+
+    def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
+        """Write the columns of the place, the moment and the bearing (:meth:`Effect.columns`).
+
+        ``r = Rz(psi) (p - c) + C l``, ``B = P(r) m``: ``dB/dc = -K Rz(psi)``, ``dB/dm = P(r)``,
+        ``dB/dpsi = K (e_z x Rz(psi) (p - c))``, ``K = dB/dr`` (dipole_gradient).
+        """
+        if lin.p_m is None:
+            return
+        r_src, P_src = kept  # as the field's: the same offsets and values
+        n = len(r_src)
+        K = dipole_gradient(r_src, value[3:6])
+        psi = _bearing(term, value)
+        dB = np.zeros((n, 3, out.shape[2]))
+        np.negative(np.matmul(K, rot_z(psi)), out=dB[:, :, 0:3])
+        dB[:, :, 3:6] = P_src
+        if term.fit_yaw:
+            r_p = r_src if lin.lever_enu is None else source_offset_enu(value[0:3], psi, lin.p_m)
+            ez_r = np.stack([-r_p[:, 1], r_p[:, 0], np.zeros(n)], axis=1)
+            dB[:, :, 6] = np.matmul(K, ez_r[:, :, None])[:, :, 0]
+        if term.windows_s:
+            dB *= term.presence(lin.t_s)[:, None, None]
+        np.matmul(lin.G, dB, out=out)
 
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
         """Return the CONVENTIONS params (see :meth:`Effect.params`)."""

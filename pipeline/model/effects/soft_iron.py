@@ -7,7 +7,8 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import F64, Effect, FitView, register
+from pipeline.model.effects.base import F64, Effect, FitView, Linearisation, register
+from pipeline.model.forward import soft_iron_jacobian
 
 #: Symmetric traceless basis of the soft-iron deviation S (5 matrices, ``S = sum_k s_k S_k``):
 #: the trace of D is the field magnitude's job when B_enu is free (D = s I and B/s predict the
@@ -48,3 +49,7 @@ class SoftIron(Effect):
         # Var(D_ij) = sum_kl B_k,ij B_l,ij cov_kl
         var = np.einsum("kij,kl,lij->ij", SOFT_BASIS, cov, SOFT_BASIS)
         return {"D": np.sqrt(np.clip(var, 0, None)).tolist()}
+
+    def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
+        """Write ``dy/ds_k = S_k m + E S_k mdot``, (J4) (see :meth:`Effect.columns`)."""
+        out[:] = soft_iron_jacobian(SOFT_BASIS, lin.m, lin.mdot, lin.E)

@@ -5,7 +5,15 @@ from __future__ import annotations
 from typing import Any, ClassVar
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import F64, Effect, FitView, register, standard_deviations
+from pipeline.model.effects.base import (
+    F64,
+    Effect,
+    FitView,
+    Linearisation,
+    register,
+    standard_deviations,
+)
+from pipeline.model.forward import time_offset_jacobian
 
 
 @register
@@ -31,3 +39,12 @@ class TimeOffset(Effect):
         """Return their 1-sigma (see :meth:`Effect.sigma`)."""
         sd = standard_deviations(cov)
         return {"time_offset_s": float(sd[0])}
+
+    def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
+        """Write ``dy/dtau``, (J5) (see :meth:`Effect.columns`).
+
+        ``b(t - tau)`` with the attitude re-interpolated at ``t - tau``: ``db/dtau = omega x
+        b`` with ``omega`` the exact interpolated rate there; ``dbdot/dtau = -bddot`` for the
+        eddy regressor.
+        """
+        out[:, :, 0] = time_offset_jacobian(lin.omega_body, lin.b, lin.bddot, lin.R, lin.D, lin.E)
