@@ -251,9 +251,7 @@ def source_visits(term: Term, value: F64, data: FitData, floor_nT: float = 0.0) 
     w = max(1, int(round(0.1 / max(dt, 1e-6))))
     bs = np.convolve(b, np.ones(w) / w, mode="same")
     height = max(floor_nT, 0.1 * float(bs.max()))
-    # imported here: scipy.signal loads scipy.stats (about half a second), and only a
-    # recording with a located source reaches this line
-    from scipy.signal import find_peaks
+    from scipy.signal import find_peaks  # pipeline.core.warm.LATE_IMPORTS
 
     _, props = find_peaks(bs, height=height, prominence=0.0)
     return int(np.count_nonzero(props["prominences"] >= 0.5 * props["peak_heights"]))

@@ -110,9 +110,7 @@ def derivative_operator(
     w = min(2 * k + 1, n if n % 2 else n - 1)
     w = max(w, _SG_ORDER + 2 if (_SG_ORDER + 2) % 2 else _SG_ORDER + 3)
 
-    # imported here: scipy.signal loads scipy.stats (about half a second), and only the
-    # smoothed-tangent variant of Li 2020 needs it
-    from scipy.signal import savgol_filter
+    from scipy.signal import savgol_filter  # pipeline.core.warm.LATE_IMPORTS
 
     def sg(X: F64) -> tuple[F64, F64]:
         return (
