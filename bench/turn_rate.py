@@ -160,7 +160,7 @@ def one(name: str, distinct: bool) -> None:
     t_start = time.perf_counter()
     ctx = diagnose_file(REAL / f"{name}.mcap")
     rec, cal = ctx.recording, ctx.calibration
-    model = fw.ForwardModel.from_calibration(cal)
+    model = cal.forward_model()
     it = AttitudeInterpolator.of(rec.attitude)
     t = np.asarray(rec.mag.t_ns, dtype=np.int64)
     y = np.asarray(rec.mag.values, dtype=float)

@@ -20,6 +20,7 @@ from indep_gen import Spec, magnet_carried_nT, write
 
 from pipeline.app.commands.diagnose import diagnose_file
 from pipeline.core.vocabulary import EffectKind as K
+from pipeline.model.effects.hard_iron_step import StepPart
 from pipeline.model.forward import ForwardModel
 from stages.diagnose.fit import fit
 from stages.diagnose.model import ModelState, Term
@@ -37,8 +38,8 @@ def test_wiring_step_curve_is_the_restores_and_its_jacobian_is_exact():
     v[:3] = [1000.0, -500.0, 300.0]
     y = STEP.step_offset_nT(t, v)
     # the restore's model (calibration.json's ramps and modes) gives the same curve
-    fm = ForwardModel(np.eye(3), np.zeros(3), steps=(
-        (STEP.windows_s, v[:3], STEP.ramps_s, v[3:].reshape(-1, 3), STEP.knot_step_s),))
+    fm = ForwardModel(np.eye(3), np.zeros(3), parts=(
+        StepPart(STEP.windows_s, v[:3], STEP.ramps_s, v[3:].reshape(-1, 3), STEP.knot_step_s),))
     np.testing.assert_allclose(fm.step_offset_nT(t), y, atol=1e-9)
     # no offset before or after, the plateau in between, continuous at every edge
     assert np.all(y[t < 2.0] == 0.0) and np.all(y[t >= 7.0] == 0.0)

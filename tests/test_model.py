@@ -21,6 +21,7 @@ from pipeline.core.geometry import (
 from pipeline.core.recording import AttitudeSeries
 from pipeline.model.attitude import AttitudeInterpolator, interpolate_attitude
 from pipeline.model.calibration import Calibration
+from pipeline.model.effects.heading_drift import HeadingPart
 from pipeline.model.forward import PARAM_NAMES, ForwardModel, evaluate, jacobian, perturbed
 from stages.context import Context
 from stages.restore import restore_samples
@@ -128,7 +129,7 @@ def test_heading_drift_in_the_model_jacobian_and_restore():
     t = T0 + np.arange(150_000_000, 3_850_000_000, 20_000_000, dtype=np.int64)
     span = 3.7
     m = dataclasses.replace(_model(0.01, False),
-                            heading=(np.radians([0.5, -0.2]), span))
+                            parts=(HeadingPart(np.radians([0.5, -0.2]), span),))
     it = AttitudeInterpolator.of(att)
     ev = evaluate(m, t, it)
     h = m.heading_rad((t - t[0]) * 1e-9)
@@ -141,7 +142,7 @@ def test_heading_drift_in_the_model_jacobian_and_restore():
               - evaluate(perturbed(m, -dx), t, it).y_nT) / 2e-2
         np.testing.assert_allclose(fd, J[:, :, k], atol=1e-6)
     # without the heading term the prediction differs by |B_h| * h (hundreds of nT)
-    no_h = evaluate(dataclasses.replace(m, heading=None), t, it).y_nT
+    no_h = evaluate(dataclasses.replace(m, parts=()), t, it).y_nT
     assert np.max(np.linalg.norm(ev.y_nT - no_h, axis=1)) > 100.0
     rs = restore(m, ev.y_nT, t, it)
     np.testing.assert_allclose(rs.enu_nT, np.broadcast_to(B_ENU, rs.enu_nT.shape), atol=1e-6)

@@ -10,7 +10,7 @@ import pytest
 
 from pipeline.app.simulate import scenario_from_dict, simulate, write_simulated
 from pipeline.model.calibration import Calibration
-from pipeline.model.forward import ForwardModel, evaluate
+from pipeline.model.forward import evaluate
 from stages.context import Context
 from stages.ingest import Ingest
 from stages.report import counts_sentence, make_figures, predicted_field, write_report
@@ -51,7 +51,7 @@ def test_model_line_is_the_forward_models_field(moving):
     _, ctx = moving
     rec, cal, rs = ctx.recording, ctx.calibration, ctx.restored
     enu, norm = predicted_field(rs, cal)
-    ev = evaluate(ForwardModel.from_calibration(cal), rs.t_ns, rec.attitude,
+    ev = evaluate(cal.forward_model(), rs.t_ns, rec.attitude,
                   position=rec.position)
     ok = rs.valid & ev.valid
     want = ev.field_enu_nT[ok]

@@ -22,6 +22,8 @@ from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
 from pipeline.core.style import unsigned_zeros_in
 from pipeline.core.validate import check_calibration_dict, read_json_object
 from pipeline.core.verdict import Verdict
+from pipeline.core.vocabulary import EffectKind
+from pipeline.model.effects import EFFECTS
 from pipeline.model.forward import ForwardModel, predict, restore
 
 if TYPE_CHECKING:
@@ -29,6 +31,13 @@ if TYPE_CHECKING:
     from pipeline.model.forward import ForwardModel, Restoration
 
 FORMAT = "magalign.calibration/1"
+
+
+def _entries(p: Any) -> list[dict]:
+    """Return the params of one kind in ``effects``: a dict, or a list of them (CONVENTIONS)."""
+    if p is None:
+        return []
+    return [x for x in (p if isinstance(p, list) else [p]) if isinstance(x, dict)]
 
 #: Numerical floor of a rotation sigma, deg. Below it a rotation is not known, whatever the
 #: noise: the attitude arrives rounded. A single-precision angle of up to 360 deg is rounded
@@ -200,8 +209,39 @@ class Calibration:
         return y
 
     def forward_model(self) -> ForwardModel:
-        """Return the measurement model this calibration carries (:mod:`pipeline.model`)."""
-        return ForwardModel.from_calibration(self)
+        """Return the measurement model this calibration carries: its fields and its effects.
+
+        Each effect's module reads its CONVENTIONS params (``pipeline.model.effects``): a
+        sensor constant sets the model's field (:meth:`Effect.model_fields`; the first of a
+        kind), the other terms become its parts (:meth:`Effect.restore_part`), in the
+        registry's order, which is the order (M1) sums the fields in. ``offset_nT`` / ``D`` /
+        ``time_offset_s`` of the calibration itself take precedence over the ``hard_iron`` /
+        ``soft_iron`` / ``time_offset`` effects. A ``disturbance``, ``field_drift``,
+        ``heading_drift`` or ``field_map`` whose params lack the fitted curve (written by
+        ``diagnose``) is listed in ``unmodelled``.
+        """
+        fields: dict[str, Any] = {}
+        parts = []
+        unmodelled: list[str] = []
+        for kind in EffectKind:
+            effect = EFFECTS[kind]
+            for params in _entries((self.effects or {}).get(kind.value)):
+                if not effect.restorable(params):
+                    unmodelled.append(kind.value)
+                    continue
+                for name, value in effect.model_fields(params).items():
+                    fields.setdefault(name, value)
+                part = effect.restore_part(params)
+                if part is not None:
+                    parts.append(part)
+        own = {"offset_nT": self.offset_nT, "D": self.D, "time_offset_s": self.time_offset_s}
+        fields.update({k: np.asarray(v, dtype=float) for k, v in own.items()
+                       if v is not None and k != "time_offset_s"})
+        if self.time_offset_s is not None:
+            fields["time_offset_s"] = float(self.time_offset_s)
+        return ForwardModel(R_body_mag=np.asarray(self.R_body_mag, dtype=float),
+                            B_enu_nT=np.asarray(self.B_enu_nT, dtype=float),
+                            parts=tuple(parts), unmodelled=tuple(unmodelled), **fields)
 
     def predict(
         self,

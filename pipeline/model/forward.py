@@ -14,11 +14,12 @@ from numpy.typing import NDArray
 
 from pipeline.core.geometry import norm_last, quat_rotate, quat_to_matrix, rot_z, so3_exp
 from pipeline.model.attitude import AttitudeInterpolator, Interpolated
-from pipeline.model.field_map import FieldMapBasis, map_field_enu, map_points
 
 if TYPE_CHECKING:
     from pipeline.core.recording import AttitudeSeries, PositionSeries
-    from pipeline.model.calibration import Calibration
+
+    # the effect modules import this one (their bases and formulas): the parts' type only
+    from pipeline.model.effects.base import RestorePart
 
 F64 = NDArray[np.float64]
 
@@ -267,12 +268,6 @@ def soft_iron_jacobian(basis: F64, m_nT: F64, mdot_nT_s: F64, E_s: F64 | None = 
     return cast(F64, J)
 
 
-def _as_list(p: Any) -> list[dict]:
-    if p is None:
-        return []
-    return [x for x in (p if isinstance(p, list) else [p]) if isinstance(x, dict)]
-
-
 #: mu0 / 4 pi in nT m^3 / (A m^2): B = 100 nT (3 (m.u) u - m) / r^3 (CONVENTIONS local_source)
 DIPOLE_NT = 100.0
 
@@ -334,6 +329,10 @@ def dipole_gradient(r_enu_m: F64, m_Am2: F64) -> F64:
 class ForwardModel:
     """Every term of (M1)-(M5) with its value; absent terms are ``None`` / empty.
 
+    The sensor's constants are fields; the terms that are a field in ENU, a turn of it or an
+    offset changing in time are ``parts``, each built by its effect's module from its
+    CONVENTIONS params (:meth:`pipeline.model.calibration.Calibration.forward_model`).
+
     Attributes
     ----------
     R_body_mag : ndarray (3, 3)
@@ -346,29 +345,15 @@ class ForwardModel:
         ``tau``, s (CONVENTIONS sign).
     E_s : ndarray (3, 3) or None
         ``eddy_current``, s.
-    steps : tuple of (windows_s, offset_nT (3,), ramps_s, modes_nT (M, 3), mode_step_s)
-        ``hard_iron_step`` terms: the plateau offset in the windows, and the transitions
-        while the magnet moved (:func:`ramp_profile`; no ramps: a plain step).
-    disturbances : tuple of (knots_s (K,), field_nT (K, 3))
-        ``disturbance`` fields at their knots, ENU.
-    drift : (coef_nT (4, 3), span_s) or None
-        ``field_drift`` Legendre coefficients, ENU.
-    gradient : (M_nT_per_m (3, 3), p_ref_m (3,), yaw_rad) or None
-        ``field_gradient``: ``F = M (p - p_ref)``, ``M = G_enu Rz(yaw)`` for positions in a
-        frame turned by ``yaw`` from ENU (the lever arm moves the sensor by ``C l`` in ENU:
-        ``F += G_enu C l``).
-    heading : (coef_rad (2,), span_s) or None
-        ``heading_drift`` Legendre coefficients of ``h(t)``.
-    sources : tuple of (position_m (3,), moment_Am2 (3,), yaw_rad, windows_s)
-        ``local_source`` point dipoles: the source's position in the position frame, its
-        moment in ENU, the bearing ``psi`` of the position frame (``r = Rz(psi) (p - c)``)
-        and the windows in which it was there (empty: the whole recording).
     lever_arm_body_m : ndarray (3,) or None
         ``lever_arm``: the magnetometer at ``p + C_enu_body l`` (CONVENTIONS), for the
         spatial terms.
-    field_map : (FieldMapBasis, weights_nT (K,), yaw_rad) or None
-        ``field_map``: ``F = Q sum_j w_j g_j(x)`` at ``x = p + Q.T C l`` in the position
-        frame, ``Q = Rz(yaw)`` (:mod:`pipeline.model.field_map`).
+    parts : tuple of RestorePart
+        The fitted terms of ``F(t)`` (M1), the heading drift (M1h) and the offset steps
+        (M5), in the order (M1) sums them
+        (:class:`pipeline.model.effects.base.RestorePart`).
+    unmodelled : tuple of str
+        Effects the calibration names whose fitted curve it does not carry.
 
     """
 
@@ -378,119 +363,9 @@ class ForwardModel:
     offset_nT: F64 | None = None
     time_offset_s: float = 0.0
     E_s: F64 | None = None
-    steps: tuple = ()
-    disturbances: tuple = ()
-    drift: tuple | None = None
-    gradient: tuple | None = None
-    heading: tuple | None = None
-    sources: tuple = ()
     lever_arm_body_m: F64 | None = None
-    field_map: tuple | None = None
+    parts: tuple[RestorePart, ...] = ()
     unmodelled: tuple[str, ...] = field(default=())
-
-    @classmethod
-    def from_calibration(cls, cal: Calibration) -> ForwardModel:
-        """Return the model a calibration carries: its fields, and its ``effects``.
-
-        ``offset_nT`` / ``D`` / ``time_offset_s`` fall back on the ``hard_iron`` /
-        ``soft_iron`` / ``time_offset`` effects. ``disturbance`` and ``field_drift`` need
-        the fitted field (``knots_s`` + ``knot_field_nT``, ``legendre_nT`` + ``span_s``,
-        written by ``diagnose``); without it they are listed in ``unmodelled``.
-        """
-        eff = dict(getattr(cal, "effects", None) or {})
-
-        def first(name: str) -> dict | None:
-            lst = _as_list(eff.get(name))
-            return lst[0] if lst else None
-
-        o = cal.offset_nT
-        hard = first("hard_iron")
-        if o is None and hard is not None:
-            o = np.asarray(hard["offset_nT"], dtype=np.float64).reshape(3)
-        D = cal.D
-        soft = first("soft_iron")
-        if D is None and soft is not None:
-            D = np.asarray(soft["D"], dtype=np.float64).reshape(3, 3)
-        tau = cal.time_offset_s
-        if tau is None:
-            p = first("time_offset")
-            tau = float(p["time_offset_s"]) if p and p.get("time_offset_s") is not None else 0.0
-        E = first("eddy_current")
-        steps = tuple((tuple(tuple(w) for w in p.get("windows_s") or ()),
-                       np.asarray(p["offset_nT"], dtype=float).reshape(3),
-                       tuple(tuple(r) for r in p.get("ramps_s") or ()),
-                       np.asarray(p.get("ramp_modes_nT") or np.zeros((0, 3)),
-                                  dtype=float).reshape(-1, 3),
-                       float(p.get("ramp_mode_step_s") or 1.0))
-                      for p in _as_list(eff.get("hard_iron_step")))
-        unmodelled: list[str] = []
-        dist = []
-        for p in _as_list(eff.get("disturbance")):
-            if "knots_s" not in p or "knot_field_nT" not in p:
-                unmodelled.append("disturbance")
-                continue
-            for kn, fv in zip(p["knots_s"], p["knot_field_nT"], strict=True):
-                dist.append((np.asarray(kn, dtype=float),
-                             np.asarray(fv, dtype=float).reshape(-1, 3)))
-        drift = None
-        p = first("field_drift")
-        if p is not None:
-            if "legendre_nT" in p and "span_s" in p:
-                drift = (np.asarray(p["legendre_nT"], dtype=float).reshape(-1, 3),
-                         float(p["span_s"]))
-            else:
-                unmodelled.append("field_drift")
-        grad = None
-        p = first("field_gradient")
-        if p is not None:
-            grad = (np.asarray(p["G_nT_per_m"], dtype=float).reshape(3, 3),
-                    np.asarray(p.get("reference_position_m") or [0, 0, 0], dtype=float),
-                    float(np.radians(p.get("frame_yaw_deg") or 0.0)))
-        heading = None
-        p = first("heading_drift")
-        if p is not None:
-            if "legendre_rad" in p and "span_s" in p:
-                heading = (np.asarray(p["legendre_rad"], dtype=float).reshape(-1),
-                           float(p["span_s"]))
-            else:
-                unmodelled.append("heading_drift")
-        p = first("lever_arm")
-        lever = None if p is None else np.asarray(p["lever_arm_body_m"],
-                                                  dtype=np.float64).reshape(3)
-        sources = tuple(
-            (np.asarray(p["position_m"], dtype=float).reshape(3),
-             np.asarray(p["moment_Am2"], dtype=float).reshape(3),
-             float(np.radians(p.get("frame_yaw_deg") or 0.0)),
-             tuple(tuple(w) for w in p.get("windows_s") or ()))
-            for p in _as_list(eff.get("local_source")))
-        fmap = None
-        p = first("field_map")
-        if p is not None:
-            # the weights need their basis: the box, the modes per axis (written by
-            # diagnose beside the CONVENTIONS params) and the position frame's bearing
-            if all(k in p for k in ("domain_m", "n_per_axis", "weights")):
-                fmap = (FieldMapBasis.of(p["domain_m"], p["n_per_axis"]),
-                        np.asarray(p["weights"], dtype=float).reshape(-1),
-                        float(np.radians(p.get("frame_yaw_deg") or 0.0)))
-            else:
-                unmodelled.append("field_map")
-        return cls(
-            R_body_mag=np.asarray(cal.R_body_mag, dtype=float),
-            B_enu_nT=np.asarray(cal.B_enu_nT, dtype=float),
-            D=None if D is None else np.asarray(D, dtype=float),
-            offset_nT=None if o is None else np.asarray(o, dtype=float),
-            time_offset_s=float(tau),
-            E_s=None if E is None else np.asarray(E["E_s"], dtype=float).reshape(3, 3),
-            steps=steps,
-            disturbances=tuple(dist),
-            drift=drift,
-            gradient=grad,
-            heading=heading,
-            sources=sources,
-            lever_arm_body_m=lever,
-            field_map=fmap,
-            unmodelled=tuple(unmodelled),
-        )
 
     # ------------------------------------------------------------------ pieces
     @property
@@ -498,62 +373,39 @@ class ForwardModel:
         """``D`` (identity when not estimated)."""
         return np.eye(3) if self.D is None else self.D
 
+    @property
+    def needs_positions(self) -> bool:
+        """A term's field depends on the sensor's position."""
+        return any(p.needs_positions for p in self.parts)
+
     def external_field_nT(self, t_s: F64, p_m: F64 | None = None,
                           lever_enu_m: F64 | None = None) -> F64:
         """``F(t)`` of (M1), ENU, (N, 3); ``t_s`` from the first magnetometer sample.
 
         ``lever_enu_m``: the lever arm in ENU at each sample, ``C_enu_body l`` (N, 3), m.
-        ``p_m``: positions (N, 3), m, for ``field_gradient``, ``local_source`` and
-        ``field_map`` (NaN rows or None: no contribution).
+        ``p_m``: positions (N, 3), m, for the spatial terms (NaN rows or None: no
+        contribution).
         """
         t = np.asarray(t_s, dtype=float)
         F = np.zeros((len(t), 3))
-        if self.drift is not None:
-            coef, span = self.drift
-            F += drift_basis(t, span) @ coef
-        for knots, values in self.disturbances:
-            F += hat_basis(t, knots) @ values
         lev = None if lever_enu_m is None else np.nan_to_num(np.asarray(lever_enu_m, float))
-        if self.gradient is not None and p_m is not None:
-            M, ref, yaw = self.gradient
-            dp = np.asarray(p_m, dtype=float) - ref
-            f = np.nan_to_num(dp) @ M.T
-            if lev is not None:  # G_enu C l, G_enu = M Rz(yaw).T
-                f += lev @ (M @ rot_z(yaw).T).T
-            F += np.where(np.isfinite(dp).all(axis=1)[:, None], f, 0.0)
-        if self.sources and p_m is not None:
-            p = np.asarray(p_m, dtype=float)
-            ok = np.isfinite(p).all(axis=1)
-            p0 = np.nan_to_num(p)  # rows without a position are masked below
-            for c, m, psi, windows in self.sources:
-                r = source_offset_enu(c, psi, p0, lev)
-                here = ok & (in_windows(t, windows) if windows else True)
-                F += np.where(here[:, None], np.einsum("nij,j->ni", dipole_matrix(r), m), 0.0)
-        if self.field_map is not None and p_m is not None:
-            basis, weights, yaw = self.field_map
-            p = np.asarray(p_m, dtype=float)
-            ok = np.isfinite(p).all(axis=1)
-            x = map_points(np.nan_to_num(p), yaw, lev)
-            F += np.where(ok[:, None], map_field_enu(basis, weights, yaw, x), 0.0)
+        for part in self.parts:
+            part.add_field_enu(t, p_m, lev, F)
         return F
 
     def heading_rad(self, t_s: F64) -> F64 | None:
         """``h(t)`` of (M1h), rad, (N,); None without ``heading_drift``."""
-        if self.heading is None:
-            return None
-        coef, span = self.heading
-        return heading_basis(np.asarray(t_s, dtype=float), span) @ coef
+        return next((h for part in self.parts if (h := part.heading_rad(t_s)) is not None),
+                    None)
 
     def step_offset_nT(self, t_s: F64) -> F64:
         """``o_step 1[t in windows]`` of (M5), with its transitions, mag frame, (N, 3)."""
         t = np.asarray(t_s, dtype=float)
         out = np.zeros((len(t), 3))
-        for windows, off, ramps, modes, mode_step in self.steps:
-            if not ramps:
-                out[in_windows(t, windows)] += off
-                continue
-            s, phi = ramp_profile(t, windows[0], ramps, mode_step)
-            out += s[:, None] * off + phi @ modes
+        for part in self.parts:
+            o = part.offset_nT(t)
+            if o is not None:
+                out += o
         return out
 
 
@@ -640,8 +492,7 @@ def evaluate(
     ident = np.array([0.0, 0.0, 0.0, 1.0])
     q = np.where(valid[:, None], at.q_enu_body, ident)
     p_m = None
-    if (model.gradient is not None or model.sources or model.field_map is not None) \
-            and position is not None:
+    if model.needs_positions and position is not None:
         p_m = position.at(t_ns)
     Ct = _Ct(q)
     lever = None

@@ -71,7 +71,6 @@ from pipeline.model.field_map import BASIS_NAME, FieldMapBasis, map_points
 from pipeline.model.forward import (
     Reading,
     field_jacobian,
-    ramp_modes,
     ramp_profile,
     reading,
     rot_z,
@@ -356,38 +355,9 @@ class Term:
         """Return the ``field_map`` basis of the term (its box and modes per axis)."""
         return FieldMapBasis.of(self.domain_m, self.n_axis)
 
-    def prior_precision(self) -> F64:
-        """Ridge of a ``field_map``'s weights, (K,), per nT^2: ``noise^2 / var(w_j)``.
-
-        The GP prior of :mod:`pipeline.model.field_map` (squared exponential, length scale
-        ``length_scale_m``, field components of standard deviation ``prior_nT``) weighed
-        against the residual noise ``noise_nT``: the fit minimises ``|r|^2 + sum_j
-        prec_j w_j^2``, the negative log posterior times ``2 noise^2``.
-        """
-        if self.kind is EffectKind.HARD_IRON_STEP:
-            return self._ramp_precision()
-        var = self.basis().prior_variance(self.length_scale_m, self.prior_nT)
-        return (self.noise_nT**2) / np.maximum(var, 1e-300)
-
-    def _ramp_precision(self) -> F64:
-        """Ridge of a step's parameters, (3 + 3M,): none on the plateau, a GP on the modes.
-
-        The transition's departure from a straight ramp is a squared-exponential GP of
-        time scale ``ramp_scale_s`` and size ``prior_nT`` on each ramp of length ``L``; in
-        the Dirichlet eigenbasis ``sin(k pi u)`` its coefficients are independent with
-        variance ``(2 / L) S(k pi / L)``, ``S(w) = prior^2 sqrt(2 pi) l exp(-w^2 l^2 / 2)``
-        (Solin & Sarkka 2020, Eq. 20, the basis without its ``sqrt(2 / L)`` norm).
-        """
-        out = [np.zeros(3)]
-        ell = self.ramp_scale_s
-        for r0, r1 in self.ramps_s:
-            L = float(r1) - float(r0)
-            k = np.arange(1, ramp_modes((r0, r1), self.knot_step_s) + 1)
-            w = k * np.pi / L
-            var = (2.0 / L) * self.prior_nT**2 * np.sqrt(2 * np.pi) * ell * np.exp(
-                -0.5 * (w * ell) ** 2)
-            out.append(np.repeat(self.noise_nT**2 / np.maximum(var, 1e-300), 3))
-        return np.concatenate(out)
+    def prior_precision(self) -> F64 | None:
+        """Ridge of the term's parameters, per nT^2, or None: its effect's prior."""
+        return EFFECTS[self.kind].prior_precision(self)
 
     def knots(self) -> list[F64]:
         """Knot times of each disturbance window (hat functions, both ends included)."""
@@ -559,22 +529,19 @@ class ModelState:
         return out
 
     def prior_precision(self) -> F64 | None:
-        """Ridge of every parameter, (P,), per nT^2 (a ``field_map``'s weights); None without.
+        """Ridge of every parameter, (P,), per nT^2; None when no term has a prior.
 
         The fit (:func:`stages.diagnose.fit.fit`) adds ``sum_i prec_i x_i^2`` to the sum of
-        squares: the GP prior of the map's weights (:meth:`Term.prior_precision`); every
-        other parameter has none (zero).
+        squares: each term's prior from its effect (:meth:`Term.prior_precision`: the GP
+        priors of a map's weights and of a step's transitions); every other parameter has
+        none (zero).
         """
-        def has_prior(t: Term) -> bool:
-            return t.kind is EffectKind.FIELD_MAP or (
-                t.kind is EffectKind.HARD_IRON_STEP and bool(t.ramps_s))
-
-        if not any(has_prior(t) for t in self.terms):
+        precs = [t.unrestricted().prior_precision() for t in self.terms]
+        if all(p is None for p in precs):
             return None
         out = np.zeros(self.n_params())
-        for t, i in zip(self.terms, self.offsets(), strict=True):
-            if has_prior(t):
-                prec = t.unrestricted().prior_precision()
+        for t, i, prec in zip(self.terms, self.offsets(), precs, strict=True):
+            if prec is not None:
                 if t.partial:
                     # the ridge acts on the fitted coordinates z of ``fixed + A z``: the
                     # diagonal of A.T diag(prec) A (none for a term held whole, m = 0)

@@ -254,6 +254,35 @@ class FitView(Protocol):
         ...
 
 
+class RestorePart:
+    """One fitted term in the restore's forward model, built from its CONVENTIONS params.
+
+    :class:`pipeline.model.forward.ForwardModel` holds one per term that is a field in ENU
+    ((M1): :meth:`add_field_enu`), a turn of it ((M1h): :meth:`heading_rad`) or an offset
+    that changes in time ((M5): :meth:`offset_nT`); the sensor's constants (``D``, ``o``,
+    ``tau``, ``E_s``, the lever arm) are the model's own fields
+    (:meth:`Effect.model_fields`). A part is a frozen value: it holds numbers only.
+    """
+
+    #: Its field depends on the sensor's position.
+    needs_positions: ClassVar[bool] = False
+
+    def add_field_enu(self, t_s: F64, p_m: F64 | None, lever_enu: F64 | None, F: F64) -> None:
+        """Add the term's ENU field at ``t_s`` (s from the first sample) to ``F`` (N, 3).
+
+        ``p_m``: positions (N, 3), m (NaN rows: no contribution), or None;
+        ``lever_enu``: ``C l`` in ENU (N, 3), m, or None. The default adds nothing.
+        """
+
+    def heading_rad(self, t_s: F64) -> F64 | None:
+        """Return ``h(t)`` of (M1h), rad, (N,); None (the default): the term turns nothing."""
+        return None
+
+    def offset_nT(self, t_s: F64) -> F64 | None:
+        """Return the term's offset of the reading, mag frame, (N, 3); or None."""
+        return None
+
+
 class Effect:
     """One effect: its name, its words, its parameters and its part of the forward model.
 
@@ -426,6 +455,40 @@ class Effect:
         (``tests/test_effects.py``, ``tests/test_local_source.py``, ``tests/test_field_map.py``).
         """
         raise ValueError(f"{self.kind.value} is not a term of the forward model")
+
+
+    def prior_precision(self, term: Any) -> F64 | None:
+        """Return the ridge of the term's parameters (k,), per nT^2, or None (no prior).
+
+        The fit adds ``sum_i prec_i x_i^2`` to the sum of squares: the negative log of a
+        Gaussian prior times ``2 noise^2``. None (the default): every parameter is free.
+        """
+        return None
+
+    def model_fields(self, params: dict[str, Any]) -> dict[str, Any]:
+        """Return the restore's model fields a sensor term sets from its CONVENTIONS params.
+
+        ``{"offset_nT": ...}`` for ``hard_iron``, ``{"D": ...}`` for ``soft_iron``, ...: the
+        keyword arguments of :class:`~pipeline.model.forward.ForwardModel`. Empty (the
+        default): the term is a :class:`RestorePart`, or not part of the restore.
+        """
+        return {}
+
+    def restore_part(self, params: dict[str, Any]) -> RestorePart | None:
+        """Return the term's :class:`RestorePart` from its CONVENTIONS params, or None.
+
+        None: the term is not a part (a sensor constant, or not in the restore's model).
+        """
+        return None
+
+    def restorable(self, params: dict[str, Any]) -> bool:
+        """Return whether the params carry what the restore needs (the fitted curve).
+
+        ``diagnose`` writes a drift's Legendre coefficients or a disturbance's knots beside
+        the CONVENTIONS params; a calibration without them cannot restore the term, which
+        the model then lists as unmodelled.
+        """
+        return True
 
 
 #: kind -> its effect, filled by :func:`register` as the modules are imported

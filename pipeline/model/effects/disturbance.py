@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -12,12 +13,26 @@ from pipeline.model.effects.base import (
     Effect,
     FitView,
     Linearisation,
+    RestorePart,
     Samples,
     TermShape,
     register,
     standard_deviations,
 )
 from pipeline.model.forward import hat_basis
+
+
+@dataclass(frozen=True, eq=False)
+class DisturbancePart(RestorePart):
+    """A fitted ``disturbance`` in the restore: its ENU field at the knots of each window."""
+
+    #: per window, the knots (K,), s, and the field there (K, 3), nT, ENU
+    pieces: tuple[tuple[F64, F64], ...]
+
+    def add_field_enu(self, t_s: F64, p_m: F64 | None, lever_enu: F64 | None, F: F64) -> None:
+        """Add the hats' field (see :meth:`RestorePart.add_field_enu`)."""
+        for knots, values in self.pieces:
+            F += hat_basis(t_s, knots) @ values
 
 
 @register
@@ -65,3 +80,13 @@ class Disturbance(Effect):
         n, K = Phi.shape
         out[:] = (Phi[:, :, None, None] * lin.G[:, None, :, :]).transpose(0, 2, 1, 3).reshape(
             n, 3, 3 * K)
+
+    def restorable(self, params: dict[str, Any]) -> bool:
+        """Return whether the knots' field is there (see :meth:`Effect.restorable`)."""
+        return "knots_s" in params and "knot_field_nT" in params
+
+    def restore_part(self, params: dict[str, Any]) -> DisturbancePart:
+        """Return the disturbance for the restore (see :meth:`Effect.restore_part`)."""
+        return DisturbancePart(tuple(
+            (np.asarray(kn, dtype=float), np.asarray(fv, dtype=float).reshape(-1, 3))
+            for kn, fv in zip(params["knots_s"], params["knot_field_nT"], strict=True)))

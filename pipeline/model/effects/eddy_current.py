@@ -56,3 +56,7 @@ class EddyCurrent(Effect):
             out[:, r_, 3 * r_ : 3 * r_ + 3] = lin.ydot0
         if lin.rate_pair:  # beside a time offset only the traceless part
             out[:] = out @ TRACELESS_PROJECTOR
+
+    def model_fields(self, params: dict[str, Any]) -> dict[str, Any]:
+        """Return ``E_s`` for the restore (see :meth:`Effect.model_fields`)."""
+        return {"E_s": np.asarray(params["E_s"], dtype=float).reshape(3, 3)}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -12,6 +13,7 @@ from pipeline.model.effects.base import (
     Effect,
     FitView,
     Linearisation,
+    RestorePart,
     Samples,
     register,
     standard_deviations,
@@ -22,6 +24,19 @@ from pipeline.model.forward import DRIFT_DEGREE, drift_basis
 #: rarely above 10 nT/min at mid latitudes even in a storm. A fitted drift much faster than
 #: that is more likely the sensor moving through a spatially varying field.
 GEOMAGNETIC_RATE_NT_MIN = 10.0
+
+
+
+@dataclass(frozen=True, eq=False)
+class DriftPart(RestorePart):
+    """A fitted ``field_drift`` in the restore: Legendre P1..P4 per ENU axis over ``span_s``."""
+
+    legendre_nT: F64
+    span_s: float
+
+    def add_field_enu(self, t_s: F64, p_m: F64 | None, lever_enu: F64 | None, F: F64) -> None:
+        """Add ``F(t)`` (see :meth:`RestorePart.add_field_enu`)."""
+        F += drift_basis(t_s, self.span_s) @ self.legendre_nT
 
 
 @register
@@ -94,3 +109,12 @@ class FieldDrift(Effect):
         else:
             text += ". " + note
         return text
+
+    def restorable(self, params: dict[str, Any]) -> bool:
+        """Return whether the Legendre coefficients are there (see :meth:`Effect.restorable`)."""
+        return "legendre_nT" in params and "span_s" in params
+
+    def restore_part(self, params: dict[str, Any]) -> DriftPart:
+        """Return the drift for the restore (see :meth:`Effect.restore_part`)."""
+        return DriftPart(np.asarray(params["legendre_nT"], dtype=float).reshape(-1, 3),
+                         float(params["span_s"]))

@@ -2,13 +2,22 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
 
 from pipeline.core.geometry import rot_z
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects.base import F64, Effect, FitView, Linearisation, Samples, register
+from pipeline.model.effects.base import (
+    F64,
+    Effect,
+    FitView,
+    Linearisation,
+    RestorePart,
+    Samples,
+    register,
+)
 from pipeline.model.effects.soft_iron import SOFT_BASIS
 
 
@@ -40,6 +49,31 @@ def yaw_of_gradient(M: F64) -> float:
     b = np.radians(np.arange(0.0, 360.0, 0.5))
     asym = [np.linalg.norm(M @ rot_z(x).T - (M @ rot_z(x).T).T) for x in b]
     return float(b[int(np.argmin(asym))])
+
+
+
+@dataclass(frozen=True, eq=False)
+class GradientPart(RestorePart):
+    """A fitted ``field_gradient`` in the restore: ``F = M (p - p_ref)`` (+ ``G_enu C l``).
+
+    ``M = G_enu Rz(yaw)`` for positions in a frame turned by ``yaw`` from ENU.
+    """
+
+    needs_positions: ClassVar[bool] = True
+    M_nT_per_m: F64
+    reference_m: F64
+    yaw_rad: float
+
+    def add_field_enu(self, t_s: F64, p_m: F64 | None, lever_enu: F64 | None, F: F64) -> None:
+        """Add the gradient's field where there is a position (see the base class)."""
+        if p_m is None:
+            return
+        dp = np.asarray(p_m, dtype=float) - self.reference_m
+        f = np.nan_to_num(dp) @ self.M_nT_per_m.T
+        if lever_enu is not None:  # G_enu C l, G_enu = M Rz(yaw).T
+            f += lever_enu @ (self.M_nT_per_m @ rot_z(self.yaw_rad).T).T
+        ok = np.asarray(np.isfinite(dp).all(axis=1))
+        F += np.where(ok[:, None], f, 0.0)
 
 
 @register
@@ -116,3 +150,10 @@ class FieldGradient(Effect):
             "at one place while it turns), or keep the positions and this term in the model"
         )
         return text
+
+    def restore_part(self, params: dict[str, Any]) -> GradientPart:
+        """Return the gradient for the restore (see :meth:`Effect.restore_part`)."""
+        return GradientPart(np.asarray(params["G_nT_per_m"], dtype=float).reshape(3, 3),
+                            np.asarray(params.get("reference_position_m") or [0, 0, 0],
+                                       dtype=float),
+                            float(np.radians(params.get("frame_yaw_deg") or 0.0)))

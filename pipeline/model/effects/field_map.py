@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -13,12 +14,36 @@ from pipeline.model.effects.base import (
     Effect,
     FitView,
     Linearisation,
+    RestorePart,
     Samples,
     TermShape,
     register,
     standard_deviations,
 )
-from pipeline.model.field_map import map_points
+from pipeline.model.field_map import FieldMapBasis, map_field_enu, map_points
+
+
+@dataclass(frozen=True, eq=False)
+class MapPart(RestorePart):
+    """A fitted ``field_map`` in the restore: ``F = Q sum_j w_j g_j(x)``, ``x = p + Q.T C l``.
+
+    Its basis (the box and the modes per axis), its weights and the position frame's bearing
+    ``Q = Rz(yaw)`` (:mod:`pipeline.model.field_map`).
+    """
+
+    needs_positions: ClassVar[bool] = True
+    basis: FieldMapBasis
+    weights: F64
+    yaw_rad: float
+
+    def add_field_enu(self, t_s: F64, p_m: F64 | None, lever_enu: F64 | None, F: F64) -> None:
+        """Add the map's field where there is a position (:meth:`RestorePart.add_field_enu`)."""
+        if p_m is None:
+            return
+        p = np.asarray(p_m, dtype=float)
+        ok = np.isfinite(p).all(axis=1)
+        x = map_points(np.nan_to_num(p), self.yaw_rad, lever_enu)
+        F += np.where(ok[:, None], map_field_enu(self.basis, self.weights, self.yaw_rad, x), 0.0)
 
 
 @register
@@ -97,3 +122,27 @@ class FieldMap(Effect):
             "term in the model"
         )
         return text
+
+    def restorable(self, params: dict[str, Any]) -> bool:
+        """Return whether the basis is there beside the weights (:meth:`Effect.restorable`).
+
+        The weights need their basis: the box, the modes per axis (written by diagnose
+        beside the CONVENTIONS params) and the position frame's bearing.
+        """
+        return all(k in params for k in ("domain_m", "n_per_axis", "weights"))
+
+    def restore_part(self, params: dict[str, Any]) -> MapPart:
+        """Return the map for the restore (see :meth:`Effect.restore_part`)."""
+        return MapPart(FieldMapBasis.of(params["domain_m"], params["n_per_axis"]),
+                       np.asarray(params["weights"], dtype=float).reshape(-1),
+                       float(np.radians(params.get("frame_yaw_deg") or 0.0)))
+
+    def prior_precision(self, term: Any) -> F64:
+        """Return ``noise^2 / var(w_j)`` for each weight (see :meth:`Effect.prior_precision`).
+
+        The GP prior of :mod:`pipeline.model.field_map` (squared exponential, length scale
+        ``length_scale_m``, field components of standard deviation ``prior_nT``) weighed
+        against the residual noise ``noise_nT``.
+        """
+        var = term.basis().prior_variance(term.length_scale_m, term.prior_nT)
+        return np.asarray((term.noise_nT**2) / np.maximum(var, 1e-300))

@@ -51,3 +51,7 @@ class HardIron(Effect):
     def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
         """Write ``dy/do = I`` (see :meth:`Effect.columns`)."""
         out[:] = np.eye(3)
+
+    def model_fields(self, params: dict[str, Any]) -> dict[str, Any]:
+        """Return ``o`` for the restore (see :meth:`Effect.model_fields`)."""
+        return {"offset_nT": np.asarray(params["offset_nT"], dtype=np.float64).reshape(3)}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -12,10 +13,48 @@ from pipeline.model.effects.base import (
     Effect,
     FitView,
     Linearisation,
+    RestorePart,
     TermShape,
     register,
     standard_deviations,
 )
+from pipeline.model.forward import in_windows, ramp_modes, ramp_profile
+
+
+@dataclass(frozen=True, eq=False)
+class StepPart(RestorePart):
+    """A fitted ``hard_iron_step`` in the restore: the plateau and its transitions, (M5).
+
+    Attributes
+    ----------
+    windows_s : tuple of (float, float)
+        Where the offset is held, s from the first sample (half-open).
+    plateau_nT : ndarray (3,)
+        The plateau, mag frame.
+    ramps_s : tuple of (float, float)
+        The transitions while the magnet moved (empty: a plain step).
+    modes_nT : ndarray (M, 3)
+        The transitions' sine modes (:func:`~pipeline.model.forward.ramp_profile`).
+    mode_step_s : float
+        One mode per this much of a transition, s.
+
+    """
+
+    windows_s: tuple[tuple[float, float], ...]
+    plateau_nT: F64
+    ramps_s: tuple[tuple[float, float], ...]
+    modes_nT: F64
+    mode_step_s: float
+
+    def offset_nT(self, t_s: F64) -> F64:
+        """Return ``o_step s(t) + phi(t) c``, mag frame, (N, 3)."""
+        t = np.asarray(t_s, dtype=float)
+        if not self.ramps_s:
+            out = np.zeros((len(t), 3))
+            out[in_windows(t, self.windows_s)] += self.plateau_nT
+            return out
+        s, phi = ramp_profile(t, self.windows_s[0], self.ramps_s, self.mode_step_s)
+        return np.asarray(s[:, None] * self.plateau_nT + phi @ self.modes_nT)
 
 
 @register
@@ -58,3 +97,35 @@ class HardIronStep(Effect):
         for r_ in range(3):
             out[:, r_, r_] = s_step
             out[:, r_, 3 + r_ : 3 + 3 * phi.shape[1] : 3] = phi
+
+    def restore_part(self, params: dict[str, Any]) -> StepPart:
+        """Return the step for the restore (see :meth:`Effect.restore_part`)."""
+        return StepPart(tuple(tuple(w) for w in params.get("windows_s") or ()),
+                        np.asarray(params["offset_nT"], dtype=float).reshape(3),
+                        tuple(tuple(r) for r in params.get("ramps_s") or ()),
+                        np.asarray(params.get("ramp_modes_nT") or np.zeros((0, 3)),
+                                   dtype=float).reshape(-1, 3),
+                        float(params.get("ramp_mode_step_s") or 1.0))
+
+    def prior_precision(self, term: Any) -> F64 | None:
+        """Return none on the plateau, a GP on the transitions' modes; None without any.
+
+        The transition's departure from a straight ramp is a squared-exponential GP of
+        time scale ``ramp_scale_s`` and size ``prior_nT`` on each ramp of length ``L``; in
+        the Dirichlet eigenbasis ``sin(k pi u)`` its coefficients are independent with
+        variance ``(2 / L) S(k pi / L)``, ``S(w) = prior^2 sqrt(2 pi) l exp(-w^2 l^2 / 2)``
+        (Solin & Sarkka 2020, Eq. 20, the basis without its ``sqrt(2 / L)`` norm). See
+        :meth:`Effect.prior_precision`.
+        """
+        if not term.ramps_s:
+            return None
+        out = [np.zeros(3)]
+        ell = term.ramp_scale_s
+        for r0, r1 in term.ramps_s:
+            L = float(r1) - float(r0)
+            k = np.arange(1, ramp_modes((r0, r1), term.knot_step_s) + 1)
+            w = k * np.pi / L
+            var = (2.0 / L) * term.prior_nT**2 * np.sqrt(2 * np.pi) * ell * np.exp(
+                -0.5 * (w * ell) ** 2)
+            out.append(np.repeat(term.noise_nT**2 / np.maximum(var, 1e-300), 3))
+        return np.concatenate(out)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -12,6 +13,7 @@ from pipeline.model.effects.base import (
     Effect,
     FitView,
     Linearisation,
+    RestorePart,
     Samples,
     register,
     standard_deviations,
@@ -31,6 +33,20 @@ def heading_drift_params(value: F64, span_s: float) -> dict[str, Any]:
     h = np.degrees(heading_basis(tt, span_s) @ value)
     return {"rate_deg_per_h": float((h[-1] - h[0]) / max(span_s / 3600.0, 1e-12)),
             "peak_to_peak_deg": float(h.max() - h.min())}
+
+
+
+@dataclass(frozen=True, eq=False)
+class HeadingPart(RestorePart):
+    """A fitted ``heading_drift`` in the restore: Legendre P1..P2 of ``h(t)`` over ``span_s``."""
+
+    legendre_rad: F64
+    span_s: float
+
+    def heading_rad(self, t_s: F64) -> F64:
+        """Return ``h(t)`` of (M1h), rad (see :meth:`RestorePart.heading_rad`)."""
+        return np.asarray(heading_basis(np.asarray(t_s, dtype=float), self.span_s)
+                          @ self.legendre_rad)
 
 
 @register
@@ -96,3 +112,12 @@ class HeadingDrift(Effect):
             "aiding (magnetometer, GNSS dual antenna, mocap frame) and its gyro bias"
         )
         return text
+
+    def restorable(self, params: dict[str, Any]) -> bool:
+        """Return whether the Legendre coefficients are there (see :meth:`Effect.restorable`)."""
+        return "legendre_rad" in params and "span_s" in params
+
+    def restore_part(self, params: dict[str, Any]) -> HeadingPart:
+        """Return the heading drift for the restore (see :meth:`Effect.restore_part`)."""
+        return HeadingPart(np.asarray(params["legendre_rad"], dtype=float).reshape(-1),
+                           float(params["span_s"]))

@@ -69,3 +69,8 @@ class LeverArm(Effect):
             "frame; set this offset in the survey's lever-arm configuration"
         )
         return text
+
+    def model_fields(self, params: dict[str, Any]) -> dict[str, Any]:
+        """Return the lever arm for the restore (see :meth:`Effect.model_fields`)."""
+        return {"lever_arm_body_m": np.asarray(params["lever_arm_body_m"],
+                                               dtype=np.float64).reshape(3)}

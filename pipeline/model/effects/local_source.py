@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -13,17 +14,47 @@ from pipeline.model.effects.base import (
     Effect,
     FitView,
     Linearisation,
+    RestorePart,
     Samples,
     TermShape,
     register,
     standard_deviations,
 )
-from pipeline.model.forward import dipole_gradient, dipole_matrix, source_offset_enu
+from pipeline.model.forward import dipole_gradient, dipole_matrix, in_windows, source_offset_enu
 
 
 def _bearing(term: Any, value: F64) -> float:
     """Return the position frame's bearing: fitted (``value[6]``) or the term's."""
     return float(value[6]) if term.fit_yaw else float(term.yaw_rad)
+
+
+
+@dataclass(frozen=True, eq=False)
+class SourcePart(RestorePart):
+    """A fitted ``local_source`` in the restore: a point dipole where it was there.
+
+    ``position_m`` in the position frame, ``moment_Am2`` in ENU, ``yaw_rad`` the bearing of
+    the position frame (``r = Rz(psi) (p - c)``), ``windows_s`` when it was there (empty:
+    the whole recording).
+    """
+
+    needs_positions: ClassVar[bool] = True
+    position_m: F64
+    moment_Am2: F64
+    yaw_rad: float
+    windows_s: tuple[tuple[float, float], ...]
+
+    def add_field_enu(self, t_s: F64, p_m: F64 | None, lever_enu: F64 | None, F: F64) -> None:
+        """Add the dipole's field where there is a position (:meth:`RestorePart.add_field_enu`)."""
+        if p_m is None:
+            return
+        p = np.asarray(p_m, dtype=float)
+        ok = np.isfinite(p).all(axis=1)
+        # rows without a position are masked below
+        r = source_offset_enu(self.position_m, self.yaw_rad, np.nan_to_num(p), lever_enu)
+        here = ok & (in_windows(t_s, self.windows_s) if self.windows_s else True)
+        F += np.where(here[:, None], np.einsum("nij,j->ni", dipole_matrix(r), self.moment_Am2),
+                      0.0)
 
 
 @register
@@ -120,3 +151,10 @@ class LocalSource(Effect):
             "(a survey maps it); calibrate away from it, or keep it in the model"
         )
         return text
+
+    def restore_part(self, params: dict[str, Any]) -> SourcePart:
+        """Return the dipole for the restore (see :meth:`Effect.restore_part`)."""
+        return SourcePart(np.asarray(params["position_m"], dtype=float).reshape(3),
+                          np.asarray(params["moment_Am2"], dtype=float).reshape(3),
+                          float(np.radians(params.get("frame_yaw_deg") or 0.0)),
+                          tuple(tuple(w) for w in params.get("windows_s") or ()))

@@ -53,3 +53,7 @@ class SoftIron(Effect):
     def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
         """Write ``dy/ds_k = S_k m + E S_k mdot``, (J4) (see :meth:`Effect.columns`)."""
         out[:] = soft_iron_jacobian(SOFT_BASIS, lin.m, lin.mdot, lin.E)
+
+    def model_fields(self, params: dict[str, Any]) -> dict[str, Any]:
+        """Return ``D`` for the restore (see :meth:`Effect.model_fields`)."""
+        return {"D": np.asarray(params["D"], dtype=np.float64).reshape(3, 3)}

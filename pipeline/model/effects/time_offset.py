@@ -48,3 +48,8 @@ class TimeOffset(Effect):
         eddy regressor.
         """
         out[:, :, 0] = time_offset_jacobian(lin.omega_body, lin.b, lin.bddot, lin.R, lin.D, lin.E)
+
+    def model_fields(self, params: dict[str, Any]) -> dict[str, Any]:
+        """Return ``tau`` for the restore (see :meth:`Effect.model_fields`)."""
+        tau = params.get("time_offset_s")
+        return {} if tau is None else {"time_offset_s": float(tau)}
