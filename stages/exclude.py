@@ -35,14 +35,13 @@ class Exclude:
     Parameters
     ----------
     windows : tuple of ExcludeWindow
-    t0_ns : int or None
-        The recording's first magnetometer stamp (windows in seconds count from it); None:
-        that of the context's recording (a long recording's analysis windows start later).
+        In seconds from the recording's first magnetometer stamp
+        (:meth:`~pipeline.core.recording.Recording.origin_ns`: also when the context holds
+        a long recording's analysed windows, which start later).
 
     """
 
     windows: tuple[ExcludeWindow, ...]
-    t0_ns: int | None = None
 
     requires: ClassVar[frozenset[str]] = frozenset({"recording", "aligned"})
     provides: ClassVar[frozenset[str]] = frozenset({"aligned"})
@@ -50,8 +49,7 @@ class Exclude:
     def run(self, ctx: Context) -> Context:
         """Return ``ctx`` whose aligned samples leave the windows out."""
         rec, al = ctx.need_recording(), ctx.need_aligned()
-        t0 = int(rec.mag.t_ns[0]) if self.t0_ns is None else int(self.t0_ns)
-        out = excluded_mask(al.t_ns, self.windows, t0)
+        out = excluded_mask(al.t_ns, self.windows, rec.origin_ns())
         if out.all():
             raise DataQualityError(
                 "--exclude leaves no sample to analyse", path=rec.path,
@@ -69,8 +67,7 @@ class NoteExclusions:
     Parameters
     ----------
     windows : tuple of ExcludeWindow
-    t0_ns : int or None
-        The recording's first magnetometer stamp; None: that of the context's recording.
+        In seconds from the recording's first magnetometer stamp (``origin_ns``).
     n_samples : int or None
         The recording's samples inside the windows; None: counted in the context's recording
         (a long recording's analysis sees windows of it: the runner counts them).
@@ -78,7 +75,6 @@ class NoteExclusions:
     """
 
     windows: tuple[ExcludeWindow, ...]
-    t0_ns: int | None = None
     n_samples: int | None = None
 
     requires: ClassVar[frozenset[str]] = frozenset({"recording", "calibration"})
@@ -87,7 +83,7 @@ class NoteExclusions:
     def run(self, ctx: Context) -> Context:
         """Return ``ctx`` with the exclusions noted in its calibration."""
         rec = ctx.need_recording()
-        t0 = int(rec.mag.t_ns[0]) if self.t0_ns is None else int(self.t0_ns)
+        t0 = rec.origin_ns()
         n = (int(np.count_nonzero(excluded_mask(rec.mag.t_ns, self.windows, t0)))
              if self.n_samples is None else int(self.n_samples))
         return ctx.replace(calibration=noted(ctx.need_calibration(), self.windows, t0, n))

@@ -341,7 +341,7 @@ def test_every_file_carries_the_verdict_and_its_reason(tmp_path, status):
             assert "verdict: none recorded" in notes and r.stderr == ""
         else:
             assert f"verdict {status.value}: because" in notes, (fmt, text)
-            assert "residual RMS 4 nT; sensor noise 3 nT" in notes
+            assert "residual RMS 4.0 nT; sensor noise 3.0 nT" in notes
         if status is Status.QUESTIONABLE:
             err = r.stderr.strip().splitlines()
             assert len(err) == 1 and "QUESTIONABLE" in err[0] and "comments" in err[0]

@@ -24,9 +24,9 @@ from pipeline.core.verdict import plain_words
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.calibration import Calibration
 from pipeline.model.effects import IRON_PRIOR
+from pipeline.model.effects.base import CONFOUND_RATIO
 from stages.diagnose.fit import fit
 from stages.diagnose.model import (
-    CONFOUND_RATIO,
     AttitudeTrack,
     FitData,
     ModelState,

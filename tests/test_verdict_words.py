@@ -136,3 +136,19 @@ def test_the_verdict_line_quotes_the_figure_the_verdict_judged():
     plain = cal.replace(verdict=judge(761.0, 655.0))
     assert "residual 761 nT vs noise 655 nT" in verdict_line(plain)
     assert "heldout_rms_nT" not in plain.verdict.to_dict()
+
+
+def test_a_lab_residual_below_ten_nT_keeps_its_decimal_everywhere():
+    """0.50 nT against 0.42 nT is not "1 nT vs 0 nT": one decimal below 10 nT, line and reason."""
+    from pipeline.core.verdict import verdict_line
+    from pipeline.model.calibration import Calibration
+
+    cal = Calibration(R_body_mag=np.eye(3), sigma_rotvec_deg=np.full(3, 0.01),
+                      B_enu_nT=np.array([0.0, 20000.0, -44000.0]), estimator="diagnose",
+                      residual_rms_nT=0.48, n_samples=100)
+    held = cal.replace(verdict=judge(0.48, 0.42, heldout_rms_nT=0.50))
+    assert "held-out error 0.5 nT vs noise 0.4 nT" in verdict_line(held)
+    assert "0.5 nT against a sensor noise of 0.4 nT" in held.verdict.reason
+    # whole nanoteslas from 10 nT on, as before
+    big = cal.replace(verdict=judge(12.3, 9.96))
+    assert "residual 12 nT vs noise 10.0 nT" in verdict_line(big)

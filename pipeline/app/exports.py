@@ -16,7 +16,7 @@ import numpy as np
 
 from pipeline.core.errors import InputError
 from pipeline.core.geometry import matrix_to_quat
-from pipeline.core.style import num, unsigned_zeros
+from pipeline.core.style import nT_text, num, unsigned_zeros
 from pipeline.core.verdict import Status
 from pipeline.model.calibration import Calibration
 
@@ -95,11 +95,11 @@ def _verdict_lines(cal: Calibration) -> list[str]:
     v = cal.verdict
     if v is None:
         return ["verdict: none recorded (the file predates verdicts): compare the residual "
-                f"RMS, {num(cal.residual_rms_nT, '.0f')} nT, with the sensor's noise before use"]
+                f"RMS, {nT_text(cal.residual_rms_nT)} nT, with the sensor's noise before use"]
     lines = [f"verdict {v.status.value}: {' '.join(str(v.reason).split())}"]
     noise = "not measured (no still period)" if v.sensor_noise_nT is None else \
-        f"{num(v.sensor_noise_nT, '.0f')} nT"
-    lines.append(f"residual RMS {num(v.residual_rms_nT, '.0f')} nT; sensor noise {noise}")
+        f"{nT_text(v.sensor_noise_nT)} nT"
+    lines.append(f"residual RMS {nT_text(v.residual_rms_nT)} nT; sensor noise {noise}")
     if v.status is Status.QUESTIONABLE:
         lines.append("QUESTIONABLE: check the reason above before loading these values")
     return lines

@@ -86,6 +86,15 @@ def num(x: Any, spec: str = "") -> str:
     return text
 
 
+def nT_text(x: Any) -> str:
+    """Format a field error or noise, nT, at the precision a reader compares it with.
+
+    One decimal below 10 nT (a lab's residual of 0.5 nT against a noise of 0.4 nT is not "1
+    nT vs 0 nT"), whole nanoteslas above; the unit is the caller's.
+    """
+    return num(x, ".1f" if abs(float(x)) < 10.0 else ".0f")
+
+
 def _all_zero(text: str) -> bool:
     """Tell whether the digits of a formatted number's mantissa are all zero."""
     mantissa = re.split(r"[eE]", text, maxsplit=1)[0]

@@ -18,7 +18,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.core.style import num
+from pipeline.core.style import nT_text, num
 
 F64 = NDArray[np.float64]
 
@@ -312,27 +312,27 @@ def judge(residual_rms_nT: float, sensor_noise: float | None, *,
     held = (None if heldout_rms_nT is None or not np.isfinite(heldout_rms_nT)
             else float(heldout_rms_nT))
     err = res if held is None else held
-    what = (f"the model leaves {res:.0f} nT" if held is None
-            else f"the model's error on samples it was not fitted to is {held:.0f} nT")
+    what = (f"the model leaves {nT_text(res)} nT" if held is None
+            else f"the model's error on samples it was not fitted to is {nT_text(held)} nT")
     find = ("the diagnosis names what the model cannot describe (see its findings): exclude "
             "those stretches with --exclude, or record again away from them" if diagnosed
             else "run magalign diagnose to find what the model misses")
     ratio = err / sensor_noise if sensor_noise is not None and sensor_noise > 0 else None
     fit_words = (f"{what}; no still window to measure the sensor's "
                  "noise (record a few seconds without moving)" if ratio is None
-                 else f"{what} against a sensor noise of {sensor_noise:.0f} nT")
+                 else f"{what} against a sensor noise of {nT_text(sensor_noise)} nT")
     if refusals:
         cause, advice = plain_words(refusals[0])
         return Verdict(Status.REFUSED, _sentence(cause, advice, len(refusals) - 1 + len(doubts)),
                        sensor_noise, res, held)
     if ratio is not None and ratio > REFUSED_RESIDUAL_RATIO:
         cause = (f"{what}, {ratio:.0f} times the sensor's noise "
-                 f"({sensor_noise:.0f} nT): something it does not model dominates")
+                 f"({nT_text(sensor_noise)} nT): something it does not model dominates")
         return Verdict(Status.REFUSED, _sentence(cause, find, len(doubts)), sensor_noise, res,
                        held)
     if ratio is not None and ratio > QUESTIONABLE_RESIDUAL_RATIO:
         cause = (f"{what}, {ratio:.1f} times the sensor's noise "
-                 f"({sensor_noise:.0f} nT)")
+                 f"({nT_text(sensor_noise)} nT)")
         return Verdict(Status.QUESTIONABLE, _sentence(cause, find, len(doubts)), sensor_noise,
                        res, held)
     if doubts:
@@ -404,10 +404,10 @@ def verdict_line(cal: StatedCalibration, with_status: bool = True) -> str:
     if cal.verdict is not None:
         v = cal.verdict
         # the figure the verdict judged: the error on held-out samples when it was measured
-        err = (f"residual {v.residual_rms_nT:.0f} nT" if v.heldout_rms_nT is None
-               else f"held-out error {v.heldout_rms_nT:.0f} nT")
+        err = (f"residual {nT_text(v.residual_rms_nT)} nT" if v.heldout_rms_nT is None
+               else f"held-out error {nT_text(v.heldout_rms_nT)} nT")
         if v.sensor_noise_nT is not None:
-            err += f" vs noise {v.sensor_noise_nT:.0f} nT"
+            err += f" vs noise {nT_text(v.sensor_noise_nT)} nT"
         parts.append(err)
         if with_status:
             parts.append(v.status.value)

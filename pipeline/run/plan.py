@@ -61,15 +61,12 @@ class FirstPass:
     ----------
     max_gap_s : float
         The recording's gap rule (its first range's, when the options give none).
-    t0_ns : int
-        The recording's first magnetometer stamp.
     n_excluded : int
         Magnetometer samples inside the ``--exclude`` windows.
 
     """
 
     max_gap_s: float
-    t0_ns: int
     n_excluded: int = 0
 
 
@@ -120,11 +117,10 @@ class Plan:
         """
         o = self.options
         excl = tuple(o.exclude)
-        t0 = None if first is None else first.t0_ns
         stages: list[Stage[Context]] = [
             Resample(max_gap_s=o.max_gap_s if first is None else first.max_gap_s)]
         if excl:
-            stages.append(Exclude(excl, t0_ns=t0))
+            stages.append(Exclude(excl))
         if first is None:
             stages.append(SegmentMotion())
         if o.calibration_path is not None:
@@ -147,8 +143,8 @@ class Plan:
                 stages.append(self.tilt_note)
             stages.append(Judge())
         if excl:
-            stages.append(NoteExclusions(excl, t0_ns=t0,
-                                         n_samples=None if first is None else first.n_excluded))
+            stages.append(NoteExclusions(
+                excl, n_samples=None if first is None else first.n_excluded))
         return stages
 
     def sinks(self, out_dir: str | Path) -> list[Sink]:

@@ -394,7 +394,7 @@ def first_pass(source: Source, plan: Plan) -> Reduced:
         for ch in source.again():
             more.chunk(ch)
         kept.add_windows(more)
-    return Reduced(FirstPass(rule.max_gap_s, t0_excl if t0_excl is not None else t0, n_excl),
+    return Reduced(FirstPass(rule.max_gap_s, n_excl),
                    t0, rule, kept.windows, len(passes), kept.window_recording(source.header),
                    kept.aligned_series(), kept.thin_positions(source.header), sums)
 

@@ -2,7 +2,8 @@
 
 How a finding is explained (``explanation``: what each effect is, how it shows and what
 its fitted values suggest are its module's, ``pipeline.model.effects``), and whether the
-motion of a recording can determine it (``motion_stats``, ``identifiability_reason``).
+motion of a recording can determine it (``motion_stats``, ``identifiability_reason``: what
+each effect needs of the motion is its module's too, ``Effect.undetermined``).
 """
 
 from __future__ import annotations
@@ -16,9 +17,7 @@ from pipeline.core.geometry import quat_to_matrix
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects import EFFECTS
 from stages.diagnose.model import (
-    CONFOUND_RATIO,
     F64,
-    MIN_HORIZONTAL_FRACTION,
     FitData,
     drift_basis,
     drift_span,
@@ -72,14 +71,6 @@ def position_confounding(data: FitData) -> tuple[float, float]:
     left = dp - P @ coef
     tot = float(np.sum((dp - dp.mean(axis=0)) ** 2))
     return spread, float(np.sum(left**2) / tot) if tot > 0 else 0.0
-
-
-#: A gradient needs the sensor to move at least this far (RMS about its mean position), m.
-MIN_POSITION_SPREAD_M = 0.02
-
-
-#: ... and at least this fraction of that movement not to be a smooth function of time.
-MIN_POSITION_INDEPENDENT = 0.05
 
 
 @dataclass(frozen=True)
@@ -139,11 +130,50 @@ def motion_stats(data: FitData) -> MotionStats:
     )
 
 
+@dataclass(frozen=True)
+class _Motion:
+    """A recording's motion as an effect judges it (:class:`pipeline.model.effects.base.Motion`)."""
+
+    stats: MotionStats
+    data: FitData
+
+    @property
+    def total_turn_deg(self) -> float:
+        """The integrated rotation angle, deg."""
+        return self.stats.total_turn_deg
+
+    @property
+    def axis_spread(self) -> float:
+        """The angular velocity's second-largest / largest moment."""
+        return self.stats.axis_spread
+
+    @property
+    def rate_cv(self) -> float:
+        """The rotation rate's coefficient of variation."""
+        return self.stats.rate_cv
+
+    @property
+    def has_positions(self) -> bool:
+        """The data carry positions."""
+        return self.data.p_m is not None
+
+    @property
+    def field_known(self) -> bool:
+        """A reference field is given."""
+        return self.data.B_known_enu_nT is not None
+
+    def position_confounding(self) -> tuple[float, float]:
+        """Return :func:`position_confounding` of the data."""
+        return position_confounding(self.data)
+
+
 def identifiability_reason(
     kind: EffectKind, stats: MotionStats, data: FitData, efficiency: float,
     horizontal_fraction: float | None = None,
 ) -> str | None:
     """Why ``kind`` cannot be determined from this recording, or None if it can.
+
+    What the motion must contain is the effect's own (:meth:`Effect.undetermined`).
 
     Parameters
     ----------
@@ -165,93 +195,4 @@ def identifiability_reason(
     str or None
 
     """
-    single_axis = stats.axis_spread < 0.02
-    if kind is EffectKind.LEVER_ARM:
-        if data.p_m is None:
-            return "no positions in the recording: the sensor's offset from the tracked " \
-                   "point acts only through a field that varies in space"
-        if efficiency < CONFOUND_RATIO:
-            return (
-                f"the field varies too little in space along this motion (only {efficiency:.1e} "
-                "of the weakest lever-arm direction is independent of the other terms); turn "
-                "the platform near a source or in a strong gradient to determine it"
-            )
-        return None
-    if kind is EffectKind.LOCAL_SOURCE:
-        if data.p_m is None:
-            return "no positions in the recording: a source fixed in the surroundings is seen " \
-                   "only through where the sensor is"
-        return None
-    if kind is EffectKind.FIELD_GRADIENT:
-        if data.p_m is None:
-            return "no positions in the recording (the attitude messages carry none)"
-        spread, indep = position_confounding(data)
-        if spread < MIN_POSITION_SPREAD_M:
-            return (
-                f"the sensor hardly moved through space ({spread * 100:.1f} cm RMS about its "
-                "mean position): a field gradient has nothing to act on"
-            )
-        if indep < MIN_POSITION_INDEPENDENT:
-            return (
-                f"the sensor's path is a slow function of time (only {100 * indep:.1f} % of "
-                "the position variance is left after a quartic in time): a gradient along it "
-                "cannot be told from a field drift; revisit places at different times"
-            )
-        if efficiency < 1e-3:
-            return (
-                "the path through space leaves the gradient confounded with terms already in "
-                f"the model (only {efficiency:.1e} of its weakest combination is independent)"
-            )
-        return None
-    if stats.total_turn_deg < 20.0 and kind is not EffectKind.FIELD_DRIFT:
-        return (
-            f"the platform turned only {stats.total_turn_deg:.0f} deg in total: without "
-            "turning, every term that acts like a field looks like the background field itself"
-        )
-    if kind is EffectKind.AXIS_TILT:
-        if data.B_known_enu_nT is None:
-            return (
-                "a tilt of the rotation axis is absorbed exactly by the misalignment and the field "
-                "while the field is estimated; give a reference field to determine it"
-            )
-    if kind is EffectKind.HARD_IRON and single_axis and data.B_known_enu_nT is None:
-        return (
-            "the sensor turned about a single axis only: the part of the offset along that "
-            "axis looks the same as the unknown field; turn it about a second axis or give a "
-            "reference field"
-        )
-    rate_kinds = (EffectKind.TIME_OFFSET, EffectKind.EDDY_CURRENT)
-    if kind in rate_kinds and single_axis and stats.rate_cv < 0.05:
-        return (
-            "the sensor turned at a steady rate about one axis: a time offset then looks the "
-            "same as a fixed turn of the heading, which the misalignment absorbs; vary the "
-            "rate or turn about more than one axis"
-        )
-    if kind is EffectKind.HEADING_DRIFT:
-        if horizontal_fraction is not None and horizontal_fraction < MIN_HORIZONTAL_FRACTION:
-            return (
-                f"the field is nearly vertical (horizontal part {100 * horizontal_fraction:.1f} "
-                "% of |B|): a heading error hardly changes it"
-            )
-        if stats.total_turn_deg < 20.0:
-            return (
-                "the platform hardly turned: a slow heading error cannot be told from a slow "
-                "change of the field or of the offset"
-            )
-    if kind is EffectKind.FIELD_DRIFT and stats.total_turn_deg < 20.0:
-        return (
-            "the platform hardly turned: a slow field change cannot be told from a slow change "
-            "of attitude or offset"
-        )
-    if efficiency < CONFOUND_RATIO:
-        which = {
-            EffectKind.FIELD_DRIFT: "slow attitude changes and the field",
-            EffectKind.SOFT_IRON: "the field magnitude and the misalignment",
-            EffectKind.EDDY_CURRENT: "the time offset and the misalignment",
-            EffectKind.HEADING_DRIFT: "the field and the misalignment",
-        }.get(kind, "terms already in the model")
-        return (
-            f"the motion leaves this term looking like {which}: it cannot be told apart from "
-            "them in this recording"
-        )
-    return None
+    return EFFECTS[kind].undetermined(_Motion(stats, data), efficiency, horizontal_fraction)

@@ -34,6 +34,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline.core.vocabulary import EffectKind
+from pipeline.model.effects.field_gradient import MIN_POSITION_INDEPENDENT, MIN_POSITION_SPREAD_M
 from pipeline.model.field_map import (
     axis_counts,
     domain_for,
@@ -42,8 +43,6 @@ from pipeline.model.field_map import (
 )
 from pipeline.model.solve import gram
 from stages.diagnose.catalogue import (
-    MIN_POSITION_INDEPENDENT,
-    MIN_POSITION_SPREAD_M,
     position_confounding,
 )
 from stages.diagnose.fit import FitResult

@@ -84,14 +84,6 @@ F64 = NDArray[np.float64]
 LOCAL_KINDS = frozenset({EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP})
 
 
-#: A term (or the rotation) keeping less than this fraction of the information of its weakest
-#: parameter combination once the other parameters are free is confounded by the motion: its
-#: sigma is over 10 times what it would be alone, and a model error of a tenth of the noise
-#: moves it by a sigma. Not estimated, by calibrate (``stages.estimators.checks``) and by
-#: diagnose alike.
-CONFOUND_RATIO = 1e-2
-
-
 @dataclass(frozen=True)
 class AttitudeTrack:
     """Attitude samples evaluated at any time by THE interpolator (C1 cubic on SO(3)).
@@ -1097,11 +1089,6 @@ def heading_signature_fraction(v_enu_nT: F64, B_enu_nT: F64) -> float:
     if nd <= 0 or tot <= 0:
         return 0.0
     return float(np.sum((np.asarray(v_enu_nT) @ (d / nd)) ** 2) / tot)
-
-
-#: A heading drift needs a horizontal field: below this fraction of |B| a rotation about Up
-#: changes the field by too little (near the magnetic poles).
-MIN_HORIZONTAL_FRACTION = 0.05
 
 
 def source_params(term: Term, value: F64, data: FitData,

@@ -30,10 +30,10 @@ import numpy as np
 from pipeline.core.geometry import matrix_to_quat, quat_to_matrix, so3_exp
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects import IRON_PRIOR
+from pipeline.model.effects.base import CONFOUND_RATIO
 from pipeline.model.solve import gram
 from stages.diagnose.fit import FitResult
 from stages.diagnose.model import (
-    CONFOUND_RATIO,
     F64,
     AttitudeTrack,
     FitData,

@@ -18,12 +18,12 @@ from pipeline.core.errors import EstimationError
 from pipeline.core.geometry import quat_to_matrix
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects import EFFECTS
+from pipeline.model.effects.base import CONFOUND_RATIO
 from pipeline.model.effects.field_gradient import gradient_matrix
 from stages.diagnose.catalogue import explanation, identifiability_reason, motion_stats
 from stages.diagnose.field_map import MapCandidate, map_candidate
 from stages.diagnose.fit import FitResult, fit, wahba_init
 from stages.diagnose.model import (
-    CONFOUND_RATIO,
     LOCAL_KINDS,
     TRACELESS_PROJECTOR,
     FitData,

@@ -13,7 +13,7 @@ from scipy.special import chdtri
 
 from pipeline.core.geometry import so3_log
 from pipeline.model.calibration import SIGMA_FLOOR_DEG
-from stages.diagnose.model import CONFOUND_RATIO
+from pipeline.model.effects.base import CONFOUND_RATIO
 from stages.estimators.base import RELATIVE_INFO_THRESHOLD
 
 F64 = NDArray[np.float64]

@@ -13,6 +13,7 @@ from pipeline.model.effects.base import (
     Effect,
     FitView,
     Linearisation,
+    Motion,
     register,
     standard_deviations,
 )
@@ -52,6 +53,15 @@ class AxisTilt(Effect):
         ``T.T <- T.T exp(-[d]x)`` with ``d = basis @ (2 params)``.
         """
         out[:] = np.matmul(np.matmul(lin.Gp, lin.TT), skew(lin.Bt)) @ tilt_basis()
+
+    def motion_reason(self, motion: Motion, horizontal_fraction: float | None) -> str | None:
+        """Return why a tilt needs a reference field (see :meth:`Effect.motion_reason`)."""
+        if not motion.field_known:
+            return (
+                "a tilt of the rotation axis is absorbed exactly by the misalignment and the field "
+                "while the field is estimated; give a reference field to determine it"
+            )
+        return None
 
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
         """Return the CONVENTIONS params (see :meth:`Effect.params`)."""

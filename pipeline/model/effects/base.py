@@ -20,6 +20,21 @@ from pipeline.model.field_map import FieldMapBasis
 
 F64 = NDArray[np.float64]
 
+#: A term (or the rotation) keeping less than this fraction of the information of its weakest
+#: parameter combination once the other parameters are free is confounded by the motion: its
+#: sigma is over 10 times what it would be alone, and a model error of a tenth of the noise
+#: moves it by a sigma. Not estimated, by calibrate (``stages.estimators.checks``) and by
+#: diagnose alike.
+CONFOUND_RATIO = 1e-2
+
+#: Below this much turning in all (deg), every term that acts like a field looks like the
+#: background field itself.
+MIN_TURN_DEG = 20.0
+
+#: A rotation whose second-largest angular-velocity moment is below this fraction of the
+#: largest is about a single axis (:attr:`Motion.axis_spread`).
+SINGLE_AXIS_SPREAD = 0.02
+
 
 def standard_deviations(cov: F64) -> F64:
     """Return the 1-sigma of each parameter from its covariance.
@@ -108,6 +123,42 @@ class Samples(Protocol):
 
     def map_field(self, term: TermShape) -> F64:
         """Return a ``field_map``'s basis fields ``g_j(x)`` at the sensor (N, 3, K)."""
+        ...
+
+
+class Motion(Protocol):
+    """What decides whether a recording's motion determines a term.
+
+    ``stages.diagnose.catalogue`` implements it from the motion statistics and the data.
+    """
+
+    @property
+    def total_turn_deg(self) -> float:
+        """The rotation angle integrated over the recording, deg."""
+        ...
+
+    @property
+    def axis_spread(self) -> float:
+        """Second largest / largest eigenvalue of the angular velocity's second moment."""
+        ...
+
+    @property
+    def rate_cv(self) -> float:
+        """Coefficient of variation of the rotation rate (0: a constant rate)."""
+        ...
+
+    @property
+    def has_positions(self) -> bool:
+        """The recording carries the sensor's positions."""
+        ...
+
+    @property
+    def field_known(self) -> bool:
+        """A reference field is given (``B_enu`` is not estimated)."""
+        ...
+
+    def position_confounding(self) -> tuple[float, float]:
+        """Return the positions' RMS spread, m, and the part of it not a function of time."""
         ...
 
 
@@ -315,6 +366,11 @@ class Effect:
         The prior's standard deviation of each parameter (or combination of them) a
         recording's motion cannot determine, held at zero instead (sensor iron only: its
         "none" is a natural reference); None: the term is never held in part.
+    needs_turning : bool
+        The term is told from the background field only if the platform turns
+        (:data:`MIN_TURN_DEG` in all); :meth:`undetermined` checks it first.
+    confounded_with : str
+        What the term looks like when the motion confounds it (:meth:`undetermined`'s words).
 
     """
 
@@ -325,6 +381,8 @@ class Effect:
     identifiable_in_part: ClassVar[bool] = False
     n_fixed: ClassVar[int | None] = None
     held_prior: ClassVar[float | None] = None
+    needs_turning: ClassVar[bool] = True
+    confounded_with: ClassVar[str] = "terms already in the model"
 
     def n_params(self, term: TermShape) -> int:
         """Return the number of parameters of ``term``, a term of this effect.
@@ -377,6 +435,49 @@ class Effect:
     ) -> str:
         """Return what the fitted values suggest, ``". "``-led (empty: nothing to add)."""
         return ""
+
+    def undetermined(self, motion: Motion, efficiency: float,
+                     horizontal_fraction: float | None = None) -> str | None:
+        """Return why this recording cannot determine the term, or None if it can.
+
+        First the platform must turn (:attr:`needs_turning`), then the effect's own
+        conditions (:meth:`motion_reason`), last the term must keep :data:`CONFOUND_RATIO`
+        of its information beside the model's other parameters.
+
+        Parameters
+        ----------
+        motion : Motion
+            The recording's motion and what it carries.
+        efficiency : float
+            Smallest eigenvalue ratio of the term's efficient information (Schur complement
+            against the parameters already in the model) to its own information: the
+            fraction of the weakest parameter combination the other parameters cannot mimic.
+        horizontal_fraction : float, optional
+            ``|B_horizontal| / |B|`` of the current field.
+
+        Returns
+        -------
+        str or None
+
+        """
+        if self.needs_turning and motion.total_turn_deg < MIN_TURN_DEG:
+            return (
+                f"the platform turned only {motion.total_turn_deg:.0f} deg in total: without "
+                "turning, every term that acts like a field looks like the background field itself"
+            )
+        why = self.motion_reason(motion, horizontal_fraction)
+        if why is not None:
+            return why
+        if efficiency < CONFOUND_RATIO:
+            return (
+                f"the motion leaves this term looking like {self.confounded_with}: it cannot be "
+                "told apart from them in this recording"
+            )
+        return None
+
+    def motion_reason(self, motion: Motion, horizontal_fraction: float | None) -> str | None:
+        """Return what this effect in particular needs of the motion and lacks, or None."""
+        return None
 
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
         """Return the CONVENTIONS ``params`` of a fitted term (arrays as lists, JSON-ready).

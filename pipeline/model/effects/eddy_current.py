@@ -12,9 +12,11 @@ from pipeline.model.effects.base import (
     Effect,
     FitView,
     Linearisation,
+    Motion,
     register,
     standard_deviations,
 )
+from pipeline.model.effects.time_offset import steady_turn_reason
 
 #: Projector (9, 9) of a row-major ``E_s`` onto its traceless part, ``E_s - tr(E_s)/3 I``.
 #: Beside a time offset the eddy term has only these 8 directions: its isotropic part is the
@@ -36,6 +38,11 @@ class EddyCurrent(Effect):
     )
     frame: ClassVar[str] = "mag"
     n_fixed: ClassVar[int | None] = 9
+    confounded_with: ClassVar[str] = "the time offset and the misalignment"
+
+    def motion_reason(self, motion: Motion, horizontal_fraction: float | None) -> str | None:
+        """Return the time offset's :func:`steady_turn_reason` (:meth:`Effect.motion_reason`)."""
+        return steady_turn_reason(motion)
 
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
         """Return the CONVENTIONS params (see :meth:`Effect.params`)."""

@@ -10,9 +10,11 @@ import numpy as np
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects.base import (
     F64,
+    MIN_TURN_DEG,
     Effect,
     FitView,
     Linearisation,
+    Motion,
     RestorePart,
     Samples,
     register,
@@ -56,6 +58,19 @@ class FieldDrift(Effect):
     )
     frame: ClassVar[str] = "enu"
     n_fixed: ClassVar[int | None] = 3 * DRIFT_DEGREE
+    # without turning a drift is still a change of the field: its own words say what it
+    # cannot be told from then
+    needs_turning: ClassVar[bool] = False
+    confounded_with: ClassVar[str] = "slow attitude changes and the field"
+
+    def motion_reason(self, motion: Motion, horizontal_fraction: float | None) -> str | None:
+        """Return why a platform that hardly turned hides a drift (:meth:`Effect.motion_reason`)."""
+        if motion.total_turn_deg < MIN_TURN_DEG:
+            return (
+                "the platform hardly turned: a slow field change cannot be told from a slow change "
+                "of attitude or offset"
+            )
+        return None
 
     def add_field(self, term: Any, value: F64, at: Samples, B_enu: F64) -> Any:
         """Add ``F(t)``, Legendre P1..P4 per ENU axis, (M1) (see :meth:`Effect.add_field`)."""

@@ -14,11 +14,18 @@ from pipeline.model.effects.base import (
     Effect,
     FitView,
     Linearisation,
+    Motion,
     RestorePart,
     Samples,
     register,
 )
 from pipeline.model.effects.soft_iron import SOFT_BASIS
+
+#: A gradient needs the sensor to move at least this far (RMS about its mean position), m.
+MIN_POSITION_SPREAD_M = 0.02
+
+#: ... and at least this fraction of that movement not to be a smooth function of time.
+MIN_POSITION_INDEPENDENT = 0.05
 
 
 def gradient_matrix(value: F64, yaw_rad: float = 0.0) -> F64:
@@ -90,6 +97,34 @@ class FieldGradient(Effect):
     )
     frame: ClassVar[str] = "enu"
     n_fixed: ClassVar[int | None] = 5
+
+    def undetermined(self, motion: Motion, efficiency: float,
+                     horizontal_fraction: float | None = None) -> str | None:
+        """Return why the path cannot determine a gradient (see :meth:`Effect.undetermined`).
+
+        It needs positions that spread and that are not a slow function of time (which a
+        field drift would mimic); turning is not needed.
+        """
+        if not motion.has_positions:
+            return "no positions in the recording (the attitude messages carry none)"
+        spread, indep = motion.position_confounding()
+        if spread < MIN_POSITION_SPREAD_M:
+            return (
+                f"the sensor hardly moved through space ({spread * 100:.1f} cm RMS about its "
+                "mean position): a field gradient has nothing to act on"
+            )
+        if indep < MIN_POSITION_INDEPENDENT:
+            return (
+                f"the sensor's path is a slow function of time (only {100 * indep:.1f} % of "
+                "the position variance is left after a quartic in time): a gradient along it "
+                "cannot be told from a field drift; revisit places at different times"
+            )
+        if efficiency < 1e-3:
+            return (
+                "the path through space leaves the gradient confounded with terms already in "
+                f"the model (only {efficiency:.1e} of its weakest combination is independent)"
+            )
+        return None
 
     def add_field(self, term: Any, value: F64, at: Samples, B_enu: F64) -> Any:
         """Add ``G_enu Q (p - p_ref)``, and ``G_enu C l`` with a lever arm (CONVENTIONS).

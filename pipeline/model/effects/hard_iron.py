@@ -9,9 +9,11 @@ import numpy as np
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects.base import (
     F64,
+    SINGLE_AXIS_SPREAD,
     Effect,
     FitView,
     Linearisation,
+    Motion,
     register,
     standard_deviations,
 )
@@ -34,6 +36,16 @@ class HardIron(Effect):
     # Each offset component, nT: typical of MEMS magnetometers, and of the lab sensor, whose
     # full recordings determine offsets of 300-500 nT.
     held_prior: ClassVar[float | None] = 500.0
+
+    def motion_reason(self, motion: Motion, horizontal_fraction: float | None) -> str | None:
+        """Return why one axis of turning leaves part of it unknown (see the base class)."""
+        if motion.axis_spread < SINGLE_AXIS_SPREAD and not motion.field_known:
+            return (
+                "the sensor turned about a single axis only: the part of the offset along that "
+                "axis looks the same as the unknown field; turn it about a second axis or give a "
+                "reference field"
+            )
+        return None
 
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
         """Return the CONVENTIONS params (see :meth:`Effect.params`)."""

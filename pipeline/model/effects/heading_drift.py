@@ -13,12 +13,17 @@ from pipeline.model.effects.base import (
     Effect,
     FitView,
     Linearisation,
+    Motion,
     RestorePart,
     Samples,
     register,
     standard_deviations,
 )
 from pipeline.model.forward import HEADING_DEGREE, heading_basis, rotate_about_up
+
+#: A heading drift needs a horizontal field: below this fraction of |B| a rotation about Up
+#: changes the field by too little (near the magnetic poles).
+MIN_HORIZONTAL_FRACTION = 0.05
 
 
 def heading_drift_params(value: F64, span_s: float) -> dict[str, Any]:
@@ -64,7 +69,17 @@ class HeadingDrift(Effect):
         "and |B| stay unchanged (the field turning about the vertical)"
     )
     frame: ClassVar[str] = "enu"
+    confounded_with: ClassVar[str] = "the field and the misalignment"
     n_fixed: ClassVar[int | None] = HEADING_DEGREE
+
+    def motion_reason(self, motion: Motion, horizontal_fraction: float | None) -> str | None:
+        """Return why a nearly vertical field hides a heading error (see the base class)."""
+        if horizontal_fraction is not None and horizontal_fraction < MIN_HORIZONTAL_FRACTION:
+            return (
+                f"the field is nearly vertical (horizontal part {100 * horizontal_fraction:.1f} "
+                "% of |B|): a heading error hardly changes it"
+            )
+        return None
 
     def turned_enu(self, term: Any, value: F64, at: Samples, B_enu: F64
                    ) -> tuple[F64, F64]:

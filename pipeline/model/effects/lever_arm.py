@@ -8,11 +8,13 @@ import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects.base import (
+    CONFOUND_RATIO,
     EFFECTS,
     F64,
     Effect,
     FitView,
     Linearisation,
+    Motion,
     register,
     standard_deviations,
 )
@@ -49,6 +51,24 @@ class LeverArm(Effect):
             if g is not None:
                 dBdr += g
         out[:] = np.matmul(lin.G, np.matmul(dBdr, np.swapaxes(lin.Ct, 1, 2)))
+
+    def undetermined(self, motion: Motion, efficiency: float,
+                     horizontal_fraction: float | None = None) -> str | None:
+        """Return why the lever arm cannot be determined: it acts only through a field in space.
+
+        See :meth:`Effect.undetermined`; turning is not needed, a field varying along the path
+        is.
+        """
+        if not motion.has_positions:
+            return ("no positions in the recording: the sensor's offset from the tracked "
+                    "point acts only through a field that varies in space")
+        if efficiency < CONFOUND_RATIO:
+            return (
+                f"the field varies too little in space along this motion (only {efficiency:.1e} "
+                "of the weakest lever-arm direction is independent of the other terms); turn "
+                "the platform near a source or in a strong gradient to determine it"
+            )
+        return None
 
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
         """Return the CONVENTIONS params (see :meth:`Effect.params`)."""

@@ -14,6 +14,7 @@ from pipeline.model.effects.base import (
     Effect,
     FitView,
     Linearisation,
+    Motion,
     RestorePart,
     Samples,
     TermShape,
@@ -124,6 +125,14 @@ class LocalSource(Effect):
         if term.windows_s:
             dB *= term.presence(lin.t_s)[:, None, None]
         np.matmul(lin.G, dB, out=out)
+
+    def undetermined(self, motion: Motion, efficiency: float,
+                     horizontal_fraction: float | None = None) -> str | None:
+        """Return why a source cannot be located: only without positions (see the base class)."""
+        if not motion.has_positions:
+            return ("no positions in the recording: a source fixed in the surroundings is seen "
+                    "only through where the sensor is")
+        return None
 
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
         """Return the CONVENTIONS params (see :meth:`Effect.params`)."""

@@ -35,6 +35,7 @@ class SoftIron(Effect):
     )
     frame: ClassVar[str] = "mag"
     n_fixed: ClassVar[int | None] = 5
+    confounded_with: ClassVar[str] = "the field magnitude and the misalignment"
     # Each traceless parameter (scale differences and cross-axis coupling, dimensionless):
     # typical of MEMS magnetometers, and of the lab sensor, whose full recordings determine
     # D - I up to 0.02.

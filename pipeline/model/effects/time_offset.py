@@ -7,13 +7,33 @@ from typing import Any, ClassVar
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects.base import (
     F64,
+    SINGLE_AXIS_SPREAD,
     Effect,
     FitView,
     Linearisation,
+    Motion,
     register,
     standard_deviations,
 )
 from pipeline.model.forward import time_offset_jacobian
+
+#: A rotation rate varying by less than this fraction (coefficient of variation) is steady.
+STEADY_RATE_CV = 0.05
+
+
+def steady_turn_reason(motion: Motion) -> str | None:
+    """Return why a steady turn about one axis hides a lag of the readings, or None.
+
+    A time offset (and the eddy term, its anisotropic relative) then looks the same as a
+    fixed turn of the heading, which the misalignment absorbs.
+    """
+    if motion.axis_spread < SINGLE_AXIS_SPREAD and motion.rate_cv < STEADY_RATE_CV:
+        return (
+            "the sensor turned at a steady rate about one axis: a time offset then looks the "
+            "same as a fixed turn of the heading, which the misalignment absorbs; vary the "
+            "rate or turn about more than one axis"
+        )
+    return None
 
 
 @register
@@ -30,6 +50,10 @@ class TimeOffset(Effect):
     )
     frame: ClassVar[str] = "mag"
     n_fixed: ClassVar[int | None] = 1
+
+    def motion_reason(self, motion: Motion, horizontal_fraction: float | None) -> str | None:
+        """Return :func:`steady_turn_reason` (see :meth:`Effect.motion_reason`)."""
+        return steady_turn_reason(motion)
 
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
         """Return the CONVENTIONS params (see :meth:`Effect.params`)."""
