@@ -97,7 +97,16 @@ def fit(
         state = replace(state, B_enu_nT=np.asarray(data.B_known_enu_nT, dtype=float))
 
     def resid(st: ModelState, with_jacobian: bool) -> tuple[F64, F64 | None]:
-        return weighted_residual(st, data, with_jacobian)
+        ev = evaluate(st, data, jacobian=with_jacobian)
+        r, J = data.y_nT - ev.y_nT, ev.J
+        if ev.sqrt_w is not None:  # the likelihood's weights (sample_weights)
+            if J is not None:
+                J *= ev.sqrt_w[:, None, None]  # J is this evaluation's own array
+                i = _tau_index(st)
+                if i is not None:
+                    J[:, :, i] -= _sqrt_weight_rate(data, st.tau_s())[:, None] * r
+            r = r * ev.sqrt_w[:, None]
+        return r, J
 
     def update(st: ModelState, dx: F64) -> ModelState:
         return st.update(dx, fixed_B=fixed_B)
@@ -114,26 +123,6 @@ def fit(
         raw = data.y_nT - evaluate(sol.state, data, jacobian=False).y_nT
     return FitResult(sol.state, sol.residual, sol.rss, sol.info, sol.n_iter, raw,
                      data.noise_model)
-
-
-def weighted_residual(state: ModelState, data: FitData, with_jacobian: bool
-                      ) -> tuple[F64, F64 | None]:
-    """Return the residual ``y - f(x)`` (N, 3) and ``df/dx`` (N, 3, P), rows weighted.
-
-    Each row is multiplied by the root of its likelihood weight (:func:`sample_weights`),
-    and the time offset's column carries the weights' own dependence on it
-    (:func:`_sqrt_weight_rate`): what :func:`fit` minimises.
-    """
-    ev = evaluate(state, data, jacobian=with_jacobian)
-    r, J = data.y_nT - ev.y_nT, ev.J
-    if ev.sqrt_w is not None:  # the likelihood's weights (sample_weights)
-        if J is not None:
-            J *= ev.sqrt_w[:, None, None]  # J is this evaluation's own array
-            i = _tau_index(state)
-            if i is not None:
-                J[:, :, i] -= _sqrt_weight_rate(data, state.tau_s())[:, None] * r
-        r = r * ev.sqrt_w[:, None]
-    return r, J
 
 
 def _tau_index(state: ModelState) -> int | None:

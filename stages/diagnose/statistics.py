@@ -15,8 +15,8 @@ import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects import EFFECTS
-from pipeline.model.solve import damped_solve, gram, normal_equations
-from stages.diagnose.fit import FitResult, weighted_residual
+from pipeline.model.solve import gram
+from stages.diagnose.fit import FitResult, fit
 from stages.diagnose.model import (
     LOCAL_KINDS,
     FitData,
@@ -328,72 +328,30 @@ def fold_of(t_s: np.ndarray, cfg: DiagnoseConfig, state: ModelState | None = Non
 def heldout_rms(state: ModelState, data: FitData, cfg: DiagnoseConfig) -> float:
     """RMS prediction error on held-out time blocks, nT.
 
-    Each fold is the model refitted to the other folds, then predicting the held-out blocks.
-    The refit starts from the current state with the values of local terms reset to zero
-    (a window's amplitude is learnt from the training samples only) and takes two
-    Gauss-Newton steps: the first on the normal equations of the other folds, the whole
-    recording's less the fold's own (one Jacobian for every fold; exact for every parameter
-    that enters linearly), the second on the training samples' own linearisation at the
-    first (what the nonlinear terms still move, a source's place or a lever arm times a
-    gradient, is then second order). The refits used to be Levenberg-Marquardt runs of up to
-    six iterations each; on the real recordings the two steps give the same held-out errors
-    within 0.02 nT of 720 nT and the same findings (docs/performance.md). Random samples are
-    never held out: neighbouring samples share attitude noise and would leak.
+    Each fold is refitted from the current state with the values of local terms reset to
+    zero (so a window's amplitude is learnt only from training samples), then predicts the
+    held-out blocks. Random samples are never held out: neighbouring samples share
+    attitude noise and would leak.
     """
     folds = fold_of(data.t_s, cfg, state)
-    fixed_B = data.B_known_enu_nT is not None
+    sq, cnt = 0.0, 0
     start = dataclasses.replace(
         state,
-        B_enu_nT=(np.asarray(data.B_known_enu_nT, dtype=float) if fixed_B
-                  else state.B_enu_nT),
         values=tuple(
             np.zeros_like(v) if t.kind in LOCAL_KINDS else v
             for t, v in zip(state.terms, state.values, strict=True)
         ),
     )
-    r, J = weighted_residual(start, data, True)
-    assert J is not None  # asked for
-    p = J.shape[-1]
-    Jf, rf = J.reshape(len(data), 3 * p), r.reshape(len(data), 3)
-    prec = start.prior_precision()
-    x = start.flat_values()
-    H, g = normal_equations(J, r)
-    if prec is not None:
-        H, g = H + np.diag(prec), g - prec * x
-    sq, cnt = 0.0, 0
     for j in range(cfg.n_folds):
         test = folds == j
         if test.sum() == 0 or (~test).sum() < 10:
             continue
-        Ht, gt = normal_equations(Jf[test].reshape(-1, 3, p), rf[test])
-        st = start.update(_fold_step(H - Ht, g - gt), fixed_B=fixed_B)
-        train = data.subset(~test)
-        # the second step, on the training samples' own linearisation at the first one:
-        # what is left of the nonlinear terms' move (a source's place, a lever arm times a
-        # gradient) is then second order in the first step
-        r2, J2 = weighted_residual(st, train, True)
-        assert J2 is not None
-        H2, g2 = normal_equations(J2, r2)
-        if prec is not None:
-            H2, g2 = H2 + np.diag(prec), g2 - prec * st.flat_values()
-        st = st.update(_fold_step(H2, g2), fixed_B=fixed_B)
-        pred = evaluate(st, data.subset(test), jacobian=False).y_nT
+        res = fit(start, data.subset(~test), max_iter=6, rtol=1e-6)
+        pred = evaluate(res.state, data.subset(test), jacobian=False).y_nT
         e = data.y_nT[test] - pred
         sq += float(np.sum(e * e))
         cnt += e.size
     return float(np.sqrt(sq / max(cnt, 1)))
-
-
-#: Levenberg damping of a fold's step (:func:`heldout_rms`): negligible against the
-#: information of any determined direction, it keeps a direction the other folds do not
-#: see (a window inside the fold) at its start value.
-FOLD_DAMPING = 1e-9
-
-
-def _fold_step(H: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """Return the Gauss-Newton step of ``H dx = g``, damped by :data:`FOLD_DAMPING`."""
-    d = np.diag(H).copy()
-    return damped_solve(H, g, FOLD_DAMPING, d + 1e-9 * max(float(np.max(d)), 1e-30))
 
 
 def heldout_ok(
