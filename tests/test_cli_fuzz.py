@@ -23,8 +23,6 @@ import pytest
 
 DATA = Path(__file__).parent / "data"
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
-if not REAL.is_dir():
-    REAL = Path("/work/shared/data/real")
 
 KINDS = ("recording", "calibration", "folder", "csv", "empty", "directory", "missing")
 
