@@ -20,6 +20,7 @@ from indep_gen import Spec, magnet_carried_nT, write
 
 from pipeline.app.commands.diagnose import diagnose_file
 from pipeline.core.vocabulary import EffectKind as K
+from pipeline.model.effects import EFFECTS
 from pipeline.model.effects.hard_iron_step import StepPart
 from pipeline.model.forward import ForwardModel
 from stages.diagnose.fit import fit
@@ -31,12 +32,17 @@ STEP = Term(K.HARD_IRON_STEP, ((2.0, 7.0),), knot_step_s=0.1,
             ramps_s=((2.0, 2.6), (6.5, 7.0)), ramp_scale_s=0.1, prior_nT=1e4, noise_nT=10.0)
 
 
+def step_offset(t: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The diagnosis' offset of STEP at ``t`` with values ``v`` (its effect's, (M5))."""
+    return EFFECTS[K.HARD_IRON_STEP].offset_nT(STEP, v, t)
+
+
 def test_wiring_step_curve_is_the_restores_and_its_jacobian_is_exact():
     t = np.linspace(0.0, 10.0, 4001)
     rng = np.random.default_rng(0)
     v = rng.normal(size=STEP.n_params()) * 300.0
     v[:3] = [1000.0, -500.0, 300.0]
-    y = STEP.step_offset_nT(t, v)
+    y = step_offset(t, v)
     # the restore's model (calibration.json's ramps and modes) gives the same curve
     fm = ForwardModel(np.eye(3), np.zeros(3), parts=(
         StepPart(STEP.windows_s, v[:3], STEP.ramps_s, v[3:].reshape(-1, 3), STEP.knot_step_s),))
@@ -51,7 +57,7 @@ def test_wiring_step_curve_is_the_restores_and_its_jacobian_is_exact():
     for k in range(STEP.n_params()):
         dv = np.zeros_like(v)
         dv[k] = h
-        fd = (STEP.step_offset_nT(t, v + dv) - STEP.step_offset_nT(t, v - dv)) / (2 * h)
+        fd = (step_offset(t, v + dv) - step_offset(t, v - dv)) / (2 * h)
         col = (s if k < 3 else phi[:, (k - 3) // 3])[:, None] * np.eye(3)[k % 3]
         np.testing.assert_allclose(fd, col, atol=1e-9)
 

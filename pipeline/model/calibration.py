@@ -234,9 +234,10 @@ class Calibration:
                 part = effect.restore_part(params)
                 if part is not None:
                     parts.append(part)
-        own = {"offset_nT": self.offset_nT, "D": self.D, "time_offset_s": self.time_offset_s}
-        fields.update({k: np.asarray(v, dtype=float) for k, v in own.items()
-                       if v is not None and k != "time_offset_s"})
+        if self.offset_nT is not None:
+            fields["offset_nT"] = np.asarray(self.offset_nT, dtype=float)
+        if self.D is not None:
+            fields["D"] = np.asarray(self.D, dtype=float)
         if self.time_offset_s is not None:
             fields["time_offset_s"] = float(self.time_offset_s)
         return ForwardModel(R_body_mag=np.asarray(self.R_body_mag, dtype=float),

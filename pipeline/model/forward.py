@@ -389,8 +389,15 @@ class ForwardModel:
         t = np.asarray(t_s, dtype=float)
         F = np.zeros((len(t), 3))
         lev = None if lever_enu_m is None else np.nan_to_num(np.asarray(lever_enu_m, float))
+        p, placed = None, np.ones((len(t), 1), dtype=bool)
+        if p_m is not None:
+            p = np.asarray(p_m, dtype=float)
+            placed = np.isfinite(p).all(axis=1)[:, None]
+            p = np.nan_to_num(p)  # the rows without a position are masked below
         for part in self.parts:
-            part.add_field_enu(t, p_m, lev, F)
+            f = part.field_enu(t, p, lev)
+            if f is not None:
+                F += np.where(placed, f, 0.0) if part.needs_positions else f
         return F
 
     def heading_rad(self, t_s: F64) -> F64 | None:

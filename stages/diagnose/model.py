@@ -66,6 +66,7 @@ from pipeline.model.effects import EFFECTS, IRON_PRIOR
 from pipeline.model.effects.axis_tilt import tilt_basis
 from pipeline.model.effects.eddy_current import TRACELESS_PROJECTOR
 from pipeline.model.effects.heading_drift import heading_drift_params as heading_params_over
+from pipeline.model.effects.local_source import bearing_rad
 from pipeline.model.effects.soft_iron import SOFT_BASIS
 from pipeline.model.field_map import BASIS_NAME, FieldMapBasis, map_points
 from pipeline.model.forward import (
@@ -388,10 +389,6 @@ class Term:
         (window,) = self.windows_s
         return ramp_profile(t_s, window, self.ramps_s, self.knot_step_s)
 
-    def step_offset_nT(self, t_s: F64, value: F64) -> F64:
-        """``hard_iron_step``'s offset at ``t_s``, mag frame, (N, 3) (its effect's)."""
-        return np.asarray(EFFECTS[EffectKind.HARD_IRON_STEP].offset_nT(self, value, t_s))
-
     def indicator(self, t_s: F64) -> F64:
         """1 inside any window, else 0, shape (N,)."""
         ind = np.zeros(np.shape(t_s))
@@ -409,8 +406,7 @@ def source_offset_enu(term: Term, value: F64, p_m: F64, lever_enu: F64 | None = 
     ``psi`` (``value[6]`` when ``fit_yaw``, else the term's ``yaw_rad``), plus the lever arm
     in ENU (``lever_enu``, (N, 3), when the model has one).
     """
-    psi = float(value[6]) if term.fit_yaw else term.yaw_rad
-    return forward_source_offset(value[0:3], psi, p_m, lever_enu)
+    return forward_source_offset(value[0:3], bearing_rad(term, value), p_m, lever_enu)
 
 
 def drift_basis(t_s: F64, t0_s: float, t1_s: float) -> F64:

@@ -309,7 +309,7 @@ class RestorePart:
     """One fitted term in the restore's forward model, built from its CONVENTIONS params.
 
     :class:`pipeline.model.forward.ForwardModel` holds one per term that is a field in ENU
-    ((M1): :meth:`add_field_enu`), a turn of it ((M1h): :meth:`heading_rad`) or an offset
+    ((M1): :meth:`field_enu`), a turn of it ((M1h): :meth:`heading_rad`) or an offset
     that changes in time ((M5): :meth:`offset_nT`); the sensor's constants (``D``, ``o``,
     ``tau``, ``E_s``, the lever arm) are the model's own fields
     (:meth:`Effect.model_fields`). A part is a frozen value: it holds numbers only.
@@ -318,12 +318,15 @@ class RestorePart:
     #: Its field depends on the sensor's position.
     needs_positions: ClassVar[bool] = False
 
-    def add_field_enu(self, t_s: F64, p_m: F64 | None, lever_enu: F64 | None, F: F64) -> None:
-        """Add the term's ENU field at ``t_s`` (s from the first sample) to ``F`` (N, 3).
+    def field_enu(self, t_s: F64, p_m: F64 | None, lever_enu: F64 | None) -> F64 | None:
+        """Return the term's ENU field at ``t_s`` (s from the first sample), (N, 3), nT.
 
-        ``p_m``: positions (N, 3), m (NaN rows: no contribution), or None;
-        ``lever_enu``: ``C l`` in ENU (N, 3), m, or None. The default adds nothing.
+        ``p_m``: positions (N, 3), m, every row finite, or None without positions (a term
+        that :attr:`needs_positions` then has no field); ``lever_enu``: ``C l`` in ENU
+        (N, 3), m, or None. The model masks the rows that had no position. None (the
+        default): the term is not a field.
         """
+        return None
 
     def heading_rad(self, t_s: F64) -> F64 | None:
         """Return ``h(t)`` of (M1h), rad, (N,); None (the default): the term turns nothing."""

@@ -29,10 +29,9 @@ class DisturbancePart(RestorePart):
     #: per window, the knots (K,), s, and the field there (K, 3), nT, ENU
     pieces: tuple[tuple[F64, F64], ...]
 
-    def add_field_enu(self, t_s: F64, p_m: F64 | None, lever_enu: F64 | None, F: F64) -> None:
-        """Add the hats' field (see :meth:`RestorePart.add_field_enu`)."""
-        for knots, values in self.pieces:
-            F += hat_basis(t_s, knots) @ values
+    def field_enu(self, t_s: F64, p_m: F64 | None, lever_enu: F64 | None) -> F64:
+        """Return the hats' field, zero outside the windows (see :meth:`RestorePart.field_enu`)."""
+        return np.asarray(sum(hat_basis(t_s, knots) @ values for knots, values in self.pieces))
 
 
 @register

@@ -36,9 +36,9 @@ class DriftPart(RestorePart):
     legendre_nT: F64
     span_s: float
 
-    def add_field_enu(self, t_s: F64, p_m: F64 | None, lever_enu: F64 | None, F: F64) -> None:
-        """Add ``F(t)`` (see :meth:`RestorePart.add_field_enu`)."""
-        F += drift_basis(t_s, self.span_s) @ self.legendre_nT
+    def field_enu(self, t_s: F64, p_m: F64 | None, lever_enu: F64 | None) -> F64:
+        """Return ``F(t)`` (see :meth:`RestorePart.field_enu`)."""
+        return np.asarray(drift_basis(t_s, self.span_s) @ self.legendre_nT)
 
 
 @register

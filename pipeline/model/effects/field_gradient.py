@@ -71,16 +71,14 @@ class GradientPart(RestorePart):
     reference_m: F64
     yaw_rad: float
 
-    def add_field_enu(self, t_s: F64, p_m: F64 | None, lever_enu: F64 | None, F: F64) -> None:
-        """Add the gradient's field where there is a position (see the base class)."""
+    def field_enu(self, t_s: F64, p_m: F64 | None, lever_enu: F64 | None) -> F64 | None:
+        """Return the gradient's field (see :meth:`RestorePart.field_enu`)."""
         if p_m is None:
-            return
-        dp = np.asarray(p_m, dtype=float) - self.reference_m
-        f = np.nan_to_num(dp) @ self.M_nT_per_m.T
+            return None
+        f = (p_m - self.reference_m) @ self.M_nT_per_m.T
         if lever_enu is not None:  # G_enu C l, G_enu = M Rz(yaw).T
             f += lever_enu @ (self.M_nT_per_m @ rot_z(self.yaw_rad).T).T
-        ok = np.asarray(np.isfinite(dp).all(axis=1))
-        F += np.where(ok[:, None], f, 0.0)
+        return np.asarray(f)
 
 
 @register

@@ -36,14 +36,12 @@ class MapPart(RestorePart):
     weights: F64
     yaw_rad: float
 
-    def add_field_enu(self, t_s: F64, p_m: F64 | None, lever_enu: F64 | None, F: F64) -> None:
-        """Add the map's field where there is a position (:meth:`RestorePart.add_field_enu`)."""
+    def field_enu(self, t_s: F64, p_m: F64 | None, lever_enu: F64 | None) -> F64 | None:
+        """Return the map's field (see :meth:`RestorePart.field_enu`)."""
         if p_m is None:
-            return
-        p = np.asarray(p_m, dtype=float)
-        ok = np.isfinite(p).all(axis=1)
-        x = map_points(np.nan_to_num(p), self.yaw_rad, lever_enu)
-        F += np.where(ok[:, None], map_field_enu(self.basis, self.weights, self.yaw_rad, x), 0.0)
+            return None
+        x = map_points(p_m, self.yaw_rad, lever_enu)
+        return np.asarray(map_field_enu(self.basis, self.weights, self.yaw_rad, x))
 
 
 @register

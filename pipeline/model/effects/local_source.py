@@ -24,7 +24,7 @@ from pipeline.model.effects.base import (
 from pipeline.model.forward import dipole_gradient, dipole_matrix, in_windows, source_offset_enu
 
 
-def _bearing(term: Any, value: F64) -> float:
+def bearing_rad(term: Any, value: F64) -> float:
     """Return the position frame's bearing: fitted (``value[6]``) or the term's."""
     return float(value[6]) if term.fit_yaw else float(term.yaw_rad)
 
@@ -45,17 +45,15 @@ class SourcePart(RestorePart):
     yaw_rad: float
     windows_s: tuple[tuple[float, float], ...]
 
-    def add_field_enu(self, t_s: F64, p_m: F64 | None, lever_enu: F64 | None, F: F64) -> None:
-        """Add the dipole's field where there is a position (:meth:`RestorePart.add_field_enu`)."""
+    def field_enu(self, t_s: F64, p_m: F64 | None, lever_enu: F64 | None) -> F64 | None:
+        """Return the dipole's field where it was there (see :meth:`RestorePart.field_enu`)."""
         if p_m is None:
-            return
-        p = np.asarray(p_m, dtype=float)
-        ok = np.isfinite(p).all(axis=1)
-        # rows without a position are masked below
-        r = source_offset_enu(self.position_m, self.yaw_rad, np.nan_to_num(p), lever_enu)
-        here = ok & (in_windows(t_s, self.windows_s) if self.windows_s else True)
-        F += np.where(here[:, None], np.einsum("nij,j->ni", dipole_matrix(r), self.moment_Am2),
-                      0.0)
+            return None
+        r = source_offset_enu(self.position_m, self.yaw_rad, p_m, lever_enu)
+        f = np.einsum("nij,j->ni", dipole_matrix(r), self.moment_Am2)
+        if self.windows_s:
+            f[~in_windows(t_s, self.windows_s)] = 0.0
+        return np.asarray(f)
 
 
 @register
@@ -88,7 +86,7 @@ class LocalSource(Effect):
         """
         if at.p_m is None:
             return None
-        r_src = source_offset_enu(value[0:3], _bearing(term, value), at.p_m, at.lever_enu)
+        r_src = source_offset_enu(value[0:3], bearing_rad(term, value), at.p_m, at.lever_enu)
         P = dipole_matrix(r_src)
         if term.windows_s:
             B_enu += term.presence(at.t_s)[:, None] * (P @ value[3:6])
@@ -100,7 +98,7 @@ class LocalSource(Effect):
         """Return ``K(r) = dB/dr`` where present (see :meth:`Effect.gradient_enu`)."""
         if at.p_m is None:
             return None
-        r = source_offset_enu(value[0:3], _bearing(term, value), at.p_m, at.lever_enu)
+        r = source_offset_enu(value[0:3], bearing_rad(term, value), at.p_m, at.lever_enu)
         return term.presence(at.t_s)[:, None, None] * dipole_gradient(r, value[3:6])
 
     def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
@@ -114,7 +112,7 @@ class LocalSource(Effect):
         r_src, P_src = kept  # as the field's: the same offsets and values
         n = len(r_src)
         K = dipole_gradient(r_src, value[3:6])
-        psi = _bearing(term, value)
+        psi = bearing_rad(term, value)
         dB = np.zeros((n, 3, out.shape[2]))
         np.negative(np.matmul(K, rot_z(psi)), out=dB[:, :, 0:3])
         dB[:, :, 3:6] = P_src
