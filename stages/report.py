@@ -350,9 +350,10 @@ def _fit_left(fig: Any, pad: float = 0.006) -> None:
     """Move the axes right until every y label and tick label is inside the figure.
 
     A fixed left margin cut the label of a residual of five-digit nT off; the room needed is
-    measured on the drawn figure instead.
+    measured on the figure's layout instead. The tight boxes lay out the ticks and labels
+    themselves: drawing the figure first, as this once did, rasterised every figure twice
+    (a third of a small recording's ``process``) for the same boxes.
     """
-    fig.canvas.draw()
     renderer = fig.canvas.get_renderer()
     inv = fig.transFigure.inverted()
     x0 = min(inv.transform(ax.get_tightbbox(renderer).p0)[0] for ax in fig.axes
