@@ -2,13 +2,12 @@
 
 ``stages.diagnose.search.scan_windows`` opens a window where the residual stands out by more
 than the noise model allows. The target: at most one false event per 10 hours of noise-only
-data (``SCAN_FALSE_ALARM`` per scan); not met yet (strict expected failure). Ten hours of 5-minute
-200 Hz surveys, decimated as the diagnosis does (every 5th sample, at most 12000), of white
-noise and of white noise plus attitude noise drawn at 20 Hz and interpolated (correlated over
-1/20 s, in the plane normal to the field), open at most one window in all. A 1 s anomaly of
-20 times the residual RMS is found where it is. ``bench/false_alarm.py`` measures more noise
-models and recording types over 100 hours each.
-"""
+data (``SCAN_FALSE_ALARM`` per scan). Ten hours of 5-minute 200 Hz surveys, decimated as the
+diagnosis does (every 5th sample, at most 12000), of white noise and of white noise plus
+attitude noise drawn at 20 Hz and interpolated (correlated over 1/20 s, in the plane normal
+to the field), open at most one window in all. A 1 s anomaly of 20 times the residual RMS is
+found where it is. ``bench/false_alarm.py`` measures more noise models and recording types
+over 100 hours each."""
 
 from __future__ import annotations
 
@@ -46,12 +45,6 @@ def _noise(rng: np.random.Generator, t: np.ndarray, attitude_ratio: float) -> np
     return r
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "not met yet: the level is shared by n / w disjoint windows and assumes 3 equal "
-    "directions (white noise opened up to 9 windows per 10 h, attitude noise up to 74). "
-    "Sharing it over every position and the residual's effective directions meets the "
-    "target here, but on the stability corpus it lost a weak held step and moved lab_01_tr's "
-    "findings (docs/effects.md, 'False alarms and detection power, measured')"))
 @pytest.mark.parametrize("attitude_ratio", [0.0, 3.0])
 def test_ten_hours_of_noise_open_at_most_one_window(attitude_ratio):
     t, k = _times()

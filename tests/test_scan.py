@@ -2,7 +2,7 @@
 
 The scan (``stages.diagnose.search.scan_windows``) proposes the windows of transient terms.
 On noise alone it must open none: its level is set by the residual's correlation time
-(``block_mean_var``, the moving means' chi-square tail shared by the recording's windows),
+(``block_mean_cov``, the moving means' chi-square tails shared along the recording),
 so a residual correlated over a third of a second does not pass for an event. Two steps that
 abut and hold one offset are one event, a disturbance that holds one offset in the sensor's
 frame is a step (the nested simpler descriptions, ``stages.diagnose.nested.simplest``); two

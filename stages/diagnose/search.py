@@ -229,17 +229,26 @@ def _excess_runs(s: np.ndarray, med: float, level: float, open_level: float | No
 def scan_windows(
     residual_nT: np.ndarray, t_s: np.ndarray, cfg: DiagnoseConfig
 ) -> list[tuple[float, float]]:
-    """Windows where the robust residual norm stands out (likelihood-ratio-style scan).
+    """Windows where the residual stands out from its own noise (a multi-scale scan).
 
-    The squared residual norm is normalised by a robust noise scale, smoothed over
-    ``scan_smooth_s``, and compared with its own median plus ``scan_sigma`` robust sigmas of
-    the smoothed series, and with the level the residual's own correlation gives
-    (:func:`block_mean_var`, the chi-square tail at :data:`SCAN_FALSE_ALARM` shared by the
-    recording's windows): a residual correlated over many samples averages over fewer
-    independent ones, and its smoothed norm strays further by chance. A window opens where the
-    smoothed statistic crosses that level and is widened to where it falls back to half-way
-    to the empirical level (the higher bar decides whether there is an event, not how long it
-    lasts); windows closer than one smoothing width are merged.
+    Statistics scanned along the recording, each against the level noise alone exceeds
+    anywhere in it with probability :data:`SCAN_FALSE_ALARM` shared by the statistics
+    (:func:`scan_level`):
+
+    - the squared residual norm, in units of a robust noise scale, smoothed over
+      ``scan_smooth_s``: a magnet or a vehicle brought near the sensor;
+    - only when that opens nothing, the moving mean of the residual vector over 4, 8, 16...
+      smoothing widths (up to an eighth of the recording), finest first: a weak offset held
+      for seconds (a hard-iron step) barely lifts the squared norm but moves the mean, and
+      the longer it is held, the more a mean over its length stands out (a discrete
+      generalised likelihood ratio over the event's length).
+
+    Each statistic is also held to an empirical level, its median plus ``scan_sigma`` robust
+    sigmas of its own series, so that a very quiet recording does not turn its smallest
+    excess into an event. A window opens where a statistic crosses both levels and is
+    widened to where it falls back half-way to the empirical level (the higher bar decides
+    whether there is an event, not how long it lasts); windows closer than one smoothing
+    width are merged.
 
     Returns
     -------
@@ -252,102 +261,201 @@ def scan_windows(
         return []
     dt = float(np.median(np.diff(t_s)))
     w = max(3, int(round(cfg.scan_smooth_s / dt)))
-    sig = robust_sigma(residual_nT)
-    z = np.sum(residual_nT**2, axis=1) / (3 * sig * sig)
-    # robust to single spikes: moving median would be ideal; a trimmed value keeps it cheap
-    z = np.minimum(z, np.percentile(z, 99.9) * 4)
-    c = np.cumsum(np.concatenate([[0.0], z]))
-    s = np.empty(n)
-    half = w // 2
-    lo = np.clip(np.arange(n) - half, 0, n)
-    hi = np.clip(np.arange(n) + half + 1, 0, n)
-    s = (c[hi] - c[lo]) / (hi - lo)
-    med = float(np.median(s))
-    mad = float(1.4826 * np.median(np.abs(s - med))) + 1e-12
-    # a window needs a real excess, not just a little above a very quiet median, and above
-    # the level noise alone reaches with the residual's own correlation: the moving mean of
-    # z over w samples is chi-square over its nu degrees of freedom, 3 per independent
-    # sample, and w samples are w / c independent ones, c the variance inflation of their
-    # mean (a bound: squares are less correlated than the residual itself)
-    nu = 9.0 * sig * sig / max(block_mean_var(residual_nT, w), 1e-30)
-    level_emp = max(med + cfg.scan_sigma * mad, med + 2.0)
-    level = max(level_emp, med * float(chdtri(nu, _false_alarm(n, w)) / chdtri(nu, 0.5)))
-
-    def windows(runs: list[tuple[int, int]]) -> list[tuple[float, float]]:
-        merged: list[list[int]] = []
-        for a, b in runs:
-            if merged and a - merged[-1][1] < w:
-                merged[-1][1] = max(merged[-1][1], b)
-            else:
-                merged.append([a, b])
-        out = []
-        for a, b in merged:
-            start, end = float(t_s[a]), float(t_s[min(b, n - 1)])
-            if end - start < 2 * dt:
-                continue
-            if end - start > 0.5 * (t_s[-1] - t_s[0]):
-                continue  # not local: a global term's job
-            out.append((start, end))
-        return out
-
-    wins = windows(_excess_runs(s, med, level_emp, level))
+    scales = _mean_scales(n, w)
+    tests = 1 + len(scales)
+    s, med, level_emp, level = _norm_statistic(residual_nT, w, tests, cfg)
+    wins = _windows(_excess_runs(s, med, level_emp, level), t_s, w)
     if wins:
         return wins
-    if windows(_excess_runs(s, med, level_emp)):
-        # the norm stands out, but no more than the residual's own correlation explains: the
-        # residual is not quiet, and the weaker excess of a moving mean is no event either
+    if _windows(_excess_runs(s, med, level_emp), t_s, w):
+        # the norm stands out, but no more than noise with the residual's own correlation
+        # reaches: the residual is not quiet (a map's remainder along the path, correlated
+        # over seconds), and the moving mean of such a residual is no held offset either
         return []
-    # a weak offset held for seconds (a hard-iron step) barely lifts the squared norm but
-    # moves the mean of the residual vector: when the norm of a quiet residual opens no
-    # window, the same scan on the moving mean over four smoothing widths, in units of its
-    # white-noise spread (only then: its windows would otherwise crowd the few refits of each
-    # round)
-    wk = min(n, 4 * w)
-    lo4 = np.clip(np.arange(n) - wk // 2, 0, n)
-    hi4 = np.clip(np.arange(n) + wk // 2 + 1, 0, n)
-    cr = np.concatenate([np.zeros((1, 3)), np.cumsum(residual_nT, axis=0)])
-    m = (cr[hi4] - cr[lo4]) / (hi4 - lo4)[:, None]
-    sv = np.sum(m * m, axis=1) * (hi4 - lo4) / (3 * sig * sig)
+    # only then: the mean scan's windows would otherwise crowd the few refits of each round
+    for wk, cov in zip(scales, _mean_spreads(residual_nT, w, scales), strict=True):
+        sv, med_v, lev_v, lev_c = _mean_statistic(residual_nT, wk, cov, tests, cfg)
+        wins = _windows(_excess_runs(sv, med_v, lev_v, lev_c), t_s, w)
+        if wins:
+            return wins
+    return []
+
+
+def _mean_scales(n: int, w: int) -> list[int]:
+    """Widths of the moving means, samples: 4, 8, 16... times ``w``, at most ``n / 8``."""
+    out = [min(n, 4 * w)]
+    while 2 * out[-1] <= n // 8:
+        out.append(2 * out[-1])
+    return out
+
+
+def _moving_mean(x: np.ndarray, w: int) -> np.ndarray:
+    """Centred moving mean of ``x`` (n,) or (n, m) over ``w`` samples, shortened at the ends."""
+    n = len(x)
+    c = np.concatenate([np.zeros((1,) + x.shape[1:]), np.cumsum(x, axis=0)])
+    lo = np.clip(np.arange(n) - w // 2, 0, n)
+    hi = np.clip(np.arange(n) + w // 2 + 1, 0, n)
+    span = (hi - lo).astype(float)
+    return np.asarray((c[hi] - c[lo]) / (span if x.ndim == 1 else span[:, None]))
+
+
+def _norm_statistic(r: np.ndarray, w: int, tests: int, cfg: DiagnoseConfig
+                    ) -> tuple[np.ndarray, float, float, float]:
+    """Smooth the squared norm; return it, its median, empirical level and noise level.
+
+    The moving mean of ``z = |r|^2 / (3 sigma^2)`` over ``w`` samples is, for Gaussian noise,
+    a scaled chi-square over ``nu`` degrees of freedom (Satterthwaite): ``w / c`` independent
+    samples, ``c`` the variance inflation of a mean over ``w`` correlated samples, each
+    carrying the effective number of directions of the noise (3 when it is the same along
+    every direction; attitude noise crossed with the field lies in the plane normal to it: 2).
+    """
+    sig = robust_sigma(r)
+    z = np.sum(r**2, axis=1) / (3 * sig * sig)
+    # robust to single spikes: a moving median would be ideal; a trimmed value keeps it cheap
+    z = np.minimum(z, np.percentile(z, 99.9) * 4)
+    s = _moving_mean(z, w)
+    med = float(np.median(s))
+    mad = float(1.4826 * np.median(np.abs(s - med))) + 1e-12
+    cov_w = block_mean_cov(r, w)
+    # (a bound: squares are less correlated than the residual itself)
+    nu = 3.0 * _directions(cov_w) * sig * sig / max(float(np.trace(cov_w)), 1e-30)
+    level_emp = max(med + cfg.scan_sigma * mad, med + 2.0)
+    level = med * scan_level(nu, len(r), tests, w) / float(chdtri(nu, 0.5))
+    return s, med, level_emp, max(level_emp, level)
+
+
+def _mean_spreads(r: np.ndarray, w: int, scales: list[int]) -> list[np.ndarray]:
+    """Covariance of a mean over each of ``scales`` samples of ``r`` under noise alone.
+
+    Measured at the smoothing width ``w`` (:func:`block_mean_cov`), where a recording holds
+    many blocks and an event held for seconds disturbs few of their differences, and carried
+    to a wider mean as ``w / wk`` times the variance inflation the wider blocks show beyond
+    that (a residual correlated over longer than ``w``: the mean of a wider window varies
+    more than ``w / wk`` says). The inflation is measured where the recording holds
+    ``4 BLOCK_LAG`` blocks of the width; wider, the widest measured one is kept (the residual
+    assumed correlated over less than a sixteenth of the recording). It never falls with
+    the width, as for any positively correlated noise.
+    """
+    cov_w = block_mean_cov(r, w)
+    tr_w = max(w * float(np.trace(cov_w)), 1e-300)
+    out, inflation = [], 1.0
+    for wk in scales:
+        if len(r) // wk >= 4 * BLOCK_LAG:
+            inflation = max(inflation, wk * float(np.trace(block_mean_cov(r, wk))) / tr_w)
+        out.append(cov_w * (w / wk) * inflation)
+    return out
+
+
+def _mean_statistic(r: np.ndarray, wk: int, cov: np.ndarray, tests: int,
+                    cfg: DiagnoseConfig) -> tuple[np.ndarray, float, float, float]:
+    """Scan the mean over ``wk`` samples; return its squared norm, median and two levels.
+
+    In units of its spread under noise alone (``cov``, :func:`_mean_spreads`), the squared
+    norm of a mean over ``wk`` samples is chi-square over the noise's effective number of
+    directions.
+    """
+    m = _moving_mean(np.asarray(r, dtype=float), wk)
+    d = _directions(cov)
+    sv = np.sum(m * m, axis=1) * d / max(float(np.trace(cov)), 1e-300)
     med_v = float(np.median(sv))
     mad_v = float(1.4826 * np.median(np.abs(sv - med_v))) + 1e-12
-    # in units of the moving mean's spread under the residual's own correlation (a mean over
-    # wk correlated samples varies more than white noise says): sv is then that spread times
-    # chi-square(3) / 3
-    spread = wk * block_mean_var(residual_nT, wk) / (3 * sig * sig)
-    lev_c = spread * float(chdtri(3, _false_alarm(n, wk))) / 3.0
     lev_v = max(med_v + cfg.scan_sigma * mad_v, med_v + 2.0)
-    return windows(_excess_runs(sv, med_v, lev_v, lev_c))
+    return sv, med_v, lev_v, scan_level(d, len(r), tests)
+
+
+def _windows(runs: list[tuple[int, int]], t_s: np.ndarray, w: int
+             ) -> list[tuple[float, float]]:
+    """Index runs as half-open windows in s; runs closer than ``w`` samples are one.
+
+    A window longer than half the recording is not local (a global term's job) and is left
+    out, as is one shorter than two samples.
+    """
+    n = len(t_s)
+    dt = float(np.median(np.diff(t_s)))
+    merged: list[list[int]] = []
+    for a, b in runs:
+        if merged and a - merged[-1][1] < w:
+            merged[-1][1] = max(merged[-1][1], b)
+        else:
+            merged.append([a, b])
+    out = []
+    for a, b in merged:
+        start, end = float(t_s[a]), float(t_s[min(b, n - 1)])
+        if 2 * dt <= end - start <= 0.5 * (t_s[-1] - t_s[0]):
+            out.append((start, end))
+    return out
 
 
 #: Chance that noise alone opens a window anywhere in a recording, per scan.
 SCAN_FALSE_ALARM = 1e-3
 
 
-def _false_alarm(n: int, w: int) -> float:
-    """Per-window tail probability: SCAN_FALSE_ALARM shared by the ``n / w`` windows."""
-    return SCAN_FALSE_ALARM / max(1.0, n / max(w, 1))
+def scan_level(nu: float, n: int, tests: int, w: int | None = None) -> float:
+    """Chi-square level (``nu`` degrees of freedom) a moving statistic passes by chance.
+
+    Each of ``tests`` statistics is compared with its level at every one of ``n`` samples;
+    :data:`SCAN_FALSE_ALARM` is shared by the statistics. The maximum of a moving window
+    exceeds a level far more often than its ``n / w`` disjoint windows' tails say, as the
+    window peaks between their centres.
+
+    - ``w`` given (a window of ``w`` samples whose spread is measured from many blocks):
+      ``P(max > b) ~ (n / w) b^2 P(Z > b)`` for a level ``b`` standard deviations high
+      (Pickands' approximation for a window's triangular correlation, Pickands' constant 1;
+      Siegmund & Venkatraman 1995), solved for the per-position tail by fixed point.
+    - ``w`` None: shared by every position (a union bound, whatever the windows' overlap),
+      for statistics whose spread is estimated from few blocks, whose scatter widens the
+      tail beyond the approximation's (measured: docs/effects.md).
+    """
+    if w is None:
+        return float(chdtri(nu, SCAN_FALSE_ALARM / max(1.0, float(n * tests))))
+    windows = tests * max(1.0, n / max(w, 1))
+    tail = SCAN_FALSE_ALARM / windows
+    for _ in range(3):
+        b2 = float(chdtri(1.0, 2.0 * tail))  # the same tail of a standard normal, squared
+        tail = SCAN_FALSE_ALARM / (windows * max(1.0, b2))
+    return float(chdtri(nu, tail))
 
 
-#: Lag, in blocks, of the block-mean differences :func:`block_mean_var` measures.
+#: Lag, in blocks, of the block-mean differences :func:`block_mean_cov` measures.
 BLOCK_LAG = 4
 
 
-def block_mean_var(x: np.ndarray, w: int) -> float:
-    """Variance of a mean over ``w`` consecutive samples of ``x`` (n, m), summed over columns.
+def _mad(d: np.ndarray) -> np.ndarray:
+    """Robust spread (1.4826 MAD) of ``d`` along its first axis."""
+    return np.asarray(1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0))
 
-    Measured robustly (MAD) from the differences of block means ``BLOCK_LAG`` blocks apart,
-    far enough for the residual's correlation to have faded: an event held for many blocks
+
+def _directions(cov: np.ndarray) -> float:
+    """Effective number of directions (1-3) of a spread: (trace)^2 / (sum of squares)."""
+    return float(np.clip(np.trace(cov) ** 2 / max(float(np.sum(cov * cov)), 1e-30), 1.0,
+                         float(len(cov))))
+
+
+def block_mean_cov(x: np.ndarray, w: int) -> np.ndarray:
+    """Covariance (m, m) of a mean over ``w`` consecutive samples of ``x`` (n, m).
+
+    Measured robustly from the differences of block means ``BLOCK_LAG`` blocks apart, far
+    enough for the residual's correlation to have faded: an event held for many blocks
     disturbs only the differences that straddle its edges, so what is measured is the
     residual's own correlation, not the events the scan looks for. A mean over ``w``
-    correlated samples varies more than ``var / w``; this is how much more.
+    correlated samples varies more than ``var / w``; this is how much more. The variances
+    are MADs, the covariances the spreads of the sums and differences of the standardised
+    columns (Gnanadesikan & Kettenring 1972).
     """
+    x = np.asarray(x, dtype=float)
     n = len(x) // max(w, 1)
     if n < 4 * BLOCK_LAG:
-        return float(np.sum(np.var(x, axis=0))) / max(w, 1)
-    m = np.asarray(x, dtype=float)[: n * w].reshape(n, w, -1).mean(axis=1)
+        return np.atleast_2d(np.cov(x, rowvar=False, bias=True)) / max(w, 1)
+    m = x[: n * w].reshape(n, w, -1).mean(axis=1)
     d = m[BLOCK_LAG:] - m[:-BLOCK_LAG]
-    mad = 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0)
-    return float(np.sum(mad * mad) / 2.0)
+    s = _mad(d)
+    cov = np.diag(s * s)
+    u = d / np.maximum(s, 1e-300)
+    for i in range(d.shape[1]):
+        for j in range(i):
+            plus, minus = float(_mad(u[:, i] + u[:, j])), float(_mad(u[:, i] - u[:, j]))
+            cov[i, j] = cov[j, i] = s[i] * s[j] * (plus * plus - minus * minus) / 4.0
+    return np.asarray(cov / 2.0)
 
 
 def _above_noise(contrib_nT: np.ndarray, t_s: np.ndarray, sigma_nT: float,
