@@ -46,7 +46,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -64,7 +64,6 @@ from pipeline.model.attitude import (
 )
 from pipeline.model.effects import EFFECTS, IRON_PRIOR
 from pipeline.model.effects.axis_tilt import tilt_basis
-from pipeline.model.effects.eddy_current import TRACELESS_PROJECTOR
 from pipeline.model.effects.heading_drift import heading_drift_params as heading_params_over
 from pipeline.model.effects.local_source import bearing_rad
 from pipeline.model.effects.soft_iron import SOFT_BASIS
@@ -448,48 +447,49 @@ class ModelState:
     def with_term(self, term: Term) -> ModelState:
         """Return the state with ``term`` appended at zero (no effect; ``fixed`` if partial).
 
-        A ``time_offset`` appended beside an ``eddy_current`` starts at ``tau = -tr(E_s)/3``
-        with ``E_s`` made traceless (:meth:`rate_pair`): the same prediction to first order.
+        A term another one in the model shares a direction with (``time_offset`` beside an
+        ``eddy_current``) takes that one's shared part (:meth:`canonical`: ``tau =
+        -tr(E_s)/3`` with ``E_s`` made traceless), the same prediction to first order.
         """
         st = replace(self, terms=self.terms + (term,),
                      values=self.values + (term.null_value(),))
-        return st.canonical() if term.kind is EffectKind.TIME_OFFSET else st
+        shared = any(EFFECTS[t.kind].shares_with is term.kind for t in self.terms)
+        return st.canonical() if shared else st
 
-    def rate_pair(self) -> bool:
-        """Whether both ``time_offset`` and ``eddy_current`` are in the model.
+    def gauged(self) -> frozenset[EffectKind]:
+        """Return the kinds held off the direction they share with another kind in the model.
 
-        The two share one direction to first order (``E_s = -tau I``). The lag is exact in
-        the model ((M1) at ``t - tau``, the attitude re-interpolated) while the eddy term's
-        regressor is a rate smoothed over neighbouring attitude samples; left free, the
-        shared direction moves ``tau`` and ``tr(E_s)`` together so that the signal stays and
-        only the point where the noisy attitude is read moves (towards where its
-        interpolated noise is smallest). Beside a time offset the eddy term is therefore
-        traceless: 8 free parameters (:meth:`n_free`), its isotropic part held at zero
-        (:data:`TRACELESS_PROJECTOR` in :func:`evaluate` and :meth:`update`).
+        (:attr:`pipeline.model.effects.base.Effect.shares_with`.) A time offset and an eddy
+        term share one direction to first order (``E_s = -tau I``); beside a time offset the
+        eddy term is traceless: 8 free parameters (:meth:`n_free`), its isotropic part held
+        at zero (its :meth:`~pipeline.model.effects.base.Effect.gauge_projector` in
+        :func:`evaluate` and :meth:`update`).
         """
         kinds = {t.kind for t in self.terms}
-        return EffectKind.TIME_OFFSET in kinds and EffectKind.EDDY_CURRENT in kinds
+        return frozenset(k for k in kinds if EFFECTS[k].shares_with in kinds)
 
     def n_free(self) -> int:
-        """Free parameters (the BIC's count): :meth:`n_params` less the rate pair's shared one."""
-        return self.n_params() - (1 if self.rate_pair() else 0)
+        """Free parameters (the BIC's count): :meth:`n_params` less the shared directions."""
+        return self.n_params() - sum(_shared_dimensions(k) for k in self.gauged())
 
     def canonical(self) -> ModelState:
-        """Return the rate pair with ``tr(E_s)/3`` moved to the time offset (``tau <- tau - tr/3``).
+        """Return the state with each shared part moved to the effect that holds it.
 
-        The same prediction to first order; the state of :meth:`rate_pair` (traceless
-        ``E_s``). Any other state is returned as it is.
+        The same prediction to first order; the state of :meth:`gauged` (for the rate pair,
+        ``tau <- tau - tr(E_s)/3`` and ``E_s`` traceless). Any other state is returned as it
+        is.
         """
-        if not self.rate_pair():
-            return self
         kinds = [t.kind for t in self.terms]
-        it, ie = kinds.index(EffectKind.TIME_OFFSET), kinds.index(EffectKind.EDDY_CURRENT)
         vals = list(self.values)
-        iso = float(np.trace(vals[ie].reshape(3, 3))) / 3.0
-        if iso == 0.0:
+        for i, kind in enumerate(kinds):
+            if kind in self.gauged():
+                eff = EFFECTS[kind]
+                j = kinds.index(cast(EffectKind, eff.shares_with))
+                own, other = eff.fold_shared(vals[i], vals[j])
+                if not np.array_equal(other, vals[j]):  # else nothing was shared
+                    vals[i], vals[j] = own, other
+        if all(v is w for v, w in zip(vals, self.values, strict=True)):
             return self
-        vals[it] = vals[it] - iso
-        vals[ie] = TRACELESS_PROJECTOR @ vals[ie]
         return replace(self, values=tuple(vals))
 
     @property
@@ -559,20 +559,25 @@ class ModelState:
         R = so3_exp(dx[0:3]) @ self.R_body_mag
         B = self.B_enu_nT if fixed_B else self.B_enu_nT + dx[3:6]
         vals, T = [], self.T_enu
-        pair = self.rate_pair()
+        gauged = self.gauged()
         for t, v, i in zip(self.terms, self.values, self.offsets(), strict=True):
             # for axis_tilt the values are bookkeeping only; the rotation lives in T_enu
             d = dx[i : i + t.n_params()]
             if t.partial:
                 d = t.determined_matrix() @ d
-            if pair and t.kind is EffectKind.EDDY_CURRENT:
-                d = TRACELESS_PROJECTOR @ d  # the rate pair's E_s stays traceless
+            if t.kind in gauged:
+                d = EFFECTS[t.kind].gauge_projector() @ d  # held off the shared direction
             vals.append(v + d)
         for t, i in zip(self.terms, self.offsets(), strict=True):
             if t.kind is EffectKind.AXIS_TILT:
                 P = tilt_basis()
                 T = so3_exp(P @ dx[i : i + 2]) @ T
         return replace(self, R_body_mag=R, B_enu_nT=B, values=tuple(vals), T_enu=T)
+
+
+def _shared_dimensions(kind: EffectKind) -> int:
+    """Return how many directions a gauged ``kind`` gives up to the effect it shares them with."""
+    return len(EFFECTS[kind].shared_basis())
 
 
 def _fitted_coordinates(term: Term, value: F64) -> F64:
@@ -866,12 +871,12 @@ def _forward(state: ModelState, data: FitData) -> _Forward:
     D = state.D()
     offsets: list[F64] = []
     E_term: F64 | None = None
-    pair = state.rate_pair()
+    gauged = state.gauged()
     for term, v in zip(state.terms, state.values, strict=True):
         eff = EFFECTS[term.kind]
         if (off := eff.offset_nT(term, v, t)) is not None:
             offsets.append(off)
-        if (e := eff.eddy_matrix(term, v, pair)) is not None:
+        if (e := eff.eddy_matrix(term, v, term.kind in gauged)) is not None:
             E_term = e
     rd = reading(Ct, Bp, R, D, offsets, E_term, Cdot)
     E = np.zeros((3, 3)) if E_term is None else E_term
@@ -935,7 +940,7 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
         data=data, lever_enu=fw.lever_enu, Ct=Ct, omega_body=fw.att.at.omega_body_rad_s, G=G,
         Gp=fw.Gp, TT=fw.TT, b=b, bddot=bddot, m=m, mdot=mdot, ydot0=ydot0, E=E,
         R=state.R_body_mag, D=state.D(), Bt=fw.Bt, h_rad=fw.h_rad, Bt_unturned=fw.Bt_unturned,
-        rate_pair=state.rate_pair(), terms=tuple(zip(state.terms, state.values, strict=True)),
+        gauged=state.gauged(), terms=tuple(zip(state.terms, state.values, strict=True)),
         kept=fw.kept))
     return Evaluation(y, J, ydot0, G, fw.sqrt_w)
 
@@ -983,7 +988,7 @@ class _Linearisation(_Samples):
     ``bddot``: the field in the body frame and its second derivative; ``m``, ``mdot``: the
     reading before the eddy term and its rate; ``ydot0``: the eddy regressor; ``E``: the eddy
     matrix in use; ``Bt``, ``Bt_unturned``, ``h_rad``: the ENU field with and without the
-    heading drift's turn, and the turn; ``rate_pair``: a time offset beside an eddy term;
+    heading drift's turn, and the turn; ``gauged``: the kinds held off a shared direction;
     ``terms``: every term with its value; ``kept``: what each term's field kept for its
     columns, by term index (:func:`_enu_field`).
     """
@@ -1004,7 +1009,7 @@ class _Linearisation(_Samples):
     Bt: F64
     h_rad: F64 | None
     Bt_unturned: F64 | None
-    rate_pair: bool
+    gauged: frozenset[EffectKind]
     terms: tuple[tuple[Any, F64], ...]
     kept: dict[int, Any]
 

@@ -15,15 +15,16 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
+from pipeline.model.effects import EFFECTS
 from stages.diagnose.field_map import finer_map_term
 from stages.diagnose.fit import FitResult, fit
 from stages.diagnose.model import (
     F64,
-    TRACELESS_PROJECTOR,
     FitData,
     ModelState,
     Term,
@@ -34,12 +35,12 @@ from stages.diagnose.sources import rivals as source_rivals
 from stages.diagnose.sources import with_values
 from stages.diagnose.statistics import (
     ScoreTest,
-    anisotropic_eddy_test,
     bic,
     bic_between,
     effective_samples,
     heldout_ok,
     heldout_rms,
+    rest_score_test,
 )
 
 #: Shortest ``hard_iron_step``, s: an object brought near the sensor and left there for a
@@ -179,21 +180,24 @@ def _one_step_for_two(cur: FitResult, i: int, data: FitData) -> Iterator[Descrip
         yield Description.one(i, term, start, also=j)
 
 
-def _lag_and_rest(cur: FitResult, i: int, data: FitData) -> Iterator[Description]:
-    """Describe an eddy term as a time offset and the traceless rest (the rate pair).
+def _shared_part_and_rest(cur: FitResult, i: int, data: FitData) -> Iterator[Description]:
+    """Describe a term as the effect it shares a direction with and its rest.
 
-    To first order the isotropic part ``tr(E_s)/3`` of an eddy term is a lag
-    (``E_s = -tau I``); the lag in the model is exact ((M1) at ``t - tau``), the eddy
-    term's regressor a first-order rate. The two descriptions have as many free parameters
-    (1 + 8 against 9); the pair is the richer one (one term more) and is kept only when the
-    data show the lag's second-order terms, by the margin.
+    (:attr:`~pipeline.model.effects.base.Effect.shares_with`.) To first order the isotropic
+    part ``tr(E_s)/3`` of an eddy term is a lag (``E_s = -tau I``); the lag in the model is
+    exact ((M1) at ``t - tau``), the eddy term's regressor a first-order rate. The two
+    descriptions have as many free parameters (1 + 8 against 9); the pair is the richer one
+    (one term more) and is kept only when the data show the lag's second-order terms, by
+    the margin.
     """
-    if cur.state.value(EffectKind.TIME_OFFSET) is not None:
+    term = cur.state.terms[i]
+    eff = EFFECTS[term.kind]
+    partner = Term(cast(EffectKind, eff.shares_with))
+    if cur.state.value(partner.kind) is not None:
         return
-    E = np.asarray(cur.state.values[i], dtype=float)
-    tau = -float(np.trace(E.reshape(3, 3))) / 3.0  # E_iso = -tau I
-    yield Description(i, (Term(EffectKind.TIME_OFFSET), cur.state.terms[i]),
-                      (np.array([tau]), TRACELESS_PROJECTOR @ E))
+    rest, shared = eff.fold_shared(np.asarray(cur.state.values[i], dtype=float),
+                                   partner.null_value())
+    yield Description(i, (partner, term), (shared, rest))
 
 
 #: Whole terms nested in whole terms: the simpler kind (value) is a special case of the
@@ -206,10 +210,12 @@ NESTED_SIMPLER: dict[EffectKind, EffectKind] = {
 
 #: Kinds that are a sum of named terms: how a fitted term splits into them, and the score
 #: test of the rest when its simpler part is already in the model (an eddy term beside a
-#: time offset: the traceless part only).
+#: time offset: the traceless part only). Every effect that shares a direction with another
+#: (:attr:`~pipeline.model.effects.base.Effect.shares_with`) is one.
 IN_PARTS: dict[EffectKind, tuple[Callable[[FitResult, int, FitData], Iterator[Description]],
                                  Callable[[FitResult, FitData, float], ScoreTest]]] = {
-    EffectKind.EDDY_CURRENT: (_lag_and_rest, anisotropic_eddy_test),
+    kind: (_shared_part_and_rest, rest_score_test(kind))
+    for kind, eff in EFFECTS.items() if eff.shares_with is not None
 }
 
 #: The other descriptions each kind of term has, tried in this order: the simpler special

@@ -25,7 +25,6 @@ from stages.diagnose.field_map import MapCandidate, map_candidate
 from stages.diagnose.fit import FitResult, fit, wahba_init
 from stages.diagnose.model import (
     LOCAL_KINDS,
-    TRACELESS_PROJECTOR,
     FitData,
     ModelState,
     Term,
@@ -1125,16 +1124,17 @@ def _replacement_fit(
 
 
 def canonical_rate_terms(res: FitResult, data: FitData) -> FitResult:
-    """With ``time_offset`` and ``eddy_current`` both in the model, store ``E_s`` traceless.
+    """Store each gauged term's value off the direction it shares (``E_s`` traceless).
 
-    The rate pair's eddy term has no isotropic part
-    (:meth:`~stages.diagnose.model.ModelState.rate_pair`): :func:`evaluate` reads only the
-    traceless part of its values, so removing any trace changes neither the prediction nor
-    the fit (``data``: kept for the callers' signature).
+    A term held off the direction it shares with another in the model
+    (:meth:`~stages.diagnose.model.ModelState.gauged`: an eddy term beside a time offset)
+    is read by :func:`evaluate` through its projector only, so removing the rest changes
+    neither the prediction nor the fit (``data``: kept for the callers' signature).
     """
-    if not res.state.rate_pair():
+    gauged = res.state.gauged()
+    if not gauged:
         return res
-    vals = tuple(TRACELESS_PROJECTOR @ v if t.kind is EffectKind.EDDY_CURRENT else v
+    vals = tuple(EFFECTS[t.kind].gauge_projector() @ v if t.kind in gauged else v
                  for t, v in zip(res.state.terms, res.state.values, strict=True))
     return dataclasses.replace(res, state=dataclasses.replace(res.state, values=vals))
 

@@ -8,6 +8,7 @@ the covariance of a fit.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -393,35 +394,30 @@ def bic_between(a: FitResult, b: FitResult, data: FitData) -> float:
     return bic(a.rss, n, a.state.n_free()) - bic(b.rss, n, b.state.n_free())
 
 
-#: Orthonormal basis (8, 9) of the traceless 3x3 matrices, row-major: the part of ``E_s``
-#: that a time offset (``E_s = -tau I``, CONVENTIONS eddy_current) cannot produce.
-_TRACELESS = np.array(
-    [np.eye(3)[i][:, None] @ np.eye(3)[j][None, :] for i in range(3) for j in range(3)
-     if i != j]
-    + [np.diag([1.0, -1.0, 0.0]) / np.sqrt(2.0), np.diag([1.0, 1.0, -2.0]) / np.sqrt(6.0)]
-).reshape(8, 9)
+def rest_score_test(kind: EffectKind) -> Callable[[FitResult, FitData, float], ScoreTest]:
+    """Return the score test of what a ``kind`` term adds beside the effect it shares with.
 
-
-#: The isotropic direction of ``E_s`` (row-major), unit length.
-ISO_DIRECTION = np.eye(3).ravel() / np.sqrt(3.0)
-
-
-def anisotropic_eddy_test(cur: FitResult, data: FitData, sigma: float) -> ScoreTest:
-    """Score test of the anisotropic part of ``eddy_current`` with a time offset in the model.
-
-    The isotropic part of ``E_s`` is the time offset's (``E_s = -tau I`` to first order): with
-    ``time_offset`` in the model the eddy term has the 8 traceless directions only
-    (:meth:`~stages.diagnose.model.ModelState.rate_pair`), so the nested simpler term keeps
-    what it explains and the eddy term is admitted only for what it cannot. ``k = 8``, its
-    free parameters there.
+    A term that shares a direction with another effect
+    (:attr:`~pipeline.model.effects.base.Effect.shares_with`: the isotropic part of
+    ``E_s`` is a time offset's, ``E_s = -tau I`` to first order) has, with that effect in the
+    model, only the directions it keeps
+    (:meth:`~pipeline.model.effects.base.Effect.kept_basis`: for an eddy term the 8 traceless
+    ones, :meth:`~stages.diagnose.model.ModelState.gauged`); so the nested simpler term keeps
+    what it explains and the term is admitted only for what it cannot. ``k``: the kept
+    directions, its free parameters there.
     """
-    term = Term(EffectKind.EDDY_CURRENT)
-    ev = evaluate(cur.state.with_term(term), data)
-    J = ev.jac if ev.sqrt_w is None else ev.jac * ev.sqrt_w[:, None, None]  # as the residual
-    J = J.reshape(-1, J.shape[-1])
-    p0 = cur.state.n_params()
-    Jt = np.concatenate([J[:, :p0], J[:, p0:] @ _TRACELESS.T], axis=1)
-    return dataclasses.replace(score_from_J(cur, term, Jt, data, sigma), k=len(_TRACELESS))
+    basis = EFFECTS[kind].kept_basis()
+
+    def test(cur: FitResult, data: FitData, sigma: float) -> ScoreTest:
+        term = Term(kind)
+        ev = evaluate(cur.state.with_term(term), data)
+        J = ev.jac if ev.sqrt_w is None else ev.jac * ev.sqrt_w[:, None, None]  # as residual
+        J = J.reshape(-1, J.shape[-1])
+        p0 = cur.state.n_params()
+        Jt = np.concatenate([J[:, :p0], J[:, p0:] @ basis.T], axis=1)
+        return dataclasses.replace(score_from_J(cur, term, Jt, data, sigma), k=len(basis))
+
+    return test
 
 
 def param_covariance(res: FitResult, data: FitData) -> np.ndarray:
@@ -435,12 +431,14 @@ def param_covariance(res: FitResult, data: FitData) -> np.ndarray:
         H[:, 3:6] = 0.0
         H[3:6, 3:6] = np.eye(3)
     kinds = [t.kind for t in res.state.terms]
-    if EffectKind.TIME_OFFSET in kinds and EffectKind.EDDY_CURRENT in kinds:
-        # tr(E_s) = 0 (canonical_rate_terms): the shared direction belongs to tau
-        o = res.state.offsets()[kinds.index(EffectKind.EDDY_CURRENT)]
-        a = np.zeros(P)
-        a[o : o + 9] = ISO_DIRECTION
-        H = H + float(np.max(np.diag(H))) * np.outer(a, a)
+    for kind in res.state.gauged():
+        # held off the shared directions (canonical_rate_terms: tr(E_s) = 0): they belong to
+        # the effect it shares them with (tau)
+        o = res.state.offsets()[kinds.index(kind)]
+        for d in EFFECTS[kind].shared_basis():
+            a = np.zeros(P)
+            a[o : o + len(d)] = d
+            H = H + float(np.max(np.diag(H))) * np.outer(a, a)
     return s2 * np.linalg.pinv(H, rcond=1e-13)
 
 

@@ -249,8 +249,11 @@ class Linearisation(Samples, Protocol):
         ...
 
     @property
-    def rate_pair(self) -> bool:
-        """A time offset and an eddy term are both in the model."""
+    def gauged(self) -> frozenset[EffectKind]:
+        """The effects held off the direction they share with another in the model.
+
+        (:attr:`Effect.shares_with`.)
+        """
         ...
 
     @property
@@ -374,6 +377,12 @@ class Effect:
         (:data:`MIN_TURN_DEG` in all); :meth:`undetermined` checks it first.
     confounded_with : str
         What the term looks like when the motion confounds it (:meth:`undetermined`'s words).
+    shares_with : EffectKind or None
+        An effect whose prediction this one reproduces to first order along some direction
+        of its parameters (a gauge: an eddy term's isotropic part is a time offset). When
+        both are in the model this one is held off that direction (:meth:`gauge_projector`)
+        and the shared part belongs to the other (:meth:`fold_shared`), so that the two do
+        not trade along it and the count of free parameters drops by its dimension.
 
     """
 
@@ -386,6 +395,7 @@ class Effect:
     held_prior: ClassVar[float | None] = None
     needs_turning: ClassVar[bool] = True
     confounded_with: ClassVar[str] = "terms already in the model"
+    shares_with: ClassVar[EffectKind | None] = None
 
     def n_params(self, term: TermShape) -> int:
         """Return the number of parameters of ``term``, a term of this effect.
@@ -540,9 +550,31 @@ class Effect:
         """Return the term's offset of the reading, mag frame ((3,) or (N, 3)), or None."""
         return None
 
-    def eddy_matrix(self, term: Any, value: F64, rate_pair: bool) -> F64 | None:
-        """Return the term's ``E_s`` (3, 3) in (M5), or None."""
+    def eddy_matrix(self, term: Any, value: F64, gauged: bool) -> F64 | None:
+        """Return the term's ``E_s`` (3, 3) in (M5), or None.
+
+        ``gauged``: the term is held off the direction it shares (:attr:`shares_with`).
+        """
         return None
+
+    def gauge_projector(self) -> F64:
+        """Return the projector (k, k) onto the directions kept beside :attr:`shares_with`."""
+        raise NotImplementedError(f"{self.kind.value} shares no direction with another effect")
+
+    def kept_basis(self) -> F64:
+        """Return an orthonormal basis (m, k) of the directions kept beside :attr:`shares_with`."""
+        raise NotImplementedError(f"{self.kind.value} shares no direction with another effect")
+
+    def shared_basis(self) -> F64:
+        """Return an orthonormal basis (k - m, k) of the directions it shares."""
+        raise NotImplementedError(f"{self.kind.value} shares no direction with another effect")
+
+    def fold_shared(self, own: F64, other: F64) -> tuple[F64, F64]:
+        """Return ``own`` off the shared direction and ``other`` holding its part there.
+
+        The same prediction to first order (see :attr:`shares_with`).
+        """
+        raise NotImplementedError(f"{self.kind.value} shares no direction with another effect")
 
     def gradient_enu(self, term: Any, value: F64, at: Samples) -> F64 | None:
         """Return ``dB/dr``, the gradient of the term's field at the sensor, ENU, or None.

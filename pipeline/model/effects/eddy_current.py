@@ -23,6 +23,17 @@ from pipeline.model.effects.time_offset import steady_turn_reason
 #: time offset's (``E_s = -tau I`` to first order, (M5) against (M1) at ``t - tau``).
 TRACELESS_PROJECTOR = np.eye(9) - np.outer(np.eye(3).ravel(), np.eye(3).ravel()) / 3.0
 
+#: Orthonormal basis (8, 9) of the traceless 3x3 matrices, row-major: the part of ``E_s``
+#: that a time offset (``E_s = -tau I``, CONVENTIONS eddy_current) cannot produce.
+TRACELESS_BASIS = np.array(
+    [np.eye(3)[i][:, None] @ np.eye(3)[j][None, :] for i in range(3) for j in range(3)
+     if i != j]
+    + [np.diag([1.0, -1.0, 0.0]) / np.sqrt(2.0), np.diag([1.0, 1.0, -2.0]) / np.sqrt(6.0)]
+).reshape(8, 9)
+
+#: The isotropic direction of ``E_s`` (row-major), unit length: the time offset's.
+ISO_DIRECTION = np.eye(3).ravel() / np.sqrt(3.0)
+
 
 @register
 class EddyCurrent(Effect):
@@ -39,6 +50,7 @@ class EddyCurrent(Effect):
     frame: ClassVar[str] = "mag"
     n_fixed: ClassVar[int | None] = 9
     confounded_with: ClassVar[str] = "the time offset and the misalignment"
+    shares_with: ClassVar[EffectKind | None] = EffectKind.TIME_OFFSET
 
     def motion_reason(self, motion: Motion, horizontal_fraction: float | None) -> str | None:
         """Return the time offset's :func:`steady_turn_reason` (:meth:`Effect.motion_reason`)."""
@@ -53,15 +65,39 @@ class EddyCurrent(Effect):
         sd = standard_deviations(cov)
         return {"E_s": sd.reshape(3, 3).tolist()}
 
-    def eddy_matrix(self, term: Any, value: F64, rate_pair: bool) -> F64:
+    def eddy_matrix(self, term: Any, value: F64, gauged: bool) -> F64:
         """Return ``E_s`` (3, 3): beside a time offset its traceless part only."""
-        return np.asarray(TRACELESS_PROJECTOR @ value if rate_pair else value).reshape(3, 3)
+        return np.asarray(TRACELESS_PROJECTOR @ value if gauged else value).reshape(3, 3)
+
+    def gauge_projector(self) -> F64:
+        """Return :data:`TRACELESS_PROJECTOR`: beside a time offset ``E_s`` is traceless.
+
+        The lag is exact in the model ((M1) at ``t - tau``, the attitude re-interpolated)
+        while the eddy term's regressor is a rate smoothed over neighbouring attitude
+        samples; left free, the shared direction moves ``tau`` and ``tr(E_s)`` together so
+        that the signal stays and only the point where the noisy attitude is read moves
+        (towards where its interpolated noise is smallest).
+        """
+        return TRACELESS_PROJECTOR
+
+    def kept_basis(self) -> F64:
+        """Return :data:`TRACELESS_BASIS`, the 8 directions a time offset cannot produce."""
+        return TRACELESS_BASIS
+
+    def shared_basis(self) -> F64:
+        """Return :data:`ISO_DIRECTION` (1, 9), the time offset's direction."""
+        return ISO_DIRECTION[None, :]
+
+    def fold_shared(self, own: F64, other: F64) -> tuple[F64, F64]:
+        """Return ``E_s`` traceless and ``tau - tr(E_s)/3`` (``E_s = -tau I``, first order)."""
+        iso = float(np.trace(np.asarray(own).reshape(3, 3))) / 3.0
+        return TRACELESS_PROJECTOR @ own, other - iso
 
     def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
         """Write ``dy_i/dE_ij = ydot0_j`` (row-major ``E``) (see :meth:`Effect.columns`)."""
         for r_ in range(3):
             out[:, r_, 3 * r_ : 3 * r_ + 3] = lin.ydot0
-        if lin.rate_pair:  # beside a time offset only the traceless part
+        if self.kind in lin.gauged:  # beside a time offset only the traceless part
             out[:] = out @ TRACELESS_PROJECTOR
 
     def model_fields(self, params: dict[str, Any]) -> dict[str, Any]:
