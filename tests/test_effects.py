@@ -252,3 +252,25 @@ def test_every_model_term_writes_its_own_params_and_sigmas():
             continue
         assert type(eff).params is not Effect.params, kind
         assert type(eff).sigma is not Effect.sigma, kind
+
+
+def test_a_tilt_fitted_in_part_turns_the_frame_by_its_own_step():
+    """A tilt held to one combination (the angle to a known field) turns ``T_enu`` by
+    ``P A z``, and the term after it keeps its own step: the frame's turn reads the tilt's
+    determined step, not the next term's parameters."""
+    from pipeline.model.effects.axis_tilt import tilt_basis
+
+    a = np.array([0.6, 0.8])  # the determined combination, unit length
+    tilt = Term(EffectKind.AXIS_TILT).restricted(a[:, None])
+    iron = Term(EffectKind.HARD_IRON)
+    st = ModelState(np.eye(3), np.array([0.0, 20000.0, -40000.0]), (tilt, iron),
+                    (tilt.null_value(), iron.null_value()))
+    assert st.n_params() == 6 + 1 + 3
+    dx = np.zeros(st.n_params())
+    dx[6] = 1e-3  # rad along the combination
+    dx[7:10] = [5.0, -3.0, 2.0]  # nT
+    up = st.update(dx)
+    np.testing.assert_allclose(up.T_enu, so3_exp(tilt_basis() @ (1e-3 * a)), atol=1e-15)
+    np.testing.assert_allclose(up.values[1], [5.0, -3.0, 2.0])
+    # and the frame goes with the term
+    assert np.array_equal(up.with_terms(up.terms[1:], up.values[1:]).T_enu, np.eye(3))

@@ -44,6 +44,7 @@ and the state stores the rotation matrices.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any, cast
@@ -63,7 +64,6 @@ from pipeline.model.attitude import (
     mean_interpolation_noise_factor,
 )
 from pipeline.model.effects import EFFECTS, IRON_PRIOR
-from pipeline.model.effects.axis_tilt import tilt_basis
 from pipeline.model.effects.heading_drift import heading_drift_params as heading_params_over
 from pipeline.model.effects.local_source import bearing_rad
 from pipeline.model.effects.soft_iron import SOFT_BASIS
@@ -561,18 +561,25 @@ class ModelState:
         vals, T = [], self.T_enu
         gauged = self.gauged()
         for t, v, i in zip(self.terms, self.values, self.offsets(), strict=True):
-            # for axis_tilt the values are bookkeeping only; the rotation lives in T_enu
             d = dx[i : i + t.n_params()]
             if t.partial:
                 d = t.determined_matrix() @ d
             if t.kind in gauged:
                 d = EFFECTS[t.kind].gauge_projector() @ d  # held off the shared direction
             vals.append(v + d)
-        for t, i in zip(self.terms, self.offsets(), strict=True):
-            if t.kind is EffectKind.AXIS_TILT:
-                P = tilt_basis()
-                T = so3_exp(P @ dx[i : i + 2]) @ T
+            # a term that holds its rotation in the state turns it (its values keep account)
+            T = EFFECTS[t.kind].turn_frame(T, d)
         return replace(self, R_body_mag=R, B_enu_nT=B, values=tuple(vals), T_enu=T)
+
+    def with_terms(self, terms: Sequence[Term], values: Sequence[F64]) -> ModelState:
+        """Return the state with ``terms`` and their ``values`` in place of its own.
+
+        A term whose effect holds its rotation in the state (``T_enu``, :attr:`~pipeline.
+        model.effects.base.Effect.holds_frame`) takes it along when it leaves.
+        """
+        keeps = any(EFFECTS[t.kind].holds_frame for t in terms)
+        return replace(self, terms=tuple(terms), values=tuple(values),
+                       T_enu=self.T_enu if keeps else np.eye(3))
 
 
 def _shared_dimensions(kind: EffectKind) -> int:
@@ -1281,13 +1288,8 @@ def term_sigma(term: Term, cov: F64, state: ModelState, data: FitData) -> dict[s
 
 def without_term(state: ModelState, i: int) -> ModelState:
     """``state`` without its ``i``-th term."""
-    t = state.terms[i]
-    return dataclasses.replace(
-        state,
-        terms=state.terms[:i] + state.terms[i + 1:],
-        values=state.values[:i] + state.values[i + 1:],
-        T_enu=np.eye(3) if t.kind is EffectKind.AXIS_TILT else state.T_enu,
-    )
+    return state.with_terms(state.terms[:i] + state.terms[i + 1:],
+                            state.values[:i] + state.values[i + 1:])
 
 
 def moved_last_to(state: ModelState, i: int) -> ModelState:

@@ -113,9 +113,9 @@ class Description:
         if self.also is not None:
             j = self.also + (len(self.terms) - 1 if self.also > self.i else 0)
             del terms[j], values[j]
-        out = dataclasses.replace(st, terms=tuple(terms), values=tuple(values))
-        if st.terms[self.i].kind is EffectKind.AXIS_TILT:
-            out = dataclasses.replace(out, T_enu=np.eye(3))
+        out = st.with_terms(terms, values)
+        if EFFECTS[st.terms[self.i].kind].holds_frame:
+            out = dataclasses.replace(out, T_enu=np.eye(3))  # the described term's frame goes
         return out
 
 

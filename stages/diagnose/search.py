@@ -490,10 +490,7 @@ def _axes(x: np.ndarray) -> list[str]:
 
 def _contribution(before: ModelState, after: ModelState, data: FitData) -> np.ndarray:
     """Prediction difference (mag frame) made by the last term at the fitted values."""
-    without = dataclasses.replace(
-        after, terms=after.terms[:-1], values=after.values[:-1],
-        T_enu=np.eye(3) if after.terms[-1].kind is EffectKind.AXIS_TILT else after.T_enu,
-    )
+    without = after.with_terms(after.terms[:-1], after.values[:-1])
     return (
         evaluate(after, data, jacobian=False).y_nT - evaluate(without, data, jacobian=False).y_nT
     )
@@ -1040,11 +1037,7 @@ def gradient_note(cur: FitResult, data: FitData, not_ident: dict[str, str]) -> s
 
 def _prefix(state: ModelState, k: int) -> ModelState:
     """``state`` with only its first ``k`` terms (values as fitted in ``state``)."""
-    has_tilt = any(t.kind is EffectKind.AXIS_TILT for t in state.terms[:k])
-    return dataclasses.replace(
-        state, terms=state.terms[:k], values=state.values[:k],
-        T_enu=state.T_enu if has_tilt else np.eye(3),
-    )
+    return state.with_terms(state.terms[:k], state.values[:k])
 
 
 def _chain_evidence(

@@ -6,7 +6,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pipeline.core.geometry import skew
+from pipeline.core.geometry import skew, so3_exp
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects.base import (
     F64,
@@ -46,6 +46,11 @@ class AxisTilt(Effect):
     # a lean across the field's bearing turns B about the axis, which R_body_mag absorbs.
     identifiable_in_part: ClassVar[bool] = True
     n_fixed: ClassVar[int | None] = 2
+    holds_frame: ClassVar[bool] = True
+
+    def turn_frame(self, T_enu: F64, step: F64) -> F64:
+        """Return ``exp([P step]x) T_enu``: the tilt turns the field on the left (Tang 2016)."""
+        return so3_exp(tilt_basis() @ step) @ T_enu
 
     def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
         """Write ``d(T.T B)/dd = T.T [B]x`` on the tilt's basis (see :meth:`Effect.columns`).

@@ -377,6 +377,10 @@ class Effect:
         (:data:`MIN_TURN_DEG` in all); :meth:`undetermined` checks it first.
     confounded_with : str
         What the term looks like when the motion confounds it (:meth:`undetermined`'s words).
+    holds_frame : bool
+        The term's rotation is held by the model's state (``T_enu``, turned on the left by
+        :meth:`turn_frame` at each step; the term's values only keep account of the steps),
+        and leaves with the term.
     shares_with : EffectKind or None
         An effect whose prediction this one reproduces to first order along some direction
         of its parameters (a gauge: an eddy term's isotropic part is a time offset). When
@@ -395,6 +399,7 @@ class Effect:
     held_prior: ClassVar[float | None] = None
     needs_turning: ClassVar[bool] = True
     confounded_with: ClassVar[str] = "terms already in the model"
+    holds_frame: ClassVar[bool] = False
     shares_with: ClassVar[EffectKind | None] = None
 
     def n_params(self, term: TermShape) -> int:
@@ -556,6 +561,10 @@ class Effect:
         ``gauged``: the term is held off the direction it shares (:attr:`shares_with`).
         """
         return None
+
+    def turn_frame(self, T_enu: F64, step: F64) -> F64:
+        """Return the state's frame ``T_enu`` after a parameter ``step`` (:attr:`holds_frame`)."""
+        return T_enu
 
     def gauge_projector(self) -> F64:
         """Return the projector (k, k) onto the directions kept beside :attr:`shares_with`."""
