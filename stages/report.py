@@ -25,6 +25,7 @@ from pipeline.core.geometry import quat_rotate, quat_to_li2020_euler
 from pipeline.core.recording import Recording, Segment, VectorSeries
 from pipeline.core.style import minus, unsigned_zeros
 from pipeline.core.verdict import plain_words, verdict_line
+from pipeline.core.words import pm_vec
 from pipeline.model.sample_hold import repeated
 from stages.estimate import POOR_AXIS_SIGMA_DEG
 from stages.estimators.registry import DESCRIPTIONS
@@ -37,8 +38,8 @@ from stages.report_map import (
     sources,
     write_map_json,
 )
-from stages.report_text import pm_vec, rows_html, utc
 from stages.report_text import rows as finding_rows
+from stages.report_text import rows_html, utc
 from stages.restore import RestoreResult, RestoreTotals, restore_samples, view_data
 
 ENU_LABELS = ("east", "north", "up")

@@ -17,10 +17,13 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.core.style import minus
+from pipeline.core.vocabulary import EffectKind
+from pipeline.model.effects import EFFECTS
 
 #: the effects that live in time windows (one row per event)
 LOCAL = ("disturbance", "hard_iron_step")
+#: the effects' names, CONVENTIONS spelling
+_NAMES = frozenset(k.value for k in EffectKind)
 #: windows closer than this (s) belong to the same event
 EVENT_GAP_S = 2.0
 
@@ -34,39 +37,6 @@ def utc(t0_ns: int, t_s: float) -> str:
 def span(t0_ns: int, a: float, b: float) -> str:
     """Return ``12.3 s to 18.9 s (14:02:11 to 14:02:17 UTC)``."""
     return f"{a:.1f} s to {b:.1f} s ({utc(t0_ns, a)} to {utc(t0_ns, b)} UTC)"
-
-
-def num(x: float, nd: int = 1) -> str:
-    """Return a number with ``nd`` decimals and a true minus sign."""
-    return minus(f"{x:.{nd}f}")
-
-
-def vec(a: Any, nd: int = 1) -> str:
-    """Return ``[1.0, −2.0, 3.0]``."""
-    return "[" + ", ".join(num(float(x), nd) for x in np.asarray(a, float).ravel()) + "]"
-
-
-def pm_vec(a: Any, s: Any, nd: int = 1) -> str:
-    """Return ``[1.0 ± 0.1, ...]`` (``±`` omitted where the sigma is missing)."""
-    a = np.asarray(a, float).ravel()
-    s = np.asarray(s if s is not None else np.full(a.shape, np.nan), float).ravel()
-    parts = [num(x, nd) + (f" \u00b1 {sx:.{nd}f}" if np.isfinite(sx) else "")
-             for x, sx in zip(a, s, strict=False)]
-    return "[" + ", ".join(parts) + "]"
-
-
-def per_metre(g_nT_per_m: float) -> str:
-    """Return a field gradient in the unit that shows its value: ``3.47 µT/m``, ``2.0 nT/m``.
-
-    Microtesla per metre from 1 µT/m up, nanotesla per metre below (a gradient of 2 nT/m
-    must not read "0.00 µT/m").
-    """
-    g = abs(float(g_nT_per_m))
-    if not np.isfinite(g):
-        return "an unknown amount per metre"
-    if g >= 1000.0:
-        return f"{g / 1e3:.2f} \u00b5T/m"
-    return f"{g:.0f} nT/m" if g >= 10.0 else f"{g:.1f} nT/m"
 
 
 def evidence_words(delta_bic: float | None) -> str:
@@ -84,85 +54,14 @@ def evidence_words(delta_bic: float | None) -> str:
 
 
 def what(f: dict[str, Any]) -> str:
-    """Return the sentence saying what a (non-local) finding is, with its size and units."""
-    e = f.get("effect")
-    p = f.get("params") or {}
-    s = f.get("sigma") or {}
-    if e == "hard_iron":
-        o = np.asarray(p["offset_nT"], float)
-        return (f"A constant offset (hard iron: magnetised parts near the sensor, or its own "
-                f"bias) of {pm_vec(o, s.get('offset_nT'))} nT along the magnetometer's x, y, "
-                f"z ({np.linalg.norm(o):.0f} nT in all).")
-    if e == "soft_iron":
-        d = np.asarray(p["D"], float)
-        gains = 100 * (np.diag(d) - 1)
-        off = d[~np.eye(3, dtype=bool)]
-        return (f"Soft iron or unequal axis gains: the gains differ from 1 by "
-                f"{vec(gains, 2)} % (x, y, z) and the axes couple by up to "
-                f"{100 * np.max(np.abs(off)):.2f} %.")
-    if e == "time_offset":
-        tau = 1e3 * float(p["time_offset_s"])
-        st = s.get("time_offset_s")
-        # the digits of the calibration table and the verdict line: one value everywhere
-        sig = f" \u00b1 {1e3 * float(st):.2f}" if st is not None and np.isfinite(st) else ""
-        late = "late" if tau > 0 else "early"
-        return (f"The magnetometer's time stamps are {late} by {abs(tau):.2f}{sig} ms against "
-                f"the attitude (\u03c4 = {num(tau, 2)} ms).")
-    if e == "eddy_current":
-        ed = 1e3 * np.diag(np.asarray(p["E_s"], float))
-        return (f"Eddy currents: the reading lags changes of the field by {vec(ed, 2)} ms "
-                f"(x, y, z).")
-    if e == "field_drift":
-        return (f"The background field drifted during the recording by "
-                f"{vec(p['peak_to_peak_nT'])} nT peak to peak (east, north, up).")
-    if e == "axis_tilt":
-        return (f"The turntable's axis is tilted by {float(p['tilt_deg']):.3f}\u00b0 towards "
-                f"azimuth {float(p['azimuth_deg']):.0f}\u00b0.")
-    if e == "field_gradient":
-        g = float(np.linalg.norm(np.asarray(p["G_nT_per_m"], float)))
-        frame = ("the attitude source's own frame" if p.get("position_frame")
-                 == "attitude_source_local" else "local east, north, up")
-        return (f"The field varies from place to place: a gradient of {per_metre(g)} (all "
-                f"directions together) as the sensor moves (positions in {frame}).")
-    if e == "heading_drift":
-        return (f"The attitude source's heading drifts by {num(float(p['rate_deg_per_h']), 2)}"
-                f"\u00b0/h ({float(p['peak_to_peak_deg']):.2f}\u00b0 peak to peak).")
-    if e == "local_source":
-        pos = np.asarray(p["position_m"], float)
-        sp = s.get("position_m")
-        frame = ("the motion-capture room's frame" if p.get("position_frame")
-                 == "attitude_source_local" else "local east, north, up")
-        where = ""
-        if p.get("closest_approach_m") is not None:
-            where = (f"; the sensor passed {100 * float(p['closest_approach_m']):.0f} cm from "
-                     f"it at {float(p['closest_approach_s']):.1f} s")
-        where_at = vec(pos, 3) + " m"
-        if sp is not None and np.all(np.isfinite(sp)):
-            # the sigma in cm with the digits it has (a located source is often sub-cm)
-            sc = 100 * np.asarray(sp, float)
-            nd = 1 if float(np.min(sc)) >= 0.1 else 2
-            where_at += " \u00b1 " + vec(sc, nd) + " cm"
-        return (f"A magnetised object fixed in the surroundings (not on the sensor): located "
-                f"at {where_at} in {frame}, moment "
-                f"{float(np.linalg.norm(p['moment_Am2'])):.3g} A m²{where}. The restored "
-                "field keeps it.")
-    if e == "field_map":
-        p2p = np.asarray(p["peak_to_peak_nT"], float)
-        return (f"Beyond the linear gradient the field varies smoothly over the area the "
-                f"sensor covered, by {vec(p2p)} nT peak to peak (east, north, up), mapped with "
-                f"{int(p['n_basis'])} basis functions (length scale "
-                f"{float(p['length_scale_m']):.2f} m). The restored field keeps it.")
-    if e == "lever_arm":
-        lv = 100 * np.asarray(p["lever_arm_body_m"], float)
-        sl = s.get("lever_arm_body_m")
-        return (f"The magnetometer sits {np.linalg.norm(lv):.1f} cm from the tracked point: "
-                f"{pm_vec(lv, None if sl is None else 100 * np.asarray(sl, float), 1)} cm "
-                "along the body's x, y, z.")
-    if e == "sample_hold":
-        return (f"The sensor samples at {float(p['native_rate_hz']):.1f} Hz, slower than its "
-                f"messages: {100 * float(p['repeated_fraction']):.1f} % of them repeat a "
-                "sample.")
-    return f"{e}."
+    """Return the sentence saying what a (non-local) finding is: its effect's own.
+
+    (:meth:`pipeline.model.effects.base.Effect.sentence`); a name no effect has is read out.
+    """
+    e = str(f.get("effect"))
+    if e not in _NAMES:
+        return f"{e}."
+    return EFFECTS[EffectKind(e)].sentence(f.get("params") or {}, f.get("sigma") or {})
 
 
 @dataclass

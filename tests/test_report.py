@@ -215,7 +215,8 @@ def test_metrics_table_folds_hundreds_of_segments():
 
 
 def test_a_gradient_reads_in_the_unit_that_shows_it():
-    from stages.report_text import per_metre, what
+    from pipeline.core.words import per_metre
+    from stages.report_text import what
 
     assert per_metre(2.0) == "2.0 nT/m" and per_metre(250.0) == "250 nT/m"
     assert per_metre(3470.0) == "3.47 \u00b5T/m"

@@ -93,3 +93,8 @@ class AxisTilt(Effect):
             "known from another calibration would determine its direction"
         )
         return text
+
+    def sentence(self, params: dict[str, Any], sigma: dict[str, Any]) -> str:
+        """Return the tilt and its azimuth (see :meth:`Effect.sentence`)."""
+        return (f"The turntable's axis is tilted by {float(params['tilt_deg']):.3f}\u00b0 "
+                f"towards azimuth {float(params['azimuth_deg']):.0f}\u00b0.")

@@ -448,6 +448,15 @@ class Effect:
         return f"{self.physics}; signature: {self.signature}" + self.remark(
             params, duration_s, note)
 
+    def sentence(self, params: dict[str, Any], sigma: dict[str, Any]) -> str:
+        """Return the report's sentence: what the finding is, with its size and units.
+
+        ``params`` and ``sigma`` are the finding's CONVENTIONS values (``diagnosis.json``);
+        the numbers are written through :mod:`pipeline.core.words`. An effect found only as
+        events in time (one report row per event) keeps this plain name.
+        """
+        return f"{self.kind.value}."
+
     def remark(
         self, params: dict[str, Any], duration_s: float, note: str | None = None
     ) -> str:

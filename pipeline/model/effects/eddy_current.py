@@ -7,6 +7,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
+from pipeline.core.words import vec
 from pipeline.model.effects.base import (
     F64,
     Effect,
@@ -103,3 +104,9 @@ class EddyCurrent(Effect):
     def model_fields(self, params: dict[str, Any]) -> dict[str, Any]:
         """Return ``E_s`` for the restore (see :meth:`Effect.model_fields`)."""
         return {"E_s": np.asarray(params["E_s"], dtype=float).reshape(3, 3)}
+
+    def sentence(self, params: dict[str, Any], sigma: dict[str, Any]) -> str:
+        """Return the lag of each axis in ms (see :meth:`Effect.sentence`)."""
+        ed = 1e3 * np.diag(np.asarray(params["E_s"], float))
+        return (f"Eddy currents: the reading lags changes of the field by {vec(ed, 2)} ms "
+                f"(x, y, z).")

@@ -8,6 +8,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
+from pipeline.core.words import vec
 from pipeline.model.effects.base import (
     F64,
     MIN_TURN_DEG,
@@ -133,3 +134,8 @@ class FieldDrift(Effect):
         """Return the drift for the restore (see :meth:`Effect.restore_part`)."""
         return DriftPart(np.asarray(params["legendre_nT"], dtype=float).reshape(-1, 3),
                          float(params["span_s"]))
+
+    def sentence(self, params: dict[str, Any], sigma: dict[str, Any]) -> str:
+        """Return the drift's size per ENU axis (see :meth:`Effect.sentence`)."""
+        return (f"The background field drifted during the recording by "
+                f"{vec(params['peak_to_peak_nT'])} nT peak to peak (east, north, up).")

@@ -9,6 +9,7 @@ import numpy as np
 
 from pipeline.core.geometry import rot_z
 from pipeline.core.vocabulary import EffectKind
+from pipeline.core.words import per_metre
 from pipeline.model.effects.base import (
     F64,
     Effect,
@@ -190,3 +191,11 @@ class FieldGradient(Effect):
                             np.asarray(params.get("reference_position_m") or [0, 0, 0],
                                        dtype=float),
                             float(np.radians(params.get("frame_yaw_deg") or 0.0)))
+
+    def sentence(self, params: dict[str, Any], sigma: dict[str, Any]) -> str:
+        """Return the gradient's size and the positions' frame (see :meth:`Effect.sentence`)."""
+        g = float(np.linalg.norm(np.asarray(params["G_nT_per_m"], float)))
+        frame = ("the attitude source's own frame" if params.get("position_frame")
+                 == "attitude_source_local" else "local east, north, up")
+        return (f"The field varies from place to place: a gradient of {per_metre(g)} (all "
+                f"directions together) as the sensor moves (positions in {frame}).")

@@ -9,6 +9,7 @@ import numpy as np
 
 from pipeline.core.geometry import rot_z
 from pipeline.core.vocabulary import EffectKind
+from pipeline.core.words import vec
 from pipeline.model.effects.base import (
     F64,
     Effect,
@@ -144,3 +145,11 @@ class FieldMap(Effect):
         """
         var = term.basis().prior_variance(term.length_scale_m, term.prior_nT)
         return np.asarray((term.noise_nT**2) / np.maximum(var, 1e-300))
+
+    def sentence(self, params: dict[str, Any], sigma: dict[str, Any]) -> str:
+        """Return the map's size, basis and scale (see :meth:`Effect.sentence`)."""
+        p2p = np.asarray(params["peak_to_peak_nT"], float)
+        return (f"Beyond the linear gradient the field varies smoothly over the area the "
+                f"sensor covered, by {vec(p2p)} nT peak to peak (east, north, up), mapped with "
+                f"{int(params['n_basis'])} basis functions (length scale "
+                f"{float(params['length_scale_m']):.2f} m). The restored field keeps it.")

@@ -7,6 +7,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
+from pipeline.core.words import pm_vec
 from pipeline.model.effects.base import (
     F64,
     SINGLE_AXIS_SPREAD,
@@ -67,3 +68,10 @@ class HardIron(Effect):
     def model_fields(self, params: dict[str, Any]) -> dict[str, Any]:
         """Return ``o`` for the restore (see :meth:`Effect.model_fields`)."""
         return {"offset_nT": np.asarray(params["offset_nT"], dtype=np.float64).reshape(3)}
+
+    def sentence(self, params: dict[str, Any], sigma: dict[str, Any]) -> str:
+        """Return the offset along each axis with its sigma (see :meth:`Effect.sentence`)."""
+        o = np.asarray(params["offset_nT"], float)
+        return (f"A constant offset (hard iron: magnetised parts near the sensor, or its own "
+                f"bias) of {pm_vec(o, sigma.get('offset_nT'))} nT along the magnetometer's x, "
+                f"y, z ({np.linalg.norm(o):.0f} nT in all).")

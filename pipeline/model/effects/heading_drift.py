@@ -8,6 +8,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
+from pipeline.core.words import num
 from pipeline.model.effects.base import (
     F64,
     Effect,
@@ -136,3 +137,9 @@ class HeadingDrift(Effect):
         """Return the heading drift for the restore (see :meth:`Effect.restore_part`)."""
         return HeadingPart(np.asarray(params["legendre_rad"], dtype=float).reshape(-1),
                            float(params["span_s"]))
+
+    def sentence(self, params: dict[str, Any], sigma: dict[str, Any]) -> str:
+        """Return the heading's drift rate and size (see :meth:`Effect.sentence`)."""
+        return (f"The attitude source's heading drifts by "
+                f"{num(float(params['rate_deg_per_h']), 2)}\u00b0/h "
+                f"({float(params['peak_to_peak_deg']):.2f}\u00b0 peak to peak).")

@@ -7,6 +7,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
+from pipeline.core.words import pm_vec
 from pipeline.model.effects.base import (
     CONFOUND_RATIO,
     EFFECTS,
@@ -94,3 +95,11 @@ class LeverArm(Effect):
         """Return the lever arm for the restore (see :meth:`Effect.model_fields`)."""
         return {"lever_arm_body_m": np.asarray(params["lever_arm_body_m"],
                                                dtype=np.float64).reshape(3)}
+
+    def sentence(self, params: dict[str, Any], sigma: dict[str, Any]) -> str:
+        """Return the lever arm in cm with its sigma (see :meth:`Effect.sentence`)."""
+        lv = 100 * np.asarray(params["lever_arm_body_m"], float)
+        sl = sigma.get("lever_arm_body_m")
+        return (f"The magnetometer sits {np.linalg.norm(lv):.1f} cm from the tracked point: "
+                f"{pm_vec(lv, None if sl is None else 100 * np.asarray(sl, float), 1)} cm "
+                "along the body's x, y, z.")

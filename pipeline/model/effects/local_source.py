@@ -9,6 +9,7 @@ import numpy as np
 
 from pipeline.core.geometry import rot_z
 from pipeline.core.vocabulary import EffectKind
+from pipeline.core.words import vec
 from pipeline.model.effects.base import (
     F64,
     Effect,
@@ -165,3 +166,24 @@ class LocalSource(Effect):
                           np.asarray(params["moment_Am2"], dtype=float).reshape(3),
                           float(np.radians(params.get("frame_yaw_deg") or 0.0)),
                           tuple(tuple(w) for w in params.get("windows_s") or ()))
+
+    def sentence(self, params: dict[str, Any], sigma: dict[str, Any]) -> str:
+        """Return where the object is, its moment and the closest pass (:meth:`Effect.sentence`)."""
+        pos = np.asarray(params["position_m"], float)
+        sp = sigma.get("position_m")
+        frame = ("the motion-capture room's frame" if params.get("position_frame")
+                 == "attitude_source_local" else "local east, north, up")
+        where = ""
+        if params.get("closest_approach_m") is not None:
+            where = (f"; the sensor passed {100 * float(params['closest_approach_m']):.0f} cm "
+                     f"from it at {float(params['closest_approach_s']):.1f} s")
+        where_at = vec(pos, 3) + " m"
+        if sp is not None and np.all(np.isfinite(sp)):
+            # the sigma in cm with the digits it has (a located source is often sub-cm)
+            sc = 100 * np.asarray(sp, float)
+            nd = 1 if float(np.min(sc)) >= 0.1 else 2
+            where_at += " \u00b1 " + vec(sc, nd) + " cm"
+        return (f"A magnetised object fixed in the surroundings (not on the sensor): located "
+                f"at {where_at} in {frame}, moment "
+                f"{float(np.linalg.norm(params['moment_Am2'])):.3g} A m\u00b2{where}. The "
+                "restored field keeps it.")

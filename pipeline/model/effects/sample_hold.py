@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects.base import Effect, register
@@ -22,3 +22,9 @@ class SampleHold(Effect):
         "the reading (the repeats are late)"
     )
     frame: ClassVar[str] = "mag"
+
+    def sentence(self, params: dict[str, Any], sigma: dict[str, Any]) -> str:
+        """Return the native rate and the share of repeats (see :meth:`Effect.sentence`)."""
+        return (f"The sensor samples at {float(params['native_rate_hz']):.1f} Hz, slower than "
+                f"its messages: {100 * float(params['repeated_fraction']):.1f} % of them repeat "
+                "a sample.")

@@ -7,6 +7,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
+from pipeline.core.words import vec
 from pipeline.model.effects.base import F64, Effect, FitView, Linearisation, register
 from pipeline.model.forward import soft_iron_jacobian
 
@@ -58,3 +59,12 @@ class SoftIron(Effect):
     def model_fields(self, params: dict[str, Any]) -> dict[str, Any]:
         """Return ``D`` for the restore (see :meth:`Effect.model_fields`)."""
         return {"D": np.asarray(params["D"], dtype=np.float64).reshape(3, 3)}
+
+    def sentence(self, params: dict[str, Any], sigma: dict[str, Any]) -> str:
+        """Return the gains and the largest coupling in % (see :meth:`Effect.sentence`)."""
+        d = np.asarray(params["D"], float)
+        gains = 100 * (np.diag(d) - 1)
+        off = d[~np.eye(3, dtype=bool)]
+        return (f"Soft iron or unequal axis gains: the gains differ from 1 by "
+                f"{vec(gains, 2)} % (x, y, z) and the axes couple by up to "
+                f"{100 * np.max(np.abs(off)):.2f} %.")

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any, ClassVar
 
 from pipeline.core.vocabulary import EffectKind
+from pipeline.core.words import num
 from pipeline.model.effects.base import (
     F64,
     SINGLE_AXIS_SPREAD,
@@ -77,3 +79,13 @@ class TimeOffset(Effect):
         """Return ``tau`` for the restore (see :meth:`Effect.model_fields`)."""
         tau = params.get("time_offset_s")
         return {} if tau is None else {"time_offset_s": float(tau)}
+
+    def sentence(self, params: dict[str, Any], sigma: dict[str, Any]) -> str:
+        """Return the lag in ms with its sigma (see :meth:`Effect.sentence`)."""
+        tau = 1e3 * float(params["time_offset_s"])
+        st = sigma.get("time_offset_s")
+        # the digits of the calibration table and the verdict line: one value everywhere
+        sig = f" \u00b1 {1e3 * float(st):.2f}" if st is not None and math.isfinite(st) else ""
+        late = "late" if tau > 0 else "early"
+        return (f"The magnetometer's time stamps are {late} by {abs(tau):.2f}{sig} ms against "
+                f"the attitude (\u03c4 = {num(tau, 2)} ms).")
