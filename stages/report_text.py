@@ -21,7 +21,7 @@ from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects import EFFECTS
 
 #: the effects that live in time windows (one row per event)
-LOCAL = ("disturbance", "hard_iron_step")
+LOCAL = frozenset(k.value for k, e in EFFECTS.items() if e.event)
 #: the effects' names, CONVENTIONS spelling
 _NAMES = frozenset(k.value for k in EffectKind)
 #: windows closer than this (s) belong to the same event

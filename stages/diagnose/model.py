@@ -81,7 +81,8 @@ from pipeline.model.forward import source_offset_enu as forward_source_offset
 F64 = NDArray[np.float64]
 
 
-LOCAL_KINDS = frozenset({EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP})
+#: kinds that are events in time, present only inside their windows (``Effect.event``)
+LOCAL_KINDS = frozenset(k for k, e in EFFECTS.items() if e.event)
 
 
 @dataclass(frozen=True)

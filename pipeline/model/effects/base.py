@@ -377,6 +377,10 @@ class Effect:
         (:data:`MIN_TURN_DEG` in all); :meth:`undetermined` checks it first.
     confounded_with : str
         What the term looks like when the motion confounds it (:meth:`undetermined`'s words).
+    event : bool
+        The term is an event in time: present only inside its windows (a magnet brought
+        near, a vehicle passing). The scan's windows propose it; the report gives one row
+        per event, windows that touch being one.
     holds_frame : bool
         The term's rotation is held by the model's state (``T_enu``, turned on the left by
         :meth:`turn_frame` at each step; the term's values only keep account of the steps),
@@ -399,6 +403,7 @@ class Effect:
     held_prior: ClassVar[float | None] = None
     needs_turning: ClassVar[bool] = True
     confounded_with: ClassVar[str] = "terms already in the model"
+    event: ClassVar[bool] = False
     holds_frame: ClassVar[bool] = False
     shares_with: ClassVar[EffectKind | None] = None
 

@@ -47,6 +47,7 @@ class Disturbance(Effect):
         "a bump in the residual confined to a time window, fixed in ENU"
     )
     frame: ClassVar[str] = "enu"
+    event: ClassVar[bool] = True
 
     def n_params(self, term: TermShape) -> int:
         """Return 3 field components per knot of every window (linear B-spline hats)."""

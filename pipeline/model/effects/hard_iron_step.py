@@ -70,6 +70,7 @@ class HardIronStep(Effect):
         "a constant mag-frame residual inside a time window"
     )
     frame: ClassVar[str] = "mag"
+    event: ClassVar[bool] = True
 
     def n_params(self, term: TermShape) -> int:
         """Return 3 for the plateau's offset plus 3 per mode of the transitions."""
