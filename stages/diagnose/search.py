@@ -20,6 +20,7 @@ from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects import EFFECTS
 from pipeline.model.effects.base import CONFOUND_RATIO
 from pipeline.model.effects.field_gradient import gradient_matrix
+from stages.diagnose.candidates import Event, event_candidates, scored
 from stages.diagnose.catalogue import explanation, identifiability_reason, motion_stats
 from stages.diagnose.field_map import MapCandidate, map_candidate
 from stages.diagnose.fit import FitResult, fit, wahba_init
@@ -40,7 +41,6 @@ from stages.diagnose.nested import (
     ABSORBING,
     DECISIVE_FACTOR,
     IN_PARTS,
-    MIN_STEP_S,
     NESTED_SIMPLER,
     RAMP_REACH_S,
     REFINED,
@@ -59,21 +59,15 @@ from stages.diagnose.nested import (
 from stages.diagnose.partial import PARTIAL_KINDS, held_words, partial_candidate
 from stages.diagnose.result import DiagnoseConfig, Diagnosis, Finding, Signature
 from stages.diagnose.sources import (
-    MAX_NEAR_FAR_RATIO,
-    locate_source,
-    near_far_ratio,
     plausible,
     pulled_away,
     relocated,
-    source_term,
-    with_values,
 )
 from stages.diagnose.statistics import (
     INTERP_MARGIN,
     ScoreTest,
     bic,
     effective_samples,
-    gradient_candidate,
     heldout_ok,
     heldout_rms,
     interp_reason,
@@ -534,8 +528,8 @@ class _Search:
         """Name the strongest candidate that qualifies; False when none does."""
         sig = robust_sigma(self.cur.residual_nT)
         present = {t.kind for t in self.cur.state.terms}
-        cands, src_start, ramps = self._candidates(sig, present)
-        tests, starts, replace_trial = self._scored(cands, src_start, sig, present)
+        cands, cand_start, ramps = self._candidates(sig, present)
+        tests, starts, replace_trial = self._scored(cands, cand_start, sig, present)
         mc = self._map_candidate(sig, present)
         fits, replaces, map_fits = self._refits(tests, starts, ramps, mc, replace_trial, present)
         fits = self._absorbing_last(fits, map_fits)
@@ -548,12 +542,14 @@ class _Search:
                     ) -> tuple[list[Term], dict[int, np.ndarray], list[tuple[int, Term]]]:
         """Return the candidate terms of this round.
 
-        With them, a located source's start values by candidate index, and the transitions
-        of steps in the model that the residual scan asks for.
+        The global effects not yet in the model, and every effect's candidates at each
+        event the residual scan finds (:func:`~stages.diagnose.candidates.event_candidates`).
+        With them, the start values of a candidate's refit by its index (a located
+        source's), and the transitions of steps in the model that the scan asks for.
         """
         cands: list[Term] = [Term(k) for k in self.kinds if k not in present]
         taken = [w for t in self.cur.state.terms if t.kind in LOCAL_KINDS for w in t.windows_s]
-        src_start: dict[int, np.ndarray] = {}  # candidate index -> a source's start values
+        cand_start: dict[int, np.ndarray] = {}  # candidate index -> its refit's start values
         ramps: list[tuple[int, Term]] = []  # transitions of steps in the model
         for w in scan_windows(self.cur.residual_nT, self.data.t_s, self.cfg):
             ws = refine_step(w, self.cur.residual_nT, self.data.t_s)
@@ -568,22 +564,14 @@ class _Search:
             t0, t1 = float(self.data.t_s[0]), float(self.data.t_s[-1])
             wd = (max(t0, w[0] - pad), min(t1, w[1] + pad))
             ks = min(2.0, max(0.75, (wd[1] - wd[0]) / 6))
-            cands.append(Term(EffectKind.DISTURBANCE, (wd,), knot_step_s=ks))
-            # an edge of a step already in the model is its transition; an offset held
-            # for less than MIN_STEP_S is a bump, not an object left near the sensor
-            if rc is None and ws[1] - ws[0] >= MIN_STEP_S:
-                cands.append(Term(EffectKind.HARD_IRON_STEP, (ws,)))
-            # the same excess as a source fixed in the room: present throughout, or only
-            # around the window (put down and taken away)
-            loc = locate_source(self.cur, self.data, w)
-            if loc is not None and near_far_ratio(source_term(loc[1], (wd,)), loc[0],
-                                                  self.data) <= MAX_NEAR_FAR_RATIO:
-                for presence in ((), (wd,)):
-                    src_start[len(cands)] = loc[0]
-                    cands.append(source_term(loc[1], presence))
-        return cands, src_start, ramps
+            event = Event(w, ws, wd, ks, edge_of_step=rc is not None)
+            for term, start in event_candidates(self.cur, self.data, event):
+                if start is not None:
+                    cand_start[len(cands)] = start
+                cands.append(term)
+        return cands, cand_start, ramps
 
-    def _scored(self, cands: list[Term], src_start: dict[int, np.ndarray], sig: float,
+    def _scored(self, cands: list[Term], cand_start: dict[int, np.ndarray], sig: float,
                 present: set[EffectKind]
                 ) -> tuple[list[ScoreTest], dict[int, ModelState], Term | None]:
         """Return the score tests of the candidates the motion determines.
@@ -608,21 +596,15 @@ class _Search:
                 # heading drift)
                 replace_trial = term
                 continue
-            if term.kind is EffectKind.FIELD_GRADIENT and self.data.p_m is not None:
-                st = gradient_candidate(self.cur, self.data, sig)
-                term = st.term
-            elif simpler in present:
+            if simpler in present:
                 # only what the simpler part in the model cannot explain: the rest (for an
                 # eddy term beside a time offset, the anisotropic part of E_s)
                 st = IN_PARTS[term.kind][1](self.cur, self.data, sig)
-            elif term.kind is EffectKind.LOCAL_SOURCE:
-                # tested at zero moment at the located place; refitted from the grid's moment
-                v0 = src_start[j]
-                st = score_test(self.cur, term, self.data, sig,
-                                start=with_values(term, np.r_[v0[:3], 0, 0, 0, v0[6:]], self.cur))
-                starts[id(st)] = with_values(term, v0, self.cur)
             else:
-                st = score_test(self.cur, term, self.data, sig)
+                st, start = scored(self.cur, self.data, term, sig, cand_start.get(j))
+                term = st.term  # its scorer may shape it (the gradient's bearing)
+                if start is not None:
+                    starts[id(st)] = start
             Bc = self.cur.state.B_enu_nT
             hfrac = float(np.linalg.norm(Bc[:2]) / max(float(np.linalg.norm(Bc)), 1e-9))
             reason = identifiability_reason(term.kind, self.stats, self.data, st.efficiency,
