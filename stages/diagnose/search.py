@@ -282,13 +282,20 @@ def _mean_scales(n: int, w: int) -> list[int]:
     return out
 
 
+def _spans(n: int, w: int) -> np.ndarray:
+    """Return the samples (n,) each centred window of ``w`` holds (fewer at the ends)."""
+    lo = np.clip(np.arange(n) - w // 2, 0, n)
+    hi = np.clip(np.arange(n) + w // 2 + 1, 0, n)
+    return np.asarray(hi - lo, dtype=float)
+
+
 def _moving_mean(x: np.ndarray, w: int) -> np.ndarray:
     """Centred moving mean of ``x`` (n,) or (n, m) over ``w`` samples, shortened at the ends."""
     n = len(x)
     c = np.concatenate([np.zeros((1,) + x.shape[1:]), np.cumsum(x, axis=0)])
     lo = np.clip(np.arange(n) - w // 2, 0, n)
-    hi = np.clip(np.arange(n) + w // 2 + 1, 0, n)
-    span = (hi - lo).astype(float)
+    span = _spans(n, w)
+    hi = lo + span.astype(int)
     return np.asarray((c[hi] - c[lo]) / (span if x.ndim == 1 else span[:, None]))
 
 
@@ -345,11 +352,13 @@ def _mean_statistic(r: np.ndarray, wk: int, cov: np.ndarray, tests: int,
 
     In units of its spread under noise alone (``cov``, :func:`_mean_spreads`), the squared
     norm of a mean over ``wk`` samples is chi-square over the noise's effective number of
-    directions.
+    directions. Near the recording's ends a mean holds fewer samples and varies more, in
+    proportion (``cov`` is the full width's): each position is scaled by its own span.
     """
     m = _moving_mean(np.asarray(r, dtype=float), wk)
     d = _directions(cov)
-    sv = np.sum(m * m, axis=1) * d / max(float(np.trace(cov)), 1e-300)
+    span = _spans(len(r), wk)
+    sv = np.sum(m * m, axis=1) * d / max(float(np.trace(cov)), 1e-300) * (span / span.max())
     med_v = float(np.median(sv))
     mad_v = float(1.4826 * np.median(np.abs(sv - med_v))) + 1e-12
     lev_v = max(med_v + cfg.scan_sigma * mad_v, med_v + 2.0)
