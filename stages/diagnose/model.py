@@ -482,8 +482,9 @@ class ModelState:
         """
         kinds = [t.kind for t in self.terms]
         vals = list(self.values)
+        gauged = self.gauged()
         for i, kind in enumerate(kinds):
-            if kind in self.gauged():
+            if kind in gauged:
                 eff = EFFECTS[kind]
                 j = kinds.index(cast(EffectKind, eff.shares_with))
                 own, other = eff.fold_shared(vals[i], vals[j])

@@ -256,7 +256,9 @@ def scan_windows(
     w = max(3, int(round(cfg.scan_smooth_s / dt)))
     scales = _mean_scales(n, w)
     tests = 1 + len(scales)
-    s, med, level_emp, level = _norm_statistic(residual_nT, w, tests, cfg)
+    # the spread of a mean over the smoothing width: both statistics' noise model
+    cov_w = block_mean_cov(residual_nT, w)
+    s, med, level_emp, level = _norm_statistic(residual_nT, w, cov_w, tests, cfg)
     wins = _windows(_excess_runs(s, med, level_emp, level), t_s, w)
     if wins:
         return wins
@@ -266,7 +268,7 @@ def scan_windows(
         # over seconds), and the moving mean of such a residual is no held offset either
         return []
     # only then: the mean scan's windows would otherwise crowd the few refits of each round
-    for wk, cov in zip(scales, _mean_spreads(residual_nT, w, scales), strict=True):
+    for wk, cov in zip(scales, _mean_spreads(residual_nT, w, cov_w, scales), strict=True):
         sv, med_v, lev_v, lev_c = _mean_statistic(residual_nT, wk, cov, tests, cfg)
         wins = _windows(_excess_runs(sv, med_v, lev_v, lev_c), t_s, w)
         if wins:
@@ -299,8 +301,8 @@ def _moving_mean(x: np.ndarray, w: int) -> np.ndarray:
     return np.asarray((c[hi] - c[lo]) / (span if x.ndim == 1 else span[:, None]))
 
 
-def _norm_statistic(r: np.ndarray, w: int, tests: int, cfg: DiagnoseConfig
-                    ) -> tuple[np.ndarray, float, float, float]:
+def _norm_statistic(r: np.ndarray, w: int, cov_w: np.ndarray, tests: int,
+                    cfg: DiagnoseConfig) -> tuple[np.ndarray, float, float, float]:
     """Smooth the squared norm; return it, its median, empirical level and noise level.
 
     The moving mean of ``z = |r|^2 / (3 sigma^2)`` over ``w`` samples is, for Gaussian noise,
@@ -316,7 +318,6 @@ def _norm_statistic(r: np.ndarray, w: int, tests: int, cfg: DiagnoseConfig
     s = _moving_mean(z, w)
     med = float(np.median(s))
     mad = float(1.4826 * np.median(np.abs(s - med))) + 1e-12
-    cov_w = block_mean_cov(r, w)
     # (a bound: squares are less correlated than the residual itself)
     nu = 3.0 * _directions(cov_w) * sig * sig / max(float(np.trace(cov_w)), 1e-30)
     level_emp = max(med + cfg.scan_sigma * mad, med + 2.0)
@@ -324,19 +325,19 @@ def _norm_statistic(r: np.ndarray, w: int, tests: int, cfg: DiagnoseConfig
     return s, med, level_emp, max(level_emp, level)
 
 
-def _mean_spreads(r: np.ndarray, w: int, scales: list[int]) -> list[np.ndarray]:
+def _mean_spreads(r: np.ndarray, w: int, cov_w: np.ndarray, scales: list[int]
+                  ) -> list[np.ndarray]:
     """Covariance of a mean over each of ``scales`` samples of ``r`` under noise alone.
 
-    Measured at the smoothing width ``w`` (:func:`block_mean_cov`), where a recording holds
-    many blocks and an event held for seconds disturbs few of their differences, and carried
-    to a wider mean as ``w / wk`` times the variance inflation the wider blocks show beyond
-    that (a residual correlated over longer than ``w``: the mean of a wider window varies
-    more than ``w / wk`` says). The inflation is measured where the recording holds
-    ``4 BLOCK_LAG`` blocks of the width; wider, the widest measured one is kept (the residual
-    assumed correlated over less than a sixteenth of the recording). It never falls with
-    the width, as for any positively correlated noise.
+    Measured at the smoothing width ``w`` (``cov_w``, :func:`block_mean_cov`), where a
+    recording holds many blocks and an event held for seconds disturbs few of their
+    differences, and carried to a wider mean as ``w / wk`` times the variance inflation the
+    wider blocks show beyond that (a residual correlated over longer than ``w``: the mean of
+    a wider window varies more than ``w / wk`` says). The inflation is measured where the
+    recording holds ``4 BLOCK_LAG`` blocks of the width; wider, the widest measured one is
+    kept (the residual assumed correlated over less than a sixteenth of the recording). It
+    never falls with the width, as for any positively correlated noise.
     """
-    cov_w = block_mean_cov(r, w)
     tr_w = max(w * float(np.trace(cov_w)), 1e-300)
     out, inflation = [], 1.0
     for wk in scales:
