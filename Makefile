@@ -11,8 +11,8 @@ FRESH   ?= /tmp/magalign-fresh
 .PHONY: setup process test test-fresh bench golden lint typecheck clean chromium
 
 # The program's bytecode, written ahead: where PYTHONDONTWRITEBYTECODE is set, every command
-# (and the suite starts hundreds) would otherwise compile the modules it imports, 0.3 s each
-# time for `process`. Files already compiled and unchanged are skipped.
+# (and the suite starts hundreds) would otherwise compile the modules it imports anew.
+# Files already compiled and unchanged are skipped.
 COMPILE = $(BIN)/python -m compileall -q pipeline stages
 
 $(STAMP): pyproject.toml

@@ -1,7 +1,7 @@
 """A magnet fixed to the platform 1-5 cm from the sensor: one constant offset, named and measured.
 
-Issue 37: a real recording with a magnet fixed 4 cm from the sensor ended ``diagnose`` in a
-traceback. A magnet that turns with the sensor adds, whatever its distance, a constant
+A real recording with a magnet fixed 4 cm from the sensor must end as any other does. A
+magnet that turns with the sensor adds, whatever its distance, a constant
 offset in the sensor's frame: a hard iron, here of 20-100 uT, up to twice the Earth's field.
 The independent generator (``tests/indep_gen.py``, no magalign model code) writes the
 dipole's field at the sensor as that offset; the diagnosis must end, name the hard iron
