@@ -35,9 +35,9 @@ from stages.diagnose.sources import rivals as source_rivals
 from stages.diagnose.sources import with_values
 from stages.diagnose.statistics import (
     ScoreTest,
-    bic,
-    bic_between,
     effective_samples,
+    evidence,
+    evidence_between,
     heldout_ok,
     heldout_rms,
     rest_score_test,
@@ -255,7 +255,7 @@ def simplest(cur: FitResult, cv_cur: float, findings: list[Finding], data: FitDa
 
     Each description is refitted with the rest of the model and compared with the current
     model by BIC with one effective sample count
-    (:func:`~stages.diagnose.statistics.bic_between`): a simpler description is kept when
+    (:func:`~stages.diagnose.statistics.evidence_between`): a simpler description is kept when
     it loses no more than ``bic_margin``, a richer one (as many parameters in more terms)
     when it gains the margin and predicts the held-out blocks better as a new term must
     (:func:`~stages.diagnose.statistics.heldout_ok`). A term of a kind already in the model
@@ -277,7 +277,7 @@ def simplest(cur: FitResult, cv_cur: float, findings: list[Finding], data: FitDa
                 res = fit(s.state(cur.state), data)
                 simpler = _simpler(res, cur)
                 limit = cfg.bic_margin if simpler else -cfg.bic_margin
-                if bic_between(res, cur, data) > limit or (
+                if evidence_between(res, cur, data) > limit or (
                         not simpler and heldout_ok(cur, res, data, cfg, cv_cur) is None):
                     continue
                 return res, _described(cur, findings, s, dropped)
@@ -341,8 +341,8 @@ def earns_beside_lookalikes(with_term: FitResult, without: FitResult, i: int, da
     fixed = fit(dataclasses.replace(with_term.state, terms=tuple(terms), values=tuple(vals)),
                 data)
     n = min(effective_samples(fixed, data), effective_samples(without, data))
-    return bic(fixed.rss, n, with_term.state.n_free()) - bic(
-        without.rss, n, without.state.n_free()) <= -cfg.bic_margin
+    return evidence(with_term, data, n, rss=fixed.rss) - evidence(
+        without, data, n) <= -cfg.bic_margin
 
 
 #: Rivals: terms that could replace a new term of a kind in its place, over the windows
@@ -372,7 +372,7 @@ def told_apart(cur: FitResult, res: FitResult, data: FitData) -> tuple[str, floa
     parts, worst, better = [], np.inf, []
     for alt, what in rivals:
         other = fit(cur.state.with_term(alt), data)
-        d = bic_between(other, res, data)
+        d = evidence_between(other, res, data)
         worst = min(worst, d)
         if d < 0:
             better.append(alt)
@@ -448,7 +448,7 @@ def keeps_margin_beside(by: FitResult, res: FitResult, data: FitData,
     :func:`explained_by_refinement`.
     """
     both = fit(with_values(res.state.terms[-1], res.state.values[-1], by), data)
-    return bic_between(both, by, data) <= -cfg.bic_margin
+    return evidence_between(both, by, data) <= -cfg.bic_margin
 
 
 def absorbed(by: FitResult, res: FitResult, data: FitData, cfg: DiagnoseConfig) -> bool:

@@ -66,11 +66,12 @@ from stages.diagnose.sources import (
 from stages.diagnose.statistics import (
     INTERP_MARGIN,
     ScoreTest,
-    bic,
     effective_samples,
+    evidence,
     heldout_ok,
     heldout_rms,
     interp_reason,
+    occam,
     param_covariance,
     robust_sigma,
     score_test,
@@ -194,13 +195,13 @@ def _ramp_fit(cur: FitResult, i: int, term: Term, data: FitData, cfg: DiagnoseCo
     if not res.rss < cur.rss:
         return None
     n_eff = effective_samples(res, data)
-    dbic = bic(res.rss, n_eff, res.state.n_free()) - bic(cur.rss, n_eff,
-                                                              cur.state.n_free())
+    dbic = evidence(res, data, n_eff) - evidence(cur, data, n_eff)
     if dbic > -cfg.bic_margin:
         return None
     s2 = robust_sigma(cur.residual_nT) ** 2
     k = term.n_params() - cur.state.terms[i].n_params()
-    return float(dbic), ScoreTest(term, float((cur.rss - res.rss) / s2), 1.0, k), res
+    cost = occam(res, data, n_eff) - occam(cur, data, n_eff)
+    return float(dbic), ScoreTest(term, float((cur.rss - res.rss) / s2), 1.0, k, cost), res
 
 
 def _excess_runs(s: np.ndarray, med: float, level: float, open_level: float | None = None
@@ -636,7 +637,7 @@ class _Search:
                     "would trade against the misalignment; rotate through more attitudes"
                 )
             if (reason is None and st.statistic < INTERP_MARGIN**2 * st.interp_statistic
-                    and st.statistic > st.k * np.log(self.cur.residual_nT.size)):
+                    and st.statistic > st.penalty):
                 # it would have been tried, but the interpolation error could produce it
                 reason = interp_reason(self.data)
             if reason is not None:
@@ -683,14 +684,13 @@ class _Search:
         Returns the fits that lower the BIC by the margin, the steps whose transition a fit
         replaces (by ``id`` of its test) and the map's fits.
         """
-        n = self.cur.residual_nT.size
-        tests.sort(key=lambda s: -s.statistic + s.k * np.log(n))
+        tests.sort(key=lambda s: -s.statistic + s.penalty)
         # the score test ranks the candidates; the few strongest are refitted and the one
         # with the lowest BIC is the strongest (a score statistic far from the null is only
         # a local approximation when much is still unmodelled)
         fits = []
         for r, st in enumerate(tests[: self.cfg.n_refit]):
-            if -st.statistic + st.k * np.log(n) > 0:
+            if -st.statistic + st.penalty > 0:
                 break
             progress.detail(f"search {len(self.findings) + 1}, refit {r + 1}/{self.cfg.n_refit}",
                             len(self.findings) + 0.5 + 0.5 * r / self.cfg.n_refit, _ROUNDS_SHOWN)
@@ -711,7 +711,7 @@ class _Search:
             replaces[id(rf[1])] = i_step
             fits.append(rf)
         map_fits = []
-        if mc is not None and -mc.test.statistic + mc.test.k * np.log(n) <= 0:
+        if mc is not None and -mc.test.statistic + mc.test.penalty <= 0:
             fr = _refit(self.cur, mc.test.term, self.data, self.cfg)
             if fr is None:
                 self.rejected.add(hypothesis(mc.test.term, present))
@@ -882,8 +882,7 @@ class _Search:
             st_wo = without_term(self.cur.state, i)
             res_wo = fit(st_wo, self.data)
             n_eff = effective_samples(self.cur, self.data)
-            bic_cur = bic(self.cur.rss, n_eff, self.cur.state.n_free())
-            keep = bic_cur - bic(res_wo.rss, n_eff, res_wo.state.n_free())
+            keep = evidence(self.cur, self.data, n_eff) - evidence(res_wo, self.data, n_eff)
             # a term that earned its margin only by trading with a look-alike goes as well
             if keep > -self.cfg.bic_margin or not earns_beside_lookalikes(
                     self.cur, res_wo, i, self.data, self.cfg):
@@ -1078,8 +1077,7 @@ def _chain_evidence(
         term = after.state.terms[-1]
         st = score_test(before, term, data, robust_sigma(before.residual_nT))
         n_eff = effective_samples(after, data)
-        dbic = bic(after.rss, n_eff, after.state.n_free()) - bic(
-            before.rss, n_eff, before.state.n_free())
+        dbic = evidence(after, data, n_eff) - evidence(before, data, n_eff)
         new = _finding(before, after, term, st, float(dbic), cvs[k], cvs[k + 1], data)
         out.append(dataclasses.replace(new, params=fd.params, sigma=fd.sigma,
                                        told_apart=fd.told_apart))
@@ -1101,7 +1099,7 @@ def _replacement_fit(
     if not res.rss < cur.rss:
         return None
     n_eff = effective_samples(res, data)
-    dbic = bic(res.rss, n_eff, res.state.n_free()) - bic(cur.rss, n_eff, cur.state.n_free())
+    dbic = evidence(res, data, n_eff) - evidence(cur, data, n_eff)
     if dbic > -cfg.bic_margin:
         return None
     st = score_test(wo, term, data, robust_sigma(wo.residual_nT))
@@ -1151,7 +1149,7 @@ def _refit(
     if not res.rss < cur.rss:
         return None
     n_eff = effective_samples(res, data)
-    dbic = bic(res.rss, n_eff, res.state.n_free()) - bic(cur.rss, n_eff, cur.state.n_free())
+    dbic = evidence(res, data, n_eff) - evidence(cur, data, n_eff)
     if dbic > -cfg.bic_margin:
         return None
     return res, float(dbic)

@@ -1,8 +1,8 @@
 """The diagnosis statistics.
 
 Score (Lagrange multiplier) tests of candidate terms at the current fit, robust noise and
-its inflation by residual correlation, BIC with effective samples, held-out time blocks,
-the covariance of a fit.
+its inflation by residual correlation, the Laplace evidence with effective samples,
+held-out time blocks, the covariance of a fit.
 """
 
 from __future__ import annotations
@@ -75,6 +75,12 @@ class ScoreTest:
         Smallest generalised eigenvalue of ``I_eff`` vs the term's own information (0: fully
         confounded with parameters already in the model).
     k : int
+        The term's free parameters (a partial term: the combinations the motion determines).
+    penalty : float
+        What the term costs in the statistic's units, its ``-2 log`` Occam factor
+        (:func:`occam`): ``k log n`` under the unit-information prior, less for parameters
+        with a stated prior that the data see only in part (a field map's fine modes). The
+        term is worth a refit when the statistic exceeds it.
     rot_efficiency : float
         The same fraction for the rotation ``R_body_mag`` once the term is in the model, when
         the term at least halves it (else 1): a term that leaves the rotation confounded
@@ -90,6 +96,7 @@ class ScoreTest:
     statistic: float
     efficiency: float
     k: int
+    penalty: float
     rot_efficiency: float = 1.0
     interp_statistic: float = 0.0
 
@@ -222,7 +229,7 @@ def score_from_J(
         X = np.linalg.lstsq(Hbb_n + 1e-12 * np.eye(len(sb)), (Hbc / sb[:, None]), rcond=None)[0]
         xb = np.linalg.lstsq(Hbb_n + 1e-12 * np.eye(len(sb)), gb / sb, rcond=None)[0]
     except np.linalg.LinAlgError:
-        return ScoreTest(term, 0.0, 0.0, term.n_params())
+        return ScoreTest(term, 0.0, 0.0, term.n_params(), term.n_params() * np.log(r.size))
     Ieff = Hcc - (Hbc / sb[:, None]).T @ X
     geff = g - (Hbc / sb[:, None]).T @ xb
     sc = np.sqrt(np.clip(np.diag(Hcc), 1e-30, None))
@@ -255,13 +262,32 @@ def score_from_J(
         xbe = np.linalg.lstsq(Hbb_n + 1e-12 * np.eye(len(sb)), gbe / sb, rcond=None)[0]
         ze = V.T @ ((ge - (Hbc / sb[:, None]).T @ xbe) / sc)
         stat_int = float(np.sum(ze[good] ** 2 / w[good])) / sigma**2
-    k = int(np.count_nonzero(good)) if partial else term.n_params()
+    k = max(int(np.count_nonzero(good)) if partial else term.n_params(), 1)
+    penalty = k * float(np.log(r.size))
+    if prior is not None and np.any(prior > 0):
+        penalty = _prior_penalty(Ieff, geff, prior, k, r.size, sigma)
     # from the blocks already formed (with a field_map's ridge when there is one): the full
     # product of [Jb, Jc] would be the costliest step of the test
     rot_with = _rot_efficiency_H(np.block([[Hbb, Hbc], [Hbc.T, Hcc]]))
     # what the term itself costs the rotation: below 1 when it trades against R
     rot_eff = rot_with if rot_with < 0.5 * rot_base else 1.0
-    return ScoreTest(term, stat, max(eff, 0.0), max(k, 1), rot_eff, stat_int)
+    return ScoreTest(term, stat, max(eff, 0.0), k, penalty, rot_eff, stat_int)
+
+
+def _prior_penalty(Ieff: np.ndarray, geff: np.ndarray, prior: np.ndarray, k: int, n: int,
+                   sigma: float) -> float:
+    """Return the :func:`occam` factor of a candidate with a prior, from its score test.
+
+    ``Ieff`` (k, k): the candidate's information beyond the model's parameters, its prior's
+    ridge ``prior`` included; ``geff`` its gradient there; ``theta`` the one Newton step
+    from zero the score test stands for. Its parameters without a prior cost ``log n``
+    each (:func:`prior_occam` for the others).
+    """
+    A = 0.5 * (Ieff + Ieff.T)
+    theta = np.linalg.lstsq(A, geff, rcond=1e-12)[0]
+    q = prior > 0
+    return (k - int(q.sum())) * float(np.log(n)) + prior_occam(
+        A, prior, theta, np.ones(len(prior), dtype=bool), 1.0, sigma**2)
 
 
 #: A term is named only when its score statistic exceeds this factor squared times the one
@@ -361,21 +387,87 @@ def heldout_ok(
     """Held-out RMS of the model ``res``, or None if it does not improve on ``cur`` enough.
 
     The improvement in chi-square units of the (correlation-discounted) noise must clear the
-    same bar as the BIC: a term that only fits noise does not predict new blocks.
+    same bar as the evidence (the model's :func:`occam` factor and the margin): a term that
+    only fits noise does not predict new blocks.
     """
     cv_new = heldout_rms(res.state, data, cfg)
     n_eff = effective_samples(res, data)
     s2 = res.rss / res.residual_nT.size
-    k = res.state.n_free() - cur.state.n_free()
+    cost = occam(res, data, n_eff) - occam(cur, data, n_eff)
     gain = (cv_old**2 - cv_new**2) * n_eff / s2
-    if cv_new < cv_old * (1.0 - cfg.heldout_margin) and gain >= k * np.log(n_eff) + cfg.bic_margin:
+    if cv_new < cv_old * (1.0 - cfg.heldout_margin) and gain >= cost + cfg.bic_margin:
         return cv_new
     return None
 
 
-def bic(rss: float, n_eff: float, k: int) -> float:
-    """Return the BIC of a fit: ``rss`` (nT^2) over ``n_eff`` samples, ``k`` parameters."""
-    return n_eff * np.log(rss / n_eff) + k * np.log(n_eff)
+def occam(res: FitResult, data: FitData, n_eff: float) -> float:
+    """Return ``-2 log`` of the Occam factor of the model of ``res`` (Laplace's method).
+
+    The evidence of a model is its best fit's likelihood times the Occam factor, the share
+    of its parameters' prior that the data leave standing (MacKay 1992, Bayesian
+    interpolation, section 1; the Laplace approximation, Kass & Raftery 1995, Eq. 4). Each effect states its prior
+    (:meth:`~pipeline.model.effects.base.Effect.prior_precision`):
+
+    - parameters with a prior (``Q``: a field map's weights, a step's transitions, GP
+      priors of stated size): ``log det(I + P^-1 S / c) + theta' P theta / s2``, with ``P``
+      their prior's ridge, ``S`` the information the data hold on them beyond every other
+      parameter (the Schur complement of the fit's information), ``c = n / n_eff`` the
+      residual's correlation inflation (``n`` its entries) and ``s2 = rss / n_eff`` the
+      effective noise. A direction the data do not see costs nothing and gains nothing;
+      a well-seen one costs the log of how much the data narrow its prior;
+    - every other free parameter: the unit-information prior (one effective sample's
+      information, Kass & Wasserman 1995), ``log n_eff`` each: the BIC's count.
+
+    Without a prior in the model this is ``n_free log n_eff`` and the evidence is the BIC.
+    """
+    st = res.state
+    prec = st.prior_precision()
+    k = st.n_free()
+    if prec is None or not np.any(prec > 0):
+        return k * float(np.log(n_eff))
+    fitted = np.ones(prec.size, dtype=bool)
+    if data.B_known_enu_nT is not None:
+        fitted[3:6] = False  # held at the known field: no information, no prior
+    q = prec > 0
+    c = max(res.residual_nT.size / n_eff, 1.0)
+    return (k - int(q.sum())) * float(np.log(n_eff)) + prior_occam(
+        res.info, prec, st.flat_values(), fitted, c, res.rss / n_eff)
+
+
+def prior_occam(H: np.ndarray, prec: np.ndarray, theta: np.ndarray, fitted: np.ndarray,
+                c: float, s2: float) -> float:
+    """Return ``-2 log`` of the Occam factor of the parameters with a prior (Gaussian).
+
+    ``log det(I + P^-1 (S - P) / c) + theta_Q' P theta_Q / s2`` (:func:`occam`): ``H`` (P, P)
+    the posterior's information ``J' W J + diag(prec)``, ``prec`` (P,) the prior's ridge
+    (zero: no prior), ``theta`` (P,) the fit, ``fitted`` (P,) the parameters the fit moves,
+    ``S`` the Schur complement of ``H`` on the parameters with a prior given the other
+    fitted ones. For a linear model with Gaussian noise of variance ``s2`` and ``c = 1``
+    this with ``rss / s2 + n log(2 pi s2)`` is the exact ``-2 log`` marginal likelihood.
+    """
+    q = prec > 0
+    o = fitted & ~q
+    S = H[np.ix_(q, q)]
+    if np.any(o):
+        Hoq = H[np.ix_(o, q)]
+        S = S - Hoq.T @ np.linalg.lstsq(H[np.ix_(o, o)], Hoq, rcond=1e-12)[0]
+    P = prec[q]
+    A = ((S - np.diag(P)) / c) / np.sqrt(np.outer(P, P)) + np.eye(int(q.sum()))
+    sign, logdet = np.linalg.slogdet(0.5 * (A + A.T))
+    t = theta[q]
+    return (float(logdet) if sign > 0 else 0.0) + float(np.sum(P * t * t)) / max(s2, 1e-300)
+
+
+def evidence(res: FitResult, data: FitData, n_eff: float, rss: float | None = None) -> float:
+    """Return ``-2 log`` of the Laplace evidence of the model of ``res``, up to a constant.
+
+    The noise profiled out over ``n_eff`` effective samples (``n_eff log(rss / n_eff)``)
+    plus the :func:`occam` factor; without any prior in the model, the BIC. ``rss``: the
+    model's parameters judged at another fit's residual (its look-alikes held, nested.
+    earns_beside_lookalikes); default that of ``res``.
+    """
+    rss = res.rss if rss is None else rss
+    return n_eff * float(np.log(rss / n_eff)) + occam(res, data, n_eff)
 
 
 def effective_samples(res: FitResult, data: FitData) -> float:
@@ -383,15 +475,16 @@ def effective_samples(res: FitResult, data: FitData) -> float:
     return res.residual_nT.size / inflation(res.residual_nT, data.t_s)
 
 
-def bic_between(a: FitResult, b: FitResult, data: FitData) -> float:
-    """BIC of fit ``a`` minus BIC of fit ``b``, both with one effective sample count.
+def evidence_between(a: FitResult, b: FitResult, data: FitData) -> float:
+    """:func:`evidence` of fit ``a`` minus that of ``b``, both with one effective sample count.
 
-    Each candidate's delta BIC is discounted by the correlation of its own residual; two
+    Each candidate's evidence is discounted by the correlation of its own residual; two
     candidates are compared with the smaller of their two counts (the conservative one), so
-    the difference measures their fits and parameter counts, not their residuals' texture.
+    the difference measures their fits and their Occam factors, not their residuals'
+    texture.
     """
     n = min(effective_samples(a, data), effective_samples(b, data))
-    return bic(a.rss, n, a.state.n_free()) - bic(b.rss, n, b.state.n_free())
+    return evidence(a, data, n) - evidence(b, data, n)
 
 
 def rest_score_test(kind: EffectKind) -> Callable[[FitResult, FitData, float], ScoreTest]:
@@ -415,7 +508,8 @@ def rest_score_test(kind: EffectKind) -> Callable[[FitResult, FitData, float], S
         J = J.reshape(-1, J.shape[-1])
         p0 = cur.state.n_params()
         Jt = np.concatenate([J[:, :p0], J[:, p0:] @ basis.T], axis=1)
-        return dataclasses.replace(score_from_J(cur, term, Jt, data, sigma), k=len(basis))
+        return dataclasses.replace(score_from_J(cur, term, Jt, data, sigma), k=len(basis),
+                                   penalty=len(basis) * float(np.log(J.shape[0])))
 
     return test
 
