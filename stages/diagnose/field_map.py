@@ -19,7 +19,8 @@ al. 2018; the forward model and restore use the same one). Here:
   parameters are at their optimum), and the held-out error of the folds summed. The
   complexity with the lowest held-out error is the candidate; it is offered only if that
   error is below the current model's. The search then refits it and keeps it by the gates
-  every term has (BIC margin, held-out RMS of :func:`~stages.diagnose.statistics.heldout_rms`).
+  every term has (the evidence's margin, held-out RMS of
+  :func:`~stages.diagnose.statistics.heldout_rms`).
 - **Identifiability.** A map along a path that visits every place once is any function of
   time: it would fit a disturbance or a drift. A complexity is tried only when at least half
   the samples have the sensor within its length scale of them at another time, at least
@@ -53,8 +54,8 @@ from stages.diagnose.statistics import ScoreTest, fold_of, score_from_J
 #: Complexities tried: modes along the box's longest axis.
 COMPLEXITIES = (2, 3, 4, 5, 6, 7, 8)
 
-#: Most basis functions of a candidate: the fit's cost grows with their square and the BIC
-#: counts each (a cube at complexity 4 has 64, a flat survey at complexity 8 about 60).
+#: Most basis functions of a candidate: the fit's cost grows with their square (a cube at
+#: complexity 4 has 64, a flat survey at complexity 8 about 60).
 MAX_BASIS = 64
 
 #: At least this many samples per basis function.

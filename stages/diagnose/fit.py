@@ -63,7 +63,7 @@ class FitResult:
 #: A fit has converged when an accepted step lowers the sum of squares by less than this many
 #: samples' variance (a thousandth of one chi-square unit): near the minimum Gauss-Newton's
 #: next steps gain less still, so every parameter is within a few hundredths of its sigma of
-#: the optimum, far inside what any sigma, BIC margin or held-out test resolves.
+#: the optimum, far inside what any sigma, evidence margin or held-out test resolves.
 CONVERGED_CHI2 = 1e-3
 
 
@@ -162,7 +162,7 @@ def _fit_with_prior(state: ModelState, resid: Any, update: Any, prec: F64, max_i
     The ridge is the GP prior of the map's weights (:meth:`ModelState.prior_precision`): it
     makes the fit well posed where the path leaves combinations of the basis unobserved.
     The normal equations returned are the posterior's (``J.T J + diag(prec)``), the RSS
-    the data's alone (the BIC and held-out errors compare fits of the data).
+    the data's alone (the evidence and held-out errors compare fits of the data).
     """
 
     def linearise(st: ModelState, with_normal: bool) -> Linearised:

@@ -470,7 +470,12 @@ class ModelState:
         return frozenset(k for k in kinds if EFFECTS[k].shares_with in kinds)
 
     def n_free(self) -> int:
-        """Free parameters (the BIC's count): :meth:`n_params` less the shared directions."""
+        """Free parameters, :meth:`n_params` less the shared directions.
+
+        The count of the unit-information prior (``log n_eff`` each,
+        :func:`~stages.diagnose.statistics.occam`) and of Occam's razor between two
+        descriptions (nested.simplest).
+        """
         return self.n_params() - sum(_shared_dimensions(k) for k in self.gauged())
 
     def canonical(self) -> ModelState:

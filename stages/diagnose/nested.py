@@ -6,8 +6,8 @@ turned about Up, a heading drift; a disturbance free in ENU over a window is, wh
 platform holds its attitude, one offset in the sensor's frame, a ``hard_iron_step``; two
 abutting steps are one step with a second offset beside it. Each kind of term declares its
 nested descriptions here (:data:`NESTED`); the search has one move for all of them
-(:func:`simplest`): a description that loses no more than the BIC margin replaces what it
-is nested in (the simpler of a nested pair, Occam's razor with one criterion).
+(:func:`simplest`): a description that loses no more than the evidence's margin replaces
+what it is nested in (the simpler of a nested pair, Occam's razor with one criterion).
 """
 
 from __future__ import annotations
@@ -254,7 +254,7 @@ def simplest(cur: FitResult, cv_cur: float, findings: list[Finding], data: FitDa
     """Replace the first term that another description explains better, by Occam's razor.
 
     Each description is refitted with the rest of the model and compared with the current
-    model by BIC with one effective sample count
+    model by their evidence with one effective sample count
     (:func:`~stages.diagnose.statistics.evidence_between`): a simpler description is kept when
     it loses no more than ``bic_margin``, a richer one (as many parameters in more terms)
     when it gains the margin and predicts the held-out blocks better as a new term must
@@ -324,7 +324,7 @@ def earns_beside_lookalikes(with_term: FitResult, without: FitResult, i: int, da
     ``without``: the same model without term ``i`` (the others in the same order), refitted.
     The terms of the kinds term ``i`` can trade with (:data:`LOOKALIKES`) are fixed at their
     values in ``without`` (a partial term with no combination fitted) and the rest refitted;
-    a term that is there still lowers the BIC by the margin at its own parameters (the count
+    a term that is there still raises the evidence by the margin at its own parameters (the count
     of ``with_term``), both with the smaller effective sample count; one that gained only by
     moving a look-alike along what the two share does not. A term without look-alikes in
     the model passes.
@@ -352,7 +352,7 @@ def earns_beside_lookalikes(with_term: FitResult, without: FitResult, i: int, da
 RIVALS: dict[EffectKind, Callable[[FitResult, FitData], tuple[str, list[tuple[Term, str]]]]]
 RIVALS = {EffectKind.LOCAL_SOURCE: source_rivals}
 
-#: A term with rivals is named only when each fits worse by this many times the BIC margin:
+#: A term with rivals is named only when each fits worse by this many times the margin:
 #: a short pass near an object makes a source, a step and a disturbance nearly equal.
 DECISIVE_FACTOR = 5.0
 
@@ -361,8 +361,8 @@ def told_apart(cur: FitResult, res: FitResult, data: FitData) -> tuple[str, floa
     """Compare the new last term of ``res`` with each of its rivals in its place.
 
     Each rival (:data:`RIVALS`) is fitted in place of the new term on ``cur`` and compared
-    by BIC with one effective sample count. Returns the words on the comparison, the
-    smallest BIC difference (how decisively the term wins; infinite without rivals) and the
+    by their evidence with one effective sample count. Returns the words on the comparison,
+    the smallest difference (how decisively the term wins; infinite without rivals) and the
     rivals that fit better than the term.
     """
     kind = res.state.terms[-1].kind
@@ -376,8 +376,9 @@ def told_apart(cur: FitResult, res: FitResult, data: FitData) -> tuple[str, floa
         worst = min(worst, d)
         if d < 0:
             better.append(alt)
-        parts.append(f"{what} fits worse by {d:.0f} in BIC" if d > 0
-                     else f"{what} fits as well (BIC {d:.0f}): the pass is too short to tell")
+        parts.append(f"{what} is less likely by {d:.0f} in -2 log evidence" if d > 0
+                     else f"{what} is as likely ({d:.0f} in -2 log evidence): the pass is too "
+                     "short to tell")
     return ". " + intro + "; " + "; ".join(parts), float(worst), better
 
 
@@ -429,7 +430,7 @@ def explained_by_refinement(rich: FitResult, res: FitResult, data: FitData,
     disturbance's margin, and which complexity won would decide whether it is named (an
     injected offset that tipped the choice made a step appear). The new term is the held
     term's when, added to the refined model at its fitted values, it no longer lowers the
-    BIC by the margin, and the refined model predicts the held-out blocks no worse than the
+    evidence by the margin, and the refined model predicts the held-out blocks no worse than the
     current one (within ``heldout_margin``). A magnet's step where the sensor came back
     without it keeps its margin beside any map.
     """
@@ -441,7 +442,7 @@ def explained_by_refinement(rich: FitResult, res: FitResult, data: FitData,
 
 def keeps_margin_beside(by: FitResult, res: FitResult, data: FitData,
                         cfg: DiagnoseConfig) -> bool:
-    """Whether the last term of ``res`` still lowers the BIC by the margin beside ``by``.
+    """Whether the last term of ``res`` still raises the evidence by the margin beside ``by``.
 
     The term is added to ``by`` at the values it was fitted with, the two are refitted and
     compared with one effective sample count: the one test behind :func:`absorbed` and

@@ -142,12 +142,13 @@ class DiagnoseConfig:
     block_s : float
         Length of one contiguous held-out block, s.
     bic_margin : float
-        Required decrease of the (correlation-discounted) BIC.
+        Required decrease of ``-2 log`` of the (correlation-discounted) Laplace evidence
+        (the BIC's name kept: without priors it is the BIC).
     heldout_margin : float
         Required relative decrease of the held-out RMS.
     max_findings : int
         Most rounds of the forward search that name a term. A bound on the work, not a
-        prior: the BIC and the held-out blocks decide what is named. Set above what the
+        prior: the evidence and the held-out blocks decide what is named. Set above what the
         real recordings need (at most 5 terms from the search), so that an event added to
         a recording cannot push out its last term: pieces of a magnet named while the map
         was still missing are merged and dropped once the map is in.

@@ -1,7 +1,7 @@
 """The diagnosis search.
 
 From the baseline model, the strongest candidate term is refitted and kept when it lowers
-the BIC and the held-out error, until nothing qualifies (``diagnose_data``); effects local
+the evidence and the held-out error, until nothing qualifies (``diagnose_data``); effects local
 in time are located first by a scan of the robust residual norm (``scan_windows``).
 """
 
@@ -182,10 +182,10 @@ def _ramp_fit(cur: FitResult, i: int, term: Term, data: FitData, cfg: DiagnoseCo
               ) -> tuple[float, ScoreTest, FitResult] | None:
     """Refit with step ``i`` replaced by ``term`` (the same magnet with a transition).
 
-    Returns ``(delta BIC against the current model, statistic, fit)`` with the new step last,
-    when it lowers the BIC by ``bic_margin``; else None. The statistic is the likelihood
-    ratio ``(RSS_cur - RSS_new) / sigma^2`` (the score test needs the step at zero, which a
-    transition of a step in the model is not).
+    Returns ``(delta -2 log evidence against the current model, statistic, fit)`` with the new
+    step last, when it raises the evidence by ``bic_margin``; else None. The statistic is the
+    likelihood ratio ``(RSS_cur - RSS_new) / sigma^2`` (the score test needs the step at zero,
+    which a transition of a step in the model is not).
     """
     wo = without_term(cur.state, i)
     start = np.zeros(term.n_params())
@@ -681,12 +681,12 @@ class _Search:
                 ) -> tuple[list, dict[int, int], list]:
         """Refit the strongest candidates.
 
-        Returns the fits that lower the BIC by the margin, the steps whose transition a fit
+        Returns the fits that raise the evidence by the margin, the steps whose transition a fit
         replaces (by ``id`` of its test) and the map's fits.
         """
         tests.sort(key=lambda s: -s.statistic + s.penalty)
         # the score test ranks the candidates; the few strongest are refitted and the one
-        # with the lowest BIC is the strongest (a score statistic far from the null is only
+        # with the most evidence is the strongest (a score statistic far from the null is only
         # a local approximation when much is still unmodelled)
         fits = []
         for r, st in enumerate(tests[: self.cfg.n_refit]):
@@ -1021,7 +1021,7 @@ def gradient_note(cur: FitResult, data: FitData, not_ident: dict[str, str]) -> s
         )
     return (
         "The recording carries positions: a spatial field gradient was tested and did not "
-        "lower both the BIC and the held-out error, so this is a change in time rather than "
+        "raise the evidence and lower the held-out error, so this is a change in time rather than "
         "the field varying along the sensor's path"
     )
 
@@ -1089,9 +1089,9 @@ def _replacement_fit(
 ) -> tuple[float, ScoreTest, FitResult] | None:
     """Replace the nested ``simple`` term of the model by ``term``, which contains it.
 
-    Returns ``(delta BIC against the current model, score test, fit)`` when the replacement
-    lowers the BIC by ``bic_margin`` (the extra parameters counted), else None. The score test
-    is made against the model without ``simple``.
+    Returns ``(delta -2 log evidence against the current model, score test, fit)`` when the
+    replacement raises the evidence by ``bic_margin`` (the extra parameters counted), else
+    None. The score test is made against the model without ``simple``.
     """
     i = next(k for k, t in enumerate(cur.state.terms) if t.kind is simple)
     wo = fit(without_term(cur.state, i), data)
@@ -1139,7 +1139,7 @@ def _refit(
     cur: FitResult, term: Term, data: FitData, cfg: DiagnoseConfig,
     start: ModelState | None = None,
 ) -> tuple[FitResult, float] | None:
-    """Refit with ``term``; return (fit, delta BIC) if the BIC drops by ``bic_margin``.
+    """Refit with ``term``; return (fit, delta -2 log evidence) if it drops by ``bic_margin``.
 
     ``start``: the state the fit starts from (``term`` appended with its start values);
     default ``term`` appended at zero.

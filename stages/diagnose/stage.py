@@ -4,10 +4,11 @@ Starting from the baseline model (misalignment ``R_body_mag`` and field ``B_enu`
 candidate effect of :mod:`stages.diagnose.model` is tested with a score (Lagrange multiplier) test
 at the current fit: the gradient and the information of the added parameters at zero, with
 the parameters already in the model profiled out (Schur complement), no refit. The strongest
-candidate is refitted and kept only if it lowers the BIC (with the sample count discounted
-for residual correlation) **and** the error on held-out time blocks; then the loop repeats
-until nothing qualifies. Effects local in time (``disturbance``, ``hard_iron_step``) are
-located first by a scan of the robust residual norm; their windows become candidate terms.
+candidate is refitted and kept only if it raises the Laplace evidence (the sample count
+discounted for residual correlation, :func:`~stages.diagnose.statistics.occam`) **and**
+lowers the error on held-out time blocks; then the loop repeats until nothing qualifies.
+Effects local in time (``disturbance``, ``hard_iron_step``) are located first by a scan of
+the robust residual norm; their windows become candidate terms.
 Terms the motion cannot determine go to ``not_identifiable`` with the reason.
 """
 
@@ -194,7 +195,7 @@ def _positions_at(recording: Recording, t_ns: np.ndarray) -> np.ndarray | None:
     """Positions at the magnetometer stamps (N, 3), m, NaN where unknown; None when unused.
 
     Samples without a position (lost markers: NaN rows, or gaps longer than 0.1 s) are
-    left out of the diagnosis, for every model alike so that the BIC and held-out errors
+    left out of the diagnosis, for every model alike so that the evidence and held-out errors
     compare the same samples. When fewer than :data:`MIN_POSITION_COVERAGE` of the samples
     have a position, the positions are not used at all (``field_gradient`` is then not
     identifiable: no positions).
@@ -353,7 +354,7 @@ def sample_hold_finding(
                    1 - p["repeated_fraction"]) / len(mag_t)))},
         evidence={
             # no parameter is added: the in-sample RSS over the messages cannot rise or fall
-            # by fitting, so the statistic and the BIC change are those of the held-out error
+            # by fitting, so the statistic and the evidence's change are those of the held-out error
             "statistic": float((cv_old**2 - cv_new**2) * n_eff / s2),
             "delta_bic": float(n_eff * np.log(max(cv_new, 1e-30) ** 2 / max(cv_old, 1e-30) ** 2)),
             "rms_before_nT": res.rms_nT,

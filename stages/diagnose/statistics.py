@@ -109,7 +109,7 @@ def gradient_candidate(cur: FitResult, data: FitData, sigma: float) -> ScoreTest
     three evaluations give them for every yaw; the score statistic is maximised over a
     10-degree grid and refined by a parabola through the best grid point. The yaw is then
     held (like the window of a local term); the search costs about one degree of freedom,
-    well inside the BIC margin.
+    well inside the evidence's margin.
     """
     if data.position_frame != "attitude_source_local":
         return score_test(cur, Term(EffectKind.FIELD_GRADIENT), data, sigma)
@@ -405,16 +405,17 @@ def occam(res: FitResult, data: FitData, n_eff: float) -> float:
 
     The evidence of a model is its best fit's likelihood times the Occam factor, the share
     of its parameters' prior that the data leave standing (MacKay 1992, Bayesian
-    interpolation, section 1; the Laplace approximation, Kass & Raftery 1995, Eq. 4). Each effect states its prior
-    (:meth:`~pipeline.model.effects.base.Effect.prior_precision`):
+    interpolation, section 1; the Laplace approximation, Kass & Raftery 1995, Eq. 4). Each
+    effect states its prior (:meth:`~pipeline.model.effects.base.Effect.prior_precision`):
 
     - parameters with a prior (``Q``: a field map's weights, a step's transitions, GP
       priors of stated size): ``log det(I + P^-1 S / c) + theta' P theta / s2``, with ``P``
       their prior's ridge, ``S`` the information the data hold on them beyond every other
       parameter (the Schur complement of the fit's information), ``c = n / n_eff`` the
-      residual's correlation inflation (``n`` its entries) and ``s2 = rss / n_eff`` the
-      effective noise. A direction the data do not see costs nothing and gains nothing;
-      a well-seen one costs the log of how much the data narrow its prior;
+      residual's correlation inflation (``n`` its entries) and ``s2 = rss / n`` its
+      variance per entry, the noise each ridge is weighed against (the GP's ``noise_nT``).
+      A direction the data do not see costs nothing and gains nothing; a well-seen one
+      costs the log of how much the data narrow its prior;
     - every other free parameter: the unit-information prior (one effective sample's
       information, Kass & Wasserman 1995), ``log n_eff`` each: the BIC's count.
 
@@ -431,7 +432,7 @@ def occam(res: FitResult, data: FitData, n_eff: float) -> float:
     q = prec > 0
     c = max(res.residual_nT.size / n_eff, 1.0)
     return (k - int(q.sum())) * float(np.log(n_eff)) + prior_occam(
-        res.info, prec, st.flat_values(), fitted, c, res.rss / n_eff)
+        res.info, prec, st.flat_values(), fitted, c, res.rss / res.residual_nT.size)
 
 
 def prior_occam(H: np.ndarray, prec: np.ndarray, theta: np.ndarray, fitted: np.ndarray,
@@ -442,8 +443,10 @@ def prior_occam(H: np.ndarray, prec: np.ndarray, theta: np.ndarray, fitted: np.n
     the posterior's information ``J' W J + diag(prec)``, ``prec`` (P,) the prior's ridge
     (zero: no prior), ``theta`` (P,) the fit, ``fitted`` (P,) the parameters the fit moves,
     ``S`` the Schur complement of ``H`` on the parameters with a prior given the other
-    fitted ones. For a linear model with Gaussian noise of variance ``s2`` and ``c = 1``
-    this with ``rss / s2 + n log(2 pi s2)`` is the exact ``-2 log`` marginal likelihood.
+    fitted ones, ``c`` the residual's correlation inflation, ``s2`` the noise variance the
+    ridge is weighed against (``prec = s2 / var``). For a linear model with white Gaussian
+    noise of variance ``s2`` (``c = 1``) this with ``rss / s2 + n log(2 pi s2)`` is the exact
+    ``-2 log`` marginal likelihood.
     """
     q = prec > 0
     o = fitted & ~q
