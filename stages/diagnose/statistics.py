@@ -265,7 +265,10 @@ def score_from_J(
     k = max(int(np.count_nonzero(good)) if partial else term.n_params(), 1)
     penalty = k * float(np.log(r.size))
     if prior is not None and np.any(prior > 0):
-        penalty = _prior_penalty(Ieff, geff, prior, k, r.size, sigma)
+        nb = 3 if data.B_known_enu_nT is not None else 6  # the misalignment and the field
+        Hb0c = Hbc[:nb]
+        Ibase = Hcc - Hb0c.T @ np.linalg.lstsq(Hbb[:nb, :nb], Hb0c, rcond=1e-12)[0]
+        penalty = _prior_penalty(Ieff, geff, Ibase, prior, k, r.size, sigma)
     # from the blocks already formed (with a field_map's ridge when there is one): the full
     # product of [Jb, Jc] would be the costliest step of the test
     rot_with = _rot_efficiency_H(np.block([[Hbb, Hbc], [Hbc.T, Hcc]]))
@@ -274,20 +277,20 @@ def score_from_J(
     return ScoreTest(term, stat, max(eff, 0.0), k, penalty, rot_eff, stat_int)
 
 
-def _prior_penalty(Ieff: np.ndarray, geff: np.ndarray, prior: np.ndarray, k: int, n: int,
-                   sigma: float) -> float:
+def _prior_penalty(Ieff: np.ndarray, geff: np.ndarray, Ibase: np.ndarray, prior: np.ndarray,
+                   k: int, n: int, sigma: float) -> float:
     """Return the :func:`occam` factor of a candidate with a prior, from its score test.
 
     ``Ieff`` (k, k): the candidate's information beyond the model's parameters, its prior's
-    ridge ``prior`` included; ``geff`` its gradient there; ``theta`` the one Newton step
-    from zero the score test stands for. Its parameters without a prior cost ``log n``
-    each (:func:`prior_occam` for the others).
+    ridge ``prior`` included, and ``geff`` its gradient there: ``theta`` is the one Newton
+    step from zero the score test stands for. ``Ibase``: its information beyond the
+    misalignment and the field only, what :func:`occam` charges it for. Its parameters
+    without a prior cost ``log n`` each (:func:`prior_occam` for the others).
     """
-    A = 0.5 * (Ieff + Ieff.T)
-    theta = np.linalg.lstsq(A, geff, rcond=1e-12)[0]
+    theta = np.linalg.lstsq(0.5 * (Ieff + Ieff.T), geff, rcond=1e-12)[0]
     q = prior > 0
     return (k - int(q.sum())) * float(np.log(n)) + prior_occam(
-        A, prior, theta, np.ones(len(prior), dtype=bool), 1.0, sigma**2)
+        0.5 * (Ibase + Ibase.T), prior, theta, np.ones(len(prior), dtype=bool), 1.0, sigma**2)
 
 
 #: A term is named only when its score statistic exceeds this factor squared times the one
@@ -410,8 +413,9 @@ def occam(res: FitResult, data: FitData, n_eff: float) -> float:
 
     - parameters with a prior (``Q``: a field map's weights, a step's transitions, GP
       priors of stated size): ``log det(I + P^-1 S / c) + theta' P theta / s2``, with ``P``
-      their prior's ridge, ``S`` the information the data hold on them beyond every other
-      parameter (the Schur complement of the fit's information), ``c = n / n_eff`` the
+      their prior's ridge, ``S`` the information the data hold on them beyond the
+      misalignment and the field (the Schur complement of the fit's information; each term
+      pays for its own, whatever else is in the model), ``c = n / n_eff`` the
       residual's correlation inflation (``n`` its entries) and ``s2 = rss / n`` its
       variance per entry, the noise each ridge is weighed against (the GP's ``noise_nT``).
       A direction the data do not see costs nothing and gains nothing; a well-seen one
@@ -426,13 +430,17 @@ def occam(res: FitResult, data: FitData, n_eff: float) -> float:
     k = st.n_free()
     if prec is None or not np.any(prec > 0):
         return k * float(np.log(n_eff))
-    fitted = np.ones(prec.size, dtype=bool)
+    # the information on them beyond the misalignment and the field only: each term pays for
+    # its own, and a term added beside it (a drift beside a map, sharing directions with it)
+    # never makes it cheaper, as with the BIC's count
+    base = np.zeros(prec.size, dtype=bool)
+    base[:6] = True
     if data.B_known_enu_nT is not None:
-        fitted[3:6] = False  # held at the known field: no information, no prior
+        base[3:6] = False  # held at the known field: no information, no prior
     q = prec > 0
     c = max(res.residual_nT.size / n_eff, 1.0)
     return (k - int(q.sum())) * float(np.log(n_eff)) + prior_occam(
-        res.info, prec, st.flat_values(), fitted, c, res.rss / res.residual_nT.size)
+        res.info, prec, st.flat_values(), base | q, c, res.rss / res.residual_nT.size)
 
 
 def prior_occam(H: np.ndarray, prec: np.ndarray, theta: np.ndarray, fitted: np.ndarray,
