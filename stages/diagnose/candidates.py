@@ -23,9 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
+from pipeline.model.effects import EFFECTS
 from stages.diagnose.fit import FitResult
 from stages.diagnose.model import F64, FitData, ModelState, Term
-from stages.diagnose.nested import MIN_STEP_S
 from stages.diagnose.sources import (
     MAX_NEAR_FAR_RATIO,
     locate_source,
@@ -118,11 +118,11 @@ def _step(cur: FitResult, data: FitData, event: Event) -> list[Candidate]:
     """Offer an offset held where the scan saw it held.
 
     Not at an edge of a step already in the model (its transition), and not for less than
-    :data:`~stages.diagnose.nested.MIN_STEP_S`: that is a bump, not an object left near the
-    sensor.
+    the step's :attr:`~pipeline.model.effects.base.Effect.min_window_s`: that is a bump, not
+    an object left near the sensor.
     """
     a, b = event.held_s
-    if event.edge_of_step or b - a < MIN_STEP_S:
+    if event.edge_of_step or b - a < EFFECTS[EffectKind.HARD_IRON_STEP].min_window_s:
         return []
     return [(Term(EffectKind.HARD_IRON_STEP, (event.held_s,)), None)]
 

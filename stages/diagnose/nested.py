@@ -4,8 +4,10 @@ A term may contain a simpler description of what it fits as a special case: an e
 ``E_s = -tau I`` is a time offset; a field drift along ``(-B_N, B_E, 0)`` is the field
 turned about Up, a heading drift; a disturbance free in ENU over a window is, where the
 platform holds its attitude, one offset in the sensor's frame, a ``hard_iron_step``; two
-abutting steps are one step with a second offset beside it. Each kind of term declares its
-nested descriptions here (:data:`NESTED`); the search has one move for all of them
+abutting steps are one step with a second offset beside it. Each effect declares what it
+contains, describes and merges with (:class:`~pipeline.model.effects.base.Effect`:
+``contains``, ``in_window``, ``merges``, ``shares_with``); :data:`NESTED` turns them into
+descriptions, and the search has one move for all of them
 (:func:`simplest`): a description that loses no more than the evidence's margin replaces
 what it is nested in (the simpler of a nested pair, Occam's razor with one criterion).
 """
@@ -43,14 +45,10 @@ from stages.diagnose.statistics import (
     rest_score_test,
 )
 
-#: Shortest ``hard_iron_step``, s: an object brought near the sensor and left there for a
-#: while. A shorter excess (the closest pass by a magnet in the room, where its dipole
-#: field is least exact; a knock) is no object riding on the platform.
-MIN_STEP_S = 0.5
-
-#: An excess this close to an edge of a ``hard_iron_step`` already in the model is the same
-#: magnet moving (put down, taken away), s: it becomes that step's transition, not a step
-#: of its own; steps whose windows lie closer than this are candidates for one event.
+#: An excess this close to an edge of a windowed term already in the model is the same
+#: object moving (put down, taken away), s: it becomes that term's transition, not a term of
+#: its own; terms whose windows lie closer than this are candidates for one event
+#: (:attr:`~pipeline.model.effects.base.Effect.merges`).
 RAMP_REACH_S = 1.0
 
 
@@ -127,38 +125,41 @@ def _as_kind(kind: EffectKind) -> Callable[[FitResult, int, FitData], Iterator[D
     return gen
 
 
-def _step_in_disturbance(cur: FitResult, i: int, data: FitData) -> Iterator[Description]:
-    """Describe a disturbance as one offset in the sensor's frame over its window.
+def _in_window(cur: FitResult, i: int, data: FitData) -> Iterator[Description]:
+    """Describe a windowed term as one term of the kind its effect names over its window.
 
-    The disturbance's window was widened by a quarter of its length on each side around the
-    scan's excess, so the step's edges are searched over it in the residual without it; an
-    offset held for less than :data:`MIN_STEP_S` is a bump, not an object left near the
-    sensor.
+    (:attr:`~pipeline.model.effects.base.Effect.in_window`: a disturbance fixed in ENU is,
+    where the platform holds its attitude, one offset in the sensor frame.) The term's
+    window was widened by a quarter of its length on each side around the scan's excess, so
+    the edges are searched where a held offset changes in the residual without the term
+    (:func:`refine_step`); a window shorter than the kind's
+    :attr:`~pipeline.model.effects.base.Effect.min_window_s` is a bump, not that effect.
     """
     t = cur.state.terms[i]
-    if len(t.windows_s) != 1:
+    kind = EFFECTS[t.kind].in_window
+    if kind is None or len(t.windows_s) != 1:
         return
     without = fit(without_term(cur.state, i), data)
     a, b = t.windows_s[0]
     w = refine_step((a, b), without.residual_nT, data.t_s, reach_s=0.3 * (b - a) + 1.0)
-    if w[1] - w[0] >= MIN_STEP_S:
-        step = Term(EffectKind.HARD_IRON_STEP, (w,))
-        yield Description.one(i, step, step.null_value())
+    if w[1] - w[0] >= EFFECTS[kind].min_window_s:
+        new = Term(kind, (w,))
+        yield Description.one(i, new, new.null_value())
 
 
-def _one_step_for_two(cur: FitResult, i: int, data: FitData) -> Iterator[Description]:
-    """Step ``i`` and a later step whose windows touch or overlap as one step over both.
+def _one_for_two(cur: FitResult, i: int, data: FitData) -> Iterator[Description]:
+    """Term ``i`` and a later term of its kind whose windows touch or overlap as one term.
 
-    Pieces of one offset that abut along seconds are one event (a magnet moved a little while
-    it rested, or an offset the scan saw in parts). The onset of the earlier and the release
-    of the later are kept as the merged step's transitions; its offset starts at the pieces'
-    duration-weighted mean.
+    (:attr:`~pipeline.model.effects.base.Effect.merges`: pieces of one event.) The onset of
+    the earlier and the release of the later are kept as the merged term's transitions; its
+    start values are the effect's (:meth:`~pipeline.model.effects.base.Effect.merged_start`).
     """
     st = cur.state
+    kind = st.terms[i].kind
     if len(st.terms[i].windows_s) != 1:
         return
     for j in range(i + 1, len(st.terms)):
-        if st.terms[j].kind is not EffectKind.HARD_IRON_STEP or len(st.terms[j].windows_s) != 1:
+        if st.terms[j].kind is not kind or len(st.terms[j].windows_s) != 1:
             continue
         (a_i, b_i), (a_j, b_j) = st.terms[i].windows_s[0], st.terms[j].windows_s[0]
         if a_j - b_i > RAMP_REACH_S or a_i - b_j > RAMP_REACH_S:
@@ -172,11 +173,10 @@ def _one_step_for_two(cur: FitResult, i: int, data: FitData) -> Iterator[Descrip
         if len(ramps) == 2 and ramps[0][1] >= ramps[1][0]:
             continue
         with_ramps = t_f if t_f.ramps_s else t_l
-        term = (Term(EffectKind.HARD_IRON_STEP, ((a, b),)) if not ramps else
+        term = (Term(kind, ((a, b),)) if not ramps else
                 dataclasses.replace(with_ramps, windows_s=((a, b),), ramps_s=ramps))
-        d_i, d_j = max(b_i - a_i, 1e-9), max(b_j - a_j, 1e-9)
-        start = np.zeros(term.n_params())
-        start[:3] = (d_i * st.values[i][:3] + d_j * st.values[j][:3]) / (d_i + d_j)
+        start = EFFECTS[kind].merged_start((st.terms[i], st.values[i]),
+                                           (st.terms[j], st.values[j]), term)
         yield Description.one(i, term, start, also=j)
 
 
@@ -201,12 +201,9 @@ def _shared_part_and_rest(cur: FitResult, i: int, data: FitData) -> Iterator[Des
 
 
 #: Whole terms nested in whole terms: the simpler kind (value) is a special case of the
-#: other (key). A time offset is the isotropic eddy term ``E_s = -tau I``; a heading drift is
-#: a field drift along ``(-B_N, B_E, 0)`` (the field turned about Up).
+#: other (key), :attr:`~pipeline.model.effects.base.Effect.contains`.
 NESTED_SIMPLER: dict[EffectKind, EffectKind] = {
-    EffectKind.EDDY_CURRENT: EffectKind.TIME_OFFSET,
-    EffectKind.FIELD_DRIFT: EffectKind.HEADING_DRIFT,
-}
+    kind: eff.contains for kind, eff in EFFECTS.items() if eff.contains is not None}
 
 #: Kinds that are a sum of named terms: how a fitted term splits into them, and the score
 #: test of the rest when its simpler part is already in the model (an eddy term beside a
@@ -218,16 +215,30 @@ IN_PARTS: dict[EffectKind, tuple[Callable[[FitResult, int, FitData], Iterator[De
     for kind, eff in EFFECTS.items() if eff.shares_with is not None
 }
 
-#: The other descriptions each kind of term has, tried in this order: the simpler special
-#: cases it contains, then the term in parts (an eddy term as a lag and its traceless rest).
+
+def _descriptions(kind: EffectKind) -> tuple[
+        Callable[[FitResult, int, FitData], Iterator[Description]], ...]:
+    """Return the other descriptions a term of ``kind`` has, in the order they are tried.
+
+    From its effect's declarations: the simpler special case it contains, the term over its
+    window as another kind, one term for two pieces, then the term in parts.
+    """
+    eff = EFFECTS[kind]
+    gens: list[Callable[[FitResult, int, FitData], Iterator[Description]]] = []
+    if eff.contains is not None:
+        gens.append(_as_kind(eff.contains))
+    if eff.in_window is not None:
+        gens.append(_in_window)
+    if eff.merges:
+        gens.append(_one_for_two)
+    if kind in IN_PARTS:
+        gens.append(IN_PARTS[kind][0])
+    return tuple(gens)
+
+
+#: The other descriptions each kind of term has (:func:`_descriptions`).
 NESTED: dict[EffectKind, tuple[Callable[[FitResult, int, FitData], Iterator[Description]], ...]]
-NESTED = {
-    **{kind: (_as_kind(simpler),) for kind, simpler in NESTED_SIMPLER.items()},
-    EffectKind.DISTURBANCE: (_step_in_disturbance,),
-    EffectKind.HARD_IRON_STEP: (_one_step_for_two,),
-}
-for _kind, (_split, _) in IN_PARTS.items():
-    NESTED[_kind] = NESTED.get(_kind, ()) + (_split,)
+NESTED = {kind: gens for kind in EFFECTS if (gens := _descriptions(kind))}
 
 
 def hypothesis(term: Term, present: Collection[EffectKind]) -> tuple:
@@ -304,17 +315,10 @@ def _described(cur: FitResult, findings: list[Finding], s: Description, dropped:
 
 
 #: Look-alikes: the kinds of term a new term of a kind can trade with along a shared
-#: direction, the data paying for the new term by moving the look-alike. A traceless eddy
-#: term beside a time offset, where the sensor barely turns: ``db/dt`` is then
-#: perpendicular to ``b`` and ``I/3 - b b.T`` acts as a third of the identity, a lag. A
-#: drift over the recording beside a transient: a step or a disturbance in mid recording
-#: reads in part as a slow change (on a lab excerpt a 3000 nT x 7 s magnet came out 500 nT
-#: off beside a drift that the same recording without the magnet does not earn).
+#: direction, the data paying for the new term by moving the look-alike
+#: (:attr:`~pipeline.model.effects.base.Effect.trades_with`).
 LOOKALIKES: dict[EffectKind, frozenset[EffectKind]] = {
-    EffectKind.EDDY_CURRENT: frozenset({EffectKind.TIME_OFFSET}),
-    EffectKind.FIELD_DRIFT: frozenset({EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP}),
-    EffectKind.HEADING_DRIFT: frozenset({EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP}),
-}
+    kind: eff.trades_with for kind, eff in EFFECTS.items() if eff.trades_with}
 
 
 def earns_beside_lookalikes(with_term: FitResult, without: FitResult, i: int, data: FitData,
@@ -394,12 +398,12 @@ def _finer_map_words(term: Term) -> str:
 REFINED: dict[EffectKind, tuple[Callable[[Term, FitData], Term | None], Callable[[Term], str]]]
 REFINED = {EffectKind.FIELD_MAP: (finer_map_term, _finer_map_words)}
 
-#: Kinds whose candidate can explain part of any other candidate's excess: a field map along
-#: a path fits a bump in time where the path crosses a smooth anomaly. Whatever a term local
-#: in time or space or a global term explains is theirs; an absorbing term is for what none
-#: of them can, so its fit is tried after the others, except after those it explains as well
+#: Kinds whose candidate can explain part of any other candidate's excess
+#: (:attr:`~pipeline.model.effects.base.Effect.absorbing`). Whatever a term local in time or
+#: space or a global term explains is theirs; an absorbing term is for what none of them
+#: can, so its fit is tried after the others, except after those it explains as well
 #: (:func:`absorbed`).
-ABSORBING = frozenset({EffectKind.FIELD_MAP})
+ABSORBING = frozenset(kind for kind, eff in EFFECTS.items() if eff.absorbing)
 
 
 def refinements(cur: FitResult, data: FitData) -> list[tuple[int, FitResult]]:
@@ -466,16 +470,12 @@ def absorbed(by: FitResult, res: FitResult, data: FitData, cfg: DiagnoseConfig) 
 
 
 #: Requirements: a kind of term that acts only through terms of other kinds, and those kinds
-#: (one of them must be in the model). A lever arm moves the sensor within a field that
-#: varies in space; a field map is the field beyond the gradient's first order, in the
-#: gradient's bearing. Such a term is a candidate only beside one of them, and the backward
-#: step keeps the last of them while it stays (:func:`required`): a gradient beside a map
-#: would otherwise be paid for by the map's prior, which then holds the linear part too.
+#: (:attr:`~pipeline.model.effects.base.Effect.acts_through`; one of them must be in the
+#: model). Such a term is a candidate only beside one of them, and the backward step keeps
+#: the last of them while it stays (:func:`required`): a gradient beside a map would
+#: otherwise be paid for by the map's prior, which then holds the linear part too.
 REQUIRES: dict[EffectKind, frozenset[EffectKind]] = {
-    EffectKind.LEVER_ARM: frozenset({EffectKind.FIELD_GRADIENT, EffectKind.LOCAL_SOURCE,
-                                     EffectKind.FIELD_MAP}),
-    EffectKind.FIELD_MAP: frozenset({EffectKind.FIELD_GRADIENT}),
-}
+    kind: eff.acts_through for kind, eff in EFFECTS.items() if eff.acts_through}
 
 
 def required(i: int, terms: Sequence[Term]) -> bool:

@@ -391,6 +391,34 @@ class Effect:
         both are in the model this one is held off that direction (:meth:`gauge_projector`)
         and the shared part belongs to the other (:meth:`fold_shared`), so that the two do
         not trade along it and the count of free parameters drops by its dimension.
+    contains : EffectKind or None
+        A simpler effect this one holds whole as a special case (an eddy term ``E_s = -tau I``
+        is a time offset; a field drift along ``(-B_N, B_E, 0)`` is a heading drift): the
+        diagnosis offers the simpler description of a fitted term, and this one only in
+        place of the simpler, never beside it (except in parts, :attr:`shares_with`).
+    in_window : EffectKind or None
+        An effect that describes a term of this one over its window (a disturbance fixed in
+        ENU is, where the platform holds its attitude, one offset in the sensor frame: a
+        ``hard_iron_step``); the window's edges are searched where a held offset changes.
+    min_window_s : float
+        The shortest window a term of this effect holds, s (an object left near the sensor:
+        0.5 s; a shorter excess is a bump).
+    merges : bool
+        Terms of this effect whose windows touch are candidates for one event: one term over
+        both, the outer transitions kept (:meth:`merged_start`).
+    trades_with : frozenset of EffectKind
+        Effects a term of this one can trade with along a direction they share, the data
+        paying for the new term by moving the other (a traceless eddy term beside a time
+        offset where the sensor barely turns; a drift over the recording beside a transient
+        in mid recording): the term must earn its margin with those held.
+    acts_through : frozenset of EffectKind
+        Effects this one acts only through (one must be in the model): a lever arm moves the
+        sensor within a field that varies in space; a map is the field beyond the gradient's
+        first order, in its bearing.
+    absorbing : bool
+        A candidate of this effect can explain part of any other's excess (a map along a path
+        fits a bump in time where the path crosses a smooth anomaly): its fit is tried after
+        the others.
 
     """
 
@@ -406,6 +434,13 @@ class Effect:
     event: ClassVar[bool] = False
     holds_frame: ClassVar[bool] = False
     shares_with: ClassVar[EffectKind | None] = None
+    contains: ClassVar[EffectKind | None] = None
+    in_window: ClassVar[EffectKind | None] = None
+    min_window_s: ClassVar[float] = 0.0
+    merges: ClassVar[bool] = False
+    trades_with: ClassVar[frozenset[EffectKind]] = frozenset()
+    acts_through: ClassVar[frozenset[EffectKind]] = frozenset()
+    absorbing: ClassVar[bool] = False
 
     def n_params(self, term: TermShape) -> int:
         """Return the number of parameters of ``term``, a term of this effect.
@@ -615,6 +650,13 @@ class Effect:
         """
         raise ValueError(f"{self.kind.value} is not a term of the forward model")
 
+
+    def merged_start(self, a: tuple[Any, F64], b: tuple[Any, F64], merged: Any) -> F64:
+        """Return the start values of ``merged``, one term over the pieces ``a`` and ``b``.
+
+        Each piece is ``(term, value)``; only effects that :attr:`merges` have it.
+        """
+        raise NotImplementedError(f"{self.kind.value} terms are not merged")
 
     def prior_precision(self, term: Any) -> F64 | None:
         """Return the ridge of the term's parameters (k,), per nT^2, or None (no prior).

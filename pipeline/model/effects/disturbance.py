@@ -48,6 +48,7 @@ class Disturbance(Effect):
     )
     frame: ClassVar[str] = "enu"
     event: ClassVar[bool] = True
+    in_window: ClassVar[EffectKind | None] = EffectKind.HARD_IRON_STEP
 
     def n_params(self, term: TermShape) -> int:
         """Return 3 field components per knot of every window (linear B-spline hats)."""

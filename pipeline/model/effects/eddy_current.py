@@ -52,6 +52,10 @@ class EddyCurrent(Effect):
     n_fixed: ClassVar[int | None] = 9
     confounded_with: ClassVar[str] = "the time offset and the misalignment"
     shares_with: ClassVar[EffectKind | None] = EffectKind.TIME_OFFSET
+    contains: ClassVar[EffectKind | None] = EffectKind.TIME_OFFSET
+    # where the sensor barely turns, db/dt is perpendicular to b and I/3 - b b' acts as a
+    # third of the identity: a traceless term reads as a lag
+    trades_with: ClassVar[frozenset[EffectKind]] = frozenset({EffectKind.TIME_OFFSET})
 
     def motion_reason(self, motion: Motion, horizontal_fraction: float | None) -> str | None:
         """Return the time offset's :func:`steady_turn_reason` (:meth:`Effect.motion_reason`)."""

@@ -58,6 +58,12 @@ class FieldDrift(Effect):
         "a slow trend common to all headings once rotated to ENU"
     )
     frame: ClassVar[str] = "enu"
+    contains: ClassVar[EffectKind | None] = EffectKind.HEADING_DRIFT
+    # a step or a disturbance in mid recording reads in part as a slow change (on a lab
+    # excerpt a 3000 nT x 7 s magnet came out 500 nT off beside a drift that the same
+    # recording without the magnet does not earn)
+    trades_with: ClassVar[frozenset[EffectKind]] = frozenset(
+        {EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP})
     n_fixed: ClassVar[int | None] = 3 * DRIFT_DEGREE
     # without turning a drift is still a change of the field: its own words say what it
     # cannot be told from then

@@ -60,6 +60,9 @@ class FieldMap(Effect):
         "and repeats wherever the sensor comes back, smooth over the whole area"
     )
     frame: ClassVar[str] = "enu"
+    # the field beyond the gradient's first order, in the gradient's bearing
+    acts_through: ClassVar[frozenset[EffectKind]] = frozenset({EffectKind.FIELD_GRADIENT})
+    absorbing: ClassVar[bool] = True
     # a map along a path leaves combinations of its basis unobserved (the GP prior holds
     # them): admitted on its best-determined directions
     identifiable_in_part: ClassVar[bool] = True

@@ -71,6 +71,13 @@ class HardIronStep(Effect):
     )
     frame: ClassVar[str] = "mag"
     event: ClassVar[bool] = True
+    # an object brought near the sensor and left there for a while; a shorter excess (the
+    # closest pass by a magnet in the room, where its dipole field is least exact; a knock)
+    # is no object riding on the platform
+    min_window_s: ClassVar[float] = 0.5
+    # pieces of one offset that abut along seconds are one event (a magnet moved a little
+    # while it rested, or an offset the scan saw in parts)
+    merges: ClassVar[bool] = True
 
     def n_params(self, term: TermShape) -> int:
         """Return 3 for the plateau's offset plus 3 per mode of the transitions."""
@@ -107,6 +114,15 @@ class HardIronStep(Effect):
                         np.asarray(params.get("ramp_modes_nT") or np.zeros((0, 3)),
                                    dtype=float).reshape(-1, 3),
                         float(params.get("ramp_mode_step_s") or 1.0))
+
+    def merged_start(self, a: tuple[Any, F64], b: tuple[Any, F64], merged: Any) -> F64:
+        """Return the pieces' duration-weighted mean offset, no transition mode (see base)."""
+        (ta, va), (tb, vb) = a, b
+        da = max(ta.windows_s[0][1] - ta.windows_s[0][0], 1e-9)
+        db = max(tb.windows_s[0][1] - tb.windows_s[0][0], 1e-9)
+        start = np.zeros(self.n_params(merged))
+        start[:3] = (da * np.asarray(va)[:3] + db * np.asarray(vb)[:3]) / (da + db)
+        return start
 
     def prior_precision(self, term: Any) -> F64 | None:
         """Return none on the plateau, a GP on the transitions' modes; None without any.

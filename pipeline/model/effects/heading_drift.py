@@ -71,6 +71,9 @@ class HeadingDrift(Effect):
     )
     frame: ClassVar[str] = "enu"
     confounded_with: ClassVar[str] = "the field and the misalignment"
+    # as a field drift: a transient in mid recording reads in part as a slow turn
+    trades_with: ClassVar[frozenset[EffectKind]] = frozenset(
+        {EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP})
     n_fixed: ClassVar[int | None] = HEADING_DEGREE
 
     def motion_reason(self, motion: Motion, horizontal_fraction: float | None) -> str | None:

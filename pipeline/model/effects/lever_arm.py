@@ -37,6 +37,8 @@ class LeverArm(Effect):
     )
     frame: ClassVar[str] = "enu"
     n_fixed: ClassVar[int | None] = 3
+    acts_through: ClassVar[frozenset[EffectKind]] = frozenset(
+        {EffectKind.FIELD_GRADIENT, EffectKind.LOCAL_SOURCE, EffectKind.FIELD_MAP})
 
     def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
         """Write ``dy/dl = G (dB/dr) C``, the spatial terms' gradients summed (see below).
