@@ -14,7 +14,7 @@ from _diag_sim import all_terms, lissajous_m, make_data
 
 from pipeline.core.geometry import so3_exp
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects import EFFECTS
+from pipeline.model.effects import EFFECTS, Effect
 from pipeline.model.forward import hat_basis
 from stages.diagnose.catalogue import motion_stats
 from stages.diagnose.fit import fit, wahba_init
@@ -245,7 +245,6 @@ def test_field_drift_explanation_with_positions_says_what_the_gradient_test_foun
 def test_every_model_term_writes_its_own_params_and_sigmas():
     # the registry, not a switch, answers for the outputs: every term of the forward model
     # (sample_hold is handled on the data) overrides both
-    from pipeline.model.effects import Effect
 
     for kind, eff in EFFECTS.items():
         if kind is EffectKind.SAMPLE_HOLD:
@@ -274,3 +273,32 @@ def test_a_tilt_fitted_in_part_turns_the_frame_by_its_own_step():
     np.testing.assert_allclose(up.values[1], [5.0, -3.0, 2.0])
     # and the frame goes with the term
     assert np.array_equal(up.with_terms(up.terms[1:], up.values[1:]).T_enu, np.eye(3))
+
+
+def test_relations_between_effects_are_declared_consistently():
+    """What each effect declares about the others holds together, and the search reads it.
+
+    A contained effect is a whole term; a term described over its window is an event
+    described by an event with a shortest window; only events merge, and each that does can
+    start the merged term; every effect a term acts through or trades with is registered; the
+    nested tables are the declarations, read from the registry.
+    """
+    from stages.diagnose.nested import ABSORBING, LOOKALIKES, NESTED, NESTED_SIMPLER, REQUIRES
+
+    for kind, eff in EFFECTS.items():
+        if eff.contains is not None:
+            assert not EFFECTS[eff.contains].event, kind
+            assert NESTED_SIMPLER[kind] is eff.contains
+        if eff.in_window is not None:
+            assert eff.event and EFFECTS[eff.in_window].event, kind
+            assert EFFECTS[eff.in_window].min_window_s > 0, kind
+        if eff.merges:
+            assert eff.event, kind
+            assert type(eff).merged_start is not Effect.merged_start, kind
+        for other in eff.trades_with | eff.acts_through:
+            assert other in EFFECTS and other is not kind
+        assert LOOKALIKES.get(kind, frozenset()) == eff.trades_with
+        assert REQUIRES.get(kind, frozenset()) == eff.acts_through
+        assert (kind in ABSORBING) == eff.absorbing
+        assert (kind in NESTED) == bool(eff.contains or eff.in_window or eff.merges
+                                        or eff.shares_with)
