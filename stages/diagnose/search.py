@@ -78,17 +78,9 @@ from stages.diagnose.statistics import (
     sigma_for,
 )
 
-GLOBAL_KINDS = (
-    EffectKind.HARD_IRON,
-    EffectKind.SOFT_IRON,
-    EffectKind.TIME_OFFSET,
-    EffectKind.EDDY_CURRENT,
-    EffectKind.FIELD_DRIFT,
-    EffectKind.AXIS_TILT,
-    EffectKind.FIELD_GRADIENT,
-    EffectKind.HEADING_DRIFT,
-    EffectKind.LEVER_ARM,
-)
+#: The effects offered in every round, in CONVENTIONS' order (``EffectKind``'s)
+#: (:attr:`~pipeline.model.effects.base.Effect.each_round`).
+GLOBAL_KINDS = tuple(kind for kind in EffectKind if EFFECTS[kind].each_round)
 
 #: The kind each nested simpler kind is a special case of (a time offset: an eddy term)
 _CONTAINED_IN = {simpler: kind for kind, simpler in NESTED_SIMPLER.items()}
@@ -1182,7 +1174,7 @@ def _finding(
         axes = _axes(contrib_f[m]) if m.any() else []
     else:
         windows = [[0.0, float(data.t_s[-1])]]
-        if term.kind is EffectKind.LOCAL_SOURCE:
+        if EFFECTS[term.kind].local_in_space:
             # local in space and present throughout: it acts where the sensor passes it,
             # where its own field (the model with and without its values) stands out
             off = dataclasses.replace(res.state, values=res.state.values[:i] + (
@@ -1193,7 +1185,7 @@ def _finding(
         axes = _axes(contrib_f)
     stride = max(1, len(data) // 4000)
     regressor = None
-    if term.kind in (EffectKind.TIME_OFFSET, EffectKind.EDDY_CURRENT):
+    if EFFECTS[term.kind].rate_signature:
         regressor = evaluate(cur.state, data, jacobian=False).ydot0_nT_s[::stride]
     sigtr = Signature(data.t_s[::stride], resid_f[::stride], contrib_f[::stride], regressor)
     expl = explanation(term.kind, params, data.duration_s)

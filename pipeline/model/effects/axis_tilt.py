@@ -42,6 +42,7 @@ class AxisTilt(Effect):
         "a once-per-turn residual that a known reference field exposes"
     )
     frame: ClassVar[str] = "enu"
+    each_round: ClassVar[bool] = True
     # With a known field only the angle between the axis and B is determined (Tang 2016):
     # a lean across the field's bearing turns B about the axis, which R_body_mag absorbs.
     identifiable_in_part: ClassVar[bool] = True

@@ -415,6 +415,17 @@ class Effect:
         Effects this one acts only through (one must be in the model): a lever arm moves the
         sensor within a field that varies in space; a map is the field beyond the gradient's
         first order, in its bearing.
+    each_round : bool
+        A candidate in every round of the diagnosis' search (an effect of the whole
+        recording); otherwise it is offered where the residual scan opens a window (an
+        event, a source: ``stages/diagnose/candidates.py``), by a candidate of its own (a
+        map), or it is not a fitted term (``sample_hold``).
+    rate_signature : bool
+        Its signature is read against the rate of change of the reading, ``dy/dt`` (a lag,
+        an eddy term): the finding's signature plot carries that regressor.
+    local_in_space : bool
+        Its field is local in space (a compact object): present throughout, it acts where the
+        sensor passes it, and its finding's windows are where its own field stands out.
     absorbing : bool
         A candidate of this effect can explain part of any other's excess (a map along a path
         fits a bump in time where the path crosses a smooth anomaly): its fit is tried after
@@ -441,6 +452,9 @@ class Effect:
     trades_with: ClassVar[frozenset[EffectKind]] = frozenset()
     acts_through: ClassVar[frozenset[EffectKind]] = frozenset()
     absorbing: ClassVar[bool] = False
+    each_round: ClassVar[bool] = False
+    rate_signature: ClassVar[bool] = False
+    local_in_space: ClassVar[bool] = False
 
     def n_params(self, term: TermShape) -> int:
         """Return the number of parameters of ``term``, a term of this effect.

@@ -49,6 +49,8 @@ class EddyCurrent(Effect):
         "a residual linear in the rate of change of the reading, with different gains per axis"
     )
     frame: ClassVar[str] = "mag"
+    each_round: ClassVar[bool] = True
+    rate_signature: ClassVar[bool] = True
     n_fixed: ClassVar[int | None] = 9
     confounded_with: ClassVar[str] = "the time offset and the misalignment"
     shares_with: ClassVar[EffectKind | None] = EffectKind.TIME_OFFSET

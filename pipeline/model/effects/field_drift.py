@@ -58,6 +58,7 @@ class FieldDrift(Effect):
         "a slow trend common to all headings once rotated to ENU"
     )
     frame: ClassVar[str] = "enu"
+    each_round: ClassVar[bool] = True
     contains: ClassVar[EffectKind | None] = EffectKind.HEADING_DRIFT
     # a step or a disturbance in mid recording reads in part as a slow change (on a lab
     # excerpt a 3000 nT x 7 s magnet came out 500 nT off beside a drift that the same

@@ -95,6 +95,7 @@ class FieldGradient(Effect):
         "a residual fixed in ENU that follows the sensor's position, not the time"
     )
     frame: ClassVar[str] = "enu"
+    each_round: ClassVar[bool] = True
     n_fixed: ClassVar[int | None] = 5
 
     def undetermined(self, motion: Motion, efficiency: float,

@@ -33,6 +33,7 @@ class HardIron(Effect):
         "a constant residual in the mag frame, the same whatever the heading"
     )
     frame: ClassVar[str] = "mag"
+    each_round: ClassVar[bool] = True
     n_fixed: ClassVar[int | None] = 3
     # Each offset component, nT: typical of MEMS magnetometers, and of the lab sensor, whose
     # full recordings determine offsets of 300-500 nT.

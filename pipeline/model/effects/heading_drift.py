@@ -70,6 +70,7 @@ class HeadingDrift(Effect):
         "and |B| stay unchanged (the field turning about the vertical)"
     )
     frame: ClassVar[str] = "enu"
+    each_round: ClassVar[bool] = True
     confounded_with: ClassVar[str] = "the field and the misalignment"
     # as a field drift: a transient in mid recording reads in part as a slow turn
     trades_with: ClassVar[frozenset[EffectKind]] = frozenset(

@@ -36,6 +36,7 @@ class LeverArm(Effect):
         "near a local source)"
     )
     frame: ClassVar[str] = "enu"
+    each_round: ClassVar[bool] = True
     n_fixed: ClassVar[int | None] = 3
     acts_through: ClassVar[frozenset[EffectKind]] = frozenset(
         {EffectKind.FIELD_GRADIENT, EffectKind.LOCAL_SOURCE, EffectKind.FIELD_MAP})

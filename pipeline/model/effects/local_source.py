@@ -71,6 +71,7 @@ class LocalSource(Effect):
         "the sensor comes near one place, whenever that is"
     )
     frame: ClassVar[str] = "enu"
+    local_in_space: ClassVar[bool] = True
     # tested at zero moment, where the position has no gradient: the moment carries the
     # evidence (the position is fitted once the moment is there)
     identifiable_in_part: ClassVar[bool] = True

@@ -35,6 +35,7 @@ class SoftIron(Effect):
         "with it (twice per turn)"
     )
     frame: ClassVar[str] = "mag"
+    each_round: ClassVar[bool] = True
     n_fixed: ClassVar[int | None] = 5
     confounded_with: ClassVar[str] = "the field magnitude and the misalignment"
     # Each traceless parameter (scale differences and cross-axis coupling, dimensionless):

@@ -51,6 +51,8 @@ class TimeOffset(Effect):
         "a residual proportional to the rate of change of the field in the sensor frame"
     )
     frame: ClassVar[str] = "mag"
+    each_round: ClassVar[bool] = True
+    rate_signature: ClassVar[bool] = True
     n_fixed: ClassVar[int | None] = 1
 
     def motion_reason(self, motion: Motion, horizontal_fraction: float | None) -> str | None:
