@@ -302,3 +302,19 @@ def test_relations_between_effects_are_declared_consistently():
         assert (kind in ABSORBING) == eff.absorbing
         assert (kind in NESTED) == bool(eff.contains or eff.in_window or eff.merges
                                         or eff.shares_with)
+
+
+def test_every_fitted_effect_is_offered_by_the_search():
+    """Each effect with parameters reaches the search one way: every round, at an event, or
+    by its own candidate (the map, tried after the others); an effect offered every round is
+    no event and has a fixed count of parameters."""
+    from stages.diagnose.candidates import AT_EVENT
+    from stages.diagnose.search import GLOBAL_KINDS
+
+    for kind, eff in EFFECTS.items():
+        if eff.each_round:
+            assert not eff.event and eff.n_fixed is not None, kind
+        if kind is EffectKind.SAMPLE_HOLD:
+            continue  # found from the repeats of the readings, not fitted
+        assert eff.each_round or kind in AT_EVENT or eff.absorbing, kind
+    assert GLOBAL_KINDS[0] is EffectKind.HARD_IRON  # CONVENTIONS' order, not the import's
