@@ -23,7 +23,7 @@ import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects import EFFECTS
-from stages.diagnose.field_map import finer_map_term
+from stages.diagnose.candidates import REFINED, RIVALS
 from stages.diagnose.fit import FitResult, fit
 from stages.diagnose.model import (
     F64,
@@ -33,7 +33,6 @@ from stages.diagnose.model import (
     without_term,
 )
 from stages.diagnose.result import DiagnoseConfig, Finding
-from stages.diagnose.sources import rivals as source_rivals
 from stages.diagnose.sources import with_values
 from stages.diagnose.statistics import (
     ScoreTest,
@@ -349,13 +348,6 @@ def earns_beside_lookalikes(with_term: FitResult, without: FitResult, i: int, da
         without, data, n) <= -cfg.bic_margin
 
 
-#: Rivals: terms that could replace a new term of a kind in its place, over the windows
-#: where it acts, with the words on what tells it apart. Restore keeps a source in the
-#: field and takes a step out of it: naming the wrong one of such rivals moves the
-#: restored field.
-RIVALS: dict[EffectKind, Callable[[FitResult, FitData], tuple[str, list[tuple[Term, str]]]]]
-RIVALS = {EffectKind.LOCAL_SOURCE: source_rivals}
-
 #: A term with rivals is named only when each fits worse by this many times the margin:
 #: a short pass near an object makes a source, a step and a disturbance nearly equal.
 DECISIVE_FACTOR = 5.0
@@ -364,10 +356,10 @@ DECISIVE_FACTOR = 5.0
 def told_apart(cur: FitResult, res: FitResult, data: FitData) -> tuple[str, float, list[Term]]:
     """Compare the new last term of ``res`` with each of its rivals in its place.
 
-    Each rival (:data:`RIVALS`) is fitted in place of the new term on ``cur`` and compared
-    by their evidence with one effective sample count. Returns the words on the comparison,
-    the smallest difference (how decisively the term wins; infinite without rivals) and the
-    rivals that fit better than the term.
+    Each rival (:data:`~stages.diagnose.candidates.RIVALS`) is fitted in place of the new
+    term on ``cur`` and compared by their evidence with one effective sample count. Returns
+    the words on the comparison, the smallest difference (how decisively the term wins;
+    infinite without rivals) and the rivals that fit better than the term.
     """
     kind = res.state.terms[-1].kind
     if kind not in RIVALS:
@@ -386,18 +378,6 @@ def told_apart(cur: FitResult, res: FitResult, data: FitData) -> tuple[str, floa
     return ". " + intro + "; " + "; ".join(parts), float(worst), better
 
 
-def _finer_map_words(term: Term) -> str:
-    """Return what a refined ``field_map`` is: its modes along the longest axis, its functions."""
-    return (f"{max(term.n_axis)} modes along the longest axis "
-            f"({int(np.prod(term.n_axis))} functions)")
-
-
-#: Refinements: a kind of term that has a finer form of itself, one step up its own ladder
-#: (None at the top), and the words that say what the finer form is. A field map one
-#: complexity finer resolves the field where the sensor was at a time more closely.
-REFINED: dict[EffectKind, tuple[Callable[[Term, FitData], Term | None], Callable[[Term], str]]]
-REFINED = {EffectKind.FIELD_MAP: (finer_map_term, _finer_map_words)}
-
 #: Kinds whose candidate can explain part of any other candidate's excess
 #: (:attr:`~pipeline.model.effects.base.Effect.absorbing`). Whatever a term local in time or
 #: space or a global term explains is theirs; an absorbing term is for what none of them
@@ -407,7 +387,7 @@ ABSORBING = frozenset(kind for kind, eff in EFFECTS.items() if eff.absorbing)
 
 
 def refinements(cur: FitResult, data: FitData) -> list[tuple[int, FitResult]]:
-    """Return ``cur`` refitted with each term that has a finer form (:data:`REFINED`) in it.
+    """Return ``cur`` refitted with each term that has a finer form in it (``REFINED``).
 
     One model per such term, that term one step finer in its place (its values from zero),
     with the term's index.

@@ -20,7 +20,7 @@ from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects import EFFECTS
 from pipeline.model.effects.base import CONFOUND_RATIO
 from pipeline.model.effects.field_gradient import gradient_matrix
-from stages.diagnose.candidates import Event, event_candidates, scored
+from stages.diagnose.candidates import REFINED, RIVALS, Event, event_candidates, scored
 from stages.diagnose.catalogue import explanation, identifiability_reason, motion_stats
 from stages.diagnose.field_map import MapCandidate, map_candidate
 from stages.diagnose.fit import FitResult, fit, wahba_init
@@ -43,9 +43,7 @@ from stages.diagnose.nested import (
     IN_PARTS,
     NESTED_SIMPLER,
     RAMP_REACH_S,
-    REFINED,
     REQUIRES,
-    RIVALS,
     absorbed,
     earns_beside_lookalikes,
     explained_by_refinement,
@@ -944,12 +942,13 @@ def diagnose_data(
     baseline = {"effects": [], "residual_rms_nT": base_rms, "heldout_rms_nT": cv_cur}
     base_fit, cv_base = cur, cv_cur
     not_ident: dict[str, str] = {}
-    kinds = list(GLOBAL_KINDS)
-    if not (turntable or data.B_known_enu_nT is not None):
-        kinds.remove(EffectKind.AXIS_TILT)
-    if turntable and data.B_known_enu_nT is None:
-        why = identifiability_reason(EffectKind.AXIS_TILT, stats, data, 0.0)
-        not_ident["axis_tilt"] = why or ""
+    known = data.B_known_enu_nT is not None
+    kinds = [k for k in GLOBAL_KINDS if turntable or known or not EFFECTS[k].turntable_only]
+    if turntable and not known:
+        for k in GLOBAL_KINDS:
+            if EFFECTS[k].turntable_only:
+                why = identifiability_reason(k, stats, data, 0.0)
+                not_ident[k.value] = why or ""
     search = _Search(data, cfg, stats, kinds, e_int_nT, cur, cv_cur, not_ident=not_ident)
     while len(search.findings) < cfg.max_findings and search.round():
         pass

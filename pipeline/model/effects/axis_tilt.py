@@ -43,6 +43,7 @@ class AxisTilt(Effect):
     )
     frame: ClassVar[str] = "enu"
     each_round: ClassVar[bool] = True
+    turntable_only: ClassVar[bool] = True
     # With a known field only the angle between the axis and B is determined (Tang 2016):
     # a lean across the field's bearing turns B about the axis, which R_body_mag absorbs.
     identifiable_in_part: ClassVar[bool] = True

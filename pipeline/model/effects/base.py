@@ -420,6 +420,9 @@ class Effect:
         recording); otherwise it is offered where the residual scan opens a window (an
         event, a source: ``stages/diagnose/candidates.py``), by a candidate of its own (a
         map), or it is not a fitted term (``sample_hold``).
+    turntable_only : bool
+        A property of a single-axis attitude source (a turntable's tilted axis): offered only
+        when the attitude comes from one (``--turntable``) or the field is known.
     rate_signature : bool
         Its signature is read against the rate of change of the reading, ``dy/dt`` (a lag,
         an eddy term): the finding's signature plot carries that regressor.
@@ -453,6 +456,7 @@ class Effect:
     acts_through: ClassVar[frozenset[EffectKind]] = frozenset()
     absorbing: ClassVar[bool] = False
     each_round: ClassVar[bool] = False
+    turntable_only: ClassVar[bool] = False
     rate_signature: ClassVar[bool] = False
     local_in_space: ClassVar[bool] = False
 
