@@ -154,6 +154,36 @@ def test_a_map_is_recovered_with_the_noise_off():
     assert np.max(np.abs(f_fit - f_true)) < 0.05  # nT
 
 
+def test_a_map_candidate_is_charged_for_what_the_path_shows_of_it():
+    """The score test's Occam factor of a map candidate (the Laplace evidence's, GP prior).
+
+    Each weight costs the log of how much the data narrow its prior, not a count: the finer
+    modes a finer map adds have a smaller prior (the squared-exponential spectrum falls) and
+    cost less each than the coarse map's weights.
+    """
+    from stages.diagnose.statistics import score_from_J
+
+    p = lissajous_m(np.arange(0.0, 40.0, 0.02))
+    grad = Term(EffectKind.FIELD_GRADIENT)
+    coarse, fine = _map_term(p, 2, 0.0, noise_nT=2.0), _map_term(p, 4, 0.0, noise_nT=2.0)
+    rng = np.random.default_rng(3)
+    w = rng.normal(size=fine.n_params()) * np.sqrt(fine.basis().prior_variance(
+        fine.length_scale_m, 100.0))
+    data, tr = make_data((grad, fine), (_gradient_value(G_TRUE), w), duration_s=40.0,
+                         rate_hz=50.0, seed=5, noise_nT=2.0, positions=lissajous_m)
+    cur = fit(ModelState(tr.R_body_mag, tr.B_enu_nT, (grad,), (_gradient_value(G_TRUE),)), data)
+    costs = []
+    for term in (coarse, fine):
+        J = evaluate(cur.state.with_term(term), data).jac
+        J = J.reshape(-1, J.shape[-1])
+        st = score_from_J(cur, term, J, data, 2.0, prior=term.prior_precision())
+        assert st.penalty > 0.0
+        costs.append(st.penalty)
+    added = fine.n_params() - coarse.n_params()
+    assert costs[0] < costs[1]
+    assert (costs[1] - costs[0]) / added < costs[0] / coarse.n_params()
+
+
 # ----------------------------------------------------------------------------- generator
 
 #: Two magnetised bodies 20-30 m from the survey and 12-15 m deep: over the 6 x 34 m the

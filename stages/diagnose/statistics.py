@@ -289,7 +289,8 @@ def _prior_penalty(Ieff: np.ndarray, geff: np.ndarray, Ibase: np.ndarray, prior:
     """
     theta = np.linalg.lstsq(0.5 * (Ieff + Ieff.T), geff, rcond=1e-12)[0]
     q = prior > 0
-    return (k - int(q.sum())) * float(np.log(n)) + prior_occam(
+    # k counts a partial term's determined directions only (a map's): none without a prior
+    return max(k - int(q.sum()), 0) * float(np.log(n)) + prior_occam(
         0.5 * (Ibase + Ibase.T), prior, theta, np.ones(len(prior), dtype=bool), 1.0, sigma**2)
 
 
