@@ -1019,8 +1019,8 @@ def _diagnosis_html(diagnosis: Any, t0_ns: int = 0, calibration_path: str | None
     parts = [rows_html(d, t0_ns)]
     b, f = d.get("baseline") or {}, d.get("final") or {}
     held = ("Held-out: data the model was not fitted to, so an improvement there is not "
-            "overfitting. Evidence: how strongly the data ask for the term (Bayesian "
-            "information criterion).")
+            "overfitting. Evidence: how strongly the data ask for the term (the Laplace "
+            "evidence: the fit against what its parameters cost).")
     if d.get("findings"):
         parts.append(
             "<p>Without these terms the model leaves "

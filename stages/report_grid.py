@@ -115,7 +115,7 @@ def survey_html(out_dir: str | Path, path_m: np.ndarray | None,
         f"(NetCDF-4), made by {html.escape(str(a['method']))}.</p>"
         f"<h3>Targets</h3>{table}<p class=caption>One row per located object (targets.csv), "
         "the strongest evidence first (evidence: how much better the model with the object "
-        "explains the data, as the fall of the Bayesian information criterion). Depth: "
+        "explains the data, as the fall of -2 log of the Laplace evidence). Depth: "
         "below the sensor's mean height within 5 m of the object.</p>")
 
 

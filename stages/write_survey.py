@@ -248,9 +248,10 @@ class Source:
 def located_sources(diagnosis: Any) -> list[Source]:
     """Return the diagnosis's ``local_source`` findings, the strongest evidence first.
 
-    ``delta_bic`` is the change of the Bayesian information criterion when the object was
-    added (``BIC_after - BIC_before``, :mod:`stages.diagnose.search`): the more negative, the
-    more strongly the data ask for it, so the order is ``delta_bic`` ascending.
+    ``delta_bic`` is the change of ``-2 log`` of the Laplace evidence when the object was
+    added (after minus before, :func:`stages.diagnose.statistics.evidence`; CONVENTIONS keeps
+    the BIC's name): the more negative, the more strongly the data ask for it, so the order
+    is ``delta_bic`` ascending.
     """
     if diagnosis is None:
         return []
