@@ -80,14 +80,23 @@ SCORERS: dict[EffectKind, Scorer] = {}
 Rivals = Callable[[FitResult, FitData], tuple[str, list[tuple[Term, str]]]]
 Finer = Callable[[Term, FitData], "Term | None"]
 
+
+def _finer_map_words(term: Term) -> str:
+    """Return what a refined ``field_map`` is: its modes along the longest axis, its functions."""
+    return (f"{max(term.n_axis)} modes along the longest axis "
+            f"({int(np.prod(term.n_axis))} functions)")
+
+
 #: effect -> the terms that could replace its new term in its place, over the windows where
 #: it acts, with the words on what tells it apart (nested.told_apart). Restore keeps a
 #: source in the field and takes a step out of it: naming the wrong one of such rivals
 #: moves the restored field.
-RIVALS: dict[EffectKind, Rivals] = {}
+RIVALS: dict[EffectKind, Rivals] = {EffectKind.LOCAL_SOURCE: source_rivals}
 #: effect -> its finer form, one step up its own ladder (None at the top), and the words that
-#: say what the finer form is (nested.refinements)
-REFINED: dict[EffectKind, tuple[Finer, Callable[[Term], str]]] = {}
+#: say what the finer form is (nested.refinements): a field map one complexity finer
+#: resolves the field where the sensor was more closely.
+REFINED: dict[EffectKind, tuple[Finer, Callable[[Term], str]]] = {
+    EffectKind.FIELD_MAP: (finer_map_term, _finer_map_words)}
 
 
 def at_event(kind: EffectKind) -> Callable[[EventCandidates], EventCandidates]:
@@ -102,22 +111,6 @@ def scorer(kind: EffectKind) -> Callable[[Scorer], Scorer]:
     """Register how ``kind``'s candidate is scored (:data:`SCORERS`)."""
     def put(fn: Scorer) -> Scorer:
         SCORERS[kind] = fn
-        return fn
-    return put
-
-
-def rivals_of(kind: EffectKind) -> Callable[[Rivals], Rivals]:
-    """Register what could replace a new ``kind`` term in its place (:data:`RIVALS`)."""
-    def put(fn: Rivals) -> Rivals:
-        RIVALS[kind] = fn
-        return fn
-    return put
-
-
-def finer_form(kind: EffectKind, words: Callable[[Term], str]) -> Callable[[Finer], Finer]:
-    """Register ``kind``'s finer form and the words for it (:data:`REFINED`)."""
-    def put(fn: Finer) -> Finer:
-        REFINED[kind] = (fn, words)
         return fn
     return put
 
@@ -189,20 +182,3 @@ def _score_gradient(cur: FitResult, data: FitData, term: Term, sigma: float,
         return score_test(cur, term, data, sigma), None
     return gradient_candidate(cur, data, sigma), None
 
-
-@rivals_of(EffectKind.LOCAL_SOURCE)
-def _source_rivals(res: FitResult, data: FitData) -> tuple[str, list[tuple[Term, str]]]:
-    """Return a source's rivals: a magnet riding on the platform, a field changing in time."""
-    return source_rivals(res, data)
-
-
-def _finer_map_words(term: Term) -> str:
-    """Return what a refined ``field_map`` is: its modes along the longest axis, its functions."""
-    return (f"{max(term.n_axis)} modes along the longest axis "
-            f"({int(np.prod(term.n_axis))} functions)")
-
-
-@finer_form(EffectKind.FIELD_MAP, _finer_map_words)
-def _finer_map(term: Term, data: FitData) -> Term | None:
-    """Return the map one complexity finer: the field where the sensor was, more closely."""
-    return finer_map_term(term, data)

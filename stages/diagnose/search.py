@@ -66,6 +66,7 @@ from stages.diagnose.statistics import (
     ScoreTest,
     effective_samples,
     evidence,
+    evidence_change,
     heldout_ok,
     heldout_rms,
     interp_reason,
@@ -871,8 +872,7 @@ class _Search:
                 continue
             st_wo = without_term(self.cur.state, i)
             res_wo = fit(st_wo, self.data)
-            n_eff = effective_samples(self.cur, self.data)
-            keep = evidence(self.cur, self.data, n_eff) - evidence(res_wo, self.data, n_eff)
+            keep = evidence_change(self.cur, res_wo, self.data)
             # a term that earned its margin only by trading with a look-alike goes as well
             if keep > -self.cfg.bic_margin or not earns_beside_lookalikes(
                     self.cur, res_wo, i, self.data, self.cfg):
@@ -1067,8 +1067,7 @@ def _chain_evidence(
         before, after = fits[k], fits[k + 1]
         term = after.state.terms[-1]
         st = score_test(before, term, data, robust_sigma(before.residual_nT))
-        n_eff = effective_samples(after, data)
-        dbic = evidence(after, data, n_eff) - evidence(before, data, n_eff)
+        dbic = evidence_change(after, before, data)
         new = _finding(before, after, term, st, float(dbic), cvs[k], cvs[k + 1], data)
         out.append(dataclasses.replace(new, params=fd.params, sigma=fd.sigma,
                                        told_apart=fd.told_apart))
@@ -1089,8 +1088,7 @@ def _replacement_fit(
     res = fit(wo.state.with_term(term), data)
     if not res.rss < cur.rss:
         return None
-    n_eff = effective_samples(res, data)
-    dbic = evidence(res, data, n_eff) - evidence(cur, data, n_eff)
+    dbic = evidence_change(res, cur, data)
     if dbic > -cfg.bic_margin:
         return None
     st = score_test(wo, term, data, robust_sigma(wo.residual_nT))
@@ -1139,8 +1137,7 @@ def _refit(
                                    data), data)
     if not res.rss < cur.rss:
         return None
-    n_eff = effective_samples(res, data)
-    dbic = evidence(res, data, n_eff) - evidence(cur, data, n_eff)
+    dbic = evidence_change(res, cur, data)
     if dbic > -cfg.bic_margin:
         return None
     return res, float(dbic)

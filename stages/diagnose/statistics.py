@@ -268,7 +268,7 @@ def score_from_J(
         nb = 3 if data.B_known_enu_nT is not None else 6  # the misalignment and the field
         Hb0c = Hbc[:nb]
         Ibase = Hcc - Hb0c.T @ np.linalg.lstsq(Hbb[:nb, :nb], Hb0c, rcond=1e-12)[0]
-        penalty = _prior_penalty(Ieff, geff, Ibase, prior, k, r.size, sigma)
+        penalty = _prior_penalty(Ieff, geff, Ibase, prior, r.size, sigma)
     # from the blocks already formed (with a field_map's ridge when there is one): the full
     # product of [Jb, Jc] would be the costliest step of the test
     rot_with = _rot_efficiency_H(np.block([[Hbb, Hbc], [Hbc.T, Hcc]]))
@@ -278,7 +278,7 @@ def score_from_J(
 
 
 def _prior_penalty(Ieff: np.ndarray, geff: np.ndarray, Ibase: np.ndarray, prior: np.ndarray,
-                   k: int, n: int, sigma: float) -> float:
+                   n: int, sigma: float) -> float:
     """Return the :func:`occam` factor of a candidate with a prior, from its score test.
 
     ``Ieff`` (k, k): the candidate's information beyond the model's parameters, its prior's
@@ -289,8 +289,7 @@ def _prior_penalty(Ieff: np.ndarray, geff: np.ndarray, Ibase: np.ndarray, prior:
     """
     theta = np.linalg.lstsq(0.5 * (Ieff + Ieff.T), geff, rcond=1e-12)[0]
     q = prior > 0
-    # k counts a partial term's determined directions only (a map's): none without a prior
-    return max(k - int(q.sum()), 0) * float(np.log(n)) + prior_occam(
+    return int(np.sum(~q)) * float(np.log(n)) + prior_occam(
         0.5 * (Ibase + Ibase.T), prior, theta, np.ones(len(prior), dtype=bool), 1.0, sigma**2)
 
 
@@ -485,6 +484,16 @@ def evidence(res: FitResult, data: FitData, n_eff: float, rss: float | None = No
 def effective_samples(res: FitResult, data: FitData) -> float:
     """Return a fit's independent samples: its residual's size over the correlation inflation."""
     return res.residual_nT.size / inflation(res.residual_nT, data.t_s)
+
+
+def evidence_change(after: FitResult, before: FitResult, data: FitData) -> float:
+    """:func:`evidence` of ``after`` minus that of ``before``, with ``after``'s sample count.
+
+    The change a step of the search makes (a term added, refined or dropped), counted with the
+    effective samples of the model it arrives at (``delta_bic`` in the findings).
+    """
+    n = effective_samples(after, data)
+    return evidence(after, data, n) - evidence(before, data, n)
 
 
 def evidence_between(a: FitResult, b: FitResult, data: FitData) -> float:

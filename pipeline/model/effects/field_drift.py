@@ -60,9 +60,8 @@ class FieldDrift(Effect):
     frame: ClassVar[str] = "enu"
     each_round: ClassVar[bool] = True
     contains: ClassVar[EffectKind | None] = EffectKind.HEADING_DRIFT
-    # a step or a disturbance in mid recording reads in part as a slow change (on a lab
-    # excerpt a 3000 nT x 7 s magnet came out 500 nT off beside a drift that the same
-    # recording without the magnet does not earn)
+    # a step or a disturbance in mid recording reads in part as a slow change: a drift beside
+    # one can gain by moving its offset (docs/effects.md, "A drift beside a transient")
     trades_with: ClassVar[frozenset[EffectKind]] = frozenset(
         {EffectKind.DISTURBANCE, EffectKind.HARD_IRON_STEP})
     n_fixed: ClassVar[int | None] = 3 * DRIFT_DEGREE
