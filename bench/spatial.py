@@ -1,8 +1,9 @@
 """The field in space: each figure of the issue's "Done when" beside its anchor, in one run.
 
 Usage: ``python bench/spatial.py [WORKDIR] [SECTION ...]`` with sections ``ground`` (the
-default), ``survey2h`` (a 2-hour survey's time and memory, :func:`survey2h`) and ``indoor``
-(indoor mapping against a reduced-rank GP, :func:`indoor`). Each section is a function
+default), ``survey2h`` (a 2-hour survey's time and memory, :func:`survey2h`), ``indoor``
+(indoor mapping against a reduced-rank GP, :func:`indoor`) and ``real`` (the shared lab
+recordings' targets, lab_04's magnet by each half, :func:`real`). Each section is a function
 ``section(work: Path) -> list[Row]`` registered in :data:`SECTIONS`.
 
 ``ground``: simulated ground surveys from the independent generator (``tests/indep_gen.py``,
@@ -486,8 +487,68 @@ def indoor(work: Path) -> list[Row]:
     return rows
 
 
+#: the shared real recordings, beside the project
+REAL = HERE.parent.parent / "shared" / "data" / "real"
+
+
+def _process(inputs: list[str], out: Path, *extra: str) -> tuple[int, float]:
+    """Run ``magalign process`` on ``inputs`` into ``out``; its exit status and wall time (s)."""
+    t0 = time.perf_counter()
+    r = subprocess.run([sys.executable, "-m", "pipeline.app.cli", "process", *inputs, "--out",
+                        str(out), "--no-progress", *extra], capture_output=True, text=True,
+                       cwd=HERE.parent)
+    return r.returncode, time.perf_counter() - t0
+
+
+def real(work: Path) -> list[Row]:
+    """The shared lab recordings: their targets, and lab_04's magnet located by each half.
+
+    The five recordings are processed as a folder (every output). lab_04 passes a magnet;
+    the others have no object near the sensor's path (docs/real-data.md), so their
+    targets.csv must hold the header alone. lab_04 is then processed twice more, each time
+    with one half of it left out (``--exclude``: the half-open halves of its span, s from
+    its first sample), and each half's first target is compared with the other's.
+    """
+    if not REAL.is_dir():
+        return [Row(f"real recordings: {REAL.name} not found beside the project", "skipped",
+                    "", None)]
+    out = work / "real_out"
+    rc, wall = _process([str(REAL)], out, "--jobs", "2")
+    rows = [Row("process, lab_01-05 (s)", f"{wall:.0f}", "", None)]
+    if rc not in (0, 3):
+        return rows + [Row("process exit status", str(rc), "0", False)]
+    for name in ("lab_01", "lab_02", "lab_03", "lab_04", "lab_05"):
+        found = _rows_csv(out / name / "targets.csv")
+        want = 1 if name == "lab_04" else 0
+        rows.append(Row(f"{name}: targets", str(len(found)), str(want), len(found) == want))
+    diag = __import__("json").loads((out / "lab_04" / "diagnosis.json").read_text())
+    span = max(float(w[1]) for f in diag["findings"] for w in f["where"]["windows_s"])
+    mid = 0.5 * span
+    half: dict[str, dict[str, str]] = {}
+    for name, cut in (("first", f"{mid:.3f}:{span + 1:.3f}"), ("second", f"0:{mid:.3f}")):
+        rc, wall = _process([str(REAL / "lab_04.mcap")], work / f"real_{name}",
+                            "--exclude", cut)
+        found = _rows_csv(work / f"real_{name}" / "lab_04" / "targets.csv") if rc == 0 else []
+        rows.append(Row(f"lab_04, {name} half: targets ({wall:.0f} s)", str(len(found)), "1",
+                        len(found) == 1))
+        if found:
+            half[name] = found[0]
+    if len(half) == 2:
+        a, b = (np.array([float(h[k]) for k in ("east_m", "north_m", "up_m")])
+                for h in half.values())
+        sa, sb = (np.array([float(h[k] or "nan") for k in ("sigma_east_m", "sigma_north_m",
+                                                           "sigma_up_m")]) for h in half.values())
+        gap = float(np.linalg.norm(a - b))
+        rows.append(Row("lab_04: the magnet, first half vs second (cm)", f"{100 * gap:.1f}",
+                        "<= 3", gap <= 0.03))
+        z = np.abs(a - b) / np.sqrt(sa**2 + sb**2)
+        rows.append(Row("lab_04: worst axis / combined sigma", f"{float(np.max(z)):.1f}",
+                        "", None))
+    return rows
+
+
 SECTIONS: dict[str, Callable[[Path], list[Row]]] = {"ground": ground, "survey2h": survey2h,
-                                                   "indoor": indoor}
+                                                   "indoor": indoor, "real": real}
 
 
 def main(argv: list[str]) -> int:

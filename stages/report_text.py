@@ -64,6 +64,22 @@ def what(f: dict[str, Any]) -> str:
     return EFFECTS[EffectKind(e)].sentence(f.get("params") or {}, f.get("sigma") or {})
 
 
+def kin_sentences(findings: list[dict[str, Any]]) -> dict[int, str]:
+    """Return what a finding's sentence adds about the others of its effect, by index.
+
+    The effect's own words (:meth:`pipeline.model.effects.base.Effect.beside_kin`): several
+    dipoles the data do not resolve apart are one object.
+    """
+    out: dict[int, str] = {}
+    for e in {str(f.get("effect")) for f in findings} & set(_NAMES):
+        idx = [i for i, f in enumerate(findings) if f.get("effect") == e]
+        if len(idx) > 1:
+            words = EFFECTS[EffectKind(e)].beside_kin(
+                [findings[i].get("params") or {} for i in idx], short=True)
+            out.update((i, w) for i, w in zip(idx, words, strict=True) if w)
+    return out
+
+
 @dataclass
 class Row:
     """One row of the findings table: a global effect, or one physical event in time."""
@@ -118,6 +134,7 @@ def rows(diagnosis: dict[str, Any], t0_ns: int) -> list[Row]:
 
     """
     findings = list(diagnosis.get("findings") or [])
+    kin = kin_sentences(findings)
     placed: list[tuple[int, Row]] = []
     local: list[tuple[float, float, dict[str, Any]]] = []
     for k, f in enumerate(findings):
@@ -126,7 +143,7 @@ def rows(diagnosis: dict[str, Any], t0_ns: int) -> list[Row]:
                 local.append((float(a), float(b), f))
             continue
         ev = f.get("evidence") or {}
-        placed.append((k, Row(what(f), _when(f), _fit_text(f, f),
+        placed.append((k, Row(what(f) + kin.get(k, ""), _when(f), _fit_text(f, f),
                               evidence_words(ev.get("delta_bic")), [str(f.get("effect"))],
                               str(f.get("explanation", "")))))
     local.sort(key=lambda x: x[0])

@@ -49,6 +49,7 @@ from pipeline.core.errors import OutputError
 from pipeline.core.recording import GeodeticOrigin
 from pipeline.core.style import num
 from pipeline.io.mcap_decode import geodetic_to_local_enu, local_enu_to_geodetic
+from pipeline.model.effects.local_source import objects
 from pipeline.model.forward import dipole_matrix
 
 #: columns of targets.csv, in order (CONVENTIONS)
@@ -243,6 +244,50 @@ class Source:
     closest_approach_s: float | None
     delta_bic: float
     position_frame: str
+    #: the dipoles, ``(position_m, moment_Am2)``, of an object described by several
+    #: (:func:`one_row_per_object`); empty: the source is its own one dipole
+    parts: tuple[tuple[np.ndarray, np.ndarray], ...] = ()
+
+    def field_nT(self, p_m: np.ndarray) -> np.ndarray:
+        """Field of the object at points ``p_m`` (N, 3), ENU nT: the sum of its dipoles."""
+        parts = self.parts or ((self.position_m, self.moment_Am2),)
+        return sum((dipole_field_nT(p_m, c, m) for c, m in parts),
+                   start=np.zeros((len(np.asarray(p_m).reshape(-1, 3)), 3)))
+
+
+def one_row_per_object(sources: list[Source]) -> list[Source]:
+    """Merge the dipoles the data do not resolve apart into one object each.
+
+    The grouping is the ``local_source`` effect's (:func:`pipeline.model.effects.local_source.
+    objects`: closer together than the sensor came to either). An object of several dipoles
+    is listed at their centre weighted by each moment's size, with the sigma that centre has
+    when the dipoles' positions are independent, the sum of their moments (the object's
+    dipole moment, what its field is far away), the closest pass of any of them and the sum
+    of their ``delta_bic`` (each dipole's own evidence as it was added). Ordered again by
+    ``delta_bic``.
+    """
+    as_params = [{"position_m": s.position_m, "closest_approach_m": s.closest_approach_m,
+                  "position_frame": s.position_frame} for s in sources]
+    out = []
+    for g in objects(as_params):
+        members = [sources[i] for i in g]
+        if len(members) == 1:
+            out.append(members[0])
+            continue
+        w = np.array([float(np.linalg.norm(m.moment_Am2)) for m in members])
+        w = w / max(float(w.sum()), 1e-300)
+        near = min(members, key=lambda m: math.inf if m.closest_approach_m is None
+                   else m.closest_approach_m)
+        out.append(Source(
+            np.sum([wi * m.position_m for wi, m in zip(w, members, strict=True)], axis=0),
+            np.sqrt(np.sum([(wi * m.sigma_m) ** 2 for wi, m in zip(w, members, strict=True)],
+                           axis=0)),
+            np.sum([m.moment_Am2 for m in members], axis=0),
+            near.closest_approach_m, near.closest_approach_s,
+            float(sum(m.delta_bic for m in members)), members[0].position_frame,
+            tuple((m.position_m, m.moment_Am2) for m in members)))
+    out.sort(key=lambda s: s.delta_bic if math.isfinite(s.delta_bic) else math.inf)
+    return out
 
 
 def located_sources(diagnosis: Any) -> list[Source]:
@@ -317,7 +362,7 @@ def target_rows(sources: list[Source], p_m: np.ndarray, t_ns: np.ndarray, t0_ns:
             utc = _iso_utc(tc)
             if len(t):
                 j = int(np.argmin(np.abs(t - tc)))
-                peak = float(np.linalg.norm(dipole_field_nT(p[j], x, s.moment_Am2)))
+                peak = float(np.linalg.norm(s.field_nT(p[j])))
         rows.append([f"T{i + 1}", *(num(v, ".3f") for v in x), *geo, _f(depth, ".3f"),
                      *(_f(v, ".3f") for v in s.sigma_m),
                      *(num(v, ".3f") for v in s.moment_Am2),
@@ -673,7 +718,7 @@ def write_survey(out_dir: str | Path, recording: Any, sample: Any, calibration: 
     frame = str(getattr(pos.frame, "value", pos.frame))
     sources = located_sources(diagnosis)
     written: list[tuple[str, str]] = []
-    rows = target_rows(sources, p, t, t0_ns, pos.origin)
+    rows = target_rows(one_row_per_object(sources), p, t, t0_ns, pos.origin)
     written.append(("targets.csv", str(write_targets(out / "targets.csv", rows))))
     grid = grid_survey(p, np.asarray(sample.enu_nT, dtype=float),
                        np.asarray(calibration.B_enu_nT, dtype=float), sources)

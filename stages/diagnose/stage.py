@@ -413,6 +413,24 @@ def with_final_values(diag: Diagnosis, before: FitResult, before_data: FitData,
     return dataclasses.replace(diag, findings=tuple(out))
 
 
+def with_kin_words(diag: Diagnosis) -> Diagnosis:
+    """Return ``diag`` whose findings say what each says about the others of its effect.
+
+    Run once on the final findings (:meth:`pipeline.model.effects.base.Effect.beside_kin`):
+    several dipoles that the data do not resolve as separate objects are one object.
+    """
+    out = list(diag.findings)
+    for kind in {f.effect for f in out}:
+        idx = [i for i, f in enumerate(out) if f.effect == kind]
+        if len(idx) < 2 or kind not in {k.value for k in EFFECTS}:
+            continue
+        words = EFFECTS[EffectKind(kind)].beside_kin([out[i].params for i in idx])
+        for i, w in zip(idx, words, strict=True):
+            if w:
+                out[i] = dataclasses.replace(out[i], explanation=out[i].explanation + w)
+    return dataclasses.replace(diag, findings=tuple(out))
+
+
 def with_sigmas(diag: Diagnosis, res: FitResult, data: FitData, cov: np.ndarray) -> Diagnosis:
     """Return ``diag`` whose findings state the sigmas of ``cov`` (those of ``res``'s terms).
 
@@ -872,7 +890,7 @@ class Diagnose:
         # every sigma a user reads covers what the recording's halves show
         halves = fit_halves(res, data)
         cov = covered_covariance(res, data, halves)
-        diag = with_sigmas(diag, res, data, cov)
+        diag = with_kin_words(with_sigmas(diag, res, data, cov))
         final = calibration_from(res, data, diag.findings, cov)
         if extra:
             final = dataclasses.replace(final, effects={**(final.effects or {}), **extra})

@@ -521,6 +521,17 @@ class Effect:
         """Return what the fitted values suggest, ``". "``-led (empty: nothing to add)."""
         return ""
 
+    def beside_kin(self, params: list[dict[str, Any]], short: bool = False) -> list[str]:
+        """Return what each finding of this effect says about the others of its kind.
+
+        ``params`` are the final findings' CONVENTIONS values, in the order found; the
+        result holds one text per finding (empty: nothing to add): ``". "``-led for the
+        explanation, or with ``short`` a sentence for the report's (:meth:`sentence`). Most
+        effects have nothing to say; a ``local_source`` names the findings that are one
+        object.
+        """
+        return [""] * len(params)
+
     def undetermined(self, motion: Motion, efficiency: float,
                      horizontal_fraction: float | None = None) -> str | None:
         """Return why this recording cannot determine the term, or None if it can.
