@@ -260,8 +260,10 @@ def one_row_per_object(sources: list[Source]) -> list[Source]:
 
     The grouping is the ``local_source`` effect's (:func:`pipeline.model.effects.local_source.
     objects`: closer together than the sensor came to either). An object of several dipoles
-    is listed at their centre weighted by each moment's size, with the sigma that centre has
-    when the dipoles' positions are independent, the sum of their moments (the object's
+    is listed at their centre weighted by each moment's size, with a sigma that holds the
+    centre's own (the dipoles' positions taken as independent) and the object's extent (the
+    dipoles' weighted spread about the centre, per axis: which point of an object larger
+    than a point is where it is, the data cannot say closer), the sum of their moments (the object's
     dipole moment, what its field is far away), the closest pass of any of them and the sum
     of their ``delta_bic`` (each dipole's own evidence as it was added). Ordered again by
     ``delta_bic``.
@@ -278,10 +280,12 @@ def one_row_per_object(sources: list[Source]) -> list[Source]:
         w = w / max(float(w.sum()), 1e-300)
         near = min(members, key=lambda m: math.inf if m.closest_approach_m is None
                    else m.closest_approach_m)
+        centre = np.sum([wi * m.position_m for wi, m in zip(w, members, strict=True)], axis=0)
+        known = np.sum([(wi * m.sigma_m) ** 2 for wi, m in zip(w, members, strict=True)], axis=0)
+        extent = np.sum([wi * (m.position_m - centre) ** 2 for wi, m in
+                         zip(w, members, strict=True)], axis=0)
         out.append(Source(
-            np.sum([wi * m.position_m for wi, m in zip(w, members, strict=True)], axis=0),
-            np.sqrt(np.sum([(wi * m.sigma_m) ** 2 for wi, m in zip(w, members, strict=True)],
-                           axis=0)),
+            centre, np.sqrt(known + extent),
             np.sum([m.moment_Am2 for m in members], axis=0),
             near.closest_approach_m, near.closest_approach_s,
             float(sum(m.delta_bic for m in members)), members[0].position_frame,

@@ -88,6 +88,9 @@ def test_one_row_per_object_sums_the_moments_and_reads_the_field_of_both():
     w = np.array([np.linalg.norm(big.moment_Am2), np.linalg.norm(small.moment_Am2)])
     np.testing.assert_allclose(obj.position_m, (w[0] * big.position_m + w[1] * small.position_m)
                                / w.sum())
+    # the sigma holds the object's extent: at least the dipoles' weighted spread per axis
+    spread = np.sqrt(w[0] * w[1]) / w.sum() * np.abs(big.position_m - small.position_m)
+    assert np.all(obj.sigma_m >= spread) and np.all(obj.sigma_m >= 0.5 * big.sigma_m)
     assert obj.closest_approach_m == 0.051 and obj.closest_approach_s == 45.6
     assert obj.delta_bic == -2850.5
     # the row's peak is the field of both dipoles at the closest pass
