@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.effects import EFFECTS
+from pipeline.model.effects import EFFECTS, kin_words
 
 #: the effects that live in time windows (one row per event)
 LOCAL = frozenset(k.value for k, e in EFFECTS.items() if e.event)
@@ -67,17 +67,12 @@ def what(f: dict[str, Any]) -> str:
 def kin_sentences(findings: list[dict[str, Any]]) -> dict[int, str]:
     """Return what a finding's sentence adds about the others of its effect, by index.
 
-    The effect's own words (:meth:`pipeline.model.effects.base.Effect.beside_kin`): several
-    dipoles the data do not resolve apart are one object.
+    The effect's own words (:func:`pipeline.model.effects.kin_words`): several dipoles the
+    data do not resolve apart are one object.
     """
-    out: dict[int, str] = {}
-    for e in {str(f.get("effect")) for f in findings} & set(_NAMES):
-        idx = [i for i, f in enumerate(findings) if f.get("effect") == e]
-        if len(idx) > 1:
-            words = EFFECTS[EffectKind(e)].beside_kin(
-                [findings[i].get("params") or {} for i in idx], short=True)
-            out.update((i, w) for i, w in zip(idx, words, strict=True) if w)
-    return out
+    words = kin_words([str(f.get("effect")) for f in findings],
+                      [f.get("params") or {} for f in findings], short=True)
+    return {i: w for i, w in enumerate(words) if w}
 
 
 @dataclass

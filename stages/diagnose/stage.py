@@ -25,7 +25,7 @@ from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
 from pipeline.core.recording import AlignedSeries, Recording
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.calibration import Calibration
-from pipeline.model.effects import EFFECTS, IRON_PRIOR
+from pipeline.model.effects import EFFECTS, IRON_PRIOR, kin_words
 from pipeline.model.sample_hold import Handling, SampleHold, detect_sample_hold
 from pipeline.model.solve import one_blas_thread
 from stages.context import Context
@@ -416,19 +416,14 @@ def with_final_values(diag: Diagnosis, before: FitResult, before_data: FitData,
 def with_kin_words(diag: Diagnosis) -> Diagnosis:
     """Return ``diag`` whose findings say what each says about the others of its effect.
 
-    Run once on the final findings (:meth:`pipeline.model.effects.base.Effect.beside_kin`):
-    several dipoles that the data do not resolve as separate objects are one object.
+    Run once on the final findings (:func:`pipeline.model.effects.kin_words`): several
+    dipoles that the data do not resolve as separate objects are one object.
     """
-    out = list(diag.findings)
-    for kind in {f.effect for f in out}:
-        idx = [i for i, f in enumerate(out) if f.effect == kind]
-        if len(idx) < 2 or kind not in {k.value for k in EFFECTS}:
-            continue
-        words = EFFECTS[EffectKind(kind)].beside_kin([out[i].params for i in idx])
-        for i, w in zip(idx, words, strict=True):
-            if w:
-                out[i] = dataclasses.replace(out[i], explanation=out[i].explanation + w)
-    return dataclasses.replace(diag, findings=tuple(out))
+    fs = diag.findings
+    words = kin_words([f.effect for f in fs], [f.params for f in fs])
+    return dataclasses.replace(diag, findings=tuple(
+        dataclasses.replace(f, explanation=f.explanation + w) if w else f
+        for f, w in zip(fs, words, strict=True)))
 
 
 def with_sigmas(diag: Diagnosis, res: FitResult, data: FitData, cov: np.ndarray) -> Diagnosis:

@@ -39,4 +39,23 @@ if set(EFFECTS) != set(EffectKind):
 IRON_PRIOR: dict[str, float] = {
     k.value: p for k in EffectKind if (p := EFFECTS[k].held_prior) is not None}
 
-__all__ = ["EFFECTS", "IRON_PRIOR", "Effect", "TermShape"]
+
+
+def kin_words(effects: list[str], params: list[dict], short: bool = False) -> list[str]:
+    """Return what each finding says about the others of its effect (``Effect.beside_kin``).
+
+    ``effects`` and ``params``: the findings' names and CONVENTIONS values, in the order
+    found; one text per finding (empty: nothing to add). The explanation and the report's
+    sentence (``short``) both take them from here.
+    """
+    out = [""] * len(effects)
+    for k in EffectKind:
+        idx = [i for i, e in enumerate(effects) if e == k.value]
+        if len(idx) > 1:
+            for i, w in zip(idx, EFFECTS[k].beside_kin([params[i] for i in idx], short),
+                            strict=True):
+                out[i] = w
+    return out
+
+
+__all__ = ["EFFECTS", "IRON_PRIOR", "Effect", "TermShape", "kin_words"]

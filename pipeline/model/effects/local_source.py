@@ -48,9 +48,13 @@ def same_object(a: dict[str, Any], b: dict[str, Any]) -> bool:
     da, db = a.get("closest_approach_m"), b.get("closest_approach_m")
     if da is None or db is None:
         return False
-    gap = float(np.linalg.norm(np.asarray(a["position_m"], float)
-                               - np.asarray(b["position_m"], float)))
-    return gap < min(float(da), float(db))
+    return _gap_m(a, b) < min(float(da), float(db))
+
+
+def _gap_m(a: dict[str, Any], b: dict[str, Any]) -> float:
+    """Distance between two located dipoles' positions, m."""
+    return float(np.linalg.norm(np.asarray(a["position_m"], float)
+                                - np.asarray(b["position_m"], float)))
 
 
 def objects(params: list[dict[str, Any]]) -> list[list[int]]:
@@ -215,15 +219,13 @@ class LocalSource(Effect):
                 continue
             for i in g:
                 others = [j for j in g if j != i]
-                gaps = [float(np.linalg.norm(np.asarray(params[i]["position_m"], float)
-                                             - np.asarray(params[j]["position_m"], float)))
-                        for j in others]
+                gaps = [_gap_m(params[i], params[j]) for j in others]
                 near = min(float(params[j]["closest_approach_m"]) for j in g)
                 at = "; ".join(vec(np.asarray(params[j]["position_m"], float), 2) for j in others)
                 cm = ", ".join(f"{100 * x:.1f}" for x in gaps)
                 if short:
                     words[i] = (f" It and the dipole at {at} m, {cm} cm away, are one object: "
-                                f"closer together than the sensor came to either ({100 * near:.1f} "
+                                f"closer than the sensor came to any of them ({100 * near:.1f} "
                                 "cm), the data do not resolve them apart.")
                     continue
                 words[i] = (
