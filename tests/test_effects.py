@@ -16,9 +16,10 @@ from pipeline.core.geometry import so3_exp
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects import EFFECTS, Effect
 from pipeline.model.forward import hat_basis
+from pipeline.model.solve import normal_equations
 from stages.diagnose.catalogue import motion_stats
 from stages.diagnose.fit import fit, wahba_init
-from stages.diagnose.model import FitData, ModelState, Term, evaluate
+from stages.diagnose.model import FitData, ModelState, Term, evaluate, row_spans
 
 
 def _numeric_jacobian(state: ModelState, data: FitData, eps: np.ndarray) -> np.ndarray:
@@ -318,3 +319,40 @@ def test_every_fitted_effect_is_offered_by_the_search():
             continue  # found from the repeats of the readings, not fitted
         assert eff.each_round or kind in AT_EVENT or eff.absorbing, kind
     assert GLOBAL_KINDS[0] is EffectKind.HARD_IRON  # CONVENTIONS' order, not the import's
+
+
+def test_windowed_columns_vanish_outside_their_windows_and_the_normal_equations_agree():
+    """``Effect.column_windows`` is what ``columns`` writes: zero at every other sample.
+
+    A step with transitions, a disturbance and a source present in a window, beside every
+    global effect; the normal equations summed over the windows alone equal the full product
+    to rounding.
+    """
+    terms, vals = all_terms()
+    step = Term(EffectKind.HARD_IRON_STEP, ((31.0, 37.0),), knot_step_s=0.1,
+                ramps_s=((31.0, 31.6), (36.5, 37.0)), ramp_scale_s=0.1, prior_nT=1e4,
+                noise_nT=10.0)
+    source = Term(EffectKind.LOCAL_SOURCE, ((5.0, 12.0),))
+    rng = np.random.default_rng(4)
+    terms = (*terms, step, source)
+    vals = (*vals, rng.normal(size=step.n_params()) * 100.0,
+            np.array([0.3, -0.2, 0.1, 0.5, -0.4, 0.8]))
+    data, truth = make_data(terms, vals, duration_s=40.0, rate_hz=100.0, seed=5,
+                            positions=lambda t: lissajous_m(t) + np.array([1.0, 0.5, 0.2]))
+    J = evaluate(truth, data).J
+    spans = row_spans(truth, data.t_s)
+    kinds = {truth.terms[k].kind for k, o in enumerate(truth.offsets())
+             for i, _, _, _ in spans if o <= i < o + truth.terms[k].n_params()}
+    assert kinds == {EffectKind.HARD_IRON_STEP, EffectKind.DISTURBANCE, EffectKind.LOCAL_SOURCE}
+    for i, j, a, b in spans:
+        assert 0 <= a < b <= len(data)
+        outside = np.ones(len(data), dtype=bool)
+        outside[a:b] = False
+        assert np.all(J[outside, :, i:j] == 0.0), (i, j)
+        assert np.any(J[a:b, :, i:j] != 0.0), (i, j)
+    r = data.y_nT - evaluate(truth, data, jacobian=False).y_nT
+    H0, g0 = normal_equations(J, r)
+    H1, g1 = normal_equations(J, r, spans)
+    np.testing.assert_allclose(H1, H0, rtol=1e-12, atol=1e-12 * np.abs(H0).max())
+    np.testing.assert_allclose(g1, g0, rtol=1e-12, atol=1e-12 * np.abs(g0).max())
+    np.testing.assert_array_equal(H1, H1.T)

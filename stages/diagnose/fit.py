@@ -20,7 +20,15 @@ from pipeline.model.solve import (
     minimise,
     normal_equations,
 )
-from stages.diagnose.model import F64, FitData, ModelState, evaluate, matvec_rows, sample_weights
+from stages.diagnose.model import (
+    F64,
+    FitData,
+    ModelState,
+    evaluate,
+    matvec_rows,
+    row_spans,
+    sample_weights,
+)
 
 
 @dataclass(frozen=True)
@@ -111,13 +119,17 @@ def fit(
     def update(st: ModelState, dx: F64) -> ModelState:
         return st.update(dx, fixed_B=fixed_B)
 
+    def spans(st: ModelState) -> tuple[tuple[int, int, int, int], ...]:
+        return row_spans(st, data.t_s)
+
     prec = state.prior_precision()
     if prec is None:
-        sol = levenberg_marquardt(state, resid, update, max_iter=max_iter, rtol=rtol)
+        sol = levenberg_marquardt(state, resid, update, max_iter=max_iter, rtol=rtol,
+                                  row_spans=spans)
     else:
         # the weights enter linearly: a relative decrease of 1e-8 is converged well within
         # the noise, and each iteration costs the map's columns squared
-        sol = _fit_with_prior(state, resid, update, prec, max_iter, max(rtol, 1e-8))
+        sol = _fit_with_prior(state, resid, update, prec, max_iter, max(rtol, 1e-8), spans)
     raw = None
     if data.noise_model is not None:
         raw = data.y_nT - evaluate(sol.state, data, jacobian=False).y_nT
@@ -156,7 +168,7 @@ def _sqrt_weight_rate(data: FitData, tau_s: float) -> F64:
 
 
 def _fit_with_prior(state: ModelState, resid: Any, update: Any, prec: F64, max_iter: int,
-                    rtol: float) -> Solution:
+                    rtol: float, spans: Any) -> Solution:
     """Run the damped Gauss-Newton fit of ``|r|^2 + sum_i prec_i x_i^2`` (a ``field_map``'s prior).
 
     The ridge is the GP prior of the map's weights (:meth:`ModelState.prior_precision`): it
@@ -172,7 +184,7 @@ def _fit_with_prior(state: ModelState, resid: Any, update: Any, prec: F64, max_i
         if not with_normal:
             return Linearised(float(np.sum(r * r)) + pen, aux=r)
         assert J is not None
-        H, g = normal_equations(J, r)
+        H, g = normal_equations(J, r, spans(st))
         return Linearised(float(np.sum(r * r)) + pen, H + np.diag(prec), g - prec * x, r)
 
     m = minimise(state, linearise, update, max_iter=max_iter, rtol=rtol)

@@ -1074,6 +1074,24 @@ def _enu_field(state: ModelState, data: FitData, lever_enu: F64 | None
     return Bt, h_rad, Bt_unturned, kept
 
 
+def row_spans(state: ModelState, t_s: F64) -> tuple[tuple[int, int, int, int], ...]:
+    """Return the Jacobian's windowed columns at ``state``: ``(i, j, a, b)`` per window of a term.
+
+    Columns ``[i, j)`` vanish outside samples ``[a, b)`` (the effects'
+    :meth:`~pipeline.model.effects.base.Effect.column_windows`, found in the stamps
+    ``t_s``, which must be in order). None for a model with terms held in part, whose
+    columns are combinations (:func:`_partial_evaluation`), nor for stamps out of order.
+    """
+    if state.has_partial or np.any(np.diff(t_s) < 0):
+        return ()
+    out = []
+    for term, i in zip(state.terms, state.offsets(), strict=True):
+        for c0, c1, t0, t1 in EFFECTS[term.kind].column_windows(term):
+            a, b = np.searchsorted(t_s, [t0, t1])
+            out.append((i + c0, i + c1, int(a), int(b)))
+    return tuple(out)
+
+
 def _term_columns(J: F64, state: ModelState, lin: _Linearisation) -> None:
     """Write each term's Jacobian columns into ``J`` (N, 3, P) in place (its effect's)."""
     for j, (term, i, v) in enumerate(zip(state.terms, state.offsets(), state.values,

@@ -680,6 +680,17 @@ class Effect:
         raise ValueError(f"{self.kind.value} is not a term of the forward model")
 
 
+    def column_windows(self, term: Any) -> tuple[tuple[int, int, float, float], ...]:
+        """Return the term's columns that vanish outside a time window: ``(i, j, t0, t1)``.
+
+        Columns ``[i, j)`` of :meth:`columns` are zero at every sample outside ``[t0, t1)``
+        (s from the first magnetometer sample, the samples' own stamps). The normal equations
+        sum their products over those rows alone (``pipeline.model.solve.normal_equations``).
+        Empty (the default): every column may act at any time. Checked against
+        :meth:`columns` for every effect that declares windows (``tests/test_effects.py``).
+        """
+        return ()
+
     def merged_start(self, a: tuple[Any, F64], b: tuple[Any, F64], merged: Any) -> F64:
         """Return the start values of ``merged``, one term over the pieces ``a`` and ``b``.
 

@@ -82,6 +82,21 @@ class Disturbance(Effect):
         out[:] = (Phi[:, :, None, None] * lin.G[:, None, :, :]).transpose(0, 2, 1, 3).reshape(
             n, 3, 3 * K)
 
+    def column_windows(self, term: Any) -> tuple[tuple[int, int, float, float], ...]:
+        """Return each hat's 3 columns over its two knot intervals (:meth:`Effect.column_windows`).
+
+        Hat ``i`` of a window's knots ``k`` is zero outside ``[k[i-1], k[i+1])``, clipped to
+        the window (``hat_basis``).
+        """
+        out = []
+        i = 0
+        for kn in term.knots():
+            last = len(kn) - 1
+            for h in range(len(kn)):
+                out.append((i, i + 3, float(kn[max(h - 1, 0)]), float(kn[min(h + 1, last)])))
+                i += 3
+        return tuple(out)
+
     def restorable(self, params: dict[str, Any]) -> bool:
         """Return whether the knots' field is there (see :meth:`Effect.restorable`)."""
         return "knots_s" in params and "knot_field_nT" in params

@@ -106,6 +106,22 @@ class HardIronStep(Effect):
             out[:, r_, r_] = s_step
             out[:, r_, 3 + r_ : 3 + 3 * phi.shape[1] : 3] = phi
 
+    def column_windows(self, term: Any) -> tuple[tuple[int, int, float, float], ...]:
+        """Return the plateau's columns over the window, each transition's over its ramp.
+
+        See :meth:`Effect.column_windows`; ``ramp_profile`` is zero outside both.
+        """
+        if not term.windows_s:
+            return ()
+        out = [(0, 3, min(float(a) for a, _ in term.windows_s),
+                max(float(b) for _, b in term.windows_s))]
+        i = 3
+        for r0, r1 in term.ramps_s or ():
+            j = i + 3 * ramp_modes((r0, r1), term.knot_step_s)
+            out.append((i, j, float(r0), float(r1)))
+            i = j
+        return tuple(out)
+
     def restore_part(self, params: dict[str, Any]) -> StepPart:
         """Return the step for the restore (see :meth:`Effect.restore_part`)."""
         return StepPart(tuple(tuple(w) for w in params.get("windows_s") or ()),

@@ -176,6 +176,16 @@ class LocalSource(Effect):
             dB *= term.presence(lin.t_s)[:, None, None]
         np.matmul(lin.G, dB, out=out)
 
+    def column_windows(self, term: Any) -> tuple[tuple[int, int, float, float], ...]:
+        """Return every column over the source's windows, if it has any (its presence).
+
+        See :meth:`Effect.column_windows`.
+        """
+        if not term.windows_s:
+            return ()
+        return ((0, self.n_params(term), min(float(a) for a, _ in term.windows_s),
+                 max(float(b) for _, b in term.windows_s)),)
+
     def undetermined(self, motion: Motion, efficiency: float,
                      horizontal_fraction: float | None = None) -> str | None:
         """Return why a source cannot be located: only without positions (see the base class)."""
