@@ -356,3 +356,15 @@ def test_windowed_columns_vanish_outside_their_windows_and_the_normal_equations_
     np.testing.assert_allclose(H1, H0, rtol=1e-12, atol=1e-12 * np.abs(H0).max())
     np.testing.assert_allclose(g1, g0, rtol=1e-12, atol=1e-12 * np.abs(g0).max())
     np.testing.assert_array_equal(H1, H1.T)
+
+
+def test_windowed_terms_on_stamps_out_of_order_equal_those_in_order():
+    """A step's and a disturbance's field and columns, computed on their windows' samples
+    alone (``window_rows``), do not depend on the stamps' order."""
+    terms, vals = all_terms()
+    data, truth = make_data(terms, vals, duration_s=40.0, rate_hz=50.0, seed=6)
+    order = np.random.default_rng(6).permutation(len(data))
+    shuffled = FitData(data.t_s[order], data.y_nT[order], data.track)
+    a, b = evaluate(truth, data), evaluate(truth, shuffled)
+    np.testing.assert_allclose(b.y_nT, a.y_nT[order], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(b.J, a.J[order], rtol=0, atol=1e-9)

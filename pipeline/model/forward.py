@@ -138,6 +138,18 @@ def ramp_profile(t_s: F64, window_s: tuple[float, float], ramps_s: Any,
     return s, (np.concatenate(cols, axis=1) if cols else np.zeros((t.size, 0)))
 
 
+def window_rows(t_s: F64, t0: float, t1: float) -> slice | np.ndarray:
+    """Return the samples with stamps in ``[t0, t1)``: a slice of ascending stamps, else a mask.
+
+    A term that acts in a window is computed on those rows alone (zero elsewhere).
+    """
+    t = np.asarray(t_s, dtype=float)
+    if t.size > 1 and np.any(t[1:] < t[:-1]):
+        return (t >= t0) & (t < t1)
+    a, b = np.searchsorted(t, [t0, t1])
+    return slice(int(a), int(b))
+
+
 def in_windows(t_s: F64, windows_s: Any) -> np.ndarray:
     """Half-open window membership, (N,) bool."""
     t = np.asarray(t_s, dtype=float)

@@ -19,7 +19,7 @@ from pipeline.model.effects.base import (
     register,
     standard_deviations,
 )
-from pipeline.model.forward import hat_basis
+from pipeline.model.forward import hat_basis, window_rows
 
 
 @dataclass(frozen=True, eq=False)
@@ -71,16 +71,25 @@ class Disturbance(Effect):
 
     def add_field(self, term: Any, value: F64, at: Samples, B_enu: F64) -> Any:
         """Add the hats' field inside the windows, (M1) (see :meth:`Effect.add_field`)."""
-        Phi = np.concatenate([hat_basis(at.t_s, k) for k in term.knots()], axis=1)
-        B_enu += Phi @ value.reshape(-1, 3)
+        c = value.reshape(-1, 3)
+        i = 0
+        for kn in term.knots():  # each window on its own samples: the hats are zero elsewhere
+            rows = window_rows(at.t_s, kn[0], kn[-1])
+            B_enu[rows] += hat_basis(at.t_s[rows], kn) @ c[i : i + len(kn)]
+            i += len(kn)
         return None
 
     def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
         """Write ``dy/dc_kd = G e_d phi_k(t)`` (see :meth:`Effect.columns`)."""
-        Phi = np.concatenate([hat_basis(lin.t_s, kn) for kn in term.knots()], axis=1)
-        n, K = Phi.shape
-        out[:] = (Phi[:, :, None, None] * lin.G[:, None, :, :]).transpose(0, 2, 1, 3).reshape(
-            n, 3, 3 * K)
+        i = 0
+        for kn in term.knots():
+            rows = window_rows(lin.t_s, kn[0], kn[-1])
+            phi = hat_basis(lin.t_s[rows], kn)
+            n, K = phi.shape
+            out[rows, :, 3 * i : 3 * (i + K)] = (
+                phi[:, :, None, None] * lin.G[rows][:, None, :, :]).transpose(0, 2, 1, 3).reshape(
+                n, 3, 3 * K)
+            i += K
 
     def column_windows(self, term: Any) -> tuple[tuple[int, int, float, float], ...]:
         """Return each hat's 3 columns over its two knot intervals (:meth:`Effect.column_windows`).

@@ -18,7 +18,7 @@ from pipeline.model.effects.base import (
     register,
     standard_deviations,
 )
-from pipeline.model.forward import in_windows, ramp_modes, ramp_profile
+from pipeline.model.forward import in_windows, ramp_modes, ramp_profile, window_rows
 
 
 @dataclass(frozen=True, eq=False)
@@ -55,6 +55,14 @@ class StepPart(RestorePart):
             return out
         s, phi = ramp_profile(t, self.windows_s[0], self.ramps_s, self.mode_step_s)
         return np.asarray(s[:, None] * self.plateau_nT + phi @ self.modes_nT)
+
+
+def _rows(term: Any, t_s: F64) -> slice | np.ndarray:
+    """Return the samples from the first window's start to the last one's end (``window_rows``)."""
+    if not term.windows_s:
+        return slice(None)
+    return window_rows(t_s, min(float(a) for a, _ in term.windows_s),
+                       max(float(b) for _, b in term.windows_s))
 
 
 @register
@@ -95,16 +103,23 @@ class HardIronStep(Effect):
 
     def offset_nT(self, term: Any, value: F64, t_s: F64) -> F64:
         """Return ``o_step s(t) + phi(t) c`` of (M5), mag frame, (N, 3)."""
-        s, phi = term.step_profile(t_s)
-        return s[:, None] * value[:3] + phi @ np.asarray(value[3:]).reshape(-1, 3)
+        out = np.zeros((np.size(t_s), 3))
+        rows = _rows(term, t_s)  # the profile is zero outside the windows
+        s, phi = term.step_profile(np.asarray(t_s)[rows])
+        out[rows] = s[:, None] * value[:3] + phi @ np.asarray(value[3:]).reshape(-1, 3)
+        return out
 
     def columns(self, term: Any, value: F64, lin: Linearisation, kept: Any, out: F64) -> None:
         """Write the plateau's and each transition mode's columns (see :meth:`Effect.columns`)."""
-        s_step, phi = term.step_profile(lin.t_s)
+        rows = _rows(term, lin.t_s)
+        s_step, phi = term.step_profile(lin.t_s[rows])
+        block = out[rows] if isinstance(rows, slice) else np.zeros((len(s_step), *out.shape[1:]))
         # component r_ of the plateau's offset and of each transition mode's (3 each)
         for r_ in range(3):
-            out[:, r_, r_] = s_step
-            out[:, r_, 3 + r_ : 3 + 3 * phi.shape[1] : 3] = phi
+            block[:, r_, r_] = s_step
+            block[:, r_, 3 + r_ : 3 + 3 * phi.shape[1] : 3] = phi
+        if not isinstance(rows, slice):
+            out[rows] = block
 
     def column_windows(self, term: Any) -> tuple[tuple[int, int, float, float], ...]:
         """Return the plateau's columns over the window, each transition's over its ramp.
