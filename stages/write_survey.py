@@ -50,7 +50,7 @@ from pipeline.core.recording import GeodeticOrigin
 from pipeline.core.style import num
 from pipeline.io.mcap_decode import geodetic_to_local_enu, local_enu_to_geodetic
 from pipeline.model.effects.local_source import objects
-from pipeline.model.forward import dipole_matrix
+from pipeline.model.forward import dipole_field
 
 #: columns of targets.csv, in order (CONVENTIONS)
 TARGET_COLUMNS = (
@@ -226,11 +226,11 @@ def _round_spacing(x: float) -> float:
 def dipole_field_nT(p_m: np.ndarray, source_m: np.ndarray, moment_Am2: np.ndarray) -> np.ndarray:
     """Field of a point dipole at points ``p_m`` (N, 3), ENU nT (CONVENTIONS ``local_source``).
 
-    The forward model's own dipole (:func:`pipeline.model.forward.dipole_matrix`), so that the
+    The forward model's own dipole (:func:`pipeline.model.forward.dipole_field`), so that the
     grid and the diagnosis evaluate one field.
     """
     r = np.asarray(p_m, dtype=float).reshape(-1, 3) - np.asarray(source_m, dtype=float)
-    return dipole_matrix(r) @ np.asarray(moment_Am2, dtype=float)
+    return dipole_field(r, moment_Am2)
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ from _diag_sim import lissajous_m, make_data
 from test_effects import _numeric_jacobian
 
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.forward import dipole_gradient, dipole_matrix
+from pipeline.model.forward import dipole_field, dipole_gradient, dipole_matrix
 from stages.diagnose.fit import fit
 from stages.diagnose.model import ModelState, Term, evaluate, term_params
 
@@ -27,6 +27,18 @@ def test_dipole_field_on_axis_and_equator():
     # 1/r^3: twice as far, an eighth
     far = dipole_matrix(np.array([[0.0, 0.0, 2.0]]))[0] @ m
     assert np.allclose(far, on_axis / 8, atol=1e-9)
+
+
+def test_dipole_field_is_the_matrix_times_the_moment():
+    """``dipole_field`` (the field alone) and ``dipole_matrix`` (the moment's columns) agree,
+    and each matrix is symmetric and traceless (``3 u u' - I``)."""
+    rng = np.random.default_rng(2)
+    r = rng.normal(size=(50, 3))
+    m = np.array([0.3, -1.2, 0.7])
+    P = dipole_matrix(r)
+    np.testing.assert_allclose(dipole_field(r, m), P @ m, rtol=1e-12, atol=1e-9)
+    np.testing.assert_array_equal(P, np.swapaxes(P, 1, 2))
+    assert np.allclose(np.trace(P, axis1=1, axis2=2), 0.0, atol=1e-9)
 
 
 def test_dipole_gradient_matches_finite_differences_and_is_curl_free():

@@ -5,6 +5,7 @@ More in docs/modules.md, ``pipeline.model.forward``.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import TYPE_CHECKING, Any, cast
@@ -307,9 +308,21 @@ def dipole_matrix(r_enu_m: F64) -> F64:
     """
     r = np.asarray(r_enu_m, dtype=float)
     d = np.maximum(norm_last(r), MIN_SOURCE_DISTANCE_M)
+    s = DIPOLE_NT / d**3
+    u = (r / d[:, None]).T  # (3, N): each component a contiguous row
+    return _symmetric(lambda i, j: 3.0 * s * u[i] * u[j] - (s if i == j else 0.0), len(d))
+
+
+def dipole_field(r_enu_m: F64, m_Am2: F64) -> F64:
+    """``B = 100 (3 (m.u) u - m) / r^3`` (N, 3), nT: ``dipole_matrix(r) @ m``, no matrices."""
+    r = np.asarray(r_enu_m, dtype=float)
+    m = np.asarray(m_Am2, dtype=float)
+    d = np.maximum(norm_last(r), MIN_SOURCE_DISTANCE_M)
     u = r / d[:, None]
-    P = 3.0 * u[:, :, None] * u[:, None, :] - np.eye(3)
-    return DIPOLE_NT * P / (d**3)[:, None, None]
+    out = (3.0 * (u @ m))[:, None] * u
+    out -= m
+    out *= (DIPOLE_NT / d**3)[:, None]
+    return out
 
 
 def dipole_gradient(r_enu_m: F64, m_Am2: F64) -> F64:
@@ -318,23 +331,39 @@ def dipole_gradient(r_enu_m: F64, m_Am2: F64) -> F64:
     From ``B = k (3 (m.r) r / r^5 - m / r^3)``::
 
         dB_i/dr_j = k (3 (m_j r_i + m_i r_j + (m.r) d_ij) / r^5 - 15 (m.r) r_i r_j / r^7)
+
+    that is ``a (r_i m_j + m_i r_j + (m.r) d_ij) - c r_i r_j`` with ``a = 3 k / r^5`` and
+    ``c = 15 k (m.r) / r^7`` per sample.
     """
     r = np.asarray(r_enu_m, dtype=float)
+    m = np.asarray(m_Am2, dtype=float)
     d = np.maximum(norm_last(r), MIN_SOURCE_DISTANCE_M)
-    mr = r @ m_Am2
-    # in place, in the formula's order: the diagnosis evaluates this at every iteration
-    t1 = m_Am2[None, None, :] * r[:, :, None]
-    t1 += m_Am2[None, :, None] * r[:, None, :]
-    diag = np.arange(3)
-    t1[:, diag, diag] += mr[:, None]  # (m.r) d_ij
-    t1 *= 3.0
-    t1 /= (d**5)[:, None, None]
-    t2 = mr[:, None, None] * r[:, :, None] * r[:, None, :]
-    t2 *= 15.0
-    t2 /= (d**7)[:, None, None]
-    t1 -= t2
-    t1 *= DIPOLE_NT
-    return cast(F64, t1)
+    mr = r @ m
+    d2 = d * d
+    a = 3.0 * DIPOLE_NT / (d2 * d2 * d)
+    c = 5.0 * a * mr / d2
+    rt = r.T.copy()  # (3, N)
+
+    def entry(i: int, j: int) -> F64:
+        e = a * (rt[i] * m[j] + m[i] * rt[j]) - c * rt[i] * rt[j]
+        return e + a * mr if i == j else e
+
+    return _symmetric(entry, len(d))
+
+
+def _symmetric(entry: Callable[[int, int], F64], n: int) -> F64:
+    """(N, 3, 3) from its six distinct entries ``entry(i, j)`` (N,), ``i <= j``.
+
+    The per-sample 3 x 3 products of broadcasting run along axes of length 3, which numpy
+    loops over slowly; each entry as a whole column of samples is one pass.
+    """
+    out = np.empty((n, 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            out[:, i, j] = entry(i, j)
+            if j != i:
+                out[:, j, i] = out[:, i, j]
+    return out
 
 
 @dataclass(frozen=True)

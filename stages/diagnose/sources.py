@@ -25,7 +25,7 @@ import numpy as np
 
 from pipeline.core.geometry import dot_last
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.forward import DIPOLE_NT, MIN_SOURCE_DISTANCE_M, dipole_matrix
+from pipeline.model.forward import DIPOLE_NT, MIN_SOURCE_DISTANCE_M, dipole_field
 from stages.diagnose.fit import FitResult, fit
 from stages.diagnose.model import (
     F64,
@@ -246,7 +246,7 @@ def source_visits(term: Term, value: F64, data: FitData, floor_nT: float = 0.0) 
         return 0
     t = data.t_s[here]
     r = source_offset_enu(term, value, data.p_m[here])
-    b = np.linalg.norm(dipole_matrix(r) @ value[3:6], axis=1)
+    b = np.linalg.norm(dipole_field(r, value[3:6]), axis=1)
     dt = float(np.median(np.diff(t)))
     w = max(1, int(round(0.1 / max(dt, 1e-6))))
     bs = np.convolve(b, np.ones(w) / w, mode="same")

@@ -22,7 +22,13 @@ from pipeline.model.effects.base import (
     register,
     standard_deviations,
 )
-from pipeline.model.forward import dipole_gradient, dipole_matrix, in_windows, source_offset_enu
+from pipeline.model.forward import (
+    dipole_field,
+    dipole_gradient,
+    dipole_matrix,
+    in_windows,
+    source_offset_enu,
+)
 
 
 def bearing_rad(term: Any, value: F64) -> float:
@@ -101,7 +107,7 @@ class SourcePart(RestorePart):
         if p_m is None:
             return None
         r = source_offset_enu(self.position_m, self.yaw_rad, p_m, lever_enu)
-        f = np.einsum("nij,j->ni", dipole_matrix(r), self.moment_Am2)
+        f = dipole_field(r, self.moment_Am2)
         if self.windows_s:
             f[~in_windows(t_s, self.windows_s)] = 0.0
         return np.asarray(f)
@@ -133,18 +139,16 @@ class LocalSource(Effect):
     def add_field(self, term: Any, value: F64, at: Samples, B_enu: F64) -> Any:
         """Add ``100 nT (3 (m.u) u - m) / r^3`` (CONVENTIONS), where the source is present.
 
-        Returns the offsets ``r`` (N, 3) and dipole matrices ``P(r)`` for the columns (see
-        :meth:`Effect.add_field`).
+        Returns the offsets ``r`` (N, 3) for the columns (see :meth:`Effect.add_field`).
         """
         if at.p_m is None:
             return None
         r_src = source_offset_enu(value[0:3], bearing_rad(term, value), at.p_m, at.lever_enu)
-        P = dipole_matrix(r_src)
         if term.windows_s:
-            B_enu += term.presence(at.t_s)[:, None] * (P @ value[3:6])
+            B_enu += term.presence(at.t_s)[:, None] * dipole_field(r_src, value[3:6])
         else:  # present throughout: a presence of 1 would change nothing
-            B_enu += P @ value[3:6]
-        return r_src, P
+            B_enu += dipole_field(r_src, value[3:6])
+        return r_src
 
     def gradient_enu(self, term: Any, value: F64, at: Samples) -> F64 | None:
         """Return ``K(r) = dB/dr`` where present (see :meth:`Effect.gradient_enu`)."""
@@ -161,13 +165,13 @@ class LocalSource(Effect):
         """
         if lin.p_m is None:
             return
-        r_src, P_src = kept  # as the field's: the same offsets and values
+        r_src = kept  # as the field's: the same offsets
         n = len(r_src)
         K = dipole_gradient(r_src, value[3:6])
         psi = bearing_rad(term, value)
         dB = np.zeros((n, 3, out.shape[2]))
         np.negative(np.matmul(K, rot_z(psi)), out=dB[:, :, 0:3])
-        dB[:, :, 3:6] = P_src
+        dB[:, :, 3:6] = dipole_matrix(r_src)
         if term.fit_yaw:
             r_p = r_src if lin.lever_enu is None else source_offset_enu(value[0:3], psi, lin.p_m)
             ez_r = np.stack([-r_p[:, 1], r_p[:, 0], np.zeros(n)], axis=1)
