@@ -13,7 +13,15 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.core.geometry import norm_last, quat_rotate, quat_to_matrix, rot_z, so3_exp
+from pipeline.core.geometry import (
+    each_times_rows,
+    norm_last,
+    quat_rotate,
+    quat_to_matrix,
+    rot_z,
+    rows_times,
+    so3_exp,
+)
 from pipeline.model.attitude import AttitudeInterpolator, Interpolated
 
 if TYPE_CHECKING:
@@ -162,7 +170,7 @@ def in_windows(t_s: F64, windows_s: Any) -> np.ndarray:
 
 def _mv(M: F64, v: F64) -> F64:
     """Per-sample matrix-vector product (N, 3, 3) x (N, 3) -> (N, 3)."""
-    return np.matmul(M, v[:, :, None])[:, :, 0]
+    return rows_times(M, v)
 
 
 @dataclass(frozen=True)
@@ -275,10 +283,10 @@ def soft_iron_jacobian(basis: F64, m_nT: F64, mdot_nT_s: F64, E_s: F64 | None = 
     ``D`` perturbed along ``basis``: :data:`PARAM_NAMES` use the six symmetric unit matrices,
     the diagnosis' ``soft_iron`` the five traceless ones.
     """
-    J = np.einsum("kij,nj->nik", basis, m_nT)
+    J = each_times_rows(basis, m_nT)
     if E_s is not None:
-        J = J + np.einsum("kij,nj->nik", np.matmul(np.asarray(E_s), basis), mdot_nT_s)
-    return cast(F64, J)
+        J = J + each_times_rows(np.matmul(np.asarray(E_s), basis), mdot_nT_s)
+    return J
 
 
 #: mu0 / 4 pi in nT m^3 / (A m^2): B = 100 nT (3 (m.u) u - m) / r^3 (CONVENTIONS local_source)

@@ -52,7 +52,7 @@ from typing import Any, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.core.geometry import quat_to_matrix, skew, so3_exp
+from pipeline.core.geometry import quat_to_matrix, rows_times, skew, so3_exp
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.attitude import (
     MEAN_INTERPOLATION_ERROR_SHAPE,
@@ -788,7 +788,7 @@ def _CT(track: AttitudeTrack, t_s: F64, key: tuple | None = None, owners: Any = 
 
 def matvec_rows(M: F64, v: F64) -> F64:
     """Per-sample matrix-vector product (N,3,3) x (N,3) -> (N,3)."""
-    return np.matmul(M, v[:, :, None])[:, :, 0]
+    return rows_times(M, v)
 
 
 _MAP_CACHE: dict[tuple, tuple[Any, F64]] = {}

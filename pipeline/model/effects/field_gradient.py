@@ -7,7 +7,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pipeline.core.geometry import rot_z
+from pipeline.core.geometry import each_times_rows, rot_z
 from pipeline.core.vocabulary import EffectKind
 from pipeline.core.words import per_metre
 from pipeline.model.effects.base import (
@@ -145,7 +145,7 @@ class FieldGradient(Effect):
         dpq = lin.dp_m @ rot_z(term.yaw_rad).T  # Q (p - p_ref) per row
         if lin.lever_enu is not None:
             dpq = dpq + lin.lever_enu
-        dB = np.einsum("kij,nj->nik", SOFT_BASIS, dpq)  # (N, 3, 5)
+        dB = each_times_rows(SOFT_BASIS, dpq)  # (N, 3, 5)
         np.matmul(lin.G, dB, out=out)
 
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:

@@ -78,7 +78,8 @@ class FieldMap(Effect):
         """
         if at.p_m is None:
             return None
-        B_enu += np.einsum("ndk,k->nd", at.map_field(term), value) @ rot_z(term.yaw_rad).T
+        g = at.map_field(term)  # (N, 3, K)
+        B_enu += (g.reshape(-1, g.shape[2]) @ value).reshape(-1, 3) @ rot_z(term.yaw_rad).T
         return None
 
     def gradient_enu(self, term: Any, value: F64, at: Samples) -> F64 | None:
@@ -93,8 +94,9 @@ class FieldMap(Effect):
         """Write ``dy/dw_j = G Q g_j(x)``: linear in the weights (see :meth:`Effect.columns`)."""
         if lin.p_m is None:
             return
-        np.matmul(lin.G, np.einsum("ij,njk->nik", rot_z(term.yaw_rad), lin.map_field(term)),
-                  out=out)
+        # (G Q) g_j: the turn joins G's rows as one product, not a loop over the samples
+        GQ = (lin.G.reshape(-1, 3) @ rot_z(term.yaw_rad)).reshape(lin.G.shape)
+        np.matmul(GQ, lin.map_field(term), out=out)
 
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
         """Return the CONVENTIONS params (see :meth:`Effect.params`)."""
