@@ -205,7 +205,8 @@ class FieldMapBasis:
 
 def map_field_enu(basis: FieldMapBasis, weights: F64, yaw_rad: float, x_m: F64) -> F64:
     """Return the map's field ``Q B_x(x)`` in ENU, nT, (N, 3), at position-frame points ``x_m``."""
-    B = np.einsum("ndk,k->nd", basis.field(x_m), np.asarray(weights, dtype=float))
+    g = basis.field(x_m)  # (N, 3, K): the weighted sum as one matrix-vector product
+    B = (g.reshape(-1, g.shape[2]) @ np.asarray(weights, dtype=float)).reshape(-1, 3)
     return B @ rot_z(yaw_rad).T
 
 
