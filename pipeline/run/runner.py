@@ -536,14 +536,16 @@ class Processed:
 
 def process(source: Source, rec_dir: Path, options: ProcessOptions, steps: Steps) -> Processed:
     """Analyse ``source`` and restore every sample into the outputs (docs/modules.md)."""
-    # rerun's SDK and matplotlib (slow to import) imported on the other core while the first
-    # pass and the analysis run
+    # rerun's SDK, matplotlib and the grid's libraries (slow to import) imported on the other
+    # core while the first pass and the analysis run
     warm = []
     if options.write_rerun:
         os.environ.setdefault("RUST_LOG", "off")  # as stages.write_rerun sets it
         warm.append("rerun")
     if options.write_report:
         warm.append("pipeline.core.style:pyplot")
+    if getattr(source.header, "position", None) is not None:
+        warm.append("harmonica")  # the anomaly grid's (with verde, xarray): 1.7-2.2 s
     warm_in_background(*warm)
     if isinstance(source, FileSource):
         source.spill_to(rec_dir)
