@@ -278,10 +278,11 @@ class AttitudeInterpolator:
         i = np.where(tq == tr[-1], len(tr) - 2, i)
         inside = (i >= 0) & (i < len(tr) - 1)
         j = np.clip(i, 0, len(tr) - 2)
-        dt = self._dt[j]
-        on_sample = (tq == tr[j]) | (tq == tr[j + 1])
+        dt = np.take(self._dt, j)
+        t_lo, t_hi = np.take(tr, j), np.take(tr, j + 1)
+        on_sample = (tq == t_lo) | (tq == t_hi)
         valid = inside & ((dt <= self.max_gap_s + 1e-12) | on_sample)
-        s = np.clip((tq - tr[j]) / np.where(dt > 0, dt, 1.0), 0.0, 1.0)
+        s = np.clip((tq - t_lo) / np.where(dt > 0, dt, 1.0), 0.0, 1.0)
         return j, s, valid, held
 
     def position_rel_s(self, tq_s: F64, *, clamp: bool | None = None) -> F64:
@@ -326,7 +327,7 @@ class AttitudeInterpolator:
         jv = j if all_valid else j[valid]
         sv = (s if all_valid else s[valid])[:, None]
         rv = self._rotvec(jv, sv)
-        qv = quat_mul(qa[jv], rotvec_to_quat(rv))  # (A1)
+        qv = quat_mul(np.take(qa, jv, axis=0), rotvec_to_quat(rv))  # (A1)
         qv /= norm_last(qv, keepdims=True)
         if all_valid:
             q_out = qv
@@ -339,9 +340,9 @@ class AttitudeInterpolator:
             # (A6): the exact derivative of the cubic, computed when asked for (the closure
             # keeps the rows' segments, positions and rotation vectors, not the curve's terms)
             s2 = sv * sv
-            a, phi, b = self._a[jv], self._phi[jv], self._b[jv]
+            a, phi, b = (np.take(x, jv, axis=0) for x in (self._a, self._phi, self._b))
             dr = (3 * s2 - 4 * sv + 1) * a + (6 * sv - 6 * s2) * phi + (3 * s2 - 2 * sv) * b
-            dt = self._dt[jv]
+            dt = np.take(self._dt, jv)
             w = right_jacobian_apply(rv, dr) / np.where(dt > 0, dt, 1.0)[:, None]
             w_out = np.full((n, 3), np.nan)
             w_out[valid] = w
@@ -351,10 +352,13 @@ class AttitudeInterpolator:
         return Interpolated(q_out, valid, pos, omega)
 
     def _rotvec(self, jv: I64, sv: F64) -> F64:
-        """(A2): the cubic's rotation vector in segments ``jv`` at positions ``sv`` (N, 1)."""
+        """(A2): the cubic's rotation vector in segments ``jv`` at positions ``sv`` (N, 1).
+
+        ``np.take``: several times faster than indexing with an array for these gathers.
+        """
         s2 = sv * sv
         s3 = s2 * sv
-        a, phi, b = self._a[jv], self._phi[jv], self._b[jv]
+        a, phi, b = (np.take(x, jv, axis=0) for x in (self._a, self._phi, self._b))
         return cast(F64, (s3 - 2 * s2 + sv) * a + (3 * s2 - 2 * s3) * phi + (s3 - s2) * b)
 
     def at(self, t_ns: I64, time_offset_s: float = 0.0, *,

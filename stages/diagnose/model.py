@@ -937,9 +937,12 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
     Cddot = (fw.Cp - 2.0 * Ct + fw.Cm) / (h * h)
     DRt = state.D() @ state.R_body_mag.T
     J = np.zeros((n, 3, state.n_params()))
-    # R: left perturbation, R.T <- R.T exp(-[d]x): dm/dd = R.T [b]x
-    np.matmul(DRt, skew(b), out=J[:, :, 0:3])
-    J[:, :, 0:3] += np.matmul(E @ DRt, skew(bdot))
+    # R: left perturbation, R.T <- R.T exp(-[d]x): dm/dd = R.T [b]x, with the eddy term's
+    # E D R.T [bdot]x; [v]x = sum_k v_k [e_k]x, so both are one product of the rows (b, bdot)
+    # with the six constant matrices D R.T [e_k]x and E D R.T [e_k]x
+    units = [skew(e) for e in np.eye(3)]
+    per_unit = np.stack([DRt @ u for u in units] + [E @ DRt @ u for u in units])
+    J[:, :, 0:3] = (np.concatenate([b, bdot], axis=1) @ per_unit.reshape(6, 9)).reshape(n, 3, 3)
     if data.B_known_enu_nT is None:
         J[:, :, 3:6] = G
         if fw.h_rad is not None:  # dB_t/dB = Rz(h)
