@@ -212,11 +212,15 @@ def test_safe_join_stays_inside(tmp_path):
 @given(st.integers(min_value=1, max_value=40), st.integers(min_value=1, max_value=9),
        st.integers(min_value=0, max_value=2**31))
 def test_per_sample_products_equal_their_definitions(n, k, seed):
-    """``rows_times`` is ``M_n @ v_n`` and ``each_times_rows`` is ``basis_k @ v_n``."""
+    """``rows_times`` is ``M_n @ v_n``, ``left_times`` ``A @ M_n``, ``right_times`` ``M_n @ A``
+    and ``each_times_rows`` ``basis_k @ v_n``."""
     rng = np.random.default_rng(seed)
     M, v, basis = rng.normal(size=(n, 3, 3)), rng.normal(size=(n, 3)), rng.normal(size=(k, 3, 3))
     np.testing.assert_allclose(g.rows_times(M, v), np.matmul(M, v[:, :, None])[:, :, 0],
                                rtol=1e-12, atol=1e-12)
+    A = basis[0]
+    np.testing.assert_allclose(g.left_times(A, M), np.matmul(A, M), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(g.right_times(M, A), np.matmul(M, A), rtol=1e-12, atol=1e-12)
     want = np.stack([v @ basis[j].T for j in range(k)], axis=2)
     got = g.each_times_rows(basis, v)
     assert got.shape == (n, 3, k)

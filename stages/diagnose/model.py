@@ -52,7 +52,7 @@ from typing import Any, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.core.geometry import quat_to_matrix, rows_times, skew, so3_exp
+from pipeline.core.geometry import quat_to_matrix, right_times, rows_times, skew, so3_exp
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.attitude import (
     MEAN_INTERPOLATION_ERROR_SHAPE,
@@ -895,7 +895,7 @@ def _forward(state: ModelState, data: FitData) -> _Forward:
     rd = reading(Ct, Bp, R, D, offsets, E_term, Cdot)
     E = np.zeros((3, 3)) if E_term is None else E_term
     Gp = field_jacobian(Ct, R, D, E, Cdot)  # (J2), before the tilt
-    G = Gp @ TT
+    G = right_times(Gp, TT)
     # the positions of the interpolation at t - tau, as sample_weights(data, tau) finds them
     w = _weights_at(data, att.at.position) if data.noise_model is not None else None
     sqrt_w = None if w is None else np.sqrt(w)

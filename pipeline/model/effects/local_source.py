@@ -7,7 +7,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pipeline.core.geometry import rot_z
+from pipeline.core.geometry import right_times, rot_z
 from pipeline.core.vocabulary import EffectKind
 from pipeline.core.words import vec
 from pipeline.model.effects.base import (
@@ -170,7 +170,7 @@ class LocalSource(Effect):
         K = dipole_gradient(r_src, value[3:6])
         psi = bearing_rad(term, value)
         dB = np.zeros((n, 3, out.shape[2]))
-        np.negative(np.matmul(K, rot_z(psi)), out=dB[:, :, 0:3])
+        np.negative(right_times(K, rot_z(psi)), out=dB[:, :, 0:3])
         dB[:, :, 3:6] = dipole_matrix(r_src)
         if term.fit_yaw:
             r_p = r_src if lin.lever_enu is None else source_offset_enu(value[0:3], psi, lin.p_m)
