@@ -18,6 +18,8 @@ import pytest
 from indep_gen import Spec, dipole_field_nT, position_m, smooth_field_at, write
 from scipy.spatial import cKDTree
 
+from stages.write_survey import compile_grid
+
 HERE = Path(__file__).resolve().parent
 COLUMNS = [
     "id", "east_m", "north_m", "up_m", "lat_deg", "lon_deg", "height_m",
@@ -240,3 +242,15 @@ def test_the_rerun_recording_shows_the_grid(processed):
         h = float(ds.attrs["height_m"])
     assert len(pts) == n_cells
     np.testing.assert_allclose(np.asarray(pts)[:, 2], h, atol=1e-4)
+
+
+def test_the_grids_warm_up_grids_a_constant_field_to_no_anomaly():
+    """``compile_grid`` (run on process' helper thread) goes through the real grid: a circle
+    where the field is the background everywhere grids to no anomaly inside the mask."""
+    grid = compile_grid()
+    assert grid is not None
+    inside = np.isfinite(grid.total_field_anomaly_nT)
+    assert inside.any() and not inside.all()  # the mask holds beyond its distance
+    assert np.max(np.abs(grid.total_field_anomaly_nT[inside])) < 1e-6
+    np.testing.assert_allclose(grid.B_enu_nT[:, inside].T - grid.background_B_enu_nT, 0.0,
+                               atol=1e-6)
