@@ -169,11 +169,6 @@ def in_windows(t_s: F64, windows_s: Any) -> np.ndarray:
     return out
 
 
-def _mv(M: F64, v: F64) -> F64:
-    """Per-sample matrix-vector product (N, 3, 3) x (N, 3) -> (N, 3)."""
-    return rows_times(M, v)
-
-
 @dataclass(frozen=True)
 class Reading:
     """(M2)-(M5) at given attitude matrices, with the intermediate quantities.
@@ -252,7 +247,7 @@ def _field_in(M: F64, field_nT: F64) -> F64:
     f = np.asarray(field_nT)
     if f.ndim == 1:
         return cast(F64, M[:, :, 0] * f[0] + M[:, :, 1] * f[1] + M[:, :, 2] * f[2])
-    return _mv(M, f)
+    return rows_times(M, f)
 
 
 def field_jacobian(Ct: F64, R_body_mag: F64, D: F64 | None = None, E_s: F64 | None = None,
@@ -673,7 +668,7 @@ def jacobian(model: ForwardModel, t_ns: NDArray[np.int64],
     else:
         Cdot = Cddot = np.zeros((n, 3, 3))
     B = ev.field_enu_nT
-    mdot = _mv(Cdot, B) @ R
+    mdot = rows_times(Cdot, B) @ R
     J[:, :, 0:3] = D @ skew_rows(m)  # (J1)
     if E is not None:
         J[:, :, 0:3] += E @ D @ skew_rows(mdot)
@@ -687,7 +682,7 @@ def jacobian(model: ForwardModel, t_ns: NDArray[np.int64],
         J[:, :, 3:6] = np.matmul(J[:, :, 3:6], Rz)
     J[:, :, 6:9] = np.eye(3)  # (J3)
     J[:, :, 9:15] = soft_iron_jacobian(SOFT_IRON_BASIS, m, mdot, E)  # (J4)
-    J[:, :, 15] = time_offset_jacobian(ev.omega_body_rad_s, ev.b_body_nT, _mv(Cddot, B),
+    J[:, :, 15] = time_offset_jacobian(ev.omega_body_rad_s, ev.b_body_nT, rows_times(Cddot, B),
                                        R, D, E)  # (J5)
     J[~valid] = 0.0
     return J

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.core.geometry import quat_to_matrix, so3_exp
+from pipeline.core.geometry import quat_to_matrix, rows_times, so3_exp
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.solve import (
     Linearised,
@@ -25,7 +25,6 @@ from stages.diagnose.model import (
     FitData,
     ModelState,
     evaluate,
-    matvec_rows,
     row_spans,
     sample_weights,
 )
@@ -212,7 +211,7 @@ def wahba_init(data: FitData, n_iter: int = 10) -> ModelState:
         B = data.B_known_enu_nT
         for _ in range(n_iter):
             if data.B_known_enu_nT is None:
-                B = np.mean(matvec_rows(C, y @ R.T), axis=0)
+                B = np.mean(rows_times(C, y @ R.T), axis=0)
             assert B is not None  # known, or the mean just computed
             b = B @ C  # rows C.T @ B
             # Wahba: R = argmin sum |b - R y|^2 (Kabsch)

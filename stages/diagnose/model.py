@@ -786,11 +786,6 @@ def _CT(track: AttitudeTrack, t_s: F64, key: tuple | None = None, owners: Any = 
     return _attitude(track, t_s, key, owners).Ct
 
 
-def matvec_rows(M: F64, v: F64) -> F64:
-    """Per-sample matrix-vector product (N,3,3) x (N,3) -> (N,3)."""
-    return rows_times(M, v)
-
-
 _MAP_CACHE: dict[tuple, tuple[Any, F64]] = {}
 
 
@@ -952,7 +947,7 @@ def evaluate(state: ModelState, data: FitData, jacobian: bool = True) -> Evaluat
             Rz[:, 0, 1] = -np.sin(fw.h_rad)
             Rz[:, 2, 2] = 1.0
             J[:, :, 3:6] = np.matmul(G, Rz)
-    bddot = matvec_rows(Cddot, fw.Bp)
+    bddot = rows_times(Cddot, fw.Bp)
     _term_columns(J, state, _Linearisation(
         data=data, lever_enu=fw.lever_enu, Ct=Ct, omega_body=fw.att.at.omega_body_rad_s, G=G,
         Gp=fw.Gp, TT=fw.TT, b=b, bddot=bddot, m=m, mdot=mdot, ydot0=ydot0, E=E,
