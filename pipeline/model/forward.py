@@ -148,6 +148,11 @@ def ramp_profile(t_s: F64, window_s: tuple[float, float], ramps_s: Any,
     return s, (np.concatenate(cols, axis=1) if cols else np.zeros((t.size, 0)))
 
 
+def windows_span(windows_s: Any) -> tuple[float, float]:
+    """Return ``(t0, t1)``, s: from the first window's start to the last one's end."""
+    return (min(float(a) for a, _ in windows_s), max(float(b) for _, b in windows_s))
+
+
 def window_rows(t_s: F64, t0: float, t1: float) -> slice | np.ndarray:
     """Return the samples with stamps in ``[t0, t1)``: a slice of ascending stamps, else a mask.
 

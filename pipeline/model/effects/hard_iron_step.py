@@ -18,7 +18,13 @@ from pipeline.model.effects.base import (
     register,
     standard_deviations,
 )
-from pipeline.model.forward import in_windows, ramp_modes, ramp_profile, window_rows
+from pipeline.model.forward import (
+    in_windows,
+    ramp_modes,
+    ramp_profile,
+    window_rows,
+    windows_span,
+)
 
 
 @dataclass(frozen=True, eq=False)
@@ -61,8 +67,7 @@ def _rows(term: Any, t_s: F64) -> slice | np.ndarray:
     """Return the samples from the first window's start to the last one's end (``window_rows``)."""
     if not term.windows_s:
         return slice(None)
-    return window_rows(t_s, min(float(a) for a, _ in term.windows_s),
-                       max(float(b) for _, b in term.windows_s))
+    return window_rows(t_s, *windows_span(term.windows_s))
 
 
 @register
@@ -128,8 +133,7 @@ class HardIronStep(Effect):
         """
         if not term.windows_s:
             return ()
-        out = [(0, 3, min(float(a) for a, _ in term.windows_s),
-                max(float(b) for _, b in term.windows_s))]
+        out = [(0, 3, *windows_span(term.windows_s))]
         i = 3
         for r0, r1 in term.ramps_s or ():
             j = i + 3 * ramp_modes((r0, r1), term.knot_step_s)

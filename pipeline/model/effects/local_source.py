@@ -28,6 +28,7 @@ from pipeline.model.forward import (
     dipole_matrix,
     in_windows,
     source_offset_enu,
+    windows_span,
 )
 
 
@@ -187,8 +188,7 @@ class LocalSource(Effect):
         """
         if not term.windows_s:
             return ()
-        return ((0, self.n_params(term), min(float(a) for a, _ in term.windows_s),
-                 max(float(b) for _, b in term.windows_s)),)
+        return ((0, self.n_params(term), *windows_span(term.windows_s)),)
 
     def undetermined(self, motion: Motion, efficiency: float,
                      horizontal_fraction: float | None = None) -> str | None:
