@@ -203,11 +203,18 @@ class FieldMapBasis:
         return S * lam / float(np.prod(self.half_widths_m))
 
 
+def weighted_field(g: F64, weights: F64) -> F64:
+    """Return ``sum_j w_j g_j`` (N, 3) of the basis' fields ``g`` (N, 3, K).
+
+    One matrix-vector product over the functions (einsum loops over the samples).
+    """
+    g = np.asarray(g, dtype=float)
+    return (g.reshape(-1, g.shape[2]) @ np.asarray(weights, dtype=float)).reshape(-1, 3)
+
+
 def map_field_enu(basis: FieldMapBasis, weights: F64, yaw_rad: float, x_m: F64) -> F64:
     """Return the map's field ``Q B_x(x)`` in ENU, nT, (N, 3), at position-frame points ``x_m``."""
-    g = basis.field(x_m)  # (N, 3, K): the weighted sum as one matrix-vector product
-    B = (g.reshape(-1, g.shape[2]) @ np.asarray(weights, dtype=float)).reshape(-1, 3)
-    return B @ rot_z(yaw_rad).T
+    return weighted_field(basis.field(x_m), weights) @ rot_z(yaw_rad).T
 
 
 def map_points(p_m: F64, yaw_rad: float, lever_enu_m: F64 | None = None) -> F64:

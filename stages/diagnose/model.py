@@ -67,7 +67,7 @@ from pipeline.model.effects import EFFECTS, IRON_PRIOR
 from pipeline.model.effects.heading_drift import heading_drift_params as heading_params_over
 from pipeline.model.effects.local_source import bearing_rad
 from pipeline.model.effects.soft_iron import SOFT_BASIS
-from pipeline.model.field_map import BASIS_NAME, FieldMapBasis, map_points
+from pipeline.model.field_map import BASIS_NAME, FieldMapBasis, map_points, weighted_field
 from pipeline.model.forward import (
     Reading,
     field_jacobian,
@@ -1163,7 +1163,7 @@ def map_field_at_data(term: Term, value: F64, state: ModelState, data: FitData) 
     """
     if data.p_m is None or not len(data):
         return np.zeros((len(data), 3))
-    return np.einsum("ndk,k->nd", _map_columns(term, state, data), value)
+    return weighted_field(_map_columns(term, state, data), value)
 
 
 def _map_columns(term: Term, state: ModelState, data: FitData) -> F64:
@@ -1254,7 +1254,7 @@ class FitContext:
             return [0.0, 0.0, 0.0]
         A = _map_columns(term, self.state, self.data)  # (N, 3, K)
         v = self.state.values[list(self.state.terms).index(term)]
-        f = np.einsum("ndk,k->nd", A, v)
+        f = weighted_field(A, v)
         p2p = []
         for d in range(3):
             a = A[int(np.argmax(f[:, d])), d] - A[int(np.argmin(f[:, d])), d]

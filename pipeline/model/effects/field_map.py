@@ -7,7 +7,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pipeline.core.geometry import rot_z
+from pipeline.core.geometry import right_times, rot_z
 from pipeline.core.vocabulary import EffectKind
 from pipeline.core.words import vec
 from pipeline.model.effects.base import (
@@ -21,7 +21,7 @@ from pipeline.model.effects.base import (
     register,
     standard_deviations,
 )
-from pipeline.model.field_map import FieldMapBasis, map_field_enu, map_points
+from pipeline.model.field_map import FieldMapBasis, map_field_enu, map_points, weighted_field
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,8 +78,7 @@ class FieldMap(Effect):
         """
         if at.p_m is None:
             return None
-        g = at.map_field(term)  # (N, 3, K)
-        B_enu += (g.reshape(-1, g.shape[2]) @ value).reshape(-1, 3) @ rot_z(term.yaw_rad).T
+        B_enu += weighted_field(at.map_field(term), value) @ rot_z(term.yaw_rad).T
         return None
 
     def gradient_enu(self, term: Any, value: F64, at: Samples) -> F64 | None:
@@ -94,9 +93,8 @@ class FieldMap(Effect):
         """Write ``dy/dw_j = G Q g_j(x)``: linear in the weights (see :meth:`Effect.columns`)."""
         if lin.p_m is None:
             return
-        # (G Q) g_j: the turn joins G's rows as one product, not a loop over the samples
-        GQ = (lin.G.reshape(-1, 3) @ rot_z(term.yaw_rad)).reshape(lin.G.shape)
-        np.matmul(GQ, lin.map_field(term), out=out)
+        # (G Q) g_j: the turn joins G as one product, not a loop over the samples
+        np.matmul(right_times(lin.G, rot_z(term.yaw_rad)), lin.map_field(term), out=out)
 
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
         """Return the CONVENTIONS params (see :meth:`Effect.params`)."""
