@@ -410,10 +410,10 @@ def library_versions() -> str:
 def compile_grid() -> Grid | None:
     """Grid a small circle of constant field once, for what numba compiles on first use.
 
-    harmonica's equivalent-source kernels are compiled in every new process (about 1.7 s,
-    measured: the Jacobian 1.2 s, the prediction 0.5 s, against 0.2 s and 0.03 s afterwards);
-    ``process`` runs this on its helper thread while the analysis runs
-    (``pipeline.core.warm``), through the same code as a recording's grid.
+    harmonica's equivalent-source kernels are compiled by numba in every new process, and
+    take several times longer than the fit they serve (docs/performance.md); ``process``
+    runs this on its helper thread while the analysis runs (``pipeline.core.warm``),
+    through the same code as a recording's grid.
     """
     angle = np.linspace(0.0, 2.0 * np.pi, 64, endpoint=False)
     p = np.column_stack([np.cos(angle), np.sin(angle), np.ones_like(angle)])

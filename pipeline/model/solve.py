@@ -57,8 +57,7 @@ def normal_equations(J: F64, r: F64, spans: RowSpans = ()) -> tuple[F64, F64]:
     knots: :meth:`pipeline.model.effects.base.Effect.column_windows`), each ``(i, j, a, b)``
     once. Their products are summed over their own samples, where the rest of J meets
     them: the same sums without their zero terms. A Jacobian of a step's transitions and
-    a disturbance's knots is mostly such columns, and its full product was a fifth of the
-    diagnosis of a recording with a magnet brought on and taken away.
+    a disturbance's knots is mostly such columns (docs/performance.md).
     """
     P = J.shape[-1]
     Jf = J.reshape(-1, P)

@@ -545,7 +545,7 @@ def process(source: Source, rec_dir: Path, options: ProcessOptions, steps: Steps
     if options.write_report:
         warm.append("pipeline.core.style:pyplot")
     if getattr(source.header, "position", None) is not None:
-        # the anomaly grid's libraries (1.7-2.2 s) and their numba kernels (1.7 s)
+        # the anomaly grid's libraries and the kernels numba compiles in every process
         warm.append("stages.write_survey:compile_grid")
     warm_in_background(*warm)
     if isinstance(source, FileSource):
