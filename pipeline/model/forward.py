@@ -159,10 +159,16 @@ def window_rows(t_s: F64, t0: float, t1: float) -> slice | np.ndarray:
     A term that acts in a window is computed on those rows alone (zero elsewhere).
     """
     t = np.asarray(t_s, dtype=float)
-    if t.size > 1 and np.any(t[1:] < t[:-1]):
+    if not ascending(t):
         return (t >= t0) & (t < t1)
     a, b = np.searchsorted(t, [t0, t1])
     return slice(int(a), int(b))
+
+
+def ascending(t_s: F64) -> bool:
+    """Tell whether stamps are in order (equal neighbours allowed): searchsorted applies."""
+    t = np.asarray(t_s, dtype=float)
+    return bool(t.size < 2 or not np.any(t[1:] < t[:-1]))
 
 
 def in_windows(t_s: F64, windows_s: Any) -> np.ndarray:

@@ -70,6 +70,7 @@ from pipeline.model.effects.soft_iron import SOFT_BASIS
 from pipeline.model.field_map import BASIS_NAME, FieldMapBasis, map_points, weighted_field
 from pipeline.model.forward import (
     Reading,
+    ascending,
     field_jacobian,
     ramp_profile,
     reading,
@@ -1080,7 +1081,7 @@ def row_spans(state: ModelState, t_s: F64) -> tuple[tuple[int, int, int, int], .
     ``t_s``, which must be in order). None for a model with terms held in part, whose
     columns are combinations (:func:`_partial_evaluation`), nor for stamps out of order.
     """
-    if state.has_partial or np.any(np.diff(t_s) < 0):
+    if state.has_partial or not ascending(t_s):
         return ()
     out = []
     for term, i in zip(state.terms, state.offsets(), strict=True):
