@@ -21,6 +21,7 @@ from pipeline.core.geometry import so3_exp
 from pipeline.core.verdict import Status, judge
 from pipeline.model.calibration import SIGMA_FLOOR_DEG, Calibration
 from pipeline.run.runner import analyse_recording
+from stages.diagnose.statistics import scaled_pinv
 from stages.estimators.checks import (
     SPLIT_FALSE_ALARM,
     SplitCheck,
@@ -241,3 +242,20 @@ def test_a_source_passed_in_one_half_only_keeps_its_own_sigma():
     assert np.all(covered >= own)
     err = np.asarray(res.state.values[0][:3]) - value[:3]
     assert np.all(np.abs(err) < 4 * covered), (err, covered)
+
+
+def test_the_covariance_does_not_depend_on_the_parameters_units():
+    """An information matrix whose diagonal spans 14 orders (rad, nT, nT/m) but which the
+    data determine fully: its covariance is its inverse. Unscaled, a cut at 1e-13 of the
+    largest singular value drops the small-information directions (their sigma wrong by
+    orders); scaled to a unit diagonal first, nothing is cut."""
+    rng = np.random.default_rng(3)
+    C = rng.normal(size=(6, 6))
+    corr = C @ C.T + 6 * np.eye(6)  # well conditioned once scaled
+    units = np.array([1e7, 1e7, 1e7, 1e2, 1e0, 1e-1])
+    H = corr * np.outer(units, units)
+    want = np.linalg.inv(H)
+    got = scaled_pinv(H)
+    np.testing.assert_allclose(got, want, rtol=1e-8, atol=0)
+    unscaled = np.linalg.pinv(H, rcond=1e-13)
+    assert not np.allclose(np.diag(unscaled), np.diag(want), rtol=1e-3)

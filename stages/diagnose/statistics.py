@@ -554,7 +554,20 @@ def param_covariance(res: FitResult, data: FitData) -> np.ndarray:
             a = np.zeros(P)
             a[o : o + len(d)] = d
             H = H + float(np.max(np.diag(H))) * np.outer(a, a)
-    return s2 * np.linalg.pinv(H, rcond=1e-13)
+    return s2 * scaled_pinv(H)
+
+
+def scaled_pinv(H: np.ndarray, rcond: float = 1e-13) -> np.ndarray:
+    """Pseudo-inverse of an information matrix scaled to a unit diagonal first.
+
+    The parameters' units (rad, nT, nT/m, s) spread the diagonal over 12 orders or more: a
+    cut relative to the largest singular value then dropped or kept a gradient's directions
+    by the rounding of the sums (its sigma moving by a factor between two orders of the same
+    sums). Scaled, only the directions the data do not determine fall under ``rcond``.
+    """
+    d = np.sqrt(np.abs(np.diag(H)))
+    d[d == 0] = 1.0
+    return np.asarray(np.linalg.pinv(H / np.outer(d, d), rcond=rcond) / np.outer(d, d))
 
 
 def sigma_for(res: FitResult, i: int, cov: np.ndarray, data: FitData) -> dict[str, Any]:
