@@ -51,6 +51,7 @@ from stages.diagnose.statistics import (
     effective_samples,
     inflation,
     param_covariance,
+    scaled_pinv,
     sigma_for,
 )
 from stages.estimate import WHITE_SIGMA, carry_checks
@@ -544,7 +545,7 @@ def with_undetermined_iron(cal: Calibration, res: FitResult, data: FitData,
         H[:, 3:6] = 0.0
         H[3:6, 3:6] = np.eye(3)
         cross[3:6, :] = 0.0
-    K = -np.linalg.pinv(H, rcond=1e-13) @ cross
+    K = -scaled_pinv(H) @ cross
     sd = np.concatenate(prior)
     sig_b = np.degrees(np.sqrt(np.clip(np.einsum("ij,j,ij->i", K[:3], sd**2, K[:3]),
                                        0, None)))
