@@ -142,9 +142,8 @@ def test_an_undetermined_offset_on_a_translating_base_adds_nothing(offset_on_tra
     "field_gradient moves 3.5 combined sigma: the field map's complexity flips from 4 modes "
     "(48 functions) to 3 (27) on a held-out near-tie (786.61 against 788.27 nT on the base, "
     "795.95 against 795.68 with the offset), and the gradient, which trades with the map's "
-    "first-order content, follows its prior's length scale. Its sigma once looked wide enough "
-    "only because the covariance's cut at 1e-13 of the unscaled information dropped its "
-    "directions (3,900-24,800 nT/m; scaled, 250-550 nT/m; docs/testing.md)")
+    "first-order content, follows its prior's length scale (docs/testing.md, the stability "
+    "corpus after the covariance was scaled)")
 def test_an_undetermined_offset_on_a_translating_base_moves_no_other_parameter(
         offset_on_translating_base):
     """The same injection: every other finding's parameters stay within combined sigma."""

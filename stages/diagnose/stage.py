@@ -48,13 +48,14 @@ from stages.diagnose.partial import held_words
 from stages.diagnose.result import DiagnoseConfig, Diagnosis, Finding
 from stages.diagnose.search import MAX_LAG_S, diagnose_data, gradient_note, scan_windows
 from stages.diagnose.statistics import (
+    INFORMATION_CUT,
     effective_samples,
     inflation,
     param_covariance,
-    scaled_pinv,
     sigma_for,
 )
 from stages.estimate import WHITE_SIGMA, carry_checks
+from stages.estimators.base import solve_many_truncated
 from stages.estimators.checks import (
     SplitCheck,
     apply_split,
@@ -545,7 +546,7 @@ def with_undetermined_iron(cal: Calibration, res: FitResult, data: FitData,
         H[:, 3:6] = 0.0
         H[3:6, 3:6] = np.eye(3)
         cross[3:6, :] = 0.0
-    K = -scaled_pinv(H) @ cross
+    K = -solve_many_truncated(H, cross, INFORMATION_CUT)
     sd = np.concatenate(prior)
     sig_b = np.degrees(np.sqrt(np.clip(np.einsum("ij,j,ij->i", K[:3], sd**2, K[:3]),
                                        0, None)))

@@ -28,7 +28,11 @@ from stages.diagnose.model import (
     term_sigma,
 )
 from stages.diagnose.result import DiagnoseConfig
-from stages.estimators.base import RELATIVE_INFO_THRESHOLD, information_ratio
+from stages.estimators.base import (
+    RELATIVE_INFO_THRESHOLD,
+    information_ratio,
+    solve_many_truncated,
+)
 
 #: Yaw grid of the search for a position frame rotated about Up (``field_gradient``), deg.
 YAW_GRID_DEG = np.arange(0.0, 360.0, 10.0)
@@ -535,6 +539,15 @@ def rest_score_test(kind: EffectKind) -> Callable[[FitResult, FitData, float], S
     return test
 
 
+#: Directions of the information kept by the covariance: eigenvalues of the information
+#: scaled to a unit diagonal (:func:`~stages.estimators.base.solve_many_truncated`, Jacobi
+#: scaling) above this fraction of the largest. Unscaled, the parameters' units (rad, nT,
+#: nT/m, s) spread the diagonal over 12 orders or more, and a cut relative to the largest
+#: dropped or kept a gradient's directions by the rounding of the sums; scaled, only the
+#: directions the data do not determine fall under it.
+INFORMATION_CUT = 1e-13
+
+
 def param_covariance(res: FitResult, data: FitData) -> np.ndarray:
     """Parameter covariance: ``s^2 (J'J)^-1`` times the residual-correlation inflation."""
     P = res.info.shape[0]
@@ -554,20 +567,7 @@ def param_covariance(res: FitResult, data: FitData) -> np.ndarray:
             a = np.zeros(P)
             a[o : o + len(d)] = d
             H = H + float(np.max(np.diag(H))) * np.outer(a, a)
-    return s2 * scaled_pinv(H)
-
-
-def scaled_pinv(H: np.ndarray, rcond: float = 1e-13) -> np.ndarray:
-    """Pseudo-inverse of an information matrix scaled to a unit diagonal first.
-
-    The parameters' units (rad, nT, nT/m, s) spread the diagonal over 12 orders or more: a
-    cut relative to the largest singular value then dropped or kept a gradient's directions
-    by the rounding of the sums (its sigma moving by a factor between two orders of the same
-    sums). Scaled, only the directions the data do not determine fall under ``rcond``.
-    """
-    d = np.sqrt(np.abs(np.diag(H)))
-    d[d == 0] = 1.0
-    return np.asarray(np.linalg.pinv(H / np.outer(d, d), rcond=rcond) / np.outer(d, d))
+    return s2 * solve_many_truncated(H, np.eye(P), INFORMATION_CUT)
 
 
 def sigma_for(res: FitResult, i: int, cov: np.ndarray, data: FitData) -> dict[str, Any]:
