@@ -169,7 +169,6 @@ WGS84_A = 6_378_137.0
 WGS84_F = 1.0 / 298.257223563
 
 _SURVEY_ACCEL_S = 3.0  # from rest to walking speed at the start of the first line
-_CAL_ROLL_DEG, _CAL_PITCH_DEG = 10.0, 5.0  # tilts of the survey's calibration manoeuvre
 
 T0_NS = 1_767_225_600_000_000_000  # 2026-01-01T00:00:00Z
 
@@ -231,8 +230,10 @@ class Spec:
         (m/s) and the constant height of the tracked point (m, ENU up).
     survey_calibration_s : float
         Length of the calibration manoeuvre before the walk (0: none): standing on the
-        first line's start, a roll of +-10 deg and a pitch of +-5 deg at each of the
-        headings north, east, south, west, each followed by a quarter turn clockwise.
+        first line's start, a roll and a pitch (``survey_calibration_tilt_deg``) at each of
+        the headings north, east, south, west, each followed by a quarter turn clockwise.
+    survey_calibration_tilt_deg : tuple of float
+        Roll and pitch amplitudes of the calibration manoeuvre, deg (default +-10 and +-5).
     translate_amp_m : float
         Amplitude of each ENU axis of the ``translate`` path, m.
     position_type : str
@@ -281,6 +282,7 @@ class Spec:
     survey_speed_m_s: float = 1.5
     survey_height_m: float = 1.0
     survey_calibration_s: float = 0.0
+    survey_calibration_tilt_deg: tuple = (10.0, 5.0)
     translate_amp_m: float = 0.5
     position_type: str = "pose"
     geo_origin: tuple = (52.5, 13.3, 40.0)
@@ -293,7 +295,8 @@ class Spec:
 #: defaults, so that the key of a recording without them stays as it was.
 _NEW_FIELDS = ("path", "swing_deg", "survey_line_m", "survey_spacing_m", "survey_speed_m_s",
                "survey_height_m", "survey_calibration_s", "translate_amp_m", "position_type",
-               "geo_origin", "fix_rate_hz", "position_frame_yaw_deg", "handheld_box_m")
+               "geo_origin", "fix_rate_hz", "position_frame_yaw_deg", "handheld_box_m",
+               "survey_calibration_tilt_deg")
 
 
 def check_spec(spec: Spec) -> None:
@@ -412,10 +415,11 @@ def _survey_track(spec: Spec, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
 def _survey_calibration(spec: Spec, t_s: np.ndarray) -> np.ndarray:
     """Yaw, pitch, roll (rad) added by the calibration manoeuvre at the survey's start.
 
-    Four segments of ``Tc / 4``: roll ``10 deg sin^3`` over the first 30 % (+10 then -10
-    deg), pitch ``5 deg sin^3`` over the next 30 %, a clockwise quarter turn (yaw
-    ``-pi/2 * _smoothstep``) over the last 40 %. ``sin^3`` and the smoothstep have zero first
-    and second derivatives at their ends: the manoeuvre is C2 in angle. After it the yaw is
+    Four segments of ``Tc / 4``: roll ``a sin^3`` over the first 30 % (+a then -a), pitch
+    ``b sin^3`` over the next 30 % (``a``, ``b``: ``survey_calibration_tilt_deg``), a
+    clockwise quarter turn (yaw ``-pi/2 * _smoothstep``) over the last 40 %. ``sin^3`` and
+    the smoothstep have zero first and second derivatives at their ends: the manoeuvre is C2
+    in angle. After it the yaw is
     -2 pi (north again), so the walk continues without a jump.
     """
     t = np.asarray(t_s, dtype=float)
@@ -434,8 +438,9 @@ def _survey_calibration(spec: Spec, t_s: np.ndarray) -> np.ndarray:
     pitch = np.where((u_pitch >= 0) & (u_pitch < 1), np.sin(2 * np.pi * u_pitch) ** 3, 0.0)
     out[:, 0] = np.where(inside, -np.pi / 2 * (k + _smoothstep(u_turn)),
                          np.where(t >= Tc, -2 * np.pi, 0.0))
-    out[:, 1] = np.where(inside, np.radians(_CAL_PITCH_DEG) * pitch, 0.0)
-    out[:, 2] = np.where(inside, np.radians(_CAL_ROLL_DEG) * roll, 0.0)
+    roll_deg, pitch_deg = spec.survey_calibration_tilt_deg
+    out[:, 1] = np.where(inside, np.radians(pitch_deg) * pitch, 0.0)
+    out[:, 2] = np.where(inside, np.radians(roll_deg) * roll, 0.0)
     return out
 
 

@@ -42,7 +42,7 @@ from stages.diagnose.model import (
     evaluate,
     held_directions,
 )
-from stages.diagnose.statistics import ScoreTest, score_test
+from stages.diagnose.statistics import ScoreTest, inflation, robust_sigma, score_test
 
 #: Terms that may be fitted in part. Iron has a natural reference for what the motion cannot
 #: determine (no iron), and the rotation's sigma already carries a prior for it
@@ -104,43 +104,109 @@ def _efficiencies(Jb: F64, Jc: F64) -> tuple[F64, F64]:
     return e, X / np.linalg.norm(X, axis=0)
 
 
+def combination_sigmas(eff: F64, own: F64, info_per_unit: float) -> F64:
+    """Return each combination's data sigma (the term's units) with the other terms free.
+
+    ``eff``: the combinations' efficiencies; ``own``: their own information ``x' H_cc x``
+    (``x`` of unit length) in units of a decimated Gram. The generalised eigenvectors of
+    :func:`_efficiencies` are uncorrelated under ``I_eff``, so each coefficient has
+    information ``e x' H_cc x``, times ``info_per_unit`` (:func:`_info_per_unit`).
+    """
+    return 1.0 / np.sqrt(np.clip(eff * own * info_per_unit, 1e-300, None))
+
+
+def _info_per_unit(cur: FitResult, data: FitData, sub: FitData, sigma: float) -> float:
+    """Information per unit of a Gram over ``sub``: ``(N / N_sub) / (sigma^2 inflation)``."""
+    return len(data) / len(sub) / (sigma**2 * inflation(cur.residual_nT, data.t_s))
+
+
+#: Blocks of the sandwich sigma (:func:`sandwich_sigmas`): as long as the recording allows
+#: with this many of them, so that the variance it estimates has about as many degrees of
+#: freedom (a relative error of about 1 / sqrt(2 * 20), 16 %).
+SANDWICH_BLOCKS = 20
+
+
+def sandwich_sigmas(Jb: F64, Jc: F64, X: F64, r: F64, t_s: F64) -> F64:
+    """Return each combination's sigma from the residual itself, correlation of any length.
+
+    The coefficient along ``x_k`` is estimated from the efficient score ``x_k' Jr' r``,
+    ``Jr = Jc - Jb Hbb^-1 Hbc`` (the combination's columns with every other parameter
+    profiled out). Its variance is the variance of that score over the information squared
+    (the sandwich, Huber 1967; White 1980), the score's variance summed over time blocks
+    (:data:`SANDWICH_BLOCKS`) so that a residual correlated over seconds counts as what it
+    is. ``r``: the weighted residual (3N,) with the candidate fitted (projected off
+    ``[Jb, Jc]``), so its own signal does not count as noise.
+    """
+    A = np.concatenate([Jb, Jc], axis=1)
+    sa = np.linalg.norm(A, axis=0)
+    As = A / np.where(sa > 0, sa, 1.0)
+    rp = r - As @ np.linalg.lstsq(As, r, rcond=None)[0]
+    Hbb = gram(Jb, Jb)
+    sb = np.sqrt(np.clip(np.diag(Hbb), 1e-30, None))
+    B = np.linalg.lstsq(Hbb / np.outer(sb, sb) + 1e-12 * np.eye(len(sb)),
+                        gram(Jb, Jc) / sb[:, None], rcond=None)[0]
+    Jr = (Jc - (Jb / sb) @ B) @ X
+    t = np.repeat(t_s - t_s[0], 3)
+    span = max(float(t[-1]), 1e-9)
+    blocks = np.minimum((t * SANDWICH_BLOCKS / span).astype(np.int64), SANDWICH_BLOCKS - 1)
+    score = np.zeros((SANDWICH_BLOCKS, Jr.shape[1]))
+    np.add.at(score, blocks, Jr * rp[:, None])
+    info = np.sum(Jr * Jr, axis=0)
+    return np.sqrt(np.sum(score * score, axis=0)) / np.clip(info, 1e-300, None)
+
+
 def partial_candidate(cur: FitResult, term: Term, data: FitData, sigma: float
                       ) -> ScoreTest | None:
-    """Score test of ``term`` fitted only along the combinations the motion determines.
+    """Score test of ``term`` fitted along every combination the recording determines.
 
-    The combinations of efficiency below :data:`CONFOUND_RATIO` (against the model of
-    ``cur``, its own held combinations included) are held at zero; the term is restricted to
-    the orthogonal complement, and while the restricted term's own weakest efficiency is
-    still below the ratio its next weakest combination is held too.
+    A combination is undetermined when the data know it less well than the effect's prior
+    does: its data sigma, with every other parameter free, exceeds
+    :data:`~pipeline.model.effects.IRON_PRIOR` (MacKay 1992: the evidence gains nothing from
+    a parameter whose posterior is its prior). The sigma is the larger of the noise model's
+    (:func:`combination_sigmas`) and the residual's own (:func:`sandwich_sigmas`): a lab's
+    residual correlated over seconds (the unmodelled field of a room) pulls a confounded
+    combination far more than its noise says. Its efficiency must also be below
+    :data:`CONFOUND_RATIO`: a combination that is only noisy, not confounded, is fitted and
+    carries its sigma. A ratio alone is not the test: a combination the other terms mimic
+    to 0.3 % may still be known to a thirtieth of its prior on a long, quiet recording (a
+    survey's vertical offset of 500 nT fitted as 486 +- 17 nT), and holding it leaves its
+    signature in the residual for other terms to take up.
+
+    The undetermined combinations are held at zero and the term is restricted to the
+    orthogonal complement; with none, the term is tested whole.
 
     Returns
     -------
     ScoreTest or None
-        The test of the restricted term (``.term`` is it), or None when no combination is
-        determined.
+        The test of the (restricted) term (``.term`` is it), or None when the recording
+        determines less than :data:`MIN_DETERMINED_FRACTION` of its combinations.
 
     """
     if term.kind not in PARTIAL_KINDS or term.partial:
         return None
-    sub = _decimated(data)
-    ev = evaluate(cur.state.with_term(term), sub)
+    ev = evaluate(cur.state.with_term(term), data)
     J = _weighted(ev.jac, ev.sqrt_w)
     p0 = cur.state.n_params()
-    Jb = _base_columns(cur.state, J, sub)
+    Jb = _base_columns(cur.state, J, data)
     if ev.J_held is not None:  # what partial terms already hold stays free
         Jb = np.concatenate([Jb, _weighted(ev.J_held, ev.sqrt_w)], axis=1)
-    eff, X = _efficiencies(Jb, J[:, p0:])
-    k = len(eff)
-    n_held = int(np.count_nonzero(eff < CONFOUND_RATIO))
-    while 0 < n_held and k - n_held >= MIN_DETERMINED_FRACTION * k:
-        # hold the weakest combinations; fit along what is orthogonal to them
-        U = np.linalg.qr(X[:, :n_held])[0]
-        A = np.linalg.svd(np.eye(k) - U @ U.T)[0][:, : k - n_held]
-        st = score_test(cur, term.restricted(A), data, sigma)
-        if st.efficiency >= CONFOUND_RATIO:
-            return st
-        n_held += 1
-    return None
+    Jc = J[:, p0:]
+    eff, X = _efficiencies(Jb, Jc)
+    own = np.einsum("ik,ij,jk->k", X, gram(Jc, Jc), X)
+    r = data.y_nT - ev.y_nT
+    r = (r if ev.sqrt_w is None else r * ev.sqrt_w[:, None]).reshape(-1)
+    sig = np.maximum(combination_sigmas(eff, own, _info_per_unit(cur, data, data, sigma)),
+                     sandwich_sigmas(Jb, Jc, X, r, data.t_s))
+    weak = (eff < CONFOUND_RATIO) & (sig > IRON_PRIOR[term.kind.value])
+    k, n_held = len(eff), int(np.count_nonzero(weak))
+    if n_held == 0:
+        return score_test(cur, term, data, sigma)
+    if k - n_held < MIN_DETERMINED_FRACTION * k:
+        return None
+    # hold the undetermined combinations; fit along what is orthogonal to them
+    U = np.linalg.qr(X[:, weak])[0]
+    A = np.linalg.svd(np.eye(k) - U @ U.T)[0][:, : k - n_held]
+    return score_test(cur, term.restricted(A), data, sigma)
 
 
 def _up_axis_body(track: AttitudeTrack) -> F64:
@@ -203,31 +269,50 @@ def _held_efficiency(state: ModelState, i: int, data: FitData) -> tuple[F64, F64
 _TILT_FACTORS = np.geomspace(1.0, 30.0, 25)
 
 
-def tilt_to_determine_deg(state: ModelState, i: int, data: FitData) -> float | None:
+def tilt_to_determine_deg(state: ModelState, i: int, data: FitData, info_per_unit: float
+                          ) -> float | None:
     """Largest tilt from level (deg) that would determine every held combination of term ``i``.
 
-    The recording's attitudes are tilted further (:func:`tilted`, the heading kept) until the
-    weakest held combination's efficiency reaches :data:`CONFOUND_RATIO`; the answer is the
-    largest tilt of that motion, interpolated on a log scale between the factors tried. None
-    when a tilt of 90 deg would not do (the combination needs turns about other axes).
+    The recording's attitudes are tilted further (:func:`tilted`, the heading kept) until
+    every held combination is determined as :func:`partial_candidate` judges it: its data
+    sigma at most the prior, or its efficiency at least :data:`CONFOUND_RATIO`. The answer is
+    the largest tilt of that motion, interpolated on a log scale of the sigma between the
+    factors tried. None when a tilt of 90 deg would not do (the combination needs turns
+    about other axes).
+
+    ``info_per_unit``: the information one unit of the decimated Gram stands for
+    (:func:`_info_per_unit`).
     """
     sub = _decimated(data)
     top = float(np.max(_tilts_rad(sub.track)[0]))
+    prior = IRON_PRIOR[state.terms[i].kind.value]
     if top <= 0:
         return None
+
+    def shortfall(f: float) -> float:
+        """How far the worst held combination is from determined (<= 1: it is)."""
+        eff, H, _ = _held_efficiency(state, i, tilted(sub, f))
+        sig = combination_sigmas(eff, np.sum(H * H, axis=0), info_per_unit)
+        return float(np.max(np.where(eff >= CONFOUND_RATIO, 0.0, sig / prior)))
+
     prev: tuple[float, float] | None = None
     for f in _TILT_FACTORS:
         if f * top > 0.5 * np.pi:
             return None
-        e = float(np.min(_held_efficiency(state, i, tilted(sub, float(f)))[0]))
-        if e >= CONFOUND_RATIO:
+        g = shortfall(float(f))
+        if g <= 1.0:
             if prev is None:
                 return float(np.degrees(top))
-            f0, e0 = prev
-            a = np.log(CONFOUND_RATIO / e0) / np.log(e / e0) if e > e0 > 0 else 1.0
+            f0, g0 = prev
+            a = np.log(g0) / np.log(g0 / g) if g0 > 1.0 and g > 0 else 1.0
             return float(np.degrees(top) * f0 * (f / f0) ** a)
-        prev = (float(f), e)
+        prev = (float(f), g)
     return None
+
+
+def _size(x: float) -> str:
+    """Return a sigma in words: three significant figures, or "more than 1e6"."""
+    return f"{x:.3g}" if x < 1e6 else "more than 1e6"
 
 
 def _vec(v: np.ndarray) -> str:
@@ -269,6 +354,8 @@ def held_words(res: FitResult, i: int, data: FitData) -> str:
         return ""
     sub = _decimated(data)
     eff, H, Jb = _held_efficiency(st, i, sub)
+    per_unit = _info_per_unit(res, data, sub, robust_sigma(res.residual_nT))
+    data_sig = combination_sigmas(eff, np.sum(H * H, axis=0), per_unit)
     U = term.undetermined()
     up = _up_axis_body(sub.track)
     top = float(np.degrees(np.max(_tilts_rad(sub.track)[0])))
@@ -307,9 +394,10 @@ def held_words(res: FitResult, i: int, data: FitData) -> str:
         unit = " nT" if offset else ""
         parts.append(
             f"{what} is not determined: it adds to {mim} (only {eff[c]:.1e} of it is "
-            f"independent of the other terms), so it is held at {held:g}{unit}"
+            f"independent of the other terms, which leaves it a sigma of "
+            f"{_size(data_sig[c])}{unit} from the data), so it is held at {held:g}{unit}"
             + (f" with the prior's sigma, {prior:g}{unit}" if prior else ""))
-    need = tilt_to_determine_deg(st, i, data)
+    need = tilt_to_determine_deg(st, i, data, per_unit)
     if need is not None:
         how = (f"tilting the platform by more than {np.ceil(need):.0f} deg (this recording "
                f"tilts it by up to {top:.0f} deg) would determine it")

@@ -613,11 +613,12 @@ class _Search:
                                             horizontal_fraction=hfrac)
             if (reason is not None and term.kind in PARTIAL_KINDS and identifiability_reason(
                     term.kind, self.stats, self.data, 1.0, horizontal_fraction=hfrac) is None):
-                # confounded only in some combinations: tried on the others, which the
-                # motion determines; the words stay for when it is not named
+                # confounded in some combinations: tried on every combination the
+                # recording determines (its data sigma below the prior); the words stay for
+                # when it is not named and part of it is held
                 part = partial_candidate(self.cur, term, self.data, sig)
                 if part is not None:
-                    if not self.findings:
+                    if not self.findings and part.term.partial:
                         self.not_ident.setdefault(term.kind.value, reason)
                     st, term, reason = part, part.term, None
             if reason is None and st.rot_efficiency < CONFOUND_RATIO\
