@@ -925,15 +925,15 @@ def diagnose_data(
         if alt.rss < cur.rss:
             cur = alt
     stats = motion_stats(data)
-    # the baseline residual as calibrate reports it (equal weights); then the likelihood's
-    # weights for what the attitude noise does between attitude samples
-    # (stages.diagnose.model.sample_weights)
-    base_rms = cur.rms_nT
+    # the likelihood's weights for what the attitude noise does between attitude samples
+    # (stages.diagnose.model.sample_weights); the baseline is the model refitted with them,
+    # the one the first finding's evidence starts from (one number in both places)
     e_int_nT = interpolation_error_nT(data)  # measured once, from the attitude track
     nm = estimate_noise_model(cur.residual_nT, data, e_int_nT)
     if nm is not None:
         data = dataclasses.replace(data, noise_model=nm)
         cur = fit(cur.state, data)
+    base_rms = cur.rms_nT
     if e_int_nT > 0.05 * robust_sigma(cur.residual_nT):
         # the attitude's own interpolation error stands out of the noise: what it could
         # produce is not named (ScoreTest.interp_statistic)
