@@ -317,8 +317,12 @@ def fit(x_m: F64, y_nT: F64, *, n_basis: int = 1200, margin_m: float = 0.4,
         init = (max(spread, 1e-3) * ell0, ell0, max(0.1 * spread, 2 * sigma_n_bounds[0]))
 
     def nll(theta: F64) -> float:
-        sf, ell, sn = np.exp(theta)
-        v = log_marginal_likelihood(box, ne, sf, ell, sn)
+        # a line search may try hyperparameters far out (sigma_f of 1e162, a length scale
+        # whose spectral density underflows to zero): the likelihood there is not finite,
+        # which the search is told with 1e300, and numpy need not warn on the way
+        with np.errstate(over="ignore", under="ignore", divide="ignore", invalid="ignore"):
+            sf, ell, sn = np.exp(theta)
+            v = log_marginal_likelihood(box, ne, sf, ell, sn)
         return -v if np.isfinite(v) else 1e300
 
     bounds = [(None, None), tuple(np.log(ell_bounds_m)), tuple(np.log(sigma_n_bounds))]

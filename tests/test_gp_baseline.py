@@ -77,4 +77,6 @@ def test_fit_to_one_dipole_predicts_held_out_points_within_half_a_nT():
     spread = np.sqrt(np.mean((dipole(xt) - dipole(xt).mean(axis=0)) ** 2))
     assert spread > 20.0  # a field worth mapping: tens of nT across the volume
     assert np.sqrt(np.mean(err**2)) < 0.5, np.sqrt(np.mean(err**2))
-    assert np.abs(fitted.B0_nT - B0).max() < 100.0
+    # B0 and the basis' lowest modes, nearly uniform over the sampled volume, trade: about
+    # 100 nT however the likelihood is maximised (82-118 nT from five starting points)
+    assert np.abs(fitted.B0_nT - B0).max() < 150.0
