@@ -1,14 +1,9 @@
-"""Iron on a line: determined by its sigma, not refused for its efficiency.
+"""Iron the motion cannot determine widens the rotation's sigma by the bias it would cause.
 
-A sensor carried along a line turns only a few degrees (swings of 1-3 deg): the soft-iron
-matrix's weakest combinations are 99 % confounded with the field and the rotation
-(efficiency below 0.01). Refused for that ratio, a real one biased R by more than 0.3 deg,
-which the rotation's sigma had to cover as iron left out. But at 2 nT of noise the line
-knows every combination to a few 1e-5, a three-hundredth of the prior (0.01): the
-diagnosis fits it, and R comes out right (``stages/diagnose/partial.py``). Recordings from the
-independent generator (``tests/indep_gen.py``) with and without such a matrix. The widening
-for iron left out stays for what a recording really cannot determine (lab_01's golden; the
-held offset of ``tests/test_partial_terms.py``).
+A sensor carried along a line turns only a few degrees: its soft-iron matrix and offset are
+confounded with the field and the rotation, so the diagnosis leaves them out, and a real one
+biases R. Recordings from the independent generator (``tests/indep_gen.py``) with and without
+such a soft-iron matrix: the sigma covers the bias it causes; the noise sigma alone does not.
 """
 
 from __future__ import annotations
@@ -17,6 +12,7 @@ import numpy as np
 from indep_gen import Spec, write
 
 from pipeline.app.commands.diagnose import diagnose_file
+from pipeline.model.effects import IRON_PRIOR
 
 #: scale differences of 1.2 and 0.7 % and cross-axis couplings of 0.4-0.6 %: within the prior
 D_TYPICAL = [[1.012, 0.006, -0.004], [0.006, 0.993, 0.005], [-0.004, 0.005, 1.0]]
@@ -32,29 +28,26 @@ def _err_and_sigmas(tmp_path, **effects):
     return ctx, err, np.asarray(cal.sigma_rotvec_deg), und
 
 
-def test_a_line_determines_soft_iron_of_typical_size(tmp_path):
+def test_the_sigma_covers_the_bias_of_soft_iron_left_out(tmp_path):
     ctx, err, sig, und = _err_and_sigmas(tmp_path, soft_iron={"D": D_TYPICAL})
-    effects = [f.effect for f in ctx.diagnosis.findings]
-    assert "soft_iron" in effects and "soft_iron" not in dict(ctx.diagnosis.not_identifiable)
-    si = ctx.diagnosis.findings[effects.index("soft_iron")]
-    got, s = np.asarray(si.params["D"]), np.asarray(si.sigma["D"])
-    # the isotropic scale reads as the field's magnitude: D is known up to it
-    dev = got - np.asarray(D_TYPICAL)
-    dev -= np.trace(dev) / 3 * np.eye(3)
-    assert np.all(np.abs(dev) < 3 * s + 1e-5), (dev, s)
-    assert np.all(s < 1e-3)  # a tenth of the prior or better
-    assert err.max() < 0.01 and np.all(err <= 3 * sig), (err, sig)  # deg
-    assert und is None or "soft_iron" not in und["terms"]
+    assert "soft_iron" in dict(ctx.diagnosis.not_identifiable)
+    assert und is not None and "soft_iron" in und["terms"]
+    assert und["prior"]["soft_iron"] == IRON_PRIOR["soft_iron"]
+    assert np.all(err <= 3 * sig), (err, sig)
+    # the bias is real (a third of a degree or more) and the noise sigma alone misses it
+    bias = np.asarray(und["sigma_rotvec_bias_deg"])
+    noise = np.sqrt(np.clip(sig**2 - bias**2, 0, None))
+    assert err.max() > 0.3 and np.any(err > 3 * noise), (err, noise)
+    reason = ctx.need_calibration().verdict.reason
+    assert ctx.need_calibration().verdict.status.value != "OK", reason
 
 
-def test_without_iron_the_answer_is_right_and_nothing_is_left_undetermined(tmp_path):
-    """The same line without soft iron: R within 0.01 deg; the line determines that there
-    is no soft iron, so nothing widens the rotation's sigma for it."""
+def test_without_iron_the_answer_is_right_and_says_what_it_could_not_check(tmp_path):
+    """The same line without soft iron: R within 0.01 deg, and still a wide sigma: nothing
+    in the data says the sensor has no iron."""
     ctx, err, sig, und = _err_and_sigmas(tmp_path)
-    assert err.max() < 0.01 and np.all(err <= 3 * sig)  # deg
-    assert "soft_iron" not in [f.effect for f in ctx.diagnosis.findings]
-    assert "soft_iron" not in dict(ctx.diagnosis.not_identifiable)
-    assert und is None or "soft_iron" not in und["terms"]
+    assert err.max() < 0.01  # deg
+    assert und is not None and np.max(und["sigma_rotvec_bias_deg"]) > 0.2
 
 
 def test_a_rich_motion_determines_the_iron_and_needs_no_widening(tmp_path):

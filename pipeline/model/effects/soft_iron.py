@@ -8,15 +8,7 @@ import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
 from pipeline.core.words import vec
-from pipeline.model.effects.base import (
-    F64,
-    SINGLE_AXIS_SPREAD,
-    Effect,
-    FitView,
-    Linearisation,
-    Motion,
-    register,
-)
+from pipeline.model.effects.base import F64, Effect, FitView, Linearisation, register
 from pipeline.model.forward import soft_iron_jacobian
 
 #: Symmetric traceless basis of the soft-iron deviation S (5 matrices, ``S = sum_k s_k S_k``):
@@ -50,22 +42,6 @@ class SoftIron(Effect):
     # typical of MEMS magnetometers, and of the lab sensor, whose full recordings determine
     # D - I up to 0.02.
     held_prior: ClassVar[float | None] = 0.01
-
-    def motion_reason(self, motion: Motion, horizontal_fraction: float | None) -> str | None:
-        """Return why one axis of turning leaves part of it unknown (see the base class).
-
-        About one axis, the gains along it and across it read as the field's components
-        along it and across it, whatever the noise: the information that seems to tell
-        them apart comes from the attitude's own noise (efficiencies of 1e-7 on the
-        independent generator's single-axis turns), not from the motion.
-        """
-        if motion.axis_spread < SINGLE_AXIS_SPREAD and not motion.field_known:
-            return (
-                "the sensor turned about a single axis only: the gains along that axis and "
-                "across it look the same as the unknown field; turn it about a second axis or "
-                "give a reference field"
-            )
-        return None
 
     def params(self, term: Any, value: F64, fit: FitView) -> dict[str, Any]:
         """Return the CONVENTIONS params (see :meth:`Effect.params`)."""
