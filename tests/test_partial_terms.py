@@ -201,14 +201,19 @@ def _rot_err_deg(ctx, spec) -> np.ndarray:
     return np.abs(np.asarray(cal.rotvec_body_mag_deg) - np.asarray(spec.rotvec_body_mag_deg))
 
 
+def _the_offset(diag):
+    """The one ``hard_iron`` finding, its offset and sigma (nT); no absorber beside it."""
+    effects = [f.effect for f in diag.findings]
+    assert effects.count("hard_iron") == 1 and not ABSORBERS & set(effects), effects
+    hi = diag.findings[effects.index("hard_iron")]
+    return hi, np.asarray(hi.params["offset_nT"]), np.asarray(hi.sigma["offset_nT"])
+
+
 def test_the_survey_determines_the_whole_offset(surveyed):
     """Under the effect's own prior the tilts determine the vertical part: fitted, not held."""
     spec, ctx = surveyed["whole"]
     diag = ctx.diagnosis
-    effects = [f.effect for f in diag.findings]
-    assert "hard_iron" in effects and not ABSORBERS & set(effects), effects
-    hi = diag.findings[effects.index("hard_iron")]
-    o, s = np.asarray(hi.params["offset_nT"]), np.asarray(hi.sigma["offset_nT"])
+    hi, o, s = _the_offset(diag)
     assert np.all(np.abs(o - OFFSET) < np.maximum(3 * s, 1.0)), (o, s)  # nT
     assert s[2] < 2.0 and "not determined" not in hi.explanation
     assert "hard_iron" not in dict(diag.not_identifiable)
@@ -223,10 +228,8 @@ def test_the_survey_determines_the_whole_offset(surveyed):
 def test_under_a_tight_prior_the_vertical_part_is_held(surveyed):
     spec, ctx = surveyed["held"]
     diag = ctx.diagnosis
+    hi, o, s = _the_offset(diag)
     effects = [f.effect for f in diag.findings]
-    assert "hard_iron" in effects and not ABSORBERS & set(effects), effects
-    hi = diag.findings[effects.index("hard_iron")]
-    o, s = np.asarray(hi.params["offset_nT"]), np.asarray(hi.sigma["offset_nT"])
     assert np.all(np.abs(o[:2] - HELD_OFFSET[:2]) < 5.0), o  # nT
     # the vertical part: held at zero (the held combination is along mag z to 2 %, so the
     # z component takes 2 % of the horizontal part), its sigma the prior's, and said in words
@@ -288,20 +291,17 @@ def test_a_reference_field_determines_the_whole_offset(tmp_path):
     spec = survey("ref", hard_iron={"offset_nT": OFFSET})
     ctx = diagnose_file(write(spec, tmp_path / "ref.mcap"),
                         reference_field_enu_nT=tuple(spec.B_enu_nT))
-    effects = [f.effect for f in ctx.diagnosis.findings]
-    assert "hard_iron" in effects and not ABSORBERS & set(effects), effects
-    hi = ctx.diagnosis.findings[effects.index("hard_iron")]
-    assert np.all(np.abs(np.asarray(hi.params["offset_nT"]) - OFFSET) < 5.0)
+    hi, o, _ = _the_offset(ctx.diagnosis)
+    assert np.all(np.abs(o - OFFSET) < 5.0)
     assert "not determined" not in hi.explanation
     assert "held" not in ctx.need_calibration().checks.get("undetermined_iron", {})
     assert _rot_err_deg(ctx, spec).max() < 0.01
 
 
-
 def test_an_offset_of_typical_size_beside_buried_objects_is_fitted_whole(tmp_path):
     """The objects' survey of tests/test_survey_products.py with a sensor offset of the
     prior's size along mag z: the vertical part is 99.7 % confounded with the vertical field
-    but known to a few tens of nT. Held, it would leave its signature (about 20 nT over 1 nT
+    but known to under a nanotesla. Held, it would leave its signature (about 20 nT over 1 nT
     of noise) for other terms and hide an object; fitted, both objects are found."""
     from test_survey_products import OBJECTS, SPECS
 
@@ -311,11 +311,8 @@ def test_an_offset_of_typical_size_beside_buried_objects_is_fitted_whole(tmp_pat
                                         "hard_iron": {"offset_nT": offset}})
     ctx = diagnose_file(write(spec, tmp_path / "iron.mcap"))
     diag = ctx.diagnosis
-    effects = [f.effect for f in diag.findings]
-    assert effects.count("hard_iron") == 1 and not ABSORBERS & set(effects), effects
-    hi = diag.findings[effects.index("hard_iron")]
-    o, s = np.asarray(hi.params["offset_nT"]), np.asarray(hi.sigma["offset_nT"])
+    hi, o, s = _the_offset(diag)
     assert np.all(np.abs(o - offset) < 3 * s + 1.0), (o, s)  # nT
     assert s[2] < 50.0 and "not determined" not in hi.explanation
     sources = [f for f in diag.findings if f.effect == "local_source"]
-    assert len(sources) == len(OBJECTS), effects
+    assert len(sources) == len(OBJECTS), [f.effect for f in diag.findings]
