@@ -83,6 +83,18 @@ def _base_columns(state: ModelState, J: F64, data: FitData) -> F64:
     return J[:, keep]
 
 
+def _regression(Jb: F64, Jc: F64) -> F64:
+    """Coefficients ``C`` (P, k) of ``Jc`` on ``Jb``: ``Hbb^-1 Hbc``, solved Jacobi-scaled.
+
+    ``Jc - Jb C`` are the term's columns with every other parameter profiled out.
+    """
+    Hbb = gram(Jb, Jb)
+    sb = np.sqrt(np.clip(np.diag(Hbb), 1e-30, None))
+    B = np.linalg.lstsq(Hbb / np.outer(sb, sb) + 1e-12 * np.eye(len(sb)),
+                        gram(Jb, Jc) / sb[:, None], rcond=None)[0]
+    return B / sb[:, None]
+
+
 def _efficiencies(Jb: F64, Jc: F64) -> tuple[F64, F64]:
     """Efficiencies (k,) ascending and their directions (k, k) in the term's parameters.
 
@@ -90,11 +102,8 @@ def _efficiencies(Jb: F64, Jc: F64) -> tuple[F64, F64]:
     information, ``I_eff = H_cc - H_cb H_bb^-1 H_bc`` what is left with the columns ``Jb``
     free. Columns of the directions have unit length.
     """
-    Hbb, Hbc, Hcc = gram(Jb, Jb), gram(Jb, Jc), gram(Jc, Jc)
-    sb = np.sqrt(np.clip(np.diag(Hbb), 1e-30, None))
-    X = np.linalg.lstsq(Hbb / np.outer(sb, sb) + 1e-12 * np.eye(len(sb)), Hbc / sb[:, None],
-                        rcond=None)[0]
-    Ieff = Hcc - (Hbc / sb[:, None]).T @ X
+    Hcc = gram(Jc, Jc)
+    Ieff = Hcc - gram(Jb, Jc).T @ _regression(Jb, Jc)
     sc = np.sqrt(np.clip(np.diag(Hcc), 1e-30, None))
     In = 0.5 * (Ieff + Ieff.T) / np.outer(sc, sc)
     Hn = 0.5 * (Hcc + Hcc.T) / np.outer(sc, sc)
@@ -141,11 +150,7 @@ def sandwich_sigmas(Jb: F64, Jc: F64, X: F64, r: F64, t_s: F64) -> F64:
     sa = np.linalg.norm(A, axis=0)
     As = A / np.where(sa > 0, sa, 1.0)
     rp = r - As @ np.linalg.lstsq(As, r, rcond=None)[0]
-    Hbb = gram(Jb, Jb)
-    sb = np.sqrt(np.clip(np.diag(Hbb), 1e-30, None))
-    B = np.linalg.lstsq(Hbb / np.outer(sb, sb) + 1e-12 * np.eye(len(sb)),
-                        gram(Jb, Jc) / sb[:, None], rcond=None)[0]
-    Jr = (Jc - (Jb / sb) @ B) @ X
+    Jr = (Jc - Jb @ _regression(Jb, Jc)) @ X
     t = np.repeat(t_s - t_s[0], 3)
     span = max(float(t[-1]), 1e-9)
     blocks = np.minimum((t * SANDWICH_BLOCKS / span).astype(np.int64), SANDWICH_BLOCKS - 1)
