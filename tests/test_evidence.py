@@ -59,7 +59,7 @@ def test_occam_is_the_exact_evidence_of_a_linear_model(seed: int, k: int, n_free
     H = J.T @ J + np.diag(prec)
     theta = np.linalg.solve(H, J.T @ y)
     rss = float(np.sum((y - J @ theta) ** 2))
-    got = prior_occam(H, prec, theta, np.ones(P, dtype=bool), 1.0, s2)
+    got = prior_occam(H, prec, np.full(P, s2), theta, np.ones(P, dtype=bool), 1.0, s2)
     # the flat parameters' own information: det(H / s2) = det(H_oo / s2) det(S_q|o / s2),
     # the second factor (with the prior's) is in the Occam factor
     flat = float(np.linalg.slogdet(H[np.ix_(free, free)] / s2)[1]) if n_free else 0.0
@@ -82,12 +82,13 @@ def test_unseen_directions_cost_nothing() -> None:
     prec = np.full(5, 0.01)
     H = J.T @ J + np.diag(prec)
     theta = np.linalg.solve(H, J.T @ rng.normal(size=n))
-    five = prior_occam(H, prec, theta, np.ones(5, dtype=bool), 1.0, s2)
-    two = prior_occam(H[:2, :2], prec[:2], theta[:2], np.ones(2, dtype=bool), 1.0, s2)
+    five = prior_occam(H, prec, np.full(5, s2), theta, np.ones(5, dtype=bool), 1.0, s2)
+    two = prior_occam(H[:2, :2], prec[:2], np.full(2, s2), theta[:2], np.ones(2, dtype=bool),
+                      1.0, s2)
     assert abs(five - two) < 1e-9
     # and a seen direction with a wide prior costs about log(n var / s2), the BIC's log n
     # plus the log of the prior's width in units of one sample's information
-    one = prior_occam(np.array([[n + 1e-4]]), np.array([1e-4]), np.zeros(1),
+    one = prior_occam(np.array([[n + 1e-4]]), np.array([1e-4]), np.full(1, s2), np.zeros(1),
                       np.ones(1, dtype=bool), 1.0, s2)
     assert abs(one - np.log(1 + n / 1e-4)) < 1e-9
 
@@ -96,5 +97,34 @@ def test_inflation_divides_the_information() -> None:
     """Correlated residuals (inflation ``c``) hold ``1 / c`` of the white information."""
     H = np.array([[101.0]])
     prec = np.array([1.0])
-    got = prior_occam(H, prec, np.zeros(1), np.ones(1, dtype=bool), 4.0, 1.0)
+    got = prior_occam(H, prec, np.ones(1), np.zeros(1), np.ones(1, dtype=bool), 4.0, 1.0)
     assert abs(got - np.log(1 + 100.0 / 4.0)) < 1e-12
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), k=st.integers(1, 6), ratio=st.floats(0.01, 100.0))
+def test_the_prior_is_its_variance_whatever_noise_its_ridge_was_set_against(
+        seed: int, k: int, ratio: float) -> None:
+    """A ridge set against one noise, a residual of another: the evidence of the prior ``V``.
+
+    A term's ridge is ``noise^2 / var``, with ``noise`` the residual's when the term was
+    proposed; once the model fits, its residual variance ``s2`` is another (a field map
+    that explains most of the residual leaves a fraction of it). The prior is still
+    ``var``: the Occam factor with ``noise2`` must give the exact marginal likelihood of
+    ``x ~ N(0, var)`` under noise ``s2``, at the fit of that model.
+    """
+    rng = np.random.default_rng(seed)
+    n, s2 = 40, 0.7
+    noise2 = ratio * s2  # the noise the ridge was set against
+    J = rng.normal(size=(n, k))
+    var = rng.uniform(0.2, 5.0, k)
+    y = J @ (rng.normal(size=k) * np.sqrt(var)) + rng.normal(scale=np.sqrt(s2), size=n)
+    prec = noise2 / var  # the fit's ridge, weighed against noise2
+    H = J.T @ J + np.diag(prec)
+    # the posterior mean of the model that is judged: prior var, noise s2
+    theta = np.linalg.solve(J.T @ J + np.diag(s2 / var), J.T @ y)
+    rss = float(np.sum((y - J @ theta) ** 2))
+    got = prior_occam(H, prec, np.full(k, noise2), theta, np.ones(k, dtype=bool), 1.0, s2)
+    laplace = rss / s2 + got + n * np.log(2 * np.pi * s2)
+    exact = _exact_minus2_log_evidence(J, y, var, s2, np.zeros(k, dtype=bool))
+    assert abs(laplace - exact) < 1e-6 * max(1.0, abs(exact))

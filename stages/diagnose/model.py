@@ -546,6 +546,19 @@ class ModelState:
                 out[i : i + t.n_params()] = prec
         return out
 
+    def prior_noise2(self) -> F64:
+        """Return the noise variance each parameter's ridge is weighed against, (P,), nT^2.
+
+        A prior's ridge is ``noise_nT^2 / var`` (:meth:`prior_precision`): with it, the
+        prior's own variance ``var`` of each parameter is recovered whatever the residual
+        has become since (:func:`stages.diagnose.statistics.prior_occam`). Zero where a
+        parameter has no prior.
+        """
+        out = np.zeros(self.n_params())
+        for t, i in zip(self.terms, self.offsets(), strict=True):
+            out[i : i + t.n_params()] = t.noise_nT**2
+        return out
+
     def flat_values(self) -> F64:
         """Return the parameters as one vector (P,): zeros for ``dR``, ``B_enu`` (perturbations)."""
         return np.concatenate([np.zeros(6)] + [_fitted_coordinates(t, v)

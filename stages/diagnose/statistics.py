@@ -272,7 +272,7 @@ def score_from_J(
         nb = 3 if data.B_known_enu_nT is not None else 6  # the misalignment and the field
         Hb0c = Hbc[:nb]
         Ibase = Hcc - Hb0c.T @ np.linalg.lstsq(Hbb[:nb, :nb], Hb0c, rcond=1e-12)[0]
-        penalty = _prior_penalty(Ieff, geff, Ibase, prior, r.size, sigma)
+        penalty = _prior_penalty(Ieff, geff, Ibase, prior, term.noise_nT**2, r.size, sigma)
     # from the blocks already formed (with a field_map's ridge when there is one): the full
     # product of [Jb, Jc] would be the costliest step of the test
     rot_with = _rot_efficiency_H(np.block([[Hbb, Hbc], [Hbc.T, Hcc]]))
@@ -282,19 +282,21 @@ def score_from_J(
 
 
 def _prior_penalty(Ieff: np.ndarray, geff: np.ndarray, Ibase: np.ndarray, prior: np.ndarray,
-                   n: int, sigma: float) -> float:
+                   noise2: float, n: int, sigma: float) -> float:
     """Return the :func:`occam` factor of a candidate with a prior, from its score test.
 
     ``Ieff`` (k, k): the candidate's information beyond the model's parameters, its prior's
     ridge ``prior`` included, and ``geff`` its gradient there: ``theta`` is the one Newton
     step from zero the score test stands for. ``Ibase``: its information beyond the
-    misalignment and the field only, what :func:`occam` charges it for. Its parameters
-    without a prior cost ``log n`` each (:func:`prior_occam` for the others).
+    misalignment and the field only, what :func:`occam` charges it for; ``noise2`` the noise
+    variance its ridge was set against. Its parameters without a prior cost ``log n`` each
+    (:func:`prior_occam` for the others).
     """
     theta = np.linalg.lstsq(0.5 * (Ieff + Ieff.T), geff, rcond=1e-12)[0]
     q = prior > 0
     return int(np.sum(~q)) * float(np.log(n)) + prior_occam(
-        0.5 * (Ibase + Ibase.T), prior, theta, np.ones(len(prior), dtype=bool), 1.0, sigma**2)
+        0.5 * (Ibase + Ibase.T), prior, np.full(len(prior), noise2), theta,
+        np.ones(len(prior), dtype=bool), 1.0, sigma**2)
 
 
 #: A term is named only when its score statistic exceeds this factor squared times the one
@@ -444,21 +446,27 @@ def occam(res: FitResult, data: FitData, n_eff: float) -> float:
     q = prec > 0
     c = max(res.residual_nT.size / n_eff, 1.0)
     return (k - int(q.sum())) * float(np.log(n_eff)) + prior_occam(
-        res.info, prec, st.flat_values(), base | q, c, res.rss / res.residual_nT.size)
+        res.info, prec, st.prior_noise2(), st.flat_values(), base | q, c,
+        res.rss / res.residual_nT.size)
 
 
-def prior_occam(H: np.ndarray, prec: np.ndarray, theta: np.ndarray, fitted: np.ndarray,
-                c: float, s2: float) -> float:
+def prior_occam(H: np.ndarray, prec: np.ndarray, noise2: np.ndarray, theta: np.ndarray,
+                fitted: np.ndarray, c: float, s2: float) -> float:
     """Return ``-2 log`` of the Occam factor of the parameters with a prior (Gaussian).
 
-    ``log det(I + P^-1 (S - P) / c) + theta_Q' P theta_Q / s2`` (:func:`occam`): ``H`` (P, P)
-    the posterior's information ``J' W J + diag(prec)``, ``prec`` (P,) the prior's ridge
-    (zero: no prior), ``theta`` (P,) the fit, ``fitted`` (P,) the parameters the fit moves,
-    ``S`` the Schur complement of ``H`` on the parameters with a prior given the other
-    fitted ones, ``c`` the residual's correlation inflation, ``s2`` the noise variance the
-    ridge is weighed against (``prec = s2 / var``). For a linear model with white Gaussian
-    noise of variance ``s2`` (``c = 1``) this with ``rss / s2 + n log(2 pi s2)`` is the exact
-    ``-2 log`` marginal likelihood.
+    ``log det(I + V^1/2 (S - P) V^1/2 / (c s2)) + theta_Q' V^-1 theta_Q`` (:func:`occam`):
+    ``H`` (P, P) the posterior's information ``J' W J + diag(prec)``, ``prec`` (P,) the
+    prior's ridge (zero: no prior), ``noise2`` (P,) the noise variance each ridge was set
+    against, so that ``V = diag(noise2 / prec)`` is the prior's own covariance, ``theta``
+    (P,) the fit, ``fitted`` (P,) the parameters the fit moves, ``S`` the Schur complement
+    of ``H`` on the parameters with a prior given the other fitted ones (``S - P`` the
+    data's information on them), ``c`` the residual's correlation inflation and ``s2`` the
+    residual's variance per entry. For a linear model with white Gaussian noise of variance
+    ``s2`` (``c = 1``) this with ``rss / s2 + n log(2 pi s2)`` is the exact ``-2 log``
+    marginal likelihood (MacKay 1992), whatever noise the ridge was set against: the prior
+    is ``V``, a physical size in the parameters' units. Weighing the ridge against the
+    residual of the moment instead would tighten the prior by the ratio of the two
+    variances as the model improves, and charge a term the more, the more it explains.
     """
     q = prec > 0
     o = fitted & ~q
@@ -467,10 +475,15 @@ def prior_occam(H: np.ndarray, prec: np.ndarray, theta: np.ndarray, fitted: np.n
         Hoq = H[np.ix_(o, q)]
         S = S - Hoq.T @ np.linalg.lstsq(H[np.ix_(o, o)], Hoq, rcond=1e-12)[0]
     P = prec[q]
-    A = ((S - np.diag(P)) / c) / np.sqrt(np.outer(P, P)) + np.eye(int(q.sum()))
+    s2 = max(s2, 1e-300)
+    # a ridge without a stated noise was set against the residual's own variance
+    n2 = np.asarray(noise2, dtype=float)[q]
+    v = np.where(n2 > 0, n2, s2) / P
+    sv = np.sqrt(v)
+    A = (sv[:, None] * (S - np.diag(P)) * sv[None, :]) / (c * s2) + np.eye(int(q.sum()))
     sign, logdet = np.linalg.slogdet(0.5 * (A + A.T))
     t = theta[q]
-    return (float(logdet) if sign > 0 else 0.0) + float(np.sum(P * t * t)) / max(s2, 1e-300)
+    return (float(logdet) if sign > 0 else 0.0) + float(np.sum(t * t / v))
 
 
 def evidence(res: FitResult, data: FitData, n_eff: float, rss: float | None = None) -> float:
