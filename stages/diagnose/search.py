@@ -66,6 +66,7 @@ from stages.diagnose.statistics import (
     ScoreTest,
     effective_samples,
     evidence,
+    evidence_between,
     evidence_change,
     heldout_ok,
     heldout_rms,
@@ -863,6 +864,84 @@ class _Search:
             self.cv_cur = heldout_rms(self.cur.state, self.data, self.cfg)
             self._backward()
 
+    def exchange(self) -> bool:
+        """Replace a term local in time by another effect's description of its window.
+
+        The search names the strongest candidate of each round, so a term may be named
+        while the terms that explain its window properly are still missing: a step that
+        stands for a source the search has not located yet, after which the scan skips the
+        window as modelled. The backward step asks only whether the model still needs such a
+        term, not whether another effect explains its window better; this is the exchange
+        move of stepwise selection (Miller 2002, ch. 3). Every effect's candidates at the
+        term's window are fitted in its place, and the best one by the evidence replaces it
+        when it raises the evidence by the margin and passes the held-out gate every new
+        term passes. Each term is exchanged at most once (its hypothesis is dropped).
+        Returns whether a term was replaced.
+        """
+        for i, old in enumerate(self.cur.state.terms):
+            if not old.windows_s or old.kind not in LOCAL_KINDS:
+                continue
+            present = {t.kind for t in self.cur.state.terms}
+            if hypothesis(old, present) in self.dropped:
+                continue
+            best = self._in_place_of(i)
+            if best is None:
+                continue
+            res, st, dbic = best
+            cv_new = heldout_ok(self.cur, res, self.data, self.cfg, self.cv_cur)
+            if cv_new is None:
+                continue
+            (a, b), *_ = old.windows_s
+            self.dropped.add(hypothesis(old, present))
+            f = _finding(self.cur, res, res.state.terms[-1], st, dbic, self.cv_cur, cv_new,
+                         self.data)
+            self.findings.pop(i)
+            self.findings.append(dataclasses.replace(f, told_apart=(
+                f"; it replaced a {old.kind.value} at {a:.1f}-{b:.1f} s, named before it, "
+                "which it explains better (the evidence and the held-out blocks)")))
+            self.cur, self.cv_cur = res, cv_new
+            self.rejected.clear()
+            self._settle()
+            return True
+        return False
+
+    def _in_place_of(self, i: int) -> tuple[FitResult, ScoreTest, float] | None:
+        """Return the best other description of term ``i``'s window: (fit, score test, delta).
+
+        Candidates the score test ranks above the term itself (beside the model without it)
+        are refitted, as the rounds refit the strongest; the fit with the most evidence is
+        returned when it beats the current model by the margin (``delta``: its evidence
+        change against the model without term ``i``).
+        """
+        old = self.cur.state.terms[i]
+        wo = fit(without_term(self.cur.state, i), self.data)
+        sig = robust_sigma(wo.residual_nT)
+        (a, b), *_ = old.windows_s
+        t0, t1 = float(self.data.t_s[0]), float(self.data.t_s[-1])
+        pad = max(0.5, 0.25 * (b - a))  # as a round pads the scan's window
+        wd = (max(t0, a - pad), min(t1, b + pad))
+        event = Event((a, b), (a, b), wd, min(2.0, max(0.75, (wd[1] - wd[0]) / 6)), False)
+        own = score_test(wo, old, self.data, sig)
+        bar = own.penalty - own.statistic
+        best: tuple[FitResult, ScoreTest, float] | None = None
+        for term, start in event_candidates(wo, self.data, event):
+            if term.kind is old.kind and term.windows_s == old.windows_s:
+                continue
+            st, begin = scored(wo, self.data, term, sig, start)
+            if st.penalty - st.statistic >= bar:
+                continue
+            # a located source the joint fit moves is kept here (a round refuses it,
+            # sources.pulled_away): the rounds have ended, so no term the model lacks is
+            # left for it to be fitting instead of its object
+            fr = _refit(wo, st.term, self.data, self.cfg, start=begin)
+            if fr is None or not plausible(fr[0], self.data):
+                continue
+            if evidence_between(fr[0], self.cur, self.data) > -self.cfg.bic_margin:
+                continue
+            if best is None or evidence_between(fr[0], best[0], self.data) < 0:
+                best = (fr[0], st, fr[1])
+        return best
+
     def _backward(self) -> None:
         """Drop each term that no longer earns its margin beside the others."""
         i = 0
@@ -951,7 +1030,7 @@ def diagnose_data(
                 why = identifiability_reason(k, stats, data, 0.0)
                 not_ident[k.value] = why or ""
     search = _Search(data, cfg, stats, kinds, e_int_nT, cur, cv_cur, not_ident=not_ident)
-    while len(search.findings) < cfg.max_findings and search.round():
+    while len(search.findings) < cfg.max_findings and (search.round() or search.exchange()):
         pass
     data, cur, cv_cur, findings = search.data, search.cur, search.cv_cur, search.findings
     # the evidence of each finding was measured against the model of the moment it was added;
