@@ -79,4 +79,4 @@ def test_a_step_that_stands_for_a_source_in_the_room_is_exchanged_for_it(tmp_pat
     assert search.cv_cur < cv
     assert len(search.findings) == len(kinds)
     said = search.findings[kinds.index(EffectKind.LOCAL_SOURCE)].told_apart
-    assert f"replaced a hard_iron_step at {a:.1f}-{b:.1f} s" in said, said
+    assert f"replaces a hard_iron_step named at {a:.1f}-{b:.1f} s" in said, said

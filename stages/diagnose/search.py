@@ -897,8 +897,9 @@ class _Search:
                          self.data)
             self.findings.pop(i)
             self.findings.append(dataclasses.replace(f, told_apart=(
-                f"; it replaced a {old.kind.value} at {a:.1f}-{b:.1f} s, named before it, "
-                "which it explains better (the evidence and the held-out blocks)")))
+                f"; it replaces a {old.kind.value} named at {a:.1f}-{b:.1f} s before it "
+                "was found: it explains that window better, by the evidence and on the "
+                "held-out blocks")))
             self.cur, self.cv_cur = res, cv_new
             self.rejected.clear()
             self._settle()
