@@ -504,6 +504,19 @@ def _to_enu(v_mag: np.ndarray, state: ModelState, data: FitData) -> np.ndarray:
 _ROUNDS_SHOWN = 3
 
 
+def _event(w: tuple[float, float], held: tuple[float, float], t_s: np.ndarray,
+           edge_of_step: bool) -> Event:
+    """Return the event at window ``w`` (held ``held``), padded as a bell-shaped transient needs.
+
+    The scan sees where the excess is large; such a transient starts and ends earlier and
+    later than that. The padded window's knots are a sixth of it, 0.75-2 s apart.
+    """
+    pad = max(0.5, 0.25 * (w[1] - w[0]))
+    t0, t1 = float(t_s[0]), float(t_s[-1])
+    wd = (max(t0, w[0] - pad), min(t1, w[1] + pad))
+    return Event(w, held, wd, min(2.0, max(0.75, (wd[1] - wd[0]) / 6)), edge_of_step)
+
+
 @dataclasses.dataclass
 class _Search:
     """One diagnosis search: the model of the moment, its findings and what was tried.
@@ -561,13 +574,7 @@ class _Search:
                 ramps.append(rc)
             if any(w[0] >= a and w[1] <= b for a, b in taken):
                 continue  # inside a window already modelled, not a new event
-            # the scan sees where the excess is large; a bell-shaped transient starts and
-            # ends earlier and later than that
-            pad = max(0.5, 0.25 * (w[1] - w[0]))
-            t0, t1 = float(self.data.t_s[0]), float(self.data.t_s[-1])
-            wd = (max(t0, w[0] - pad), min(t1, w[1] + pad))
-            ks = min(2.0, max(0.75, (wd[1] - wd[0]) / 6))
-            event = Event(w, ws, wd, ks, edge_of_step=rc is not None)
+            event = _event(w, ws, self.data.t_s, edge_of_step=rc is not None)
             for term, start in event_candidates(self.cur, self.data, event):
                 if start is not None:
                     cand_start[len(cands)] = start
@@ -917,11 +924,8 @@ class _Search:
         old = self.cur.state.terms[i]
         wo = fit(without_term(self.cur.state, i), self.data)
         sig = robust_sigma(wo.residual_nT)
-        (a, b), *_ = old.windows_s
-        t0, t1 = float(self.data.t_s[0]), float(self.data.t_s[-1])
-        pad = max(0.5, 0.25 * (b - a))  # as a round pads the scan's window
-        wd = (max(t0, a - pad), min(t1, b + pad))
-        event = Event((a, b), (a, b), wd, min(2.0, max(0.75, (wd[1] - wd[0]) / 6)), False)
+        w = old.windows_s[0]
+        event = _event(w, w, self.data.t_s, edge_of_step=False)
         own = score_test(wo, old, self.data, sig)
         bar = own.penalty - own.statistic
         best: tuple[FitResult, ScoreTest, float] | None = None
