@@ -260,3 +260,16 @@ def test_the_covariance_does_not_depend_on_the_parameters_units():
     np.testing.assert_allclose(got, want, rtol=1e-8, atol=0)
     unscaled = np.linalg.pinv(H, rcond=INFORMATION_CUT)
     assert not np.allclose(np.diag(unscaled), np.diag(want), rtol=1e-3)
+
+
+def test_halves_a_few_thousandths_of_a_degree_apart_say_how_far():
+    """A rotation known to a thousandth of a degree fails the check at a few thousandths:
+    the words and the verdict give that figure, not "0.00 deg apart"."""
+    from pipeline.core.verdict import plain_words
+
+    cal = _cal([1.0, -1.5, 2.0], [0.001, 0.001, 0.001])
+    tiny = SplitCheck(np.zeros(3), np.zeros(3), np.array([0.0042, 0.0, 0.0]), 40.0, 30.0, 3)
+    doubt = next(d for d in apply_split(cal, tiny).checks["doubts"] if d.startswith(HALVES))
+    assert doubt.startswith("the two halves of the recording disagree by 0.0042 deg")
+    cause, _ = plain_words(doubt)
+    assert "rotations 0.0042 deg apart" in cause
