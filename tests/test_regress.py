@@ -270,6 +270,16 @@ def test_real_recordings_match_golden(tmp_path):
     assert p.returncode in (0, 3), p.stderr
     r = _cli("regress", str(out), "--baseline", str(GOLDEN / "real"))
     assert r.returncode == 0, r.stdout + r.stderr
+    # each calibration says of the repeated messages what its own fit did with them: lab_01
+    # and lab_02's final models fit every message (their diagnosis names no sample_hold),
+    # lab_03-05's leave the repeats out
+    for name in ("lab_01", "lab_02", "lab_03", "lab_04", "lab_05"):
+        cal = json.loads((out / name / "calibration.json").read_text(encoding="utf-8"))
+        said = [w for w in cal["warnings"] if w.startswith("sample-and-hold:")]
+        left_out = "repeats left out" in cal["checks"]["fit_samples"].get("note", "")
+        assert len(said) == 1 and said[0].endswith("the repeats were left out") == left_out, (
+            name, said, cal["checks"]["fit_samples"])
+        assert left_out == (name not in ("lab_01", "lab_02")), name
 
 
 # --------------------------------------------------------------------------- tolerances in sigmas

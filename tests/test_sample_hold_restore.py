@@ -75,3 +75,37 @@ def test_chunked_restore_times_the_conversions_as_the_whole_recording():
     rec, parts, _, chunks = chunked(LAB5, cal, 2_000, positions=True)
     assert len(chunks) > 10
     assert_restores_alike(parts, restore_samples(rec, cal))
+
+
+def test_the_calibration_says_what_its_fit_did_with_the_repeats():
+    """The estimate leaves repeated messages out and says so; the final model fits every
+    message at its own stamp unless the diagnosis' sample_hold finding handles them. The
+    calibration's warning then says which, with the diagnosis' figures (every message), and
+    a recording whose messages hold no repeats carries no such warning."""
+    from pipeline.model.calibration import Calibration
+    from pipeline.model.sample_hold import detect_sample_hold
+    from stages.diagnose.stage import _sample_hold_stated
+
+    rng = np.random.default_rng(3)
+    t_ns = np.arange(3000, dtype=np.int64) * 3_500_000  # 285.7 Hz messages
+    fresh = rng.normal(size=(3000, 3))
+    held = fresh[np.floor(np.arange(3000) * 200.0 / 285.7).astype(int)]  # 200 Hz samples
+    sh = detect_sample_hold(t_ns, held)
+    assert sh is not None
+    estimate = ("sample-and-hold: 30 % of the magnetometer messages repeat the previous one "
+                "(native rate 199.0 Hz, messages 285.7 Hz); the repeats were left out")
+    cal = Calibration(R_body_mag=np.eye(3), sigma_rotvec_deg=np.full(3, 0.1),
+                      B_enu_nT=np.array([0.0, 20000.0, -44000.0]), estimator="diagnose",
+                      residual_rms_nT=1.0, n_samples=3000, warnings=("other", estimate),
+                      sample_hold={"native_rate_hz": 199.0, "repeated_fraction": 0.3})
+    kept = _sample_hold_stated(cal, sh, handled=False)
+    said = [w for w in kept.warnings if w.startswith("sample-and-hold:")]
+    assert len(said) == 1 and "every message was fitted at its own stamp" in said[0]
+    assert not said[0].endswith("the repeats were left out")
+    assert f"native rate {sh.native_rate_hz:.1f} Hz" in said[0]
+    assert kept.sample_hold == sh.params() and kept.warnings[0] == "other"
+    handled = _sample_hold_stated(cal, sh, handled=True)
+    assert [w for w in handled.warnings if w.startswith("sample-and-hold:")][0].endswith(
+        "the repeats were left out")
+    none = _sample_hold_stated(cal, None, handled=False)
+    assert none.sample_hold is None and none.warnings == ("other",)

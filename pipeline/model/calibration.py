@@ -136,7 +136,9 @@ class Calibration:
         diagnosis' ``fit_samples`` ``{n, stride, of}`` and, for a long recording analysed in
         windows, ``analysed_samples`` ``{n, of, windows}`` (the samples its analysis saw).
     sample_hold : dict or None
-        ``{native_rate_hz, repeated_fraction}`` when repeated messages were left out.
+        ``{native_rate_hz, repeated_fraction}`` when the magnetometer's messages repeat its
+        samples (sample-and-hold). Whether the fit left the repeats out is in its warning and
+        in ``checks["fit_samples"]``; the restore's handling is in ``effects["sample_hold"]``.
 
     """
 

@@ -444,18 +444,30 @@ def with_sigmas(diag: Diagnosis, res: FitResult, data: FitData, cov: np.ndarray)
 _SAMPLE_HOLD_WARNING = "sample-and-hold:"
 
 
-def _sample_hold_stated(cal: Calibration, sh: SampleHold) -> Calibration:
-    """Return ``cal`` stating the sample-and-hold figures of the final model's finding.
+def _sample_hold_stated(cal: Calibration, sh: SampleHold | None, handled: bool) -> Calibration:
+    """Return ``cal`` stating the repeats as the final model treats them.
 
-    The estimate detects the repeats on the samples it fitted; the diagnosis detects them on
-    every message and its finding is the one the final model handles. The calibration's
-    ``sample_hold`` and its warning then quote the finding's native rate and fraction, so
-    that one figure stands in every output.
+    The estimate detects the repeats on the samples it fitted and leaves them out; the
+    diagnosis detects them on every message, and its final model leaves them out only when
+    that (or timing them at the sensor's rate) predicts held-out data better, the
+    ``sample_hold`` finding (``handled``). The calibration's ``sample_hold`` and its warning
+    quote the diagnosis' native rate and fraction, so that one figure stands in every output,
+    and say what the final model did: "the repeats were left out" of a model fitted to every
+    message at its own stamp was the estimate's claim, not the answer's.
     """
+    if sh is None:
+        # the messages of the whole recording hold no repeats: nothing was left out
+        warnings = tuple(w for w in cal.warnings if not w.startswith(_SAMPLE_HOLD_WARNING))
+        return cal.replace(sample_hold=None, warnings=warnings)
+    done = ("the repeats were left out" if handled else
+            "every message was fitted at its own stamp: leaving the repeats out, or timing "
+            "them at the sensor's rate, did not predict held-out data better")
     said = (f"{_SAMPLE_HOLD_WARNING} {100 * sh.repeated_fraction:.0f} % of the magnetometer "
             f"messages repeat the previous one (native rate {sh.native_rate_hz:.1f} Hz, "
-            f"messages {sh.message_rate_hz:.1f} Hz); the repeats were left out")
+            f"messages {sh.message_rate_hz:.1f} Hz); {done}")
     warnings = tuple(said if w.startswith(_SAMPLE_HOLD_WARNING) else w for w in cal.warnings)
+    if said not in warnings:
+        warnings += (said,)
     return cal.replace(sample_hold=sh.params(), warnings=tuple(dict.fromkeys(warnings)))
 
 
@@ -907,8 +919,8 @@ class Diagnose:
             final = carry_checks(cal, final, explained=explained)
         # the verdict weighs the stated sigma against what the final model's motion gives
         final = with_white_sigma(final, res, data)
-        if sh is not None and "sample_hold" in extra:
-            final = _sample_hold_stated(final, sh)
+        if sh is not None or final.sample_hold is not None:
+            final = _sample_hold_stated(final, sh, handled="sample_hold" in extra)
         if split is not None:
             final = final.replace(checks={**final.checks, "split_final": split.to_dict()})
             final = apply_split(final, split, " under the final model")
