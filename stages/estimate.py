@@ -19,6 +19,7 @@ from pipeline.core.recording import AlignedSeries, Recording
 from pipeline.core.style import GLUE
 from pipeline.core.verdict import judge, sensor_noise_nT
 from pipeline.core.vocabulary import EstimateTerm, EstimatorKind, RobustLoss
+from pipeline.core.words import sig2
 from pipeline.model.calibration import Calibration
 from pipeline.model.forward import MAX_TIME_OFFSET_S
 from pipeline.model.sample_hold import detect_sample_hold, repeated
@@ -173,10 +174,7 @@ def fit_calibration(
     if hold is not None:
         cal = cal.replace(
             sample_hold=hold.params(),
-            warnings=cal.warnings + (
-                f"sample-and-hold: {100 * hold.repeated_fraction:.0f} % of the magnetometer "
-                f"messages repeat the previous one (native rate {hold.native_rate_hz:.1f} Hz, "
-                f"messages {hold.message_rate_hz:.1f} Hz); the repeats were left out",),
+            warnings=cal.warnings + (hold.warning(left_out=True),),
         )
     return with_verdict(cal, al)
 
@@ -275,12 +273,6 @@ def largest_effect(findings: Sequence[Finding], effects: dict[str, Any] | None,
     return LargestEffect(best.effect, size, windows)
 
 
-def _digits(x: float) -> str:
-    """Return a sigma to two significant digits in fixed notation (0.35, 0.0082; never 0.00)."""
-    dec = 2 if not x > 0 else int(min(max(2, 1 - np.floor(np.log10(x))), 6))
-    return f"{x:.{dec}f}"
-
-
 def _beyond(xs: Sequence[float], limit: float) -> list[str]:
     """Return sigmas to one decimal, or to as many more (up to 3) as show each exceeds ``limit``.
 
@@ -362,7 +354,7 @@ def poor_axis_doubts(cal: Calibration, motion_deg: np.ndarray | None,
                                 f"{'that axis' if one else 'those axes'}"))
             continue
         text = (f"{head}, though the motion alone determines it to "
-                f"{_listed([_digits(mot[i]) for i in axes])} deg: what the residual holds "
+                f"{_listed([sig2(mot[i]) for i in axes])} deg: what the residual holds "
                 "widens the sigma")
         if cal.n_eff is not None and np.isfinite(cal.n_eff):
             n_eff = _count(cal.n_eff) if cal.n_eff >= 1 else "fewer than 1"

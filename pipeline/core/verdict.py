@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.core.style import nT_text, num
+from pipeline.core.words import sig2_decimals
 
 F64 = NDArray[np.float64]
 
@@ -391,9 +392,7 @@ def verdict_line(cal: StatedCalibration, with_status: bool = True) -> str:
     u = rv / ang if ang > 0 else np.array([0.0, 0.0, 1.0])
     s_ang = float(np.sqrt(np.sum((u * sg) ** 2))) if np.all(np.isfinite(sg)) else float("inf")
     # the sigma to two significant digits, the angle to the same decimals (never "+- 0.00")
-    dec = 2
-    if np.isfinite(s_ang) and s_ang > 0:
-        dec = int(min(max(2, 1 - np.floor(np.log10(s_ang))), 6))
+    dec = sig2_decimals(s_ang)
     parts = [
         f"misalignment {ang:.{dec}f} +- {s_ang:.{dec}f} deg about body ["
         + ", ".join(f"{c:+.2f}" for c in u) + "]"

@@ -18,6 +18,22 @@ def num(x: float, nd: int = 1) -> str:
     return minus(f"{x:.{nd}f}")
 
 
+def sig2_decimals(x: float) -> int:
+    """Return the decimals that show ``x`` to two significant digits: 2 to 6, 2 unless ``x > 0``.
+
+    A sigma or a small disagreement then never reads "0.00" (0.35, 0.0082, 0.0044).
+    """
+    x = float(x)
+    if not (np.isfinite(x) and x > 0):
+        return 2
+    return int(min(max(2, 1 - np.floor(np.log10(x))), 6))
+
+
+def sig2(x: float) -> str:
+    """Return ``x`` to two significant digits in fixed notation (:func:`sig2_decimals`)."""
+    return f"{x:.{sig2_decimals(x)}f}"
+
+
 def vec(a: Any, nd: int = 1) -> str:
     """Return ``[1.0, −2.0, 3.0]``."""
     return "[" + ", ".join(num(float(x), nd) for x in np.asarray(a, float).ravel()) + "]"

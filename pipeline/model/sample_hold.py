@@ -31,6 +31,10 @@ ANCHOR_RUN = 3
 Handling = Literal["first_stamp", "native_grid", "anchored"]
 
 
+#: How a calibration's sample-and-hold warning begins (:meth:`SampleHold.warning`).
+WARNING_PREFIX = "sample-and-hold:"
+
+
 @dataclass(frozen=True)
 class SampleHold:
     """Sample-and-hold found in a magnetometer series.
@@ -75,6 +79,20 @@ class SampleHold:
             "native_rate_hz": float(self.native_rate_hz),
             "repeated_fraction": float(self.repeated_fraction),
         }
+
+    def warning(self, left_out: bool) -> str:
+        """Return the calibration's warning: the repeats' share and what the fit did with them.
+
+        ``left_out``: the fit left the repeats out (the estimate always; the diagnosis' final
+        model only with its ``sample_hold`` finding), else it fitted every message at its own
+        stamp because neither handling predicted held-out data better.
+        """
+        done = ("the repeats were left out" if left_out else
+                "every message was fitted at its own stamp: leaving the repeats out, or "
+                "timing them at the sensor's rate, did not predict held-out data better")
+        return (f"{WARNING_PREFIX} {100 * self.repeated_fraction:.0f} % of the magnetometer "
+                f"messages repeat the previous one (native rate {self.native_rate_hz:.1f} Hz, "
+                f"messages {self.message_rate_hz:.1f} Hz); {done}")
 
     def explanation(self, restamped: bool = True, *, handling: Handling | None = None) -> str:
         """One paragraph for a person on the sensor and on how its conversions were timed.

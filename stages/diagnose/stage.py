@@ -26,7 +26,12 @@ from pipeline.core.recording import AlignedSeries, Recording
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.calibration import Calibration
 from pipeline.model.effects import EFFECTS, IRON_PRIOR, kin_words
-from pipeline.model.sample_hold import Handling, SampleHold, detect_sample_hold
+from pipeline.model.sample_hold import (
+    WARNING_PREFIX,
+    Handling,
+    SampleHold,
+    detect_sample_hold,
+)
 from pipeline.model.solve import one_blas_thread
 from stages.context import Context
 from stages.diagnose.catalogue import explanation
@@ -440,10 +445,6 @@ def with_sigmas(diag: Diagnosis, res: FitResult, data: FitData, cov: np.ndarray)
     return dataclasses.replace(diag, findings=tuple(out))
 
 
-#: how the estimate's sample-and-hold warning begins (stages.estimate.fit_calibration)
-_SAMPLE_HOLD_WARNING = "sample-and-hold:"
-
-
 def _sample_hold_stated(cal: Calibration, sh: SampleHold | None, handled: bool) -> Calibration:
     """Return ``cal`` stating the repeats as the final model treats them.
 
@@ -452,23 +453,12 @@ def _sample_hold_stated(cal: Calibration, sh: SampleHold | None, handled: bool) 
     that (or timing them at the sensor's rate) predicts held-out data better, the
     ``sample_hold`` finding (``handled``). The calibration's ``sample_hold`` and its warning
     quote the diagnosis' native rate and fraction, so that one figure stands in every output,
-    and say what the final model did: "the repeats were left out" of a model fitted to every
-    message at its own stamp was the estimate's claim, not the answer's.
+    and say what the final model did, not what the estimate did.
     """
-    if sh is None:
-        # the messages of the whole recording hold no repeats: nothing was left out
-        warnings = tuple(w for w in cal.warnings if not w.startswith(_SAMPLE_HOLD_WARNING))
-        return cal.replace(sample_hold=None, warnings=warnings)
-    done = ("the repeats were left out" if handled else
-            "every message was fitted at its own stamp: leaving the repeats out, or timing "
-            "them at the sensor's rate, did not predict held-out data better")
-    said = (f"{_SAMPLE_HOLD_WARNING} {100 * sh.repeated_fraction:.0f} % of the magnetometer "
-            f"messages repeat the previous one (native rate {sh.native_rate_hz:.1f} Hz, "
-            f"messages {sh.message_rate_hz:.1f} Hz); {done}")
-    warnings = tuple(said if w.startswith(_SAMPLE_HOLD_WARNING) else w for w in cal.warnings)
-    if said not in warnings:
-        warnings += (said,)
-    return cal.replace(sample_hold=sh.params(), warnings=tuple(dict.fromkeys(warnings)))
+    others = tuple(w for w in cal.warnings if not w.startswith(WARNING_PREFIX))
+    if sh is None:  # the messages of the whole recording hold no repeats
+        return cal.replace(sample_hold=None, warnings=others)
+    return cal.replace(sample_hold=sh.params(), warnings=others + (sh.warning(handled),))
 
 
 def _model_values(term: Term, value: np.ndarray, data: FitData) -> dict[str, Any]:

@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 from scipy.special import chdtri
 
 from pipeline.core.geometry import so3_log
+from pipeline.core.words import sig2
 from pipeline.model.calibration import SIGMA_FLOOR_DEG
 from pipeline.model.effects.base import CONFOUND_RATIO
 from stages.estimators.base import RELATIVE_INFO_THRESHOLD
@@ -313,18 +314,6 @@ def confounded(ratios: dict[str, F64], names: list[str]) -> dict[str, float]:
 HALVES_DOUBT = "the two halves of the recording disagree"
 
 
-def _two_figures(deg: float) -> str:
-    """Return ``deg`` with two decimals, or two significant figures below 0.1.
-
-    Halves that fail the check by a few thousandths of a degree (a rotation known to
-    0.001 deg) read "0.00 deg apart, more than their sigmas allow" with two decimals.
-    """
-    if deg >= 0.1 or not np.isfinite(deg):
-        return f"{deg:.2f}"
-    return np.format_float_positional(deg, precision=2, unique=False, fractional=False,
-                                      trim="k")
-
-
 def apply_split(cal, split: SplitCheck, what: str = ""):
     """Return ``cal`` with an inconsistent split's disagreement in its sigmas and doubts.
 
@@ -349,7 +338,7 @@ def apply_split(cal, split: SplitCheck, what: str = ""):
     var = np.radians(before) ** 2 + np.diag(split_inflation(np.radians(split.diff_deg)))
     after = np.degrees(np.sqrt(var))
     words = (
-        f"{HALVES_DOUBT} by {_two_figures(float(np.linalg.norm(split.diff_deg)))} "
+        f"{HALVES_DOUBT} by {sig2(float(np.linalg.norm(split.diff_deg)))} "
         f"deg{what} (chi-square {split.chi2:.0f} for {split.dof} degrees of freedom, above "
         f"{split.limit:.1f}, which halves agreeing within their sigmas exceed "
         f"{100 * SPLIT_FALSE_ALARM:.0f} % of the time): the model leaves out physics that "
