@@ -1320,6 +1320,8 @@ def render_html(
     """
     stem = Path(recording.path).stem
     t0 = int(recording.mag.t_ns[0]) if len(recording.mag.t_ns) else 0
+    # the calibration's warnings: what reading the recording met (gaps, excluded stretches)
+    # and what its fit did (sample-and-hold repeats, a rotation the motion leaves undetermined)
     warn = "".join(f"<li>{html.escape(minus(w))}</li>" for w in calibration.warnings)
     if calibration.unobservable_axes_body:
         warn += "<li>rotation about " + ", ".join(
@@ -1387,7 +1389,7 @@ MagFit).{enu_caption_end}</p>
 {_metrics_html(metrics, t0)}
 <h2>Calibration</h2>
 {_calibration_html(calibration, estimator, calibration_path)}
-{f'<div class=warn><b>Warnings from reading the recording</b><ul>{warn}</ul></div>' if warn else ''}
+{f'<div class=warn><b>Warnings on the recording and its fit</b><ul>{warn}</ul></div>' if warn else ''}
 <h2>Residuals</h2>
 {_residual_html(totals)}
 {fig_html.get('fig_residual.png', '')}
