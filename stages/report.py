@@ -1389,7 +1389,7 @@ MagFit).{enu_caption_end}</p>
 {_metrics_html(metrics, t0)}
 <h2>Calibration</h2>
 {_calibration_html(calibration, estimator, calibration_path)}
-{f'<div class=warn><b>Warnings on the recording and its fit</b><ul>{warn}</ul></div>' if warn else ''}
+{f'<div class=warn><b>Warnings on the recording and fit</b><ul>{warn}</ul></div>' if warn else ''}
 <h2>Residuals</h2>
 {_residual_html(totals)}
 {fig_html.get('fig_residual.png', '')}
