@@ -18,9 +18,12 @@ import threading
 #: only to simulate a scenario's field drift; harmonica, verde, xarray, ``scipy.spatial`` and
 #: ``scipy.linalg`` only to grid a recording with positions (stages.write_survey), not in the
 #: process that plans a campaign; ``scipy.signal``, which loads ``scipy.stats`` (0.4-0.6 s),
-#: only to count a located source's approaches and for Li 2020's smoothed tangents.
+#: only to count a located source's approaches and for Li 2020's smoothed tangents; numba
+#: only to compile the point dipole's loops, when a source is fitted to a recording with
+#: positions (pipeline.model.dipole_kernels).
 LATE_IMPORTS = ("rerun", "matplotlib", "dask", "distributed", "ppigrf", "scipy.interpolate",
-                "harmonica", "verde", "xarray", "scipy.spatial", "scipy.linalg", "scipy.signal")
+                "harmonica", "verde", "xarray", "scipy.spatial", "scipy.linalg", "scipy.signal",
+                "numba")
 
 
 def import_quietly(*names: str) -> None:

@@ -24,6 +24,7 @@ from pipeline.core.geometry import (
     so3_exp,
 )
 from pipeline.model.attitude import AttitudeInterpolator, Interpolated
+from pipeline.model.dipole_kernels import DIPOLE_NT, MIN_SOURCE_DISTANCE_M, add_dipole_field
 
 if TYPE_CHECKING:
     from pipeline.core.recording import AttitudeSeries, PositionSeries
@@ -296,14 +297,6 @@ def soft_iron_jacobian(basis: F64, m_nT: F64, mdot_nT_s: F64, E_s: F64 | None = 
     return J
 
 
-#: mu0 / 4 pi in nT m^3 / (A m^2): B = 100 nT (3 (m.u) u - m) / r^3 (CONVENTIONS local_source)
-DIPOLE_NT = 100.0
-
-#: Closest distance (m) at which a point dipole is evaluated: a guard against a fit step that
-#: puts the source on the path (the field there is not a point dipole's anyway)
-MIN_SOURCE_DISTANCE_M = 0.01
-
-
 def source_offset_enu(c_m: F64, psi_rad: float, p_m: F64,
                       lever_enu_m: F64 | None = None) -> F64:
     """``r`` (N, 3), m, ENU: from a ``local_source`` at ``c_m`` to the sensor.
@@ -329,14 +322,13 @@ def dipole_matrix(r_enu_m: F64) -> F64:
 
 
 def dipole_field(r_enu_m: F64, m_Am2: F64) -> F64:
-    """``B = 100 (3 (m.u) u - m) / r^3`` (N, 3), nT: ``dipole_matrix(r) @ m``, no matrices."""
-    r = np.asarray(r_enu_m, dtype=float)
-    m = np.asarray(m_Am2, dtype=float)
-    d = np.maximum(norm_last(r), MIN_SOURCE_DISTANCE_M)
-    u = r / d[:, None]
-    out = (3.0 * (u @ m))[:, None] * u
-    out -= m
-    out *= (DIPOLE_NT / d**3)[:, None]
+    """``B = 100 (3 (m.u) u - m) / r^3`` (N, 3), nT: ``dipole_matrix(r) @ m``, no matrices.
+
+    One pass over the samples, compiled (:func:`pipeline.model.dipole_kernels.add_dipole_field`).
+    """
+    r = np.asarray(r_enu_m, dtype=float).reshape(-1, 3)
+    out = np.zeros((len(r), 3))
+    add_dipole_field(r, np.asarray(m_Am2, dtype=float), out)
     return out
 
 

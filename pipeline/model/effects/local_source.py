@@ -7,9 +7,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pipeline.core.geometry import right_times, rot_z
 from pipeline.core.vocabulary import EffectKind
 from pipeline.core.words import vec
+from pipeline.model.dipole_kernels import add_dipole_field, dipole_columns
 from pipeline.model.effects.base import (
     F64,
     Effect,
@@ -25,7 +25,6 @@ from pipeline.model.effects.base import (
 from pipeline.model.forward import (
     dipole_field,
     dipole_gradient,
-    dipole_matrix,
     in_windows,
     source_offset_enu,
     windows_span,
@@ -145,10 +144,8 @@ class LocalSource(Effect):
         if at.p_m is None:
             return None
         r_src = source_offset_enu(value[0:3], bearing_rad(term, value), at.p_m, at.lever_enu)
-        if term.windows_s:
-            B_enu += term.presence(at.t_s)[:, None] * dipole_field(r_src, value[3:6])
-        else:  # present throughout: a presence of 1 would change nothing
-            B_enu += dipole_field(r_src, value[3:6])
+        add_dipole_field(r_src, value[3:6], B_enu,
+                         term.presence(at.t_s) if term.windows_s else None)
         return r_src
 
     def gradient_enu(self, term: Any, value: F64, at: Samples) -> F64 | None:
@@ -167,19 +164,12 @@ class LocalSource(Effect):
         if lin.p_m is None:
             return
         r_src = kept  # as the field's: the same offsets
-        n = len(r_src)
-        K = dipole_gradient(r_src, value[3:6])
         psi = bearing_rad(term, value)
-        dB = np.zeros((n, 3, out.shape[2]))
-        np.negative(right_times(K, rot_z(psi)), out=dB[:, :, 0:3])
-        dB[:, :, 3:6] = dipole_matrix(r_src)
+        r_p = None
         if term.fit_yaw:
             r_p = r_src if lin.lever_enu is None else source_offset_enu(value[0:3], psi, lin.p_m)
-            ez_r = np.stack([-r_p[:, 1], r_p[:, 0], np.zeros(n)], axis=1)
-            dB[:, :, 6] = np.matmul(K, ez_r[:, :, None])[:, :, 0]
-        if term.windows_s:
-            dB *= term.presence(lin.t_s)[:, None, None]
-        np.matmul(lin.G, dB, out=out)
+        dipole_columns(r_src, value[3:6], psi, lin.G, r_p,
+                       term.presence(lin.t_s) if term.windows_s else None, out)
 
     def column_windows(self, term: Any) -> tuple[tuple[int, int, float, float], ...]:
         """Return every column over the source's windows, if it has any (its presence).
