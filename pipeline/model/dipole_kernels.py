@@ -80,6 +80,43 @@ def _columns_loop(r: F64, m: F64, cos_psi: float, sin_psi: float, G: F64, r_p: F
                                        + G[k, i, 2] * dB[2, j])
 
 
+def _grid_loop(p: F64, cands: F64, Q: F64, M: F64, H: F64, w: F64, A: F64, W: F64,
+               g: F64) -> None:  # pragma: no cover - compiled
+    """Per candidate place: ``A = X'X``, ``W = Qn' X``, ``g = X' r_perp`` of its columns.
+
+    ``X = G P(r)`` (3n, 3) with ``r = Q (p - c)``: summed per sample in closed form as
+    ``stages/diagnose/sources.py`` derives them, ``M = G'G``, ``H_j = G' Q_j``, ``w = G' r``.
+    """
+    u = np.empty(3)
+    v = np.empty(3)
+    for k in range(cands.shape[0]):
+        A[k] = 0.0
+        W[k] = 0.0
+        g[k] = 0.0
+        for t in range(p.shape[0]):
+            x0, x1, x2 = p[t, 0] - cands[k, 0], p[t, 1] - cands[k, 1], p[t, 2] - cands[k, 2]
+            for i in range(3):
+                u[i] = Q[i, 0] * x0 + Q[i, 1] * x1 + Q[i, 2] * x2
+            d = max(np.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]), MIN_SOURCE_DISTANCE_M)
+            s = DIPOLE_NT / (d * d * d)
+            for i in range(3):
+                u[i] /= d
+            for i in range(3):
+                v[i] = M[t, i, 0] * u[0] + M[t, i, 1] * u[1] + M[t, i, 2] * u[2]
+            s2, uv = s * s, u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+            for i in range(3):
+                for j in range(3):
+                    A[k, i, j] += s2 * (9.0 * uv * u[i] * u[j] - 3.0 * (u[i] * v[j] + v[i] * u[j])
+                                        + M[t, i, j])
+            for jq in range(H.shape[1]):
+                hu = H[t, jq, 0] * u[0] + H[t, jq, 1] * u[1] + H[t, jq, 2] * u[2]
+                for i in range(3):
+                    W[k, jq, i] += s * (3.0 * hu * u[i] - H[t, jq, i])
+            wu = w[t, 0] * u[0] + w[t, 1] * u[1] + w[t, 2] * u[2]
+            for i in range(3):
+                g[k, i] += s * (3.0 * wu * u[i] - w[t, i])
+
+
 _COMPILED: dict[str, Any] = {}
 
 
@@ -90,6 +127,7 @@ def _compiled(name: str) -> Any:
 
         _COMPILED["field"] = numba.njit(cache=True, nogil=True)(_field_loop)
         _COMPILED["columns"] = numba.njit(cache=True, nogil=True)(_columns_loop)
+        _COMPILED["grid"] = numba.njit(cache=True, nogil=True)(_grid_loop)
     return _COMPILED[name]
 
 
@@ -122,3 +160,18 @@ def dipole_columns(r_enu_m: F64, m_Am2: F64, psi_rad: float, G: F64, r_p_m: F64 
     rp = r if r_p_m is None else _c(r_p_m)
     _compiled("columns")(r, _c(m_Am2), float(np.cos(psi_rad)), float(np.sin(psi_rad)),
                          _c(G), rp, w, r_p_m is not None, out)
+
+
+def dipole_grid_sums(p_m: F64, cands_m: F64, Q: F64, M: F64, H: F64, w: F64
+                     ) -> tuple[F64, F64, F64]:
+    """Sum a dipole's columns' products at each candidate place (a source's grid search).
+
+    ``p_m`` (n, 3) positions, ``cands_m`` (K, 3) places, ``Q`` (3, 3) the frame's turn;
+    per sample ``M`` (n, 3, 3) ``G'G``, ``H`` (n, q, 3) ``G'`` times the nuisance columns and
+    ``w`` (n, 3) ``G'`` times the residual. Returns ``A`` (K, 3, 3), ``W`` (K, q, 3) and
+    ``g`` (K, 3), as ``stages/diagnose/sources.py`` uses them.
+    """
+    K, q = len(cands_m), H.shape[1]
+    A, W, g = np.empty((K, 3, 3)), np.empty((K, q, 3)), np.empty((K, 3))
+    _compiled("grid")(_c(p_m), _c(cands_m), _c(Q), _c(M), _c(H), _c(w), A, W, g)
+    return A, W, g

@@ -23,9 +23,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from pipeline.core.geometry import dot_last
 from pipeline.core.vocabulary import EffectKind
-from pipeline.model.forward import DIPOLE_NT, MIN_SOURCE_DISTANCE_M, dipole_field
+from pipeline.model.dipole_kernels import dipole_grid_sums
+from pipeline.model.forward import dipole_field
 from stages.diagnose.fit import FitResult, fit
 from stages.diagnose.model import (
     F64,
@@ -140,8 +140,8 @@ def locate_source(cur: FitResult, data: FitData, window_s: tuple[float, float],
     return value, fit_yaw
 
 
-def _dipole_fits(G: F64, p: F64, cands: F64, psi: float, Qn: F64, r_perp: F64,
-                 batch: int = 64) -> tuple[F64, F64]:
+def _dipole_fits(G: F64, p: F64, cands: F64, psi: float, Qn: F64, r_perp: F64
+                 ) -> tuple[F64, F64]:
     """Moment and gain of a dipole at each candidate place, the nuisance columns taken out.
 
     For each candidate ``c`` (K, 3) in the position frame turned by ``psi``: the columns
@@ -158,53 +158,30 @@ def _dipole_fits(G: F64, p: F64, cands: F64, psi: float, Qn: F64, r_perp: F64,
     - ``X' r_perp = sum s (3 (w . u) u - w)``, ``w = G' r_perp`` (``r_perp`` is already
       orthogonal to ``Qn``, so the projection leaves it).
 
-    Candidates are handled ``batch`` at a time. Returns the gains (K,), ``-inf`` where the
-    system is singular, and the moments (K, 3), A m^2 in ENU.
+    The sums over the samples are one compiled pass per candidate
+    (:func:`pipeline.model.dipole_kernels.dipole_grid_sums`). Returns the gains (K,),
+    ``-inf`` where the system is singular, and the moments (K, 3), A m^2 in ENU.
     """
     n, K = len(p), len(cands)
-    Q = rot_z(psi)
     M = np.einsum("nik,nil->nkl", G, G)
     w = np.einsum("nik,ni->nk", G, r_perp)
     H = np.einsum("nik,nij->njk", G, Qn.reshape(n, 3, -1))  # (n, q, 3)
-    Ht = np.ascontiguousarray(H.transpose(0, 2, 1))  # (n, 3, q)
-    gains = np.full(K, -np.inf)
-    moments = np.zeros((K, 3))
-    for k0 in range(0, K, batch):
-        c = cands[k0 : k0 + batch]
-        r = (p[:, None, :] - c[None, :, :]) @ Q.T  # (n, b, 3)
-        d = np.maximum(np.sqrt(dot_last(r, r)), MIN_SOURCE_DISTANCE_M)  # (n, b)
-        u = r / d[:, :, None]
-        s = DIPOLE_NT / d**3
-        v = u @ M.transpose(0, 2, 1)  # (n, b, 3): M u
-        uT = np.ascontiguousarray(u.transpose(1, 2, 0))  # (b, 3, n)
-        su = (s * s * 9.0 * dot_last(u, v))[:, :, None] * u  # (n, b, 3)
-        A = uT @ su.transpose(1, 0, 2)
-        uv = uT @ ((s * s)[:, :, None] * v).transpose(1, 0, 2)
-        A -= 3.0 * (uv + uv.transpose(0, 2, 1))
-        A += ((s * s).T @ M.reshape(n, 9)).reshape(-1, 3, 3)
-        sHu = (s[:, :, None] * (u @ Ht)).transpose(1, 2, 0)  # (b, q, n)
-        W = 3.0 * (sHu @ u.transpose(1, 0, 2))  # (b, q, 3)
-        W -= (s.T @ H.reshape(n, -1)).reshape(W.shape)
-        A -= W.transpose(0, 2, 1) @ W
-        g = 3.0 * (uT @ (s * dot_last(w[:, None, :], u)).T[:, :, None])[:, :, 0]
-        g -= s.T @ w
-        b = len(c)
-        Ar = A + (1e-12 * np.trace(A, axis1=1, axis2=2))[:, None, None] * np.eye(3)
-        try:
-            m = np.linalg.solve(Ar, g[:, :, None])[:, :, 0]
-            ok = np.ones(b, dtype=bool)
-        except np.linalg.LinAlgError:  # one singular system: solve them one by one
-            m, ok = np.zeros((b, 3)), np.zeros(b, dtype=bool)
-            for j in range(b):
-                try:
-                    m[j] = np.linalg.solve(Ar[j], g[j])
-                    ok[j] = True
-                except np.linalg.LinAlgError:
-                    continue
-        gain = np.sum(g * m, axis=1)
-        gains[k0 : k0 + b] = np.where(ok & np.isfinite(gain), gain, -np.inf)
-        moments[k0 : k0 + b] = m
-    return gains, moments
+    XtX, W, g = dipole_grid_sums(p, cands, rot_z(psi), M, H, w)
+    A = XtX - W.transpose(0, 2, 1) @ W
+    Ar = A + (1e-12 * np.trace(A, axis1=1, axis2=2))[:, None, None] * np.eye(3)
+    try:
+        m = np.linalg.solve(Ar, g[:, :, None])[:, :, 0]
+        ok = np.ones(K, dtype=bool)
+    except np.linalg.LinAlgError:  # one singular system: solve them one by one
+        m, ok = np.zeros((K, 3)), np.zeros(K, dtype=bool)
+        for j in range(K):
+            try:
+                m[j] = np.linalg.solve(Ar[j], g[j])
+                ok[j] = True
+            except np.linalg.LinAlgError:
+                continue
+    gain = np.sum(g * m, axis=1)
+    return np.where(ok & np.isfinite(gain), gain, -np.inf), m
 
 
 def near_far_ratio(term: Term, value: F64, data: FitData) -> float:
