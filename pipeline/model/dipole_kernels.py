@@ -16,6 +16,7 @@ use: a recording without positions never pays for it.
 
 from __future__ import annotations
 
+import threading
 from typing import Any
 
 import numpy as np
@@ -118,17 +119,36 @@ def _grid_loop(p: F64, cands: F64, Q: F64, M: F64, H: F64, w: F64, A: F64, W: F6
 
 
 _COMPILED: dict[str, Any] = {}
+_COMPILING = threading.Lock()
 
 
 def _compiled(name: str) -> Any:
     """Return the loop ``name`` compiled (numba, cached on disk) on first use in a process."""
-    if not _COMPILED:
-        import numba  # pipeline.core.warm.LATE_IMPORTS
+    with _COMPILING:  # the helper thread of warm() and the fit may ask at once
+        if not _COMPILED:
+            import numba  # pipeline.core.warm.LATE_IMPORTS
 
-        _COMPILED["field"] = numba.njit(cache=True, nogil=True)(_field_loop)
-        _COMPILED["columns"] = numba.njit(cache=True, nogil=True)(_columns_loop)
-        _COMPILED["grid"] = numba.njit(cache=True, nogil=True)(_grid_loop)
+            _COMPILED["field"] = numba.njit(cache=True, nogil=True)(_field_loop)
+            _COMPILED["columns"] = numba.njit(cache=True, nogil=True)(_columns_loop)
+            _COMPILED["grid"] = numba.njit(cache=True, nogil=True)(_grid_loop)
     return _COMPILED[name]
+
+
+def warm() -> None:
+    """Load numba and every loop for the argument types the model passes them.
+
+    Loading numba and its cached machine code takes about a second in a new process; a
+    diagnosis of a recording with positions starts this on a helper thread
+    (:func:`pipeline.core.warm.warm_in_background`) while its first fits run, which have no
+    source yet. The Jacobian's columns are a view of a larger array: that layout too.
+    """
+    r = np.array([[1.0, 0.5, -0.5], [0.2, -1.0, 0.3]])
+    m, G = np.ones(3), np.tile(np.eye(3), (2, 1, 1))
+    add_dipole_field(r, m, np.zeros((2, 3)))
+    J = np.zeros((2, 3, 9))
+    dipole_columns(r, m, 0.1, G, None, None, J[:, :, 1:7])
+    dipole_columns(r, m, 0.1, G, r, np.ones(2), J[:, :, 1:8])
+    dipole_grid_sums(r, r[:1], np.eye(3), G, np.zeros((2, 1, 3)), r)
 
 
 def _c(a: Any) -> F64:

@@ -24,6 +24,7 @@ import numpy as np
 from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
 from pipeline.core.recording import AlignedSeries, Recording
 from pipeline.core.vocabulary import EffectKind
+from pipeline.core.warm import warm_in_background
 from pipeline.model.calibration import Calibration
 from pipeline.model.effects import EFFECTS, IRON_PRIOR, kin_words
 from pipeline.model.sample_hold import (
@@ -861,6 +862,8 @@ class Diagnose:
             rec, al, reference_field_enu_nT=self.reference_field_enu_nT,
             max_samples=self.config.max_samples,
         )
+        if data.p_m is not None:  # a source's loops, ready by the time the search needs them
+            warm_in_background("pipeline.model.dipole_kernels:warm")
         init = None
         cal = ctx.calibration
         if cal is not None:
