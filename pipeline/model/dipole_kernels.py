@@ -11,7 +11,8 @@ the columns repeat the formulas of :func:`~pipeline.model.forward.dipole_gradien
 them.
 
 numba is imported, and the loops compiled (or read from numba's on-disk cache), on first
-use: a recording without positions never pays for it.
+use, or by :func:`warm` on a helper thread from the start of a diagnosis with positions: a
+recording without positions never pays for it.
 """
 
 from __future__ import annotations
@@ -158,8 +159,8 @@ def _c(a: Any) -> F64:
 def add_dipole_field(r_enu_m: F64, m_Am2: F64, out_nT: F64, weight: F64 | None = None) -> None:
     """Add the field of the dipole ``m_Am2`` (3,) at offsets ``r_enu_m`` (N, 3) to ``out_nT``.
 
-    ``out_nT`` (N, 3), nT, C-contiguous, is added to in place; ``weight`` (N,) scales each
-    sample (a source's presence), default 1.
+    ``out_nT`` (N, 3), nT, is added to in place; ``weight`` (N,) scales each sample (a
+    source's presence), default 1.
     """
     r = _c(r_enu_m)
     w = np.ones(len(r)) if weight is None else _c(weight)
