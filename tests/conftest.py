@@ -26,7 +26,6 @@ LONGEST_FIRST = (
     "test_kill_rerun.py",
     "test_bad_input_cli.py",
     "test_honest.py",
-    "test_magnet_event.py",
     "test_one_runner.py",
     "test_campaign.py",
     "test_semireal.py",
@@ -50,3 +49,12 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 def _no_progress_lines(monkeypatch: pytest.MonkeyPatch) -> None:
     """Run each test with the progress display off unless the test sets its mode."""
     monkeypatch.setenv("MAGALIGN_PROGRESS", "never")
+
+
+@pytest.fixture(scope="session")
+def real_outputs(tmp_path_factory: pytest.TempPathFactory):
+    """``process`` of the shared real recordings, run once for the whole suite
+    (tests/real_campaign.py); skips when they are absent."""
+    from real_campaign import real_run
+
+    return real_run(tmp_path_factory)

@@ -10,9 +10,6 @@ was put on the board at about 38 s and taken away at about 95 s.
 
 from __future__ import annotations
 
-import dataclasses
-from pathlib import Path
-
 import numpy as np
 import pytest
 from _diag_sim import make_data
@@ -25,8 +22,6 @@ from pipeline.model.effects.hard_iron_step import StepPart
 from pipeline.model.forward import ForwardModel
 from stages.diagnose.fit import fit
 from stages.diagnose.model import ModelState, Term
-
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 
 STEP = Term(K.HARD_IRON_STEP, ((2.0, 7.0),), knot_step_s=0.1,
             ramps_s=((2.0, 2.6), (6.5, 7.0)), ramp_scale_s=0.1, prior_nT=1e4, noise_nT=10.0)
@@ -119,25 +114,22 @@ def test_independent_magnet_carried_on_and_off_is_one_event(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.real
-def test_real_lab_02_magnet_is_one_event_with_its_transitions(tmp_path):
-    if not (REAL / "lab_02.mcap").exists():
-        pytest.skip("the shared real recordings (../shared/data/real) are not here")
-    ctx = diagnose_file(REAL / "lab_02.mcap")
-    diag = ctx.diagnosis
-    print(diag.table())
-    steps = [f for f in diag.findings if f.effect == "hard_iron_step"]
-    assert len(steps) == 1, [f.params["windows_s"] for f in steps]
-    (a, b), = steps[0].params["windows_s"]
+def test_real_lab_02_magnet_is_one_event_with_its_transitions(real_outputs):
+    # the diagnosis and calibration process wrote (diagnose_file's: one answer)
+    diag = real_outputs.json("lab_02", "diagnosis.json")
+    steps = [f for f in diag["findings"] if f["effect"] == "hard_iron_step"]
+    assert len(steps) == 1, [f["params"]["windows_s"] for f in steps]
+    (a, b), = steps[0]["params"]["windows_s"]
     assert 37.0 < a < 38.5 and 94.5 < b < 96.0, (a, b)
-    assert "brought on" in steps[0].explanation and "taken away" in steps[0].explanation
+    assert "brought on" in steps[0]["explanation"] and "taken away" in steps[0]["explanation"]
     # the lag is the sensor's, as on the other four recordings (14-16 ms), no longer
     # bent by edges that steps could not follow
-    tau = [f for f in diag.findings if f.effect == "time_offset"]
-    assert tau and 0.012 < tau[0].params["time_offset_s"] < 0.017
+    tau = [f for f in diag["findings"] if f["effect"] == "time_offset"]
+    assert tau and 0.012 < tau[0]["params"]["time_offset_s"] < 0.017
     # held out: better than the edges as separate steps did (1423 nT)
-    assert diag.final["heldout_rms_nT"] < 1000.0, diag.final
-    cal = ctx.calibration
-    assert dataclasses.asdict(cal)["effects"]["hard_iron_step"]["ramps_s"]
+    assert diag["final"]["heldout_rms_nT"] < 1000.0, diag["final"]
+    cal = real_outputs.json("lab_02", "calibration.json")
+    assert cal["effects"]["hard_iron_step"]["ramps_s"]
 
 
 def test_a_step_with_transitions_can_be_held_while_a_drift_is_fitted():

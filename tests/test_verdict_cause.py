@@ -9,7 +9,6 @@ sensor): turning about the axis again would not help, and the verdict must say w
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -26,7 +25,6 @@ from stages.estimate import (
 )
 
 HERE = Path(__file__).resolve().parent
-REAL = HERE.parents[0].parent / "shared" / "data" / "real"
 
 MAGNET_EFFECT = LargestEffect("hard_iron_step", 58_800.0, ((37.9, 95.4),))
 
@@ -125,13 +123,9 @@ def test_a_magnet_over_part_of_a_well_turned_recording_is_the_cause(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.real
-def test_real_lab_02_names_its_magnet_not_a_turn(tmp_path):
-    if not (REAL / "lab_02.mcap").exists():
-        pytest.skip("the shared real recordings (../shared/data/real) are not here")
-    from pipeline.app.cli import main
-
-    assert main(["calibrate", str(REAL / "lab_02.mcap"), "--out", str(tmp_path)]) == 0
-    d = json.loads((tmp_path / "calibration.json").read_text())
+def test_real_lab_02_names_its_magnet_not_a_turn(real_outputs):
+    # process's calibration.json, which is calibrate's (tests/test_one_answer.py)
+    d = real_outputs.json("lab_02", "calibration.json")
     white = np.asarray(d["checks"]["sigma_rotvec_white_deg"])
     assert np.all(white < POOR_AXIS_SIGMA_DEG)
     poor = [x for x in d["checks"]["doubts"] if x.startswith("the rotation about body ")]

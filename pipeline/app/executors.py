@@ -283,12 +283,19 @@ class DaskExecutor:
 
 
 def make_executor(*, jobs: int | None = None, dask_local: int | None = None,
-                  scheduler: str | None = None) -> Executor:
-    """Make the executor the command line asked for (local process pool by default)."""
+                  scheduler: str | None = None, items: int | None = None) -> Executor:
+    """Make the executor the command line asked for (local process pool by default).
+
+    ``items``: how many items will be run, when known. A single item runs in this process
+    (unless a Dask cluster was asked for): a worker could isolate nothing but the whole
+    command, and would cost a second interpreter that imports the pipeline again (1.5 of a
+    small recording's 8 CPU-seconds, docs/performance.md).
+    """
     if dask_local is not None and scheduler is not None:
         raise UsageError("give --dask-local or --scheduler, not both")
     if dask_local is not None:
         return DaskExecutor(n_workers=dask_local)
     if scheduler is not None:
         return DaskExecutor(address=scheduler)
-    return LocalExecutor(jobs if jobs is not None else 1)
+    local = LocalExecutor(jobs if jobs is not None else 1)  # checks --jobs either way
+    return SerialExecutor() if items == 1 else local

@@ -36,7 +36,7 @@ from pipeline.app.commands._options import (
     exclude_from_args,
     field_from_args,
 )
-from pipeline.app.executors import make_executor
+from pipeline.app.executors import SerialExecutor, make_executor
 from pipeline.app.summary import read_json, row_for, write_summary
 from pipeline.core import errors
 from pipeline.core import progress as pg
@@ -231,11 +231,13 @@ def run(args: argparse.Namespace) -> int:
             dataclasses.replace(r, options=dataclasses.replace(r.options, **ov))
             for r in camp.recordings))
     executor = make_executor(jobs=args.jobs, dask_local=args.dask_local,
-                             scheduler=args.scheduler)
+                             scheduler=args.scheduler, items=len(camp.recordings))
     # the summary's imports (pandas through pyarrow's conversions, matplotlib for its
-    # figure) while the workers run, in the cycles they leave idle
-    warm = warm_in_background("pyarrow.parquet", "pandas", "pipeline.core.style:pyplot",
-                              idle=True)
+    # figure) while the workers run, in the cycles they leave idle. Not beside a recording
+    # run in this process: it would wait on a starved thread's import lock, and matplotlib's
+    # catch_warnings there could end the run's own collecting of warnings
+    warm = None if isinstance(executor, SerialExecutor) else warm_in_background(
+        "pyarrow.parquet", "pandas", "pipeline.core.style:pyplot", idle=True)
     results = _run_with_progress(camp, out, executor, args)
     if warm is not None:
         # matplotlib reads its style files inside warnings.catch_warnings, which swaps the
