@@ -8,9 +8,6 @@ injected (``tests/semireal.py``). Each is read and diagnosed through the command
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 import numpy as np
 import pytest
 import semireal
@@ -146,15 +143,15 @@ LAB4 = semireal.REAL_DIR / "lab_04.mcap"
 @pytest.mark.real
 @pytest.mark.skipif(not LAB4.exists(), reason="real recordings absent: ../shared/data/real "
                     "not found")
-def test_the_magnet_in_lab_04s_room_is_located_alike_from_each_half():
+def test_the_magnet_in_lab_04s_room_is_located_alike_from_each_half(real_outputs):
     """lab_04's transients (45, 84, 126 s) are the sensor passing an object fixed in the
     room: each half of the recording, analysed on its own, names a ``local_source`` and puts
     it at the same place, within 5 cm (measured: 3.0 cm; near a finite magnet at 7-9 cm the
     point dipole's own error moves the place with the passes each half holds). The whole
     recording's stated sigma covers that: each half has about sqrt(2) times the whole's
     sigma, so their difference has about twice it, and lies within three of those. The whole
-    recording's place and sigma are its golden's (tests/golden/real/lab_04, to which
-    test_regress holds the code)."""
+    recording's place and sigma are those this code gives (``process`` of the real
+    recordings, run once for the suite: tests/real_campaign.py)."""
     import dataclasses
 
     from pipeline.io.mcap_read import read_recording
@@ -174,8 +171,7 @@ def test_the_magnet_in_lab_04s_room_is_located_alike_from_each_half():
         assert src[0].params["closest_approach_m"] < 0.15
         places.append(np.asarray(src[0].params["position_m"]))
     assert np.linalg.norm(places[0] - places[1]) < 0.05, places
-    golden = Path(__file__).parent / "golden" / "real" / "lab_04" / "diagnosis.json"
-    whole = [f for f in json.loads(golden.read_text(encoding="utf-8"))["findings"]
+    whole = [f for f in real_outputs.json("lab_04", "diagnosis.json")["findings"]
              if f["effect"] == "local_source"]
     main = max(whole, key=lambda f: np.linalg.norm(f["params"]["moment_Am2"]))
     sigma = np.asarray(main["sigma"]["position_m"])
