@@ -19,8 +19,8 @@ import threading
 #: ``scipy.linalg`` only to grid a recording with positions (stages.write_survey), not in the
 #: process that plans a campaign; ``scipy.signal``, which loads ``scipy.stats`` (0.4-0.6 s),
 #: only to count a located source's approaches and for Li 2020's smoothed tangents; numba
-#: only to compile the point dipole's loops, when a source is fitted to a recording with
-#: positions (pipeline.model.dipole_kernels).
+#: only to compile the model's loops (pipeline.model.compiled) in the diagnosis of a recording
+#: with positions: the point dipole's and the attitude's.
 LATE_IMPORTS = ("rerun", "matplotlib", "dask", "distributed", "ppigrf", "scipy.interpolate",
                 "harmonica", "verde", "xarray", "scipy.spatial", "scipy.linalg", "scipy.signal",
                 "numba")

@@ -18,6 +18,7 @@ from pipeline.core.geometry import (
     quat_conj,
     quat_mul,
     quat_normalize,
+    quat_to_matrix,
     quat_to_rotvec,
     rotvec_to_quat,
 )
@@ -159,6 +160,14 @@ class Interpolated:
     position: F64
     #: computes ``omega_body_rad_s`` on first use (most queries need the attitude only)
     _omega: Callable[[], F64] = field(repr=False, compare=False)
+    #: ``C.T`` (N, 3, 3) where the compiled pass gave it (None: :attr:`Ct` computes it)
+    _Ct: F64 | None = field(default=None, repr=False, compare=False)
+
+    @cached_property
+    def Ct(self) -> F64:
+        """``C_enu_body.T`` (N, 3, 3), the transposed rotation matrices; NaN where not valid."""
+        return self._Ct if self._Ct is not None else quat_to_matrix(self.q_enu_body,
+                                                                   transposed=True)
 
     @cached_property
     def omega_body_rad_s(self) -> F64:
@@ -298,15 +307,21 @@ class AttitudeInterpolator:
         _, s, valid, _ = self._locate(tq, clamp)
         return np.where(valid, s, 0.0)
 
-    def at_rel_s(self, tq_s: F64, *, clamp: bool | None = None) -> Interpolated:
+    def at_rel_s(self, tq_s: F64, *, clamp: bool | None = None, compiled: bool = False
+                 ) -> Interpolated:
         """Return the attitude at ``tq_s``, seconds from the first attitude sample.
 
-        ``clamp`` overrides the interpolator's own setting for this query.
+        ``clamp`` overrides the interpolator's own setting for this query. ``compiled``: the
+        same curve by one compiled pass over the queries
+        (:mod:`pipeline.model.attitude_kernels`), which also gives ``C.T``
+        (:attr:`Interpolated.Ct`); for a caller that has numba loaded anyway.
         """
         clamp = self.clamp if clamp is None else clamp
         tq = np.asarray(tq_s, dtype=float)
         tr, qa = self._tr, self.q_enu_body
         n = len(tq)
+        if compiled and len(tr) >= 2 and n > 0:
+            return self._at_compiled(tq, clamp)
         q_out = np.full((n, 4), np.nan)
         pos = np.zeros(n)
         if len(tr) == 0 or n == 0:
@@ -335,10 +350,29 @@ class AttitudeInterpolator:
         else:
             q_out[valid] = qv
             pos[valid] = s[valid]
+        return Interpolated(q_out, valid, pos, self._omega(jv, sv, rv, valid, held))
+
+    def _at_compiled(self, tq: F64, clamp: bool) -> Interpolated:
+        """:meth:`at_rel_s` by :func:`pipeline.model.attitude_kernels.cubic_at`."""
+        from pipeline.model.attitude_kernels import cubic_at
+
+        q, Ct, pos, valid, held, j, rv = cubic_at(
+            self._tr, self._dt, self._a, self._phi, self._b, self.q_enu_body, tq,
+            self.max_gap_s, clamp)
+        if not valid.all():
+            j, rv = j[valid], rv[valid]
+        sv = pos[valid][:, None]
+        return Interpolated(q, valid, pos, self._omega(j, sv, rv, valid, held), Ct)
+
+    def _omega(self, jv: I64, sv: F64, rv: F64, valid: B8, held: B8) -> Callable[[], F64]:
+        """(A6): the exact derivative of the cubic at the valid queries, computed when asked.
+
+        ``jv``, ``sv`` (n, 1), ``rv`` (n, 3): the valid queries' segments, positions and
+        rotation vectors (the closure keeps those, not the curve's terms).
+        """
+        n = len(valid)
 
         def omega() -> F64:
-            # (A6): the exact derivative of the cubic, computed when asked for (the closure
-            # keeps the rows' segments, positions and rotation vectors, not the curve's terms)
             s2 = sv * sv
             a, phi, b = (np.take(x, jv, axis=0) for x in (self._a, self._phi, self._b))
             dr = (3 * s2 - 4 * sv + 1) * a + (6 * sv - 6 * s2) * phi + (3 * s2 - 2 * sv) * b
@@ -349,7 +383,7 @@ class AttitudeInterpolator:
             w_out[valid & held] = 0.0
             return w_out
 
-        return Interpolated(q_out, valid, pos, omega)
+        return omega
 
     def _rotvec(self, jv: I64, sv: F64) -> F64:
         """(A2): the cubic's rotation vector in segments ``jv`` at positions ``sv`` (N, 1).

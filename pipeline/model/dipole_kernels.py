@@ -17,11 +17,12 @@ recording without positions never pays for it.
 
 from __future__ import annotations
 
-import threading
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+from pipeline.model.compiled import compiled
 
 F64 = NDArray[np.float64]
 
@@ -119,22 +120,6 @@ def _grid_loop(p: F64, cands: F64, Q: F64, M: F64, H: F64, w: F64, A: F64, W: F6
                 g[k, i] += s * (3.0 * wu * u[i] - w[t, i])
 
 
-_COMPILED: dict[str, Any] = {}
-_COMPILING = threading.Lock()
-
-
-def _compiled(name: str) -> Any:
-    """Return the loop ``name`` compiled (numba, cached on disk) on first use in a process."""
-    with _COMPILING:  # the helper thread of warm() and the fit may ask at once
-        if not _COMPILED:
-            import numba  # pipeline.core.warm.LATE_IMPORTS
-
-            _COMPILED["field"] = numba.njit(cache=True, nogil=True)(_field_loop)
-            _COMPILED["columns"] = numba.njit(cache=True, nogil=True)(_columns_loop)
-            _COMPILED["grid"] = numba.njit(cache=True, nogil=True)(_grid_loop)
-    return _COMPILED[name]
-
-
 def warm() -> None:
     """Load numba and every loop for the argument types the model passes them.
 
@@ -164,7 +149,7 @@ def add_dipole_field(r_enu_m: F64, m_Am2: F64, out_nT: F64, weight: F64 | None =
     """
     r = _c(r_enu_m)
     w = np.ones(len(r)) if weight is None else _c(weight)
-    _compiled("field")(r, _c(m_Am2), w, out_nT)
+    compiled(_field_loop)(r, _c(m_Am2), w, out_nT)
 
 
 def dipole_columns(r_enu_m: F64, m_Am2: F64, psi_rad: float, G: F64, r_p_m: F64 | None,
@@ -179,7 +164,7 @@ def dipole_columns(r_enu_m: F64, m_Am2: F64, psi_rad: float, G: F64, r_p_m: F64 
     r = _c(r_enu_m)
     w = np.ones(len(r)) if weight is None else _c(weight)
     rp = r if r_p_m is None else _c(r_p_m)
-    _compiled("columns")(r, _c(m_Am2), float(np.cos(psi_rad)), float(np.sin(psi_rad)),
+    compiled(_columns_loop)(r, _c(m_Am2), float(np.cos(psi_rad)), float(np.sin(psi_rad)),
                          _c(G), rp, w, r_p_m is not None, out)
 
 
@@ -194,5 +179,5 @@ def dipole_grid_sums(p_m: F64, cands_m: F64, Q: F64, M: F64, H: F64, w: F64
     """
     K, q = len(cands_m), H.shape[1]
     A, W, g = np.empty((K, 3, 3)), np.empty((K, q, 3)), np.empty((K, 3))
-    _compiled("grid")(_c(p_m), _c(cands_m), _c(Q), _c(M), _c(H), _c(w), A, W, g)
+    compiled(_grid_loop)(_c(p_m), _c(cands_m), _c(Q), _c(M), _c(H), _c(w), A, W, g)
     return A, W, g

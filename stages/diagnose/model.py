@@ -775,19 +775,20 @@ class _Attitude:
 
 
 def _attitude(track: AttitudeTrack, t_s: F64, key: tuple | None = None,
-              owners: Any = None) -> _Attitude:
+              owners: Any = None, compiled: bool = False) -> _Attitude:
     """Return the attitude of ``track`` at ``t_s``; cached per (track, stamps, shift) in a fit.
 
     The cache keeps a reference to the objects whose ids form the key (``owners``), so an id
-    cannot be reused by another array while its entry lives.
+    cannot be reused by another array while its entry lives. ``compiled``: by the compiled
+    pass (:meth:`AttitudeInterpolator.at_rel_s`), where numba is loaded anyway.
     """
     if key is not None:
         hit = _CT_CACHE.get(key)
         if hit is not None and all(a is b for a, b in zip(hit[0], owners, strict=True)):
             return hit[1]
     tq = np.asarray(t_s, dtype=float) - float(track.t_s[0])  # as AttitudeTrack.at
-    at = track.interpolator.at_rel_s(tq)
-    out = _Attitude(quat_to_matrix(at.q_enu_body, transposed=True), at)
+    at = track.interpolator.at_rel_s(tq, compiled=compiled)
+    out = _Attitude(at.Ct, at)
     if key is not None:
         if len(_CT_CACHE) > 48:
             _CT_CACHE.clear()  # bounded: the cache only spans the iterations of one fit
@@ -795,9 +796,10 @@ def _attitude(track: AttitudeTrack, t_s: F64, key: tuple | None = None,
     return out
 
 
-def _CT(track: AttitudeTrack, t_s: F64, key: tuple | None = None, owners: Any = None) -> F64:
+def _CT(track: AttitudeTrack, t_s: F64, key: tuple | None = None, owners: Any = None,
+        compiled: bool = False) -> F64:
     """``C_enu_body(t).T`` (N, 3, 3); cached per (track, stamps, shift) during a fit."""
-    return _attitude(track, t_s, key, owners).Ct
+    return _attitude(track, t_s, key, owners, compiled).Ct
 
 
 _MAP_CACHE: dict[tuple, tuple[Any, F64]] = {}
@@ -871,12 +873,15 @@ def _forward(state: ModelState, data: FitData) -> _Forward:
     # interpolation, so it cannot fit attitude noise
     h = max(3.0 * data.track.step_s, 1e-3)
     s = t - tau  # sensing time (CONVENTIONS: tau > 0 means stamps are late)
-    base = (id(data.track), id(t), n, tau, h)
+    # a recording with positions loads numba for its sources: the attitude's compiled pass
+    # then costs nothing more (pipeline.model.attitude_kernels)
+    compiled = data.p_m is not None
+    base = (id(data.track), id(t), n, tau, h, compiled)
     own = (data.track, t)
-    att = _attitude(data.track, s, base + (0,), own)
+    att = _attitude(data.track, s, base + (0,), own, compiled)
     Ct = att.Ct
-    Cp = _CT(data.track, s + h, base + (1,), own)
-    Cm = _CT(data.track, s - h, base + (-1,), own)
+    Cp = _CT(data.track, s + h, base + (1,), own, compiled)
+    Cm = _CT(data.track, s - h, base + (-1,), own, compiled)
     Cdot = (Cp - Cm) / (2.0 * h)  # d/dt C.T, central difference of the interpolated track
 
     # --- ENU field at each sample: B + drift + disturbances

@@ -862,8 +862,9 @@ class Diagnose:
             rec, al, reference_field_enu_nT=self.reference_field_enu_nT,
             max_samples=self.config.max_samples,
         )
-        if data.p_m is not None:  # a source's loops, ready by the time the search needs them
-            warm_in_background("pipeline.model.dipole_kernels:warm")
+        if data.p_m is not None:  # the compiled loops, ready by the time the search needs them
+            warm_in_background("pipeline.model.attitude_kernels:warm",
+                               "pipeline.model.dipole_kernels:warm")
         init = None
         cal = ctx.calibration
         if cal is not None:
