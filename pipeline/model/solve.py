@@ -247,6 +247,7 @@ def levenberg_marquardt(
     rtol: float = 1e-10,
     lam0: float = 1e-4,
     row_spans: Callable[[Any], RowSpans] | None = None,
+    relinearise_last: bool = True,
 ) -> Solution:
     """:func:`minimise` on the unweighted sum of squares ``sum_i r_i.T r_i``.
 
@@ -267,6 +268,9 @@ def levenberg_marquardt(
         First damping.
     row_spans : callable, optional
         ``state -> spans`` of :func:`normal_equations`: the Jacobian's windowed columns.
+    relinearise_last : bool
+        As :func:`minimise`: False returns ``info`` of the last step's start, saving the
+        Jacobian at the final state (for a caller that needs the state only).
 
     Returns
     -------
@@ -284,5 +288,6 @@ def levenberg_marquardt(
         H, g = normal_equations(J, r, row_spans(st) if row_spans is not None else ())
         return Linearised(float(np.sum(r * r)), H, g, r)
 
-    m = minimise(state, linearise, update, max_iter=max_iter, rtol=rtol, lam0=lam0)
+    m = minimise(state, linearise, update, max_iter=max_iter, rtol=rtol, lam0=lam0,
+                 relinearise_last=relinearise_last)
     return Solution(m.state, m.at.aux, m.at.cost, cast(F64, m.at.H), m.n_iter)

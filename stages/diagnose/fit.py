@@ -75,7 +75,8 @@ CONVERGED_CHI2 = 1e-3
 
 
 def fit(
-    state: ModelState, data: FitData, *, max_iter: int = 40, rtol: float | None = None
+    state: ModelState, data: FitData, *, max_iter: int = 40, rtol: float | None = None,
+    final_information: bool = True,
 ) -> FitResult:
     """Levenberg-Marquardt over every parameter of ``state`` (rotations on SO(3)).
 
@@ -91,6 +92,10 @@ def fit(
         Stop when the relative decrease of the RSS falls below this; default
         :data:`CONVERGED_CHI2` over the number of residuals (the RSS is about that many
         samples' variance).
+    final_information : bool
+        False: ``info`` is that of the last step's start, not formed again at the solution
+        (one Jacobian less, for a fit whose state alone is used: a held-out fold's); the
+        state, residual and RSS are the same.
 
     Returns
     -------
@@ -124,11 +129,12 @@ def fit(
     prec = state.prior_precision()
     if prec is None:
         sol = levenberg_marquardt(state, resid, update, max_iter=max_iter, rtol=rtol,
-                                  row_spans=spans)
+                                  row_spans=spans, relinearise_last=final_information)
     else:
         # the weights enter linearly: a relative decrease of 1e-8 is converged well within
         # the noise, and each iteration costs the map's columns squared
-        sol = _fit_with_prior(state, resid, update, prec, max_iter, max(rtol, 1e-8), spans)
+        sol = _fit_with_prior(state, resid, update, prec, max_iter, max(rtol, 1e-8), spans,
+                              final_information)
     raw = None
     if data.noise_model is not None:
         raw = data.y_nT - evaluate(sol.state, data, jacobian=False).y_nT
@@ -167,7 +173,7 @@ def _sqrt_weight_rate(data: FitData, tau_s: float) -> F64:
 
 
 def _fit_with_prior(state: ModelState, resid: Any, update: Any, prec: F64, max_iter: int,
-                    rtol: float, spans: Any) -> Solution:
+                    rtol: float, spans: Any, relinearise_last: bool = True) -> Solution:
     """Run the damped Gauss-Newton fit of ``|r|^2 + sum_i prec_i x_i^2`` (a ``field_map``'s prior).
 
     The ridge is the GP prior of the map's weights (:meth:`ModelState.prior_precision`): it
@@ -186,9 +192,10 @@ def _fit_with_prior(state: ModelState, resid: Any, update: Any, prec: F64, max_i
         H, g = normal_equations(J, r, spans(st))
         return Linearised(float(np.sum(r * r)) + pen, H + np.diag(prec), g - prec * x, r)
 
-    m = minimise(state, linearise, update, max_iter=max_iter, rtol=rtol)
+    m = minimise(state, linearise, update, max_iter=max_iter, rtol=rtol,
+                 relinearise_last=relinearise_last)
     r = m.at.aux
-    assert m.at.H is not None  # relinearised at the last state
+    assert m.at.H is not None  # at the last state, or the last step's start
     return Solution(m.state, r, float(np.sum(r * r)), m.at.H, m.n_iter)
 
 
