@@ -22,6 +22,7 @@ from pipeline.core.geometry import (
     quat_to_rotvec,
     rotvec_to_quat,
 )
+from pipeline.model.attitude_kernels import cubic_at
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -354,8 +355,6 @@ class AttitudeInterpolator:
 
     def _at_compiled(self, tq: F64, clamp: bool) -> Interpolated:
         """:meth:`at_rel_s` by :func:`pipeline.model.attitude_kernels.cubic_at`."""
-        from pipeline.model.attitude_kernels import cubic_at
-
         q, Ct, pos, valid, held, j, rv = cubic_at(
             self._tr, self._dt, self._a, self._phi, self._b, self.q_enu_body, tq,
             self.max_gap_s, clamp)
