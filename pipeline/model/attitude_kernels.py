@@ -3,12 +3,11 @@
 The diagnosis fits a time offset: at every iteration of every fit the attitude is
 interpolated anew at the shifted sensing times, and three times (the reading and the
 rate's central difference). Written with numpy, :meth:`AttitudeInterpolator.at_rel_s
-<pipeline.model.attitude.AttitudeInterpolator.at_rel_s>` passes the (N, 3) and (N, 4)
-intermediates through memory about forty times; it was a sixth of a lab recording's
-diagnosis and a fifth of the 2-hour survey's (docs/performance.md). Here each query stays
-in registers. The loop repeats (A1)-(A5) and (A7) of :mod:`pipeline.model.attitude`
-(``_locate``, ``_rotvec``, ``rotvec_to_quat``, ``quat_mul``) and ``quat_to_matrix``, to which
-``tests/test_attitude_kernels.py`` holds it.
+<pipeline.model.attitude.AttitudeInterpolator.at_rel_s>` passes its (N, 3) and (N, 4)
+intermediates through memory once per operation; here each query stays in registers (the
+measured share of the diagnosis: docs/performance.md). The loop repeats (A1)-(A5) and (A7)
+of :mod:`pipeline.model.attitude` (``_locate``, ``_rotvec``, ``rotvec_to_quat``,
+``quat_mul``) and ``quat_to_matrix``, to which ``tests/test_attitude_kernels.py`` holds it.
 
 numba is loaded only where a recording's diagnosis loads it anyway, for its located sources
 (a recording with positions: :mod:`pipeline.model.dipole_kernels`); without positions the

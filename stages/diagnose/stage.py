@@ -862,7 +862,9 @@ class Diagnose:
             rec, al, reference_field_enu_nT=self.reference_field_enu_nT,
             max_samples=self.config.max_samples,
         )
-        if data.p_m is not None:  # the compiled loops, ready by the time the search needs them
+        # the compiled loops load on a helper thread: the attitude's first, which the first
+        # fit waits for; the sources' are ready by the time the search tries a source
+        if data.p_m is not None:
             warm_in_background("pipeline.model.attitude_kernels:warm",
                                "pipeline.model.dipole_kernels:warm")
         init = None
