@@ -138,11 +138,6 @@ class Minimum:
     n_iter: int
 
 
-#: The damping's floor in :func:`minimise` (``lam_min``): near the minimum its steps are
-#: Gauss-Newton's to a billionth of the scale
-LAM_MIN = 1e-9
-
-
 def damped_solve(H: F64, g: F64, lam: float, scale: F64) -> F64:
     """Solve the Marquardt step ``(H + lam diag(scale)) dx = g``."""
     return cast(F64, np.linalg.solve(H + lam * np.diag(scale), g))
@@ -164,7 +159,7 @@ def minimise(
     relinearise_last: bool = True,
     lam_up: float = 5.0,
     lam_down: float = 4.0,
-    lam_min: float = LAM_MIN,
+    lam_min: float = 1e-9,
 ) -> Minimum:
     """Minimise by damped Gauss-Newton (docs/modules.md): THE core every fit of the model runs.
 

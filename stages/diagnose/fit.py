@@ -14,10 +14,8 @@ import numpy as np
 from pipeline.core.geometry import quat_to_matrix, rows_times, so3_exp
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.solve import (
-    LAM_MIN,
     Linearised,
     Solution,
-    damped_solve,
     levenberg_marquardt,
     minimise,
     normal_equations,
@@ -111,7 +109,16 @@ def fit(
         state = replace(state, B_enu_nT=np.asarray(data.B_known_enu_nT, dtype=float))
 
     def resid(st: ModelState, with_jacobian: bool) -> tuple[F64, F64 | None]:
-        return weighted_residual(st, data, with_jacobian)
+        ev = evaluate(st, data, jacobian=with_jacobian)
+        r, J = data.y_nT - ev.y_nT, ev.J
+        if ev.sqrt_w is not None:  # the likelihood's weights (sample_weights)
+            if J is not None:
+                J *= ev.sqrt_w[:, None, None]  # J is this evaluation's own array
+                i = _tau_index(st)
+                if i is not None:
+                    J[:, :, i] -= _sqrt_weight_rate(data, st.tau_s())[:, None] * r
+            r = r * ev.sqrt_w[:, None]
+        return r, J
 
     def update(st: ModelState, dx: F64) -> ModelState:
         return st.update(dx, fixed_B=fixed_B)
@@ -133,70 +140,6 @@ def fit(
         raw = data.y_nT - evaluate(sol.state, data, jacobian=False).y_nT
     return FitResult(sol.state, sol.residual, sol.rss, sol.info, sol.n_iter, raw,
                      data.noise_model)
-
-
-def weighted_residual(state: ModelState, data: FitData, with_jacobian: bool
-                      ) -> tuple[F64, F64 | None]:
-    """Return the residual the fit minimises, ``sqrt(w) (y - f)``, and its Jacobian.
-
-    ``w`` the likelihood's weights (:func:`~stages.diagnose.model.sample_weights`; 1 without a
-    noise model). Returns ``r`` (N, 3) and ``J`` (N, 3, P) or None.
-    """
-    ev = evaluate(state, data, jacobian=with_jacobian)
-    r, J = data.y_nT - ev.y_nT, ev.J
-    if ev.sqrt_w is not None:
-        if J is not None:
-            J *= ev.sqrt_w[:, None, None]  # J is this evaluation's own array
-            i = _tau_index(state)
-            if i is not None:
-                J[:, :, i] -= _sqrt_weight_rate(data, state.tau_s())[:, None] * r
-        r = r * ev.sqrt_w[:, None]
-    return r, J
-
-
-def fold_starts(state: ModelState, data: FitData, folds: np.ndarray, n_folds: int,
-                local: np.ndarray) -> list[ModelState | None]:
-    """Warm starts of the held-out folds' fits: one Gauss-Newton step each from ``state``.
-
-    ``state`` is a fit to all of ``data``; leaving out fold ``j`` takes its rows' share out
-    of the normal equations there, ``H - H_j`` and ``g - g_j`` (the prior's ridge as in
-    :func:`fit`), and one Newton step of them is the leave-fold-out fit to first order
-    (approximate cross-validation: Rad & Maleki 2020, JRSS B 82(4); Stephenson & Broderick
-    2020, AISTATS). One Jacobian of all the data serves every fold. Parameters flagged
-    in ``local`` that no training row sees (a window wholly held out) start at zero, where
-    a fit from zero leaves them. The fold's own fit then converges from there, to the
-    optimum it would reach from any start in the same basin.
-
-    Returns one start per fold (None for a fold without samples; ``state`` itself where the
-    step's equations are singular).
-    """
-    fixed_B = data.B_known_enu_nT is not None
-    if fixed_B:
-        state = replace(state, B_enu_nT=np.asarray(data.B_known_enu_nT, dtype=float))
-    r, J = weighted_residual(state, data, True)
-    assert J is not None  # asked for
-    parts = [normal_equations(J[folds == j], r[folds == j], row_spans(state, data.t_s[folds == j]))
-             for j in range(n_folds)]
-    H, g = sum(p[0] for p in parts), sum(p[1] for p in parts)
-    prec, x = state.prior_precision(), state.flat_values()
-    out: list[ModelState | None] = []
-    for j, (Hj, gj) in enumerate(parts):
-        if not np.any(folds == j):
-            out.append(None)
-            continue
-        Ht, gt = H - Hj, g - gj
-        unseen = local & (np.diag(Ht) <= 0.0)
-        if prec is not None:
-            Ht, gt = Ht + np.diag(prec), gt - prec * x
-        d = np.diag(Ht)
-        try:  # the smallest damping of the fit's schedule: the step, not a shortened one
-            dx = damped_solve(Ht, gt, LAM_MIN, d + 1e-9 * max(float(np.max(d)), 1e-30))
-        except np.linalg.LinAlgError:
-            out.append(state)
-            continue
-        dx[unseen] = -x[unseen]
-        out.append(state.update(dx, fixed_B=fixed_B))
-    return out
 
 
 def _tau_index(state: ModelState) -> int | None:

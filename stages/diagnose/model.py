@@ -230,16 +230,6 @@ class FitData:
         return self.p_m - ref
 
     @property
-    def compiled(self) -> bool:
-        """Whether the model runs its compiled loops (numba): on a recording with positions.
-
-        Such a recording loads numba for its sources (``pipeline.model.dipole_kernels``), and
-        the attitude's compiled pass (``pipeline.model.attitude_kernels``) then costs nothing
-        more; without positions the numpy path spares a process the compiler's load.
-        """
-        return self.p_m is not None
-
-    @property
     def duration_s(self) -> float:
         """Span of the samples, s."""
         return float(self.t_s[-1] - self.t_s[0]) if len(self) > 1 else 0.0
@@ -883,7 +873,9 @@ def _forward(state: ModelState, data: FitData) -> _Forward:
     # interpolation, so it cannot fit attitude noise
     h = max(3.0 * data.track.step_s, 1e-3)
     s = t - tau  # sensing time (CONVENTIONS: tau > 0 means stamps are late)
-    compiled = data.compiled
+    # a recording with positions loads numba for its sources: the attitude's compiled pass
+    # then costs nothing more (pipeline.model.attitude_kernels)
+    compiled = data.p_m is not None
     base = (id(data.track), id(t), n, tau, h, compiled)
     own = (data.track, t)
     att = _attitude(data.track, s, base + (0,), own, compiled)

@@ -864,7 +864,7 @@ class Diagnose:
         )
         # the compiled loops load on a helper thread: the attitude's first, which the first
         # fit waits for; the sources' are ready by the time the search tries a source
-        if data.compiled:
+        if data.p_m is not None:
             warm_in_background("pipeline.model.attitude_kernels:warm",
                                "pipeline.model.dipole_kernels:warm")
         init = None

@@ -17,7 +17,7 @@ import numpy as np
 from pipeline.core.vocabulary import EffectKind
 from pipeline.model.effects import EFFECTS
 from pipeline.model.solve import gram
-from stages.diagnose.fit import FitResult, fit, fold_starts
+from stages.diagnose.fit import FitResult, fit
 from stages.diagnose.model import (
     LOCAL_KINDS,
     FitData,
@@ -364,23 +364,23 @@ def fold_of(t_s: np.ndarray, cfg: DiagnoseConfig, state: ModelState | None = Non
 def heldout_rms(state: ModelState, data: FitData, cfg: DiagnoseConfig) -> float:
     """RMS prediction error on held-out time blocks, nT.
 
-    Each fold is refitted on its training blocks, then predicts the held-out ones. The
-    values of local terms are learnt from training samples only: a window the training
-    blocks do not see at all is zero. Each fold's fit starts one Newton step from ``state``
-    (:func:`~stages.diagnose.fit.fold_starts`: the step a whole fit's linearisation gives,
-    so a fold converges in a step or two where a start from zero took several). Random
-    samples are never held out: neighbouring samples share attitude noise and would leak.
+    Each fold is refitted from the current state with the values of local terms reset to
+    zero (so a window's amplitude is learnt only from training samples), then predicts the
+    held-out blocks. Random samples are never held out: neighbouring samples share
+    attitude noise and would leak.
     """
     folds = fold_of(data.t_s, cfg, state)
-    local = np.zeros(state.n_params(), dtype=bool)
-    for t, o in zip(state.terms, state.offsets(), strict=True):
-        if t.kind in LOCAL_KINDS:
-            local[o : o + t.n_params()] = True
-    starts = fold_starts(state, data, folds, cfg.n_folds, local)
     sq, cnt = 0.0, 0
-    for j, start in enumerate(starts):
+    start = dataclasses.replace(
+        state,
+        values=tuple(
+            np.zeros_like(v) if t.kind in LOCAL_KINDS else v
+            for t, v in zip(state.terms, state.values, strict=True)
+        ),
+    )
+    for j in range(cfg.n_folds):
         test = folds == j
-        if start is None or (~test).sum() < 10:
+        if test.sum() == 0 or (~test).sum() < 10:
             continue
         # the fold's state alone predicts: its information is not formed again at the end
         res = fit(start, data.subset(~test), max_iter=6, rtol=1e-6, final_information=False)
