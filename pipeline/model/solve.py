@@ -24,6 +24,15 @@ def _blas_controller() -> Any:
     return ThreadpoolController()
 
 
+def blas_threads() -> int:
+    """Return the most threads this process's BLAS may use (0 when none is loaded).
+
+    The cores the process may use, as its executor set them (:mod:`pipeline.model.parallel`).
+    """
+    return max((int(i["num_threads"]) for i in _blas_controller().info()
+                if i.get("user_api") == "blas"), default=0)
+
+
 @contextlib.contextmanager
 def one_blas_thread() -> Iterator[None]:
     """Run the block with BLAS and LAPACK on one thread (restored on exit).

@@ -78,6 +78,7 @@ from pipeline.model.forward import (
 )
 from pipeline.model.forward import drift_basis as forward_drift_basis
 from pipeline.model.forward import source_offset_enu as forward_source_offset
+from pipeline.model.parallel import PerThread
 
 F64 = NDArray[np.float64]
 
@@ -228,6 +229,17 @@ class FitData:
             return np.zeros((len(self), 3))
         ref = np.zeros(3) if self.p_ref_m is None else self.p_ref_m
         return self.p_m - ref
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the model's loops run compiled (numba): with positions, and only then.
+
+        A recording with positions loads numba for its located sources
+        (:mod:`pipeline.model.dipole_kernels`); the attitude's compiled pass
+        (:mod:`pipeline.model.attitude_kernels`) then costs nothing more. Without positions
+        no process pays for the compiler.
+        """
+        return self.p_m is not None
 
     @property
     def duration_s(self) -> float:
@@ -758,7 +770,7 @@ def interpolation_error_proxy(state: ModelState, data: FitData) -> F64:
     return (y_half - y_full) / (2.0**p - 1.0)
 
 
-_CT_CACHE: dict[tuple, tuple[Any, _Attitude]] = {}
+_CT_CACHE: PerThread[dict[tuple, tuple[Any, _Attitude]]] = PerThread(dict)
 
 
 @dataclass(frozen=True)
@@ -782,17 +794,18 @@ def _attitude(track: AttitudeTrack, t_s: F64, key: tuple | None = None,
     cannot be reused by another array while its entry lives. ``compiled``: by the compiled
     pass (:meth:`AttitudeInterpolator.at_rel_s`), where numba is loaded anyway.
     """
+    cache = _CT_CACHE.value
     if key is not None:
-        hit = _CT_CACHE.get(key)
+        hit = cache.get(key)
         if hit is not None and all(a is b for a, b in zip(hit[0], owners, strict=True)):
             return hit[1]
     tq = np.asarray(t_s, dtype=float) - float(track.t_s[0])  # as AttitudeTrack.at
     at = track.interpolator.at_rel_s(tq, compiled=compiled)
     out = _Attitude(at.Ct, at)
     if key is not None:
-        if len(_CT_CACHE) > 48:
-            _CT_CACHE.clear()  # bounded: the cache only spans the iterations of one fit
-        _CT_CACHE[key] = (owners, out)
+        if len(cache) > 48:
+            cache.clear()  # bounded: the cache only spans the iterations of one fit
+        cache[key] = (owners, out)
     return out
 
 
@@ -802,7 +815,7 @@ def _CT(track: AttitudeTrack, t_s: F64, key: tuple | None = None, owners: Any = 
     return _attitude(track, t_s, key, owners, compiled).Ct
 
 
-_MAP_CACHE: dict[tuple, tuple[Any, F64]] = {}
+_MAP_CACHE: PerThread[dict[tuple, tuple[Any, F64]]] = PerThread(dict)
 
 
 def _map_field(term: Term, p_m: F64, lever_enu: F64 | None) -> F64:
@@ -814,13 +827,14 @@ def _map_field(term: Term, p_m: F64, lever_enu: F64 | None) -> F64:
     if lever_enu is not None:
         return term.basis().field(map_points(p_m, term.yaw_rad, lever_enu))
     key = (id(p_m), len(p_m), term.domain_m, term.n_axis, term.yaw_rad)
-    hit = _MAP_CACHE.get(key)
+    cache = _MAP_CACHE.value
+    hit = cache.get(key)
     if hit is not None and hit[0] is p_m:
         return hit[1]
     out = term.basis().field(p_m)
-    if len(_MAP_CACHE) > 8:
-        _MAP_CACHE.clear()
-    _MAP_CACHE[key] = (p_m, out)
+    if len(cache) > 8:
+        cache.clear()
+    cache[key] = (p_m, out)
     return out
 
 
@@ -857,13 +871,14 @@ class _Forward:
 #: The last :func:`_forward` with the state and data it was computed for: a fit evaluates
 #: a candidate without the Jacobian, then, once the step is accepted, the same state
 #: object with it. Kept by reference, so an identity match is the same objects.
-_FORWARD_CACHE: list[tuple[ModelState, FitData, _Forward]] = []
+_FORWARD_CACHE: PerThread[list[tuple[ModelState, FitData, _Forward]]] = PerThread(list)
 
 
 def _forward(state: ModelState, data: FitData) -> _Forward:
     """Return the prediction at ``state`` and its shared pieces, reused for the same objects."""
-    if _FORWARD_CACHE:
-        st, dt, fw = _FORWARD_CACHE[0]
+    last = _FORWARD_CACHE.value
+    if last:
+        st, dt, fw = last[0]
         if st is state and dt is data:
             return fw
     t = data.t_s
@@ -873,9 +888,7 @@ def _forward(state: ModelState, data: FitData) -> _Forward:
     # interpolation, so it cannot fit attitude noise
     h = max(3.0 * data.track.step_s, 1e-3)
     s = t - tau  # sensing time (CONVENTIONS: tau > 0 means stamps are late)
-    # a recording with positions loads numba for its sources: the attitude's compiled pass
-    # then costs nothing more (pipeline.model.attitude_kernels)
-    compiled = data.p_m is not None
+    compiled = data.compiled
     base = (id(data.track), id(t), n, tau, h, compiled)
     own = (data.track, t)
     att = _attitude(data.track, s, base + (0,), own, compiled)
@@ -916,7 +929,7 @@ def _forward(state: ModelState, data: FitData) -> _Forward:
     fw = _Forward(att=att, Cp=Cp, Cm=Cm, h=h, lever_enu=lever_enu, Bt=Bt, h_rad=h_rad,
                   Bt_unturned=Bt_unturned, kept=kept, TT=TT, Bp=Bp, rd=rd, E=E, Gp=Gp, G=G,
                   sqrt_w=sqrt_w)
-    _FORWARD_CACHE[:] = [(state, data, fw)]
+    last[:] = [(state, data, fw)]
     return fw
 
 

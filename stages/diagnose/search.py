@@ -8,6 +8,8 @@ in time are located first by a scan of the robust residual norm (``scan_windows`
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterator
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -17,6 +19,7 @@ from pipeline.core import progress
 from pipeline.core.errors import EstimationError
 from pipeline.core.geometry import quat_to_matrix
 from pipeline.core.vocabulary import EffectKind
+from pipeline.model import parallel
 from pipeline.model.effects import EFFECTS
 from pipeline.model.effects.base import CONFOUND_RATIO
 from pipeline.model.effects.field_gradient import gradient_matrix
@@ -592,29 +595,28 @@ class _Search:
         tests = []
         starts: dict[int, ModelState] = {}  # id of a ScoreTest -> the state its refit starts at
         replace_trial = None
+        live: list[tuple[int, Term]] = []  # the candidates that get a score test
         for j, term in enumerate(cands):
-            progress.detail(f"search {len(self.findings) + 1}, candidate {j + 1}/{len(cands)}",
-                            len(self.findings) + 0.5 * j / len(cands), _ROUNDS_SHOWN)
             if hypothesis(term, present) in self.rejected | self.dropped:
                 continue
             if term.kind in REQUIRES and not present & REQUIRES[term.kind]:
                 continue  # it acts only through terms that are not in the model
-            simpler = NESTED_SIMPLER.get(term.kind)
-            if simpler in present and term.kind not in IN_PARTS:
+            if NESTED_SIMPLER.get(term.kind) in present and term.kind not in IN_PARTS:
                 # the simpler term in the model spans part of this one, which can only
                 # replace it (tried below), not be added to it (a field drift over a
                 # heading drift)
                 replace_trial = term
                 continue
-            if simpler in present:
-                # only what the simpler part in the model cannot explain: the rest (for an
-                # eddy term beside a time offset, the anisotropic part of E_s)
-                st = IN_PARTS[term.kind][1](self.cur, self.data, sig)
-            else:
-                st, start = scored(self.cur, self.data, term, sig, cand_start.get(j))
+            live.append((j, term))
+        progress.detail(f"search {len(self.findings) + 1}, {len(live)} candidates",
+                        len(self.findings), _ROUNDS_SHOWN)
+        # every score test of the round at once (pipeline.model.parallel)
+        for (_, term), (st, start) in zip(live, parallel.ordered(
+                partial(self._score, cand_start, sig, present), live), strict=True):
+            if start is not None:
+                starts[id(st)] = start
+            if NESTED_SIMPLER.get(term.kind) not in present:
                 term = st.term  # its scorer may shape it (the gradient's bearing)
-                if start is not None:
-                    starts[id(st)] = start
             Bc = self.cur.state.B_enu_nT
             hfrac = float(np.linalg.norm(Bc[:2]) / max(float(np.linalg.norm(Bc)), 1e-9))
             reason = identifiability_reason(term.kind, self.stats, self.data, st.efficiency,
@@ -653,6 +655,16 @@ class _Search:
             tests.append(st)
         return tests, starts, replace_trial
 
+    def _score(self, cand_start: dict[int, np.ndarray], sig: float, present: set[EffectKind],
+               cand: tuple[int, Term]) -> tuple[ScoreTest, ModelState | None]:
+        """Return candidate ``(j, term)``'s score test and the state its refit starts at."""
+        j, term = cand
+        if NESTED_SIMPLER.get(term.kind) in present:
+            # only what the simpler part in the model cannot explain: the rest (for an
+            # eddy term beside a time offset, the anisotropic part of E_s)
+            return IN_PARTS[term.kind][1](self.cur, self.data, sig), None
+        return scored(self.cur, self.data, term, sig, cand_start.get(j))
+
     def _map_candidate(self, sig: float, present: set[EffectKind]) -> MapCandidate | None:
         """Return the field map candidate of this round, or None (why, in ``not_ident``)."""
         # the field beyond the gradient's first order: tried once the gradient is in the
@@ -688,40 +700,55 @@ class _Search:
         # the score test ranks the candidates; the few strongest are refitted and the one
         # with the most evidence is the strongest (a score statistic far from the null is only
         # a local approximation when much is still unmodelled)
-        fits = []
-        for r, st in enumerate(tests[: self.cfg.n_refit]):
+        top = []
+        for st in tests[: self.cfg.n_refit]:
             if -st.statistic + st.penalty > 0:
                 break
-            progress.detail(f"search {len(self.findings) + 1}, refit {r + 1}/{self.cfg.n_refit}",
-                            len(self.findings) + 0.5 + 0.5 * r / self.cfg.n_refit, _ROUNDS_SHOWN)
-            fr = _refit(self.cur, st.term, self.data, self.cfg, start=starts.get(id(st)))
+            top.append(st)
+        live_ramps = [(i, r) for i, r in ramps
+                      if hypothesis(r, present) not in self.rejected | self.dropped]
+        try_map = mc is not None and -mc.test.statistic + mc.test.penalty <= 0
+        # every refit of the round at once (pipeline.model.parallel); what they mean is
+        # decided below in the same order as one after the other
+        jobs: list[partial[Any]] = [
+            partial(_refit, self.cur, st.term, self.data, self.cfg, start=starts.get(id(st)))
+            for st in top]
+        jobs += [partial(_ramp_fit, self.cur, i, r, self.data, self.cfg) for i, r in live_ramps]
+        if mc is not None and try_map:
+            jobs.append(partial(_refit, self.cur, mc.test.term, self.data, self.cfg))
+        if replace_trial is not None:
+            jobs.append(partial(_replacement_fit, self.cur, NESTED_SIMPLER[replace_trial.kind],
+                                replace_trial, self.data, self.cfg))
+        progress.detail(f"search {len(self.findings) + 1}, {len(jobs)} refits",
+                        len(self.findings) + 0.5, _ROUNDS_SHOWN)
+        done: Iterator[Any] = iter(parallel.ordered(parallel.call, jobs))  # refit, ramp, map
+        fits: list[tuple[float, ScoreTest, FitResult]] = []
+        for st in top:
+            fr = next(done)
             if fr is None or not plausible(fr[0], self.data) or pulled_away(
                     starts.get(id(st)), fr[0], self.data):
                 self.rejected.add(hypothesis(st.term, present))
                 continue
             fits.append((fr[1], st, fr[0]))
         replaces: dict[int, int] = {}  # id of a ScoreTest -> the step its fit replaces
-        for i_step, ramp in ramps:
-            if hypothesis(ramp, present) in self.rejected | self.dropped:
-                continue
-            rf = _ramp_fit(self.cur, i_step, ramp, self.data, self.cfg)
+        for i_step, ramp in live_ramps:
+            rf = next(done)
+            if hypothesis(ramp, present) in self.rejected:
+                continue  # a candidate of the same hypothesis failed above
             if rf is None:
                 self.rejected.add(hypothesis(ramp, present))
                 continue
             replaces[id(rf[1])] = i_step
             fits.append(rf)
         map_fits = []
-        if mc is not None and -mc.test.statistic + mc.test.penalty <= 0:
-            fr = _refit(self.cur, mc.test.term, self.data, self.cfg)
+        if mc is not None and try_map:
+            fr = next(done)
             if fr is None:
                 self.rejected.add(hypothesis(mc.test.term, present))
             else:
                 map_fits.append((fr[1], mc.test, fr[0]))
-        if replace_trial is not None:
-            rt = _replacement_fit(self.cur, NESTED_SIMPLER[replace_trial.kind], replace_trial,
-                                  self.data, self.cfg)
-            if rt is not None:
-                fits.append(rt)
+        if replace_trial is not None and (rt := next(done)) is not None:
+            fits.append(rt)
         fits.sort(key=lambda x: x[0])
         return fits, replaces, map_fits
 
@@ -928,17 +955,22 @@ class _Search:
         event = _event(w, w, self.data.t_s, edge_of_step=False)
         own = score_test(wo, old, self.data, sig)
         bar = own.penalty - own.statistic
-        best: tuple[FitResult, ScoreTest, float] | None = None
-        for term, start in event_candidates(wo, self.data, event):
-            if term.kind is old.kind and term.windows_s == old.windows_s:
-                continue
-            st, begin = scored(wo, self.data, term, sig, start)
+        cands = [(term, start) for term, start in event_candidates(wo, self.data, event)
+                 if not (term.kind is old.kind and term.windows_s == old.windows_s)]
+
+        def tried(cand: tuple[Term, np.ndarray | None]
+                  ) -> tuple[ScoreTest, tuple[FitResult, float] | None]:
+            st, begin = scored(wo, self.data, cand[0], sig, cand[1])
             if st.penalty - st.statistic >= bar:
-                continue
+                return st, None
             # a located source the joint fit moves is kept here (a round refuses it,
             # sources.pulled_away): the rounds have ended, so no term the model lacks is
             # left for it to be fitting instead of its object
-            fr = _refit(wo, st.term, self.data, self.cfg, start=begin)
+            return st, _refit(wo, st.term, self.data, self.cfg, start=begin)
+
+        best: tuple[FitResult, ScoreTest, float] | None = None
+        # every candidate at once (pipeline.model.parallel), compared in their order
+        for st, fr in parallel.ordered(tried, cands):
             if fr is None or not plausible(fr[0], self.data):
                 continue
             if evidence_between(fr[0], self.cur, self.data) > -self.cfg.bic_margin:
@@ -950,13 +982,21 @@ class _Search:
     def _backward(self) -> None:
         """Drop each term that no longer earns its margin beside the others."""
         i = 0
+        ahead: dict[int, FitResult] = {}  # the model without term i, fitted beside the first
         while i < len(self.cur.state.terms) - 1:
             t_i = self.cur.state.terms[i]
             if required(i, self.cur.state.terms):
                 i += 1  # another term acts through it (nested.REQUIRES)
                 continue
-            st_wo = without_term(self.cur.state, i)
-            res_wo = fit(st_wo, self.data)
+            if i not in ahead:
+                # the next ones as well, as many as run at once (pipeline.model.parallel):
+                # needed unless this term goes
+                terms = self.cur.state.terms
+                idx = [k for k in range(i, len(terms) - 1) if not required(k, terms)]
+                idx = idx[:parallel.cores()]
+                jobs = [partial(fit, without_term(self.cur.state, k), self.data) for k in idx]
+                ahead = dict(zip(idx, parallel.ordered(parallel.call, jobs), strict=True))
+            res_wo = ahead[i]
             keep = evidence_change(self.cur, res_wo, self.data)
             # a term that earned its margin only by trading with a look-alike goes as well
             if keep > -self.cfg.bic_margin or not earns_beside_lookalikes(
@@ -965,6 +1005,7 @@ class _Search:
                 self.findings.pop(i)
                 self.cur = res_wo
                 self.cv_cur = heldout_rms(self.cur.state, self.data, self.cfg)
+                ahead = {}
                 continue
             i += 1
 
@@ -1145,7 +1186,8 @@ def _chain_evidence(
     K = len(findings)
     if K == 0:
         return findings
-    fits = [base] + [fit(_prefix(final.state, k), data) for k in range(1, K)] + [final]
+    prefixes = parallel.ordered(lambda k: fit(_prefix(final.state, k), data), range(1, K))
+    fits = [base] + prefixes + [final]
     cvs = [cv_base] + [heldout_rms(f.state, data, cfg) for f in fits[1:K]] + [cv_final]
     out = []
     for k, fd in enumerate(findings):

@@ -20,10 +20,12 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
+from pipeline.model import parallel
 from pipeline.model.dipole_kernels import dipole_grid_sums
 from pipeline.model.forward import dipole_field
 from stages.diagnose.fit import FitResult, fit
@@ -302,20 +304,32 @@ def relocated(cur: FitResult, data: FitData) -> FitResult:
     terms (around the source's own strongest pass), and the joint fit from there replaces
     the model when its weighted RSS is lower.
     """
-    for i, term in enumerate(cur.state.terms):
-        if term.kind is not EffectKind.LOCAL_SOURCE:
-            continue
-        wins = active_windows(term, cur.state.values[i], data)
-        without = fit(without_term(cur.state, i), data, max_iter=10)
-        loc = locate_source(without, data, (wins[0][0], wins[-1][1]))
-        if loc is None:
-            continue
-        # keep the term's place in the model (findings are listed in the model's order)
-        trial = moved_last_to(with_values(term, loc[0], without), i)
-        res = fit(trial, data)
-        if res.rss < cur.rss and plausible(res, data, i):
+    sources = [i for i, t in enumerate(cur.state.terms) if t.kind is EffectKind.LOCAL_SOURCE]
+    ahead: dict[int, FitResult | None] = {}  # the relocations from the model of the moment
+    for n, i in enumerate(sources):
+        if i not in ahead:
+            # the next sources' as well, as many as run at once (pipeline.model.parallel):
+            # needed unless this one moves the model
+            batch = sources[n:n + parallel.cores()]
+            ahead = dict(zip(batch, parallel.ordered(partial(_relocation, cur, data), batch),
+                             strict=True))
+        res = ahead[i]
+        if res is not None and res.rss < cur.rss and plausible(res, data, i):
             cur = res
+            ahead = {}
     return cur
+
+
+def _relocation(cur: FitResult, data: FitData, i: int) -> FitResult | None:
+    """Return the joint fit from source ``i`` located again without it (:func:`relocated`)."""
+    term = cur.state.terms[i]
+    wins = active_windows(term, cur.state.values[i], data)
+    without = fit(without_term(cur.state, i), data, max_iter=10)
+    loc = locate_source(without, data, (wins[0][0], wins[-1][1]))
+    if loc is None:
+        return None
+    # keep the term's place in the model (findings are listed in the model's order)
+    return fit(moved_last_to(with_values(term, loc[0], without), i), data)
 
 
 def rivals(res: FitResult, data: FitData) -> tuple[str, list[tuple[Term, str]]]:

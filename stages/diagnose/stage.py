@@ -25,6 +25,7 @@ from pipeline.core.geometry import matrix_to_quat, quat_to_rotvec
 from pipeline.core.recording import AlignedSeries, Recording
 from pipeline.core.vocabulary import EffectKind
 from pipeline.core.warm import warm_in_background
+from pipeline.model import parallel
 from pipeline.model.calibration import Calibration
 from pipeline.model.effects import EFFECTS, IRON_PRIOR, kin_words
 from pipeline.model.sample_hold import (
@@ -238,13 +239,16 @@ def _heldout_split(state: ModelState, train: FitData, test: FitData, cfg: Diagno
         for t, v in zip(state.terms, state.values, strict=True)))
     sq, cnt = 0.0, 0
     per = np.full(len(test), np.nan)
-    for j in range(cfg.n_folds):
-        te, tr = f_te == j, f_tr != j
-        if te.sum() == 0 or tr.sum() < 10:
-            continue
+
+    def error(te: np.ndarray, tr: np.ndarray) -> np.ndarray:
         res = fit(start, train.subset(tr), max_iter=6, rtol=1e-6)
         sub = test.subset(te)
-        e = sub.y_nT - evaluate(res.state, sub, jacobian=False).y_nT
+        return sub.y_nT - evaluate(res.state, sub, jacobian=False).y_nT
+
+    folds = [(f_te == j, f_tr != j) for j in range(cfg.n_folds)]
+    folds = [(te, tr) for te, tr in folds if te.any() and tr.sum() >= 10]
+    # the folds side by side (pipeline.model.parallel)
+    for (te, _), e in zip(folds, parallel.ordered(lambda f: error(*f), folds), strict=True):
         sq += float(np.sum(e * e))
         cnt += e.size
         per[te] = np.sum(e * e, axis=1)
@@ -851,8 +855,9 @@ class Diagnose:
     def run(self, ctx: Context) -> Context:
         """Diagnose ``ctx.recording``; the final model replaces ``ctx.calibration``."""
         # hundreds of fits of a few hundred parameters: their factorizations run on one BLAS
-        # thread (pipeline.model.solve.one_blas_thread)
-        with one_blas_thread():
+        # thread (pipeline.model.solve.one_blas_thread), and the fits that do not depend on
+        # each other side by side on the cores the process may use (pipeline.model.parallel)
+        with parallel.side_by_side(), one_blas_thread():
             return self._run(ctx)
 
     def _run(self, ctx: Context) -> Context:
@@ -864,7 +869,7 @@ class Diagnose:
         )
         # the compiled loops load on a helper thread: the attitude's first, which the first
         # fit waits for; the sources' are ready by the time the search tries a source
-        if data.p_m is not None:
+        if data.compiled:
             warm_in_background("pipeline.model.attitude_kernels:warm",
                                "pipeline.model.dipole_kernels:warm")
         init = None

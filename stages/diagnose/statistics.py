@@ -15,7 +15,9 @@ from typing import Any
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
+from pipeline.model import parallel
 from pipeline.model.effects import EFFECTS
+from pipeline.model.parallel import PerThread
 from pipeline.model.solve import gram
 from stages.diagnose.fit import FitResult, fit
 from stages.diagnose.model import (
@@ -134,7 +136,7 @@ def gradient_candidate(cur: FitResult, data: FitData, sigma: float) -> ScoreTest
         return score_from_J(cur, Term(EffectKind.FIELD_GRADIENT, yaw_rad=float(a)), J, data,
                              sigma)
 
-    tests = [at(d) for d in YAW_GRID_DEG]
+    tests = parallel.ordered(at, [float(d) for d in YAW_GRID_DEG])
     stats = np.array([t.statistic for t in tests])
     i = int(np.argmax(stats))
     s_m, s_0, s_p = stats[i - 1], stats[i], stats[(i + 1) % len(stats)]
@@ -163,7 +165,7 @@ def score_test(cur: FitResult, term: Term, data: FitData, sigma: float,
                          held=held if held is not None else np.zeros((J.shape[0] * 3, 0)))
 
 
-_HELD_CACHE: list[tuple[Any, np.ndarray | None]] = []
+_HELD_CACHE: PerThread[list[tuple[Any, np.ndarray | None]]] = PerThread(list)
 
 
 def held_columns(state: ModelState, data: FitData) -> np.ndarray | None:
@@ -174,13 +176,14 @@ def held_columns(state: ModelState, data: FitData) -> np.ndarray | None:
     """
     if not state.has_partial:
         return None
-    if _HELD_CACHE and _HELD_CACHE[0][0][0] is state and _HELD_CACHE[0][0][1] is data:
-        return _HELD_CACHE[0][1]
+    last = _HELD_CACHE.value
+    if last and last[0][0][0] is state and last[0][0][1] is data:
+        return last[0][1]
     ev = evaluate(state, data)
     assert ev.J_held is not None  # the state has partial terms
     Jh = ev.J_held if ev.sqrt_w is None else ev.J_held * ev.sqrt_w[:, None, None]
     out = Jh.reshape(-1, Jh.shape[-1])
-    _HELD_CACHE[:] = [((state, data), out)]
+    last[:] = [((state, data), out)]
     return out
 
 
@@ -313,7 +316,7 @@ def interp_reason(data: FitData) -> str:
             "this term; record the attitude faster or move more slowly")
 
 
-_BASE_CACHE: list[tuple[np.ndarray, np.ndarray, float]] = []
+_BASE_CACHE: PerThread[list[tuple[np.ndarray, np.ndarray, float]]] = PerThread(list)
 
 
 def _base_information(Jb: np.ndarray) -> tuple[np.ndarray, float]:
@@ -323,12 +326,12 @@ def _base_information(Jb: np.ndarray) -> tuple[np.ndarray, float]:
     out of its evaluation bit for bit alike: the product is kept for the last ``Jb`` seen
     (compared in full, far cheaper than forming it again).
     """
-    if _BASE_CACHE and _BASE_CACHE[0][0].shape == Jb.shape \
-            and np.array_equal(_BASE_CACHE[0][0], Jb):
-        return _BASE_CACHE[0][1], _BASE_CACHE[0][2]
+    last = _BASE_CACHE.value
+    if last and last[0][0].shape == Jb.shape and np.array_equal(last[0][0], Jb):
+        return last[0][1], last[0][2]
     H = gram(Jb, Jb)
     rot = _rot_efficiency_H(H)
-    _BASE_CACHE[:] = [(Jb.copy(), H, rot)]
+    last[:] = [(Jb.copy(), H, rot)]
     return H, rot
 
 
@@ -367,7 +370,8 @@ def heldout_rms(state: ModelState, data: FitData, cfg: DiagnoseConfig) -> float:
     Each fold is refitted from the current state with the values of local terms reset to
     zero (so a window's amplitude is learnt only from training samples), then predicts the
     held-out blocks. Random samples are never held out: neighbouring samples share
-    attitude noise and would leak.
+    attitude noise and would leak. The folds are fitted side by side
+    (:mod:`pipeline.model.parallel`) and summed in their order.
     """
     folds = fold_of(data.t_s, cfg, state)
     sq, cnt = 0.0, 0
@@ -378,14 +382,14 @@ def heldout_rms(state: ModelState, data: FitData, cfg: DiagnoseConfig) -> float:
             for t, v in zip(state.terms, state.values, strict=True)
         ),
     )
-    for j in range(cfg.n_folds):
-        test = folds == j
-        if test.sum() == 0 or (~test).sum() < 10:
-            continue
+
+    def error(test: np.ndarray) -> np.ndarray:
         # the fold's state alone predicts: its information is not formed again at the end
         res = fit(start, data.subset(~test), max_iter=6, rtol=1e-6, final_information=False)
-        pred = evaluate(res.state, data.subset(test), jacobian=False).y_nT
-        e = data.y_nT[test] - pred
+        return data.y_nT[test] - evaluate(res.state, data.subset(test), jacobian=False).y_nT
+
+    tests = [folds == j for j in range(cfg.n_folds)]
+    for e in parallel.ordered(error, [m for m in tests if m.any() and (~m).sum() >= 10]):
         sq += float(np.sum(e * e))
         cnt += e.size
     return float(np.sqrt(sq / max(cnt, 1)))
