@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from pipeline.model import parallel
 from pipeline.model.compiled import compiled
 
 F64 = NDArray[np.float64]
@@ -179,5 +180,10 @@ def dipole_grid_sums(p_m: F64, cands_m: F64, Q: F64, M: F64, H: F64, w: F64
     """
     K, q = len(cands_m), H.shape[1]
     A, W, g = np.empty((K, 3, 3)), np.empty((K, q, 3)), np.empty((K, 3))
-    compiled(_grid_loop)(_c(p_m), _c(cands_m), _c(Q), _c(M), _c(H), _c(w), A, W, g)
+    loop, c = compiled(_grid_loop), _c(cands_m)
+    p, Qc, Mc, Hc, wc = _c(p_m), _c(Q), _c(M), _c(H), _c(w)
+    # each place's sums are its own: the places in runs side by side (pipeline.model.parallel)
+    cuts = np.linspace(0, K, parallel.cores() + 1).astype(int)
+    runs = [slice(a, b) for a, b in zip(cuts[:-1], cuts[1:], strict=True) if b > a]
+    parallel.ordered(lambda r: loop(p, c[r], Qc, Mc, Hc, wc, A[r], W[r], g[r]), runs)
     return A, W, g

@@ -15,6 +15,7 @@ what it is nested in (the simpler of a nested pair, Occam's razor with one crite
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from collections.abc import Callable, Collection, Iterator, Sequence
 from dataclasses import dataclass
 from typing import cast
@@ -22,6 +23,7 @@ from typing import cast
 import numpy as np
 
 from pipeline.core.vocabulary import EffectKind
+from pipeline.model import parallel
 from pipeline.model.effects import EFFECTS
 from stages.diagnose.candidates import REFINED, RIVALS
 from stages.diagnose.fit import FitResult, fit
@@ -278,19 +280,22 @@ def simplest(cur: FitResult, cv_cur: float, findings: list[Finding], data: FitDa
     (the refitted model, its findings) or None when no description is preferred.
 
     """
-    for i, t in enumerate(cur.state.terms):
-        for gen in NESTED.get(t.kind, ()):
-            for s in gen(cur, i, data):
-                if any(not u.windows_s and u.kind is not t.kind and any(
-                        v.kind is u.kind for v in cur.state.terms) for u in s.terms):
-                    continue
-                res = fit(s.state(cur.state), data)
-                simpler = _simpler(res, cur)
-                limit = cfg.bic_margin if simpler else -cfg.bic_margin
-                if evidence_between(res, cur, data) > limit or (
-                        not simpler and heldout_ok(cur, res, data, cfg, cv_cur) is None):
-                    continue
-                return res, _described(cur, findings, s, dropped)
+    kinds = {v.kind for v in cur.state.terms}
+    offered = (s for i, t in enumerate(cur.state.terms) for gen in NESTED.get(t.kind, ())
+               for s in gen(cur, i, data)
+               if not any(not u.windows_s and u.kind is not t.kind and u.kind in kinds
+                          for u in s.terms))
+    # as many descriptions fitted at once as run side by side (pipeline.model.parallel),
+    # judged in their order: none beyond them is fitted before these are judged
+    while batch := list(itertools.islice(offered, parallel.cores())):
+        fits = parallel.ordered(lambda s: fit(s.state(cur.state), data), batch)
+        for s, res in zip(batch, fits, strict=True):
+            simpler = _simpler(res, cur)
+            limit = cfg.bic_margin if simpler else -cfg.bic_margin
+            if evidence_between(res, cur, data) > limit or (
+                    not simpler and heldout_ok(cur, res, data, cfg, cv_cur) is None):
+                continue
+            return res, _described(cur, findings, s, dropped)
     return None
 
 

@@ -763,9 +763,10 @@ class _Search:
         if absorbing_fits:
             first: list[tuple[float, ScoreTest, FitResult]] = []
             later: list[tuple[float, ScoreTest, FitResult]] = []
-            for f in fits:
-                (later if absorbed(absorbing_fits[0][2], f[2], self.data, self.cfg)
-                 else first).append(f)
+            by = absorbing_fits[0][2]
+            gone = parallel.ordered(lambda f: absorbed(by, f[2], self.data, self.cfg), fits)
+            for f, g in zip(fits, gone, strict=True):
+                (later if g else first).append(f)
             fits = first + absorbing_fits + later
         return fits
 
