@@ -104,3 +104,17 @@ def test_per_thread_values_are_their_own():
     th.start()
     th.join()
     assert box.value == [1] and other == [[]]
+
+
+def test_each_is_told_in_order_on_the_calling_thread():
+    told: list[tuple[int, str]] = []
+
+    def each(k: int) -> None:
+        told.append((k, threading.current_thread().name))
+
+    me = threading.current_thread().name
+    for threads in (1, 2):
+        told.clear()
+        with parallel.side_by_side(threads):
+            parallel.ordered(lambda x: x, range(5), each)
+        assert told == [(k, me) for k in range(5)]

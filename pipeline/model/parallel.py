@@ -96,16 +96,27 @@ def _inside(fn: Callable[[T], R], item: T) -> R:
         _LOCAL.inside = False
 
 
-def ordered(fn: Callable[[T], R], items: Iterable[T]) -> list[R]:
+def ordered(fn: Callable[[T], R], items: Iterable[T],
+            each: Callable[[int], None] | None = None) -> list[R]:
     """``[fn(x) for x in items]``, the calls side by side when :func:`cores` allows.
 
-    Every call runs to its end; the first exception in the items' order is raised then.
+    ``each(k)``: called in the calling thread once the calls of items ``0..k`` have ended,
+    in order (a progress display, which belongs to that thread). Every call runs to its
+    end; the first exception in the items' order is raised then.
     """
     items = list(items)
     if cores() == 1 or len(items) < 2:
-        return [fn(x) for x in items]
+        out = []
+        for k, x in enumerate(items):
+            out.append(fn(x))
+            if each is not None:
+                each(k)
+        return out
     futures = [_POOL[0][0].submit(_inside, fn, x) for x in items]
-    cf.wait(futures)
+    for k, f in enumerate(futures):
+        f.exception()  # waits for it, raising nothing
+        if each is not None:
+            each(k)
     return [f.result() for f in futures]
 
 

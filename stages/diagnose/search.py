@@ -608,11 +608,15 @@ class _Search:
                 replace_trial = term
                 continue
             live.append((j, term))
-        progress.detail(f"search {len(self.findings) + 1}, {len(live)} candidates",
-                        len(self.findings), _ROUNDS_SHOWN)
+        n = len(self.findings)
+
+        def shown(k: int) -> None:
+            progress.detail(f"search {n + 1}, candidate {k + 1}/{len(live)}",
+                            n + 0.5 * (k + 1) / len(live), _ROUNDS_SHOWN)
+
         # every score test of the round at once (pipeline.model.parallel)
         for (_, term), (st, start) in zip(live, parallel.ordered(
-                partial(self._score, cand_start, sig, present), live), strict=True):
+                partial(self._score, cand_start, sig, present), live, shown), strict=True):
             if start is not None:
                 starts[id(st)] = start
             if NESTED_SIMPLER.get(term.kind) not in present:
@@ -719,9 +723,13 @@ class _Search:
         if replace_trial is not None:
             jobs.append(partial(_replacement_fit, self.cur, NESTED_SIMPLER[replace_trial.kind],
                                 replace_trial, self.data, self.cfg))
-        progress.detail(f"search {len(self.findings) + 1}, {len(jobs)} refits",
-                        len(self.findings) + 0.5, _ROUNDS_SHOWN)
-        done: Iterator[Any] = iter(parallel.ordered(parallel.call, jobs))  # refit, ramp, map
+        n = len(self.findings)
+
+        def shown(k: int) -> None:
+            progress.detail(f"search {n + 1}, refit {k + 1}/{len(jobs)}",
+                            n + 0.5 + 0.5 * (k + 1) / len(jobs), _ROUNDS_SHOWN)
+
+        done: Iterator[Any] = iter(parallel.ordered(parallel.call, jobs, shown))  # in order
         fits: list[tuple[float, ScoreTest, FitResult]] = []
         for st in top:
             fr = next(done)
