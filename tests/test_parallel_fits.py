@@ -118,3 +118,28 @@ def test_each_is_told_in_order_on_the_calling_thread():
         with parallel.side_by_side(threads):
             parallel.ordered(lambda x: x, range(5), each)
         assert told == [(k, me) for k in range(5)]
+
+
+def test_ahead_computes_the_next_ones_beside_and_forgets_on_change():
+    calls: list[tuple[int, int]] = []
+    state = {"v": 0}
+    lock = threading.Lock()
+
+    def fn(k: int) -> int:
+        with lock:
+            calls.append((k, state["v"]))
+        return 10 * state["v"] + k
+
+    items = [0, 1, 2, 3]
+    for threads, first in ((1, [(0, 0)]), (2, [(0, 0), (1, 0)])):
+        calls.clear()
+        state["v"] = 0
+        with parallel.side_by_side(threads):
+            ahead = parallel.Ahead(fn)
+            assert ahead.get(items, 0) == 0
+            assert sorted(calls) == first  # nothing beyond what the threads take at once
+            state["v"] = 1  # what fn reads changed
+            ahead.forget()
+            before = len(calls)
+            assert [ahead.get(items, n) for n in (1, 2, 3)] == [11, 12, 13]
+        assert sorted(calls[before:]) == [(1, 1), (2, 1), (3, 1)]  # each once, from the new

@@ -25,7 +25,7 @@ import concurrent.futures as cf
 import contextlib
 import os
 import threading
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Generic, TypeVar
 
 from pipeline.model.solve import blas_threads
@@ -123,6 +123,31 @@ def ordered(fn: Callable[[T], R], items: Iterable[T],
 def call(job: Callable[[], R]) -> R:
     """``job()``: for :func:`ordered` over prepared calls (``functools.partial``)."""
     return job()
+
+
+class Ahead(Generic[T, R]):
+    """``fn`` of items asked for in turn, the next ones computed beside the one asked for.
+
+    For a loop that takes ``fn(items[n])`` one after another and may change what ``fn``
+    reads after any of them (the backward step drops a term, a relocation moves the model):
+    :meth:`get` computes ``items[n:n + cores()]`` at once, and :meth:`forget` drops what was
+    computed from the state that changed. On one thread nothing is computed ahead.
+    """
+
+    def __init__(self, fn: Callable[[T], R]):
+        self.fn = fn
+        self._got: dict[T, R] = {}
+
+    def get(self, items: Sequence[T], n: int) -> R:
+        """Return ``fn(items[n])``, with the next items' calls beside it when missing."""
+        if items[n] not in self._got:
+            batch = items[n:n + cores()]
+            self._got = dict(zip(batch, ordered(self.fn, batch), strict=True))
+        return self._got[items[n]]
+
+    def forget(self) -> None:
+        """Drop the calls computed so far: what ``fn`` reads has changed."""
+        self._got = {}
 
 
 class PerThread(threading.local, Generic[T]):

@@ -991,21 +991,17 @@ class _Search:
     def _backward(self) -> None:
         """Drop each term that no longer earns its margin beside the others."""
         i = 0
-        ahead: dict[int, FitResult] = {}  # the model without term i, fitted beside the first
+        # the model without term k, fitted beside the one asked for: needed unless it goes
+        without: parallel.Ahead[int, FitResult] = parallel.Ahead(
+            lambda k: fit(without_term(self.cur.state, k), self.data))
         while i < len(self.cur.state.terms) - 1:
             t_i = self.cur.state.terms[i]
-            if required(i, self.cur.state.terms):
+            terms = self.cur.state.terms
+            if required(i, terms):
                 i += 1  # another term acts through it (nested.REQUIRES)
                 continue
-            if i not in ahead:
-                # the next ones as well, as many as run at once (pipeline.model.parallel):
-                # needed unless this term goes
-                terms = self.cur.state.terms
-                idx = [k for k in range(i, len(terms) - 1) if not required(k, terms)]
-                idx = idx[:parallel.cores()]
-                jobs = [partial(fit, without_term(self.cur.state, k), self.data) for k in idx]
-                ahead = dict(zip(idx, parallel.ordered(parallel.call, jobs), strict=True))
-            res_wo = ahead[i]
+            left = [k for k in range(i, len(terms) - 1) if not required(k, terms)]
+            res_wo = without.get(left, 0)
             keep = evidence_change(self.cur, res_wo, self.data)
             # a term that earned its margin only by trading with a look-alike goes as well
             if keep > -self.cfg.bic_margin or not earns_beside_lookalikes(
@@ -1014,7 +1010,7 @@ class _Search:
                 self.findings.pop(i)
                 self.cur = res_wo
                 self.cv_cur = heldout_rms(self.cur.state, self.data, self.cfg)
-                ahead = {}
+                without.forget()
                 continue
             i += 1
 

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import replace
-from functools import partial
 
 import numpy as np
 
@@ -305,18 +304,14 @@ def relocated(cur: FitResult, data: FitData) -> FitResult:
     the model when its weighted RSS is lower.
     """
     sources = [i for i, t in enumerate(cur.state.terms) if t.kind is EffectKind.LOCAL_SOURCE]
-    ahead: dict[int, FitResult | None] = {}  # the relocations from the model of the moment
+    # the next sources' relocations beside the one asked for: needed unless it moves the model
+    moves: parallel.Ahead[int, FitResult | None] = parallel.Ahead(
+        lambda i: _relocation(cur, data, i))
     for n, i in enumerate(sources):
-        if i not in ahead:
-            # the next sources' as well, as many as run at once (pipeline.model.parallel):
-            # needed unless this one moves the model
-            batch = sources[n:n + parallel.cores()]
-            ahead = dict(zip(batch, parallel.ordered(partial(_relocation, cur, data), batch),
-                             strict=True))
-        res = ahead[i]
+        res = moves.get(sources, n)
         if res is not None and res.rss < cur.rss and plausible(res, data, i):
             cur = res
-            ahead = {}
+            moves.forget()
     return cur
 
 
