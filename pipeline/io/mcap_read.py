@@ -46,9 +46,9 @@ from pipeline.io.mcap_checks import (
     value_problems,
 )
 from pipeline.io.mcap_decode import (
-    ChannelDecoder,
     DecodedColumns,
     decode_channels,
+    decoded_batches,
     first_valid_fix,
     geodetic_to_local_enu,
     pick_channel,
@@ -739,9 +739,10 @@ def iter_recording_chunks(
 ) -> Iterator[RecordingChunk]:
     """Read a recording range by range, in bounded memory, for files too large for memory.
 
-    The file is memory-mapped (:data:`MMAP_MIN_BYTES`), its MCAP chunks are decoded in file
-    order, and their samples are handed out in groups of about ``max_messages`` messages (a
-    whole number of MCAP chunks). Channels are chosen as by :func:`read_recording`. Only the
+    The file is memory-mapped (:data:`MMAP_MIN_BYTES`), and its MCAP chunks are decoded in
+    file order, in groups of about ``max_messages`` messages (a whole number of MCAP chunks,
+    decoded at once: :func:`pipeline.io.mcap_decode.decoded_batches`), each handed out as
+    one range. Channels are chosen as by :func:`read_recording`. Only the
     per-sample checks are made (non-finite values dropped, quaternions normalised, zero
     quaternions dropped, each range sorted by stamp); whole-recording checks (duplicates,
     clock jumps, gaps, stuck sensor) need the whole recording: use :func:`read_recording`
@@ -775,7 +776,6 @@ def iter_recording_chunks(
     # positions are optional: an ambiguous choice is the header's problem to report
     pos_id = pick_position(scan, position_topic, [])
     ids = [i for i in (mag_id, att_id, tt_id, pos_id) if i is not None]
-    decoders = {cid: ChannelDecoder(scan, scan.channels[cid]) for cid in ids}
     parts: dict[int, list[DecodedColumns]] = {cid: [] for cid in ids}
     count, index = 0, 0
     positions = _ChunkPositions()
@@ -808,11 +808,10 @@ def iter_recording_chunks(
             position=positions.series(fx if pos_id is not None else a),
         )
 
-    for buf, sel in iter_blocks(scan, set(ids)):
-        for cid, rec in sel.items():
-            d = decoders[cid].decode(buf, rec)
-            parts[cid].append(d)
-            count += len(d.t_ns)
+    for batch in decoded_batches(scan, ids, max_messages):
+        for cid, ds in batch.items():
+            parts[cid] += ds
+            count += sum(len(d.t_ns) for d in ds)
         if count >= max_messages:
             yield emit()
             index += 1
