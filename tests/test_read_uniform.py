@@ -19,7 +19,7 @@ from _reader_fixtures import DEFS, INSPVA_DEFS, motion, write_ros2
 
 from pipeline.io import mcap_decode
 from pipeline.io.mcap_decode import decode_channels
-from pipeline.io.mcap_read import read_recording
+from pipeline.io.mcap_read import iter_recording_chunks, read_recording
 from pipeline.io.mcap_scan import index_chunks, scan_file
 from pipeline.io.mcap_write import write_recording
 
@@ -141,3 +141,41 @@ def test_shape_changing_between_chunks(tmp_path: Path, monkeypatch: pytest.Monke
     fast, general = _both_paths(p, monkeypatch)
     if batch_bytes < 1 << 20:
         assert fast and general  # chunks of one shape fast, those of two shapes not
+
+
+def _chunk_arrays(path: Path, max_messages: int) -> list[list[np.ndarray]]:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        chunks = list(iter_recording_chunks(path, max_messages=max_messages))
+    out = []
+    for c in chunks:
+        assert c.attitude is not None and c.position is not None
+        out.append([c.mag.t_ns, c.mag.values, c.attitude.t_ns, c.attitude.q_enu_body,
+                    c.position.t_ns, c.position.p_m])
+    return out
+
+
+@pytest.mark.parametrize("max_messages", [150, 700, 100_000])
+def test_chunked_reading_fast_and_general_give_the_same_ranges(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, max_messages: int) -> None:
+    # records of one shape in the first and last thirds, of two in the middle (frame ids of
+    # two lengths): ranges of chunks read the fast way, the general way and both
+    t, mag_T, q = motion(1200)
+    frames = ["a"] * 400 + ["a", "longer_frame_name"] * 200 + ["a"] * 400
+    p = write_ros2(tmp_path / "r.mcap", [
+        ("/mag", MAG, DEFS[MAG], t, mag_T, frames),
+        ("/ins", INSPVA, INSPVA_DEFS["new"], t + 1_000_000, np.degrees(q[:, :3]), ["ins"]),
+    ], chunk_size=4096)
+    fast = _chunk_arrays(p, max_messages)
+    monkeypatch.setattr(mcap_decode._Uniform, "rows", lambda self, buf, off: None)
+    general = _chunk_arrays(p, max_messages)
+    assert len(fast) == len(general) >= (2 if max_messages < 2400 else 1)
+    for a, b in zip(fast, general, strict=True):
+        for u, v in zip(a, b, strict=True):
+            assert u.dtype == v.dtype and u.tobytes() == v.tobytes()
+    rec = read_recording(p)
+    whole = np.concatenate([c[1] for c in fast])
+    assert whole.tobytes() == rec.mag.values.tobytes()
+    # each range but the last reaches max_messages (both channels' messages)
+    for c in fast[:-1]:
+        assert len(c[0]) + len(c[2]) >= max_messages

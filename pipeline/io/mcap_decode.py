@@ -8,6 +8,7 @@ ENU and back, and the channel of each role chosen.
 
 from __future__ import annotations
 
+import itertools
 import json
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -591,9 +592,9 @@ def _batches(scan: Scan, want: set[int], decoders: dict[int, ChannelDecoder],
              ) -> Iterator[tuple[NDArray[np.uint8] | None, dict[int, Any]]]:
     """:func:`iter_blocks` with ``BATCH_BYTES``, reading uniform records the fast way.
 
-    ``max_messages`` > 0 ends a batch instead at the first chunk that brings its wanted
-    messages to that many, whatever their bytes (the ranges of
-    :func:`pipeline.io.mcap_read.iter_recording_chunks`, one batch each).
+    ``max_messages`` > 0 also ends a batch at the first chunk that brings the wanted
+    messages since the last such end to that many (where the ranges of
+    :func:`pipeline.io.mcap_read.iter_recording_chunks` end).
 
     Yields ``(buffer, {channel id: record offsets})`` as :func:`iter_blocks` does, or
     ``(None, {channel id: [(rows, shape), ...]})`` for a batch whose chunks all hold records
@@ -603,24 +604,24 @@ def _batches(scan: Scan, want: set[int], decoders: dict[int, ChannelDecoder],
     noted and the decoded arrays are those of :func:`iter_blocks` and
     :meth:`ChannelDecoder.decode`: a chunk whose records differ is selected by
     :func:`select_messages`
-    (which validates each offset and walks a chunk whose index is damaged), and a batch
-    holding such a chunk is decoded the general way.
+    (which validates each offset and walks a chunk whose index is damaged), and the runs of
+    such chunks in a batch are yielded as blocks decoded the general way, in file order
+    between the runs read the fast way.
     """
     for cid in sorted(want & scan.top_messages.keys()):
         yield scan.buf, {cid: np.asarray(scan.top_messages[cid], dtype=np.int64)}
     fast = {cid: _Uniform(decoders[cid], cid) for cid in want
             if decoders[cid].layout is not None}
-    entries: list[tuple[bytes, dict[int, np.ndarray], dict[int, Any] | None]] = []
+    # a chunk read the fast way keeps only its gathered rows; one read the general way, its
+    # decompressed bytes
+    entries: list[tuple[bytes | None, dict[int, np.ndarray], dict[int, Any] | None]] = []
     size = count = 0
     todo = [ch for ch in scan.chunks
             if not ch.bad and ch.index and (want & ch.index.keys())]
 
-    def flush() -> tuple[NDArray[np.uint8] | None, dict[int, Any]]:
-        if any(got is None for _, _, got in entries):
-            return join_blocks([b for b, _, _ in entries], [s for _, s, _ in entries])
+    def uniform(run: list[dict[int, Any]]) -> tuple[None, dict[int, Any]]:
         groups: dict[int, list[tuple[list[np.ndarray], _Shape]]] = {}
-        for _, _, got in entries:
-            assert got is not None
+        for got in run:
             for cid, (rows, shape) in got.items():
                 gs = groups.setdefault(cid, [])
                 if gs and gs[-1][1] is shape:
@@ -629,6 +630,15 @@ def _batches(scan: Scan, want: set[int], decoders: dict[int, ChannelDecoder],
                     gs.append(([rows], shape))
         return None, {cid: [(_aligned_rows(r, shape.width), shape) for r, shape in gs]
                       for cid, gs in groups.items()}
+
+    def flush() -> Iterator[tuple[NDArray[np.uint8] | None, dict[int, Any]]]:
+        """Yield the batch's runs of chunks read alike, in file order."""
+        for fast_way, run in itertools.groupby(entries, key=lambda e: e[2] is not None):
+            es = list(run)
+            if fast_way:
+                yield uniform([got for _, _, got in es if got is not None])
+            else:
+                yield join_blocks([b for b, _, _ in es if b is not None], [s for _, s, _ in es])
 
     def uniform_rows(ch: ChunkRecord, b: bytes) -> dict[int, Any] | None:
         """Return each wanted channel's records as rows of one shape, or None.
@@ -658,25 +668,29 @@ def _batches(scan: Scan, want: set[int], decoders: dict[int, ChannelDecoder],
         release_pages(scan, ch.data_start, ch.data_len)  # decompressed: the bytes are not needed
         if not sel:
             continue
-        entries.append((b, sel, got))
+        entries.append((None if got is not None else b, sel, got))
         size += len(b)
         count += sum(len(off) for off in sel.values())
-        if count >= max_messages if max_messages else size >= BATCH_BYTES:
-            yield flush()
-            entries, size, count = [], 0, 0
+        full = bool(max_messages) and count >= max_messages
+        if full or size >= BATCH_BYTES:
+            yield from flush()
+            entries, size = [], 0
+            count = 0 if full else count
     if entries:
-        yield flush()
+        yield from flush()
 
 
 def decoded_batches(scan: Scan, cids: list[int], max_messages: int
                     ) -> Iterator[dict[int, list[DecodedColumns]]]:
-    """Decode the channels ``cids`` in batches of whole chunks of about ``max_messages``.
+    """Decode the channels ``cids`` in batches of whole chunks.
 
-    Each batch ends at the first chunk that brings its messages of ``cids`` to
-    ``max_messages``; it is decoded at once, the fast way where its records are uniform
-    (:func:`_batches`): per chunk, the per-call work of the general decoder costs ten times
-    the decoding of a logger's few hundred messages. Yields ``{channel id: columns}`` in
-    file order (a channel without a message in the batch is left out).
+    A batch ends at ``BATCH_BYTES`` of decompressed chunks and at the first chunk that
+    brings the messages of ``cids`` since the last such end to ``max_messages``; it is
+    decoded at once, the fast way where its records are uniform (:func:`_batches`): per
+    chunk, the per-call work of the general decoder costs ten times the decoding of a
+    logger's few hundred messages. Yields ``{channel id: columns}`` in file order, a batch
+    at once or, where some of its chunks are read the general way, in runs of chunks read
+    alike (a channel without a message in the part is left out).
     """
     decoders = {cid: ChannelDecoder(scan, scan.channels[cid]) for cid in cids}
     for buf, sel in _batches(scan, set(cids), decoders, max_messages):
@@ -701,7 +715,7 @@ def decode_channels(scan: Scan, cids: list[int]) -> dict[int, DecodedColumns]:
         for cid in cids}
     cols: dict[int, list[np.ndarray]] = {}
     fill = dict.fromkeys(cids, 0)
-    frames = dict.fromkeys(cids, "")
+    frames: dict[int, str] = {}  # each channel's first message's, however it was batched
     kinds = dict.fromkeys(cids, "")
 
     def reserve(cid: int, k: int, like: list[tuple[tuple[int, ...], np.dtype]]
@@ -715,7 +729,7 @@ def decode_channels(scan: Scan, cids: list[int]) -> dict[int, DecodedColumns]:
                          for c in cols[cid]]
         return cols[cid]
 
-    def put(cid: int, d: DecodedColumns, first: bool = True) -> None:
+    def put(cid: int, d: DecodedColumns) -> None:
         k, i = len(d.t_ns), fill[cid]
         parts: tuple[np.ndarray, ...] = (d.t_ns, d.values, d.log_time_ns)
         if d.position is not None:
@@ -725,8 +739,7 @@ def decode_channels(scan: Scan, cids: list[int]) -> dict[int, DecodedColumns]:
                         strict=True):
             c[i : i + k] = a
         fill[cid] = i + k
-        if first:
-            frames[cid] = frames[cid] or d.frame_id
+        frames.setdefault(cid, d.frame_id)
 
     for buf, sel in _batches(scan, set(cids), decoders):
         if buf is not None:
@@ -734,10 +747,10 @@ def decode_channels(scan: Scan, cids: list[int]) -> dict[int, DecodedColumns]:
                 put(cid, decoders[cid].decode(buf, rec))
             continue
         for cid, groups in sel.items():
-            for g, (rows, shape) in enumerate(groups):
+            for rows, shape in groups:
                 width = shape.direct
                 if not width:
-                    put(cid, shape.decode(rows), first=g == 0)
+                    put(cid, shape.decode(rows))
                     continue
                 k, i = len(rows), fill[cid]
                 t, v, log = reserve(cid, k, [((), np.dtype(np.int64)),
@@ -745,8 +758,7 @@ def decode_channels(scan: Scan, cids: list[int]) -> dict[int, DecodedColumns]:
                                              ((), np.dtype(np.int64))])
                 frame = shape.decode_into(rows, t[i : i + k], v[i : i + k], log[i : i + k])
                 fill[cid] = i + k
-                if g == 0:
-                    frames[cid] = frames[cid] or frame
+                frames.setdefault(cid, frame)
     out = {}
     for cid in cids:
         if cid not in cols:
@@ -762,7 +774,8 @@ def decode_channels(scan: Scan, cids: list[int]) -> dict[int, DecodedColumns]:
             continue
         n = fill[cid]
         t, v, log, *pos = (c if n == c.shape[0] else c[:n].copy() for c in cols[cid])
-        out[cid] = DecodedColumns(t, v, log, frames[cid], pos[0] if pos else None, kinds[cid])
+        out[cid] = DecodedColumns(t, v, log, frames.get(cid, ""), pos[0] if pos else None,
+                                  kinds[cid])
     return out
 
 
