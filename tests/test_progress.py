@@ -316,3 +316,21 @@ def test_the_share_done_never_goes_back():
         # the same run now learns of a long stage still to come
         pg.stage("Diagnose", 2, 4, ["Ingest", "Estimate", "Diagnose", "Judge"])
         assert pct() >= high
+
+
+def test_a_recording_read_in_ranges_keeps_one_total(recording, tmp_path):
+    """A long recording's first pass segments its motion before the analysis: the count a
+    step shows keeps one total from the first step to the last (it read 2/13, then 3/14)."""
+    from pipeline.run.options import ProcessOptions
+    from pipeline.run.runner import process_recording
+
+    seen: list[dict] = []
+    with pg.use_sink(pg.DirectSink("valid", seen.append)):
+        process_recording(recording, tmp_path / "o", options=ProcessOptions(
+            scale_samples=100, write_rerun=False, write_report=False))
+    shown = [s for s in seen if 0 <= s["index"] < len(s["stages"])]
+    assert {len(s["stages"]) for s in shown} == {len(shown[-1]["stages"])}
+    names = [s["stages"][s["index"]] for s in shown]
+    steps = [n for i, n in enumerate(names) if i == 0 or n != names[i - 1]]
+    assert steps[:3] == ["Ingest", "SegmentMotion", "Resample"], steps
+    assert steps == shown[-1]["stages"][:len(steps)], steps

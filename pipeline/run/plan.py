@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.core.recording import Recording
-from pipeline.core.stage import Stage
+from pipeline.core.stage import Stage, stage_name
 from pipeline.core.vocabulary import EstimateTerm, EstimatorKind, RobustLoss
 from pipeline.run.options import ProcessOptions
 from stages.check_applied import CheckApplied, calibration_source
@@ -105,6 +105,17 @@ class Plan:
     def segmentation(self) -> list[Stage[Context]]:
         """Stages on every k-th aligned sample of a long recording (before its analysis)."""
         return [SegmentMotion()]
+
+    def step_names(self) -> list[str]:
+        """Return the names of the analysis' stages in the order they run (the progress line).
+
+        A long recording's motion is segmented in its first pass, before the analysis; what
+        the first pass finds configures the stages but does not change their names.
+        """
+        if not self.windowed:
+            return [stage_name(s) for s in self.analysis_stages()]
+        stages = [*self.segmentation(), *self.analysis_stages(FirstPass(max_gap_s=1.0))]
+        return [stage_name(s) for s in stages]
 
     def analysis_stages(self, first: FirstPass | None = None) -> list[Stage[Context]]:
         """Return the stages from Resample to the verdict (every command runs these).

@@ -440,6 +440,7 @@ def _prepared(source: Source, options: ProcessOptions, steps: Steps) -> tuple[So
 def analyse_source(source: Source, options: ProcessOptions, steps: Steps) -> Analysed:
     """Run the first pass (a long recording) and the analysis stages on ``source``."""
     source, plan = _prepared(source, options, steps)
+    steps.expect(plan.step_names())
     if not plan.windowed:
         assert isinstance(source, MemorySource)
         rec = source.recording
