@@ -40,7 +40,6 @@ from stages.diagnose.catalogue import explanation
 from stages.diagnose.fit import FitResult, fit
 from stages.diagnose.model import (
     F64,
-    LOCAL_KINDS,
     AttitudeTrack,
     FitData,
     ModelState,
@@ -57,6 +56,7 @@ from stages.diagnose.search import MAX_LAG_S, diagnose_data, gradient_note, scan
 from stages.diagnose.statistics import (
     INFORMATION_CUT,
     effective_samples,
+    fold_errors,
     inflation,
     param_covariance,
     sigma_for,
@@ -221,10 +221,11 @@ def _heldout_split(state: ModelState, train: FitData, test: FitData, cfg: Diagno
                    t0_s: float, block_of: np.ndarray | None = None) -> tuple[float, np.ndarray]:
     """Held-out RMS (nT) when the model is fitted on ``train`` and predicts ``test``.
 
-    Like :func:`heldout_rms` (the same time blocks, counted from ``t0_s``: with the first
-    sample of the diagnosis data the folds are exactly those of :func:`heldout_rms`), but the
-    samples fitted and the samples predicted may differ: the repeats of a sample-and-hold
-    sensor are predicted although only the first copies are fitted.
+    :func:`~stages.diagnose.statistics.fold_errors` over the time blocks of
+    :func:`heldout_rms`, counted from ``t0_s`` (with the first sample of the diagnosis data
+    the folds are exactly those of :func:`heldout_rms`); the samples fitted and the samples
+    predicted may differ: the repeats of a sample-and-hold sensor are predicted although
+    only the first copies are fitted.
 
     Returns the RMS and the squared error of each test sample (summed over its components),
     so that two handlings can be compared block by block (``block_of``: the test samples'
@@ -234,21 +235,9 @@ def _heldout_split(state: ModelState, train: FitData, test: FitData, cfg: Diagno
     blk = (np.floor((test.t_s - t0_s) / cfg.block_s).astype(np.int64) if block_of is None
            else np.asarray(block_of, dtype=np.int64))
     f_te = blk % cfg.n_folds
-    start = dataclasses.replace(state, values=tuple(
-        np.zeros_like(v) if t.kind in LOCAL_KINDS else v
-        for t, v in zip(state.terms, state.values, strict=True)))
     sq, cnt = 0.0, 0
     per = np.full(len(test), np.nan)
-
-    def error(te: np.ndarray, tr: np.ndarray) -> np.ndarray:
-        res = fit(start, train.subset(tr), max_iter=6, rtol=1e-6)
-        sub = test.subset(te)
-        return sub.y_nT - evaluate(res.state, sub, jacobian=False).y_nT
-
-    folds = [(f_te == j, f_tr != j) for j in range(cfg.n_folds)]
-    folds = [(te, tr) for te, tr in folds if te.any() and tr.sum() >= 10]
-    # the folds side by side (pipeline.model.parallel)
-    for (te, _), e in zip(folds, parallel.ordered(lambda f: error(*f), folds), strict=True):
+    for te, e in fold_errors(state, train, test, f_tr, f_te, cfg.n_folds):
         sq += float(np.sum(e * e))
         cnt += e.size
         per[te] = np.sum(e * e, axis=1)

@@ -367,14 +367,35 @@ def fold_of(t_s: np.ndarray, cfg: DiagnoseConfig, state: ModelState | None = Non
 def heldout_rms(state: ModelState, data: FitData, cfg: DiagnoseConfig) -> float:
     """RMS prediction error on held-out time blocks, nT.
 
-    Each fold is refitted from the current state with the values of local terms reset to
-    zero (so a window's amplitude is learnt only from training samples), then predicts the
-    held-out blocks. Random samples are never held out: neighbouring samples share
-    attitude noise and would leak. The folds are fitted side by side
-    (:mod:`pipeline.model.parallel`) and summed in their order.
+    The model is refitted without each fold and predicts it (:func:`fold_errors`). Random
+    samples are never held out: neighbouring samples share attitude noise and would leak.
     """
     folds = fold_of(data.t_s, cfg, state)
     sq, cnt = 0.0, 0
+    for _, e in fold_errors(state, data, data, folds, folds, cfg.n_folds):
+        sq += float(np.sum(e * e))
+        cnt += e.size
+    return float(np.sqrt(sq / max(cnt, 1)))
+
+
+def fold_errors(state: ModelState, train: FitData, test: FitData, fold_train: np.ndarray,
+                fold_test: np.ndarray, n_folds: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each fold's held-out errors: the model fitted without the fold predicts it.
+
+    Each fold is refitted from ``state`` on the ``train`` samples outside it, with the
+    values of local terms reset to zero (so that a window's amplitude is learnt only from
+    training samples), then predicts the ``test`` samples inside it. ``train`` and
+    ``test`` may differ (the repeats of a sample-and-hold sensor are predicted although only
+    the first copies are fitted). The folds are fitted side by side
+    (:mod:`pipeline.model.parallel`).
+
+    Returns
+    -------
+    list of (ndarray of bool, ndarray (k, 3))
+        In fold order, for each fold with test samples and at least 10 training samples:
+        its mask over ``test`` and the errors there, nT.
+
+    """
     start = dataclasses.replace(
         state,
         values=tuple(
@@ -382,17 +403,17 @@ def heldout_rms(state: ModelState, data: FitData, cfg: DiagnoseConfig) -> float:
             for t, v in zip(state.terms, state.values, strict=True)
         ),
     )
+    folds = [(fold_test == j, fold_train != j) for j in range(n_folds)]
+    folds = [(te, tr) for te, tr in folds if te.any() and tr.sum() >= 10]
 
-    def error(test: np.ndarray) -> np.ndarray:
+    def error(fold: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        te, tr = fold
         # the fold's state alone predicts: its information is not formed again at the end
-        res = fit(start, data.subset(~test), max_iter=6, rtol=1e-6, final_information=False)
-        return data.y_nT[test] - evaluate(res.state, data.subset(test), jacobian=False).y_nT
+        res = fit(start, train.subset(tr), max_iter=6, rtol=1e-6, final_information=False)
+        sub = test.subset(te)
+        return sub.y_nT - evaluate(res.state, sub, jacobian=False).y_nT
 
-    tests = [folds == j for j in range(cfg.n_folds)]
-    for e in parallel.ordered(error, [m for m in tests if m.any() and (~m).sum() >= 10]):
-        sq += float(np.sum(e * e))
-        cnt += e.size
-    return float(np.sqrt(sq / max(cnt, 1)))
+    return list(zip([te for te, _ in folds], parallel.ordered(error, folds), strict=True))
 
 
 def heldout_ok(
