@@ -57,9 +57,9 @@ def _both_paths(path: Path, monkeypatch: pytest.MonkeyPatch) -> tuple[int, int]:
     orig = mcap_decode._batches
 
     def counting(*a, **k):  # type: ignore[no-untyped-def]
-        for buf, sel in orig(*a, **k):
+        for buf, sel, ends in orig(*a, **k):
             counts[buf is not None] += 1
-            yield buf, sel
+            yield buf, sel, ends
 
     with monkeypatch.context() as m:
         m.setattr(mcap_decode, "_batches", counting)

@@ -589,15 +589,17 @@ def _aligned_rows(parts: list[np.ndarray], width: int) -> np.ndarray:
 
 def _batches(scan: Scan, want: set[int], decoders: dict[int, ChannelDecoder],
              max_messages: int = 0
-             ) -> Iterator[tuple[NDArray[np.uint8] | None, dict[int, Any]]]:
+             ) -> Iterator[tuple[NDArray[np.uint8] | None, dict[int, Any], bool]]:
     """:func:`iter_blocks` with ``BATCH_BYTES``, reading uniform records the fast way.
 
     ``max_messages`` > 0 also ends a batch at the first chunk that brings the wanted
-    messages since the last such end to that many (where the ranges of
-    :func:`pipeline.io.mcap_read.iter_recording_chunks` end).
+    messages since the last such end to that many: a range's end, where the ranges of
+    :func:`pipeline.io.mcap_read.iter_recording_chunks` end. The third item of what is
+    yielded says whether a range ends with it (messages outside chunks, yielded first,
+    join the first range).
 
-    Yields ``(buffer, {channel id: record offsets})`` as :func:`iter_blocks` does, or
-    ``(None, {channel id: [(rows, shape), ...]})`` for a batch whose chunks all hold records
+    Yields ``(buffer, {channel id: record offsets}, ends)`` as :func:`iter_blocks` does, or
+    ``(None, {channel id: [(rows, shape), ...]}, ends)`` for a batch whose chunks all hold records
     of one shape per channel (:class:`_Shape`): only the bytes up to the last wanted field of
     each record are gathered, once, from the decompressed chunk, and every field is then a
     strided copy of those rows. The batches, the chunks' checks, the problems
@@ -609,7 +611,7 @@ def _batches(scan: Scan, want: set[int], decoders: dict[int, ChannelDecoder],
     between the runs read the fast way.
     """
     for cid in sorted(want & scan.top_messages.keys()):
-        yield scan.buf, {cid: np.asarray(scan.top_messages[cid], dtype=np.int64)}
+        yield scan.buf, {cid: np.asarray(scan.top_messages[cid], dtype=np.int64)}, False
     fast = {cid: _Uniform(decoders[cid], cid) for cid in want
             if decoders[cid].layout is not None}
     # a chunk read the fast way keeps only its gathered rows; one read the general way, its
@@ -619,7 +621,7 @@ def _batches(scan: Scan, want: set[int], decoders: dict[int, ChannelDecoder],
     todo = [ch for ch in scan.chunks
             if not ch.bad and ch.index and (want & ch.index.keys())]
 
-    def uniform(run: list[dict[int, Any]]) -> tuple[None, dict[int, Any]]:
+    def uniform(run: list[dict[int, Any]]) -> dict[int, Any]:
         groups: dict[int, list[tuple[list[np.ndarray], _Shape]]] = {}
         for got in run:
             for cid, (rows, shape) in got.items():
@@ -628,17 +630,20 @@ def _batches(scan: Scan, want: set[int], decoders: dict[int, ChannelDecoder],
                     gs[-1][0].append(rows)
                 else:
                     gs.append(([rows], shape))
-        return None, {cid: [(_aligned_rows(r, shape.width), shape) for r, shape in gs]
-                      for cid, gs in groups.items()}
+        return {cid: [(_aligned_rows(r, shape.width), shape) for r, shape in gs]
+                for cid, gs in groups.items()}
 
-    def flush() -> Iterator[tuple[NDArray[np.uint8] | None, dict[int, Any]]]:
-        """Yield the batch's runs of chunks read alike, in file order."""
-        for fast_way, run in itertools.groupby(entries, key=lambda e: e[2] is not None):
-            es = list(run)
+    def flush(ends: bool) -> Iterator[tuple[NDArray[np.uint8] | None, dict[int, Any], bool]]:
+        """Yield the batch's runs of chunks read alike, in file order; the last one ``ends``."""
+        runs = [(fast_way, list(run)) for fast_way, run in
+                itertools.groupby(entries, key=lambda e: e[2] is not None)]
+        for k, (fast_way, es) in enumerate(runs):
+            last = ends and k == len(runs) - 1
             if fast_way:
-                yield uniform([got for _, _, got in es if got is not None])
+                yield None, uniform([got for _, _, got in es if got is not None]), last
             else:
-                yield join_blocks([b for b, _, _ in es if b is not None], [s for _, s, _ in es])
+                yield *join_blocks([b for b, _, _ in es if b is not None],
+                                   [s for _, s, _ in es]), last
 
     def uniform_rows(ch: ChunkRecord, b: bytes) -> dict[int, Any] | None:
         """Return each wanted channel's records as rows of one shape, or None.
@@ -673,27 +678,28 @@ def _batches(scan: Scan, want: set[int], decoders: dict[int, ChannelDecoder],
         count += sum(len(off) for off in sel.values())
         full = bool(max_messages) and count >= max_messages
         if full or size >= BATCH_BYTES:
-            yield from flush()
+            yield from flush(full)
             entries, size = [], 0
             count = 0 if full else count
     if entries:
-        yield from flush()
+        yield from flush(False)
 
 
 def decoded_batches(scan: Scan, cids: list[int], max_messages: int
-                    ) -> Iterator[dict[int, list[DecodedColumns]]]:
-    """Decode the channels ``cids`` in batches of whole chunks.
+                    ) -> Iterator[tuple[dict[int, list[DecodedColumns]], bool]]:
+    """Decode the channels ``cids`` in batches of whole chunks, saying where a range ends.
 
     A batch ends at ``BATCH_BYTES`` of decompressed chunks and at the first chunk that
-    brings the messages of ``cids`` since the last such end to ``max_messages``; it is
-    decoded at once, the fast way where its records are uniform (:func:`_batches`): per
-    chunk, the per-call work of the general decoder costs ten times the decoding of a
-    logger's few hundred messages. Yields ``{channel id: columns}`` in file order, a batch
-    at once or, where some of its chunks are read the general way, in runs of chunks read
-    alike (a channel without a message in the part is left out).
+    brings the messages of ``cids`` since the last range end to ``max_messages``, which
+    ends a range; it is decoded at once, the fast way where its records are uniform
+    (:func:`_batches`): per chunk, the per-call work of the general decoder costs ten times
+    the decoding of a logger's few hundred messages. Yields ``({channel id: columns},
+    ends)`` in file order, a batch at once or, where some of its chunks are read the
+    general way, in runs of chunks read alike (a channel without a message in the part is
+    left out); ``ends`` is True for the last part of a range.
     """
     decoders = {cid: ChannelDecoder(scan, scan.channels[cid]) for cid in cids}
-    for buf, sel in _batches(scan, set(cids), decoders, max_messages):
+    for buf, sel, ends in _batches(scan, set(cids), decoders, max_messages):
         out: dict[int, list[DecodedColumns]] = {}
         if buf is not None:
             for cid, rec in sel.items():
@@ -701,7 +707,7 @@ def decoded_batches(scan: Scan, cids: list[int], max_messages: int
         else:
             for cid, groups in sel.items():
                 out[cid] = [shape.columns(rows) for rows, shape in groups]
-        yield out
+        yield out, ends
 
 
 def decode_channels(scan: Scan, cids: list[int]) -> dict[int, DecodedColumns]:
@@ -741,24 +747,14 @@ def decode_channels(scan: Scan, cids: list[int]) -> dict[int, DecodedColumns]:
         fill[cid] = i + k
         frames.setdefault(cid, d.frame_id)
 
-    for buf, sel in _batches(scan, set(cids), decoders):
+    for buf, sel, _ in _batches(scan, set(cids), decoders):
         if buf is not None:
             for cid, rec in sel.items():
                 put(cid, decoders[cid].decode(buf, rec))
             continue
         for cid, groups in sel.items():
             for rows, shape in groups:
-                width = shape.direct
-                if not width:
-                    put(cid, shape.decode(rows))
-                    continue
-                k, i = len(rows), fill[cid]
-                t, v, log = reserve(cid, k, [((), np.dtype(np.int64)),
-                                             ((width,), np.dtype(np.float64)),
-                                             ((), np.dtype(np.int64))])
-                frame = shape.decode_into(rows, t[i : i + k], v[i : i + k], log[i : i + k])
-                fill[cid] = i + k
-                frames.setdefault(cid, frame)
+                put(cid, shape.columns(rows))
     out = {}
     for cid in cids:
         if cid not in cols:

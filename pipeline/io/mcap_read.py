@@ -777,7 +777,7 @@ def iter_recording_chunks(
     pos_id = pick_position(scan, position_topic, [])
     ids = [i for i in (mag_id, att_id, tt_id, pos_id) if i is not None]
     parts: dict[int, list[DecodedColumns]] = {cid: [] for cid in ids}
-    count, index = 0, 0
+    index = 0
     positions = _ChunkPositions()
 
     def emit() -> RecordingChunk:
@@ -808,13 +808,11 @@ def iter_recording_chunks(
             position=positions.series(fx if pos_id is not None else a),
         )
 
-    for batch in decoded_batches(scan, ids, max_messages):
+    for batch, ends in decoded_batches(scan, ids, max_messages):
         for cid, ds in batch.items():
             parts[cid] += ds
-            count += sum(len(d.t_ns) for d in ds)
-        if count >= max_messages:
+        if ends:
             yield emit()
             index += 1
-            count = 0
-    if count:
+    if any(parts.values()):
         yield emit()

@@ -637,7 +637,8 @@ def iter_blocks(scan: Scan, want: set[int], batch_bytes: int = 0
     ``batch_bytes`` > 0 joins consecutive chunks into blocks of about that many decompressed
     bytes (whole-recording reads: a logger's chunks hold a few hundred kB, and decoding each
     on its own spends most of the time in per-call overhead); 0 yields one block per
-    chunk (the chunked readers, whose memory bound is a chunk).
+    chunk, for readers that copy each chunk's records out as they go or stop at the first
+    messages (the raw channels, the header's first messages).
     """
     for cid in sorted(want & scan.top_messages.keys()):
         yield scan.buf, {cid: np.asarray(scan.top_messages[cid], dtype=np.int64)}
