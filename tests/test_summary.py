@@ -28,13 +28,16 @@ def _row(name, *, frm=None, status="ok", rv=(1.2, -1.0, 1.2), sg=(0.01, 0.02, No
 def test_grouped_columns_and_formats():
     rows = [_row("cal", tau=0.0152), _row("line", frm="cal"),
             _row("bad", status="failed", error="bad.mcap: not an MCAP file")]
+    # one calibration run: no campaign figure
+    assert "<img " not in render_html(rows, list(rows[0]), "t")
+    rows.insert(1, _row("cal2", rv=(1.1, -0.9, 1.3)))
     text = render_html(rows, list(rows[0]), "t")
     head = text[text.index("<thead>"):text.index("</thead>")]
     for group in ("recording", "misalignment", "offset o (nT, mag)", "field B (nT)",
                   "fluctuation, after / before (%)", "diagnosis"):
         assert group in head
     body = text[text.index("<tbody>"):]
-    assert body.count("<tr>") == 3 and "<tr class=err>" in body  # error under its row
+    assert body.count("<tr>") == 4 and "<tr class=err>" in body  # error under its row
     assert "15.20" in body  # tau in ms, 2 decimals
     assert "\u221249001" in body and "-49001" not in body  # field: 0 decimals, true minus
     assert "1.200<small> \u00b1 0.010</small>" in body  # deg: 3 decimals with its sigma
@@ -49,6 +52,8 @@ def test_grouped_columns_and_formats():
 def test_campaign_figure_only_calibration_runs():
     assert campaign_figure([_row("line", frm="cal")]) is None
     assert campaign_figure([_row("bad", status="failed")]) is None
+    # one run: nothing to compare (the table holds its rotation)
+    assert campaign_figure([_row("a"), _row("l", frm="a"), _row("bad", status="failed")]) is None
     png = campaign_figure([_row("a"), _row("b", rv=(1.1, -0.9, 1.3)), _row("l", frm="a")])
     assert png is not None and png.startswith(PNG)
 
