@@ -233,11 +233,14 @@ def run(args: argparse.Namespace) -> int:
     executor = make_executor(jobs=args.jobs, dask_local=args.dask_local,
                              scheduler=args.scheduler, items=len(camp.recordings))
     # the summary's imports (pandas through pyarrow's conversions, matplotlib for its
-    # figure) while the workers run, in the cycles they leave idle. Not beside a recording
-    # run in this process: it would wait on a starved thread's import lock, and matplotlib's
-    # catch_warnings there could end the run's own collecting of warnings
+    # figure, which compares two runs or more) while the workers run, in the cycles they
+    # leave idle. Not beside a recording run in this process: it would wait on a starved
+    # thread's import lock, and matplotlib's catch_warnings there could end the run's own
+    # collecting of warnings
+    summary_imports = ("pyarrow.parquet", "pandas") + (
+        ("pipeline.core.style:pyplot",) if len(camp.recordings) > 1 else ())
     warm = None if isinstance(executor, SerialExecutor) else warm_in_background(
-        "pyarrow.parquet", "pandas", "pipeline.core.style:pyplot", idle=True)
+        *summary_imports, idle=True)
     results = _run_with_progress(camp, out, executor, args)
     if warm is not None:
         # matplotlib reads its style files inside warnings.catch_warnings, which swaps the
