@@ -85,8 +85,11 @@ def left_times(A: F64, M: F64) -> F64:
 
 
 def right_times(M: F64, A: F64) -> F64:
-    """Return ``M_n @ A`` for a stack (N, 3, 3) and one (3, 3) matrix: one BLAS product."""
-    return cast(F64, (M.reshape(-1, 3) @ A).reshape(M.shape))
+    """Return ``M_n @ A`` for a stack (..., K) and one (K, L) matrix: one BLAS product.
+
+    ``M @ A`` on a stack multiplies each small matrix on its own, at twice the time.
+    """
+    return cast(F64, (M.reshape(-1, M.shape[-1]) @ A).reshape(*M.shape[:-1], A.shape[-1]))
 
 
 def norm_last(x: F64, keepdims: bool = False) -> F64:

@@ -1072,8 +1072,8 @@ def _partial_evaluation(state: ModelState, data: FitData) -> Evaluation:
         width = term.full_size()
         blk = Jf[:, :, i : i + width]
         if term.partial:
-            blocks.append(blk @ term.determined_matrix())
-            held.append(blk @ term.undetermined())
+            blocks.append(right_times(blk, term.determined_matrix()))
+            held.append(right_times(blk, term.undetermined()))
         else:
             blocks.append(blk)
         i += width

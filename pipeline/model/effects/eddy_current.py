@@ -6,6 +6,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from pipeline.core.geometry import right_times
 from pipeline.core.vocabulary import EffectKind
 from pipeline.core.words import vec
 from pipeline.model.effects.base import (
@@ -105,7 +106,7 @@ class EddyCurrent(Effect):
         for r_ in range(3):
             out[:, r_, 3 * r_ : 3 * r_ + 3] = lin.ydot0
         if self.kind in lin.gauged:  # beside a time offset only the traceless part
-            out[:] = out @ TRACELESS_PROJECTOR
+            out[:] = right_times(out, TRACELESS_PROJECTOR)
 
     def model_fields(self, params: dict[str, Any]) -> dict[str, Any]:
         """Return ``E_s`` for the restore (see :meth:`Effect.model_fields`)."""
