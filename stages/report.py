@@ -355,8 +355,7 @@ def _fit_left(fig: Any, pad: float = 0.006) -> None:
     themselves: drawing the figure first, as this once did, rasterised every figure twice
     (a third of a small recording's ``process``) for the same boxes. Only the axes of the
     leftmost column are laid out: the labels of the others lie over the column to their
-    left, inside the figure, and laying out every axes' ticks took a sixth of the figures'
-    time.
+    left, inside the figure, and each tight box lays out its axes' ticks anew.
     """
     renderer = fig.canvas.get_renderer()
     inv = fig.transFigure.inverted()

@@ -244,8 +244,8 @@ def campaign_figure(rows: Sequence[Mapping[str, Any]]) -> bytes | None:
 
     A calibration run is a recording whose rotation was estimated here (not restored with
     another's calibration). The figure compares runs: returns None when there are fewer
-    than two, whose one rotation the table already shows with its sigmas (drawing it, with
-    matplotlib's import, took 2 s of a one-recording ``process``).
+    than two (one run's rotation and sigmas are its row of the table; drawing them again
+    would cost a one-recording ``process`` matplotlib's import).
     """
     runs = [r for r in rows if r.get("status") in ("ok", "reused")
             and not r.get("calibration_from")

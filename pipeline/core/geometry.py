@@ -87,7 +87,8 @@ def left_times(A: F64, M: F64) -> F64:
 def right_times(M: F64, A: F64) -> F64:
     """Return ``M_n @ A`` for a stack (..., K) and one (K, L) matrix: one BLAS product.
 
-    ``M @ A`` on a stack multiplies each small matrix on its own, at twice the time.
+    ``M @ A`` on a stack makes one small product per matrix of the stack; the rows of the
+    whole stack against ``A`` are one product.
     """
     return cast(F64, (M.reshape(-1, M.shape[-1]) @ A).reshape(*M.shape[:-1], A.shape[-1]))
 

@@ -478,7 +478,7 @@ class _Shape:
 
     def decode_into(self, rows: np.ndarray, t: np.ndarray, v: np.ndarray, log: np.ndarray
                     ) -> str:
-        """:meth:`decode` for the types of ``_DIRECT``, written straight into output slices.
+        """:meth:`decode` for the types of ``_DIRECT``, written straight into output arrays.
 
         ``t``, ``v`` and ``log`` (``len(rows)`` rows each) receive the stamps, values and log
         times :meth:`ChannelDecoder._from_cdr` computes, with the same arithmetic in place (no
